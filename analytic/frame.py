@@ -118,7 +118,10 @@ def square_to_power_cosine(u: torch.Tensor, exponent) -> torch.Tensor:
 
 
 def power_cosine_pdf(cos_a: torch.Tensor, exponent) -> torch.Tensor:
-    return (exponent + 1.0) / (2.0 * math.pi) * cos_a.clamp_min(0.0) ** exponent
+    # masked rather than clamped: torch evaluates 0 ** 0 as 1, which would give the
+    # far hemisphere mass when the exponent is 0
+    p = (exponent + 1.0) / (2.0 * math.pi) * cos_a.clamp_min(0.0) ** exponent
+    return torch.where(cos_a > 0, p, torch.zeros_like(p))
 
 
 # ----------------------------------------------------------------- Rusinkiewicz angles

@@ -18,7 +18,8 @@ FILM_WAVELENGTHS = (650.0, 550.0, 450.0)
 
 
 def _rgb_like(value, cos: torch.Tensor) -> torch.Tensor:
-    return torch.as_tensor(value, dtype=cos.dtype, device=cos.device)
+    """A scalar or RGB parameter as a (3,) tensor on the cosine's dtype and device."""
+    return torch.as_tensor(value, dtype=cos.dtype, device=cos.device).reshape(-1).expand(3)
 
 
 def schlick(f0, cos: torch.Tensor) -> torch.Tensor:
