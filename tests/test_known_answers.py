@@ -129,15 +129,17 @@ def test_gold_normal_incidence_known_answer(data_dir):
 
 @pytest.mark.parametrize("material", ["Au", "Ag", "Cu", "Al"])
 def test_conductor_presets_agree_with_mitsuba_rgb(data_dir, material):
-    """Our presets point-sample the spectrum at 650/550/450 nm; Mitsuba integrates it
-    against CIE curves.  The normal-incidence reflectance must agree to 0.07 (the
-    difference of the two RGB conversions; Au blue is the worst case at 0.062)."""
+    """Our presets project the spectra to sRGB with an analytic fit of the CIE curves
+    (tools/make_conductor_presets.py); Mitsuba uses tabulated CIE curves.  The IOR
+    agrees to 2 % and the normal-incidence reflectance to 5e-3 (measured worst 2e-3)."""
     eta_m, k_m = mitsuba_ior(data_dir)[material]
     eta, k = fr.conductor_ior(material)
     one = torch.tensor(1.0, dtype=torch.float64)
     ours = fr.conductor(eta, k, one).numpy()
     ref = fr.conductor(eta_m, k_m, one).numpy()
-    np.testing.assert_allclose(ours, ref, atol=0.07)
+    np.testing.assert_allclose(eta, eta_m, rtol=0.02)
+    np.testing.assert_allclose(k, k_m, rtol=0.02)
+    np.testing.assert_allclose(ours, ref, atol=5e-3)
 
 
 def test_seed004_exercises():

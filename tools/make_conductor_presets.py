@@ -3,10 +3,13 @@
     python tools/make_conductor_presets.py ../shared/data/ior
 
 Each preset is the spectral (eta, k) of the luxpop data (as distributed in
-mitsuba-data ``ior/*.spd``: wavelength in nm, value), linearly interpolated at the
-RGB wavelengths 650 / 550 / 450 nm.  This is a plain point-sampling of the spectrum,
-deliberately independent of Mitsuba's CIE-weighted RGB conversion, which the tests
-compare against (tests/test_known_answers.py states the tolerance).
+mitsuba-data ``ior/*.spd``: wavelength in nm, value) projected to linear sRGB: the
+spectrum is integrated against the CIE 1931 colour-matching functions, here the
+multi-lobe analytic fit of Wyman, Sloan & Shirley 2013 ("Simple Analytic
+Approximations to the CIE XYZ Color Matching Functions", JCGT 2(2)), normalised by
+the integral of y-bar, and converted XYZ -> linear sRGB (IEC 61966-2-1 matrix).  This
+is our own conversion; Mitsuba's RGB values (../shared/data) are the independent
+reference the tests compare against (tests/test_known_answers.py).
 """
 
 import json
@@ -17,8 +20,31 @@ from pathlib import Path
 
 import numpy as np
 
-WAVELENGTHS = (650.0, 550.0, 450.0)
 MATERIALS = ("Au", "Ag", "Cu", "Al")
+LAMBDA = np.linspace(360.0, 830.0, 4701)                      # nm, 0.1 nm steps
+XYZ_TO_SRGB = np.array([[3.2406, -1.5372, -0.4986],
+                        [-0.9689, 1.8758, 0.0415],
+                        [0.0557, -0.2040, 1.0570]])
+
+
+def _lobe(lam, mu, s1, s2):
+    s = np.where(lam < mu, s1, s2)
+    return np.exp(-0.5 * ((lam - mu) / s) ** 2)
+
+
+def cmf(lam: np.ndarray) -> np.ndarray:
+    """CIE 1931 x-bar, y-bar, z-bar: Wyman et al. 2013, multi-lobe fit (their eq. 2)."""
+    x = (1.056 * _lobe(lam, 599.8, 37.9, 31.0) + 0.362 * _lobe(lam, 442.0, 16.0, 26.7)
+         - 0.065 * _lobe(lam, 501.1, 20.4, 26.2))
+    y = 0.821 * _lobe(lam, 568.8, 46.9, 40.5) + 0.286 * _lobe(lam, 530.9, 16.3, 31.1)
+    z = 1.217 * _lobe(lam, 437.0, 11.8, 36.0) + 0.681 * _lobe(lam, 459.0, 26.0, 13.8)
+    return np.stack([x, y, z], -1)
+
+
+def spectrum_to_rgb(wl: np.ndarray, val: np.ndarray) -> np.ndarray:
+    c = cmf(LAMBDA)
+    xyz = (c * np.interp(LAMBDA, wl, val)[:, None]).sum(0) / c[:, 1].sum()
+    return XYZ_TO_SRGB @ xyz
 
 
 def read_spd(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -29,13 +55,14 @@ def read_spd(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(src: str) -> None:
-    out = {"_source": "luxpop spectral data (mitsuba-data ior/*.spd), linear interpolation "
-                      "at 650/550/450 nm; regenerate with tools/make_conductor_presets.py"}
+    out = {"_source": "luxpop spectral data (mitsuba-data ior/*.spd) projected to linear sRGB "
+                      "with CIE 1931 CMFs (Wyman et al. 2013 fit); "
+                      "regenerate with tools/make_conductor_presets.py"}
     for m in MATERIALS:
         entry = {}
         for part in ("eta", "k"):
             wl, val = read_spd(Path(src) / f"{m}.{part}.spd")
-            entry[part] = [round(float(np.interp(w, wl, val)), 6) for w in WAVELENGTHS]
+            entry[part] = [round(float(v), 6) for v in spectrum_to_rgb(wl, val)]
         out[m] = entry
     dest = Path(__file__).resolve().parents[1] / "analytic" / "data" / "conductors.json"
     fd, tmp = tempfile.mkstemp(dir=dest.parent)

@@ -1,0 +1,149 @@
+"""Throughput of the analytic models: BRDF evaluations per second, numpy and torch.
+
+    python benchmarks/analytic_throughput.py
+    python benchmarks/analytic_throughput.py --batch 65536 --repeats 3 --out /tmp/t.json
+
+Every model in ``analytic.available()`` is evaluated at its defaults on a fixed batch
+of random (wi, wo) pairs in the upper hemisphere, in float32, once from numpy arrays
+and once from torch tensors (CPU, the default thread count).  One warm-up call, then the
+best of ``--repeats`` timed calls.  The same run measures the machine's fp32 matmul
+peak (torch.mm of two 2048 x 2048 matrices) so the figures can be compared across
+machines.  Results go to benchmarks/results/analytic_throughput.json (written
+atomically) and a table is printed.  Nothing here asserts a speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:            # run from a checkout without `pip install -e .`
+    sys.path.insert(0, str(REPO))
+
+import analytic  # noqa: E402
+
+DEFAULT_OUT = REPO / "benchmarks" / "results" / "analytic_throughput.json"
+MATMUL_N = 2048
+
+
+def best_time(fn, repeats: int) -> float:
+    """Seconds of the fastest of ``repeats`` calls, after one warm-up call."""
+    fn()
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def random_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """float32 (wi, wo), each uniform over the upper hemisphere."""
+    rng = np.random.default_rng(seed)
+
+    def hemi():
+        z = rng.uniform(0.0, 1.0, n)
+        phi = rng.uniform(0.0, 2.0 * math.pi, n)
+        r = np.sqrt(1.0 - z * z)
+        return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1).astype(np.float32)
+
+    return hemi(), hemi()
+
+
+def matmul_gflops(repeats: int) -> float:
+    a = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
+    b = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
+    t = best_time(lambda: torch.mm(a, b), repeats)
+    return 2.0 * MATMUL_N ** 3 / t / 1e9
+
+
+def bench_model(name: str, wi: np.ndarray, wo: np.ndarray, repeats: int) -> dict:
+    brdf = analytic.create(name)
+    wi_t, wo_t = torch.from_numpy(wi), torch.from_numpy(wo)
+    n = len(wi)
+    t_np = best_time(lambda: brdf.eval(wi, wo), repeats)
+    with torch.no_grad():
+        t_torch = best_time(lambda: brdf.eval(wi_t, wo_t), repeats)
+    return {"model": repr(brdf), "numpy_evals_per_s": n / t_np, "torch_evals_per_s": n / t_torch,
+            "numpy_s": t_np, "torch_s": t_torch}
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Write via a temporary file in the same folder and os.replace (atomic)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=2)
+            fh.write("\n")
+        os.chmod(tmp, 0o644)                 # mkstemp makes it 0600
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--batch", type=int, default=1 << 18, help="(wi, wo) pairs per call")
+    ap.add_argument("--repeats", type=int, default=5, help="timed calls; the best is kept")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output path")
+    args = ap.parse_args(argv)
+    if args.batch < 1 or args.repeats < 1:
+        ap.error("--batch and --repeats must be >= 1")
+
+    load_at_start = os.getloadavg()[0]      # other work on the machine skews every figure
+    wi, wo = random_pairs(args.batch)
+    peak = matmul_gflops(args.repeats)
+    models = {}
+    for name in analytic.available():
+        models[name] = bench_model(name, wi, wo, args.repeats)
+
+    result = {
+        "benchmark": "analytic_throughput",
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "batch": args.batch,
+        "repeats": args.repeats,
+        "dtype": "float32",
+        "statistic": "best of repeats, after one warm-up call",
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "numpy": np.__version__,
+            "load_average_1min_at_start": load_at_start,
+            "fp32_matmul_gflops": peak,
+            "matmul": f"torch.mm {MATMUL_N}x{MATMUL_N} float32",
+        },
+        "models": models,
+    }
+    write_json(args.out, result)
+
+    print(f"analytic throughput: batch {args.batch}, float32, best of {args.repeats}; "
+          f"{torch.get_num_threads()} torch threads")
+    print(f"fp32 matmul peak (torch.mm {MATMUL_N}^2): {peak:.1f} GFLOP/s; "
+          f"1-min load average at start {load_at_start:.2f}")
+    print(f"{'model':<20}{'numpy M evals/s':>18}{'torch M evals/s':>18}")
+    for name, m in models.items():
+        print(f"{name:<20}{m['numpy_evals_per_s'] / 1e6:>18.2f}{m['torch_evals_per_s'] / 1e6:>18.2f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
