@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from .base import BRDF, Lobe, ParameterError, cosine_lobe, luminance, rgb, scalar
+from .base import BRDF, Lobe, cosine_lobe, luminance, rgb_pair, scalar
 from .phong import clamped_power
 
 # Relative safety margin on the normalisation N(n): the quadrature below is accurate
@@ -110,11 +110,8 @@ class Bank(BRDF):
         (default 0.5).
         exponent: lobe exponent n >= 0 (default 20); larger gives a thinner cone.
         Requires kd + ks <= 1 in every channel."""
-        kd = rgb("kd", kd)
-        ks = rgb("ks", ks)
+        kd, ks = rgb_pair("kd", kd, "ks", ks)
         n = scalar("exponent", exponent, lo=0.0)
-        if any(a + b > 1.0 + 1e-12 for a, b in zip(kd, ks)):
-            raise ParameterError(f"ks: kd + ks must be <= 1 per channel, got kd={kd}, ks={ks}")
         super().__init__(kd=kd, ks=ks, exponent=n)
         self._norm = normalization(n)
         self._gamma = 1.2 / math.sqrt(n + 1.0)

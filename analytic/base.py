@@ -65,6 +65,15 @@ def scalar(name: str, value, *, lo: float = -math.inf, hi: float = math.inf,
     return v
 
 
+def rgb_pair(name_a: str, a, name_b: str, b) -> tuple[tuple, tuple]:
+    """Two RGB albedos that share the energy: each in [0, 1], their sum <= 1 per channel."""
+    a, b = rgb(name_a, a), rgb(name_b, b)
+    if any(x + y > 1.0 + 1e-12 for x, y in zip(a, b)):
+        raise ParameterError(f"{name_b}: {name_a} + {name_b} must be <= 1 per channel, "
+                             f"got {name_a}={a}, {name_b}={b}")
+    return a, b
+
+
 def choice(name: str, value, options: Sequence[str]) -> str:
     if value not in options:
         raise ParameterError(f"{name}: must be one of {list(options)}, got {value!r}")

@@ -9,7 +9,7 @@ import math
 import torch
 
 from . import frame
-from .base import BRDF, Lobe, ParameterError, cosine_lobe, luminance, rgb, scalar
+from .base import BRDF, Lobe, cosine_lobe, luminance, rgb_pair, scalar
 from .phong import clamped_power
 
 
@@ -102,11 +102,8 @@ class BlinnPhong(BRDF):
         ks: RGB specular albedo at normal incidence in [0, 1] (default 0.3).
         exponent: Blinn-Phong exponent n >= 0 (default 50; about Phong 12).
         Requires kd + ks <= 1 in every channel."""
-        kd = rgb("kd", kd)
-        ks = rgb("ks", ks)
+        kd, ks = rgb_pair("kd", kd, "ks", ks)
         n = scalar("exponent", exponent, lo=0.0)
-        if any(a + b > 1.0 + 1e-12 for a, b in zip(kd, ks)):
-            raise ParameterError(f"ks: kd + ks must be <= 1 per channel, got kd={kd}, ks={ks}")
         super().__init__(kd=kd, ks=ks, exponent=n)
         self._norm = normalization_closed_form(n)
 

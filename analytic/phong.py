@@ -11,7 +11,7 @@ import math
 import torch
 
 from . import frame
-from .base import BRDF, Lobe, ParameterError, cosine_lobe, luminance, rgb, scalar
+from .base import BRDF, Lobe, cosine_lobe, luminance, rgb_pair, scalar
 
 # Smallest base fed to ``pow``: keeps x^n and its gradient finite at x = 0.
 _TINY = 1e-30
@@ -91,11 +91,8 @@ class Phong(BRDF):
         ks: RGB specular albedo at normal incidence in [0, 1] (default 0.3).
         exponent: Phong exponent n >= 0 (default 20); larger is sharper.
         Requires kd + ks <= 1 in every channel."""
-        kd = rgb("kd", kd)
-        ks = rgb("ks", ks)
+        kd, ks = rgb_pair("kd", kd, "ks", ks)
         n = scalar("exponent", exponent, lo=0.0)
-        if any(a + b > 1.0 + 1e-12 for a, b in zip(kd, ks)):
-            raise ParameterError(f"ks: kd + ks must be <= 1 per channel, got kd={kd}, ks={ks}")
         super().__init__(kd=kd, ks=ks, exponent=n)
 
     def _f(self, wi, wo):

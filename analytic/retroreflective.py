@@ -7,7 +7,7 @@ import math
 import torch
 
 from . import frame
-from .base import BRDF, ParameterError, cosine_lobe, luminance, rgb, scalar
+from .base import BRDF, cosine_lobe, luminance, rgb_pair, scalar
 from .phong import clamped_power, power_cosine_lobe
 
 
@@ -58,11 +58,8 @@ class Retroreflective(BRDF):
         kr: RGB retroreflective albedo at normal incidence in [0, 1] (default 0.5).
         exponent: lobe exponent n >= 0 (default 20); larger is a tighter retro peak.
         Requires kd + kr <= 1 in every channel."""
-        kd = rgb("kd", kd)
-        kr = rgb("kr", kr)
+        kd, kr = rgb_pair("kd", kd, "kr", kr)
         n = scalar("exponent", exponent, lo=0.0)
-        if any(a + b > 1.0 + 1e-12 for a, b in zip(kd, kr)):
-            raise ParameterError(f"kr: kd + kr must be <= 1 per channel, got kd={kd}, kr={kr}")
         super().__init__(kd=kd, kr=kr, exponent=n)
 
     def _f(self, wi, wo):
