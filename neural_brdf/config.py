@@ -1,0 +1,219 @@
+"""Training configuration: YAML in, a validated :class:`Config` out.
+
+Every default lives here, one setting per line with a comment; a config file holds
+only the keys it changes (``configs/defaults.yaml`` lists them all and is checked
+against this schema by the tests).  Overrides come from the command line::
+
+    python train.py configs/gold.yaml --set train.steps=500 --set model.hidden=[32,32]
+
+A value given by ``--set`` is parsed as YAML, so numbers, booleans and lists work.
+Unknown keys, wrong types and invalid values raise :class:`ConfigError` with a
+one-line message that names the key (``train.stepz: unknown key ...``); the CLI turns
+it into exit code 2.  Types are strict: an integer setting does not accept ``2.5`` or
+``"2"``, a float setting accepts an integer.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+FORMAT_VERSION = 1          # of the resolved config and of the exported model
+
+
+class InputError(ValueError):
+    """Bad input from the user (a file, a path, a value).  The message is one line and
+    names the offending key or file; the CLI prints it and exits with code 2."""
+
+
+class ConfigError(InputError):
+    """A config file or override is invalid."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, validate_default=True)
+
+
+class Target(_Section):
+    model: str = "lambertian"                    # a name in analytic.available()
+    params: dict[str, Any] = Field(default_factory=dict)   # passed to analytic.create
+    data: str | None = None                      # measured data file (not supported yet)
+
+
+class Model(_Section):
+    encoding: Literal["isotropic", "anisotropic"] = "isotropic"   # see encoding.py
+    hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
+    activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"   # hidden layers
+    grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
+
+    @model_validator(mode="after")
+    def _widths(self):
+        if not self.hidden or any(w < 1 for w in self.hidden):
+            raise ValueError("hidden: needs at least one layer, each of width >= 1")
+        return self
+
+
+class Normalization(_Section):
+    table_size: int = Field(65, ge=4, le=1025)   # isotropic albedo table: nodes in theta
+    grid_size: int = Field(17, ge=4, le=257)     # anisotropic albedo table: nodes per axis
+    samples: int = Field(8192, ge=256)           # quadrature points per table node
+    sigmas: float = Field(3.0, ge=0.0)           # quadrature standard errors added to A
+    margin: float = Field(1e-3, ge=0.0, le=0.5)  # relative headroom on the tabulated A
+
+
+class Data(_Section):
+    batch_size: int = Field(4096, ge=16)         # pairs per step
+    pool_size: int = Field(262144, ge=16)        # pairs kept in the sample pool
+    reuse: float = Field(4.0, ge=1.0)            # mean number of times a pair is used
+    uniform: float = Field(0.2, ge=0.0)          # share of wo uniform on the hemisphere
+    cosine: float = Field(0.2, ge=0.0)           # share of wo cosine-distributed
+    importance: float = Field(0.6, ge=0.0)       # share of wo from the target's sampler
+
+    @model_validator(mode="after")
+    def _shares(self):
+        if self.uniform + self.cosine + self.importance <= 0:
+            raise ValueError("uniform/cosine/importance: at least one share must be > 0")
+        if self.pool_size < self.batch_size:
+            raise ValueError("pool_size: must be >= batch_size")
+        return self
+
+
+class Train(_Section):
+    steps: int = Field(3000, ge=0)               # optimizer steps
+    seed: int = 0                                # seeds weights, data and quadrature
+    lr: float = Field(3e-2, gt=0.0)              # Adam learning rate after warm-up
+    lr_min: float = Field(0.01, ge=0.0, le=1.0)  # final lr as a fraction of lr (cosine)
+    schedule: Literal["cosine", "constant"] = "cosine"   # lr decay after warm-up
+    warmup: int = Field(100, ge=0)               # linear warm-up steps
+    loss: Literal["log_l2", "log_l1", "nbrdf"] = "log_l2"   # see train.py
+    loss_eps: float = Field(1e-3, gt=0.0)        # offset inside the log (1/sr)
+    peak_weight: float = Field(10.0, ge=0.0)     # extra loss weight (f cos)^2 / mean (f cos)^2
+    threads: int = Field(2, ge=1)                # torch CPU threads (fixed for determinism)
+    checkpoint_every: int = Field(500, ge=1)     # steps between checkpoints
+    log_every: int = Field(25, ge=1)             # steps between CSV rows
+    eval_every: int = Field(500, ge=0)           # steps between held-out errors (0: never)
+    progress: bool = True                        # tqdm progress bar on stderr
+
+
+class Validation(_Section):
+    pairs: int = Field(20000, ge=100)            # random pairs for reciprocity / min value
+    furnace_dirs: int = Field(91, ge=2)          # furnace polar angles (aniso: half, x16 azimuths)
+    furnace_samples: int = Field(8192, ge=256)   # quadrature points per incoming direction
+    accuracy_samples: int = Field(131072, ge=1024)   # importance-sampled pairs for the error
+    reciprocity_tol: float = Field(1e-6, ge=0.0)     # max relative |f(a,b) - f(b,a)|
+    albedo_tol: float = Field(1e-3, ge=0.0)          # max albedo allowed: 1 + albedo_tol
+    seed: int = 1234                                 # independent of the training seeds
+
+
+class Export(_Section):
+    opset: int = Field(17, ge=13, le=20)         # ONNX opset of the legacy exporter
+    parity_pairs: int = Field(4096, ge=16)       # pairs for the torch-vs-onnxruntime check
+    parity_tol: float = Field(1e-5, gt=0.0)      # max relative difference
+
+
+class Config(_Section):
+    name: str = "run"                            # default run directory: runs/<name>/
+    target: Target = Field(default_factory=Target)
+    model: Model = Field(default_factory=Model)
+    normalization: Normalization = Field(default_factory=Normalization)
+    data: Data = Field(default_factory=Data)
+    train: Train = Field(default_factory=Train)
+    validation: Validation = Field(default_factory=Validation)
+    export: Export = Field(default_factory=Export)
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(), sort_keys=False)
+
+
+# --------------------------------------------------------------------- YAML
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads ``1e-3`` as a float (YAML 1.2), not as a string."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                    |\.[0-9_]+(?:[eE][-+][0-9]+)?
+                    |[-+]?\.(?:inf|Inf|INF)
+                    |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+def parse_yaml(text: str, *, source: str) -> Any:
+    try:
+        return yaml.load(text, Loader=_Loader)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{source}: invalid YAML{where}: {problem}") from None
+
+
+def apply_override(raw: dict, item: str) -> None:
+    """Apply one ``a.b.c=value`` override to the raw (unvalidated) config dict."""
+    key, sep, text = item.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. train.steps=500")
+    path = key.strip().split(".")
+    value = parse_yaml(text, source=f"--set {key}")
+    node = raw
+    for i, part in enumerate(path[:-1]):
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ConfigError(f"{'.'.join(path[:i + 1])}: is a value, not a section")
+        node = child
+    node[path[-1]] = value
+
+
+def _describe(err: dict) -> str:
+    loc = ".".join(str(p) for p in err["loc"])
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown key"
+    if err["type"] == "value_error":
+        # our section validators word their message as "field: what is wrong"
+        msg = err["msg"].removeprefix("Value error, ")
+        return f"{loc}.{msg}" if loc else msg
+    got = err.get("input")
+    shown = "" if isinstance(got, (dict, list)) else f" (got {got!r})"
+    return f"{loc}: {err['msg']}{shown}"
+
+
+def from_dict(raw: Any, *, source: str = "config") -> Config:
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: expected a mapping of keys at the top level")
+    try:
+        return Config.model_validate(raw)
+    except ValidationError as e:
+        errs = e.errors()
+        more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+        raise ConfigError(f"{source}: {_describe(errs[0])}{more}") from None
+
+
+def load(path: str | Path | None, overrides: list[str] = (), *, name: str | None = None) -> Config:
+    """Read a YAML config (or start from the defaults when ``path`` is None), apply
+    ``--set`` overrides and validate.  ``name`` defaults to the file's stem."""
+    raw: dict = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+        raw = parse_yaml(text, source=str(path))
+        if raw is None:
+            raw = {}
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+        if "name" not in raw:
+            raw["name"] = name or path.stem
+    for item in overrides:
+        apply_override(raw, item)
+    return from_dict(raw, source=str(path) if path is not None else "config")

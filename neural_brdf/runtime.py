@@ -1,0 +1,83 @@
+"""Evaluate an exported neural BRDF with onnxruntime alone.
+
+    import neural_brdf
+    brdf = neural_brdf.load("runs/quickstart/model.onnx")
+    f = brdf.eval(wi, wo)          # numpy (..., 3) in, (..., 3) float32 out, 1/sr, no cosine
+    brdf.metadata["max_albedo"]    # every metadata_props entry, as strings
+    brdf.config                    # the training config (dict)
+
+This module needs numpy, onnxruntime and yaml only; it never imports torch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import yaml
+
+from .config import InputError
+
+INPUTS = ("wi", "wo")
+OUTPUT = "f"
+CHUNK = 1 << 18            # pairs per onnxruntime call: bounds the memory of a large eval
+
+
+class NeuralBRDF:
+    """An exported model: ``eval(wi, wo)`` on numpy arrays, plus its metadata."""
+
+    def __init__(self, path: str | Path, *, threads: int = 1):
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"{path}: no such model file")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads     # 1 thread was fastest here (NOTES.md)
+        opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(path), opts,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as e:   # onnxruntime raises its own untyped errors on bad files
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise InputError(f"{path}: not a loadable ONNX model ({first[:200]})") from None
+        names = tuple(i.name for i in self.session.get_inputs())
+        outs = tuple(o.name for o in self.session.get_outputs())
+        if names != INPUTS or outs != (OUTPUT,):
+            raise InputError(f"{path}: expected inputs {INPUTS} and output {OUTPUT!r}, "
+                             f"got {names} -> {outs}")
+        self.path = path
+        self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
+
+    @property
+    def config(self) -> dict:
+        return yaml.safe_load(self.metadata.get("training_config", "{}")) or {}
+
+    @property
+    def encoding(self) -> str:
+        return self.metadata.get("encoding", "isotropic")
+
+    def eval(self, wi, wo) -> np.ndarray:
+        wi = np.asarray(wi, dtype=np.float32)
+        wo = np.asarray(wo, dtype=np.float32)
+        wi, wo = np.broadcast_arrays(wi, wo)
+        if wi.shape[-1:] != (3,):
+            raise InputError(f"wi, wo: expected shape (..., 3), got {wi.shape}")
+        batch = wi.shape[:-1]
+        a = np.ascontiguousarray(wi.reshape(-1, 3))
+        b = np.ascontiguousarray(wo.reshape(-1, 3))
+        out = np.empty((len(a), 3), dtype=np.float32)
+        for s in range(0, len(a), CHUNK):
+            out[s:s + CHUNK] = self.session.run(
+                [OUTPUT], {"wi": a[s:s + CHUNK], "wo": b[s:s + CHUNK]})[0]
+        return out.reshape(batch + (3,))
+
+    __call__ = eval
+
+    def __repr__(self) -> str:
+        return f"neural_brdf.load({str(self.path)!r})  # {self.metadata.get('target', '?')}"
+
+
+def load(path: str | Path, *, threads: int = 1) -> NeuralBRDF:
+    """Open an exported ``model.onnx``; raises InputError on a missing or invalid file."""
+    return NeuralBRDF(path, threads=threads)

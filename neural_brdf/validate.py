@@ -1,0 +1,190 @@
+"""Physics and accuracy checks of an exported model (or of any BRDF-like callable).
+
+Physics (all must pass; the CLI exits 1 otherwise):
+
+* reciprocity: max |f(a,b) - f(b,a)| / max(|f(a,b)|, |f(b,a)|) over random pairs,
+  10% of them within 1 degree of grazing (``analytic.reciprocity_error``);
+* non-negativity: the smallest value over the same pairs (``analytic.min_value``; a
+  NaN counts as -inf);
+* white furnace: rho(wi) = int f cos dwo by MIS quadrature (:mod:`neural_brdf.quadrature`)
+  on a dense grid of incoming directions down to 0.01 degree above the horizon (91 polar
+  angles; for an anisotropic model 46 polar angles x 16 azimuths); the maximum must be
+  <= 1 + albedo_tol.
+  The seeds and the grid differ from those that built the normalisation table.
+  The hemispherical albedo (1/pi) int rho(wi) cos dwi is reported as well.
+
+Accuracy, with a reference model (``--reference CONFIG`` or during training):
+
+* ``rel_rmse``: relative RMSE of f cos(theta_o),
+  sqrt(sum (f^ cos - f cos)^2) / sqrt(sum (f cos)^2) over all channels of pairs with
+  wi uniform on the hemisphere and wo drawn from the reference's importance sampler;
+* ``nbrdf_log_error``: the NBRDF loss, mean |log(1 + f cos) - log(1 + f^ cos)|;
+* ``rel_rmse_by_incidence``: the same error within bands of cos(theta_i);
+* ``worst``: the pairs with the largest |f^ cos - f cos|.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Callable
+
+import numpy as np
+import torch
+
+import analytic
+
+from . import config as cfgmod
+from . import data, quadrature
+from .runtime import load
+
+# Directions of the furnace grid stop this far above the horizon (radians, 0.01 degree).
+HORIZON_GAP = math.radians(0.01)
+AZIMUTHS = 16               # per polar angle, for an anisotropic model
+N_WORST = 5
+# cos(theta_i) bands of the per-band errors: for a model whose f cos grows without bound
+# at grazing angles (Ward, Ashikhmin-Shirley) the overall error is set by the first band.
+INCIDENCE_BANDS = ((0.0, 0.05), (0.05, 0.2), (0.2, 0.5), (0.5, 1.01))
+
+
+def furnace_directions(n_theta: int, anisotropic: bool, seed: int) -> torch.Tensor:
+    """(M, 3) incoming directions: ``n_theta`` polar angles on [0, 90 deg - gap] with a
+    random azimuth each (isotropic), or ``ceil(n_theta / 2)`` polar angles times
+    ``AZIMUTHS`` azimuths (anisotropic)."""
+    g = torch.Generator().manual_seed(seed)
+    if anisotropic:
+        n_theta = (n_theta + 1) // 2
+    theta = torch.linspace(0.0, 0.5 * math.pi - HORIZON_GAP, n_theta, dtype=torch.float64)
+    if anisotropic:
+        n_phi = AZIMUTHS
+        offset = torch.rand(n_theta, 1, generator=g, dtype=torch.float64)
+        phi = (torch.arange(n_phi, dtype=torch.float64)[None] + offset) * (2 * math.pi / n_phi)
+        theta = theta[:, None].expand_as(phi)
+    else:
+        phi = 2 * math.pi * torch.rand(n_theta, generator=g, dtype=torch.float64)
+    return analytic.frame.spherical(theta, phi).reshape(-1, 3)
+
+
+def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, extra=None) -> dict:
+    """Physics checks of ``fn(wi, wo)`` on numpy (N, 3) arrays -> a report dict."""
+    s = settings
+    recip = analytic.reciprocity_error(fn, n=s.pairs, seed=s.seed)
+    min_val = analytic.min_value(fn, n=s.pairs, seed=s.seed + 1)
+    dirs = furnace_directions(s.furnace_dirs, anisotropic, s.seed + 2)
+
+    def tfn(a, b):
+        return torch.from_numpy(np.asarray(fn(a.numpy(), b.numpy()), dtype=np.float64))
+
+    rho, err = quadrature.albedo(tfn, dirs, s.furnace_samples, seed=s.seed + 3, extra=extra)
+    rho, err = rho.numpy(), err.numpy()
+    # hemispherical albedo: 2 int_0^1 rho(mu) mu dmu, rows averaged over azimuth
+    n_theta = len(dirs) // AZIMUTHS if anisotropic else len(dirs)
+    mu = dirs[:, 2].numpy().reshape(n_theta, -1)[:, 0]
+    rho_theta = rho.reshape(n_theta, -1, rho.shape[-1]).mean(1)
+    order = np.argsort(mu)
+    y = rho_theta[order] * mu[order, None]
+    hemi = 2.0 * np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(mu[order])[:, None], 0)
+    imax = np.unravel_index(np.argmax(rho), rho.shape)
+    max_albedo = float(rho.max()) if np.all(np.isfinite(rho)) else math.inf
+    checks = {
+        "reciprocity": {"value": recip, "limit": s.reciprocity_tol,
+                        "passed": bool(recip <= s.reciprocity_tol)},
+        "min_value": {"value": min_val, "limit": 0.0, "passed": bool(min_val >= 0.0)},
+        "max_albedo": {"value": max_albedo, "limit": 1.0 + s.albedo_tol,
+                       "passed": bool(max_albedo <= 1.0 + s.albedo_tol),
+                       "at_theta_deg": float(np.degrees(np.arccos(dirs[imax[0], 2].item()))),
+                       "quadrature_stderr": float(err[imax])},
+    }
+    return {"checks": checks, "hemispherical_albedo": hemi.tolist(),
+            "furnace": {"directions": len(dirs), "samples": s.furnace_samples}}
+
+
+def accuracy(fn: Callable, reference: analytic.BRDF, *, n: int, seed: int) -> dict:
+    """Error of ``fn`` (numpy in/out) against ``reference`` on importance-sampled pairs."""
+    wi, wo, ref = data.importance_pairs(reference, n, seed)
+    wi, wo, ref = wi.numpy(), wo.numpy(), ref.numpy()
+    pred = np.asarray(fn(wi, wo), dtype=np.float64)
+    cos = np.clip(wo[:, 2:3], 0.0, None)
+    a, b = pred * cos, ref * cos
+    rel = float(np.sqrt(np.sum((a - b) ** 2) / max(np.sum(b ** 2), 1e-300)))
+    log_err = float(np.mean(np.abs(np.log1p(np.clip(a, 0, None)) - np.log1p(b))))
+    bands = {}
+    for lo, hi in INCIDENCE_BANDS:
+        k = (wi[:, 2] >= lo) & (wi[:, 2] < hi)
+        den = np.sum(b[k] ** 2)
+        bands[f"cos_i {lo:g}-{min(hi, 1.0):g}"] = (float(np.sqrt(np.sum((a[k] - b[k]) ** 2) / den))
+                                                   if den > 0 else None)
+    per = np.abs(a - b).sum(-1)
+    worst = []
+    for i in np.argsort(-per)[:N_WORST]:
+        worst.append({"wi": wi[i].round(5).tolist(), "wo": wo[i].round(5).tolist(),
+                      "f": ref[i].tolist(), "f_model": pred[i].tolist()})
+    return {"rel_rmse": rel, "nbrdf_log_error": log_err, "pairs": n,
+            "rel_rmse_by_incidence": bands, "worst": worst}
+
+
+def report(model_path, *, reference: cfgmod.Config | None = None,
+           settings: cfgmod.Validation | None = None, physics_report: dict | None = None) -> dict:
+    """Full report of an exported model; ``["passed"]`` is the physics verdict.
+
+    ``settings`` default to the ``validation`` section of the model's embedded config.
+    ``physics_report`` reuses checks already measured on this very file (by the export).
+    """
+    model = load(model_path)
+    if settings is None:
+        try:
+            settings = cfgmod.from_dict(model.config).validation
+        except cfgmod.ConfigError:
+            settings = cfgmod.Validation()
+    target = data.build_target(reference.target) if reference is not None else None
+    out = {"model": str(model_path), "encoding": model.encoding,
+           "target": model.metadata.get("target", "")}
+    if physics_report is None:
+        physics_report = physics(model.eval, anisotropic=model.encoding == "anisotropic",
+                                 settings=settings, extra=target)
+    out.update(physics_report)
+    if target is not None:
+        out["reference"] = target.describe()
+        out["accuracy"] = accuracy(model.eval, target, n=settings.accuracy_samples,
+                                   seed=settings.seed + 4)
+    out["passed"] = all(c["passed"] for c in out["checks"].values())
+    return out
+
+
+def format_table(report: dict) -> str:
+    rows = [("check", "value", "limit", "result")]
+    for name, c in report["checks"].items():
+        op = "<=" if name != "min_value" else ">="
+        value = f"{c['value']:.6f}" if name == "max_albedo" else f"{c['value']:.3g}"
+        rows.append((name, value, f"{op} {c['limit']:.6g}",
+                     "ok" if c["passed"] else "FAIL"))
+    hemi = ", ".join(f"{v:.4f}" for v in report["hemispherical_albedo"])
+    rows.append(("hemispherical_albedo", hemi, "", ""))
+    if "accuracy" in report:
+        acc = report["accuracy"]
+        rows.append(("rel_rmse (f cos)", f"{100 * acc['rel_rmse']:.3f} %", "", ""))
+        for band, v in acc["rel_rmse_by_incidence"].items():
+            rows.append((f"  {band}", "-" if v is None else f"{100 * v:.3f} %", "", ""))
+        rows.append(("nbrdf_log_error", f"{acc['nbrdf_log_error']:.3g}", "", ""))
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    verdict = "PASSED" if report["passed"] else "FAILED"
+    return "\n".join([f"{report['model']}: physics {verdict}"] + lines)
+
+
+def _finite(x):
+    """Strict JSON has no NaN or Infinity: write those as strings."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_finite(v) for v in x]
+    return x
+
+
+def write_json(report: dict, path) -> None:
+    with open(path, "w") as fh:
+        json.dump(_finite(report), fh, indent=2, allow_nan=False)
+        fh.write("\n")

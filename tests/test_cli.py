@@ -1,0 +1,138 @@
+"""The command line: exit codes 0 / 1 / 2, one-line errors, the train.py shim."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from neural_brdf import export, train
+from neural_brdf.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["train.steps=10", "train.progress=false", "model.hidden=[16,16]",
+        "data.batch_size=256", "data.pool_size=2048", "normalization.table_size=17",
+        "normalization.samples=2048", "validation.furnace_dirs=6",
+        "validation.furnace_samples=4096", "validation.pairs=2000",
+        "validation.accuracy_samples=2048", "export.parity_pairs=512"]
+SETS = [a for kv in TINY for a in ("--set", kv)]
+
+
+def run(*args, cwd=ROOT):
+    """A real subprocess: checks that no traceback escapes and the exit status is real."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+def cli(capsys, *args):
+    """In-process ``neural-brdf ARGS`` (fast): (exit code, stdout, stderr)."""
+    code = main(list(args))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def assert_one_line_error(code, err, *needles):
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def test_train_py_config_error_is_one_line_and_exit_2(tmp_path):
+    proc = run("train.py", str(ROOT / "configs" / "lambert.yaml"), "--out", str(tmp_path / "r"),
+               "--set", "train.stepz=3")
+    assert_one_line_error(proc.returncode, proc.stderr, "train.stepz")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("args, key", [
+    (["--set", "train.steps=many"], "train.steps"),
+    (["--set", "model.encoding=spherical"], "model.encoding"),
+    (["--set", "target.model=velvet"], "target.model"),
+    (["--set", "target.params.albedo=7"], "albedo"),
+    (["--set", "oops"], "oops"),
+])
+def test_config_errors_exit_2_naming_the_key(capsys, tmp_path, args, key):
+    code, _, err = cli(capsys, "train", str(ROOT / "configs" / "lambert.yaml"),
+                       "--out", str(tmp_path / "r"), *args)
+    assert_one_line_error(code, err, key)
+    assert not (tmp_path / "r" / "ckpt.pt").exists()
+
+
+def test_bad_arguments_and_files_exit_2(capsys, tmp_path):
+    assert_one_line_error(*cli(capsys, "train")[::2], "config")
+    assert_one_line_error(*cli(capsys, "frobnicate")[::2], "frobnicate")
+    assert_one_line_error(*cli(capsys, "train", str(tmp_path / "none.yaml"))[::2], "none.yaml")
+    assert_one_line_error(*cli(capsys, "validate", str(tmp_path / "none.onnx"))[::2], "none.onnx")
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    assert_one_line_error(*cli(capsys, "validate", str(junk))[::2], "junk.onnx")
+    assert_one_line_error(*cli(capsys, "export", str(tmp_path))[::2], str(tmp_path))
+    assert_one_line_error(*cli(capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out",
+                               str(tmp_path / "fresh"), "--resume")[::2], "ckpt.pt")
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "lambert"
+    proc = run("train.py", str(ROOT / "configs" / "lambert.yaml"), "--out", str(out), *SETS)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "physics PASSED" in proc.stdout
+    return out
+
+
+def test_train_shim_writes_the_run(run_dir):
+    for name in ["config.yaml", "model.onnx", "metrics.json", "ckpt.pt", "log.csv"]:
+        assert (run_dir / name).is_file()
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["passed"] is True
+    assert metrics["training"]["steps"] == 10
+    assert "rel_rmse" in metrics["accuracy"]
+
+
+def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
+    out = tmp_path / "report.json"
+    code, stdout, err = cli(capsys, "validate", str(run_dir / "model.onnx"), "--reference",
+                            str(ROOT / "configs" / "lambert.yaml"), "--json", str(out))
+    assert code == 0, err
+    report = json.loads(out.read_text())
+    assert report["passed"] is True
+    assert report["checks"]["reciprocity"]["value"] <= 1e-6
+    assert report["accuracy"]["rel_rmse"] >= 0.0
+    assert "max_albedo" in stdout
+
+
+def test_validate_exit_1_on_a_physics_failure(tmp_path):
+    raw = train.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()   # albedo ~150
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(export.to_onnx_bytes(raw, 17))
+    proc = run("-m", "neural_brdf", "validate", str(bad), "--json", str(tmp_path / "bad.json"))
+    assert proc.returncode == 1, proc.stderr
+    assert "FAIL" in proc.stdout and "Traceback" not in proc.stderr
+    assert json.loads((tmp_path / "bad.json").read_text())["passed"] is False
+
+
+def test_export_subcommand(capsys, run_dir, tmp_path):
+    out = tmp_path / "exported.onnx"
+    code, _, err = cli(capsys, "export", str(run_dir), "-o", str(out))
+    assert code == 0, err
+    assert out.is_file()
+
+
+def test_neural_brdf_and_train_py_agree(capsys, run_dir, tmp_path):
+    """`neural-brdf train` and `python train.py` are the same command."""
+    out = tmp_path / "again"
+    code, _, err = cli(capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out",
+                       str(out), *SETS)
+    assert code == 0, err
+    a = torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
+    b = torch.load(out / "ckpt.pt", weights_only=True)["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)

@@ -1,0 +1,184 @@
+"""Training runs: determinism, resume, Ctrl-C, divergence, export parity and metadata."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+import neural_brdf
+from analytic import physics
+from neural_brdf import config, data, export, train, validate
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+# Small everything: these runs check mechanics, not accuracy.
+TINY = ["train.steps=12", "train.warmup=2", "train.checkpoint_every=5", "train.log_every=2",
+        "train.eval_every=4", "train.progress=false", "model.hidden=[16,16]",
+        "data.batch_size=256", "data.pool_size=2048",
+        "normalization.table_size=17", "normalization.grid_size=7", "normalization.samples=2048",
+        "validation.furnace_dirs=6", "validation.furnace_samples=4096",
+        "validation.pairs=2000", "validation.accuracy_samples=2048",
+        "export.parity_pairs=512"]
+
+
+def tiny(*extra, preset="lambert"):
+    return config.load(CONFIGS / f"{preset}.yaml", TINY + list(extra))
+
+
+def weights(run_dir: Path) -> dict:
+    return torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
+
+
+def same(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_training_is_deterministic_per_seed(tmp_path):
+    train.train(tiny(), tmp_path / "a")
+    train.train(tiny(), tmp_path / "b")
+    train.train(tiny("train.seed=1"), tmp_path / "c")
+    assert same(weights(tmp_path / "a"), weights(tmp_path / "b"))
+    assert not same(weights(tmp_path / "a"), weights(tmp_path / "c"))
+
+
+def test_resume_continues_exactly(tmp_path):
+    # a constant schedule, so that stopping at step 5 changes nothing but the stop
+    const = "train.schedule=constant"
+    train.train(tiny(const), tmp_path / "straight")
+    train.train(tiny(const, "train.steps=5"), tmp_path / "split")
+    assert torch.load(tmp_path / "split" / "ckpt.pt", weights_only=True)["step"] == 5
+    train.train(tiny(const), tmp_path / "split", resume=True)
+    assert same(weights(tmp_path / "straight"), weights(tmp_path / "split"))
+    with open(tmp_path / "split" / "log.csv") as fh:
+        steps = [int(r["step"]) for r in csv.DictReader(fh)]
+    assert steps == sorted(set(steps)) and steps[-1] == 12
+
+
+def test_resume_refuses_a_different_model(tmp_path):
+    train.train(tiny("train.steps=3"), tmp_path / "r")
+    with pytest.raises(config.ConfigError, match="model"):
+        train.train(tiny("model.hidden=[8]"), tmp_path / "r", resume=True)
+
+
+def test_ctrl_c_leaves_a_resumable_checkpoint(tmp_path, monkeypatch):
+    real_batch = data.Pool.batch
+    calls = {"n": 0}
+
+    def batch(self):
+        calls["n"] += 1
+        if calls["n"] == 4:                   # Ctrl-C arrives in the middle of step 4
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_batch(self)
+
+    monkeypatch.setattr(data.Pool, "batch", batch)
+    with pytest.raises(train.Interrupted, match="--resume"):
+        train.train(tiny(), tmp_path / "i")
+    ckpt = torch.load(tmp_path / "i" / "ckpt.pt", weights_only=True)
+    assert ckpt["step"] == 4                  # the step in flight was completed, then saved
+    monkeypatch.setattr(data.Pool, "batch", real_batch)
+    train.train(tiny(), tmp_path / "i", resume=True)
+    train.train(tiny(), tmp_path / "ref")
+    assert same(weights(tmp_path / "i"), weights(tmp_path / "ref"))
+
+
+def test_divergence_stops_and_keeps_a_good_checkpoint(tmp_path, monkeypatch):
+    real_loss = train.loss_fn
+    calls = {"n": 0}
+
+    def loss_fn(*args, **kwargs):
+        calls["n"] += 1
+        loss = real_loss(*args, **kwargs)
+        return loss * float("nan") if calls["n"] == 8 else loss   # step index 7
+
+    monkeypatch.setattr(train, "loss_fn", loss_fn)
+    with pytest.raises(train.Diverged, match="checkpoint"):
+        train.train(tiny("train.checkpoint_every=3"), tmp_path / "d")
+    ckpt = torch.load(tmp_path / "d" / "ckpt.pt", weights_only=True)
+    assert ckpt["step"] == 6                       # the last checkpoint before the NaN
+    assert all(torch.isfinite(v).all() for v in ckpt["model"].values())
+
+
+@pytest.fixture(scope="module")
+def gold_run(tmp_path_factory):
+    """A short anisotropic-capable microfacet run, exported (shared by the tests below)."""
+    run_dir = tmp_path_factory.mktemp("gold")
+    cfg = tiny("train.steps=30", "model.encoding=anisotropic", preset="gold")
+    report = train.run(cfg, run_dir)
+    return run_dir, cfg, report
+
+
+def test_run_writes_the_contract_files(gold_run):
+    run_dir, cfg, report = gold_run
+    for name in ["config.yaml", "ckpt.pt", "log.csv", "model.onnx", "metrics.json"]:
+        assert (run_dir / name).is_file(), name
+    assert config.load(run_dir / "config.yaml") == cfg
+    assert report["passed"] is True
+    assert set(report["checks"]) == {"reciprocity", "min_value", "max_albedo"}
+    assert 0.0 <= report["accuracy"]["rel_rmse"]
+
+
+def test_export_is_one_file_with_dynamic_batch_and_metadata(gold_run):
+    run_dir, cfg, _ = gold_run
+    proto = onnx.load(run_dir / "model.onnx")
+    assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in proto.graph.initializer)
+    assert not list(run_dir.glob("*.onnx.data"))
+    model = neural_brdf.load(run_dir / "model.onnx")
+    meta = model.metadata
+    for key in ["format_version", "frame", "encoding", "target", "max_albedo",
+                "reciprocity_error", "training_config"]:
+        assert meta.get(key), key
+    assert meta["encoding"] == "anisotropic"
+    assert config.from_dict(model.config) == cfg
+    assert float(meta["max_albedo"]) <= 1.0 + cfg.validation.albedo_tol
+    for n in [1, 3, 1000]:
+        wi = physics.random_directions(n, 1)
+        wo = physics.random_directions(n, 2)
+        assert model.eval(wi, wo).shape == (n, 3)
+    assert model.eval(np.zeros((2, 5, 3)) + [0, 0, 1], [0, 0, 1]).shape == (2, 5, 3)
+
+
+def test_torch_and_onnxruntime_agree(gold_run, tmp_path):
+    run_dir, cfg, _ = gold_run
+    ckpt = export.load_checkpoint(run_dir / "ckpt.pt")
+    raw = export.raw_from_checkpoint(ckpt, cfg)
+    target = data.build_target(cfg.target)
+    torch_model, _ = export.normalized_model(raw, cfg, target)
+    onnx_model = neural_brdf.load(run_dir / "model.onnx")
+    pairs = export.parity_pairs(4096, 77)
+    wi, wo = pairs[:, :3], pairs[:, 3:]
+    with torch.no_grad():
+        ref = torch_model(wi, wo).double().numpy()
+    got = onnx_model.eval(wi.numpy(), wo.numpy()).astype(np.float64)
+    assert (ref > 0).any() and (ref == 0).any()     # both sides of the horizon were tested
+    assert np.array_equal(got[ref == 0], ref[ref == 0])
+    floor = 0.1 * ref[ref > 0].mean()               # see export.PARITY_FLOOR
+    assert np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)) <= 1e-5
+
+
+def test_export_cli_function_rebuilds_the_same_model(gold_run, tmp_path):
+    run_dir, _, _ = gold_run
+    info = export.export_run(run_dir, tmp_path / "again.onnx")
+    a = neural_brdf.load(run_dir / "model.onnx")
+    b = neural_brdf.load(tmp_path / "again.onnx")
+    wi, wo = physics.random_directions(500, 3), physics.random_directions(500, 4)
+    assert np.array_equal(a.eval(wi, wo), b.eval(wi, wo))
+    assert info["parity_rel_error"] <= 1e-5
+
+
+def test_validation_flags_a_non_physical_model(tmp_path):
+    """An exported raw network (no normalisation) with huge outputs fails the furnace."""
+    raw = train.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()
+    path = tmp_path / "raw.onnx"
+    path.write_bytes(export.to_onnx_bytes(raw, 17))
+    settings = config.Validation(furnace_dirs=4, furnace_samples=1024, pairs=1000)
+    report = validate.report(path, settings=settings)
+    assert report["passed"] is False
+    assert report["checks"]["max_albedo"]["passed"] is False
+    assert report["checks"]["reciprocity"]["passed"] is True
