@@ -92,6 +92,7 @@ class Train(_Section):
     loss: Literal["log_l2", "log_l1", "nbrdf"] = "log_l2"   # see train.py
     loss_eps: float = Field(1e-3, gt=0.0)        # offset inside the log (1/sr)
     peak_weight: float = Field(10.0, ge=0.0)     # extra loss weight (f cos)^2 / mean (f cos)^2
+    peak_cap: float = Field(100.0, gt=0.0)       # cap on (f cos)^2 / mean (f cos)^2 in the weight
     threads: int = Field(2, ge=1)                # torch CPU threads (fixed for determinism)
     checkpoint_every: int = Field(500, ge=1)     # steps between checkpoints
     log_every: int = Field(25, ge=1)             # steps between CSV rows
