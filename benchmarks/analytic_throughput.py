@@ -15,13 +15,10 @@ atomically) and a table is printed.  Nothing here asserts a speed.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
 import sys
-import tempfile
-import time
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -33,20 +30,10 @@ if str(REPO) not in sys.path:            # run from a checkout without `pip inst
     sys.path.insert(0, str(REPO))
 
 import analytic  # noqa: E402
+from common import MATMUL_N, best_time, matmul_flops_per_s, write_json  # noqa: E402
 
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "analytic_throughput.json"
-MATMUL_N = 2048
 
-
-def best_time(fn, repeats: int) -> float:
-    """Seconds of the fastest of ``repeats`` calls, after one warm-up call."""
-    fn()
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def random_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -62,11 +49,6 @@ def random_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return hemi(), hemi()
 
 
-def matmul_gflops(repeats: int) -> float:
-    a = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
-    b = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
-    t = best_time(lambda: torch.mm(a, b), repeats)
-    return 2.0 * MATMUL_N ** 3 / t / 1e9
 
 
 def bench_model(name: str, wi: np.ndarray, wo: np.ndarray, repeats: int) -> dict:
@@ -80,19 +62,6 @@ def bench_model(name: str, wi: np.ndarray, wo: np.ndarray, repeats: int) -> dict
             "numpy_s": t_np, "torch_s": t_torch}
 
 
-def write_json(path: Path, data: dict) -> None:
-    """Write via a temporary file in the same folder and os.replace (atomic)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2)
-            fh.write("\n")
-        os.chmod(tmp, 0o644)                 # mkstemp makes it 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
 
     load_at_start = os.getloadavg()[0]      # other work on the machine skews every figure
     wi, wo = random_pairs(args.batch)
-    peak = matmul_gflops(args.repeats)
+    peak = matmul_flops_per_s(args.repeats) / 1e9
     models = {}
     for name in analytic.available():
         models[name] = bench_model(name, wi, wo, args.repeats)

@@ -57,6 +57,7 @@ import onnx  # noqa: E402
 import yaml  # noqa: E402
 
 from neural_brdf import mitsuba as nbm  # noqa: E402
+from common import write_json  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_render.json"
 QUICKSTART = REPO / "configs" / "quickstart.yaml"
@@ -93,17 +94,6 @@ def target_of(model: Path) -> dict:
     return cfg.get("target") or {}
 
 
-def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)                 # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def main() -> None:
@@ -172,7 +162,7 @@ def main() -> None:
         "statistic": "best of repeats after a first (compiling) render; first_s includes "
                      "tracing and LLVM compilation",
     }
-    write_atomic(args.out, json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     for mode in MODES:
         print(f"neural / roughconductor, {mode}: {ratios[mode]:.2f}x (steady state), "
               f"{ratios_first[mode]:.2f}x (first render)")

@@ -18,11 +18,8 @@ Results go to benchmarks/results/neural_throughput.json.  Nothing here asserts a
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -38,26 +35,12 @@ import neural_brdf  # noqa: E402
 from analytic import physics  # noqa: E402
 from neural_brdf import config, export  # noqa: E402
 from neural_brdf.model import NormalizedBRDF, RawBRDF  # noqa: E402
+from common import best_time, matmul_flops_per_s, write_json  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "neural_throughput.json"
-MATMUL_N = 2048
 
 
-def best_time(fn, repeats: int) -> float:
-    fn()
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
-
-def matmul_peak(threads: int, repeats: int) -> float:
-    torch.set_num_threads(threads)
-    a = torch.randn(MATMUL_N, MATMUL_N)
-    b = torch.randn(MATMUL_N, MATMUL_N)
-    return 2 * MATMUL_N ** 3 / best_time(lambda: torch.mm(a, b), repeats)
 
 
 def linear_flops(path: Path) -> int:
@@ -99,14 +82,15 @@ def main() -> None:
         for threads in (1, 2):
             model = neural_brdf.load(path, threads=threads)
             evals = args.n / best_time(lambda: model.eval(wi, wo), args.repeats)
-            peak = matmul_peak(threads, args.repeats)
+            torch.set_num_threads(threads)
+            peak = matmul_flops_per_s(args.repeats)
             bound = peak / flops
             rows.append({"threads": threads, "evals_per_s": evals, "matmul_gflops": peak / 1e9,
                          "bound_evals_per_s": bound, "fraction_of_bound": evals / bound})
     result = {"model": str(args.model or "default architecture (random weights)"),
               "linear_flops_per_eval": flops, "n": args.n, "rows": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"linear flops per evaluation: {flops}")
     print("threads  M evals/s  matmul GFLOP/s  bound M evals/s  fraction")
     for r in rows:

@@ -1,0 +1,48 @@
+"""Shared by the benchmark scripts: timing, the matmul-peak reference, atomic JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+MATMUL_N = 2048
+
+
+def best_time(fn, repeats: int) -> float:
+    """Seconds of the fastest of ``repeats`` calls, after one warm-up call."""
+    fn()
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def matmul_flops_per_s(repeats: int) -> float:
+    """fp32 matmul rate (FLOP/s) of torch.mm on two 2048 x 2048 matrices, at the
+    current torch thread count: the machine's reference peak for ratios."""
+    a = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
+    b = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
+    return 2.0 * MATMUL_N ** 3 / best_time(lambda: torch.mm(a, b), repeats)
+
+
+def write_json(path: Path, data) -> None:
+    """Write via a temporary file in the same folder and os.replace (atomic)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=2)
+            fh.write("\n")
+        os.chmod(tmp, 0o644)                 # mkstemp makes it 0600
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
