@@ -19,8 +19,13 @@ Loss.  With c = cos(theta_o), eps = ``train.loss_eps`` and d the per-channel err
 The log makes a dim tail count by its relative error.  The weight aims the loss at the
 accuracy target, the relative L2 error of f cos: for small errors
 (f^ c - f c)^2 ~ (f c)^2 d, so a log loss weighted by (f c)^2 is that metric, and the 1
-keeps every pair in play.  Measured (3000 steps, log_l2, SiLU): gold 0.79% unweighted,
-0.52% with peak_weight 3; smooth Beckmann 5.4% unweighted, 1.9% with peak_weight 10.
+keeps every pair in play.  Measured with the preset recipes (relative RMSE of f cos):
+
+    preset            nbrdf   log_l2 unweighted   log_l2 weighted (default)
+    gold              0.57%   0.85%               0.47%
+    beckmann_smooth   1.54%   -                   0.37%
+    plastic           2.00%   -                   1.69%
+
 The cap (``peak_cap``, 100) stops one pair from carrying a batch: Ward and
 Ashikhmin-Shirley grow like 1/cos^2 at the grazing mirror configuration, and one such
 pair in the pool made the loss spike 100-fold at the same step in every run.  On the
