@@ -53,6 +53,20 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("model")
     v.add_argument("--reference", help="config whose target is the ground truth")
     v.add_argument("--json", help="write the report as JSON to this file")
+
+    b = sub.add_parser("bake", help="write a model (.onnx) or a config's analytic target "
+                                    "as a MERL .binary file")
+    b.add_argument("source", help="model.onnx, or a YAML config whose target is baked")
+    b.add_argument("-o", "--out", required=True, help="output .binary file")
+
+    r = sub.add_parser("render", help="render a material preview in Mitsuba 3 "
+                                      "(needs the mitsuba extra and libllvm19)")
+    r.add_argument("model", help="model.onnx")
+    r.add_argument("--reference", help="config whose analytic target is rendered beside it, "
+                                       "with an error map and PSNR")
+    r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
+    r.add_argument("-o", "--out", required=True, help="output .png")
     return p
 
 
@@ -93,13 +107,64 @@ def _validate(args) -> int:
     return EXIT_OK if report["passed"] else EXIT_PHYSICS
 
 
+def _analytic_target(config_path: str):
+    """The analytic model of a config's target (measured-data targets are refused)."""
+    import analytic
+
+    from . import config
+    cfg = config.load(config_path)
+    if cfg.target.data is not None:
+        raise config.InputError(f"{config_path}: target.data: only analytic targets here")
+    return cfg.target.model, dict(cfg.target.params), analytic.create(cfg.target.model,
+                                                                        **cfg.target.params)
+
+
+def _bake(args) -> int:
+    from . import config, merl
+    if str(args.source).endswith(".onnx"):
+        from .runtime import load
+        fn = load(args.source).eval
+    else:
+        fn = _analytic_target(args.source)[2].eval
+    try:
+        merl.bake(fn, args.out)
+    except OSError as e:
+        raise config.InputError(f"{args.out}: cannot write ({e.strerror})") from None
+    print(f"wrote {args.out}")
+    return EXIT_OK
+
+
+def _render(args) -> int:
+    from .config import InputError
+    try:
+        import mitsuba as mi
+    except ImportError:
+        raise InputError("render: needs Mitsuba 3: pip install -e '.[mitsuba]' "
+                         "and apt-get install libllvm19") from None
+    if args.spp < 1 or args.resolution < 8:
+        raise InputError("render: --spp must be >= 1 and --resolution >= 8")
+    if mi.variant() is None:
+        mi.set_variant("llvm_ad_rgb")
+    from . import mitsuba as nbm
+    reference = None
+    if args.reference:
+        name, params, _ = _analytic_target(args.reference)
+        reference = {"model": name, "params": params}
+    psnr = nbm.render_preview(args.model, args.out, reference=reference, spp=args.spp,
+                              resolution=args.resolution)
+    print(f"wrote {args.out}" + ("" if psnr is None else f"  (PSNR {psnr:.2f} dB vs reference)"))
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     from .config import InputError
     from .export import ParityError
     from .train import Diverged, Interrupted
     try:
         args = _parser().parse_args(argv)
-        return {"train": _train, "export": _export, "validate": _validate}[args.command](args)
+        commands = {"train": _train, "export": _export, "validate": _validate,
+                    "bake": _bake, "render": _render}
+        return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INPUT
