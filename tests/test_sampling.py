@@ -68,15 +68,8 @@ REDRAWS = 100
 
 # ------------------------------------------------------------------ helpers
 def model_class(name: str):
-    """The class for ``name``; a model whose module is not written yet is skipped here
-    (``test_every_model_imports`` fails for it, so nothing is skipped silently)."""
-    base = name.split("-")[0]
-    try:
-        return analytic.model_class(base)
-    except ModuleNotFoundError as exc:
-        if exc.name and exc.name.startswith("analytic."):
-            pytest.skip(f"{base}: module {exc.name} does not exist yet")
-        raise
+    """The class for a test id ``name`` (``model-variant``); every model must import."""
+    return analytic.model_class(name.split("-")[0])
 
 
 def draw_params(space: dict, seed: int) -> dict:
