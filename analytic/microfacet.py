@@ -368,7 +368,7 @@ N_MU, N_PHI_ANISO, N_SAMPLES_ISO, N_SAMPLES_ANISO = 64, 17, 4096, 1024
 
 @lru_cache(maxsize=256)
 def _ms_table(distribution: str, alpha_x: float, alpha_y: float, masking: str) -> _EnergyTable:
-    from .physics import _sobol          # quadrature points (physics imports no models)
+    from .physics import sobol_points          # quadrature points (physics imports no models)
 
     ss = Microfacet(distribution=distribution, alpha_x=alpha_x, alpha_y=alpha_y, masking=masking)
     n_phi = 1 if alpha_x == alpha_y else N_PHI_ANISO
@@ -384,7 +384,7 @@ def _ms_table(distribution: str, alpha_x: float, alpha_y: float, masking: str) -
     s = torch.sqrt(1.0 - M * M)
     wi = torch.stack([s * torch.cos(P), s * torch.sin(P), M], -1)[..., None, :]   # (N, P, 1, 3)
     n_samples = N_SAMPLES_ISO if n_phi == 1 else N_SAMPLES_ANISO
-    u = _sobol(n_samples, 12345)
+    u = sobol_points(n_samples, 12345)
     with torch.no_grad():
         wib = wi.expand(wi.shape[:-2] + (n_samples, 3))
         h = ss.dist.sample_visible(wib, u)

@@ -28,7 +28,9 @@ REPLICAS = 4
 DEFENSIVE = 1 / 8      # share of quadrature points drawn from the cosine hemisphere
 
 
-def _sobol(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
+def sobol_points(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
+    """n scrambled Sobol points in [0, 1)^2, deterministic per seed (shared by every
+    quadrature of the project, neural_brdf.quadrature included)."""
     eng = torch.quasirandom.SobolEngine(2, scramble=True, seed=seed)
     return eng.draw(n, dtype=dtype).clamp(0.0, 1.0 - 1e-12)
 
@@ -38,7 +40,7 @@ def _estimate(integrand: Callable[[torch.Tensor], torch.Tensor], n: int, seed: i
     per = max(n // REPLICAS, 1)
     means = []
     for r in range(REPLICAS):
-        u = _sobol(per, seed * REPLICAS + r)
+        u = sobol_points(per, seed * REPLICAS + r)
         means.append(integrand(u))
     m = torch.stack(means, 0)
     return m.mean(0), m.std(0, unbiased=True) / math.sqrt(REPLICAS)
@@ -98,7 +100,7 @@ def albedo_of(fn: Callable, wi: np.ndarray, n: int = 8192, *, seed: int = 0,
 
 def hemispherical_albedo(brdf: BRDF, n_wi: int = 256, n: int = 2048, *, seed: int = 0) -> np.ndarray:
     """rho_hh = (1/pi) int rho(wi) cos(theta_i) dwi, with wi cosine-distributed (RGB)."""
-    u = _sobol(n_wi, seed + 1000)
+    u = sobol_points(n_wi, seed + 1000)
     wi = frame.square_to_cosine_hemisphere(u)
     return np.asarray(albedo(brdf, wi, n, seed=seed).mean(0))
 

@@ -28,9 +28,9 @@ from typing import Callable
 
 import torch
 
-from analytic import frame
+from analytic import frame, physics
 
-REPLICAS = 4
+REPLICAS = physics.REPLICAS   # independently scrambled replicas for the standard error
 
 # (kind, alpha, share): kind "normal" = half vectors around +z, "retro" = around wi.
 PROPOSALS = (
@@ -86,11 +86,6 @@ def _pdf(kind: str, alpha: float, wi: torch.Tensor, wo: torch.Tensor) -> torch.T
     return _ggx_pdf(axis_cos, alpha) / (4.0 * frame.dot(wo, h).clamp_min(1e-12))
 
 
-def _sobol(n: int, seed: int) -> torch.Tensor:
-    eng = torch.quasirandom.SobolEngine(2, scramble=True, seed=seed)
-    return eng.draw(n, dtype=torch.float64).clamp(0.0, 1.0 - 1e-12)
-
-
 def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.Tensor,
            n: int = 8192, *, seed: int = 0, extra=None, chunk: int = 1 << 19):
     """rho(wi) for each row of ``wi`` (M, 3) -> (rho (M, C), stderr (M, C)), float64.
@@ -111,7 +106,7 @@ def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.T
     rows_per_chunk = max(1, chunk // per)
     replicas = []
     for r in range(REPLICAS):
-        us = [_sobol(c, seed * 7919 + r * 101 + j) for j, c in enumerate(counts)]
+        us = [physics.sobol_points(c, seed * 7919 + r * 101 + j) for j, c in enumerate(counts)]
         out = []
         for start in range(0, len(wi), rows_per_chunk):
             w = wi[start:start + rows_per_chunk, None, :]                   # (m, 1, 3)
