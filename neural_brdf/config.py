@@ -45,7 +45,8 @@ class Target(_Section):
 
 
 class Model(_Section):
-    encoding: Literal["isotropic", "anisotropic"] = "isotropic"   # see encoding.py
+    # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
+    encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
     hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
     activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"   # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
@@ -58,6 +59,7 @@ class Model(_Section):
 
 
 class Normalization(_Section):
+    enabled: bool = True                         # albedo normalisation (off: ablations only)
     table_size: int = Field(65, ge=4, le=1025)   # isotropic albedo table: nodes in theta
     grid_size: int = Field(17, ge=4, le=257)     # anisotropic albedo table: nodes per axis
     samples: int = Field(8192, ge=256)           # quadrature points per table node
