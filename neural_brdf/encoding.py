@@ -37,6 +37,12 @@ With q = sqrt(theta_h / (pi/2)) and r = sin theta_h = |h_xy|:
 
 Since d is orthogonal to s, h and these fix d up to its sign, hence (wi, wo) up to the
 swap, mirror images included.
+
+Raw encoding (6 features, ablations only): (wi, wo) as they are.  It is NOT
+reciprocal -- the network sees the order of the pair -- and it is there to measure
+what the symmetric encodings buy (the ablation "symmetric encoding vs raw input").
+It can represent anisotropic BRDFs, so everything that depends on the encoding (the
+albedo table, the furnace grid) treats it as anisotropic: see :func:`is_anisotropic`.
 """
 
 from __future__ import annotations
@@ -45,7 +51,7 @@ import math
 
 import torch
 
-ENCODINGS = ("isotropic", "anisotropic")
+ENCODINGS = ("isotropic", "anisotropic", "raw")
 
 # |s| = 2 cos theta_d is >= 2 sin(min elevation) > 0 for two directions above the horizon;
 # the clamp only protects masked-out pairs (below the horizon) from 0/0.
@@ -65,11 +71,19 @@ def half_angle(sin_part: torch.Tensor, one_plus_cos: torch.Tensor) -> torch.Tens
 
 
 def num_features(encoding: str) -> int:
-    return {"isotropic": 8, "anisotropic": 14}[encoding]
+    return {"isotropic": 8, "anisotropic": 14, "raw": 6}[encoding]
+
+
+def is_anisotropic(encoding: str) -> bool:
+    """Whether a model with this encoding can depend on the azimuth (2-D albedo table)."""
+    return encoding != "isotropic"
 
 
 def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
-    """(..., 3), (..., 3) -> (..., F), bit-exactly invariant under wi <-> wo."""
+    """(..., 3), (..., 3) -> (..., F), bit-exactly invariant under wi <-> wo
+    (except for the ``raw`` ablation encoding, which is (wi, wo) itself)."""
+    if encoding == "raw":
+        return torch.cat([wi, wo], -1)
     s = wi + wo
     d = wi - wo
     norm_s = torch.sqrt((s * s).sum(-1)).clamp_min(EPS_NORM)

@@ -39,6 +39,7 @@ from analytic import physics
 
 from . import config as cfgmod
 from . import data, validate
+from .encoding import is_anisotropic
 from .model import NormalizedBRDF, RawBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
 
@@ -80,17 +81,33 @@ def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:
 
 
 def normalized_model(raw: RawBRDF, cfg: cfgmod.Config, target=None):
-    """Tabulate A+ for ``raw`` and wrap it; returns (model, table info)."""
+    """Tabulate A+ for ``raw`` and wrap it; returns (model, table info).
+
+    With ``normalization.enabled: false`` (ablations) no table is built and the raw
+    network itself is the model: nothing then bounds its albedo.
+    """
     n = cfg.normalization
-    aniso = cfg.model.encoding == "anisotropic"
+    if not n.enabled:
+        return raw.eval(), {"enabled": False}
+    aniso = is_anisotropic(cfg.model.encoding)
     table, a, err = albedo_table(raw, size=n.grid_size if aniso else n.table_size,
                                  anisotropic=aniso,
                                  samples=n.samples, seed=cfg.train.seed + 17, sigmas=n.sigmas,
                                  margin=n.margin, extra=target)
-    info = {"raw_max_albedo": float(a.max()), "raw_max_stderr": float(err.max()),
-            "nodes": int(a.shape[0]),
+    info = {"enabled": True, "raw_max_albedo": float(a.max()),
+            "raw_max_stderr": float(err.max()), "nodes": int(a.shape[0]),
             "nodes_above_1": int((table.reshape(-1, 3) > 1).any(-1).sum())}
     return NormalizedBRDF(raw, table).eval(), info
+
+
+def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
+    """The ``normalization`` metadata entry: the construction, or that there is none."""
+    if not isinstance(model, NormalizedBRDF):
+        return "none: f = raw network (normalization.enabled: false, an ablation)"
+    return (f"f = raw / max(1, A+(wi), A+(wo)) per channel; A+ = MIS quadrature albedo of "
+            f"the raw network + {n.sigmas:g} standard errors, neighbour maximum, times "
+            f"(1 + {n.margin:g}); table of {model.table.shape[0]} nodes per axis, "
+            f"{n.samples} points per node")
 
 
 def to_onnx_bytes(model: torch.nn.Module, opset: int) -> bytes:
@@ -149,7 +166,7 @@ def _atomic_write(path: Path, payload: bytes) -> None:
         raise
 
 
-def export(model: NormalizedBRDF, cfg: cfgmod.Config, out: Path, *, target_desc: str,
+def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, target_desc: str,
            extra=None) -> dict:
     """Write ``model`` to ``out`` with metadata; returns the measured figures."""
     payload = to_onnx_bytes(model, cfg.export.opset)
@@ -170,17 +187,13 @@ def export(model: NormalizedBRDF, cfg: cfgmod.Config, out: Path, *, target_desc:
     phys = validate.physics(fn, anisotropic=model.anisotropic, settings=cfg.validation,
                             extra=extra)
     checks = phys["checks"]
-    n = cfg.normalization
     meta = {
         "format_version": str(cfgmod.FORMAT_VERSION),
         "producer": PRODUCER,
         "frame": FRAME,
         "units": UNITS,
         "encoding": cfg.model.encoding,
-        "normalization": (f"f = raw / max(1, A+(wi), A+(wo)) per channel; A+ = MIS quadrature "
-                          f"albedo of the raw network + {n.sigmas:g} standard errors, "
-                          f"neighbour maximum, times (1 + {n.margin:g}); table of "
-                          f"{model.table.shape[0]} nodes per axis, {n.samples} points per node"),
+        "normalization": normalization_note(model, cfg.normalization),
         "target": target_desc,
         "max_albedo": repr(checks["max_albedo"]["value"]),
         "hemispherical_albedo": json.dumps(phys["hemispherical_albedo"]),

@@ -28,6 +28,8 @@ raw albedo comes within that headroom of 1 is scaled down by it there, and nowhe
 Table coordinates.  Isotropic: x = theta / (pi/2) on ``K`` nodes.  Anisotropic: the
 azimuthal-equidistant map p = (theta / (pi/2)) (w_x, w_y) / |w_xy| of the hemisphere
 onto the unit disc, on a K x K grid over [-1, 1]^2 (no atan2, which ONNX lacks).
+The ``raw`` ablation encoding uses the anisotropic table.  With
+``normalization.enabled: false`` (ablations only) the exported model is RawBRDF itself.
 """
 
 from __future__ import annotations
@@ -91,6 +93,7 @@ class RawBRDF(nn.Module):
                  grazing_power: float = 1.0, init_value: float = 0.3):
         super().__init__()
         self.encoding = encoding
+        self.anisotropic = enc.is_anisotropic(encoding)    # as NormalizedBRDF.anisotropic
         self.grazing_power = float(grazing_power)
         self.mlp = MLP(enc.num_features(encoding), hidden, activation, init_value=init_value)
 

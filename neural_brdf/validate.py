@@ -36,6 +36,7 @@ import analytic
 
 from . import config as cfgmod
 from . import data, quadrature
+from .encoding import is_anisotropic
 from .runtime import load
 
 # Directions of the furnace grid stop this far above the horizon (radians, 0.01 degree).
@@ -140,7 +141,7 @@ def report(model_path, *, reference: cfgmod.Config | None = None,
     out = {"model": str(model_path), "encoding": model.encoding,
            "target": model.metadata.get("target", "")}
     if physics_report is None:
-        physics_report = physics(model.eval, anisotropic=model.encoding == "anisotropic",
+        physics_report = physics(model.eval, anisotropic=is_anisotropic(model.encoding),
                                  settings=settings, extra=target)
     out.update(physics_report)
     if target is not None:
