@@ -8,7 +8,8 @@
 
     format_version, producer, frame, units, encoding, normalization, target,
     max_albedo, hemispherical_albedo, reciprocity_error, min_value,
-    parity_rel_error, float32_rel_precision, training_config (the resolved config, YAML)
+    parity_rel_error, float32_rel_precision, training_config (the resolved config, YAML),
+    sampling_lobe (JSON: the importance-sampling lobe fitted to the network, neural_brdf.lobe)
 
 The physics values are measured on the exported graph itself, through onnxruntime.
 Torch and onnxruntime are checked to agree to ``export.parity_tol`` (1e-5) relative,
@@ -38,7 +39,7 @@ import torch
 from analytic import physics
 
 from . import config as cfgmod
-from . import data, validate
+from . import data, lobe, validate
 from .encoding import is_anisotropic
 from .model import NormalizedBRDF, RawBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
@@ -202,6 +203,7 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, ta
         "parity_rel_error": repr(parity),
         "float32_rel_precision": repr(precision),
         "training_config": cfg.to_yaml(),
+        lobe.KEY: lobe.to_json(lobe.fit(fn)),      # renderers' importance sampling
     }
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)

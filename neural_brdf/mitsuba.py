@@ -28,13 +28,14 @@ The ``analytic_brdf`` plugin exports the analytic model's own torch ``f(wi, wo)`
 ONNX with ``torch.onnx`` (in memory) and runs it through the same interpreter, so it is
 as fast as the neural plugin and never calls back into torch while rendering.
 
-Sampling (both plugins).  A mixture of cosine-weighted hemisphere sampling (weight
-1 - w) and GGX visible-normal sampling of a reflection lobe of roughness ``alpha``
-(weight w); ``pdf`` is the mixture density of ``sample``.  ``(alpha, w)`` come from the
-ONNX metadata key ``sampling_lobe`` (JSON ``{"alpha": a, "weight": w}``) when present;
-otherwise :func:`fit_sampling_lobe` fits them when the plugin loads.  The sample weight
-is computed by the very same traced functions as ``eval`` and ``pdf`` (value / pdf), so
-it equals eval / pdf exactly.
+Sampling (both plugins).  The mixture of :mod:`neural_brdf.lobe`: cosine-weighted
+hemisphere sampling (share 1 - w) and GGX visible-normal sampling of a reflection lobe
+of roughness ``alpha`` (share w); ``pdf`` is the mixture density of ``sample``.  The
+neural plugin reads ``(alpha, w)`` from the ONNX metadata key ``sampling_lobe``, which
+the exporter writes; for files exported before it did, it fits them when the model
+loads (about half a second), as the analytic plugin always does.  The sample weight is
+computed by the very same traced functions as ``eval`` and ``pdf`` (value / pdf), so it
+equals eval / pdf exactly.
 
 Conventions (Mitsuba's, and NOTES.md): ``eval`` returns f * cos(theta_o), 0 when wi or
 wo is at or below the horizon (one-sided, like Mitsuba's built-in BSDFs); ``pdf`` is 0
@@ -48,7 +49,6 @@ import json
 import math
 import os
 import tempfile
-import time
 import warnings
 from pathlib import Path
 
@@ -58,6 +58,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
+from . import lobe as lobes
 from .config import InputError
 from .runtime import INPUTS, OUTPUT
 
@@ -65,20 +66,11 @@ if mi.variant() is None:
     raise ImportError("neural_brdf.mitsuba: set a Mitsuba variant first, e.g. "
                       "mi.set_variant('llvm_ad_rgb'); the plugins register for that variant")
 
-METADATA_LOBE = "sampling_lobe"        # ONNX metadata key: {"alpha": a, "weight": w}
-
 # A shape vector (the value of an ONNX Shape op) holds this in place of the batch size N,
 # which is not known while a kernel is traced.  Far from -1 and 0, which Reshape and
 # Expand give meanings of their own; multiplying it by -1 (torch's Expand pattern)
 # cannot produce -1 either.
 BATCH = -(1 << 40)
-
-# GGX alpha below which the sampling lobe is clamped: the fit's candidate grid starts
-# here, and Mitsuba's float32 GGX sampling loses accuracy for much sharper lobes.
-MIN_LOBE_ALPHA = 0.01
-# The cosine lobe always keeps at least this share, so that the sample weight f cos / pdf
-# stays bounded where the network has a diffuse tail the GGX lobe misses.
-MAX_LOBE_WEIGHT = 0.9
 
 
 class UnsupportedOnnxOp(InputError):
@@ -629,6 +621,27 @@ def _reduce(kind):
     return run
 
 
+# Independent partial sums per dot product in _linear.  One chain of K dependent
+# multiply-adds is bound by the FMA latency (4 cycles); four chains of K/4 keep the
+# FMA units busy.  Measured on a 64-64-64 network (AVX-512, llvm_ad_rgb): 1.4x the
+# evaluation rate of one chain; 8 and 16 chains were no faster than 4.
+DOT_CHAINS = 4
+
+
+def _dot(xs, ws, bias):
+    """sum_i xs[i] * ws[i] (+ bias) as DOT_CHAINS interleaved FMA chains, summed pairwise."""
+    chains = []
+    for c in range(min(DOT_CHAINS, len(xs))):
+        acc = float(bias) if (c == 0 and bias is not None) else None
+        for x, w in zip(xs[c::DOT_CHAINS], ws[c::DOT_CHAINS]):
+            acc = x * w if acc is None else dr.fma(x, w, acc)
+        chains.append(acc)
+    while len(chains) > 1:
+        chains = [chains[i] + chains[i + 1] if i + 1 < len(chains) else chains[i]
+                  for i in range(0, len(chains), 2)]
+    return chains[0]
+
+
 def _linear(x: Lanes, w: np.ndarray, bias, scale: float) -> Lanes:
     """x (trailing (..., K)) @ w (K, M) * scale + bias (M,) as fused multiply-adds."""
     k, m = w.shape
@@ -636,15 +649,12 @@ def _linear(x: Lanes, w: np.ndarray, bias, scale: float) -> Lanes:
         raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights {w.shape}")
     lead = x.shape[:-1]
     rows = x.a.reshape(-1, k)
+    ws = [[float(v) for v in (w[:, j] * scale).astype(np.float32)] for j in range(m)]
     out = []
     for r in range(rows.shape[0]):
-        xs = rows[r]
+        xs = list(rows[r])
         for j in range(m):
-            acc = None if bias is None else float(bias[j])
-            for i in range(k):
-                wij = float(w[i, j]) * scale
-                acc = xs[i] * wij if acc is None else dr.fma(xs[i], wij, acc)
-            out.append(acc)
+            out.append(_dot(xs, ws[j], None if bias is None else bias[j]))
     return Lanes(_obj(out, lead + (m,)))
 
 
@@ -703,111 +713,11 @@ _OPS.update({
 SUPPORTED_OPS = frozenset(_OPS)
 
 
-# ====================================================================== sampling lobe
-def _session(model):
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    opts.log_severity_level = 3
-    src = str(model) if isinstance(model, (str, os.PathLike)) else bytes(model)
-    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
-
-
-# Fit settings.  Incident directions: theta from near-normal to near-grazing (degrees),
-# each at its own azimuth so anisotropic models are probed off-axis too.
-FIT_THETA_DEG = (5.0, 20.0, 35.0, 50.0, 65.0, 80.0)
-FIT_ALPHAS = np.geomspace(MIN_LOBE_ALPHA, 1.0, 25)
-FIT_WEIGHTS = np.linspace(0.0, MAX_LOBE_WEIGHT, 10)
-FIT_SAMPLES = 1024          # per candidate lobe (and the cosine lobe) per incident direction
-
-
-def fit_sampling_lobe(onnx_path, *, seed: int = 0) -> dict:
-    """Fit the GGX alpha and mixture weight of the sampling lobe to an exported model.
-
-    A moment fit: for every candidate (alpha, w) on a grid it estimates the relative
-    second moment of the sample weight, E_p[(f cos / p)^2] / A^2 (= 1 + relative variance
-    of a one-sample estimate of the albedo A; f is the RGB mean), averaged over incident
-    directions FIT_THETA_DEG, and returns the minimiser.  The integrals are estimated
-    with one set of samples drawn from a defensive mixture of every candidate lobe and
-    the cosine lobe, evaluated with onnxruntime.  ``onnx_path`` may also be the bytes
-    of a model.  Returns ``{"alpha": a, "weight": w}`` (JSON-ready floats).
-    """
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)      # these small ops ran 5x slower on 2 threads than on 1
-    try:
-        return _fit_lobe(_session(onnx_path), np.random.default_rng(seed))
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _fit_lobe(session, rng) -> dict:
-    import torch
-
-    from analytic import frame
-    from analytic.microfacet import Distribution
-
-    dists = [Distribution("ggx", float(a), float(a)) for a in FIT_ALPHAS]
-    score = np.zeros((len(FIT_ALPHAS), len(FIT_WEIGHTS)))
-    for k, theta in enumerate(FIT_THETA_DEG):
-        t, phi = math.radians(theta), 0.9 * k
-        wi1 = torch.tensor([math.sin(t) * math.cos(phi), math.sin(t) * math.sin(phi), math.cos(t)],
-                           dtype=torch.float64)
-        n = FIT_SAMPLES
-        u = torch.from_numpy(rng.random((len(dists) + 1, n, 2)))
-        wi = wi1.expand(n, 3)
-        wos = [frame.square_to_cosine_hemisphere(u[0])]
-        for d, uu in zip(dists, u[1:]):
-            wos.append(frame.reflect(wi, d.sample_visible(wi, uu)))
-        wo = torch.cat(wos, 0)                                           # (L n, 3)
-        wi = wi1.expand(len(wo), 3).contiguous()
-        with torch.no_grad():
-            up = wo[:, 2] > 0
-            p_cos = torch.where(up, frame.cosine_hemisphere_pdf(wo), 0.0)
-            h = frame.normalize(wi + wo)
-            jac = 1.0 / (4.0 * frame.dot(wo, h).clamp_min(1e-12))
-            p_ggx = torch.stack([d.pdf_visible(wi, h) * jac for d in dists], 0)   # (A, L n)
-        # the density of the pooled samples over the whole sphere (a visible normal may
-        # reflect wi below the horizon; those samples count, with f cos = 0)
-        q = ((p_cos + p_ggx.sum(0)) / (len(dists) + 1)).numpy()
-        f = session.run([OUTPUT], {"wi": wi.numpy().astype(np.float32),
-                                   "wo": wo.numpy().astype(np.float32)})[0]
-        fc = f.astype(np.float64).mean(-1) * np.clip(wo[:, 2].numpy(), 0.0, None)
-        live = (fc > 0) & (q > 0)
-        fc, q = fc[live], q[live]
-        p_cos, p_ggx = p_cos.numpy()[live], p_ggx.numpy()[:, live]
-        n_all = len(wo)
-        albedo = np.sum(fc / q) / n_all
-        if not albedo > 0:
-            continue
-        for j, w in enumerate(FIT_WEIGHTS):
-            p = (1.0 - w) * p_cos[None] + w * p_ggx                      # (A, M)
-            with np.errstate(divide="ignore"):
-                m2 = np.sum(fc * fc / (p * q), axis=-1) / n_all
-            score[:, j] += m2 / (albedo * albedo) / len(FIT_THETA_DEG)
-    i, j = np.unravel_index(np.argmin(score), score.shape)
-    return {"alpha": float(FIT_ALPHAS[i]), "weight": float(FIT_WEIGHTS[j])}
-
-
-def _lobe_from_metadata(meta: dict) -> dict | None:
-    text = meta.get(METADATA_LOBE)
-    if text is None:
-        return None
-    try:
-        lobe = json.loads(text)
-        alpha, weight = float(lobe["alpha"]), float(lobe["weight"])
-    except (ValueError, KeyError, TypeError):
-        raise InputError(f"metadata {METADATA_LOBE!r}: expected JSON "
-                         f"{{\"alpha\": a, \"weight\": w}}, got {text!r}") from None
-    if not (alpha > 0 and 0.0 <= weight <= 1.0):
-        raise InputError(f"metadata {METADATA_LOBE!r}: alpha must be > 0 and weight in "
-                         f"[0, 1], got {text!r}")
-    return {"alpha": max(alpha, MIN_LOBE_ALPHA), "weight": weight}
-
-
 # ====================================================================== BSDF plugins
+def _black(wi, wo):
+    return mi.Color3f(0.0)
+
+
 class _GraphBSDF(mi.BSDF):
     """A BSDF evaluated by an ONNX graph (f, no cosine) with the mixture sampler."""
 
@@ -830,11 +740,16 @@ class _GraphBSDF(mi.BSDF):
 
     # -- the three traced pieces; sample() reuses them so that weight == eval / pdf
     def _f_cos(self, si, wo, active):
-        wi = si.wi
-        out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z])[OUTPUT]
-        cos_i, cos_o = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
+        cos_i, cos_o = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(wo)
         valid = active & (cos_i > 0.0) & (cos_o > 0.0)
-        return dr.select(valid, mi.Color3f(out[0], out[1], out[2]) * cos_o, 0.0)
+        # The graph runs inside a conditional, which Dr.Jit skips for a SIMD packet
+        # (LLVM) or warp (CUDA) where no lane needs it: the unlit side of a light,
+        # light samples below the horizon, paths that left the surface.
+        return dr.if_stmt((si.wi, wo), valid, self._graph_f_cos, _black, label="graph")
+
+    def _graph_f_cos(self, wi, wo):
+        out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z])[OUTPUT]
+        return mi.Color3f(out[0], out[1], out[2]) * mi.Frame3f.cos_theta(wo)
 
     def _pdf(self, si, wo, active):
         wi = si.wi
@@ -893,7 +808,8 @@ class _GraphBSDF(mi.BSDF):
 
     def to_string(self):
         return (f"{type(self).__name__}[{self.label}, sampling lobe GGX alpha="
-                f"{self.lobe['alpha']:.4g} weight={self.lobe_weight:.3g}]")
+                f"{self.lobe['alpha']:.4g} weight={self.lobe_weight:.3g} "
+                f"({self.lobe_source})]")
 
 
 def _resolve(filename: str) -> Path:
@@ -907,6 +823,25 @@ def _resolve(filename: str) -> Path:
     return path
 
 
+def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
+    """Resolve, load and check an exported model: (path, program, stored lobe or None).
+
+    A missing or unusable file raises a one-line InputError.  :func:`render_preview`
+    calls this before it loads a scene, because Mitsuba reports an exception raised in a
+    plugin's constructor as a RuntimeError carrying the Python traceback."""
+    path = _resolve(str(filename))
+    try:
+        proto = onnx.load(str(path))
+    except Exception as e:       # onnx raises DecodeError and others on a bad file
+        raise InputError(f"neural_brdf: {path}: not a loadable ONNX model "
+                         f"({type(e).__name__})") from None
+    try:
+        stored = lobes.from_metadata({p.key: p.value for p in proto.metadata_props})
+    except InputError as e:
+        raise InputError(f"neural_brdf: {path}: {e}") from None
+    return path, OnnxProgram(proto), stored
+
+
 class NeuralBSDF(_GraphBSDF):
     """``{'type': 'neural_brdf', 'filename': 'model.onnx'}``: an exported neural BRDF."""
 
@@ -914,15 +849,9 @@ class NeuralBSDF(_GraphBSDF):
         mi.BSDF.__init__(self, props)
         if "filename" not in props:
             raise InputError("neural_brdf: the 'filename' property (an ONNX file) is required")
-        path = _resolve(props["filename"])
-        try:
-            proto = onnx.load(str(path))
-        except Exception as e:       # onnx raises DecodeError and others on a bad file
-            raise InputError(f"neural_brdf: {path}: not a loadable ONNX model "
-                             f"({type(e).__name__})") from None
-        meta = {p.key: p.value for p in proto.metadata_props}
-        lobe = _lobe_from_metadata(meta) or fit_sampling_lobe(path)
-        self._setup(OnnxProgram(proto), lobe, str(path))
+        path, program, stored = read_model(props["filename"])
+        self.lobe_source = "metadata" if stored else "fitted at load"
+        self._setup(program, stored or lobes.fit_onnx(path), str(path))
 
 
 def analytic_onnx(model: str, params: dict | None = None) -> bytes:
@@ -981,7 +910,8 @@ class AnalyticBSDF(_GraphBSDF):
         model, params = _analytic_params(props)
         payload = analytic_onnx(model, params)
         label = f"analytic {model} {json.dumps(params, sort_keys=True)}"
-        self._setup(OnnxProgram(payload), fit_sampling_lobe(payload), label)
+        self.lobe_source = "fitted at load"
+        self._setup(OnnxProgram(payload), lobes.fit_onnx(payload), label)
 
 
 mi.register_bsdf("neural_brdf", lambda props: NeuralBSDF(props))
@@ -1089,7 +1019,7 @@ def render_preview(onnx_path, out_png, *, reference: dict | None = None, spp: in
     """
     import matplotlib
 
-    path = _resolve(str(onnx_path))
+    path, _, _ = read_model(onnx_path)
     neural = to_display(render_scene({"type": "neural_brdf", "filename": str(path)},
                                      resolution=resolution, spp=spp))
     if reference is None:
@@ -1106,17 +1036,3 @@ def render_preview(onnx_path, out_png, *, reference: dict | None = None, spp: in
     gap = np.ones((resolution, max(2, resolution // 64), 3))
     _write_png(Path(out_png), np.concatenate([neural, gap, ref, gap, err_rgb], axis=1))
     return psnr(neural, ref)
-
-
-def timed_render(bsdf: dict, *, resolution: int, spp: int, repeats: int = 3) -> dict:
-    """Seconds for :func:`render_scene`: the first call (tracing + LLVM compilation
-    included) and the best of ``repeats`` later calls (kernels cached)."""
-    t0 = time.perf_counter()
-    render_scene(bsdf, resolution=resolution, spp=spp)
-    first = time.perf_counter() - t0
-    best = math.inf
-    for r in range(repeats):
-        t0 = time.perf_counter()
-        render_scene(bsdf, resolution=resolution, spp=spp, seed=0)
-        best = min(best, time.perf_counter() - t0)
-    return {"first_s": first, "best_s": best}

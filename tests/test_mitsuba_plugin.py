@@ -6,7 +6,9 @@
 * ``mitsuba.chi2.ChiSquareTest``: sample() is distributed as pdf() says, at incident
   angles of 10, 45 and 75 degrees;
 * the sample weight equals eval / pdf (and bs.pdf equals pdf) at sampled directions;
-* the sampling lobe is read from the ONNX metadata and, without it, fitted at load;
+* the exporter stores the fitted sampling lobe in the ONNX metadata; the plugin reads
+  it (its pdf is the mixture with the stored alpha and weight, computed independently
+  here with analytic's GGX), and fits it at load for files without it;
 * furnace renders: a sphere in a constant environment of radiance 1 under a path
   tracer of unbounded depth; no pixel exceeds 1 beyond Monte Carlo noise, for the
   neural model and for analytic models; GGX with F = 1 and multiple scattering is 1
@@ -24,10 +26,13 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
+import torch
 
 import neural_brdf
-from neural_brdf import config, train
+from neural_brdf import config, lobe, train
+from neural_brdf.config import InputError
 from neural_brdf.export import relative_difference
 
 pytestmark = pytest.mark.mitsuba
@@ -36,7 +41,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 # Short and small: the plugin, not the fit, is under test.  The normalisation keeps its
 # defaults except the sample count (its 3-sigma margin keeps the albedo bound).
-TINY_RUN = ["train.steps=150", "train.warmup=20", "train.progress=false",
+TINY_RUN = ["train.steps=150", "train.threads=1", "train.warmup=20", "train.progress=false",
             "train.checkpoint_every=1000", "train.eval_every=0", "model.hidden=[16,16]",
             "data.batch_size=1024", "data.pool_size=16384", "normalization.samples=4096",
             "validation.furnace_dirs=31", "validation.furnace_samples=2048",
@@ -85,18 +90,22 @@ def tiny_model(tmp_path_factory):
     return run_dir / "model.onnx"
 
 
-@pytest.fixture(scope="module")
-def lobe_model(tiny_model, plugin, tmp_path_factory):
-    """The tiny model with its fitted sampling lobe stored in the metadata, as an
-    exporter would store it; (path, lobe)."""
-    lobe = plugin.fit_sampling_lobe(tiny_model)
-    proto = onnx.load(str(tiny_model))
-    meta = {p.key: p.value for p in proto.metadata_props}
-    meta[plugin.METADATA_LOBE] = json.dumps(lobe)
+def with_metadata(src, dst, key, value=None):
+    """A copy of the model ``src`` at ``dst`` with metadata ``key`` set (None: removed)."""
+    proto = onnx.load(str(src))
+    meta = {p.key: p.value for p in proto.metadata_props if p.key != key}
+    if value is not None:
+        meta[key] = value
     onnx.helper.set_model_props(proto, meta)
-    path = tmp_path_factory.mktemp("lobe") / "model.onnx"
-    onnx.save(proto, str(path))
-    return path, lobe
+    onnx.save(proto, str(dst))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def legacy_model(tiny_model, tmp_path_factory):
+    """The tiny model as exported before the lobe was stored: no ``sampling_lobe``."""
+    return with_metadata(tiny_model, tmp_path_factory.mktemp("legacy") / "model.onnx",
+                         lobe.KEY)
 
 
 # ------------------------------------------------------------------ helpers
@@ -205,7 +214,8 @@ def test_interpreter_matches_onnxruntime_on_analytic_graphs(mi, plugin, name, pa
     cols = plugin.OnnxProgram(payload)(wi=[mi.Float(wi[:, k]) for k in range(3)],
                                        wo=[mi.Float(wo[:, k]) for k in range(3)])["f"]
     got = np.stack([to_np(c) for c in cols], -1)
-    ref = plugin._session(payload).run(["f"], {"wi": wi, "wo": wo})[0].astype(np.float64)
+    ref = ort.InferenceSession(payload, providers=["CPUExecutionProvider"]).run(
+        ["f"], {"wi": wi, "wo": wo})[0].astype(np.float64)
     err = relative_difference(got, ref)
     assert err <= PARITY_TOL, f"{name} {params}: interpreter vs onnxruntime {err:.3g}"
 
@@ -223,21 +233,71 @@ def test_unsupported_op_is_named(mi, plugin):
 
 
 # ------------------------------------------------------------------ sampling
-def test_lobe_from_metadata_or_fitted(mi, plugin, tiny_model, lobe_model):
-    path, lobe = lobe_model
-    stored = mi.load_dict({"type": "neural_brdf", "filename": str(path)})
-    fitted = mi.load_dict({"type": "neural_brdf", "filename": str(tiny_model)})
-    assert stored.lobe == lobe and fitted.lobe == lobe
-    # GGX alpha = 0.3 gold: the fit should find a glossy lobe of about that roughness
-    assert 0.15 <= lobe["alpha"] <= 0.5 and lobe["weight"] >= 0.5, lobe
+def test_export_stores_the_lobe_and_the_plugin_reads_it(mi, tiny_model):
+    meta = neural_brdf.load(tiny_model).metadata
+    stored = lobe.from_metadata(meta)
+    assert stored is not None, sorted(meta)
+    # the fit is deterministic: fitting the exported file again gives the stored lobe
+    assert stored == lobe.fit_onnx(tiny_model)
+    # GGX alpha = 0.3 gold: a glossy lobe of about that roughness
+    assert 0.15 <= stored["alpha"] <= 0.5 and stored["weight"] >= 0.5, stored
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(tiny_model)})
+    assert bsdf.lobe == stored and bsdf.lobe_source == "metadata"
+    assert "(metadata)" in str(bsdf)
+
+
+def test_a_file_without_the_lobe_is_fitted_at_load(mi, tiny_model, legacy_model):
+    assert lobe.KEY not in neural_brdf.load(legacy_model).metadata
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(legacy_model)})
+    assert bsdf.lobe_source == "fitted at load"
+    # the same network, so the same fit as the exporter's
+    assert bsdf.lobe == lobe.from_metadata(neural_brdf.load(tiny_model).metadata)
+
+
+def mixture_pdf(wi, wo, alpha, weight):
+    """The lobe's density over the sphere, from analytic's GGX (not Mitsuba's)."""
+    from analytic import frame
+    from analytic.microfacet import Distribution
+
+    wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
+    h = frame.normalize(wi + wo)
+    ggx = Distribution("ggx", alpha, alpha).pdf_visible(wi, h) / (4.0 * frame.dot(wo, h))
+    p = (1.0 - weight) * frame.cosine_hemisphere_pdf(wo) + weight * ggx
+    return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), p, 0.0).numpy()
+
+
+@pytest.mark.parametrize("alpha, weight", [(0.08, 0.5), (0.6, 0.2)])
+def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, alpha, weight):
+    """A lobe unlike the fitted one is written into the file: the plugin's pdf must be
+    that mixture (so the metadata, not a fit, drives sampling)."""
+    text = lobe.to_json({"kind": lobe.KIND, "alpha": alpha, "weight": weight})
+    path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, text)
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(path)})
+    assert (bsdf.lobe["alpha"], bsdf.lobe["weight"]) == (alpha, weight)
+    wi, _ = pairs(4, 4000)
+    # wo near the mirror direction (where the GGX lobe matters) and anywhere
+    mirror = wi * [-1.0, -1.0, 1.0] + np.random.default_rng(5).normal(0, 0.1, wi.shape)
+    wo = np.concatenate([mirror[:2000], pairs(6, 4000)[1][:2000]]).astype(np.float32)
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    got = to_np(bsdf.pdf(mi.BSDFContext(), interaction(mi, wi), vec3(mi, wo)))
+    ref = mixture_pdf(wi, wo, alpha, weight)
+    assert (ref > 0).sum() > 2000
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
+
+
+def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp_path):
+    path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, '{"kind": "gauss"}')
+    with pytest.raises(InputError) as e:
+        plugin.read_model(path)
+    assert "model.onnx" in str(e.value) and lobe.KEY in str(e.value)
+    assert "\n" not in str(e.value)
 
 
 @pytest.mark.parametrize("theta", CHI2_THETA_DEG)
-def test_chi2(mi, lobe_model, theta, tmp_path, monkeypatch):
+def test_chi2(mi, tiny_model, theta, tmp_path, monkeypatch):
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 
-    path, _ = lobe_model
-    props = {"type": "neural_brdf", "filename": str(path)}
+    props = {"type": "neural_brdf", "filename": str(tiny_model)}
     sample_fn, pdf_fn = BSDFAdapter("neural_brdf", props, wi=incident(theta))
     test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_fn, pdf_func=pdf_fn,
                          sample_dim=3, sample_count=1_000_000, ires=CHI2_IRES,
@@ -250,11 +310,10 @@ def test_chi2(mi, lobe_model, theta, tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("kind", ["neural", "analytic"])
-def test_sample_weight_is_eval_over_pdf(mi, lobe_model, kind):
+def test_sample_weight_is_eval_over_pdf(mi, tiny_model, kind):
     import drjit as dr
 
-    path, _ = lobe_model
-    props = ({"type": "neural_brdf", "filename": str(path)} if kind == "neural" else
+    props = ({"type": "neural_brdf", "filename": str(tiny_model)} if kind == "neural" else
              {"type": "analytic_brdf", "model": "microfacet",
               "params": json.dumps({"alpha": 0.2, "fresnel": "conductor", "material": "Cu"})})
     bsdf = mi.load_dict(props)
@@ -301,9 +360,9 @@ def furnace_cases():
 
 
 @pytest.mark.parametrize("kind, case", furnace_cases())
-def test_furnace(mi, lobe_model, kind, case):
+def test_furnace(mi, tiny_model, kind, case):
     if kind == "neural":
-        bsdf = {"type": "neural_brdf", "filename": str(lobe_model[0])}
+        bsdf = {"type": "neural_brdf", "filename": str(tiny_model)}
         expected = None
     else:
         name, params, expected = case
