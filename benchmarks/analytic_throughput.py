@@ -4,12 +4,16 @@
     python benchmarks/analytic_throughput.py --batch 65536 --repeats 3 --out /tmp/t.json
 
 Every model in ``analytic.available()`` is evaluated at its defaults on a fixed batch
-of random (wi, wo) pairs in the upper hemisphere, in float32, once from numpy arrays
-and once from torch tensors (CPU, the default thread count).  One warm-up call, then the
-best of ``--repeats`` timed calls.  The same run measures the machine's fp32 matmul
-peak (torch.mm of two 2048 x 2048 matrices) so the figures can be compared across
-machines.  Results go to benchmarks/results/analytic_throughput.json (written
-atomically) and a table is printed.  Nothing here asserts a speed.
+of random (wi, wo) pairs in the upper hemisphere, in float32: through ``brdf.eval`` on
+numpy arrays and through ``brdf.f`` on torch tensors (CPU, the default thread count).
+One warm-up call, then the best of ``--repeats`` timed calls.  The same run measures the
+machine's fp32 matmul peak (torch.mm of two 2048 x 2048 matrices, at torch's thread
+count: the numpy path converts and runs the same torch code), and each rate is also
+given as its cost in matmul FLOPs: peak / rate, the FLOPs the machine's matmul
+would have done in the time of one evaluation (the models have no matmul of their own,
+so this is their machine-independent figure).  Results go to
+benchmarks/results/analytic_throughput.json (written atomically) and a table is printed.
+``run_all.py`` calls :func:`measure` for the suite.  Nothing here asserts a speed.
 """
 
 from __future__ import annotations
@@ -30,10 +34,9 @@ if str(REPO) not in sys.path:            # run from a checkout without `pip inst
     sys.path.insert(0, str(REPO))
 
 import analytic  # noqa: E402
-from common import MATMUL_N, best_time, matmul_flops_per_s, write_json  # noqa: E402
+from common import MATMUL_N, evals_per_second, matmul_flops_per_s, write_json  # noqa: E402
 
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "analytic_throughput.json"
-
 
 
 def random_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -49,19 +52,29 @@ def random_pairs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return hemi(), hemi()
 
 
-
-
 def bench_model(name: str, wi: np.ndarray, wo: np.ndarray, repeats: int) -> dict:
     brdf = analytic.create(name)
     wi_t, wo_t = torch.from_numpy(wi), torch.from_numpy(wo)
     n = len(wi)
-    t_np = best_time(lambda: brdf.eval(wi, wo), repeats)
-    with torch.no_grad():
-        t_torch = best_time(lambda: brdf.eval(wi_t, wo_t), repeats)
-    return {"model": repr(brdf), "numpy_evals_per_s": n / t_np, "torch_evals_per_s": n / t_torch,
-            "numpy_s": t_np, "torch_s": t_torch}
+    numpy_rate = evals_per_second(lambda: brdf.eval(wi, wo), n, repeats)
+    with torch.inference_mode():
+        torch_rate = evals_per_second(lambda: brdf.f(wi_t, wo_t), n, repeats)
+    return {"model": repr(brdf), "numpy_evals_per_s": numpy_rate,
+            "torch_evals_per_s": torch_rate}
 
 
+def measure(batch: int, repeats: int, peak_flops: float) -> dict:
+    """Every model's rates, plus their cost in matmul FLOPs at ``peak_flops`` (FLOP/s
+    of the matmul at torch's current thread count)."""
+    wi, wo = random_pairs(batch)
+    models = {}
+    for name in analytic.available():
+        m = bench_model(name, wi, wo, repeats)
+        m["numpy_matmul_flops_per_eval"] = peak_flops / m["numpy_evals_per_s"]
+        m["torch_matmul_flops_per_eval"] = peak_flops / m["torch_evals_per_s"]
+        models[name] = m
+    return {"batch": batch, "repeats": repeats, "dtype": "float32",
+            "torch_threads": torch.get_num_threads(), "models": models}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,42 +87,34 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--batch and --repeats must be >= 1")
 
     load_at_start = os.getloadavg()[0]      # other work on the machine skews every figure
-    wi, wo = random_pairs(args.batch)
-    peak = matmul_flops_per_s(args.repeats) / 1e9
-    models = {}
-    for name in analytic.available():
-        models[name] = bench_model(name, wi, wo, args.repeats)
-
+    peak = matmul_flops_per_s(args.repeats)
+    result = measure(args.batch, args.repeats, peak)
     result = {
         "benchmark": "analytic_throughput",
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "batch": args.batch,
-        "repeats": args.repeats,
-        "dtype": "float32",
         "statistic": "best of repeats, after one warm-up call",
         "machine": {
             "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
             "cpu_count": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(),
             "python": platform.python_version(),
             "torch": torch.__version__,
             "numpy": np.__version__,
             "load_average_1min_at_start": load_at_start,
-            "fp32_matmul_gflops": peak,
+            "fp32_matmul_gflops": peak / 1e9,
             "matmul": f"torch.mm {MATMUL_N}x{MATMUL_N} float32",
         },
-        "models": models,
+        **result,
     }
     write_json(args.out, result)
 
     print(f"analytic throughput: batch {args.batch}, float32, best of {args.repeats}; "
           f"{torch.get_num_threads()} torch threads")
-    print(f"fp32 matmul peak (torch.mm {MATMUL_N}^2): {peak:.1f} GFLOP/s; "
+    print(f"fp32 matmul peak (torch.mm {MATMUL_N}^2): {peak / 1e9:.1f} GFLOP/s; "
           f"1-min load average at start {load_at_start:.2f}")
     print(f"{'model':<20}{'numpy M evals/s':>18}{'torch M evals/s':>18}")
-    for name, m in models.items():
-        print(f"{name:<20}{m['numpy_evals_per_s'] / 1e6:>18.2f}{m['torch_evals_per_s'] / 1e6:>18.2f}")
+    for name, m in result["models"].items():
+        print(f"{name:<20}{m['numpy_evals_per_s'] / 1e6:>18.2f}"
+              f"{m['torch_evals_per_s'] / 1e6:>18.2f}")
     print(f"wrote {args.out}")
     return 0
 

@@ -25,6 +25,27 @@ def best_time(fn, repeats: int) -> float:
     return best
 
 
+def evals_per_second(fn, n: int, repeats: int, *, min_block_s: float = 0.02) -> float:
+    """Rate of ``fn``, which evaluates ``n`` pairs per call: n / seconds per call.
+
+    Calls are timed in blocks of at least ``min_block_s`` (one call for large batches,
+    many for small ones, which a single call would time below the clock's resolution
+    and above its overhead); the best of ``repeats`` blocks, after one warm-up call.
+    """
+    fn()
+    t0 = time.perf_counter()
+    fn()
+    once = time.perf_counter() - t0
+    calls = max(1, math.ceil(min_block_s / max(once, 1e-9)))
+    best = once if calls == 1 else math.inf
+    for _ in range(repeats - (calls == 1)):
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / calls)
+    return n / best
+
+
 def matmul_flops_per_s(repeats: int) -> float:
     """fp32 matmul rate (FLOP/s) of torch.mm on two 2048 x 2048 matrices, at the
     current torch thread count: the machine's reference peak for ratios."""

@@ -2,7 +2,7 @@
 
     neural-brdf train CONFIG [--out RUN_DIR] [--set KEY=VALUE ...] [--resume]
     neural-brdf export RUN_DIR [-o model.onnx]
-    neural-brdf validate model.onnx [--reference CONFIG] [--json out.json]
+    neural-brdf validate model.onnx [--reference CONFIG|material.binary] [--json out.json]
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -51,7 +51,8 @@ def _parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("validate", help="check physics (and accuracy) of an exported model")
     v.add_argument("model")
-    v.add_argument("--reference", help="config whose target is the ground truth")
+    v.add_argument("--reference", help="ground truth: a config (its target) or a MERL "
+                                       ".binary file (measured data)")
     v.add_argument("--json", help="write the report as JSON to this file")
 
     b = sub.add_parser("bake", help="write a model (.onnx) or a config's analytic target "
@@ -96,7 +97,7 @@ def _export(args) -> int:
 
 def _validate(args) -> int:
     from . import config, validate
-    reference = config.load(args.reference) if args.reference else None
+    reference = validate.reference_from(args.reference) if args.reference else None
     report = validate.report(args.model, reference=reference)
     print(validate.format_table(report))
     if args.json:

@@ -163,7 +163,8 @@ def deferred_sigint():
 def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target=None):
     """Optimise the raw network; writes ckpt.pt and log.csv.  Returns (network, figures).
 
-    ``target`` is the analytic model of ``cfg.target`` when the caller has built it.
+    ``target`` is the model of ``cfg.target`` (``data.build_target``) when the caller
+    has built it.
     """
     t = cfg.train
     torch.set_num_threads(t.threads)
@@ -179,12 +180,12 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target=Non
 
     gen = torch.Generator().manual_seed(t.seed)
     torch.manual_seed(t.seed)
-    pool = data.Pool(data.PairSource(target, cfg.data, gen), cfg.data)
+    pool = data.Pool(data.pair_source(target, cfg.data, gen), cfg.data)
     init = float(pool.f.median().clamp(1e-3, 10.0))
     raw = RawBRDF.from_config(cfg.model, init_value=init)
     opt = torch.optim.Adam(raw.parameters(), lr=t.lr)
     eval_wi, eval_wo, eval_f = (x.float() for x in
-                                data.importance_pairs(target, EVAL_PAIRS, t.seed + 101))
+                                data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101))
     step, seconds = 0, 0.0
     if ckpt is not None:
         raw.load_state_dict(ckpt["model"])
@@ -278,7 +279,7 @@ def run(cfg: cfgmod.Config, run_dir: Path | None = None, *, resume: bool = False
     info = exp.export(model, cfg, run_dir / "model.onnx", target_desc=target.describe(),
                       extra=target)
     t2 = time.perf_counter()
-    report = validate.report(run_dir / "model.onnx", reference=cfg,
+    report = validate.report(run_dir / "model.onnx", reference=target,
                              physics_report=info["physics"])
     t3 = time.perf_counter()
     report["training"] = training
