@@ -20,9 +20,12 @@ walks the exported ONNX graph node by node and maps every op onto Dr.Jit arithme
 over per-lane arrays: a tensor of shape [N, k...] is held as a numpy object array of
 shape (k...) whose elements are Dr.Jit arrays of width N (one per column).  Constant
 sub-graphs (shape arithmetic, weights) are folded with numpy.  A Gemm with constant
-weights becomes fused multiply-adds over columns.  In JIT variants the whole graph is
-traced once per kernel, so rendering calls no Python per sample.  An op outside
-:data:`SUPPORTED_OPS` raises :class:`UnsupportedOnnxOp` naming it when the model loads.
+weights becomes fused multiply-adds over columns, with the weights as literals in the
+kernel (four independent FMA chains per dot product, see DOT_CHAINS).  In JIT variants
+the whole graph is traced into the render's kernel, so rendering calls no Python per
+sample; it runs inside a conditional, skipped for SIMD packets in which no lane has
+both directions above the horizon.  An op outside :data:`SUPPORTED_OPS` raises
+:class:`UnsupportedOnnxOp` naming it when the model loads.
 
 The ``analytic_brdf`` plugin exports the analytic model's own torch ``f(wi, wo)`` to
 ONNX with ``torch.onnx`` (in memory) and runs it through the same interpreter, so it is
@@ -992,7 +995,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 ERROR_GAIN = 10.0
 
 
-def _write_png(path: Path, img: np.ndarray) -> None:
+def write_png(path: Path, img: np.ndarray) -> None:
     import matplotlib.image
 
     path = Path(path)
@@ -1008,31 +1011,42 @@ def _write_png(path: Path, img: np.ndarray) -> None:
         raise
 
 
+def analytic_bsdf(reference: dict) -> dict:
+    """The ``analytic_brdf`` plugin dict of an analytic target (``{"model": name,
+    "params": {...}}``, as in a training config)."""
+    if "model" not in reference:
+        raise InputError(f"reference: expected {{'model': name, 'params': {{...}}}}, "
+                         f"got {reference!r}")
+    return {"type": "analytic_brdf", "model": reference["model"],
+            "params": json.dumps(reference.get("params") or {})}
+
+
+def side_by_side(neural: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Display images -> neural | reference | error map (|difference| of display values,
+    channel mean, x ERROR_GAIN, 'inferno' colours), with thin white gaps."""
+    import matplotlib
+
+    err = np.abs(neural - ref).mean(-1) * ERROR_GAIN
+    err_rgb = matplotlib.colormaps["inferno"](np.clip(err, 0.0, 1.0))[..., :3]
+    gap = np.ones((neural.shape[0], max(2, neural.shape[0] // 64), 3))
+    return np.concatenate([neural, gap, ref, gap, err_rgb], axis=1)
+
+
 def render_preview(onnx_path, out_png, *, reference: dict | None = None, spp: int = 64,
                    resolution: int = 256) -> float | None:
     """Render the neural BRDF in the preview scene and write ``out_png``.
 
-    With ``reference`` (an analytic target: ``{"model": name, "params": {...}}``, as in
-    a training config) the PNG is side by side: neural | reference | error map
-    (|difference| of display values x ERROR_GAIN, 'inferno' colours), and the PSNR (dB,
-    sRGB display values) of neural against reference is returned; otherwise None.
+    With ``reference`` (an analytic target, see :func:`analytic_bsdf`) the PNG is
+    :func:`side_by_side` and the PSNR (dB, sRGB display values) of neural against
+    reference is returned; otherwise None.
     """
-    import matplotlib
-
     path, _, _ = read_model(onnx_path)
+    ref_bsdf = None if reference is None else analytic_bsdf(reference)
     neural = to_display(render_scene({"type": "neural_brdf", "filename": str(path)},
                                      resolution=resolution, spp=spp))
-    if reference is None:
-        _write_png(Path(out_png), neural)
+    if ref_bsdf is None:
+        write_png(Path(out_png), neural)
         return None
-    if "model" not in reference:
-        raise InputError(f"reference: expected {{'model': name, 'params': {{...}}}}, "
-                         f"got {reference!r}")
-    ref_bsdf = {"type": "analytic_brdf", "model": reference["model"],
-                "params": json.dumps(reference.get("params") or {})}
     ref = to_display(render_scene(ref_bsdf, resolution=resolution, spp=spp))
-    err = np.abs(neural - ref).mean(-1) * ERROR_GAIN
-    err_rgb = matplotlib.colormaps["inferno"](np.clip(err, 0.0, 1.0))[..., :3]
-    gap = np.ones((resolution, max(2, resolution // 64), 3))
-    _write_png(Path(out_png), np.concatenate([neural, gap, ref, gap, err_rgb], axis=1))
+    write_png(Path(out_png), side_by_side(neural, ref))
     return psnr(neural, ref)
