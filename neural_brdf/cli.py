@@ -3,6 +3,7 @@
     neural-brdf train CONFIG [--out RUN_DIR] [--set KEY=VALUE ...] [--resume]
     neural-brdf export RUN_DIR [-o model.onnx]
     neural-brdf validate model.onnx [--reference CONFIG|material.binary] [--json out.json]
+    neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -68,6 +69,14 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
     r.add_argument("-o", "--out", required=True, help="output .png")
+
+    w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
+    w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
+    w.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="local process pool (default) or Ray tasks")
+    w.add_argument("--workers", type=int, help="parallel trials (default: the CPU cores)")
+    w.add_argument("--ray-address", help="Ray cluster to join (default: a local instance)")
+    w.add_argument("--out", help="sweep folder (default: runs/sweeps/<name>/)")
     return p
 
 
@@ -157,6 +166,15 @@ def _render(args) -> int:
     return EXIT_OK
 
 
+def _sweep(args) -> int:
+    from . import sweep
+    results = sweep.run_sweep(args.sweep, executor=args.executor, workers=args.workers,
+                              ray_address=args.ray_address, out=args.out,
+                              progress=sweep.print_progress)
+    print(sweep.summary_line(results))
+    return EXIT_OK if all(r["status"] == "ok" for r in results["trials"]) else EXIT_PHYSICS
+
+
 def main(argv: list[str] | None = None) -> int:
     from .config import InputError
     from .export import ParityError
@@ -164,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         commands = {"train": _train, "export": _export, "validate": _validate,
-                    "bake": _bake, "render": _render}
+                    "bake": _bake, "render": _render, "sweep": _sweep}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)

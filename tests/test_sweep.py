@@ -1,0 +1,229 @@
+"""Sweeps: local and Ray executors, the results table, resuming, failing trials, bad files.
+
+The trials are tiny (60 steps, a [8, 8] network, small quadratures): these tests check
+the mechanics, not accuracy.  One local sweep (module fixture) is the reference that the
+Ray run, the resume test and the table checks compare against.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import ray
+import torch
+import yaml
+
+import neural_brdf
+from neural_brdf import cli, sweep, train
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "nbrdf" / "merl_nbrdf_weights.npz"
+
+TINY = {"train.steps": 60, "train.warmup": 5, "train.eval_every": 0, "model.hidden": [8, 8],
+        "data.batch_size": 256, "data.pool_size": 2048, "normalization.table_size": 17,
+        "normalization.samples": 2048, "validation.furnace_dirs": 6,
+        "validation.furnace_samples": 4096, "validation.pairs": 2000,
+        "validation.accuracy_samples": 2048, "export.parity_pairs": 512}
+TRIALS = [{"train.seed": 0}, {"train.seed": 1},
+          {"model.encoding": "raw", "normalization.enabled": False}]
+NAMES = ["seed-0", "seed-1", "encoding-raw_enabled-false"]
+# what may differ between two runs of the same trial: clocks and where it ran
+VOLATILE = {"train_seconds", "total_seconds"}
+
+
+def write_sweep(folder: Path, **spec) -> Path:
+    spec = {"base": str(CONFIGS / "lambert.yaml"), "set": TINY, **spec}
+    path = folder / "sweep.yaml"
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+def stable(results: dict) -> list[dict]:
+    """The trials of a results table without clocks, hosts and process ids."""
+    return [{"trial": r["trial"], "status": r["status"], "error": r["error"],
+             "overrides": r["overrides"], "run_dir": r["run_dir"],
+             "metrics": {k: v for k, v in r["metrics"].items() if k not in VOLATILE}}
+            for r in results["trials"]]
+
+
+def read(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+@pytest.fixture(scope="module")
+def local(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("local")
+    path = write_sweep(folder, list=TRIALS)
+    out = folder / "out"
+    assert cli.main(["sweep", str(path), "--workers", "2", "--out", str(out)]) == 0
+    return path, out
+
+
+def test_local_sweep_table_matches_each_trials_own_metrics(local):
+    _, out = local
+    results = read(out / "results.json")
+    assert [r["trial"] for r in results["trials"]] == NAMES
+    with open(out / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["trial"] for r in rows] == NAMES
+    for r, row, overrides in zip(results["trials"], rows, TRIALS):
+        assert r["status"] == row["status"] == "ok" and r["error"] is None
+        assert r["overrides"] == overrides
+        run_dir = out / r["run_dir"]
+        own = read(run_dir / "metrics.json")
+        m = r["metrics"]
+        assert m["rel_rmse"] == own["accuracy"]["rel_rmse"]
+        assert m["nbrdf_log_error"] == own["accuracy"]["nbrdf_log_error"]
+        assert m["max_albedo"] == own["checks"]["max_albedo"]["value"]
+        assert m["reciprocity"] == own["checks"]["reciprocity"]["value"]
+        assert m["passed"] == own["passed"]
+        assert m["train_seconds"] == own["seconds"]["train"]
+        for key in ("rel_rmse", "max_albedo", "reciprocity"):     # the CSV holds the same
+            assert float(row[key]) == m[key]
+        # parameter count, counted independently from the checkpoint's weights
+        weights = torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
+        assert m["params"] == sum(w.numel() for w in weights.values())
+        # the trial is an ordinary run: its config holds the sweep's settings
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+        assert cfg["train"]["threads"] == 1 and cfg["train"]["steps"] == 60
+        assert cfg["model"]["hidden"] == [8, 8]
+        for key, value in overrides.items():
+            section, name = key.split(".")
+            assert cfg[section][name] == value
+        assert read(run_dir / "trial.json")["status"] == "ok"
+        model = neural_brdf.load(run_dir / "model.onnx")
+        assert model.encoding == cfg["model"]["encoding"]
+    assert (out / "summary.png").stat().st_size > 10_000
+    # the raw-input ablation is not reciprocal and fails physics; the symmetric ones pass
+    by_name = {r["trial"]: r["metrics"] for r in results["trials"]}
+    assert by_name["seed-0"]["reciprocity"] == 0 and by_name["seed-0"]["passed"]
+    assert by_name["encoding-raw_enabled-false"]["reciprocity"] > 1e-3
+    assert not by_name["encoding-raw_enabled-false"]["passed"]
+    assert by_name["seed-0"]["rel_rmse"] != by_name["seed-1"]["rel_rmse"]
+
+
+def test_ray_executor_gives_the_same_table(local, tmp_path):
+    path, out_local = local
+    out = tmp_path / "ray"
+    try:
+        assert cli.main(["sweep", str(path), "--executor", "ray", "--workers", "2",
+                         "--out", str(out)]) == 0
+        assert not ray.is_initialized()          # the sweep shut down the instance it started
+    finally:
+        ray.shutdown()
+    a, b = read(out_local / "results.json"), read(out / "results.json")
+    # same trials, same metrics: training is deterministic per seed and thread count
+    assert stable(a) == stable(b)
+    for r in b["trials"]:
+        run_local, run_ray = out_local / r["run_dir"], out / r["run_dir"]
+        assert sorted(p.name for p in run_local.iterdir()) == \
+            sorted(p.name for p in run_ray.iterdir())
+        ma, mb = read(run_local / "metrics.json"), read(run_ray / "metrics.json")
+        assert ma["checks"] == mb["checks"] and ma["accuracy"] == mb["accuracy"]
+        assert read(run_ray / "trial.json")["status"] == "ok"
+
+
+def test_resume_runs_only_unfinished_trials(local, tmp_path):
+    path, out_local = local
+    out = tmp_path / "resume"
+    shutil.copytree(out_local, out)
+    runs = {n: out / "trials" / n for n in NAMES}
+    (runs["seed-0"] / "trial.json").unlink()                  # never finished
+    marker = read(runs["seed-1"] / "trial.json")                # killed mid-run
+    (runs["seed-1"] / "trial.json").write_text(json.dumps({**marker, "status": "running"}))
+    (runs["seed-1"] / "metrics.json").unlink()
+    kept = runs["encoding-raw_enabled-false"]
+    before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in kept.iterdir()}
+    seen = []
+    results = sweep.run_sweep(path, workers=2, out=out,
+                              progress=lambda r, done, total: seen.append(r["trial"]))
+    assert sorted(seen) == ["seed-0", "seed-1"]                 # only the unfinished ones ran
+    assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in kept.iterdir()} == before
+    for name in ("seed-0", "seed-1"):
+        assert read(runs[name] / "trial.json")["finished"] >= marker["finished"]
+    assert stable(results) == stable(read(out_local / "results.json"))
+
+
+def test_failing_trials_are_recorded_and_the_others_finish(tmp_path):
+    trials = [{"train.seed": 0},
+              {"target.params.albedo": -0.5},     # invalid: raised in the worker
+              {"train.lr": -1.0}]                 # invalid: caught when planning
+    path = write_sweep(tmp_path, list=trials)
+    out = tmp_path / "out"
+    assert cli.main(["sweep", str(path), "--workers", "2", "--out", str(out)]) == 1
+    rows = {r["trial"]: r for r in read(out / "results.json")["trials"]}
+    assert rows["seed-0"]["status"] == "ok" and rows["seed-0"]["metrics"]["passed"]
+    bad = rows["albedo--0.5"]
+    assert bad["status"] == "failed" and bad["metrics"] == {}
+    assert "target.params" in bad["error"] and "albedo" in bad["error"]
+    assert "\n" not in bad["error"]
+    lr = rows["lr--1.0"]
+    assert lr["status"] == "failed" and "train.lr" in lr["error"] and "\n" not in lr["error"]
+    for r in rows.values():                       # every trial has its marker
+        assert read(out / r["run_dir"] / "trial.json")["status"] == r["status"]
+
+
+def test_a_diverging_trial_is_recorded_as_failed(tmp_path, monkeypatch):
+    def nan_loss(*args, **kwargs):
+        return torch.tensor(math.nan, requires_grad=True)
+
+    monkeypatch.setattr(train, "loss_fn", nan_loss)
+    spec = sweep.load_sweep(write_sweep(tmp_path, list=[{"train.seed": 0}]))
+    (job,) = sweep.plan(spec, tmp_path / "sweep.yaml", tmp_path / "out")
+    record = sweep.run_trial(job)
+    assert record["status"] == "failed"
+    assert record["error"].startswith("Diverged: loss is nan")
+
+
+def test_materials_become_data_targets(tmp_path):
+    path = write_sweep(tmp_path, materials={"nbrdf": str(NPZ), "names": ["alum-bronze", "brass"]},
+                       grid={"train.seed": [0, 1]})
+    spec = sweep.load_sweep(path)
+    jobs = sweep.plan(spec, path, tmp_path / "out")
+    assert [j["name"] for j in jobs] == ["alum-bronze_seed-0", "alum-bronze_seed-1",
+                                         "brass_seed-0", "brass_seed-1"]
+    for job in jobs:
+        name = job["overrides"]["material"]
+        data = (tmp_path / "out" / "data" / f"{name}.binary").resolve()
+        assert job["config"]["target"]["data"] == str(data)
+        assert job["materialise"] == {"npz": str(NPZ.resolve()), "name": name, "path": str(data)}
+    everything = write_sweep(tmp_path, materials={"nbrdf": str(NPZ)})
+    spec = sweep.load_sweep(everything)
+    names = {j["overrides"]["material"] for j in sweep.plan(spec, everything, tmp_path / "o")}
+    with np.load(NPZ) as z:
+        assert names == {k.split("/")[0] for k in z.files} and len(names) == 100
+
+
+def test_grid_crosses_and_list_zips(tmp_path):
+    path = write_sweep(tmp_path, grid={"train.seed": [0, 1, 2]},
+                       list={"model.hidden": [[4], [8, 8]], "train.lr": [0.01, 0.02]})
+    spec = sweep.load_sweep(path)
+    points = [j["overrides"] for j in sweep.plan(spec, path, tmp_path / "out")]
+    assert len(points) == 6
+    assert {(tuple(p["model.hidden"]), p["train.lr"]) for p in points} == {((4,), 0.01),
+                                                                           ((8, 8), 0.02)}
+    assert sorted(p["train.seed"] for p in points) == [0, 0, 1, 1, 2, 2]
+
+
+@pytest.mark.parametrize("spec, key", [
+    ({"grids": {"train.seed": [0]}}, "grids"),
+    ({"grid": {"train.stepz": [1]}}, "train.stepz"),
+    ({"grid": {"train.seed": 3}}, "train.seed"),
+    ({"list": {"train.seed": [0, 1], "train.lr": [0.1]}}, "list"),
+    ({"base": "missing.yaml"}, "base"),
+    ({"grid": {"config": ["nowhere.yaml"]}}, "config"),
+    ({"materials": {"nbrdf": str(NPZ), "names": ["unobtainium"]}}, "materials.names"),
+])
+def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
+    path = write_sweep(tmp_path, **spec)
+    assert cli.main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and key in err
+    assert str(path) in err
+    assert not (tmp_path / "out").exists()          # nothing ran
