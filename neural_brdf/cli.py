@@ -2,6 +2,7 @@
 
     neural-brdf train CONFIG [--out RUN_DIR] [--set KEY=VALUE ...] [--resume]
     neural-brdf export RUN_DIR [-o model.onnx]
+    neural-brdf report RUN_DIR [-o OUT_DIR]
     neural-brdf validate model.onnx [--reference CONFIG|material.binary] [--json out.json]
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
 
@@ -50,6 +51,10 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("run_dir")
     e.add_argument("-o", "--out", help="output file (default: RUN_DIR/model.onnx)")
 
+    rp = sub.add_parser("report", help="write a run's report.html and report.md")
+    rp.add_argument("run_dir")
+    rp.add_argument("-o", "--out", help="output folder (default: RUN_DIR)")
+
     v = sub.add_parser("validate", help="check physics (and accuracy) of an exported model")
     v.add_argument("model")
     v.add_argument("--reference", help="ground truth: a config (its target) or a MERL "
@@ -91,7 +96,7 @@ def _train(args) -> int:
     print(validate.format_table(report))
     s = report["seconds"]
     print(f"run: {run_dir}  (train {s['train']:.1f} s, export {s['export']:.1f} s, "
-          f"validate {s['validate']:.1f} s)")
+          f"validate {s['validate']:.1f} s, report {s['report']:.1f} s: report.html)")
     return EXIT_OK if report["passed"] else EXIT_PHYSICS
 
 
@@ -102,6 +107,13 @@ def _export(args) -> int:
     print(f"wrote {info['path']}: parity {info['parity_rel_error']:.2g}, max albedo "
           f"{c['max_albedo']['value']:.6f}, reciprocity {c['reciprocity']['value']:.2g}")
     return EXIT_OK if all(x["passed"] for x in c.values()) else EXIT_PHYSICS
+
+
+def _report(args) -> int:
+    from .report import write_report
+    paths = write_report(args.run_dir, args.out)
+    print(f"wrote {paths['html']} and {paths['md']}")
+    return EXIT_OK
 
 
 def _validate(args) -> int:
@@ -182,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         commands = {"train": _train, "export": _export, "validate": _validate,
-                    "bake": _bake, "render": _render, "sweep": _sweep}
+                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)
