@@ -41,7 +41,18 @@ class _Section(BaseModel):
 class Target(_Section):
     model: str = "lambertian"                    # a name in analytic.available()
     params: dict[str, Any] = Field(default_factory=dict)   # passed to analytic.create
-    data: str | None = None                      # measured data file (not supported yet)
+    data: str | None = None                      # or: a measured MERL .binary file to fit
+
+    @model_validator(mode="after")
+    def _one_kind(self):
+        if self.data is not None:
+            if not self.data.strip():
+                raise ValueError("data: empty path")
+            # (a resolved config.yaml repeats the default model: that is not a clash)
+            if self.params or self.model != Target.model_fields["model"].default:
+                raise ValueError("data: give either target.data (measured) or "
+                                 "target.model/params (analytic), not both")
+        return self
 
 
 class Model(_Section):

@@ -1,6 +1,7 @@
-"""Training pairs (wi, wo, f) drawn on the fly from a target model.
+"""Training pairs (wi, wo, f) drawn on the fly from a target: an analytic model, or
+measured data (a MERL ``.binary`` file, ``target: {data: path}``).
 
-wi is uniform on the upper hemisphere.  wo is a mixture, by configured shares, of
+Analytic targets.  wi is uniform on the upper hemisphere.  wo is a mixture, by configured shares, of
 uniform-hemisphere, cosine-weighted and the target's own importance sampling (so that
 specular peaks are seen often).  A sampled wo below the horizon (possible with
 visible-normal or Phong lobes) is replaced by a cosine-distributed one, since the
@@ -17,20 +18,80 @@ continues exactly where it stopped.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
 import torch
 
 import analytic
 from analytic import frame
 
 from . import config as cfgmod
+from . import merl
 
 
-def build_target(target: cfgmod.Target) -> analytic.BRDF:
-    """The analytic model of ``target``; bad names or parameters raise ConfigError."""
+class MeasuredTarget:
+    """Measured data as a training target: ``f`` (torch) and ``eval`` (numpy) look the
+    grid up (trilinear, reciprocal by the phi_d fold), ``draw`` gives training pairs on
+    the measured support, ``grid_pairs`` the measured bin centres.  No sampler: the
+    quadratures that take a target's proposal (``extra=``) skip it."""
+
+    anisotropic = False
+
+    def __init__(self, brdf: merl.MerlBRDF):
+        self.brdf = brdf
+        self.source = brdf.source
+        self._bins = np.flatnonzero(brdf.valid.reshape(-1) & merl.grid_above_horizon().reshape(-1))
+
+    @classmethod
+    def from_file(cls, path, *, key: str = "target.data") -> "MeasuredTarget":
+        p = Path(path)
+        if p.suffix.lower() != ".binary":
+            raise cfgmod.ConfigError(f"{key}: {p}: expected a MERL .binary file")
+        try:
+            brdf = merl.read_merl(p)
+        except merl.MerlFormatError as e:
+            raise cfgmod.ConfigError(f"{key}: {e}") from None
+        target = cls(brdf)
+        if len(target._bins) == 0:
+            raise cfgmod.ConfigError(f"{key}: {p}: no measured bins above the horizon")
+        return target
+
+    def describe(self) -> str:
+        return f"MERL {self.source} ({len(self._bins)} measured bins)"
+
+    def eval(self, wi, wo) -> np.ndarray:
+        return self.brdf.eval(wi, wo)
+
+    def f(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        out = self.brdf.eval(wi.detach().cpu().double().numpy(), wo.detach().cpu().double().numpy())
+        return torch.from_numpy(out).to(wi.dtype)
+
+    def draw(self, n: int, gen: torch.Generator):
+        """``n`` training pairs (float32) on the measured support; seeded by ``gen``."""
+        seed = int(torch.randint(0, 2**62, (1,), generator=gen))
+        wi, wo, f = self.brdf.sample_pairs(n, rng=seed)
+        return tuple(torch.from_numpy(x).float() for x in (wi, wo, f))
+
+    def grid_pairs(self, n: int | None = None, seed: int = 0):
+        """(wi, wo, f) float64 tensors at measured bin centres: all of them, or ``n``
+        drawn without replacement.  phi_h is random (an isotropic grid does not depend on
+        it; an anisotropic network is then tested at every azimuth)."""
+        rng = np.random.default_rng(seed)
+        bins = self._bins
+        if n is not None and n < len(bins):
+            bins = np.sort(rng.choice(bins, size=n, replace=False))
+        th, td, pd = (c[i] for c, i in zip(merl.bin_centres(), merl.unravel(bins)))
+        wi, wo = merl._directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
+        f = self.brdf.values.reshape(-1, 3)[bins]
+        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
+
+
+def build_target(target: cfgmod.Target):
+    """The model of ``target``: an analytic BRDF, or a :class:`MeasuredTarget` for
+    ``target.data``; bad names, parameters or files raise ConfigError."""
     if target.data is not None:
-        raise cfgmod.ConfigError("target.data: measured-data targets are not supported yet; "
-                                 "use target.model and target.params")
+        return MeasuredTarget.from_file(target.data)
     if target.model not in analytic.available():
         raise cfgmod.ConfigError(f"target.model: unknown model {target.model!r}; "
                                  f"available: {analytic.available()}")
@@ -75,10 +136,26 @@ class PairSource:
         return wi, wo, f
 
 
+class MeasuredPairSource:
+    """Fresh (wi, wo, f) batches from measured data (the shares do not apply)."""
+
+    def __init__(self, target: MeasuredTarget, gen: torch.Generator):
+        self.target, self.gen = target, gen
+
+    def draw(self, n: int):
+        return self.target.draw(n, self.gen)
+
+
+def pair_source(target, data: cfgmod.Data, gen: torch.Generator):
+    if isinstance(target, MeasuredTarget):
+        return MeasuredPairSource(target, gen)
+    return PairSource(target, data, gen)
+
+
 class Pool:
     """Ring buffer of pairs, refreshed by ``batch_size / reuse`` pairs per batch."""
 
-    def __init__(self, source: PairSource, data: cfgmod.Data):
+    def __init__(self, source, data: cfgmod.Data):
         self.source, self.gen = source, source.gen
         self.batch_size = data.batch_size
         self.refresh = max(1, int(math.ceil(data.batch_size / data.reuse)))
@@ -101,6 +178,15 @@ class Pool:
         self.wi, self.wo, self.f = state["wi"], state["wo"], state["f"]
         self.head = int(state["head"])
         self.gen.set_state(state["rng"])
+
+
+def accuracy_pairs(target, n: int | None, seed: int):
+    """Pairs (float64) on which a model is compared with ``target``: importance-sampled
+    for an analytic target (``n`` of them), measured bin centres for measured data (all
+    of them when ``n`` is None)."""
+    if isinstance(target, MeasuredTarget):
+        return target.grid_pairs(n, seed)
+    return importance_pairs(target, n, seed)
 
 
 @torch.no_grad()

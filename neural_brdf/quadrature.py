@@ -11,7 +11,8 @@ have, and combines them with the balance heuristic (Veach 1997, ch. 9):
 * the uniform hemisphere (a defensive share: it bounds the weight f cos / p by
   2 pi max(f cos) everywhere, e.g. for a lobe spread along the horizon at grazing wi);
 * GGX-distributed half vectors around the normal, at several widths, reflected about
-  wi: mirror-like lobes of any sharpness down to alpha ~ 0.02;
+  wi: mirror-like lobes of any sharpness down to alpha ~ 0.005 (MERL's chrome: the
+  narrowest proposal cut the standard error of its albedo ninefold);
 * GGX-distributed half vectors around wi: retro-reflective lobes (wo near wi);
 * optionally the sampler of a reference model (``extra=brdf``), e.g. the training target.
 
@@ -36,7 +37,8 @@ REPLICAS = physics.REPLICAS   # independently scrambled replicas for the standar
 PROPOSALS = (
     ("cosine", 0.0, 0.25),
     ("uniform", 0.0, 0.125),
-    ("normal", 0.02, 0.125),
+    ("normal", 0.005, 0.0625),
+    ("normal", 0.02, 0.0625),
     ("normal", 0.08, 0.1875),
     ("normal", 0.3, 0.1875),
     ("retro", 0.15, 0.125),
@@ -91,9 +93,13 @@ def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.T
     """rho(wi) for each row of ``wi`` (M, 3) -> (rho (M, C), stderr (M, C)), float64.
 
     ``fn(wi, wo)`` takes float32 tensors (K, 3) and returns (K, C).  ``extra`` is an
-    optional model with ``sample_t`` / ``pdf_t`` (an :mod:`analytic` BRDF).
+    optional model with ``sample_t`` / ``pdf_t`` (an :mod:`analytic` BRDF); a target
+    without a sampler (measured data, :class:`neural_brdf.data.MeasuredTarget`) adds
+    no proposal.
     """
     wi = torch.as_tensor(wi, dtype=torch.float64).reshape(-1, 3)
+    if not hasattr(extra, "pdf_t"):
+        extra = None
     props = list(PROPOSALS)
     if extra is not None:
         props = [(k, a, s * (1.0 - EXTRA_SHARE)) for k, a, s in props] + \

@@ -13,11 +13,15 @@ Physics (all must pass; the CLI exits 1 otherwise):
   The seeds and the grid differ from those that built the normalisation table.
   The hemispherical albedo (1/pi) int rho(wi) cos dwi is reported as well.
 
-Accuracy, with a reference model (``--reference CONFIG`` or during training):
+Accuracy, with a reference (``--reference CONFIG``, ``--reference material.binary``, or
+during training):
 
 * ``rel_rmse``: relative RMSE of f cos(theta_o),
   sqrt(sum (f^ cos - f cos)^2) / sqrt(sum (f cos)^2) over all channels of pairs with
-  wi uniform on the hemisphere and wo drawn from the reference's importance sampler;
+  wi uniform on the hemisphere and wo drawn from the reference's importance sampler
+  (analytic reference), or over every measured bin centre of a MERL file (measured
+  reference: the data themselves, uninterpolated, each bin counted once as in the
+  NBRDF paper's grid errors);
 * ``nbrdf_log_error``: the NBRDF loss, mean |log(1 + f cos) - log(1 + f^ cos)|;
 * ``rel_rmse_by_incidence``: the same error within bands of cos(theta_i);
 * ``worst``: the pairs with the largest |f^ cos - f cos|.
@@ -25,8 +29,12 @@ Accuracy, with a reference model (``--reference CONFIG`` or during training):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import tempfile
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -100,9 +108,13 @@ def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, ext
             "furnace": {"directions": len(dirs), "samples": s.furnace_samples}}
 
 
-def accuracy(fn: Callable, reference: analytic.BRDF, *, n: int, seed: int) -> dict:
-    """Error of ``fn`` (numpy in/out) against ``reference`` on importance-sampled pairs."""
-    wi, wo, ref = data.importance_pairs(reference, n, seed)
+def accuracy(fn: Callable, reference, *, n: int, seed: int) -> dict:
+    """Error of ``fn`` (numpy in/out) against ``reference`` (an analytic BRDF or a
+    :class:`data.MeasuredTarget`) on :func:`data.accuracy_pairs`; ``n`` applies to
+    analytic references (a measured one is compared on all its bins)."""
+    measured = isinstance(reference, data.MeasuredTarget)
+    wi, wo, ref = data.accuracy_pairs(reference, None if measured else n, seed)
+    n = len(wi)
     wi, wo, ref = wi.numpy(), wo.numpy(), ref.numpy()
     pred = np.asarray(fn(wi, wo), dtype=np.float64)
     cos = np.clip(wo[:, 2:3], 0.0, None)
@@ -124,10 +136,19 @@ def accuracy(fn: Callable, reference: analytic.BRDF, *, n: int, seed: int) -> di
             "rel_rmse_by_incidence": bands, "worst": worst}
 
 
-def report(model_path, *, reference: cfgmod.Config | None = None,
+def reference_from(path) -> object:
+    """``--reference``: a YAML config (its target) or a MERL ``.binary`` file."""
+    if str(path).lower().endswith(".binary"):
+        return data.MeasuredTarget.from_file(path, key="--reference")
+    return data.build_target(cfgmod.load(path).target)
+
+
+def report(model_path, *, reference=None,
            settings: cfgmod.Validation | None = None, physics_report: dict | None = None) -> dict:
     """Full report of an exported model; ``["passed"]`` is the physics verdict.
 
+    ``reference``: a :class:`Config` (its target is built), or a target already built
+    (an analytic BRDF, a :class:`data.MeasuredTarget`), or None (physics only).
     ``settings`` default to the ``validation`` section of the model's embedded config.
     ``physics_report`` reuses checks already measured on this very file (by the export).
     """
@@ -137,7 +158,8 @@ def report(model_path, *, reference: cfgmod.Config | None = None,
             settings = cfgmod.from_dict(model.config).validation
         except cfgmod.ConfigError:
             settings = cfgmod.Validation()
-    target = data.build_target(reference.target) if reference is not None else None
+    target = (data.build_target(reference.target) if isinstance(reference, cfgmod.Config)
+              else reference)
     out = {"model": str(model_path), "encoding": model.encoding,
            "target": model.metadata.get("target", "")}
     if physics_report is None:
@@ -186,6 +208,15 @@ def _finite(x):
 
 
 def write_json(report: dict, path) -> None:
-    with open(path, "w") as fh:
-        json.dump(_finite(report), fh, indent=2, allow_nan=False)
-        fh.write("\n")
+    """Write ``report`` as strict JSON, atomically (a temporary file, then a rename)."""
+    path = Path(path)
+    text = json.dumps(_finite(report), indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise

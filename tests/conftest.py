@@ -20,3 +20,33 @@ def data_dir() -> Path:
         raise FileNotFoundError(
             f"reference data not found at {DATA}; set NEURAL_BRDF_SHARED to the shared/ folder")
     return DATA
+
+
+# The four real-data fixtures of the MERL tests: a diffuse, a plastic, a metallic paint
+# and a metal, from the NBRDF networks fitted to the MERL measurements.
+MATERIALS = ["white-diffuse-bball", "gray-plastic", "gold-metallic-paint", "aluminium"]
+
+
+@pytest.fixture(scope="session")
+def nbrdf_npz(data_dir):
+    return data_dir / "nbrdf" / "merl_nbrdf_weights.npz"
+
+
+@pytest.fixture(scope="session")
+def abc_csv(data_dir):
+    return data_dir / "merl_abc_low2012_params.csv"
+
+
+@pytest.fixture(scope="session")
+def baked_materials(nbrdf_npz, tmp_path_factory):
+    """name -> (NBRDF callable, path of its MERL file), written once per session
+    (reciprocal NBRDF evaluation at every bin centre; about 10 s per material)."""
+    from neural_brdf import merl
+    folder = tmp_path_factory.mktemp("nbrdf")
+    out = {}
+    for name in MATERIALS:
+        fn = merl.nbrdf_fixture(nbrdf_npz, name, reciprocal=True)
+        path = folder / f"{name}.binary"
+        merl.bake(fn, path)
+        out[name] = (fn, path)
+    return out

@@ -39,13 +39,14 @@ from analytic import frame
 from neural_brdf import merl
 from neural_brdf.merl import MerlBRDF, MerlFormatError
 
+import conftest
+
 DIMS = (90, 90, 180)
 N = 90 * 90 * 180
 SCALE = (1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0)
 FILE_BYTES = 12 + 3 * N * 8
 
-# the four real-data fixtures: a diffuse, a plastic, a metallic paint, a metal
-MATERIALS = ["white-diffuse-bball", "gray-plastic", "gold-metallic-paint", "aluminium"]
+MATERIALS = conftest.MATERIALS   # the four real-data fixtures (baked once per session)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -514,16 +515,6 @@ def test_bake_clamps_negative_values_and_checks_the_callable(tmp_path):
 
 
 # ------------------------------------------------------------- real-material fixtures
-@pytest.fixture(scope="module")
-def nbrdf_npz(data_dir):
-    return data_dir / "nbrdf" / "merl_nbrdf_weights.npz"
-
-
-@pytest.fixture(scope="module")
-def abc_csv(data_dir):
-    return data_dir / "merl_abc_low2012_params.csv"
-
-
 def test_fixture_materials_are_in_the_data(nbrdf_npz, abc_csv):
     names = merl.nbrdf_names(nbrdf_npz)
     assert len(names) == 100 and set(MATERIALS) <= set(names)
@@ -565,18 +556,6 @@ def test_nbrdf_reciprocal_option_averages_both_orders(nbrdf_npz):
     assert np.max(np.abs(raw(wi, wo) - raw(wo, wi))) > 1e-3
     with pytest.raises(ValueError, match="gold-metallic-paint"):
         merl.nbrdf_fixture(nbrdf_npz, "gold-metalic-paint")
-
-
-@pytest.fixture(scope="module")
-def baked_materials(nbrdf_npz, tmp_path_factory):
-    folder = tmp_path_factory.mktemp("nbrdf")
-    out = {}
-    for name in MATERIALS:
-        fn = merl.nbrdf_fixture(nbrdf_npz, name, reciprocal=True)
-        path = folder / f"{name}.binary"
-        merl.bake(fn, path)
-        out[name] = (fn, path)
-    return out
 
 
 @pytest.mark.parametrize("name", MATERIALS)
