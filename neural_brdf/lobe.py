@@ -143,8 +143,8 @@ def parse(text: str) -> dict:
         lobe = json.loads(text)
         kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
     except (ValueError, KeyError, TypeError):
-        raise InputError(f"metadata {KEY!r}: expected JSON {{\"kind\": {KIND!r}, \"alpha\": a, "
-                         f"\"weight\": w}}, got {text!r}") from None
+        raise InputError(f"metadata {KEY!r}: expected JSON {{\"kind\": \"{KIND}\", "
+                         f"\"alpha\": a, \"weight\": w}}, got {text!r}") from None
     if kind != KIND:
         raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
     if not (alpha > 0 and 0.0 <= weight <= 1.0):
