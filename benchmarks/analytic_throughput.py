@@ -67,14 +67,18 @@ def measure(batch: int, repeats: int, peak_flops: float) -> dict:
     """Every model's rates, plus their cost in matmul FLOPs at ``peak_flops`` (FLOP/s
     of the matmul at torch's current thread count)."""
     wi, wo = random_pairs(batch)
-    models = {}
-    for name in analytic.available():
-        m = bench_model(name, wi, wo, repeats)
-        m["numpy_matmul_flops_per_eval"] = peak_flops / m["numpy_evals_per_s"]
-        m["torch_matmul_flops_per_eval"] = peak_flops / m["torch_evals_per_s"]
-        models[name] = m
-    return {"batch": batch, "repeats": repeats, "dtype": "float32",
-            "torch_threads": torch.get_num_threads(), "models": models}
+    models = {name: bench_model(name, wi, wo, repeats) for name in analytic.available()}
+    result = {"batch": batch, "repeats": repeats, "dtype": "float32",
+              "torch_threads": torch.get_num_threads(), "models": models}
+    normalise(result, peak_flops)
+    return result
+
+
+def normalise(result: dict, peak_flops: float) -> None:
+    """Set each rate's cost in matmul FLOPs, peak / rate (in place)."""
+    for m in result["models"].values():
+        for api in ("numpy", "torch"):
+            m[f"{api}_matmul_flops_per_eval"] = peak_flops / m[f"{api}_evals_per_s"]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
 """Train presets from configs/, tabulate their physics and accuracy, and time how long
 each takes to reach the 2% accuracy target.
 
-    python benchmarks/neural_presets.py                       # all presets, runs/bench/
+    python benchmarks/neural_presets.py                       # all analytic presets, runs/bench/
     python benchmarks/neural_presets.py gold lambert --root /tmp/bench
 
 Each preset is trained, exported and validated as ``python train.py configs/NAME.yaml``
@@ -38,6 +38,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:            # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(REPO))
 
+import yaml  # noqa: E402
+
 from neural_brdf import config, train  # noqa: E402
 from common import write_json  # noqa: E402
 
@@ -49,7 +51,14 @@ EVAL_EVERY = 50
 
 
 def preset_names() -> list[str]:
-    return sorted(p.stem for p in (REPO / "configs").glob("*.yaml") if p.stem not in SKIP)
+    """Every config in configs/ with an analytic target (a measured-data config, such as
+    merl.yaml, names a file the user supplies)."""
+    names = []
+    for p in sorted((REPO / "configs").glob("*.yaml")):
+        target = (yaml.safe_load(p.read_text()) or {}).get("target") or {}
+        if p.stem not in SKIP and not target.get("data"):
+            names.append(p.stem)
+    return names
 
 
 def first_below(log_csv: Path, target: float) -> tuple[int | None, float | None, list]:

@@ -153,16 +153,23 @@ def measure(n: int, repeats: int, peaks: dict[int, float], folder: Path, *,
             if backend == "drjit":
                 import drjit_eval
                 row["first_call_s"] = drjit_eval.first_call_seconds(call)
-            rate = evals_per_second(call, n, repeats)
-            bound = peaks[threads] / flops
-            row.update({"evals_per_s": rate, "bound_evals_per_s": bound,
-                        "fraction_of_bound": rate / bound,
-                        "matmul_flops_per_eval": peaks[threads] / rate})
+            row["evals_per_s"] = evals_per_second(call, n, repeats)
             rows.append(row)
             print(f"  neural {encoding:11s} {backend:11s} {threads} thr  "
-                  f"{rate / 1e6:8.3f} M evals/s  {rate / bound:6.3f} of bound", flush=True)
+                  f"{row['evals_per_s'] / 1e6:8.3f} M evals/s", flush=True)
     torch.set_num_threads(saved)
-    return {"batch": n, "repeats": repeats, "models": models, "rows": rows}
+    result = {"batch": n, "repeats": repeats, "models": models, "rows": rows}
+    normalise(result, peaks)
+    return result
+
+
+def normalise(result: dict, peaks: dict[int, float]) -> None:
+    """Set each row's bound, fraction of it and cost in matmul FLOPs (in place)."""
+    for r in result["rows"]:
+        peak = peaks[r["threads"]]
+        bound = peak / result["models"][r["encoding"]]["linear_flops_per_eval"]
+        r.update({"bound_evals_per_s": bound, "fraction_of_bound": r["evals_per_s"] / bound,
+                  "matmul_flops_per_eval": peak / r["evals_per_s"]})
 
 
 def batch_curve(backend: str, threads: int, folder: Path, *, batches=BATCHES,
