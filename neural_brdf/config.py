@@ -61,6 +61,7 @@ class Model(_Section):
     hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
     activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"   # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
+    output_scale: float = Field(1.0, gt=0.0)     # f = output_scale * softplus(y) (see model.py)
 
     @model_validator(mode="after")
     def _widths(self):

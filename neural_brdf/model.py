@@ -60,8 +60,10 @@ def softplus_inverse(y: float) -> float:
 
 
 class MLP(nn.Module):
-    def __init__(self, n_in: int, hidden: list[int], activation: str, *, init_value: float = 0.3):
+    def __init__(self, n_in: int, hidden: list[int], activation: str, *, init_value: float = 0.3,
+                 output_scale: float = 1.0):
         super().__init__()
+        self.output_scale = float(output_scale)
         layers, width = [], n_in
         for h in hidden:
             layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
@@ -70,10 +72,11 @@ class MLP(nn.Module):
         self.head = nn.Linear(width, 3)
         # start near a plausible constant BRDF so early log-space gradients are tame
         nn.init.zeros_(self.head.weight)
-        nn.init.constant_(self.head.bias, softplus_inverse(init_value))
+        nn.init.constant_(self.head.bias, softplus_inverse(init_value / self.output_scale))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:   # (N, F) -> (N, 3), >= 0
-        return F.softplus(self.head(self.body(x)))
+        y = F.softplus(self.head(self.body(x)))
+        return y if self.output_scale == 1.0 else self.output_scale * y
 
 
 class RawBRDF(nn.Module):
@@ -90,18 +93,19 @@ class RawBRDF(nn.Module):
     """
 
     def __init__(self, encoding: str, hidden: list[int], activation: str, *,
-                 grazing_power: float = 1.0, init_value: float = 0.3):
+                 grazing_power: float = 1.0, init_value: float = 0.3, output_scale: float = 1.0):
         super().__init__()
         self.encoding = encoding
         self.anisotropic = enc.is_anisotropic(encoding)    # as NormalizedBRDF.anisotropic
         self.grazing_power = float(grazing_power)
-        self.mlp = MLP(enc.num_features(encoding), hidden, activation, init_value=init_value)
+        self.mlp = MLP(enc.num_features(encoding), hidden, activation, init_value=init_value,
+                       output_scale=output_scale)
 
     @classmethod
     def from_config(cls, m, *, init_value: float = 0.3) -> "RawBRDF":
         """From the ``model`` section of a config (:class:`neural_brdf.config.Model`)."""
         return cls(m.encoding, m.hidden, m.activation, grazing_power=m.grazing_power,
-                   init_value=init_value)
+                   init_value=init_value, output_scale=m.output_scale)
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
         x = enc.features(wi, wo, self.encoding)

@@ -159,3 +159,21 @@ def test_quadrature_resolves_a_sharp_peak_without_a_sampler():
     rho, err = quadrature.albedo(brdf.f, wi, 8192, seed=1)
     ref = analytic.albedo(brdf, wi, n=16384)
     assert torch.allclose(rho, ref, atol=5 * float(err.max()) + 2e-3)
+
+
+def test_output_scale_multiplies_the_softplus_and_keeps_the_initial_value():
+    wi, wo = _pairs(2000, 11)
+    torch.manual_seed(3)
+    plain = RawBRDF("isotropic", [16, 16], "silu", grazing_power=0.0, init_value=0.5)
+    torch.manual_seed(3)
+    scaled = RawBRDF("isotropic", [16, 16], "silu", grazing_power=0.0, init_value=0.5,
+                     output_scale=30.0)
+    with torch.no_grad():
+        # a fresh network starts at the constant init_value whatever the scale (zero head)
+        torch.testing.assert_close(plain(wi, wo), torch.full((2000, 3), 0.5))
+        torch.testing.assert_close(scaled(wi, wo), torch.full((2000, 3), 0.5))
+        # with the same head weights, the scaled net is 30 softplus of the same pre-activation
+        scaled.mlp.head.load_state_dict(plain.mlp.head.state_dict())
+        for p_s, p_p in zip(scaled.mlp.body.parameters(), plain.mlp.body.parameters()):
+            p_s.copy_(p_p)
+        torch.testing.assert_close(scaled(wi, wo), 30.0 * plain(wi, wo))
