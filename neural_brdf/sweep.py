@@ -65,6 +65,7 @@ import socket
 import tempfile
 import time
 import traceback
+import zipfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -182,7 +183,10 @@ def _material_names(m: Materials, here: Path, source: Path) -> list[str]:
     npz = here / m.nbrdf
     if not npz.is_file():
         raise SweepError(f"{source}: materials.nbrdf: no such file {m.nbrdf!r}")
-    available = merl.nbrdf_names(npz)
+    try:
+        available = merl.nbrdf_names(npz)
+    except (OSError, ValueError, zipfile.BadZipFile) as e:
+        raise SweepError(f"{source}: materials.nbrdf: cannot read {m.nbrdf!r} ({e})") from None
     if m.names == "all":
         return available
     unknown = [n for n in m.names if n not in available]
@@ -195,6 +199,8 @@ def _material_names(m: Materials, here: Path, source: Path) -> list[str]:
 def _fmt(value) -> str:
     if isinstance(value, list):
         return "x".join(_fmt(v) for v in value)
+    if isinstance(value, dict):
+        return "_".join(f"{k}-{_fmt(v)}" for k, v in value.items())
     if isinstance(value, bool):
         return str(value).lower()
     return str(value)
@@ -244,6 +250,11 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
     ConfigError that its values raise)."""
     here = source.parent
     points = _points(spec, source)
+    keys = [json.dumps(p, sort_keys=True) for p in points]
+    for point, key in zip(points, keys):
+        if keys.count(key) > 1:
+            raise SweepError(f"{source}: the trial {_slug(point)!r} appears "
+                             f"{keys.count(key)} times")
     jobs = []
     for name, point in zip(_names(points), points):
         base = point.get("config", spec.base)
@@ -355,11 +366,24 @@ def _read_marker(run_dir: Path) -> dict | None:
         return None
 
 
+def _same_config(stored, config: dict) -> bool:
+    """Whether a finished trial's config is this one.  The stored config is read with
+    today's schema first, so that a setting added since (with its default) changes
+    nothing."""
+    if not isinstance(stored, dict):
+        return False
+    try:
+        return cfgmod.from_dict(stored).model_dump() == config
+    except cfgmod.ConfigError:
+        return False
+
+
 def _finished(job: dict) -> dict | None:
     """The record of a trial finished earlier with this very config, else None."""
     marker = _read_marker(job["run_dir"])
-    if (marker is None or marker.get("status") != "ok" or marker.get("config") != job["config"]
-            or not (Path(job["run_dir"]) / "metrics.json").is_file()):
+    if (marker is None or marker.get("status") != "ok"
+            or not (Path(job["run_dir"]) / "metrics.json").is_file()
+            or not _same_config(marker.get("config"), job["config"])):
         return None
     marker.pop("config")
     return {**marker, "run_dir": job["run_dir"]}      # the sweep folder may have moved
@@ -572,6 +596,13 @@ def summary_figure(rows: list[dict], path: Path) -> None:
                         transform=ax.get_yaxis_transform())
         if key == "max_albedo":
             ax.axvline(1.0, color="k", lw=0.8, ls="--")
+        if key == "reciprocity":                 # mostly exact zeros: write the values
+            for i, (v, k) in enumerate(zip(values, ok)):
+                if k:
+                    ax.text(0.02, i, f"{v:.2g}", va="center", fontsize=7,
+                            transform=ax.get_yaxis_transform())
+            top = max([v for v, k in zip(values, ok) if k] + [0.0])
+            ax.set_xlim(0.0, max(1e-6, 10 * top))
         ax.set_xscale(xscale, **({"linthresh": 1e-7} if xscale == "symlog" else {}))
         ax.set_xlabel(label)
         ax.grid(axis="x", alpha=0.3)

@@ -11,6 +11,7 @@ import csv
 import json
 import math
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ import torch
 import yaml
 
 import neural_brdf
-from neural_brdf import cli, sweep, train
+from neural_brdf import cli, config, sweep, train
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "nbrdf" / "merl_nbrdf_weights.npz"
@@ -134,19 +135,34 @@ def test_resume_runs_only_unfinished_trials(local, tmp_path):
     out = tmp_path / "resume"
     shutil.copytree(out_local, out)
     runs = {n: out / "trials" / n for n in NAMES}
-    (runs["seed-0"] / "trial.json").unlink()                  # never finished
-    marker = read(runs["seed-1"] / "trial.json")                # killed mid-run
-    (runs["seed-1"] / "trial.json").write_text(json.dumps({**marker, "status": "running"}))
+
+    def edit_marker(name, **changes):
+        marker = read(runs[name] / "trial.json")
+        (runs[name] / "trial.json").write_text(json.dumps({**marker, **changes}))
+        return marker
+
+    # seed-0 finished, but with another config (the sweep file was edited since)
+    stored = edit_marker("seed-0")["config"]
+    edit_marker("seed-0", config={**stored, "train": {**stored["train"], "steps": 59}})
+    # seed-1 was killed mid-run
+    edit_marker("seed-1", status="running")
     (runs["seed-1"] / "metrics.json").unlink()
+    # the third finished under an older schema that lacked a setting (now at its default)
     kept = runs["encoding-raw_enabled-false"]
+    stored = read(kept / "trial.json")["config"]
+    assert stored["train"]["lr_min"] == config.Train().lr_min
+    stored["train"].pop("lr_min")
+    edit_marker("encoding-raw_enabled-false", config=stored)
     before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in kept.iterdir()}
     seen = []
+    t0 = time.time()
     results = sweep.run_sweep(path, workers=2, out=out,
                               progress=lambda r, done, total: seen.append(r["trial"]))
-    assert sorted(seen) == ["seed-0", "seed-1"]                 # only the unfinished ones ran
+    assert sorted(seen) == ["seed-0", "seed-1"]                 # only those two ran again
     assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in kept.iterdir()} == before
     for name in ("seed-0", "seed-1"):
-        assert read(runs[name] / "trial.json")["finished"] >= marker["finished"]
+        assert (runs[name] / "metrics.json").stat().st_mtime >= t0
+        assert read(runs[name] / "trial.json")["config"]["train"]["steps"] == 60
     assert stable(results) == stable(read(out_local / "results.json"))
 
 
@@ -219,6 +235,8 @@ def test_grid_crosses_and_list_zips(tmp_path):
     ({"base": "missing.yaml"}, "base"),
     ({"grid": {"config": ["nowhere.yaml"]}}, "config"),
     ({"materials": {"nbrdf": str(NPZ), "names": ["unobtainium"]}}, "materials.names"),
+    ({"materials": {"nbrdf": __file__}}, "materials.nbrdf"),
+    ({"list": [{"train.seed": 1}, {"train.seed": 1}]}, "'seed-1' appears 2 times"),
 ])
 def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
     path = write_sweep(tmp_path, **spec)
