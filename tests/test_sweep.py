@@ -245,3 +245,12 @@ def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
     assert err.startswith("error: ") and "\n" not in err and key in err
     assert str(path) in err
     assert not (tmp_path / "out").exists()          # nothing ran
+
+
+@pytest.mark.parametrize("path", sorted((CONFIGS / "sweeps").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_sweep_files_plan_cleanly(path, tmp_path):
+    jobs = sweep.plan(sweep.load_sweep(path), path, tmp_path)
+    assert jobs and all(j["error"] is None for j in jobs)
+    assert len({j["name"] for j in jobs}) == len(jobs)
+    for job in jobs:                            # every trial is an ordinary 1-thread run
+        assert job["config"]["train"]["threads"] == 1
