@@ -32,14 +32,17 @@ and of the worker count: training is deterministic per seed *and* thread count.
 
 Materials.  Each NBRDF network in the ``.npz`` is baked (made reciprocal, then
 tabulated with :func:`neural_brdf.merl.bake`) to ``<out>/data/<name>.binary`` by the
-first trial that needs it, on the node that runs it, and trained on through
-``target.data``.
+first trial that needs it, on the node that runs it; the trial's target becomes
+``{data: <that file>}``.
 
 Resuming.  A trial is finished when its ``trial.json`` says ``ok`` for the same resolved
 config; re-running the sweep skips it.  Failed, interrupted and changed trials are run
 again from scratch.  A failing trial (a bad value, a diverged loss, even a crashed worker
-process) is recorded with its one-line error and does not stop the others.  A bad sweep
-file stops before anything runs, with a one-line error naming the key (exit code 2).
+process) is recorded with its one-line error and does not stop the others (a crash in the
+local pool fails the trials then in flight, since the pool cannot tell which one died).
+A bad sweep file stops before anything runs, with a one-line error naming the key.
+Exit codes of ``neural-brdf sweep``: 0 every trial ran (a trial's physics verdict is in
+the table), 1 some trial failed, 2 a bad sweep file, 130 Ctrl-C (re-run to resume).
 
 Executors.  ``local`` (default): a ``spawn`` process pool with ``--workers`` processes
 (default: the usable CPU cores).  ``ray``: one Ray task per trial (``num_cpus=1``) on

@@ -10,7 +10,11 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import shutil
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -23,7 +27,8 @@ import yaml
 import neural_brdf
 from neural_brdf import cli, config, sweep, train
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = REPO / "configs"
 NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "nbrdf" / "merl_nbrdf_weights.npz"
 
 TINY = {"train.steps": 60, "train.warmup": 5, "train.eval_every": 0, "model.hidden": [8, 8],
@@ -164,6 +169,30 @@ def test_resume_runs_only_unfinished_trials(local, tmp_path):
         assert (runs[name] / "metrics.json").stat().st_mtime >= t0
         assert read(runs[name] / "trial.json")["config"]["train"]["steps"] == 60
     assert stable(results) == stable(read(out_local / "results.json"))
+
+
+def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
+    path = write_sweep(tmp_path, list=TRIALS[:2])
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "neural_brdf", "sweep", str(path), "--workers", "1",
+           "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=REPO, start_new_session=True, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    first = out / "trials" / "seed-0" / "trial.json"
+    deadline = time.time() + 300
+    while not (first.is_file() and read(first)["status"] == "ok"):
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)          # as a terminal's Ctrl-C: the whole group
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130 and "run the same command again" in err
+    rows = {r["trial"]: r["status"] for r in read(out / "results.json")["trials"]}
+    assert rows["seed-0"] == "ok" and rows["seed-1"] != "ok"
+    kept = {p.name: p.stat().st_mtime_ns for p in first.parent.iterdir()}
+    seen = []
+    sweep.run_sweep(path, workers=1, out=out, progress=lambda r, d, t: seen.append(r["trial"]))
+    assert seen == ["seed-1"]
+    assert {p.name: p.stat().st_mtime_ns for p in first.parent.iterdir()} == kept
 
 
 def test_failing_trials_are_recorded_and_the_others_finish(tmp_path):
