@@ -505,6 +505,7 @@ def run_sweep(path: str | Path, *, executor: str = "local", workers: int | None 
         if progress:
             progress(record, done, len(jobs))
 
+    write_results(out_dir, name, jobs, records)  # the table exists from the start
     for job in [j for j in todo if j["error"]]:
         finish(_failed(job, job["error"]))
     runnable = [j for j in todo if not j["error"]]
@@ -516,6 +517,7 @@ def run_sweep(path: str | Path, *, executor: str = "local", workers: int | None 
                 finish(record)
         except KeyboardInterrupt:
             run.close()                          # stops the pool / shuts Ray down
+            write_results(out_dir, name, jobs, records)   # Ctrl-C may land mid-finish()
             from .train import Interrupted
             raise Interrupted(f"sweep interrupted after {done} of {len(jobs)} trials; "
                               "run the same command again to resume") from None
