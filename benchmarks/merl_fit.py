@@ -74,7 +74,7 @@ def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]
             "max_albedo": c["max_albedo"]["value"], "passed": report["passed"],
             "train_seconds": report["training"]["train_seconds"],
             "steps": report["training"]["steps"], "hidden": cfg.model.hidden,
-            "parameters": sum(p.numel() for p in RawBRDF.from_config(cfg.model).parameters())}
+            "parameters": RawBRDF.parameter_count(cfg.model)}
 
 
 def abc_errors(name: str, path: Path) -> dict:

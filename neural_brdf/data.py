@@ -82,7 +82,7 @@ class MeasuredTarget:
         if n is not None and n < len(bins):
             bins = np.sort(rng.choice(bins, size=n, replace=False))
         th, td, pd = (c[i] for c, i in zip(merl.bin_centres(), merl.unravel(bins)))
-        wi, wo = merl._directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
+        wi, wo = merl.directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
         f = self.brdf.values.reshape(-1, 3)[bins]
         return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
 

@@ -142,7 +142,7 @@ def _grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     wo = np.empty((N_BINS, 3))
     for s in range(0, N_BINS, CHUNK):
         ih, id_, ip = unravel(np.arange(s, min(s + CHUNK, N_BINS)))
-        wi[s:s + len(ih)], wo[s:s + len(ih)] = _directions(
+        wi[s:s + len(ih)], wo[s:s + len(ih)] = directions(
             th_c[ih], np.zeros(len(ih)), td_c[id_], pd_c[ip])
     above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
     for a in (wi, wo, above):
@@ -166,7 +166,8 @@ def grid_above_horizon() -> np.ndarray:
     return _grid()[2].reshape(SHAPE).copy()
 
 
-def _directions(theta_h, phi_h, theta_d, phi_d) -> tuple[np.ndarray, np.ndarray]:
+def directions(theta_h, phi_h, theta_d, phi_d) -> tuple[np.ndarray, np.ndarray]:
+    """(wi, wo) float64 numpy from Rusinkiewicz angles (broadcast together)."""
     t = [torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
          for a in (theta_h, phi_h, theta_d, phi_d)]
     wi, wo = frame.from_rusinkiewicz(*t)
@@ -378,7 +379,7 @@ class MerlBRDF:
             td = (id_ + u[:, 1]) / RES_THETA_D * (math.pi / 2)
             pd = (ip + u[:, 2]) / RES_PHI_D * math.pi
             ph = rng.random(m) * (2.0 * math.pi)
-            wi, wo = _directions(th, ph, td, pd)
+            wi, wo = directions(th, ph, td, pd)
             keep = (wi[:, 2] > 0) & (wo[:, 2] > 0)
             wis.append(wi[keep])
             wos.append(wo[keep])

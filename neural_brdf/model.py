@@ -101,6 +101,11 @@ class RawBRDF(nn.Module):
         self.mlp = MLP(enc.num_features(encoding), hidden, activation, init_value=init_value,
                        output_scale=output_scale)
 
+    @staticmethod
+    def parameter_count(m) -> int:
+        """Trainable parameters of the network a ``model`` config section describes."""
+        return sum(p.numel() for p in RawBRDF.from_config(m).parameters())
+
     @classmethod
     def from_config(cls, m, *, init_value: float = 0.3) -> "RawBRDF":
         """From the ``model`` section of a config (:class:`neural_brdf.config.Model`)."""

@@ -37,9 +37,7 @@ from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from analytic import frame
-
-from . import quadrature
+from . import merl, quadrature
 
 Fn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -195,10 +193,7 @@ def rusinkiewicz_grid(n: int = 128, phi_d_deg: float = 90.0):
     phi_h = 0.  Pixel centres, so no pair sits exactly on the horizon."""
     a = (np.arange(n) + 0.5) * (0.5 * math.pi / n)
     th, td = np.meshgrid(a, a)                       # (n, n): [row = theta_d, col = theta_h]
-    t = [torch.from_numpy(v) for v in (th, np.zeros_like(th), td,
-                                        np.full_like(th, math.radians(phi_d_deg)))]
-    wi, wo = frame.from_rusinkiewicz(*t)
-    return wi.numpy(), wo.numpy()
+    return merl.directions(th, 0.0, td, math.radians(phi_d_deg))
 
 
 def rusinkiewicz_values(fn: Fn, n: int = 128) -> np.ndarray:
@@ -257,11 +252,7 @@ def albedo_values(fn: Fn, theta_i_deg: np.ndarray, *, samples: int = 4096, seed:
     ``sampler`` (an analytic model) adds its importance sampler to the proposals."""
     t = np.radians(np.asarray(theta_i_deg, dtype=np.float64))
     wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
-
-    def tfn(a, b):
-        return torch.from_numpy(np.asarray(fn(a.numpy(), b.numpy()), dtype=np.float64))
-
-    rho, _ = quadrature.albedo(tfn, wi, samples, seed=seed, extra=sampler)
+    rho, _ = quadrature.albedo(quadrature.from_numpy(fn), wi, samples, seed=seed, extra=sampler)
     return rho.numpy()
 
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from typing import Callable
 
+import numpy as np
 import torch
 
 from analytic import frame, physics
@@ -86,6 +87,14 @@ def _pdf(kind: str, alpha: float, wi: torch.Tensor, wo: torch.Tensor) -> torch.T
     h = frame.half_vector(wi, wo)
     axis_cos = h[..., 2] if kind == "normal" else frame.dot(h, wi)
     return _ggx_pdf(axis_cos, alpha) / (4.0 * frame.dot(wo, h).clamp_min(1e-12))
+
+
+def from_numpy(fn: Callable) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """A numpy BRDF callable (an ONNX model's ``eval``, say) as the torch callable
+    :func:`albedo` takes, float64 out."""
+    def tfn(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(np.asarray(fn(a.numpy(), b.numpy()), dtype=np.float64))
+    return tfn
 
 
 def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.Tensor,

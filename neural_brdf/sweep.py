@@ -310,7 +310,7 @@ def _finite(x):
 def _metrics(report: dict, cfg: cfgmod.Config) -> dict:
     from .model import RawBRDF
     checks, acc = report["checks"], report.get("accuracy", {})
-    params = sum(p.numel() for p in RawBRDF.from_config(cfg.model).parameters())
+    params = RawBRDF.parameter_count(cfg.model)
     values = {"rel_rmse": acc.get("rel_rmse"), "nbrdf_log_error": acc.get("nbrdf_log_error"),
               "max_albedo": checks["max_albedo"]["value"],
               "reciprocity": checks["reciprocity"]["value"],

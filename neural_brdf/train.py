@@ -64,7 +64,6 @@ from . import data
 from . import export as exp
 from . import validate
 from .model import RawBRDF
-from .report import write_report
 
 LOG_COLUMNS = ["step", "loss", "lr", "seconds", "val_rel_rmse"]
 # Settings a resumed run must share with its checkpoint (the rest may change, e.g. steps).
@@ -290,6 +289,7 @@ def run(cfg: cfgmod.Config, run_dir: Path | None = None, *, resume: bool = False
     report["seconds"] = {"train": training["train_seconds"], "export": t2 - t1,
                          "validate": t3 - t2, "total": t3 - t0}
     validate.write_json(report, run_dir / "metrics.json")
+    from .report import write_report         # matplotlib: only when a run has finished
     write_report(run_dir)                    # report.html / report.md from the files above
     report["seconds"]["report"] = time.perf_counter() - t3
     report["seconds"]["total"] = time.perf_counter() - t0

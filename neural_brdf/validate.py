@@ -81,10 +81,7 @@ def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, ext
     min_val = analytic.min_value(fn, n=s.pairs, seed=s.seed + 1)
     dirs = furnace_directions(s.furnace_dirs, anisotropic, s.seed + 2)
 
-    def tfn(a, b):
-        return torch.from_numpy(np.asarray(fn(a.numpy(), b.numpy()), dtype=np.float64))
-
-    rho, err = quadrature.albedo(tfn, dirs, s.furnace_samples, seed=s.seed + 3, extra=extra)
+    rho, err = quadrature.albedo(quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, extra=extra)
     rho, err = rho.numpy(), err.numpy()
     # hemispherical albedo: 2 int_0^1 rho(mu) mu dmu, rows averaged over azimuth
     n_theta = len(dirs) // AZIMUTHS if anisotropic else len(dirs)
