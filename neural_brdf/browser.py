@@ -25,6 +25,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from .fileio import atomic_path
+
 CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -85,19 +87,11 @@ def screenshot(html_path, png_path, *, width: int = WIDTH) -> dict:
     seen = inspect(html_path)
     height = max(200, min(int(seen["height"]), MAX_HEIGHT))
     png_path = Path(png_path).resolve()
-    png_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=png_path.parent, prefix=f".{png_path.name}.", suffix=".png")
-    os.close(fd)
-    try:                                     # atomic: chromium writes a temp file, renamed
+    with atomic_path(png_path, suffix=".png") as tmp:    # chromium writes a temp file
         _chromium([f"--screenshot={tmp}", f"--window-size={width},{height}",
                    Path(html_path).resolve().as_uri()])
         if os.path.getsize(tmp) == 0:
             raise BrowserError(f"{png_path}: chromium wrote no screenshot")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, png_path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
         raise
     return seen
 

@@ -26,8 +26,6 @@ from __future__ import annotations
 import copy
 import io
 import json
-import os
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -41,6 +39,7 @@ from analytic import physics
 from . import config as cfgmod
 from . import data, lobe, validate
 from .encoding import is_anisotropic
+from .fileio import atomic_write
 from .model import NormalizedBRDF, RawBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
 
@@ -155,18 +154,6 @@ def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)))
 
 
-def _atomic_write(path: Path, payload: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, target_desc: str,
            extra=None) -> dict:
     """Write ``model`` to ``out`` with metadata; returns the measured figures."""
@@ -208,7 +195,7 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, ta
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)
     onnx.checker.check_model(proto)
-    _atomic_write(Path(out), proto.SerializeToString())
+    atomic_write(Path(out), proto.SerializeToString())
     return {"parity_rel_error": parity, "float32_rel_precision": precision, "physics": phys}
 
 

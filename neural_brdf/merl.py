@@ -46,13 +46,11 @@ that order irrelevant to the value.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import difflib
 import functools
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -60,7 +58,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from analytic import fresnel, frame
+from analytic import frame, fresnel
+
+from .fileio import atomic_write
 
 # ----------------------------------------------------------------------- the format
 RES_THETA_H = 90
@@ -444,21 +444,8 @@ def write_merl(path, brdf_or_array) -> None:
         raw = brdf_or_array.raw
     else:
         raw = MerlBRDF.from_values(brdf_or_array).raw
-    p = Path(path)
     body = np.asarray(SHAPE, dtype="<i4").tobytes() + raw.astype("<f8").tobytes()
-    mode = p.stat().st_mode & 0o777 if p.is_file() else 0o644
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(body)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, body)
 
 
 # ----------------------------------------------------------------------------- bake

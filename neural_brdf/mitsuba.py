@@ -51,7 +51,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -63,6 +62,7 @@ from onnx import numpy_helper
 
 from . import lobe as lobes
 from .config import InputError
+from .fileio import atomic_path
 from .runtime import INPUTS, OUTPUT
 
 if mi.variant() is None:
@@ -998,17 +998,8 @@ ERROR_GAIN = 10.0
 def write_png(path: Path, img: np.ndarray) -> None:
     import matplotlib.image
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".png") as tmp:
         matplotlib.image.imsave(tmp, np.clip(img, 0.0, 1.0))
-        os.chmod(tmp, 0o644)                 # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def analytic_bsdf(reference: dict) -> dict:

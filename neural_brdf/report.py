@@ -25,7 +25,6 @@ import base64
 import csv
 import html
 import json
-import os
 import struct
 import tempfile
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ import numpy as np
 from . import config as cfgmod
 from . import data, plots
 from .config import InputError
+from .fileio import atomic_write
 from .runtime import load
 
 RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
@@ -432,17 +432,6 @@ def to_markdown(blocks: list) -> str:
 
 
 # ------------------------------------------------------------------ writing
-def _write_atomic(path: Path, content: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(content)
-        os.chmod(tmp, 0o644)                 # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Path]:
@@ -461,9 +450,9 @@ def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Pat
     for b in blocks:
         if isinstance(b, Image):
             paths[b.key] = out_dir / image_name(b.key)
-            _write_atomic(paths[b.key], b.png)
+            atomic_write(paths[b.key], b.png)
     paths["md"] = out_dir / "report.md"
-    _write_atomic(paths["md"], to_markdown(blocks).encode("utf-8"))
+    atomic_write(paths["md"], to_markdown(blocks).encode("utf-8"))
     paths["html"] = out_dir / "report.html"
-    _write_atomic(paths["html"], to_html(blocks).encode("utf-8"))
+    atomic_write(paths["html"], to_html(blocks).encode("utf-8"))
     return paths

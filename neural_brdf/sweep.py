@@ -65,7 +65,6 @@ import os
 import re
 import shutil
 import socket
-import tempfile
 import time
 import traceback
 import zipfile
@@ -77,6 +76,7 @@ from typing import Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from . import config as cfgmod
+from .fileio import atomic_write
 
 TRIAL_DEFAULTS = {"train.threads": 1, "train.progress": False}
 MARKER = "trial.json"
@@ -291,16 +291,7 @@ def _now() -> str:
 
 
 def _write_json(path: Path, obj) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=2, allow_nan=False)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
 
 
 def _finite(x):
@@ -431,11 +422,7 @@ def _receive(run_dir: Path, files: dict[str, bytes]) -> None:
         path = run_dir / rel
         if path.is_file() and path.read_bytes() == body:
             continue
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(body)
-        os.replace(tmp, path)
+        atomic_write(path, body)
 
 
 def _run_ray(jobs: list[dict], workers: int, address: str | None):
@@ -571,10 +558,7 @@ def write_results(out_dir: Path, name: str, jobs: list[dict], records: dict, *,
 
 
 def _write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+    atomic_write(path, text)
 
 
 def summary_figure(rows: list[dict], path: Path) -> None:

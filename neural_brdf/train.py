@@ -48,9 +48,7 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import signal
-import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -60,9 +58,9 @@ import torch
 from tqdm import tqdm
 
 from . import config as cfgmod
-from . import data
+from . import data, validate
 from . import export as exp
-from . import validate
+from .fileio import atomic_path, atomic_write
 from .model import RawBRDF
 
 LOG_COLUMNS = ["step", "loss", "lr", "seconds", "val_rel_rmse"]
@@ -114,15 +112,8 @@ def rel_rmse(pred: torch.Tensor, ref: torch.Tensor, cos: torch.Tensor) -> float:
 
 # ------------------------------------------------------------------ checkpoints
 def save_checkpoint(path: Path, state: dict) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".ckpt.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         torch.save(state, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _get(d: dict, dotted: str):
@@ -176,7 +167,7 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target=Non
     if resume:
         ckpt = exp.load_checkpoint(ckpt_path)
         check_resumable(ckpt["config"], cfg)
-    (run_dir / "config.yaml").write_text(cfg.to_yaml())
+    atomic_write(run_dir / "config.yaml", cfg.to_yaml())
 
     gen = torch.Generator().manual_seed(t.seed)
     torch.manual_seed(t.seed)
@@ -289,7 +280,7 @@ def run(cfg: cfgmod.Config, run_dir: Path | None = None, *, resume: bool = False
     report["seconds"] = {"train": training["train_seconds"], "export": t2 - t1,
                          "validate": t3 - t2, "total": t3 - t0}
     validate.write_json(report, run_dir / "metrics.json")
-    from .report import write_report         # matplotlib: only when a run has finished
+    from .report import write_report  # matplotlib: only when a run has finished
     write_report(run_dir)                    # report.html / report.md from the files above
     report["seconds"]["report"] = time.perf_counter() - t3
     report["seconds"]["total"] = time.perf_counter() - t0

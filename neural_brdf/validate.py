@@ -29,11 +29,8 @@ during training):
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -45,6 +42,7 @@ import analytic
 from . import config as cfgmod
 from . import data, quadrature
 from .encoding import is_anisotropic
+from .fileio import atomic_write
 from .runtime import load
 
 # Directions of the furnace grid stop this far above the horizon (radians, 0.01 degree).
@@ -208,12 +206,4 @@ def write_json(report: dict, path) -> None:
     """Write ``report`` as strict JSON, atomically (a temporary file, then a rename)."""
     path = Path(path)
     text = json.dumps(_finite(report), indent=2, allow_nan=False) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, text)
