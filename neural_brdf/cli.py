@@ -167,12 +167,12 @@ def _render(args) -> int:
         raise InputError("render: --spp must be >= 1 and --resolution >= 8")
     if mi.variant() is None:
         mi.set_variant("llvm_ad_rgb")
-    from . import mitsuba as nbm
+    from . import render as nbr
     reference = None
     if args.reference:
         name, params, _ = _analytic_target(args.reference)
         reference = {"model": name, "params": params}
-    psnr = nbm.render_preview(args.model, args.out, reference=reference, spp=args.spp,
+    psnr = nbr.render_preview(args.model, args.out, reference=reference, spp=args.spp,
                               resolution=args.resolution)
     print(f"wrote {args.out}" + ("" if psnr is None else f"  (PSNR {psnr:.2f} dB vs reference)"))
     return EXIT_OK
