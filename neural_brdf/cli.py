@@ -5,6 +5,7 @@
     neural-brdf report RUN_DIR [-o OUT_DIR]
     neural-brdf validate model.onnx [--reference CONFIG|material.binary] [--json out.json]
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
+    neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -74,6 +75,13 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
     r.add_argument("-o", "--out", required=True, help="output .png")
+
+    g = sub.add_parser("codegen", help="generate C / GLSL / WGSL source that evaluates and "
+                                       "samples the model (docs/codegen.md)")
+    g.add_argument("model", help="model.onnx")
+    g.add_argument("--target", required=True, choices=["c", "glsl", "wgsl"],
+                   help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)")
+    g.add_argument("-o", "--out", required=True, help="output file")
 
     w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
     w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
@@ -187,6 +195,21 @@ def _sweep(args) -> int:
     return EXIT_OK if all(r["status"] == "ok" for r in results["trials"]) else EXIT_PHYSICS
 
 
+def _codegen(args) -> int:
+    from . import backends
+    from .config import InputError
+    from .fileio import atomic_write
+    if not Path(args.model).is_file():
+        raise InputError(f"{args.model}: no such model file")
+    text = backends.generate(args.model, args.target)
+    try:
+        atomic_write(args.out, text)
+    except OSError as e:
+        raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
+    print(f"wrote {args.out} ({args.target}, {text.count(chr(10))} lines)")
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     from .config import InputError
     from .export import ParityError
@@ -194,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         commands = {"train": _train, "export": _export, "validate": _validate,
-                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep}
+                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep,
+                    "codegen": _codegen}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)
