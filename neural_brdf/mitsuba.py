@@ -209,6 +209,8 @@ _UNARY = {
                 lambda x: 1.0 / (1.0 + dr.exp(-x))),
     "Softplus": (_np_softplus, _softplus),
     "Not": (np.logical_not, lambda x: ~x),
+    "IsNaN": (np.isnan, dr.isnan),
+    "IsInf": (np.isinf, dr.isinf),
 }
 
 _BINARY = {
