@@ -61,6 +61,13 @@ from .runtime import INPUTS, OUTPUT
 if mi.variant() is None:
     raise ImportError("neural_brdf.mitsuba: set a Mitsuba variant first, e.g. "
                       "mi.set_variant('llvm_ad_rgb'); the plugins register for that variant")
+if not mi.is_rgb:
+    # The graph returns RGB.  In a spectral or monochrome variant a scene would load and
+    # the render then die inside Mitsuba with a bare std::bad_cast, so refuse here.
+    raise ImportError(f"neural_brdf.mitsuba: variant {mi.variant()!r} is not an RGB variant; "
+                      "the neural BSDF returns RGB values: use llvm_ad_rgb or cuda_ad_rgb "
+                      "(for spectral rendering, bake the model to an RGL .bsdf file for "
+                      "Mitsuba's own 'measured' plugin)")
 
 __all__ = ["SUPPORTED_OPS", "AnalyticBSDF", "NeuralBSDF", "OnnxProgram", "UnsupportedOnnxOp",
            "analytic_onnx", "read_model"]
@@ -141,9 +148,11 @@ class _GraphBSDF(mi.BSDF):
             return bs, mi.Color3f(0.0)
         wi = si.wi
         wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        glossy = mi.Bool(False)
         if self.lobe_weight > 0.0:
             m, _ = self.distr.sample(wi, sample2)
-            wo = dr.select(sample1 < self.lobe_weight, mi.reflect(wi, m), wo)
+            glossy = sample1 < self.lobe_weight
+            wo = dr.select(glossy, mi.reflect(wi, m), wo)
         active = active & (mi.Frame3f.cos_theta(wi) > 0.0)
         pdf = self._pdf(si, wo, active)
         value = self._f_cos(si, wo, active)
@@ -151,7 +160,10 @@ class _GraphBSDF(mi.BSDF):
         bs.wo = wo
         bs.pdf = dr.select(ok, pdf, 0.0)
         bs.eta = 1.0
-        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
+        # which lobe of the mixture drew the sample (integrators such as the path
+        # guiders and AOVs read it); both lobes are component 0 of the one BSDF
+        bs.sampled_type = dr.select(glossy, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
+                                    mi.UInt32(+mi.BSDFFlags.DiffuseReflection))
         bs.sampled_component = mi.UInt32(0)
         return bs, dr.select(ok, value / pdf, 0.0)
 
@@ -167,7 +179,12 @@ class _GraphBSDF(mi.BSDF):
 def _resolve(filename: str) -> Path:
     path = Path(filename)
     if not path.is_absolute():
-        resolved = Path(str(mi.Thread.thread().file_resolver().resolve(str(path))))
+        # Mitsuba's resolver holds the scene file's folder while an XML scene loads.
+        # mi.file_resolver() replaced Thread.file_resolver() (deprecated in 3.9, whose
+        # warning escapes from a plugin constructor as a SystemError).
+        resolver = (mi.file_resolver() if hasattr(mi, "file_resolver")
+                    else mi.Thread.thread().file_resolver())
+        resolved = Path(str(resolver.resolve(str(path))))
         if resolved.is_file():
             path = resolved
     if not path.is_file():

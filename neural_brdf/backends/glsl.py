@@ -31,7 +31,7 @@ def erf_helper(fn: str, ret: str, decl: str, ftype: str, sfx: str) -> list[str]:
             f"    {decl}poly = t * ({k['a1']} + t * ({k['a2']} + t * ({k['a3']} + t * "
             f"({k['a4']} + t * {k['a5']}))));",
             f"    {decl}y = 1.0{sfx} - poly * exp(-a * a);",
-            f"    return sign(x) * y;",
+            "    return sign(x) * y;",
             "}"]
 
 
