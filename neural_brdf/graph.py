@@ -836,8 +836,10 @@ def load(model) -> onnx.ModelProto:
 
 def _hint(node) -> str:
     """A readable name prefix for the instructions of a node: its op in snake case."""
-    s = re.sub(r"(?<!^)(?=[A-Z])", "_", node.op_type).lower()
-    return {"gemm": "dense", "mat_mul": "dense"}.get(s, s)
+    special = {"Gemm": "dense", "MatMul": "dense", "IsNaN": "isnan", "IsInf": "isinf"}
+    if node.op_type in special:
+        return special[node.op_type]
+    return re.sub(r"(?<!^)(?=[A-Z])", "_", node.op_type).lower()
 
 
 def check(proto: onnx.ModelProto) -> list:

@@ -51,8 +51,10 @@ MODELS = {"isotropic": "quickstart.yaml", "anisotropic": "brushed_ggx.yaml"}
 
 C_TOL = 1e-5            # the export contract's parity tolerance
 # GPU transcendental functions are loose by specification (WGSL: exp 3 + 2|x| ULP, atan
-# 4096 ULP); lavapipe measured about 1e-5.
-GPU_TOL = 1e-4
+# 4096 ULP).  lavapipe measured: atan about 2e-5 relative; the anisotropic network turns
+# that into 4.4e-4 at one pair with wi == wo 0.01 degrees above the horizon (3e-5 at
+# every other pair).  The C code, with libm, meets C_TOL on the same pairs.
+GPU_TOL = 1e-3
 # lavapipe's asin and acos are accurate to about 4e-4 (relative to this graph's values)
 EVERY_OP_GPU_TOL = 1e-3
 SCALE_TOL = 1e-5        # f(k wi, wo) against f(wi, wo)
@@ -208,27 +210,30 @@ def check_total(evaluate, model, tol):
     """Hostile rows give exactly 0 (not NaN), other rows onnxruntime's values; scaled
     directions give the unscaled values (generic pairs above the horizon: near grazing,
     renormalising in float32 moves f by more than 1e-5 in onnxruntime too) and
-    onnxruntime's values for the scaled inputs (every kind of pair)."""
-    wi, wo, bad = hostile_rows()
-    got = evaluate(wi, wo)
-    assert not np.isnan(got).any()
-    assert (got[bad] == 0.0).all()
-    ref = onnx_ref(model, wi, wo)
-    assert relative_difference(got[~bad], ref[~bad]) <= tol
+    onnxruntime's values for the scaled inputs (every kind of pair).  All of it is one
+    call of ``evaluate`` (a GPU back end compiles its shader once)."""
+    hwi, hwo, bad = hostile_rows()
     rng = np.random.default_rng(3)
-    wi, wo = unit(rng, 2000), unit(rng, 2000)
-    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]), np.abs(wo[:, 2])
-    wi, wo = wi.astype(np.float32), wo.astype(np.float32)
-    base = evaluate(wi, wo)
-    assert (base != 0).all()
+    gwi, gwo = unit(rng, 2000), unit(rng, 2000)
+    gwi[:, 2], gwo[:, 2] = np.abs(gwi[:, 2]), np.abs(gwo[:, 2])
     awi, awo = pairs(3, 500)
+    blocks = [(hwi, hwo), (gwi, gwo)]
     for k in SCALES:
-        assert relative_difference(evaluate((wi * k).astype(np.float32), wo), base) \
-            <= SCALE_TOL, k
-        assert relative_difference(evaluate(wi, (wo * k).astype(np.float32)), base) \
-            <= SCALE_TOL, k
-        swi = (awi * k).astype(np.float32)
-        assert relative_difference(evaluate(swi, awo), onnx_ref(model, swi, awo)) <= tol, k
+        blocks += [(gwi * k, gwo), (gwi, gwo * k), (awi * k, awo)]
+    blocks = [(a.astype(np.float32), b.astype(np.float32)) for a, b in blocks]
+    out = evaluate(np.concatenate([a for a, _ in blocks]), np.concatenate([b for _, b in blocks]))
+    assert not np.isnan(out).any()
+    got = np.split(out, np.cumsum([len(a) for a, _ in blocks])[:-1])
+    assert (got[0][bad] == 0.0).all()
+    assert relative_difference(got[0][~bad], onnx_ref(model, hwi, hwo)[~bad]) <= tol
+    base = got[1]
+    assert (base != 0).all()
+    for j, k in enumerate(SCALES):
+        scaled_wi, scaled_wo, any_pair = got[2 + 3 * j: 5 + 3 * j]
+        assert relative_difference(scaled_wi, base) <= SCALE_TOL, k
+        assert relative_difference(scaled_wo, base) <= SCALE_TOL, k
+        swi, swo = blocks[4 + 3 * j]
+        assert relative_difference(any_pair, onnx_ref(model, swi, swo)) <= tol, k
 
 
 # ------------------------------------------------------------------ C

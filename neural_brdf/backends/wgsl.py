@@ -50,7 +50,10 @@ class WGSLRenderer(CStyleRenderer):
     def table(self, name: str, values: np.ndarray) -> str:
         t = "f32" if values.dtype.kind == "f" else "i32"
         body = "\n".join(f"    {row}" for row in self.table_values(values))
-        return f"const {name} = array<{t}, {len(values)}>(\n{body}\n);\n"
+        # var<private>, not const: naga turns a dynamically indexed const array into a
+        # copy of the whole array per access, which ran 100x slower on lavapipe
+        ty = f"array<{t}, {len(values)}>"
+        return f"var<private> {name}: {ty} = {ty}(\n{body}\n);\n"
 
     def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
         lines, rendered = self.body(prog)
