@@ -58,6 +58,8 @@ GPU_TOL = 1e-3
 # lavapipe's asin and acos are accurate to about 4e-4 (relative to this graph's values)
 EVERY_OP_GPU_TOL = 1e-3
 SCALE_TOL = 1e-5        # f(k wi, wo) against f(wi, wo)
+# GPU division and sqrt need not be correctly rounded (WGSL: 2.5 ULP); lavapipe: 2e-5
+GPU_SCALE_TOL = 1e-4
 PDF_RTOL = 2e-4         # float32 pdf against the float64 reference
 CHI2_SAMPLES = 200_000
 CHI2_BINS = (10, 12)    # cos theta_o, phi_o
@@ -206,7 +208,7 @@ def hostile_rows(n_good: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return wi.astype(np.float32), wo.astype(np.float32), mask
 
 
-def check_total(evaluate, model, tol):
+def check_total(evaluate, model, tol, scale_tol=SCALE_TOL):
     """Hostile rows give exactly 0 (not NaN), other rows onnxruntime's values; scaled
     directions give the unscaled values (generic pairs above the horizon: near grazing,
     renormalising in float32 moves f by more than 1e-5 in onnxruntime too) and
@@ -230,8 +232,8 @@ def check_total(evaluate, model, tol):
     assert (base != 0).all()
     for j, k in enumerate(SCALES):
         scaled_wi, scaled_wo, any_pair = got[2 + 3 * j: 5 + 3 * j]
-        assert relative_difference(scaled_wi, base) <= SCALE_TOL, k
-        assert relative_difference(scaled_wo, base) <= SCALE_TOL, k
+        assert relative_difference(scaled_wi, base) <= scale_tol, k
+        assert relative_difference(scaled_wo, base) <= scale_tol, k
         swi, swo = blocks[4 + 3 * j]
         assert relative_difference(any_pair, onnx_ref(model, swi, swo)) <= tol, k
 
@@ -452,7 +454,8 @@ def test_wgsl_validates_and_matches_onnxruntime(models, wgpu_device, enc):
     wi, wo = pairs(1)
     got = wgsl_eval(wgpu_device, source, wi, wo)
     assert relative_difference(got, onnx_ref(models[enc], wi, wo)) <= GPU_TOL
-    check_total(lambda a, b: wgsl_eval(wgpu_device, source, a, b), models[enc], GPU_TOL)
+    check_total(lambda a, b: wgsl_eval(wgpu_device, source, a, b), models[enc], GPU_TOL,
+                GPU_SCALE_TOL)
 
 
 # ------------------------------------------------------------------ Dr.Jit
