@@ -203,7 +203,7 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, ta
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)
     onnx.checker.check_model(proto)
-    atomic_write(Path(out), proto.SerializeToString())
+    atomic_write(Path(out), proto.SerializeToString(), parents=True)
     return {"parity_rel_error": parity, "float32_rel_precision": precision, "physics": phys}
 
 

@@ -422,7 +422,7 @@ def _receive(run_dir: Path, files: dict[str, bytes]) -> None:
         path = run_dir / rel
         if path.is_file() and path.read_bytes() == body:
             continue
-        atomic_write(path, body)
+        atomic_write(path, body, parents=True)
 
 
 def _run_ray(jobs: list[dict], workers: int, address: str | None):
