@@ -118,7 +118,7 @@ def to_onnx_bytes(model: torch.nn.Module, opset: int) -> bytes:
     with warnings.catch_warnings():
         # The TorchScript exporter (dynamo=False) warns that it is deprecated.  It is
         # used on purpose: it writes one self-contained file and needs no onnxscript,
-        # which is not a dependency of this project (NOTES.md, "ONNX").
+        # which is not a dependency of this project (docs/model.md, "Export and parity").
         warnings.filterwarnings("ignore", category=DeprecationWarning)
         torch.onnx.export(model, example, buf, dynamo=False, opset_version=opset,
                           input_names=list(INPUTS), output_names=[OUTPUT],
