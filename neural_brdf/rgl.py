@@ -78,8 +78,8 @@ from __future__ import annotations
 import math
 import os
 import struct
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -262,7 +262,7 @@ class Marginal2D:
     # corner slices and weights of the parameter interpolation (C order over params)
     def _corners(self, params, n: int):
         corners = [(np.zeros(n, np.int64), np.ones(n))]
-        for values, p in zip(self.params, params):
+        for values, p in zip(self.params, params, strict=True):
             p = np.broadcast_to(np.asarray(p, dtype=np.float64), (n,))
             if len(values) == 1:
                 corners = [(s * 1, w) for s, w in corners]
@@ -511,6 +511,27 @@ class RGLBRDF:
         jac = np.maximum(2 * math.pi ** 2 * u_m[:, 0] * np.sin(theta_m), 1e-6) * 4 * dot
         wo = 2.0 * dot[:, None] * m - wi
         return wo, p_lum * p_vndf / jac
+
+    def node_pairs(self, *, seed: int = 0):
+        """(wi, wo), each (K, 3) float64: the direction pairs of the value nodes (every
+        theta_i slice x sample-square node) with both directions above the horizon.  The
+        file is exact there up to float32.  phi_i is random (isotropic files)."""
+        rng = np.random.default_rng(seed)
+        n = self.fields["rgb"].shape[-1]
+        sx, sy = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+        s = np.stack([sx.ravel(), sy.ravel()], -1)
+        wis, wos = [], []
+        for th in self.theta_i:
+            phi = rng.random() * 2 * math.pi
+            params = (np.full(len(s), phi), np.full(len(s), th))
+            u_m, _ = self._vndf.sample(s, params)
+            m = _spherical(u_to_theta(u_m[:, 0]), v_to_phi(u_m[:, 1]) + phi)
+            wi = np.broadcast_to(_spherical(np.array(th), np.array(phi)), m.shape)
+            wo = 2.0 * np.sum(wi * m, -1, keepdims=True) * m - wi
+            keep = (wo[:, 2] > 0) & (wi[:, 2] > 0)
+            wis.append(wi[keep])
+            wos.append(wo[keep] / np.linalg.norm(wo[keep], axis=-1, keepdims=True))
+        return np.concatenate(wis), np.concatenate(wos)
 
     def sample_pairs(self, n: int, rng=None):
         """``n`` training pairs (wi, wo, f) (n, 3) each: wi uniform on the hemisphere, wo
