@@ -3,7 +3,8 @@
     neural-brdf train CONFIG [--out RUN_DIR] [--set KEY=VALUE ...] [--resume]
     neural-brdf export RUN_DIR [-o model.onnx]
     neural-brdf report RUN_DIR [-o OUT_DIR]
-    neural-brdf validate model.onnx [--reference CONFIG|material.binary|material.bsdf] [--json out.json]
+    neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
+    neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX

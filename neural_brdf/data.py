@@ -103,7 +103,7 @@ class RGLTarget(MeasuredTarget):
         self.source = brdf.source
 
     @classmethod
-    def from_file(cls, path, *, key: str = "target.data") -> "RGLTarget":
+    def from_file(cls, path, *, key: str = "target.data") -> RGLTarget:
         try:
             return cls(rgl.read_rgl(path))
         except rgl.RGLFormatError as e:

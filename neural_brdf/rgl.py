@@ -113,6 +113,10 @@ SEGMENT_CONST = 1e-4           # a segment is treated as constant when |v0-v1| <
 CHUNK = 1 << 16                # pairs per call of the baked function
 
 DEFAULTS = {"theta_i": 32, "sample": 64, "vndf": 128, "ndf": 256}
+# Wavelengths (nm) of a spectral bake: Mitsuba's visible range 360-830 in 20 nm steps (the
+# sigmoid spectra are smooth; Mitsuba interpolates linearly and clamps beyond the ends).
+WAVELENGTHS = np.arange(360.0, 831.0, 20.0)
+SPECTRAL_SUFFIX = "_spec.bsdf"   # the RGL database's name for spectral files
 
 REQUIRED = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description",
             "jacobian")
@@ -626,12 +630,43 @@ def retroreflection_ndf(f: Callable, *, nodes: int = DEFAULTS["ndf"]) -> np.ndar
     return d
 
 
+def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
+    """Linear sRGB values (..., 3) >= 0 -> spectra (..., L) at ``wavelengths`` (nm), by the
+    sigmoid-polynomial upsampling of Jakob & Hanika 2019 ("A Low-Dimensional Function
+    Space for Efficient Spectral Upsampling"), as Mitsuba upsamples RGB reflectances:
+    s(l) = 1/2 + x / (2 sqrt(1 + x^2)), x = c0 l^2 + c1 l + c2, with (c0, c1, c2) from
+    Mitsuba's precomputed table (``srgb_model_fetch``, so this needs Mitsuba 3).  That
+    table covers [0, 1]^3; a value v with max(v) > 1 is upsampled as max(v) s(v / max(v)).
+    0 stays 0."""
+    try:
+        import mitsuba
+        fetch = mitsuba.scalar_spectral.srgb_model_fetch
+        color = mitsuba.scalar_spectral.ScalarColor3f
+    except (ImportError, AttributeError):
+        raise InputError("a spectral .bsdf needs Mitsuba 3 (its Jakob-Hanika RGB-to-spectrum "
+                         "table): pip install mitsuba") from None
+    rgb = np.asarray(rgb, dtype=np.float64)
+    flat = np.maximum(rgb.reshape(-1, 3), 0.0)
+    scale = np.maximum(flat.max(axis=-1), 1.0)
+    unit = flat / scale[:, None]
+    keys, inverse = np.unique(np.round(unit, 6), axis=0, return_inverse=True)
+    coef = np.array([list(fetch(color(*k))) for k in keys])[inverse.reshape(-1)]
+    lam = np.asarray(wavelengths, dtype=np.float64)
+    x = coef[:, :1] * lam ** 2 + coef[:, 1:2] * lam + coef[:, 2:3]
+    spec = (0.5 + x / (2.0 * np.sqrt(1.0 + x * x))) * scale[:, None]
+    spec[flat.max(axis=-1) == 0] = 0.0
+    return spec.reshape(rgb.shape[:-1] + (len(lam),))
+
+
 def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULTS["sample"],
                 vndf: int = DEFAULTS["vndf"], ndf: int = DEFAULTS["ndf"],
+                spectral: bool = False,
                 description: str = "neural-brdf bake") -> dict[str, np.ndarray]:
-    """The fields of an isotropic RGB RGL file for ``fn(wi, wo)`` ((N, 3) numpy in, (N, 3)
+    """The fields of an isotropic RGL file for ``fn(wi, wo)`` ((N, 3) numpy in, (N, 3)
     out, 1/sr).  ``theta_i`` slices, ``sample`` x ``sample`` value nodes, ``vndf`` x
-    ``vndf`` VNDF nodes, ``ndf`` nodes along theta of the NDF and sigma tables."""
+    ``vndf`` VNDF nodes, ``ndf`` nodes along theta of the NDF and sigma tables.
+    ``spectral``: ``spectra`` + ``wavelengths`` (for Mitsuba's spectral variants, by
+    :func:`rgb_to_spectra`) instead of ``rgb`` (for its RGB variants)."""
     f = _as_function(fn)
     for name, v, lo in (("theta_i", theta_i, 2), ("sample", sample, 2), ("vndf", vndf, 2),
                         ("ndf", ndf, 2)):
@@ -678,14 +713,27 @@ def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULT
         y = rho.reshape(sample, sample, 3) @ Y_WEIGHTS
         y = np.maximum(y, LUMINANCE_FLOOR * y.max()) if y.max() > 0 else np.ones_like(y)
         lum_t[0, k] = y
-    return {"description": description, "jacobian": np.array([1], np.uint8),
-            "theta_i": thetas, "phi_i": np.zeros(1, np.float32),
-            "ndf": ndf_table, "sigma": sigma_table, "vndf": vndf_t,
-            "luminance": lum_t, "rgb": rgb_t}
+    out = {"description": description, "jacobian": np.array([1], np.uint8),
+           "theta_i": thetas, "phi_i": np.zeros(1, np.float32),
+           "ndf": ndf_table, "sigma": sigma_table, "vndf": vndf_t, "luminance": lum_t}
+    if spectral:
+        spec = rgb_to_spectra(np.moveaxis(rgb_t, 2, -1))             # (1, T, N, N, L)
+        out["spectra"] = np.moveaxis(spec, -1, 2).astype(np.float32)
+        out["wavelengths"] = WAVELENGTHS.astype(np.float32)
+    else:
+        out["rgb"] = rgb_t
+    return out
 
 
-def bake(fn, path, **options) -> RGLBRDF:
-    """:func:`bake_fields`, written to ``path`` atomically; returns the baked material."""
-    fields = bake_fields(fn, **options)
+def bake(fn, path, *, spectral: bool | None = None, **options) -> RGLBRDF | None:
+    """:func:`bake_fields`, written to ``path`` atomically.  ``spectral=None``: spectral
+    when the name ends in ``_spec.bsdf`` (the RGL database's convention), else RGB.
+    Returns the baked material (an RGB file; None for a spectral one, which
+    :class:`RGLBRDF` does not read)."""
+    if spectral is None:
+        spectral = os.fspath(path).lower().endswith(SPECTRAL_SUFFIX)
+    fields = bake_fields(fn, spectral=spectral, **options)
     write_tensor_file(path, fields)
+    if spectral:
+        return None
     return RGLBRDF(parse_tensor_file(tensor_file_bytes(fields)), source=os.fspath(path))
