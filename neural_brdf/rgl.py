@@ -635,9 +635,12 @@ def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
     sigmoid-polynomial upsampling of Jakob & Hanika 2019 ("A Low-Dimensional Function
     Space for Efficient Spectral Upsampling"), as Mitsuba upsamples RGB reflectances:
     s(l) = 1/2 + x / (2 sqrt(1 + x^2)), x = c0 l^2 + c1 l + c2, with (c0, c1, c2) from
-    Mitsuba's precomputed table (``srgb_model_fetch``, so this needs Mitsuba 3).  That
-    table covers [0, 1]^3; a value v with max(v) > 1 is upsampled as max(v) s(v / max(v)).
-    0 stays 0."""
+    Mitsuba's precomputed table (``srgb_model_fetch``, so this needs Mitsuba 3).  The
+    table covers [0, 1]^3; every value v is upsampled as max(v) s(v / max(v)), which is
+    linear in the magnitude: nodes of one chromaticity (a Lambertian, a grey conductor)
+    get proportional spectra, so that interpolating spectra between nodes is
+    interpolating the RGB values.  The sRGB colour of max(v) s(v / max(v)) is v to the
+    accuracy of the table.  0 stays 0."""
     try:
         import mitsuba
         fetch = mitsuba.scalar_spectral.srgb_model_fetch
@@ -647,8 +650,8 @@ def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
                          "table): pip install mitsuba") from None
     rgb = np.asarray(rgb, dtype=np.float64)
     flat = np.maximum(rgb.reshape(-1, 3), 0.0)
-    scale = np.maximum(flat.max(axis=-1), 1.0)
-    unit = flat / scale[:, None]
+    scale = flat.max(axis=-1)
+    unit = flat / np.where(scale > 0, scale, 1.0)[:, None]
     keys, inverse = np.unique(np.round(unit, 6), axis=0, return_inverse=True)
     coef = np.array([list(fetch(color(*k))) for k in keys])[inverse.reshape(-1)]
     lam = np.asarray(wavelengths, dtype=np.float64)

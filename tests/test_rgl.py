@@ -376,3 +376,60 @@ def test_mitsuba_measured_chi2(mi, baked, theta, tmp_path, monkeypatch):
         monkeypatch.chdir(tmp_path)
         test._dump_tables()
     assert ok, f"chi2 at {theta} deg (p = {test.p_value}):\n{test.messages}"
+
+
+# ------------------------------------------------------------------ spectral
+def test_rgb_to_spectra_is_mitsubas_sigmoid_model():
+    import mitsuba
+
+    m = mitsuba.scalar_spectral
+    rgb = np.array([[0.8, 0.5, 0.2], [0.1, 0.9, 0.3], [0.5, 0.5, 0.5], [2.0, 1.0, 0.5],
+                    [0.0, 0.0, 0.0]])
+    spec = rgl.rgb_to_spectra(rgb)
+    assert spec.shape == (5, len(rgl.WAVELENGTHS))
+    for k in range(3):                       # Mitsuba's own evaluation of its coefficients
+        top = rgb[k].max()
+        c = m.srgb_model_fetch(m.ScalarColor3f(*map(float, rgb[k] / top)))
+        ref = [top * m.srgb_model_eval(c, m.Spectrum(lam))[0] for lam in rgl.WAVELENGTHS]
+        # (Mitsuba evaluates x = c0 l^2 + c1 l + c2 in float32, with cancellation)
+        np.testing.assert_allclose(spec[k], ref, rtol=1e-3)
+    np.testing.assert_allclose(spec[2], 0.5, rtol=1e-3)                  # grey is flat
+    np.testing.assert_allclose(spec[3], 2.0 * rgl.rgb_to_spectra(rgb[3] / 2.0), rtol=1e-9)
+    assert np.all(spec[4] == 0)
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("variant", ["scalar_spectral", "llvm_ad_spectral"])
+def test_spectral_bake_loads_and_evaluates_in_spectral_variants(variant, tmp_path):
+    import drjit as dr
+    import mitsuba
+
+    lambert = analytic.create("lambertian", albedo=[0.8, 0.5, 0.2])
+    path = tmp_path / "lambert_spec.bsdf"
+    assert rgl.bake(lambert.eval, path) is None                  # spectral by its name
+    fields = rgl.read_tensor_file(path)
+    assert "rgb" not in fields and fields["spectra"].shape[2] == len(rgl.WAVELENGTHS)
+    with pytest.raises(rgl.RGLFormatError, match="spectral"):
+        rgl.read_rgl(path)
+    previous = mitsuba.variant()
+    mitsuba.set_variant(variant)
+    try:
+        bsdf = mitsuba.load_dict({"type": "measured", "filename": str(path)})
+        wi = np.array([0.3, 0.1, 0.9])
+        wi /= np.linalg.norm(wi)
+        wo = np.array([-0.5, 0.2, 0.7])
+        wo /= np.linalg.norm(wo)
+        si = dr.zeros(mitsuba.SurfaceInteraction3f)
+        si.wi = mitsuba.Vector3f(*map(float, wi))
+        si.sh_frame = mitsuba.Frame3f(mitsuba.Vector3f(0.0, 0.0, 1.0))
+        lam = [450.0, 520.0, 600.0, 680.0]
+        si.wavelengths = mitsuba.Spectrum(*lam)
+        wo_mi = mitsuba.Vector3f(*map(float, wo))
+        value = np.ravel(np.array(bsdf.eval(mitsuba.BSDFContext(), si, wo_mi)))
+    finally:
+        mitsuba.set_variant(previous or "llvm_ad_rgb")
+    expected = rgl.rgb_to_spectra(np.array([0.8, 0.5, 0.2]), np.array(lam)) / math.pi * wo[2]
+    np.testing.assert_allclose(value, expected, rtol=0.02)
+    assert not mitsuba.variant().endswith("spectral")
+    with pytest.raises(Exception, match="spectral variant"):
+        mitsuba.load_dict({"type": "measured", "filename": str(path)})    # not in RGB
