@@ -107,7 +107,7 @@ POWER_ITERATIONS = 32          # fixed-point iterations of the NDF (converged to
 QUAD_U = 1024                  # midpoints in u of the sigma quadrature
 # Incident slices stop short of grazing: at theta_i = pi/2 every reflection is below the
 # horizon and the slice would be all zero.  Beyond the last slice Mitsuba clamps.
-THETA_I_MAX = math.radians(89.0)
+THETA_I_MAX = math.radians(89.5)
 SAMPLE_EPS = 1e-7              # warp inputs are kept in [eps, 1 - eps] (as Mitsuba)
 SEGMENT_CONST = 1e-4           # a segment is treated as constant when |v0-v1| < this (v0+v1)
 CHUNK = 1 << 16                # pairs per call of the baked function
@@ -661,6 +661,15 @@ def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
     return spec.reshape(rgb.shape[:-1] + (len(lam),))
 
 
+def theta_i_nodes(n: int) -> np.ndarray:
+    """The incident elevations of a bake: THETA_I_MAX sin(pi/2 t), t uniform in [0, 1]:
+    denser towards grazing, where f changes fastest with theta_i (32 slices: 4.5 degrees
+    apart at normal incidence, 0.1 at the last).  Measured against slices linear in theta
+    (default resolutions, rel. RMSE of f cos): GGX alpha 0.1 1.04% -> 0.28%, Lambertian
+    and GGX 0.3 gold unchanged (their error is within the slices, near the horizon)."""
+    return THETA_I_MAX * np.sin(0.5 * math.pi * np.linspace(0.0, 1.0, n))
+
+
 def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULTS["sample"],
                 vndf: int = DEFAULTS["vndf"], ndf: int = DEFAULTS["ndf"],
                 spectral: bool = False,
@@ -683,7 +692,7 @@ def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULT
     ndf_map = Marginal2D(ndf_table, normalize=False)
     sigma_map = Marginal2D(sigma_table, normalize=False)
 
-    thetas = np.linspace(0.0, THETA_I_MAX, theta_i).astype(np.float32)
+    thetas = theta_i_nodes(theta_i).astype(np.float32)
     # the VNDF table on the m square: D(m) <wi.m> 2 pi^2 u sin(theta_m) (density in u)
     ux, vy = np.meshgrid(np.linspace(0, 1, vndf), np.linspace(0, 1, vndf))   # [row, col]
     m_grid = _spherical(u_to_theta(ux), v_to_phi(vy))
