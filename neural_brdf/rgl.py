@@ -672,13 +672,22 @@ def theta_i_nodes(n: int) -> np.ndarray:
 
 def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULTS["sample"],
                 vndf: int = DEFAULTS["vndf"], ndf: int = DEFAULTS["ndf"],
-                spectral: bool = False,
+                spectral: bool = False, cosine: str = "outgoing",
                 description: str = "neural-brdf bake") -> dict[str, np.ndarray]:
     """The fields of an isotropic RGL file for ``fn(wi, wo)`` ((N, 3) numpy in, (N, 3)
     out, 1/sr).  ``theta_i`` slices, ``sample`` x ``sample`` value nodes, ``vndf`` x
     ``vndf`` VNDF nodes, ``ndf`` nodes along theta of the NDF and sigma tables.
     ``spectral``: ``spectra`` + ``wavelengths`` (for Mitsuba's spectral variants, by
-    :func:`rgb_to_spectra`) instead of ``rgb`` (for its RGB variants)."""
+    :func:`rgb_to_spectra`) instead of ``rgb`` (for its RGB variants).
+
+    ``cosine``: the foreshortening factor stored in the value.  ``"outgoing"`` (Mitsuba's
+    ``measured``: its eval, which includes the cosine, is the stored product, so the value
+    is f cos(theta_o) of the direction reflected about m); ``"incident"`` (pbrt-v4's
+    MeasuredBxDF divides the product by cos(theta_i) of the slice direction, its light
+    direction, so the value must be f cos(theta_i) there).  For a reciprocal f the two
+    files differ by the factor cos(theta_i) / cos(theta_o) at every node."""
+    if cosine not in ("outgoing", "incident"):
+        raise ValueError(f"cosine: must be 'outgoing' or 'incident', got {cosine!r}")
     f = _as_function(fn)
     for name, v, lo in (("theta_i", theta_i, 2), ("sample", sample, 2), ("vndf", vndf, 2),
                         ("ndf", ndf, 2)):
@@ -717,7 +726,8 @@ def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULT
         rho = np.zeros((len(m), 3))
         if above.any():
             wo_a = wo[above] / np.linalg.norm(wo[above], axis=-1, keepdims=True)
-            val = _call(f, np.ascontiguousarray(wi[above]), wo_a) * wo_a[:, 2:3]
+            val = _call(f, np.ascontiguousarray(wi[above]), wo_a)
+            val *= wo_a[:, 2:3] if cosine == "outgoing" else wi1[2]
             u_wi = np.array([[theta_to_u(th), phi_to_v(0.0)]])
             ratio = 4.0 * sigma_map.eval(u_wi)[0] / ndf_map.eval(u_m[above])
             rho[above] = val * ratio[:, None]
