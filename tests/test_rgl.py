@@ -5,10 +5,12 @@ files (eval against the analytic model, sample weight == eval / pdf, chi^2 of it
 
 Tolerances.  A baked file is exact at its value nodes (float32); in between, the value
 rho = f cos 4 sigma / D is interpolated bilinearly on the 64 x 64 sample square and
-linearly across the 32 theta_i slices.  Measured on 20000 uniform pairs (rel. RMSE of
-f cos): Lambertian 1.3%, GGX alpha 0.3 1.4%, GGX alpha 0.1 0.2% (the error sits near the
-horizon, where rho drops to 0 between nodes).  The tests allow 3%.  Mitsuba's float32
-evaluation and the numpy reader agree to ~1e-6 relative; the tests allow 1e-4.
+linearly across the 32 theta_i slices.  Measured on 50000 uniform pairs (rel. RMSE of
+f cos, default resolutions): Lambertian 1.3%, GGX alpha 0.3 gold 2.8%, GGX alpha 0.1
+0.3%; almost all of it at grazing incidence (theta_i > 87 deg), where part of each
+slice's sample square reflects below the horizon (rho = 0) and the boundary falls
+between nodes.  The tests allow 4%.  Mitsuba's float32 evaluation and the numpy reader
+agree to ~1e-6 relative; the tests allow 1e-4.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from neural_brdf import cli, config, data, merl, rgl, train, validate
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LAMBERT = CONFIGS / "lambert.yaml"          # albedo (0.8, 0.6, 0.4)
 
-EVAL_TOL = 0.03              # rel. RMSE of f cos between nodes (see the module docstring)
+EVAL_TOL = 0.04              # rel. RMSE of f cos between nodes (see the module docstring)
 MITSUBA_VS_READER = 1e-4     # float32 Mitsuba vs float64 numpy, relative to the peak
 NODE_TOL = 1e-5              # at the value nodes a bake is exact up to float32
 
