@@ -450,3 +450,23 @@ def test_pbrt_convention_stores_the_incident_cosine(tmp_path):
     assert rel_rmse(lambert.eval(wi, wo) * wo[:, 2:3], expected) > 0.1
     with pytest.raises(ValueError, match="cosine"):
         rgl.bake_fields(lambert.eval, cosine="light")
+
+
+@pytest.mark.mitsuba
+def test_mitsubas_own_tensor_reader_reads_our_files(baked, tmp_path):
+    """mitsuba.tensor_io (Mitsuba's Python reader) sees the fields we wrote, and our
+    reader sees the fields its writer wrote."""
+    import mitsuba
+
+    path = baked["ggx-0.1"][1]
+    theirs = mitsuba.tensor_io.read(str(path))
+    ours = rgl.read_tensor_file(path)
+    assert sorted(theirs) == sorted(ours)
+    for k in ours:
+        np.testing.assert_array_equal(np.asarray(theirs[k]), ours[k])
+    other = tmp_path / "theirs.bsdf"
+    mitsuba.tensor_io.write(str(other), a=np.arange(6, dtype=np.float32).reshape(2, 3),
+                            b=np.array([7], np.uint8), text="abc")
+    back = rgl.read_tensor_file(other)
+    np.testing.assert_array_equal(back["a"], np.arange(6, dtype=np.float32).reshape(2, 3))
+    assert back["b"].tolist() == [7] and bytes(back["text"]) == b"abc"
