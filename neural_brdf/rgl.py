@@ -51,8 +51,9 @@ point s; then ``f cos(theta_o) = rho(s) * D(m) / (4 sigma(wi))`` (jacobian = 1).
 returns that product (its eval includes the cosine); :meth:`RGLBRDF.eval` divides by
 cos(theta_o) to give f in 1/sr as every f in this project.
 
-What :func:`bake` writes (isotropic, ``rgb``, ``jacobian = 1``)
----------------------------------------------------------------
+What :func:`bake` writes (isotropic, ``jacobian = 1``; ``rgb``, or ``spectra`` by
+:func:`rgb_to_spectra` for names ending in ``_spec.bsdf``)
+----------------------------------------------------------------------------------
 1. D from the retro-reflection by the power iteration of Dupuy et al. 2015 ("Extracting
    microfacet-based BRDF parameters from arbitrary materials with power iterations"),
    the method the 2018 paper uses: under a microfacet model the back-scattering is
@@ -62,7 +63,7 @@ What :func:`bake` writes (isotropic, ``rgb``, ``jacobian = 1``)
    midpoint rule in u.  D is floored at ``NDF_FLOOR`` times its maximum so that the
    ratio rho never divides by ~0.
 2. sigma on its table from that D (the same quadrature).
-3. Per theta_i slice: the VNDF table at its nodes; each sample-square node is warped
+3. Per theta_i slice (:func:`theta_i_nodes`): the VNDF table at its nodes; each sample-square node is warped
    forward (the same continuous marginal warp) to m, wo = reflect(wi, m), and
    ``rho = f(wi, wo) cos(theta_o) 4 sigma(wi) / D(m)``, with D and sigma *as interpolated
    from the written tables* (so that the product is exact at the nodes); 0 where wo is
