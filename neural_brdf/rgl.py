@@ -63,8 +63,9 @@ What :func:`bake` writes (isotropic, ``jacobian = 1``; ``rgb``, or ``spectra`` b
    midpoint rule in u.  D is floored at ``NDF_FLOOR`` times its maximum so that the
    ratio rho never divides by ~0.
 2. sigma on its table from that D (the same quadrature).
-3. Per theta_i slice (:func:`theta_i_nodes`): the VNDF table at its nodes; each sample-square node is warped
-   forward (the same continuous marginal warp) to m, wo = reflect(wi, m), and
+3. Per theta_i slice (:func:`theta_i_nodes`): the VNDF table at its nodes; each
+   sample-square node is warped forward (the same continuous marginal warp) to m,
+   wo = reflect(wi, m), and
    ``rho = f(wi, wo) cos(theta_o) 4 sigma(wi) / D(m)``, with D and sigma *as interpolated
    from the written tables* (so that the product is exact at the nodes); 0 where wo is
    below the horizon.  The luminance table is the luminance (Rec. 709 Y) of rho, floored
