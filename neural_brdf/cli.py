@@ -5,6 +5,7 @@
     neural-brdf report RUN_DIR [-o OUT_DIR]
     neural-brdf validate model.onnx [--reference CONFIG|material.binary] [--json out.json]
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
+    neural-brdf view model.onnx [--compare OTHER.onnx|CONFIG] -o viewer.html
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -74,6 +75,13 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
     r.add_argument("-o", "--out", required=True, help="output .png")
+
+    vw = sub.add_parser("view", help="write an interactive WebGL2 viewer (one HTML file) "
+                                     "drawn with the model's generated GLSL")
+    vw.add_argument("model", help="model.onnx")
+    vw.add_argument("--compare", help="a second model (.onnx), or a config whose analytic "
+                                      "target is shown beside it with a difference view")
+    vw.add_argument("-o", "--out", required=True, help="output .html")
 
     w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
     w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
@@ -178,6 +186,12 @@ def _render(args) -> int:
     return EXIT_OK
 
 
+def _view(args) -> int:
+    from .viewer import write_viewer
+    print(f"wrote {write_viewer(args.model, args.out, compare=args.compare)}")
+    return EXIT_OK
+
+
 def _sweep(args) -> int:
     from . import sweep
     results = sweep.run_sweep(args.sweep, executor=args.executor, workers=args.workers,
@@ -194,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         commands = {"train": _train, "export": _export, "validate": _validate,
-                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep}
+                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep,
+                    "view": _view}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)
