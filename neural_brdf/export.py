@@ -3,6 +3,8 @@
     inputs   wi, wo   float32 [N, 3]   unit vectors in the local frame (analytic.frame)
     output   f        float32 [N, 3]   BRDF in 1/sr, RGB, without the cosine
     N is dynamic.  Encoding, horizon test and albedo normalisation are in the graph.
+    The graph is total: it normalises wi and wo itself, and a row with a NaN, an
+    infinity or a zero-length direction gives f = 0 (other rows are unaffected).
 
 ``metadata_props`` (read with ``neural_brdf.load(path).metadata``):
 
@@ -40,7 +42,7 @@ from . import config as cfgmod
 from . import data, lobe, validate
 from .encoding import is_anisotropic
 from .fileio import atomic_write
-from .model import NormalizedBRDF, RawBRDF, albedo_table
+from .model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
 
 PRODUCER = "neural-brdf 0.1.0"
@@ -157,12 +159,18 @@ def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
 
 def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, target_desc: str,
            extra=None) -> dict:
-    """Write ``model`` to ``out`` with metadata; returns the measured figures."""
-    payload = to_onnx_bytes(model, cfg.export.opset)
+    """Write ``model`` to ``out`` with metadata; returns the measured figures.
+
+    The graph written is ``TotalBRDF(model)``: it normalises its inputs and gives 0 for
+    rows with a non-finite or zero-length direction, so no input row can crash a host or
+    change another row (see :class:`neural_brdf.model.TotalBRDF`).
+    """
+    graph = TotalBRDF(model)
+    payload = to_onnx_bytes(graph, cfg.export.opset)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
     session = ort.InferenceSession(payload, opts, providers=["CPUExecutionProvider"])
-    parity, precision = parity_error(model, session, cfg.export.parity_pairs, cfg.train.seed + 29)
+    parity, precision = parity_error(graph, session, cfg.export.parity_pairs, cfg.train.seed + 29)
     allowed = max(cfg.export.parity_tol, 2.0 * precision)
     if not parity <= allowed:
         raise ParityError(f"torch and onnxruntime differ by {parity:.3g} relative (allowed "

@@ -198,3 +198,49 @@ class NormalizedBRDF(nn.Module):
         f = self.raw(wi, wo)
         denom = torch.maximum(self.lookup(wi), self.lookup(wo)).clamp_min(1.0)
         return f / denom
+
+
+# ------------------------------------------------------------------- total graph
+def unit_or_invalid(w: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 3), (3,) -> (unit vectors (N, 3), valid (N, 1)) for ANY float input row.
+
+    A row is valid when all three components are finite and not all zero.  It is scaled
+    by its largest absolute component first, so that neither 1e-30 nor 1e30 under- or
+    overflows the squared norm, then divided by the norm.  An invalid row becomes +z
+    (a harmless direction: it keeps NaN out of every later op, and out of the albedo
+    table's Gather indices, where it made onnxruntime raise for the whole batch), and
+    its output is zeroed by :class:`TotalBRDF`; ``up`` is that +z, a buffer (a tensor
+    made here would be a tracer warning at export).  Built from elementwise ops only, so
+    every back end of the graph (onnxruntime, Dr.Jit, generated C/GLSL/WGSL) sees
+    IsNaN, IsInf, Abs, Max, Div, Sqrt and Where, nothing row-coupled.
+    """
+    bad = torch.isnan(w) | torch.isinf(w)
+    ok = ~(bad[..., 0:1] | bad[..., 1:2] | bad[..., 2:3])
+    a = torch.where(ok, w, torch.zeros_like(w)).abs()
+    m = torch.maximum(torch.maximum(a[..., 0:1], a[..., 1:2]), a[..., 2:3])
+    ok = ok & (m > 0.0)
+    u = torch.where(ok, w, torch.zeros_like(w)) / torch.where(ok, m, torch.ones_like(m))
+    n = torch.sqrt(u[..., 0:1] * u[..., 0:1] + u[..., 1:2] * u[..., 1:2] + u[..., 2:3] * u[..., 2:3])
+    return torch.where(ok, u / torch.where(ok, n, torch.ones_like(n)), up), ok
+
+
+class TotalBRDF(nn.Module):
+    """The exported graph: ``model`` made total over every input row.
+
+    f(k wi, wo) == f(wi, wo) for k > 0 (directions are normalised in the graph), and a row
+    whose wi or wo has a NaN, an infinity or zero length gives exactly 0 without touching
+    any other row.  Both directions go through the same :func:`unit_or_invalid`, so a
+    bit-exactly symmetric ``model`` stays bit-exactly symmetric.
+    """
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.model = model
+        self.anisotropic = model.anisotropic
+        self.register_buffer("up", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        ui, ok_i = unit_or_invalid(wi, self.up)
+        uo, ok_o = unit_or_invalid(wo, self.up)
+        f = self.model(ui, uo)
+        return torch.where(ok_i & ok_o, f, torch.zeros_like(f))

@@ -293,7 +293,7 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
         except InputError as e:          # e.g. an ONNX op the Mitsuba plugin lacks
             return blocks + [Text(f"No render: {e}.", note=True)]
         png = png_path.read_bytes()
-    from .mitsuba import ERROR_GAIN
+    from .render import ERROR_GAIN
     caption = f"Mitsuba 3 preview, {RENDER_SPP} spp: neural"
     if ref is not None:
         caption += (f" | reference | {ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB of "

@@ -182,3 +182,29 @@ def test_validation_flags_a_non_physical_model(tmp_path):
     assert report["passed"] is False
     assert report["checks"]["max_albedo"]["passed"] is False
     assert report["checks"]["reciprocity"]["passed"] is True
+
+
+def test_exported_run_is_total_over_hostile_rows(gold_run):
+    """export() writes the total graph: NaN/inf/zero rows give 0, scaled rows don't matter."""
+    run_dir, _, _ = gold_run
+    brdf = neural_brdf.load(run_dir / "model.onnx")
+    rng = np.random.default_rng(0)
+    wi = np.abs(rng.normal(size=(64, 3))).astype(np.float32)
+    wo = np.abs(rng.normal(size=(64, 3))).astype(np.float32)
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    ref = brdf.eval(wi, wo)
+    wi[3], wi[4], wo[5] = [np.nan, 0, 1], [0, 0, 0], [0, np.inf, 1]
+    wo[6:] *= 3.0
+    got = brdf.eval(wi, wo)
+    assert np.array_equal(got[3:6], np.zeros((3, 3), np.float32))
+    assert np.allclose(got[6:], ref[6:], rtol=1e-5, atol=0)
+
+
+def test_run_files_get_normal_permissions(gold_run):
+    """Atomic writes used to leave mkstemp's 0600; now 0666 less the umask, like open()."""
+    run_dir, _, _ = gold_run
+    mask = os.umask(0o022)
+    os.umask(mask)
+    for name in ("model.onnx", "metrics.json", "ckpt.pt", "config.yaml", "report.html"):
+        assert os.stat(run_dir / name).st_mode & 0o777 == 0o666 & ~mask, name
