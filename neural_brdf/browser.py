@@ -92,7 +92,6 @@ def screenshot(html_path, png_path, *, width: int = WIDTH) -> dict:
                    Path(html_path).resolve().as_uri()])
         if os.path.getsize(tmp) == 0:
             raise BrowserError(f"{png_path}: chromium wrote no screenshot")
-        raise
     return seen
 
 

@@ -139,8 +139,8 @@ the model's ONNX graph.</p>
 </div>
 {legend}
 <div class="plots">
-<canvas class="plot" id="nb-slice" width="460" height="300"></canvas>
-<canvas class="plot" id="nb-polar" width="360" height="220"></canvas>
+<canvas class="plot" id="nb-slice" width="420" height="300"></canvas>
+<canvas class="plot" id="nb-polar" width="340" height="220"></canvas>
 <canvas class="plot" id="nb-albedo" width="340" height="300"></canvas>
 </div>
 <pre id="nb-status">loading</pre>
@@ -163,43 +163,50 @@ def glsl_of(model, *, lobe: dict | None = None) -> str:
     return backends.generate(str(model), "glsl", lobe=lobe)
 
 
-def _onnx_model(path: Path, label: str) -> Model:
+def onnx_model(path, label: str) -> Model:
+    """A model of the page from an ONNX file: its generated GLSL and its albedo curve."""
     from .runtime import load
     brdf = load(path)                  # a one-line InputError on a missing or bad file
     return Model(label, glsl_of(path), albedo_curve(brdf.eval))
 
 
-def _analytic_model(config_path: Path, folder: Path) -> Model:
-    """A config's analytic target, exported to ONNX and generated like a trained model."""
-    from . import config, lobe
+def analytic_model(name: str, params: dict, label: str) -> Model:
+    """An analytic model (a config's target), exported to ONNX and generated like a
+    trained one; its sampling lobe (unused by the page) is fitted as for the plugin."""
+    from . import lobe
     from .export import analytic_onnx
     from .runtime import load
-    cfg = config.load(config_path)
-    if cfg.target.data is not None:
-        raise InputError(f"{config_path}: target.data: the viewer compares analytic targets "
-                         "only (measured data has no ONNX graph)")
-    payload = analytic_onnx(cfg.target.model, dict(cfg.target.params))
-    onnx_path = folder / "reference.onnx"
-    onnx_path.write_bytes(payload)
-    glsl = glsl_of(onnx_path, lobe=lobe.fit_onnx(payload))
-    return Model(f"target: {cfg.target.model}", glsl, albedo_curve(load(onnx_path).eval))
+    payload = analytic_onnx(name, params)
+    with tempfile.TemporaryDirectory(prefix="nbrdf-view-") as tmp:
+        onnx_path = Path(tmp) / "reference.onnx"
+        onnx_path.write_bytes(payload)
+        glsl = glsl_of(onnx_path, lobe=lobe.fit_onnx(payload))
+        albedo = albedo_curve(load(onnx_path).eval)
+    return Model(label, glsl, albedo)
+
+
+def _label(path: Path) -> str:
+    return f"{path.parent.name}/{path.name}" if path.parent.name else path.name
 
 
 def models_for(model, compare=None) -> list[Model]:
     """The page's models: ``model`` (.onnx) and optionally ``compare`` (.onnx or a config)."""
+    from . import config
     model = Path(model)
     if model.suffix != ".onnx":
         raise InputError(f"{model}: expected an ONNX model (.onnx)")
-    out = [_onnx_model(model, model.name if compare is None else f"A: {model}")]
+    out = [onnx_model(model, _label(model))]
     if compare is not None:
         compare = Path(compare)
         if compare.suffix == ".onnx":
-            out.append(_onnx_model(compare, f"B: {compare}"))
+            out.append(onnx_model(compare, _label(compare)))
         elif compare.suffix in (".yaml", ".yml"):
-            if not compare.is_file():
-                raise InputError(f"{compare}: no such config file")
-            with tempfile.TemporaryDirectory(prefix="nbrdf-view-") as tmp:
-                out.append(_analytic_model(compare, Path(tmp)))
+            cfg = config.load(compare)
+            if cfg.target.data is not None:
+                raise InputError(f"{compare}: target.data: the viewer compares analytic "
+                                 "targets only (measured data has no ONNX graph)")
+            out.append(analytic_model(cfg.target.model, dict(cfg.target.params),
+                                      f"target: {cfg.target.model}"))
         else:
             raise InputError(f"--compare {compare}: expected a model (.onnx) or a config "
                              "(.yaml) whose analytic target is compared")
