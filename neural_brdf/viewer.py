@@ -218,6 +218,8 @@ def write_viewer(model, out, *, compare=None) -> Path:
     out = Path(out)
     if out.suffix not in (".html", ".htm"):
         raise InputError(f"-o {out}: the viewer is an HTML file (.html)")
+    if not out.parent.is_dir():
+        raise InputError(f"-o {out}: cannot write (no folder {out.parent})")
     models = models_for(model, compare)
     text = page(models, title=f"neural-brdf viewer: {Path(model).name}")
     try:
