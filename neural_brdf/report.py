@@ -329,7 +329,7 @@ def _viewer(run: Run, reference) -> list:
     except InputError as e:             # no code generator, or an op it does not know
         return blocks + [Text(f"No viewer: {e}.", note=True)]
     page = viewer.page(models, title=f"neural-brdf viewer: {cfg.name}")
-    vs = " beside its target, with a difference view" if len(models) > 1 else ""
+    vs = " (beside its target, with a difference view)" if len(models) > 1 else ""
     return blocks + [
         Text(f"{VIEWER_FILE} draws the model{vs} in WebGL2 with the GLSL generated from its "
              "ONNX graph: a lit sphere with a draggable light, incidence-plane slices, the "

@@ -139,9 +139,9 @@ the model's ONNX graph.</p>
 </div>
 {legend}
 <div class="plots">
-<canvas class="plot" id="nb-slice" width="420" height="300"></canvas>
-<canvas class="plot" id="nb-polar" width="340" height="220"></canvas>
-<canvas class="plot" id="nb-albedo" width="340" height="300"></canvas>
+<canvas class="plot" id="nb-slice" width="400" height="300"></canvas>
+<canvas class="plot" id="nb-polar" width="320" height="220"></canvas>
+<canvas class="plot" id="nb-albedo" width="330" height="300"></canvas>
 </div>
 <pre id="nb-status">loading</pre>
 <script type="application/json" id="nb-data">{_json_for_script(data)}</script>

@@ -361,8 +361,11 @@ function redraw(what) {
     if (what !== "plots") drawSpheres();
     if (what !== "spheres") { const sl = slices(); drawSlices(sl); drawPolar(sl); drawAlbedo(); }
     for (const [id, v] of [["nb-thetaL", state.thetaL], ["nb-phiL", state.phiL], ["nb-ev", state.ev],
-                           ["nb-thetaI", state.thetaI]])
+                           ["nb-thetaI", state.thetaI]]) {
+      $(id).value = v;
       $(id + "-v").textContent = String(v);
+    }
+    $("nb-log").checked = state.log;
   } catch (e) {
     status.textContent = String(e);
     throw e;

@@ -40,13 +40,13 @@ TINY_RUN = ["train.steps=60", "train.threads=1", "train.warmup=10", "train.progr
             "validation.pairs=1000", "validation.accuracy_samples=2048",
             "export.parity_pairs=256"]
 QUICKSTART = ROOT / "configs" / "quickstart.yaml"
-# Measured on SwiftShader (Chromium 156): generated GLSL 2e-6 to 4e-6 and WGSL about the
-# same against onnxruntime (export.relative_difference).  The contract is 1e-4 (GPU
+# Measured on SwiftShader (Chromium 156): generated GLSL and WGSL both 1.3e-6 against
+# onnxruntime (export.relative_difference, 20000 pairs).  The contract is 1e-4 (GPU
 # transcendentals are loose by specification).
 GPU_TOL = 1e-4
-# The sphere's directions are computed in float32 in the shader and in float64 here; a
-# 1e-7 change of direction moves a trained lobe by more than a shader's rounding.
-SPHERE_TOL = 1e-3
+# The sphere's directions are computed in float32 in the shader and in float64 here, so a
+# sharp lobe moves by more than a shader's rounding; measured 9e-7 of the peak radiance.
+SPHERE_TOL = 1e-4
 SRGB_TOL = 1.5              # 8-bit levels: the display pass rounds once
 LIGHT = (0.35, 0.25, 0.9)   # a light direction in camera space (normalised below)
 
