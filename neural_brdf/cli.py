@@ -80,7 +80,8 @@ def _parser() -> argparse.ArgumentParser:
     g = sub.add_parser("codegen", help="generate C / GLSL / WGSL source that evaluates and "
                                        "samples the model (docs/codegen.md)")
     g.add_argument("model", help="model.onnx")
-    g.add_argument("--target", required=True, choices=["c", "glsl", "wgsl"],
+    from .backends import TARGETS
+    g.add_argument("--target", required=True, choices=list(TARGETS),
                    help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)")
     g.add_argument("-o", "--out", required=True, help="output file")
     vw = sub.add_parser("view", help="write an interactive WebGL2 viewer (one HTML file) "

@@ -85,11 +85,13 @@ class CRenderer(CStyleRenderer):
                 "float f[3]; neural_brdf_eval(wi, wo, f);",
                 "float pdf = neural_brdf_pdf(wi, wo);",
                 "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  "
-                "/* u2: float[2] */"]
+                "(float u1, u2[2])"]
 
     def wrap(self, header: list[str], parts: list[str]) -> str:
         guard = "NEURAL_BRDF_H"
-        text = ["/*", *[" *" + line[2:] for line in header], " */",
+        # a comment marker inside a metadata value must not end the block comment
+        body = [" *" + line[2:].replace("*/", "* /").replace("/*", "/ *") for line in header]
+        text = ["/*", *body, " */",
                 f"#ifndef {guard}", f"#define {guard}", "", "#include <math.h>", "", *parts,
                 f"#endif /* {guard} */"]
         return "\n".join(text) + "\n"

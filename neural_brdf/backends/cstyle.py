@@ -187,7 +187,8 @@ class CStyleRenderer:
         for key in ("producer", "target", "encoding", "max_albedo", "hemispherical_albedo",
                     "parity_rel_error"):
             if key in meta:
-                lines.append(f"{c} {key}: {meta[key][:200]}")
+                value = " ".join(str(meta[key]).split())          # one line
+                lines.append(f"{c} {key}: {value[:200]}")
         lines.append(f"{c} sampling lobe: {lobes.KIND}, alpha={lobe['alpha']:.6g}, "
                      f"weight={lobe['weight']:.6g}")
         lines += [f"{c}", f"{c} Directions are unit vectors in the local shading frame (z = "
