@@ -272,3 +272,20 @@ def test_bad_input_exits_2_with_one_line(case, needle, model_path, tmp_path, cap
     code, _, err = cli(capsys, "view", *args)
     assert_one_line_error(code, err, needle)
     assert not (tmp_path / "v.html").exists()
+
+
+# ------------------------------------------------------------------ in the run's report
+def test_the_report_carries_the_viewer(model_path, session):
+    run_dir = model_path.parent                        # training wrote report and viewer
+    report_html = (run_dir / "report.html").read_text()
+    assert "<script" not in report_html                # the report itself stays script-free
+    links = re.findall(r'<a download="viewer.html" href="data:text/html;base64,([^"]+)"',
+                       report_html)
+    assert len(links) == 1
+    carried = base64.b64decode(links[0], validate=True)
+    assert carried == (run_dir / "viewer.html").read_bytes()
+    assert "(viewer.html)" in (run_dir / "report.md").read_text()
+    session.open(run_dir / "viewer.html")
+    assert session.evaluate("document.getElementById('nb-status').textContent") == "ready"
+    assert session.errors == []
+    assert session.evaluate("nbViewer.models") == ["neural", "target: microfacet"]
