@@ -226,6 +226,29 @@ def test_page_slices_match_onnxruntime_and_the_target_matches_torch(opened, sess
     assert relative_difference(got[1], ref) <= GPU_TOL
 
 
+def test_an_anisotropic_target_on_the_sphere_follows_the_page_frame(model_path, session,
+                                                                    tmp_path):
+    # brushed_ggx's target is anisotropic (alpha_x 0.15, alpha_y 0.45): a wrong tangent in
+    # the page or in sphere_directions turns its highlight, and this comparison fails
+    out = tmp_path / "aniso.html"
+    cfg_path = ROOT / "configs" / "brushed_ggx.yaml"
+    assert main(["view", str(model_path), "--compare", str(cfg_path), "-o", str(out)]) == 0
+    session.open(out)
+    assert session.evaluate("document.getElementById('nb-status').textContent") == "ready"
+    cfg = config.load(cfg_path)
+    target = analytic.create(cfg.target.model, **cfg.target.params)
+    light = np.array([0.5, -0.3, 0.8]) / np.linalg.norm([0.5, -0.3, 0.8])
+    img = sphere_pixels(session, 1, light)
+    wi, wo, inside = viewer.sphere_directions(viewer.SPHERE, light)
+    with torch.no_grad():
+        f = target.f(torch.from_numpy(wi.reshape(-1, 3)), torch.from_numpy(wo.reshape(-1, 3)))
+    expect = f.double().numpy().reshape(wi.shape) * np.clip(wi[..., 2:3], 0, None) * np.pi
+    err = np.abs(img[..., :3] - expect)[inside].max() / expect[inside].max()
+    assert err <= SPHERE_TOL, err
+    swapped = np.abs(img[..., :3] - np.swapaxes(expect, 0, 1))[inside].max() / expect.max()
+    assert swapped > 100 * SPHERE_TOL                 # the check can tell the axes apart
+
+
 def test_the_page_with_one_model_has_no_difference_view(model_path, session, tmp_path):
     out = tmp_path / "one.html"
     code, stdout, _ = cli_capture(["view", str(model_path), "-o", str(out)])
