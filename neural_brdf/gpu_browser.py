@@ -230,14 +230,19 @@ class Session:
         self._id = 0
         self._events: list[dict] = []
         self.errors: list[str] = []
-        target = self._call("Target.createTarget", {"url": "about:blank"})["targetId"]
-        self._session = self._call("Target.attachToTarget",
-                                   {"targetId": target, "flatten": True})["sessionId"]
-        self._call("Page.enable", session=True)
-        self._call("Runtime.enable", session=True)
-        self._call("Emulation.setDeviceMetricsOverride", {
-            "width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
-            session=True)
+        self.renderer = ""
+        try:
+            target = self._call("Target.createTarget", {"url": "about:blank"})["targetId"]
+            self._session = self._call("Target.attachToTarget",
+                                       {"targetId": target, "flatten": True})["sessionId"]
+            self._call("Page.enable", session=True)
+            self._call("Runtime.enable", session=True)
+            self._call("Emulation.setDeviceMetricsOverride", {
+                "width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+                session=True)
+        except BaseException:          # no half-started browser left behind
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ protocol
     def _send(self, method: str, params: dict | None, session: bool) -> int:

@@ -8,6 +8,8 @@ const PI = Math.PI;
 const LUMA = [0.2126, 0.7152, 0.0722];     // Rec. 709 luminance weights
 const SLICE_N = 181;                       // theta_o samples of a slice, 1 degree apart
 const status = document.getElementById("nb-status");
+// a failure anywhere (no WebGL2, a shader the driver refuses) is shown on the page
+window.addEventListener("error", (e) => { status.textContent = "error: " + e.message; });
 const $ = (id) => document.getElementById(id);
 const canvas = $("nb-gl");
 canvas.width = S * (NM > 1 ? 3 : 1);

@@ -16,6 +16,7 @@ each.  Chromium is required (CI installs it): nothing here skips.
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import re
 
@@ -260,9 +261,20 @@ def test_the_page_with_one_model_has_no_difference_view(model_path, session, tmp
     assert session.evaluate("nbViewer.models.length") == 1
 
 
+def test_a_shader_the_browser_refuses_is_reported_on_the_page(session, tmp_path):
+    # the console-error capture that the other page tests rely on does see failures
+    bad = viewer.Model("bad", "vec3 neural_brdf_eval(vec3 wi) { return wi; }",
+                       {"theta": [0.0, 89.0], "rho": [[0.5] * 3, [0.5] * 3]})
+    out = tmp_path / "bad.html"
+    out.write_text(viewer.page([bad]))
+    session.open(out)
+    status = session.evaluate("document.getElementById('nb-status').textContent")
+    assert status.startswith("error:") and "shader compile" in status
+    assert any("shader compile" in e for e in session.errors)
+
+
 def cli_capture(args):
     buf_out, buf_err = io.StringIO(), io.StringIO()
-    import contextlib
     with contextlib.redirect_stdout(buf_out), contextlib.redirect_stderr(buf_err):
         code = main(args)
     return code, buf_out.getvalue(), buf_err.getvalue()
