@@ -10,7 +10,7 @@ else its config is trained into a temporary directory with train.threads=1 (the
 machine is shared) and, with ``--steps N``, train.steps=N (recorded in the JSON: fewer
 steps than the preset's own mean a less accurate network, so a lower PSNR).
 
-Three renders of ``neural_brdf.mitsuba.preview_scene`` (llvm_ad_rgb, ``--spp``,
+Three renders of ``neural_brdf.render.preview_scene`` (llvm_ad_rgb, ``--spp``,
 ``--resolution``) per preset: the neural model and the analytic target
 (``analytic_brdf``) with seed 0, and the analytic target again with seed 1.  The JSON
 gives, in dB on sRGB display values:
@@ -53,7 +53,7 @@ from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
 from neural_brdf import config, lobe, train  # noqa: E402
-from neural_brdf import mitsuba as nbm  # noqa: E402
+from neural_brdf import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_presets.json"
 SKIP = {"defaults"}
@@ -98,10 +98,10 @@ def sampling_lobe(model: Path, metadata: dict) -> dict:
 
 def renders(model: Path, target: dict, spp: int, resolution: int) -> dict:
     """The three display images: neural, analytic (seed 0), analytic (seed 1)."""
-    ref = nbm.analytic_bsdf(target)
+    ref = nbr.analytic_bsdf(target)
     bsdfs = {"neural": {"type": "neural_brdf", "filename": str(model)},
              "analytic": ref, "analytic_seed1": ref}
-    return {k: nbm.to_display(nbm.render_scene(b, resolution=resolution, spp=spp,
+    return {k: nbr.to_display(nbr.render_scene(b, resolution=resolution, spp=spp,
                                                seed=int(k.endswith("seed1"))))
             for k, b in bsdfs.items()}
 
@@ -127,11 +127,11 @@ def main() -> None:
             img = renders(model, target, args.spp, args.resolution)
             render_s = time.perf_counter() - t0
             if args.images:
-                nbm.write_png(args.images / f"{name}.png",
-                              nbm.side_by_side(img["neural"], img["analytic"]))
+                nbr.write_png(args.images / f"{name}.png",
+                              nbr.side_by_side(img["neural"], img["analytic"]))
             rows.append({"preset": name, "target": target, **how,
-                         "psnr_db": nbm.psnr(img["neural"], img["analytic"]),
-                         "psnr_noise_floor_db": nbm.psnr(img["analytic"],
+                         "psnr_db": nbr.psnr(img["neural"], img["analytic"]),
+                         "psnr_noise_floor_db": nbr.psnr(img["analytic"],
                                                          img["analytic_seed1"]),
                          **sampling_lobe(model, brdf.metadata),
                          "render_s": render_s})
@@ -144,7 +144,7 @@ def main() -> None:
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "variant": mi.variant(), "mitsuba": mi.__version__,
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
-        "scene": "neural_brdf.mitsuba.preview_scene (path, max_depth 8)",
+        "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
         "spp": args.spp, "resolution": args.resolution,
         "steps_override": args.steps, "runs": None if args.runs is None else str(args.runs),
         "psnr": "dB on sRGB display values in [0, 1]",

@@ -3,7 +3,7 @@
     python benchmarks/mitsuba_render.py
     python benchmarks/mitsuba_render.py --model runs/quickstart/model.onnx --repeats 9
 
-The scene is the material preview of ``neural_brdf.mitsuba.preview_scene`` (two spheres
+The scene is the material preview of ``neural_brdf.render.preview_scene`` (two spheres
 with the BSDF on a diffuse checkerboard floor, a procedural sky and a directional key
 light; path tracer, max_depth 8).  Three BSDFs render it at the same resolution and spp:
 
@@ -60,7 +60,7 @@ from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
 from neural_brdf import config, lobe, train  # noqa: E402
-from neural_brdf import mitsuba as nbm  # noqa: E402
+from neural_brdf import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_render.json"
 QUICKSTART = REPO / "configs" / "quickstart.yaml"
@@ -165,7 +165,7 @@ def main() -> None:
         scenes, load_s = {}, {}
         for n, b in bsdfs.items():
             t0 = time.perf_counter()
-            scenes[n] = mi.load_dict(nbm.preview_scene(b, resolution=args.resolution,
+            scenes[n] = mi.load_dict(nbr.preview_scene(b, resolution=args.resolution,
                                                        spp=args.spp))
             load_s[n] = time.perf_counter() - t0
         results, psnr = {}, None
@@ -174,8 +174,8 @@ def main() -> None:
             with execution_mode(mode):
                 results[mode], images = bench_mode(scenes, args.spp, args.repeats)
             if psnr is None and ANALYTIC in images:
-                psnr = nbm.psnr(nbm.to_display(images[NEURAL]),
-                                nbm.to_display(images[ANALYTIC]))
+                psnr = nbr.psnr(nbr.to_display(images[NEURAL]),
+                                nbr.to_display(images[ANALYTIC]))
 
     headline = results[args.modes[0]]["ratio"]["wall"]
     result = {
@@ -184,7 +184,7 @@ def main() -> None:
         "variant": mi.variant(), "mitsuba": mi.__version__, "drjit": dr.__version__,
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                     "load_average_1min_at_end": os.getloadavg()[0]},
-        "scene": "neural_brdf.mitsuba.preview_scene (path, max_depth 8)",
+        "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
         "resolution": args.resolution, "spp": args.spp, "repeats": args.repeats,
         "model": str(args.model or "configs/quickstart.yaml (train.threads=1), trained by "
                                    "this script"),

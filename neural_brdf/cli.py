@@ -6,6 +6,8 @@
     neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
     neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
+    neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
+    neural-brdf view model.onnx [--compare OTHER.onnx|CONFIG] -o viewer.html
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -75,6 +77,20 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
     r.add_argument("-o", "--out", required=True, help="output .png")
+
+    g = sub.add_parser("codegen", help="generate C / GLSL / WGSL source that evaluates and "
+                                       "samples the model (docs/codegen.md)")
+    g.add_argument("model", help="model.onnx")
+    from .backends import TARGETS
+    g.add_argument("--target", required=True, choices=list(TARGETS),
+                   help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)")
+    g.add_argument("-o", "--out", required=True, help="output file")
+    vw = sub.add_parser("view", help="write an interactive WebGL2 viewer (one HTML file) "
+                                     "drawn with the model's generated GLSL")
+    vw.add_argument("model", help="model.onnx")
+    vw.add_argument("--compare", help="a second model (.onnx), or a config whose analytic "
+                                      "target is shown beside it with a difference view")
+    vw.add_argument("-o", "--out", required=True, help="output .html")
 
     w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
     w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
@@ -181,14 +197,20 @@ def _render(args) -> int:
         raise InputError("render: --spp must be >= 1 and --resolution >= 8")
     if mi.variant() is None:
         mi.set_variant("llvm_ad_rgb")
-    from . import mitsuba as nbm
+    from . import render as nbr
     reference = None
     if args.reference:
         name, params, _ = _analytic_target(args.reference)
         reference = {"model": name, "params": params}
-    psnr = nbm.render_preview(args.model, args.out, reference=reference, spp=args.spp,
+    psnr = nbr.render_preview(args.model, args.out, reference=reference, spp=args.spp,
                               resolution=args.resolution)
     print(f"wrote {args.out}" + ("" if psnr is None else f"  (PSNR {psnr:.2f} dB vs reference)"))
+    return EXIT_OK
+
+
+def _view(args) -> int:
+    from .viewer import write_viewer
+    print(f"wrote {write_viewer(args.model, args.out, compare=args.compare)}")
     return EXIT_OK
 
 
@@ -201,6 +223,21 @@ def _sweep(args) -> int:
     return EXIT_OK if all(r["status"] == "ok" for r in results["trials"]) else EXIT_PHYSICS
 
 
+def _codegen(args) -> int:
+    from . import backends
+    from .config import InputError
+    from .fileio import atomic_write
+    if not Path(args.model).is_file():
+        raise InputError(f"{args.model}: no such model file")
+    text = backends.generate(args.model, args.target)
+    try:
+        atomic_write(args.out, text)
+    except OSError as e:
+        raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
+    print(f"wrote {args.out} ({args.target}, {text.count(chr(10))} lines)")
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     from .config import InputError
     from .export import ParityError
@@ -208,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         commands = {"train": _train, "export": _export, "validate": _validate,
-                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep}
+                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep,
+                    "codegen": _codegen, "view": _view}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)

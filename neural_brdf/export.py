@@ -57,6 +57,7 @@ UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"
 # differs by 4.7e-5 relative without the floor and 5.9e-6 with it; torch vs
 # onnxruntime by 4.0e-5 and 7.7e-6.
 PARITY_FLOOR = 0.1
+ANALYTIC_OPSET = 17       # opset of analytic_onnx (as neural_brdf.mitsuba used)
 
 
 class CheckpointError(cfgmod.InputError):
@@ -224,3 +225,20 @@ def export_run(run_dir, out=None) -> dict:
     info["path"] = str(out)
     return info
 
+
+
+def analytic_onnx(model: str, params: dict | None = None) -> bytes:
+    """An :mod:`analytic` model's own torch ``f(wi, wo)`` exported to ONNX bytes, with the
+    contract of this module (inputs wi, wo [N, 3], output f [N, 3], no cosine) but no
+    metadata: a reference for generated code and the viewer (no Mitsuba needed)."""
+    import analytic
+
+    brdf = analytic.create(model, **(params or {}))
+
+    class _F(torch.nn.Module):
+        def forward(self, wi, wo):
+            return brdf.f(wi, wo).float()
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")     # also the tracer's warnings on Python values
+        return to_onnx_bytes(_F(), ANALYTIC_OPSET)

@@ -320,7 +320,7 @@ def mitsuba_unavailable() -> str | None:
         import mitsuba as mi
         if mi.variant() is None:
             mi.set_variant("llvm_ad_rgb")
-        importlib.import_module(f"{__package__}.mitsuba")      # registers the plugins
+        importlib.import_module(f"{__package__}.render")       # registers the plugins
     except ImportError as e:
         return f"Mitsuba 3 is not available ({e}); install the mitsuba extra and libllvm19"
     return None
@@ -331,6 +331,6 @@ def spheres(model_path, out_png, *, reference: dict | None = None, spp: int = 16
     """Render the model (and an analytic ``reference`` = {"model", "params"}) on the
     Mitsuba preview scene into ``out_png``; returns the PSNR against the reference.
     Call :func:`mitsuba_unavailable` first."""
-    from .mitsuba import render_preview
+    from .render import render_preview
     return render_preview(model_path, out_png, reference=reference, spp=spp,
                           resolution=resolution)

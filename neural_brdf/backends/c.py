@@ -1,0 +1,97 @@
+"""C99: one self-contained header (``<math.h>`` only) of ``static inline`` functions.
+
+    #include "brdf.h"                     // neural-brdf codegen model.onnx --target c -o brdf.h
+    float f[3];
+    neural_brdf_eval(wi, wo, f);          // const float wi[3], wo[3]
+    float wo2[3];
+    float pdf = neural_brdf_sample(wi, u1, u2, wo2);    // float u1, const float u2[2]
+
+Booleans are ints; min/max are comparisons (no libm call); fused multiply-adds are
+written ``a * b + c`` (a compiler contracts them only where its floating-point
+contraction setting allows: GCC's ISO C modes, e.g. ``-std=c99``, do not).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import graph
+from .cstyle import PREFIX, CStyleRenderer
+
+
+class CRenderer(CStyleRenderer):
+    name = "c"
+    types = {"float": "float", "int": "int", "bool": "int"}
+    functions = {**CStyleRenderer.functions,
+                 **{op: f"{op}f" for op in ("sqrt", "exp", "log", "floor", "ceil", "sin", "cos",
+                                            "atan", "asin", "acos", "tanh", "erf", "pow")},
+                 "abs": "fabsf", "isnan": "isnan", "isinf": "isinf"}
+    float_suffix = "f"
+
+    def bool_literal(self, v: bool) -> str:
+        return "1" if v else "0"
+
+    def special_float(self, v: float) -> str:
+        return "NAN" if v != v else ("INFINITY" if v > 0 else "-INFINITY")
+
+    def cast(self, x: str, src: str, dst: str) -> str:
+        if dst == "bool":
+            return f"({x} != {self.literal(0, src)})"
+        return f"({self.types[dst]}){x}"
+
+    def minmax(self, op: str, dtype: str, a: str, b: str) -> str:
+        return self.call(f"{PREFIX}_{op}{'f' if dtype == 'float' else 'i'}", a, b)
+
+    def clamp_index(self, i: str, last: int) -> str:
+        return self.call(f"{PREFIX}_clampi", i, "0", str(last))
+
+    def input_component(self, name: str, col: int, width: int) -> str:
+        return name if width == 1 else f"{name}[{col}]"
+
+    def helpers(self) -> list[str]:
+        lines = []
+        for t, s in (("float", "f"), ("int", "i")):
+            sig = f"static inline {t} {PREFIX}_%s{s}({t} a, {t} b)"
+            lines += [sig % "max" + " { return a > b ? a : b; }",
+                      sig % "min" + " { return a < b ? a : b; }"]
+        lines += [f"static inline int {PREFIX}_clampi(int i, int lo, int hi) "
+                  "{ return i < lo ? lo : (i > hi ? hi : i); }", ""]
+        return lines
+
+    def table(self, name: str, values: np.ndarray) -> str:
+        t = "float" if values.dtype.kind == "f" else "int"
+        body = "\n".join(f"    {row}" for row in self.table_values(values))
+        return f"static const {t} {name}[{len(values)}] = {{\n{body}\n}};\n"
+
+    def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
+        lines, rendered = self.body(prog)
+        outs = list(prog.outputs.items())
+        ret = outs[-1] if len(outs[-1][1]) == 1 else None
+        params = [f"float {n}" if w == 1 else f"const float {n}[{w}]"
+                  for n, w in prog.inputs.items()]
+        params += [f"float {n}[{len(cols)}]" for n, cols in outs if (n, cols) != ret]
+        sig = f"static inline {'float' if ret else 'void'} {fname}({', '.join(params)})"
+        body = [f"    const {line}" if line.startswith("float wi") or line.startswith("float wo")
+                or line.startswith("float u") else f"    {line}" for line in lines]
+        for n, cols in outs:
+            if (n, cols) != ret:
+                body += [f"    {n}[{k}] = {rendered[c]};" for k, c in enumerate(cols)]
+        if ret:
+            body.append(f"    return {rendered[ret[1][0]]};")
+        return [f"/* {doc} */", sig, "{", *body, "}", ""]
+
+    def usage(self) -> list[str]:
+        return ['#include "this_file.h"   (C99, only <math.h>; link with -lm)',
+                "float f[3]; neural_brdf_eval(wi, wo, f);",
+                "float pdf = neural_brdf_pdf(wi, wo);",
+                "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  "
+                "(float u1, u2[2])"]
+
+    def wrap(self, header: list[str], parts: list[str]) -> str:
+        guard = "NEURAL_BRDF_H"
+        # a comment marker inside a metadata value must not end the block comment
+        body = [" *" + line[2:].replace("*/", "* /").replace("/*", "/ *") for line in header]
+        text = ["/*", *body, " */",
+                f"#ifndef {guard}", f"#define {guard}", "", "#include <math.h>", "", *parts,
+                f"#endif /* {guard} */"]
+        return "\n".join(text) + "\n"

@@ -1,0 +1,79 @@
+"""GLSL ES 3.00 (WebGL2), also valid desktop GLSL 4.50 / Vulkan: functions to paste or
+include after the ``#version`` line and ``precision highp float; precision highp int;``.
+
+    vec3 f = neural_brdf_eval(wi, wo);                 // vec3 wi, wo
+    vec3 wo2;
+    float pdf = neural_brdf_sample(wi, u1, u2, wo2);   // float u1, vec2 u2; out vec3 wo2
+
+NaN and infinity tests are bit tests (``floatBitsToUint``): GLSL lets a compiler assume
+that isnan() is false.  GLSL has no erf; it is a polynomial (Abramowitz & Stegun 7.1.26).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import graph
+from .cstyle import PREFIX, CStyleRenderer
+
+VEC = {1: "float", 2: "vec2", 3: "vec3", 4: "vec4"}
+
+
+def erf_helper(fn: str, ret: str, decl: str, ftype: str, sfx: str) -> list[str]:
+    """erf(x) = 1 - (a1 t + ... + a5 t^5) exp(-x^2), t = 1 / (1 + p |x|), |error| <
+    1.5e-7 (Abramowitz & Stegun 1964, formula 7.1.26); odd in x."""
+    k = {"p": "0.3275911", "a1": "0.254829592", "a2": "-0.284496736", "a3": "1.421413741",
+         "a4": "-1.453152027", "a5": "1.061405429"}
+    k = {n: f"{v}{sfx}" for n, v in k.items()}
+    return [f"{fn}{ret} {{",
+            f"    {decl}a = abs(x);",
+            f"    {decl}t = 1.0{sfx} / (1.0{sfx} + {k['p']} * a);",
+            f"    {decl}poly = t * ({k['a1']} + t * ({k['a2']} + t * ({k['a3']} + t * "
+            f"({k['a4']} + t * {k['a5']}))));",
+            f"    {decl}y = 1.0{sfx} - poly * exp(-a * a);",
+            "    return sign(x) * y;",
+            "}"]
+
+
+class GLSLRenderer(CStyleRenderer):
+    name = "glsl"
+    functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
+
+    def bitcast_float(self, bits: str) -> str:
+        return f"uintBitsToFloat({bits})"
+
+    def helpers(self) -> list[str]:
+        return [f"bool {PREFIX}_isnan(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) > "
+                "0x7f800000u; }",
+                f"bool {PREFIX}_isinf(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) == "
+                "0x7f800000u; }",
+                *erf_helper(f"float {PREFIX}_erf(float x)", "", "float ", "float", ""), ""]
+
+    def table(self, name: str, values: np.ndarray) -> str:
+        t = "float" if values.dtype.kind == "f" else "int"
+        n = len(values)
+        body = "\n".join(f"    {row}" for row in self.table_values(values))
+        return f"const {t} {name}[{n}] = {t}[{n}](\n{body}\n);\n"
+
+    def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
+        lines, rendered = self.body(prog)
+        outs = list(prog.outputs.items())
+        ret_name, ret_cols = outs[-1]
+        params = [f"{VEC[w]} {n}" for n, w in prog.inputs.items()]
+        params += [f"out {VEC[len(c)]} {n}" for n, c in outs[:-1]]
+        body = [f"    {line}" for line in lines]
+        for n, cols in outs[:-1]:
+            body.append(f"    {n} = {self.vector(cols, rendered)};")
+        body.append(f"    return {self.vector(ret_cols, rendered)};")
+        return [f"// {doc}", f"{VEC[len(ret_cols)]} {fname}({', '.join(params)})", "{", *body,
+                "}", ""]
+
+    def vector(self, cols: list[int], rendered: list[str]) -> str:
+        parts = [rendered[c] for c in cols]
+        return parts[0] if len(parts) == 1 else f"{VEC[len(parts)]}({', '.join(parts)})"
+
+    def usage(self) -> list[str]:
+        return ["#version 300 es  (or #version 450)", "precision highp float;",
+                "precision highp int;", "<this file>",
+                "vec3 f = neural_brdf_eval(wi, wo);",
+                "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2"]

@@ -1,0 +1,174 @@
+"""The stored sampling lobe (:mod:`neural_brdf.lobe`) as lowered programs for the back ends.
+
+    from neural_brdf.backends import lobe
+    pdf = lobe.pdf_program(alpha=0.3, weight=0.6)      # inputs wi, wo -> output pdf
+    smp = lobe.sample_program(alpha=0.3, weight=0.6)   # inputs wi, u1, u2 -> wo, pdf
+
+The mixture of :mod:`neural_brdf.lobe`: a cosine-weighted hemisphere (share 1 - w) and
+a GGX visible-normal lobe of roughness alpha reflected about the sampled normal (share
+w).  It is written once here with the instruction builder of :mod:`neural_brdf.graph`
+and rendered by every code back end, like the network itself.
+
+    pdf(wo) = (1 - w) cos(theta_o) / pi + w D_wi(m) / (4 (wo . m)),  m = normalize(wi + wo)
+    D_wi(m) = G1(wi) max(0, wi . m) D(m) / wi_z           (Heitz 2018, eq. 1)
+    D(m)    = 1 / (pi a^2 (m_x^2 / a^2 + m_y^2 / a^2 + m_z^2)^2)      (GGX, Walter 2007)
+    G1(wi)  = 2 wi_z / (wi_z + sqrt(a^2 (wi_x^2 + wi_y^2) + wi_z^2))   (Smith, GGX)
+
+0 when wi or wo is at or below the horizon.  ``sample`` draws the GGX branch when
+u1 < w (Heitz 2018, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4),
+listing 1, with u2) and the cosine branch otherwise (u2 -> r = sqrt(u2.x), phi =
+2 pi u2.y); it returns the sampled wo and pdf(wo) computed by the same instructions as
+``pdf`` (0 when wo is below the horizon).
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..graph import Builder, Program
+
+
+class V:
+    """An instruction id with arithmetic operators, for writing programs by hand."""
+
+    __slots__ = ("b", "i")
+
+    def __init__(self, b: Builder, i: int):
+        self.b, self.i = b, i
+
+    def _id(self, x) -> int:
+        return x.i if isinstance(x, V) else self.b.scalar(x)
+
+    def _op(self, op, *xs) -> V:
+        return V(self.b, self.b.emit(op, *(self._id(x) for x in xs)))
+
+    def __add__(self, o):
+        return self._op("add", self, o)
+
+    def __radd__(self, o):
+        return self._op("add", o, self)
+
+    def __sub__(self, o):
+        return self._op("sub", self, o)
+
+    def __rsub__(self, o):
+        return self._op("sub", o, self)
+
+    def __mul__(self, o):
+        return self._op("mul", self, o)
+
+    def __rmul__(self, o):
+        return self._op("mul", o, self)
+
+    def __truediv__(self, o):
+        return self._op("div", self, o)
+
+    def __rtruediv__(self, o):
+        return self._op("div", o, self)
+
+    def __neg__(self):
+        return self._op("neg", self)
+
+    def __gt__(self, o):
+        return self._op("gt", self, o)
+
+    def __lt__(self, o):
+        return self._op("lt", self, o)
+
+    def __and__(self, o):
+        return self._op("and", self, o)
+
+    def f(self, op: str) -> V:
+        return self._op(op, self)
+
+
+def _select(c: V, a, b) -> V:
+    return c._op("select", c, a, b)
+
+
+def _max(a: V, b) -> V:
+    return a._op("max", a, b)
+
+
+def _dot(a, b) -> V:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _normalize(v):
+    inv = 1.0 / _dot(v, v).f("sqrt")
+    return [c * inv for c in v]
+
+
+def _vec(b: Builder, name: str, n: int) -> list[V]:
+    b.hint = name
+    return [V(b, b.input(name, k)) for k in range(n)]
+
+
+def _pdf(b: Builder, wi: list[V], wo: list[V], alpha: float, weight: float) -> V:
+    b.hint = "pdf"
+    valid = (wi[2] > 0.0) & (wo[2] > 0.0)
+    p = (1.0 - weight) / math.pi * wo[2]
+    if weight > 0.0:
+        a2 = alpha * alpha
+        m = _normalize([wi[k] + wo[k] for k in range(3)])
+        dot_om = _dot(wo, m)
+        dot_im = _max(_dot(wi, m), 0.0)
+        t = (m[0] * m[0] + m[1] * m[1]) * (1.0 / a2) + m[2] * m[2]
+        d = 1.0 / (math.pi * a2 * t * t)
+        g1 = 2.0 * wi[2] / (wi[2] + (a2 * (wi[0] * wi[0] + wi[1] * wi[1])
+                                     + wi[2] * wi[2]).f("sqrt"))
+        d_visible = g1 * dot_im * d / wi[2]
+        ggx = _select(dot_om > 0.0, d_visible / (4.0 * dot_om), 0.0)
+        p = p + weight * ggx
+    return _select(valid, p, 0.0)
+
+
+def pdf_program(*, alpha: float, weight: float) -> Program:
+    """Inputs ``wi``, ``wo`` (3 columns) -> output ``pdf`` (solid-angle density of wo)."""
+    b = Builder()
+    wi, wo = _vec(b, "wi", 3), _vec(b, "wo", 3)
+    return b.finish({"wi": 3, "wo": 3}, {"pdf": [_pdf(b, wi, wo, alpha, weight).i]})
+
+
+def _ggx_vndf(b: Builder, wi: list[V], u: list[V], alpha: float) -> list[V]:
+    """A visible normal of GGX(alpha) seen from wi (Heitz 2018, JCGT, listing 1)."""
+    b.hint = "vndf"
+    vh = _normalize([alpha * wi[0], alpha * wi[1], wi[2]])      # the hemisphere config.
+    lensq = vh[0] * vh[0] + vh[1] * vh[1]
+    has_xy = lensq > 0.0
+    inv = 1.0 / _max(lensq, 1e-30).f("sqrt")
+    t1 = [_select(has_xy, -vh[1] * inv, 1.0), _select(has_xy, vh[0] * inv, 0.0), None]
+    # T2 = cross(Vh, T1) with T1_z = 0
+    t2 = [-vh[2] * t1[1], vh[2] * t1[0], vh[0] * t1[1] - vh[1] * t1[0]]
+    r = u[0].f("sqrt")
+    phi = 2.0 * math.pi * u[1]
+    p1 = r * phi.f("cos")
+    p2 = r * phi.f("sin")
+    s = 0.5 * (1.0 + vh[2])
+    p2 = (1.0 - s) * _max(1.0 - p1 * p1, 0.0).f("sqrt") + s * p2
+    pz = _max(1.0 - p1 * p1 - p2 * p2, 0.0).f("sqrt")
+    nh = [p1 * t1[0] + p2 * t2[0] + pz * vh[0],
+          p1 * t1[1] + p2 * t2[1] + pz * vh[1],
+          p2 * t2[2] + pz * vh[2]]
+    return _normalize([alpha * nh[0], alpha * nh[1], _max(nh[2], 0.0)])
+
+
+def sample_program(*, alpha: float, weight: float) -> Program:
+    """Inputs ``wi`` (3), ``u1`` (1), ``u2`` (2) -> outputs ``wo`` (3) and ``pdf``."""
+    b = Builder()
+    wi = _vec(b, "wi", 3)
+    u1 = _vec(b, "u1", 1)[0]
+    u2 = _vec(b, "u2", 2)
+    b.hint = "cosine"
+    r = u2[0].f("sqrt")
+    phi = 2.0 * math.pi * u2[1]
+    wo = [r * phi.f("cos"), r * phi.f("sin"), _max(1.0 - u2[0], 0.0).f("sqrt")]
+    if weight > 0.0:
+        m = _ggx_vndf(b, wi, u2, alpha)
+        b.hint = "mirror"
+        k = 2.0 * _dot(wi, m)
+        pick = u1 < weight
+        wo = [_select(pick, k * m[j] - wi[j], wo[j]) for j in range(3)]
+    p = _pdf(b, wi, wo, alpha, weight)
+    return b.finish({"wi": 3, "u1": 1, "u2": 2},
+                    {"wo": [v.i for v in wo], "pdf": [p.i]})

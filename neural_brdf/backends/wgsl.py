@@ -1,0 +1,75 @@
+"""WGSL (WebGPU): functions to paste into a shader module.
+
+    let f = neural_brdf_eval(wi, wo);                 // vec3<f32>
+    let s = neural_brdf_sample(wi, u1, u2);           // f32, vec2<f32> -> NeuralBrdfSample
+    // s.wo, s.pdf
+
+WGSL has no isnan/isinf: they are bit tests on ``bitcast<u32>``; no erf either (a
+polynomial, as in GLSL).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import graph
+from .cstyle import PREFIX, CStyleRenderer
+from .glsl import erf_helper
+
+VEC = {1: "f32", 2: "vec2<f32>", 3: "vec3<f32>", 4: "vec4<f32>"}
+
+
+class WGSLRenderer(CStyleRenderer):
+    name = "wgsl"
+    types = {"float": "f32", "int": "i32", "bool": "bool"}
+    functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
+    float_suffix = "f"
+    int_suffix = "i"
+
+    def bitcast_float(self, bits: str) -> str:
+        return f"bitcast<f32>({bits})"
+
+    def select(self, c: str, a: str, b: str) -> str:
+        return f"select({b}, {a}, {c})"
+
+    def cast(self, x: str, src: str, dst: str) -> str:
+        if dst == "bool":
+            return f"({x} != {self.literal(0, src)})"
+        return f"{self.types[dst]}({x})"
+
+    def declare(self, dtype: str, name: str, expr: str) -> str:
+        return f"let {name}: {self.types[dtype]} = {expr};"
+
+    def helpers(self) -> list[str]:
+        bits = "(bitcast<u32>(x) & 0x7fffffffu)"
+        return [f"fn {PREFIX}_isnan(x: f32) -> bool {{ return {bits} > 0x7f800000u; }}",
+                f"fn {PREFIX}_isinf(x: f32) -> bool {{ return {bits} == 0x7f800000u; }}",
+                *erf_helper(f"fn {PREFIX}_erf(x: f32)", " -> f32", "let ", "f32", "f"), "",
+                "struct NeuralBrdfSample {", "    wo: vec3<f32>,", "    pdf: f32,", "}", ""]
+
+    def table(self, name: str, values: np.ndarray) -> str:
+        t = "f32" if values.dtype.kind == "f" else "i32"
+        body = "\n".join(f"    {row}" for row in self.table_values(values))
+        return f"const {name} = array<{t}, {len(values)}>(\n{body}\n);\n"
+
+    def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
+        lines, rendered = self.body(prog)
+        outs = list(prog.outputs.items())
+        params = [f"{n}: {VEC[w]}" for n, w in prog.inputs.items()]
+        body = [f"    {line}" for line in lines]
+        if len(outs) == 1:
+            ret = VEC[len(outs[0][1])]
+            body.append(f"    return {self.vector(outs[0][1], rendered)};")
+        else:
+            ret = "NeuralBrdfSample"
+            fields = ", ".join(self.vector(c, rendered) for _, c in outs)
+            body.append(f"    return NeuralBrdfSample({fields});")
+        return [f"// {doc}", f"fn {fname}({', '.join(params)}) -> {ret} {{", *body, "}", ""]
+
+    def vector(self, cols: list[int], rendered: list[str]) -> str:
+        parts = [rendered[c] for c in cols]
+        return parts[0] if len(parts) == 1 else f"{VEC[len(parts)]}({', '.join(parts)})"
+
+    def usage(self) -> list[str]:
+        return ["let f = neural_brdf_eval(wi, wo);            // vec3<f32>",
+                "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)"]
