@@ -87,12 +87,11 @@ def screenshot(html_path, png_path, *, width: int = WIDTH) -> dict:
     seen = inspect(html_path)
     height = max(200, min(int(seen["height"]), MAX_HEIGHT))
     png_path = Path(png_path).resolve()
-    with atomic_path(png_path, suffix=".png") as tmp:    # chromium writes a temp file
+    with atomic_path(png_path, suffix=".png", parents=True) as tmp:    # chromium writes a temp file
         _chromium([f"--screenshot={tmp}", f"--window-size={width},{height}",
                    Path(html_path).resolve().as_uri()])
         if os.path.getsize(tmp) == 0:
             raise BrowserError(f"{png_path}: chromium wrote no screenshot")
-        raise
     return seen
 
 

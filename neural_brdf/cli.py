@@ -3,9 +3,11 @@
     neural-brdf train CONFIG [--out RUN_DIR] [--set KEY=VALUE ...] [--resume]
     neural-brdf export RUN_DIR [-o model.onnx]
     neural-brdf report RUN_DIR [-o OUT_DIR]
-    neural-brdf validate model.onnx [--reference CONFIG|material.binary] [--json out.json]
+    neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
+    neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
     neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
+    neural-brdf view model.onnx [--compare OTHER.onnx|CONFIG] -o viewer.html
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -58,14 +60,14 @@ def _parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("validate", help="check physics (and accuracy) of an exported model")
     v.add_argument("model")
-    v.add_argument("--reference", help="ground truth: a config (its target) or a MERL "
-                                       ".binary file (measured data)")
+    v.add_argument("--reference", help="ground truth: a config (its target), a MERL "
+                                       ".binary or an RGL .bsdf file (measured data)")
     v.add_argument("--json", help="write the report as JSON to this file")
 
-    b = sub.add_parser("bake", help="write a model (.onnx) or a config's analytic target "
-                                    "as a MERL .binary file")
+    b = sub.add_parser("bake", help="tabulate a model (.onnx) or a config's analytic target: "
+                                    "MERL .binary or RGL .bsdf (by the output extension)")
     b.add_argument("source", help="model.onnx, or a YAML config whose target is baked")
-    b.add_argument("-o", "--out", required=True, help="output .binary file")
+    b.add_argument("-o", "--out", required=True, help="output file: .binary (MERL) or .bsdf (RGL)")
 
     r = sub.add_parser("render", help="render a material preview in Mitsuba 3 "
                                       "(needs the mitsuba extra and libllvm19)")
@@ -83,6 +85,12 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--target", required=True, choices=list(TARGETS),
                    help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)")
     g.add_argument("-o", "--out", required=True, help="output file")
+    vw = sub.add_parser("view", help="write an interactive WebGL2 viewer (one HTML file) "
+                                     "drawn with the model's generated GLSL")
+    vw.add_argument("model", help="model.onnx")
+    vw.add_argument("--compare", help="a second model (.onnx), or a config whose analytic "
+                                      "target is shown beside it with a difference view")
+    vw.add_argument("-o", "--out", required=True, help="output .html")
 
     w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
     w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
@@ -150,18 +158,31 @@ def _analytic_target(config_path: str):
                                                                         **cfg.target.params)
 
 
+# Output formats of ``bake``: suffix -> (name, module with ``bake(fn, path)``).  A third
+# format is one entry here.
+BAKE_FORMATS = {".binary": ("MERL", "merl"), ".bsdf": ("RGL", "rgl")}
+
+
 def _bake(args) -> int:
-    from . import config, merl
+    import importlib
+
+    from . import config
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in BAKE_FORMATS:
+        known = ", ".join(f"{s} ({n})" for s, (n, _) in BAKE_FORMATS.items())
+        raise config.InputError(f"{args.out}: unknown output extension {suffix or '(none)'!r}; "
+                                f"known: {known}")
+    writer = importlib.import_module(f".{BAKE_FORMATS[suffix][1]}", __package__)
     if str(args.source).endswith(".onnx"):
         from .runtime import load
         fn = load(args.source).eval
     else:
         fn = _analytic_target(args.source)[2].eval
     try:
-        merl.bake(fn, args.out)
+        writer.bake(fn, args.out)
     except OSError as e:
         raise config.InputError(f"{args.out}: cannot write ({e.strerror})") from None
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out} ({BAKE_FORMATS[suffix][0]})")
     return EXIT_OK
 
 
@@ -184,6 +205,12 @@ def _render(args) -> int:
     psnr = nbr.render_preview(args.model, args.out, reference=reference, spp=args.spp,
                               resolution=args.resolution)
     print(f"wrote {args.out}" + ("" if psnr is None else f"  (PSNR {psnr:.2f} dB vs reference)"))
+    return EXIT_OK
+
+
+def _view(args) -> int:
+    from .viewer import write_viewer
+    print(f"wrote {write_viewer(args.model, args.out, compare=args.compare)}")
     return EXIT_OK
 
 
@@ -219,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         args = _parser().parse_args(argv)
         commands = {"train": _train, "export": _export, "validate": _validate,
                     "bake": _bake, "render": _render, "report": _report, "sweep": _sweep,
-                    "codegen": _codegen}
+                    "codegen": _codegen, "view": _view}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -41,7 +41,7 @@ class _Section(BaseModel):
 class Target(_Section):
     model: str = "lambertian"                    # a name in analytic.available()
     params: dict[str, Any] = Field(default_factory=dict)   # passed to analytic.create
-    data: str | None = None                      # or: a measured MERL .binary file to fit
+    data: str | None = None                      # or: measured data, MERL .binary / RGL .bsdf
 
     @model_validator(mode="after")
     def _one_kind(self):

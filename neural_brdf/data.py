@@ -1,5 +1,5 @@
 """Training pairs (wi, wo, f) drawn on the fly from a target: an analytic model, or
-measured data (a MERL ``.binary`` file, ``target: {data: path}``).
+measured data (a MERL ``.binary`` or an RGL ``.bsdf`` file, ``target: {data: path}``).
 
 Analytic targets.  wi is uniform on the upper hemisphere.  wo is a mixture, by configured shares, of
 uniform-hemisphere, cosine-weighted and the target's own importance sampling (so that
@@ -27,7 +27,10 @@ import analytic
 from analytic import frame
 
 from . import config as cfgmod
-from . import merl
+from . import merl, rgl
+
+# Measured-data files a target (and ``validate --reference``) reads, by suffix.
+MEASURED_SUFFIXES = {".binary": "MERL", ".bsdf": "RGL"}
 
 
 class MeasuredTarget:
@@ -45,9 +48,12 @@ class MeasuredTarget:
 
     @classmethod
     def from_file(cls, path, *, key: str = "target.data") -> "MeasuredTarget":
+        """A MERL ``.binary`` or an RGL ``.bsdf`` file (by its suffix) as a target."""
         p = Path(path)
+        if p.suffix.lower() == ".bsdf":
+            return RGLTarget.from_file(p, key=key)
         if p.suffix.lower() != ".binary":
-            raise cfgmod.ConfigError(f"{key}: {p}: expected a MERL .binary file")
+            raise cfgmod.ConfigError(f"{key}: {p}: expected a MERL .binary or an RGL .bsdf file")
         try:
             brdf = merl.read_merl(p)
         except merl.MerlFormatError as e:
@@ -84,6 +90,36 @@ class MeasuredTarget:
         th, td, pd = (c[i] for c, i in zip(merl.bin_centres(), merl.unravel(bins)))
         wi, wo = merl.directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
         f = self.brdf.values.reshape(-1, 3)[bins]
+        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
+
+
+class RGLTarget(MeasuredTarget):
+    """An RGL ``.bsdf`` file (:mod:`neural_brdf.rgl`, evaluated as Mitsuba's ``measured``
+    does) as a training target.  ``draw``: wi uniform, wo from the file's own sampler
+    or cosine-distributed; ``grid_pairs``: the file's value nodes (where it is exact)."""
+
+    def __init__(self, brdf: rgl.RGLBRDF):
+        self.brdf = brdf
+        self.source = brdf.source
+
+    @classmethod
+    def from_file(cls, path, *, key: str = "target.data") -> RGLTarget:
+        try:
+            return cls(rgl.read_rgl(path))
+        except rgl.RGLFormatError as e:
+            raise cfgmod.ConfigError(f"{key}: {e}") from None
+
+    def describe(self) -> str:
+        return f"RGL {self.source} ({self.brdf.description})"
+
+    def grid_pairs(self, n: int | None = None, seed: int = 0):
+        """(wi, wo, f) float64 tensors at the value nodes above the horizon: all of them,
+        or ``n`` drawn without replacement; phi_i is random (isotropic files)."""
+        wi, wo = self.brdf.node_pairs(seed=seed)
+        if n is not None and n < len(wi):
+            pick = np.sort(np.random.default_rng(seed).choice(len(wi), size=n, replace=False))
+            wi, wo = wi[pick], wo[pick]
+        f = self.brdf.eval(wi, wo)
         return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
 
 

@@ -19,7 +19,7 @@ analytic isotropic model here) the configuration up to the swap is fixed by
 (theta_h, theta_d, cos_i cos_o); the remaining features are redundant views that make
 the peaks and the grazing behaviour easy to fit:
 
-    sqrt(theta_h / (pi/2))   stretches the specular peak (NOTES.md calibration run)
+    sqrt(theta_h / (pi/2))   stretches the specular peak (docs/model.md, "The encoding")
     theta_d / (pi/2)
     cos theta_h, cos theta_d
     (cos_i + cos_o) / 2, cos_i cos_o, (cos_i - cos_o)^2   masking / grazing terms

@@ -57,6 +57,7 @@ UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"
 # differs by 4.7e-5 relative without the floor and 5.9e-6 with it; torch vs
 # onnxruntime by 4.0e-5 and 7.7e-6.
 PARITY_FLOOR = 0.1
+ANALYTIC_OPSET = 17       # opset of analytic_onnx (as neural_brdf.mitsuba used)
 
 
 class CheckpointError(cfgmod.InputError):
@@ -118,7 +119,7 @@ def to_onnx_bytes(model: torch.nn.Module, opset: int) -> bytes:
     with warnings.catch_warnings():
         # The TorchScript exporter (dynamo=False) warns that it is deprecated.  It is
         # used on purpose: it writes one self-contained file and needs no onnxscript,
-        # which is not a dependency of this project (NOTES.md, "ONNX").
+        # which is not a dependency of this project (docs/model.md, "Export and parity").
         warnings.filterwarnings("ignore", category=DeprecationWarning)
         torch.onnx.export(model, example, buf, dynamo=False, opset_version=opset,
                           input_names=list(INPUTS), output_names=[OUTPUT],
@@ -203,7 +204,7 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, ta
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)
     onnx.checker.check_model(proto)
-    atomic_write(Path(out), proto.SerializeToString())
+    atomic_write(Path(out), proto.SerializeToString(), parents=True)
     return {"parity_rel_error": parity, "float32_rel_precision": precision, "physics": phys}
 
 
@@ -224,3 +225,20 @@ def export_run(run_dir, out=None) -> dict:
     info["path"] = str(out)
     return info
 
+
+
+def analytic_onnx(model: str, params: dict | None = None) -> bytes:
+    """An :mod:`analytic` model's own torch ``f(wi, wo)`` exported to ONNX bytes, with the
+    contract of this module (inputs wi, wo [N, 3], output f [N, 3], no cosine) but no
+    metadata: a reference for generated code and the viewer (no Mitsuba needed)."""
+    import analytic
+
+    brdf = analytic.create(model, **(params or {}))
+
+    class _F(torch.nn.Module):
+        def forward(self, wi, wo):
+            return brdf.f(wi, wo).float()
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")     # also the tracer's warnings on Python values
+        return to_onnx_bytes(_F(), ANALYTIC_OPSET)

@@ -46,15 +46,20 @@ def _fsync_dir(folder: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, *, suffix: str = ".tmp") -> Iterator[str]:
+def atomic_path(path: str | os.PathLike, *, suffix: str = ".tmp",
+                parents: bool = False) -> Iterator[str]:
     """Yield a temporary file name beside ``path``; on success it replaces ``path``.
 
     ``suffix`` is the temporary file's extension, for writers that choose the format
-    from it (matplotlib, Chromium screenshots).  On any exception, KeyboardInterrupt
-    included, the temporary file is removed and ``path`` is left as it was.
+    from it (matplotlib, Chromium screenshots).  ``parents=True`` creates missing
+    folders; otherwise a missing folder raises FileNotFoundError, so that a mistyped
+    ``-o`` path is an error rather than a new folder.  On any exception,
+    KeyboardInterrupt included, the temporary file is removed and ``path`` is left as
+    it was.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if parents:
+        path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
@@ -70,8 +75,8 @@ def atomic_path(path: str | os.PathLike, *, suffix: str = ".tmp") -> Iterator[st
     _fsync_dir(path.parent)
 
 
-def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
-    """Write ``data`` (str is encoded as UTF-8) to ``path`` atomically."""
+def atomic_write(path: str | os.PathLike, data: bytes | str, *, parents: bool = False) -> None:
+    """Write ``data`` (str is encoded as UTF-8) to ``path`` atomically (see atomic_path)."""
     payload = data.encode("utf-8") if isinstance(data, str) else data
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path, parents=parents) as tmp, open(tmp, "wb") as fh:
         fh.write(payload)

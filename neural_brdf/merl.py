@@ -532,7 +532,7 @@ def nbrdf_names(npz_path) -> list[str]:
 def nbrdf_fixture(npz_path, name: str, *, reciprocal: bool = False) -> Callable:
     """One pretrained NBRDF network (Sztrajman et al. 2021) as f(wi, wo) -> (..., 3).
 
-    Per ../shared/data/README.md: a 6-21-21-3 ReLU MLP on
+    The published architecture: a 6-21-21-3 ReLU MLP on
     x = [sin th_h, 0, cos th_h, sin th_d cos ph_d, sin th_d sin ph_d, cos th_d]
     (Rusinkiewicz angles with phi_h = 0), y = relu(relu(x W0 + b0) W1 + b1) W2 + b2,
     f = exp(y) - 1 in 1/sr with the MERL colour scales applied.  The raw output is

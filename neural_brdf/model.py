@@ -7,7 +7,7 @@
 Reciprocity: ``features`` is bit-exactly symmetric (see :mod:`neural_brdf.encoding`),
 and so is ``max`` of the two table look-ups, hence f(wi, wo) == f(wo, wi) exactly.
 
-Energy (NOTES.md, "Energy conservation that stays reciprocal"): if A+(w) >= A(w) =
+Energy (docs/model.md, "Energy conservation that stays reciprocal"): if A+(w) >= A(w) =
 int raw(w, wo) cos(theta_o) dwo, then int f(wi, wo) cos dwo <= A(wi) / max(1, A+(wi)) <= 1.
 A+ is tabulated after training (:func:`albedo_table`) and baked into the graph:
 

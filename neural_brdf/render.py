@@ -101,7 +101,7 @@ ERROR_GAIN = 10.0
 def write_png(path: Path, img: np.ndarray) -> None:
     import matplotlib.image
 
-    with atomic_path(path, suffix=".png") as tmp:
+    with atomic_path(path, suffix=".png", parents=True) as tmp:
         matplotlib.image.imsave(tmp, np.clip(img, 0.0, 1.0))
 
 

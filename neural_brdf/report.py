@@ -16,7 +16,10 @@ target cannot be built here, the report says so and plots the model alone.
 ``report.html`` embeds every image as a base64 PNG data URI and needs no script, so
 the one file can be mailed or archived; ``report.md`` links the same PNGs, written
 beside it as ``report-*.png``.  Both come from one list of blocks, so they always hold
-the same content.  Every file is written atomically (temp file + rename).
+the same content.  When the GLSL code generator translates the model, the interactive
+viewer (:mod:`neural_brdf.viewer`, a page with script) is written beside them as
+``viewer.html`` and carried inside report.html as a download link (a data URI), so the
+report itself stays script-free.  Every file is written atomically (temp file + rename).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from .runtime import load
 RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
 RENDER_SPP = 16             # Mitsuba preview: enough to judge the material, seconds to render
 RENDER_RESOLUTION = 128
+VIEWER_FILE = "viewer.html"     # the interactive viewer, beside the report
 
 
 # ------------------------------------------------------------------ document blocks
@@ -84,6 +88,16 @@ class Image:
 class Code:
     text: str
     lang: str = ""
+
+
+@dataclass
+class Attachment:
+    """A file carried by the report: written beside it, and inside report.html as a
+    download link (a data URI, so the page stays one file without script)."""
+    name: str
+    text: str                   # the link text
+    data: bytes
+    mime: str = "text/html"
 
 
 # ------------------------------------------------------------------ reading a run
@@ -301,6 +315,30 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     return blocks + [Image("render", "Rendered spheres", caption, png, zoom=2)]
 
 
+def _viewer(run: Run, reference) -> list:
+    """The interactive WebGL2 viewer (neural_brdf.viewer) of the model, beside its analytic
+    target when it has one; a note when the GLSL code generator cannot translate it."""
+    from . import viewer
+    blocks = [Heading("Interactive viewer")]
+    cfg = run.config
+    try:
+        models = [viewer.onnx_model(run.dir / "model.onnx", "neural")]
+        if reference is not None and cfg.target.data is None:
+            models.append(viewer.analytic_model(cfg.target.model, dict(cfg.target.params),
+                                                f"target: {cfg.target.model}"))
+    except InputError as e:             # no code generator, or an op it does not know
+        return blocks + [Text(f"No viewer: {e}.", note=True)]
+    page = viewer.page(models, title=f"neural-brdf viewer: {cfg.name}")
+    vs = " (beside its target, with a difference view)" if len(models) > 1 else ""
+    return blocks + [
+        Text(f"{VIEWER_FILE} draws the model{vs} in WebGL2 with the GLSL generated from its "
+             "ONNX graph: a lit sphere with a draggable light, incidence-plane slices, the "
+             "polar lobe and the albedo curve.  It is written beside this report and "
+             "carried inside it (the link saves it); open it in a browser."),
+        Attachment(VIEWER_FILE, f"Save {VIEWER_FILE} (interactive viewer, "
+                                f"{len(page) // 1024} KiB)", page.encode("utf-8"))]
+
+
 def _training(run: Run) -> list:
     m, path, log = run.metrics, run.dir / "metrics.json", run.log
     rows = [[k, f"{_number(m, f'seconds.{k}', path):.1f} s"]
@@ -345,7 +383,8 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
               plots.png_bytes(plots.rusinkiewicz_images(neural, ref))),
     ]
     return (_summary(run) + _physics(run, albedo) + _accuracy(run, note, figures)
-            + _rendering(run, render, out_dir, reference) + _training(run)
+            + _rendering(run, render, out_dir, reference) + _viewer(run, reference)
+            + _training(run)
             + [Heading("Config"), Text("The resolved config.yaml of the run."),
                Code(run.config_text, "yaml")])
 
@@ -397,6 +436,10 @@ def to_html(blocks: list) -> str:
                        f"{html.escape(b.caption)}</figcaption></figure>")
         elif isinstance(b, Code):
             out.append(f"<pre><code>{html.escape(b.text)}</code></pre>")
+        elif isinstance(b, Attachment):
+            uri = f"data:{b.mime};base64," + base64.b64encode(b.data).decode("ascii")
+            out.append(f'<p><a download="{html.escape(b.name)}" href="{uri}">'
+                       f"{html.escape(b.text)}</a></p>")
     out.append("</main></body></html>")
     return "\n".join(out) + "\n"
 
@@ -427,6 +470,8 @@ def to_markdown(blocks: list) -> str:
             out.append(f"![{b.title}]({image_name(b.key)})\n\n*{b.title}.* {b.caption}")
         elif isinstance(b, Code):
             out.append(f"```{b.lang}\n{b.text.rstrip()}\n```")
+        elif isinstance(b, Attachment):
+            out.append(f"[{b.text}]({b.name})")
         out.append("")
     return "\n".join(out)
 
@@ -451,6 +496,9 @@ def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Pat
         if isinstance(b, Image):
             paths[b.key] = out_dir / image_name(b.key)
             atomic_write(paths[b.key], b.png)
+        elif isinstance(b, Attachment):
+            paths[b.name] = out_dir / b.name
+            atomic_write(paths[b.name], b.data)
     paths["md"] = out_dir / "report.md"
     atomic_write(paths["md"], to_markdown(blocks).encode("utf-8"))
     paths["html"] = out_dir / "report.html"

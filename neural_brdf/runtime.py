@@ -32,7 +32,7 @@ class NeuralBRDF:
         if not path.is_file():
             raise InputError(f"{path}: no such model file")
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads     # 1 thread was fastest here (NOTES.md)
+        opts.intra_op_num_threads = threads     # 1 thread was fastest here (docs/results.md)
         opts.inter_op_num_threads = 1
         opts.log_severity_level = 3
         try:

@@ -17,7 +17,7 @@ A sweep file (YAML; paths in it are relative to the file)::
       - {train.loss: log_l2}        #   a list of override mappings, or
       - {train.loss: nbrdf, train.lr: 0.01}   # a mapping of equal-length lists (zipped)
     materials:                      # measured materials: adds the axis `material`
-      nbrdf: ../../../shared/data/nbrdf/merl_nbrdf_weights.npz
+      nbrdf: path/to/merl_nbrdf_weights.npz
       names: [alum-bronze, gold-paint]         # or: all
 
 Each trial is ``train.run(cfg, run_dir)``: its own run directory under
@@ -422,7 +422,7 @@ def _receive(run_dir: Path, files: dict[str, bytes]) -> None:
         path = run_dir / rel
         if path.is_file() and path.read_bytes() == body:
             continue
-        atomic_write(path, body)
+        atomic_write(path, body, parents=True)
 
 
 def _run_ray(jobs: list[dict], workers: int, address: str | None):

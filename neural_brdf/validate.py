@@ -13,8 +13,8 @@ Physics (all must pass; the CLI exits 1 otherwise):
   The seeds and the grid differ from those that built the normalisation table.
   The hemispherical albedo (1/pi) int rho(wi) cos dwi is reported as well.
 
-Accuracy, with a reference (``--reference CONFIG``, ``--reference material.binary``, or
-during training):
+Accuracy, with a reference (``--reference CONFIG``, ``--reference material.binary`` or
+``material.bsdf``, or during training):
 
 * ``rel_rmse``: relative RMSE of f cos(theta_o),
   sqrt(sum (f^ cos - f cos)^2) / sqrt(sum (f cos)^2) over all channels of pairs with
@@ -132,8 +132,9 @@ def accuracy(fn: Callable, reference, *, n: int, seed: int) -> dict:
 
 
 def reference_from(path) -> object:
-    """``--reference``: a YAML config (its target) or a MERL ``.binary`` file."""
-    if str(path).lower().endswith(".binary"):
+    """``--reference``: a YAML config (its target), a MERL ``.binary`` or an RGL ``.bsdf``
+    file."""
+    if Path(path).suffix.lower() in data.MEASURED_SUFFIXES:
         return data.MeasuredTarget.from_file(path, key="--reference")
     return data.build_target(cfgmod.load(path).target)
 

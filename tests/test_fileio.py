@@ -35,9 +35,12 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
 
 
-def test_creates_missing_folders_and_replaces(tmp_path):
+def test_missing_folders_only_on_request(tmp_path):
     path = tmp_path / "a" / "b" / "model.onnx"
-    atomic_write(path, b"1")
+    with pytest.raises(FileNotFoundError):
+        atomic_write(path, b"1")                  # a mistyped -o folder is an error
+    assert not (tmp_path / "a").exists()
+    atomic_write(path, b"1", parents=True)
     atomic_write(path, b"22")
     assert path.read_bytes() == b"22"
 

@@ -1,6 +1,6 @@
 """Regenerate analytic/data/conductors.json from spectral IOR files.
 
-    python tools/make_conductor_presets.py ../shared/data/ior
+    python tools/make_conductor_presets.py IOR_DIR    # a folder of ior/*.spd files
 
 Each preset is the spectral (eta, k) of the luxpop data (as distributed in
 mitsuba-data ``ior/*.spd``: wavelength in nm, value) projected to linear sRGB: the
@@ -8,7 +8,7 @@ spectrum is integrated against the CIE 1931 colour-matching functions, here the
 multi-lobe analytic fit of Wyman, Sloan & Shirley 2013 ("Simple Analytic
 Approximations to the CIE XYZ Color Matching Functions", JCGT 2(2)), normalised by
 the integral of y-bar, and converted XYZ -> linear sRGB (IEC 61966-2-1 matrix).  This
-is our own conversion; Mitsuba's RGB values (../shared/data) are the independent
+is our own conversion; Mitsuba's RGB values (the tests' reference data) are the independent
 reference the tests compare against (tests/test_known_answers.py).
 """
 
@@ -74,4 +74,7 @@ def main(src: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "../shared/data/ior")
+    if len(sys.argv) != 2:
+        print("usage: python tools/make_conductor_presets.py IOR_DIR", file=sys.stderr)
+        sys.exit(2)
+    main(sys.argv[1])
