@@ -37,6 +37,7 @@ def erf_helper(fn: str, ret: str, decl: str, ftype: str, sfx: str) -> list[str]:
 
 class GLSLRenderer(CStyleRenderer):
     name = "glsl"
+    vectors = VEC                  # width -> type name
     functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
 
     def bitcast_float(self, bits: str) -> str:
@@ -59,18 +60,20 @@ class GLSLRenderer(CStyleRenderer):
         lines, rendered = self.body(prog)
         outs = list(prog.outputs.items())
         ret_name, ret_cols = outs[-1]
-        params = [f"{VEC[w]} {n}" for n, w in prog.inputs.items()]
-        params += [f"out {VEC[len(c)]} {n}" for n, c in outs[:-1]]
+        params = [f"{self.vectors[w]} {n}" for n, w in prog.inputs.items()]
+        params += [f"out {self.vectors[len(c)]} {n}" for n, c in outs[:-1]]
         body = [f"    {line}" for line in lines]
         for n, cols in outs[:-1]:
             body.append(f"    {n} = {self.vector(cols, rendered)};")
         body.append(f"    return {self.vector(ret_cols, rendered)};")
-        return [f"// {doc}", f"{VEC[len(ret_cols)]} {fname}({', '.join(params)})", "{", *body,
-                "}", ""]
+        sig = f"{self.vectors[len(ret_cols)]} {fname}({', '.join(params)})"
+        return [f"// {doc}", sig, "{", *body, "}", ""]
 
     def vector(self, cols: list[int], rendered: list[str]) -> str:
         parts = [rendered[c] for c in cols]
-        return parts[0] if len(parts) == 1 else f"{VEC[len(parts)]}({', '.join(parts)})"
+        if len(parts) == 1:
+            return parts[0]
+        return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
         return ["#version 300 es  (or #version 450)", "precision highp float;",

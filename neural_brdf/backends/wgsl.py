@@ -21,6 +21,7 @@ VEC = {1: "f32", 2: "vec2<f32>", 3: "vec3<f32>", 4: "vec4<f32>"}
 
 class WGSLRenderer(CStyleRenderer):
     name = "wgsl"
+    vectors = VEC                  # width -> type name
     types = {"float": "f32", "int": "i32", "bool": "bool"}
     functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
     float_suffix = "f"
@@ -58,10 +59,10 @@ class WGSLRenderer(CStyleRenderer):
     def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
         lines, rendered = self.body(prog)
         outs = list(prog.outputs.items())
-        params = [f"{n}: {VEC[w]}" for n, w in prog.inputs.items()]
+        params = [f"{n}: {self.vectors[w]}" for n, w in prog.inputs.items()]
         body = [f"    {line}" for line in lines]
         if len(outs) == 1:
-            ret = VEC[len(outs[0][1])]
+            ret = self.vectors[len(outs[0][1])]
             body.append(f"    return {self.vector(outs[0][1], rendered)};")
         else:
             ret = "NeuralBrdfSample"
@@ -71,7 +72,9 @@ class WGSLRenderer(CStyleRenderer):
 
     def vector(self, cols: list[int], rendered: list[str]) -> str:
         parts = [rendered[c] for c in cols]
-        return parts[0] if len(parts) == 1 else f"{VEC[len(parts)]}({', '.join(parts)})"
+        if len(parts) == 1:
+            return parts[0]
+        return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
         return ["let f = neural_brdf_eval(wi, wo);            // vec3<f32>",
