@@ -49,13 +49,15 @@ def directory() -> Path:
     if source is not None:
         return source
     try:
-        found = resources.files(PACKAGE)
+        # configs/ has no __init__.py: files() of a namespace package is a MultiplexedPath;
+        # a file inside it is a plain Path, whose parent is the folder itself
+        anchor = resources.files(PACKAGE).joinpath("defaults.yaml")
     except ModuleNotFoundError:
         raise InputError("presets: not installed with this copy of neural_brdf "
                          "(reinstall the package)") from None
-    if not isinstance(found, Path):     # a zip import: relative references would break
-        raise InputError(f"presets: {found} is not a folder on disk (install unzipped)")
-    return found
+    if not isinstance(anchor, Path) or not anchor.is_file():
+        raise InputError(f"presets: {anchor} is not a file on disk (install unzipped)")
+    return anchor.parent
 
 
 def names() -> list[str]:
