@@ -94,8 +94,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _train(args) -> int:
-    from . import config, presets, train, validate
-    cfg = config.load(presets.resolve(args.config), args.overrides)
+    from . import presets
+    path = presets.resolve(args.config)           # an unknown name fails before torch loads
+    from . import config, train, validate
+    cfg = config.load(path, args.overrides)
     run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
     report = train.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     print(validate.format_table(report))

@@ -1,6 +1,6 @@
 """The package version: ONE number, from the installed package metadata.
 
-    from neural_brdf.version import __version__      # e.g. "0.1.0"
+    from neural_brdf.version import __version__      # the number in pyproject.toml
     neural-brdf --version
 
 pyproject.toml holds the number; ``importlib.metadata`` reads it from an installed (or
