@@ -96,8 +96,9 @@ def _parser() -> argparse.ArgumentParser:
 def _train(args) -> int:
     from . import presets
     path = presets.resolve(args.config)           # an unknown name fails before torch loads
-    from . import config, train, validate
-    cfg = config.load(path, args.overrides)
+    from . import config
+    cfg = config.load(path, args.overrides)        # a bad config fails before torch loads
+    from . import train, validate
     run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
     report = train.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     print(validate.format_table(report))
