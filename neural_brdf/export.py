@@ -83,7 +83,7 @@ def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
             "(metadata_props) hold the physics figures and the training config.")
 
 
-def load_checkpoint(path: Path) -> dict:
+def load_checkpoint(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint (train first, or check the run directory)")
     try:
@@ -98,7 +98,8 @@ def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:
     return raw.eval()
 
 
-def normalized_model(raw: RawBRDF, cfg: cfgmod.Config, target=None):
+def normalized_model(raw: RawBRDF, cfg: cfgmod.Config,
+                     target: Any = None) -> tuple[NormalizedBRDF | RawBRDF, dict[str, Any]]:
     """Tabulate A+ for ``raw`` and wrap it; returns (model, table info).
 
     With ``normalization.enabled: false`` (ablations) no table is built and the raw

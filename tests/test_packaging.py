@@ -6,6 +6,7 @@ folder) is .ci/wheel_check.sh; these tests check the same contracts from the sou
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import re
@@ -180,3 +181,22 @@ def test_wheel_ships_presets_typing_and_license(tmp_path):
     assert not [r for r in base if "scipy" in r or "pytest" in r], base
     torch_req = next(r for r in base if r.startswith("Requires-Dist: torch"))
     assert ">=2.5" in torch_req, torch_req      # torch.onnx.export(dynamo=False): 2.5+
+
+
+# ------------------------------------------------------------------ typing
+def test_public_api_is_annotated():
+    import typing
+
+    import analytic
+    from neural_brdf import config, train, validate
+    from neural_brdf.runtime import NeuralBRDF
+    public = [neural_brdf.load, NeuralBRDF.eval, analytic.create, analytic.albedo,
+              config.load, presets.resolve, train.run, train.train, export.export,
+              export.export_run, validate.report, validate.physics]
+    for fn in public:
+        hints = typing.get_type_hints(fn)          # resolvable, not only present
+        sig = inspect.signature(fn)
+        missing = [p for p in sig.parameters if p != "self" and p not in hints]
+        assert missing == [] and "return" in hints, (fn.__qualname__, missing)
+    for package in ("neural_brdf", "analytic"):
+        assert (ROOT / package / "py.typed").is_file()
