@@ -84,7 +84,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--out", required=True, help="output .png")
 
     w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
-    w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
+    w.add_argument("sweep", help="sweep file, or a preset sweep name (neural-brdf presets)")
     w.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local process pool (default) or Ray tasks")
     w.add_argument("--workers", type=int, help="parallel trials (default: the CPU cores)")
@@ -116,6 +116,10 @@ def _presets(args) -> int:
         print(f"{name:<{width}}  {text}")
     print(f"\n{len(rows)} presets in {presets.directory()}; train one with: "
           "neural-brdf train NAME [--out RUN_DIR] [--set KEY=VALUE]")
+    sweeps = presets.listing(folder="sweeps")
+    print("\nsweeps (neural-brdf sweep NAME [--executor ray]):")
+    for name, text in sweeps:
+        print(f"  {name:<{width - 2}}  {text}")
     return EXIT_OK
 
 
@@ -198,8 +202,10 @@ def _render(args) -> int:
 
 
 def _sweep(args) -> int:
+    from . import presets
+    path = presets.resolve(args.sweep, folder="sweeps")
     from . import sweep
-    results = sweep.run_sweep(args.sweep, executor=args.executor, workers=args.workers,
+    results = sweep.run_sweep(path, executor=args.executor, workers=args.workers,
                               ray_address=args.ray_address, out=args.out,
                               progress=sweep.print_progress)
     print(sweep.summary_line(results))

@@ -2,11 +2,13 @@
 
     neural-brdf presets                       # name and one-line description of each
     neural-brdf train gold --out runs/gold    # = python train.py configs/gold.yaml ...
+    neural-brdf sweep furnace                 # = neural-brdf sweep configs/sweeps/furnace.yaml
 
     from neural_brdf import presets
     presets.names()                           # ['bank', 'beckmann_rough', ...]
     presets.resolve("gold")                   # Path of the YAML file
     presets.resolve("my/own.yaml")            # a file that exists is used as it is
+    presets.resolve("furnace", folder="sweeps")   # neural-brdf sweep furnace
 
 There is one copy of the presets: the repository's top-level ``configs/`` folder.
 pyproject.toml maps it into the package as ``neural_brdf.configs`` (package-data), so a
@@ -60,9 +62,9 @@ def directory() -> Path:
     return anchor.parent
 
 
-def names() -> list[str]:
-    """The preset names: every top-level ``*.yaml`` of the presets folder, sorted."""
-    return sorted(p.stem for p in directory().glob("*.yaml"))
+def names(*, folder: str = "") -> list[str]:
+    """The preset names: every ``*.yaml`` of the presets folder (or its ``folder``)."""
+    return sorted(p.stem for p in (directory() / folder).glob("*.yaml"))
 
 
 def description(path: Path) -> str:
@@ -85,14 +87,15 @@ def description(path: Path) -> str:
     return sentence
 
 
-def listing() -> list[tuple[str, str]]:
-    """(name, description) of every preset."""
-    folder = directory()
-    return [(name, description(folder / f"{name}.yaml")) for name in names()]
+def listing(*, folder: str = "") -> list[tuple[str, str]]:
+    """(name, description) of every preset (of ``folder``: "sweeps" for the sweeps)."""
+    where = directory() / folder
+    return [(name, description(where / f"{name}.yaml")) for name in names(folder=folder)]
 
 
-def resolve(name_or_path: str | Path) -> Path:
-    """A config file: an existing path wins; else a preset name (``gold`` or ``gold.yaml``).
+def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
+    """A config file: an existing path wins; else a preset name (``gold`` or ``gold.yaml``),
+    looked up in the presets folder or, with ``folder="sweeps"``, among the sweeps.
 
     A bare name that is neither raises InputError naming it and listing the presets; a
     path with a folder in it is returned as it is (reading it reports a missing file).
@@ -104,7 +107,9 @@ def resolve(name_or_path: str | Path) -> Path:
     if "/" in text or "\\" in text:
         return path
     stem = text.removesuffix(".yaml").removesuffix(".yml")
-    if stem and stem in names():
-        return directory() / f"{stem}.yaml"
-    raise InputError(f"{text}: neither a config file nor a preset (presets: "
-                     f"{', '.join(names())})")
+    known = names(folder=folder)
+    if stem and stem in known:
+        return directory() / folder / f"{stem}.yaml"
+    kind = "sweep" if folder else "config"
+    raise InputError(f"{text}: neither a {kind} file nor a preset (presets: "
+                     f"{', '.join(known)})")

@@ -127,11 +127,17 @@ def test_a_path_wins_over_a_preset_and_unknown_names_list_presets(tmp_path, monk
         presets.resolve("velvet")
 
 
-def test_cli_presets_lists_every_name(capsys):
+def test_cli_presets_lists_every_name_and_sweep(capsys):
     assert main(["presets"]) == 0
-    out = capsys.readouterr().out
-    listed = [line.split()[0] for line in out.splitlines() if line and line[0] != "\n"][:-1]
-    assert listed == presets.names()
+    configs, _, rest = capsys.readouterr().out.partition("\n\n")
+    assert [line.split()[0] for line in configs.splitlines()] == presets.names()
+    sweeps = [line.split()[0] for line in rest.splitlines() if line.startswith("  ")]
+    assert sweeps == presets.names(folder="sweeps") == \
+        sorted(p.stem for p in (ROOT / "configs" / "sweeps").glob("*.yaml"))
+    assert presets.resolve("furnace", folder="sweeps") == \
+        presets.directory() / "sweeps" / "furnace.yaml"
+    assert main(["sweep", "gold"]) == 2                  # a config preset is not a sweep
+    assert "gold: neither a sweep file nor a preset" in capsys.readouterr().err
 
 
 def test_train_a_preset_by_name_from_another_folder(tmp_path):
