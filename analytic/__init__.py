@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+from typing import Any
 
 from .base import BRDF, ParameterError
 
@@ -47,7 +48,7 @@ def model_class(name: str) -> type[BRDF]:
     return getattr(importlib.import_module(f".{module}", __name__), cls)
 
 
-def create(name: str, **params) -> BRDF:
+def create(name: str, **params: Any) -> BRDF:
     """Create a model by registry name; every parameter has a documented default."""
     cls = model_class(name)
     accepted = inspect.signature(cls.__init__).parameters

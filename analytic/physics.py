@@ -16,7 +16,8 @@ here, n = 4096 gives errors of order 1e-4 (see tests/test_physics.py).
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -46,7 +47,8 @@ def _estimate(integrand: Callable[[torch.Tensor], torch.Tensor], n: int, seed: i
     return m.mean(0), m.std(0, unbiased=True) / math.sqrt(REPLICAS)
 
 
-def albedo(brdf: BRDF, wi, n: int = 4096, *, seed: int = 0, return_error: bool = False):
+def albedo(brdf: BRDF, wi: np.ndarray | torch.Tensor, n: int = 4096, *, seed: int = 0,
+           return_error: bool = False) -> Any:
     """Directional albedo rho(wi) = int f(wi, wo) cos(theta_o) dwo, shape (..., 3).
 
     Computed in float64 and returned in the input's type and dtype.  With
@@ -79,7 +81,7 @@ def albedo(brdf: BRDF, wi, n: int = 4096, *, seed: int = 0, return_error: bool =
 
 
 def albedo_of(fn: Callable, wi: np.ndarray, n: int = 8192, *, seed: int = 0,
-              return_error: bool = False):
+              return_error: bool = False) -> Any:
     """Directional albedo of any callable f(wi, wo) on numpy (N, 3) arrays.
 
     Cosine-weighted Sobol quadrature: rho = mean f(wi, wo) * pi.  Exact for a

@@ -67,7 +67,7 @@ def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]
     cfg = config.load(REPO / "configs" / "merl.yaml",
                       [f"target.data={path}", "train.progress=false", f"train.threads={threads}",
                        f"name={path.stem}-{size}"] + SIZES[size] + overrides)
-    report = train.run(cfg, run_dir)
+    report = train.run(cfg, run_dir, overwrite=True)       # a rerun replaces the last
     c, acc = report["checks"], report["accuracy"]
     return {"rel_rmse": acc["rel_rmse"], "nbrdf_log_error": acc["nbrdf_log_error"],
             "bins": acc["pairs"], "reciprocity": c["reciprocity"]["value"],

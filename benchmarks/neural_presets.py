@@ -78,7 +78,7 @@ def run_preset(name: str, root: Path, overrides: list[str] = ()) -> dict:
                       ["train.progress=false", f"train.log_every={LOG_EVERY}",
                        f"train.eval_every={EVAL_EVERY}"] + list(overrides))
     wall, cpu = time.perf_counter(), time.process_time()
-    report = train.run(cfg, root / name)
+    report = train.run(cfg, root / name, overwrite=True)      # a rerun replaces the last
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     step, seconds, curve = first_below(root / name / "log.csv", TARGET)
     c = report["checks"]

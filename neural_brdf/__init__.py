@@ -1,6 +1,7 @@
 """Physically plausible neural BRDFs: train on the CPU, export ONNX, validate physics.
 
     python train.py configs/quickstart.yaml              # train + export + validate
+    neural-brdf train quickstart                         # the same preset, from any folder
     neural-brdf validate runs/quickstart/model.onnx
 
     import neural_brdf
@@ -9,8 +10,27 @@
 
 Modules, in the order data flows: config, encoding, model, quadrature, data, train,
 export, validate, runtime (the consumer side), cli.
+
+``import neural_brdf`` is light: ``load`` and ``NeuralBRDF`` are imported on first use
+(numpy and onnxruntime only), and neither torch nor pydantic is loaded by them.
 """
 
-from .runtime import NeuralBRDF, load
+from __future__ import annotations
 
-__all__ = ["NeuralBRDF", "load"]
+from typing import TYPE_CHECKING, Any
+
+from .version import __version__
+
+if TYPE_CHECKING:
+    from .runtime import NeuralBRDF, load
+
+__all__ = ["NeuralBRDF", "__version__", "load"]
+_LAZY = {"NeuralBRDF", "load"}
+
+
+def __getattr__(name: str) -> Any:
+    # PEP 562: onnxruntime is imported when load/NeuralBRDF is first used, not by the CLI
+    if name in _LAZY:
+        from . import runtime
+        return getattr(runtime, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,6 +1,7 @@
 """``neural-brdf`` command line: argument parsing and error-to-exit-code mapping only.
 
-    neural-brdf train CONFIG [--out RUN_DIR] [--set KEY=VALUE ...] [--resume]
+    neural-brdf train CONFIG|PRESET [--out RUN_DIR] [--set KEY=VALUE ...] [--resume|--overwrite]
+    neural-brdf presets
     neural-brdf export RUN_DIR [-o model.onnx]
     neural-brdf report RUN_DIR [-o OUT_DIR]
     neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
@@ -40,15 +41,22 @@ class _UsageError(Exception):
 
 
 def _parser() -> argparse.ArgumentParser:
+    from .version import __version__
     p = _Parser(prog="neural-brdf", description="Physically plausible neural BRDFs.")
+    p.add_argument("--version", action="version", version=f"neural-brdf {__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     t = sub.add_parser("train", help="train, export and validate a model from a YAML config")
-    t.add_argument("config", help="YAML config (see configs/)")
+    t.add_argument("config", help="YAML config file, or a preset name (neural-brdf presets)")
     t.add_argument("--out", help="run directory (default: runs/<name>/)")
     t.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. --set train.steps=500 (repeatable)")
-    t.add_argument("--resume", action="store_true", help="continue from RUN_DIR/ckpt.pt")
+    again = t.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue from RUN_DIR/ckpt.pt")
+    again.add_argument("--overwrite", action="store_true",
+                       help="replace a run already in RUN_DIR (its results are deleted)")
+
+    sub.add_parser("presets", help="list the shipped configs (neural-brdf train NAME)")
 
     e = sub.add_parser("export", help="export a run's checkpoint to ONNX")
     e.add_argument("run_dir")
@@ -93,7 +101,7 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("-o", "--out", required=True, help="output .html")
 
     w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
-    w.add_argument("sweep", help="sweep file (see configs/sweeps/)")
+    w.add_argument("sweep", help="sweep file, or a preset sweep name (neural-brdf presets)")
     w.add_argument("--executor", choices=["local", "ray"], default="local",
                    help="local process pool (default) or Ray tasks")
     w.add_argument("--workers", type=int, help="parallel trials (default: the CPU cores)")
@@ -103,18 +111,33 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _train(args) -> int:
-    from . import config, train, validate
-    cfg = config.load(args.config, args.overrides)
+    from . import presets
+    path = presets.resolve(args.config)           # an unknown name fails before torch loads
+    from . import config
+    cfg = config.load(path, args.overrides)        # a bad config fails before torch loads
+    from . import train, validate
     run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
-    if not args.resume and (run_dir / "ckpt.pt").exists():
-        print(f"neural-brdf: starting a fresh run in {run_dir} (replacing its checkpoint; "
-              "use --resume to continue it)", file=sys.stderr)
-    report = train.run(cfg, run_dir, resume=args.resume)
+    report = train.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     print(validate.format_table(report))
     s = report["seconds"]
     print(f"run: {run_dir}  (train {s['train']:.1f} s, export {s['export']:.1f} s, "
           f"validate {s['validate']:.1f} s, report {s['report']:.1f} s: report.html)")
     return EXIT_OK if report["passed"] else EXIT_PHYSICS
+
+
+def _presets(args) -> int:
+    from . import presets
+    rows = presets.listing()
+    width = max(len(name) for name, _ in rows)
+    for name, text in rows:
+        print(f"{name:<{width}}  {text}")
+    print(f"\n{len(rows)} presets in {presets.directory()}; train one with: "
+          "neural-brdf train NAME [--out RUN_DIR] [--set KEY=VALUE]")
+    sweeps = presets.listing(folder="sweeps")
+    print("\nsweeps (neural-brdf sweep NAME [--executor ray]):")
+    for name, text in sweeps:
+        print(f"  {name:<{width - 2}}  {text}")
+    return EXIT_OK
 
 
 def _export(args) -> int:
@@ -215,8 +238,10 @@ def _view(args) -> int:
 
 
 def _sweep(args) -> int:
+    from . import presets
+    path = presets.resolve(args.sweep, folder="sweeps")
     from . import sweep
-    results = sweep.run_sweep(args.sweep, executor=args.executor, workers=args.workers,
+    results = sweep.run_sweep(path, executor=args.executor, workers=args.workers,
                               ray_address=args.ray_address, out=args.out,
                               progress=sweep.print_progress)
     print(sweep.summary_line(results))
@@ -239,14 +264,13 @@ def _codegen(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .config import InputError
-    from .export import ParityError
-    from .train import Diverged, Interrupted
+    # errors, not config/export/train: --help, --version and presets stay free of torch
+    from .errors import Diverged, InputError, Interrupted, ParityError
     try:
         args = _parser().parse_args(argv)
-        commands = {"train": _train, "export": _export, "validate": _validate,
-                    "bake": _bake, "render": _render, "report": _report, "sweep": _sweep,
-                    "codegen": _codegen, "view": _view}
+        commands = {"train": _train, "presets": _presets, "export": _export,
+                    "validate": _validate, "bake": _bake, "render": _render, "report": _report,
+                    "sweep": _sweep, "codegen": _codegen, "view": _view}
         return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)

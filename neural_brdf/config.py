@@ -16,22 +16,18 @@ it into exit code 2.  Types are strict: an integer setting does not accept ``2.5
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-FORMAT_VERSION = 1          # of the resolved config and of the exported model
+# The same classes as neural_brdf.errors (kept light for runtime and the CLI).
+from .errors import ConfigError, InputError  # noqa: F401  (re-exported: config.InputError)
 
-
-class InputError(ValueError):
-    """Bad input from the user (a file, a path, a value).  The message is one line and
-    names the offending key or file; the CLI prints it and exits with code 2."""
-
-
-class ConfigError(InputError):
-    """A config file or override is invalid."""
+# Of the resolved config, the checkpoint and the exported model (its ONNX model_version).
+FORMAT_VERSION = 1
 
 
 class _Section(BaseModel):
@@ -161,6 +157,7 @@ _Loader.add_implicit_resolver(
 
 
 def parse_yaml(text: str, *, source: str) -> Any:
+    """YAML text -> Python data; ConfigError (with line and column) on a syntax error."""
     try:
         return yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as e:
@@ -212,21 +209,32 @@ def from_dict(raw: Any, *, source: str = "config") -> Config:
         raise ConfigError(f"{source}: {_describe(errs[0])}{more}") from None
 
 
-def load(path: str | Path | None, overrides: list[str] = (), *, name: str | None = None) -> Config:
+def read_text(path: Path) -> str:
+    """A config file's text; ConfigError naming the file if it is unreadable or not UTF-8."""
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8)") from None
+
+
+def load(path: str | Path | None, overrides: Sequence[str] = (), *,
+         name: str | None = None) -> Config:
     """Read a YAML config (or start from the defaults when ``path`` is None), apply
     ``--set`` overrides and validate.  ``name`` defaults to the file's stem."""
     raw: dict = {}
     if path is not None:
         path = Path(path)
-        try:
-            text = path.read_text()
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+        text = read_text(path)
         raw = parse_yaml(text, source=str(path))
         if raw is None:
             raw = {}
         if not isinstance(raw, dict):
-            raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+            raise ConfigError(f"{path}: expected a mapping of keys at the top level, "
+                              f"got {type(raw).__name__}")
         if "name" not in raw:
             raw["name"] = name or path.stem
     for item in overrides:

@@ -6,6 +6,11 @@
     The graph is total: it normalises wi and wo itself, and a row with a NaN, an
     infinity or a zero-length direction gives f = 0 (other rows are unaffected).
 
+The ONNX model fields describe the file: ``producer_name`` "neural-brdf",
+``producer_version`` the package version (neural_brdf.version), ``model_version`` the
+integer ``config.FORMAT_VERSION`` (bumped when this contract changes) and ``doc_string``
+one paragraph: the target, the encoding and the input/output contract above.
+
 ``metadata_props`` (read with ``neural_brdf.load(path).metadata``):
 
     format_version, producer, frame, units, encoding, normalization, target,
@@ -30,6 +35,7 @@ import io
 import json
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
@@ -41,11 +47,14 @@ from analytic import physics
 from . import config as cfgmod
 from . import data, lobe, validate
 from .encoding import is_anisotropic
+from .errors import ParityError
 from .fileio import atomic_write
 from .model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
+from .version import __version__
 
-PRODUCER = "neural-brdf 0.1.0"
+PRODUCER_NAME = "neural-brdf"          # ONNX producer_name; producer_version: the package's
+PRODUCER = f"{PRODUCER_NAME} {__version__}"     # the ``producer`` metadata entry
 FRAME = ("local shading frame: z = normal, x = tangent (anisotropy axis), y = z cross x; "
          "wi and wo are unit vectors pointing away from the surface; f = 0 when "
          "wi_z <= 0 or wo_z <= 0")
@@ -64,11 +73,22 @@ class CheckpointError(cfgmod.InputError):
     """A run directory or checkpoint is missing or unusable."""
 
 
-class ParityError(RuntimeError):
-    """onnxruntime does not reproduce the torch model to ``export.parity_tol``."""
+def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
+    """The ONNX ``doc_string``: what the model is and its input/output contract."""
+    norm = ("albedo-normalised (max albedo <= 1 by construction)" if normalized
+            else "without albedo normalisation (an ablation)")
+    return (f"Neural BRDF ({PRODUCER_NAME} {__version__}) fitted to {target_desc}. "
+            f"Encoding: {cfg.model.encoding}; MLP hidden widths {cfg.model.hidden}; "
+            f"{norm}. Inputs wi, wo: float32 [N, 3] unit vectors in the local shading "
+            "frame (z = normal, x = tangent), both pointing away from the surface; output "
+            "f: float32 [N, 3], the RGB BRDF in 1/sr without the cosine factor, 0 when "
+            "either direction is at or below the horizon. The graph normalises wi and wo "
+            "itself and gives f = 0 for a row with a NaN, an infinity or a zero-length "
+            "direction, without affecting other rows. N is dynamic. Metadata "
+            "(metadata_props) hold the physics figures and the training config.")
 
 
-def load_checkpoint(path: Path) -> dict:
+def load_checkpoint(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint (train first, or check the run directory)")
     try:
@@ -83,7 +103,8 @@ def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:
     return raw.eval()
 
 
-def normalized_model(raw: RawBRDF, cfg: cfgmod.Config, target=None):
+def normalized_model(raw: RawBRDF, cfg: cfgmod.Config,
+                     target: Any = None) -> tuple[NormalizedBRDF | RawBRDF, dict[str, Any]]:
     """Tabulate A+ for ``raw`` and wrap it; returns (model, table info).
 
     With ``normalization.enabled: false`` (ablations) no table is built and the raw
@@ -157,8 +178,8 @@ def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)))
 
 
-def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, target_desc: str,
-           extra=None) -> dict:
+def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: str | Path, *,
+           target_desc: str, extra: Any = None) -> dict[str, Any]:
     """Write ``model`` to ``out`` with metadata; returns the measured figures.
 
     The graph written is ``TotalBRDF(model)``: it normalises its inputs and gives 0 for
@@ -203,12 +224,16 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: Path, *, ta
     }
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)
+    proto.producer_name = PRODUCER_NAME
+    proto.producer_version = __version__
+    proto.model_version = cfgmod.FORMAT_VERSION          # the file format, an integer
+    proto.doc_string = doc_string(cfg, target_desc, isinstance(model, NormalizedBRDF))
     onnx.checker.check_model(proto)
     atomic_write(Path(out), proto.SerializeToString(), parents=True)
     return {"parity_rel_error": parity, "float32_rel_precision": precision, "physics": phys}
 
 
-def export_run(run_dir, out=None) -> dict:
+def export_run(run_dir: str | Path, out: str | Path | None = None) -> dict[str, Any]:
     """``neural-brdf export RUN_DIR [-o OUT]``: checkpoint -> normalised model -> ONNX."""
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"

@@ -6,18 +6,21 @@
     brdf.metadata["max_albedo"]    # every metadata_props entry, as strings
     brdf.config                    # the training config (dict)
 
-This module needs numpy, onnxruntime and yaml only; it never imports torch.
+This module needs numpy, onnxruntime and yaml only; it never imports torch or pydantic
+(tests/test_packaging.py checks it in a fresh interpreter).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnxruntime as ort
 import yaml
+from numpy.typing import ArrayLike
 
-from .config import InputError
+from .errors import InputError
 
 INPUTS = ("wi", "wo")
 OUTPUT = "f"
@@ -50,14 +53,15 @@ class NeuralBRDF:
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
 
     @property
-    def config(self) -> dict:
+    def config(self) -> dict[str, Any]:
         return yaml.safe_load(self.metadata.get("training_config", "{}")) or {}
 
     @property
     def encoding(self) -> str:
         return self.metadata.get("encoding", "isotropic")
 
-    def eval(self, wi, wo) -> np.ndarray:
+    def eval(self, wi: ArrayLike, wo: ArrayLike) -> np.ndarray:
+        """f(wi, wo) in 1/sr: (..., 3) unit vectors (broadcast) -> (..., 3) float32 RGB."""
         wi = np.asarray(wi, dtype=np.float32)
         wo = np.asarray(wo, dtype=np.float32)
         wi, wo = np.broadcast_arrays(wi, wo)

@@ -20,7 +20,8 @@ A sweep file (YAML; paths in it are relative to the file)::
       nbrdf: path/to/merl_nbrdf_weights.npz
       names: [alum-bronze, gold-paint]         # or: all
 
-Each trial is ``train.run(cfg, run_dir)``: its own run directory under
+Each trial is ``train.run(cfg, run_dir, overwrite=True)`` (an unfinished trial is rerun
+from scratch in place): its own run directory under
 ``<out>/trials/<trial>/`` with ``config.yaml``, ``model.onnx``, ``metrics.json`` and the
 rest, plus ``trial.json``, written last, atomically, as the completion marker.
 ``results.csv`` and ``results.json`` gather every trial's overrides, status, error and
@@ -332,7 +333,7 @@ def run_trial(job: dict) -> dict:
         if job["materialise"]:
             _materialise(job["materialise"])
         cfg = cfgmod.from_dict(job["config"], source=f"trial {job['name']}")
-        record["metrics"] = _metrics(train.run(cfg, run_dir), cfg)
+        record["metrics"] = _metrics(train.run(cfg, run_dir, overwrite=True), cfg)
         record["status"] = "ok"
     except Exception as e:                      # noqa: BLE001 -- recorded, then the next trial
         record["status"] = "failed"

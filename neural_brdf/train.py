@@ -38,6 +38,10 @@ so an interrupted and resumed run ends with the same weights as an uninterrupted
 Resuming with a larger ``train.steps`` trains on; the cosine schedule then follows the
 new length.  ``target``, ``model``, ``data`` and the loss must match the checkpoint.
 
+A fresh run does not replace another run's files: ``run`` (and ``neural-brdf train``)
+refuses a folder holding model.onnx, metrics.json or ckpt.pt unless ``--resume`` (or
+``resume=True``) continues it or ``--overwrite`` (``overwrite=True``) replaces it.
+
 Checkpoints are written to a temporary file and renamed (atomic), loaded with
 ``weights_only=True``.  Ctrl-C finishes the current step, writes a checkpoint and raises
 :class:`Interrupted` (a second Ctrl-C aborts at once).  A non-finite loss or weight
@@ -53,6 +57,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import torch
 from tqdm import tqdm
@@ -60,6 +65,7 @@ from tqdm import tqdm
 from . import config as cfgmod
 from . import data, validate
 from . import export as exp
+from .errors import Diverged, InputError, Interrupted
 from .fileio import atomic_path, atomic_write
 from .model import RawBRDF
 
@@ -69,12 +75,37 @@ MUST_MATCH = ("target", "model", "data", "train.seed", "train.loss", "train.loss
 EVAL_PAIRS = 16384          # held-out importance-sampled pairs for the CSV's val_rel_rmse
 
 
-class Diverged(RuntimeError):
-    """The loss or the weights became NaN/inf."""
+# Finished-run outputs: their presence means a fresh run here would destroy a result.
+FINISHED_FILES = ("model.onnx", "metrics.json")
+# Removed by ``overwrite=True`` before a fresh run, so that an interrupted overwrite does
+# not leave the old run's results beside the new checkpoint.
+RUN_OUTPUTS = ("model.onnx", "metrics.json", "report.html", "report.md", "log.csv")
 
 
-class Interrupted(RuntimeError):
-    """Ctrl-C: a checkpoint was written; ``--resume`` continues."""
+class RunExists(InputError):
+    """A fresh run would replace a finished or unfinished one (exit code 2)."""
+
+
+def check_fresh_run_dir(run_dir: Path, *, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a fresh run over another run's files unless ``overwrite``.
+
+    A finished run (model.onnx or metrics.json) or an unfinished one (ckpt.pt) is kept
+    unless the caller resumes it or asks to overwrite it; ``overwrite`` then deletes
+    the old outputs (RUN_OUTPUTS and report-*.png).
+    """
+    if resume:
+        return
+    finished = [n for n in FINISHED_FILES if (run_dir / n).exists()]
+    if not overwrite:
+        if finished:
+            raise RunExists(f"{run_dir}: holds a finished run ({finished[0]}); choose another "
+                            "--out, continue it with --resume, or replace it with --overwrite")
+        if (run_dir / "ckpt.pt").exists():
+            raise RunExists(f"{run_dir}: holds an unfinished run (ckpt.pt); continue it with "
+                            "--resume or replace it with --overwrite")
+        return
+    for path in [*(run_dir / n for n in RUN_OUTPUTS), *run_dir.glob("report-*.png")]:
+        path.unlink(missing_ok=True)
 
 
 def default_run_dir(cfg: cfgmod.Config) -> Path:
@@ -151,7 +182,8 @@ def deferred_sigint():
 
 
 # ------------------------------------------------------------------ the run
-def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target=None):
+def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
+          target: Any = None) -> tuple[RawBRDF, dict[str, Any]]:
     """Optimise the raw network; writes ckpt.pt and log.csv.  Returns (network, figures).
 
     ``target`` is the model of ``cfg.target`` (``data.build_target``) when the caller
@@ -259,9 +291,15 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target=Non
                         "raw_val_rel_rmse": err, "target": target.describe()}
 
 
-def run(cfg: cfgmod.Config, run_dir: Path | None = None, *, resume: bool = False) -> dict:
-    """Train, export ``model.onnx``, validate it; returns (and writes) ``metrics.json``."""
+def run(cfg: cfgmod.Config, run_dir: str | Path | None = None, *, resume: bool = False,
+        overwrite: bool = False) -> dict[str, Any]:
+    """Train, export ``model.onnx``, validate it; returns (and writes) ``metrics.json``.
+
+    A fresh run (no ``resume``) into a folder that already holds a run raises
+    :class:`RunExists` unless ``overwrite`` (see :func:`check_fresh_run_dir`).
+    """
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
+    check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
     t0 = time.perf_counter()
     target = data.build_target(cfg.target)
     raw, training = train(cfg, run_dir, resume=resume, target=target)

@@ -31,8 +31,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +73,8 @@ def furnace_directions(n_theta: int, anisotropic: bool, seed: int) -> torch.Tens
     return analytic.frame.spherical(theta, phi).reshape(-1, 3)
 
 
-def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, extra=None) -> dict:
+def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation,
+            extra: Any = None) -> dict[str, Any]:
     """Physics checks of ``fn(wi, wo)`` on numpy (N, 3) arrays -> a report dict."""
     s = settings
     recip = analytic.reciprocity_error(fn, n=s.pairs, seed=s.seed)
@@ -103,7 +105,7 @@ def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, ext
             "furnace": {"directions": len(dirs), "samples": s.furnace_samples}}
 
 
-def accuracy(fn: Callable, reference, *, n: int, seed: int) -> dict:
+def accuracy(fn: Callable, reference: Any, *, n: int, seed: int) -> dict[str, Any]:
     """Error of ``fn`` (numpy in/out) against ``reference`` (an analytic BRDF or a
     :class:`data.MeasuredTarget`) on :func:`data.accuracy_pairs`; ``n`` applies to
     analytic references (a measured one is compared on all its bins)."""
@@ -131,7 +133,7 @@ def accuracy(fn: Callable, reference, *, n: int, seed: int) -> dict:
             "rel_rmse_by_incidence": bands, "worst": worst}
 
 
-def reference_from(path) -> object:
+def reference_from(path: str | Path) -> Any:
     """``--reference``: a YAML config (its target), a MERL ``.binary`` or an RGL ``.bsdf``
     file."""
     if Path(path).suffix.lower() in data.MEASURED_SUFFIXES:
@@ -139,8 +141,9 @@ def reference_from(path) -> object:
     return data.build_target(cfgmod.load(path).target)
 
 
-def report(model_path, *, reference=None,
-           settings: cfgmod.Validation | None = None, physics_report: dict | None = None) -> dict:
+def report(model_path: str | Path, *, reference: Any = None,
+           settings: cfgmod.Validation | None = None,
+           physics_report: dict[str, Any] | None = None) -> dict[str, Any]:
     """Full report of an exported model; ``["passed"]`` is the physics verdict.
 
     ``reference``: a :class:`Config` (its target is built), or a target already built
@@ -170,7 +173,7 @@ def report(model_path, *, reference=None,
     return out
 
 
-def format_table(report: dict) -> str:
+def format_table(report: dict[str, Any]) -> str:
     rows = [("check", "value", "limit", "result")]
     for name, c in report["checks"].items():
         op = "<=" if name != "min_value" else ">="
@@ -203,7 +206,7 @@ def _finite(x):
     return x
 
 
-def write_json(report: dict, path) -> None:
+def write_json(report: dict[str, Any], path: str | Path) -> None:
     """Write ``report`` as strict JSON, atomically (a temporary file, then a rename)."""
     path = Path(path)
     text = json.dumps(_finite(report), indent=2, allow_nan=False) + "\n"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from neural_brdf import export, train
+from neural_brdf import config, export, train
 from neural_brdf.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -136,3 +137,49 @@ def test_neural_brdf_and_train_py_agree(capsys, run_dir, tmp_path):
     a = torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
     b = torch.load(out / "ckpt.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("content, needle", [
+    (bytes(range(256)) * 4, "not a YAML text file"),          # binary garbage
+    (b"\xff\xfetarget: {}\n", "not UTF-8"),                   # UTF-16 BOM, not UTF-8
+    (b"- a\n- b\n", "mapping"),                                # a list
+    (b"just a string\n", "mapping"),                           # a scalar
+    (b"target: [\n", "invalid YAML"),
+    (b"train:\x00 {}\n", "invalid YAML"),                      # a NUL in UTF-8 text
+])
+def test_unreadable_or_non_mapping_config_exits_2_naming_the_file(tmp_path, content, needle):
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(content)
+    proc = run("-m", "neural_brdf", "train", str(bad), "--out", str(tmp_path / "r"))
+    assert_one_line_error(proc.returncode, proc.stderr, str(bad), needle)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_finished_run_is_not_replaced_without_overwrite(capsys, run_dir, tmp_path):
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = (done / "metrics.json").read_bytes()
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS)
+    assert_one_line_error(code, err, str(done), "finished", "--resume", "--overwrite")
+    assert (done / "metrics.json").read_bytes() == before
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(done), "--resume", "--overwrite")
+    assert_one_line_error(code, err, "--overwrite")
+    # --overwrite replaces it: a 5-step run's metrics, and no stale report or model left over
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS,
+                       "--set", "train.steps=5", "--overwrite")
+    assert code == 0, err
+    assert json.loads((done / "metrics.json").read_text())["training"]["steps"] == 5
+
+
+def test_an_unfinished_run_needs_resume_or_overwrite(capsys, tmp_path):
+    half = tmp_path / "half"
+    cfg = config.load(ROOT / "configs" / "lambert.yaml", TINY + ["train.steps=4"])
+    train.train(cfg, half)                       # ckpt.pt, no model.onnx: unfinished
+    (half / "keep.txt").write_text("mine")
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(half), *SETS)
+    assert_one_line_error(code, err, str(half), "unfinished", "--resume", "--overwrite")
+    assert torch.load(half / "ckpt.pt", weights_only=True)["step"] == 4
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(half), *SETS, "--resume")
+    assert code == 0, err
+    assert json.loads((half / "metrics.json").read_text())["training"]["steps"] == 10
+    assert (half / "keep.txt").read_text() == "mine"

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -208,3 +212,69 @@ def test_run_files_get_normal_permissions(gold_run):
     os.umask(mask)
     for name in ("model.onnx", "metrics.json", "ckpt.pt", "config.yaml", "report.html"):
         assert os.stat(run_dir / name).st_mode & 0o777 == 0o666 & ~mask, name
+
+
+def test_onnx_file_describes_itself(gold_run):
+    run_dir, cfg, _ = gold_run
+    proto = onnx.load(run_dir / "model.onnx")
+    assert proto.producer_name == "neural-brdf"
+    assert proto.producer_version == neural_brdf.__version__
+    assert proto.model_version == config.FORMAT_VERSION == int(
+        neural_brdf.load(run_dir / "model.onnx").metadata["format_version"])
+    doc = proto.doc_string
+    target = data.build_target(cfg.target).describe()
+    for needle in [target, "anisotropic", "wi, wo", "1/sr", "horizon", "albedo-normalised"]:
+        assert needle in doc, needle
+
+
+# ------------------------------------------------------------------ a killed process
+KILL_STEPS = 600
+KILL_SETS = TINY + [f"train.steps={KILL_STEPS}", "train.checkpoint_every=20",
+                    "train.log_every=10", "train.eval_every=0"]
+
+
+def train_cli(run_dir: Path, *extra: str) -> subprocess.Popen:
+    sets = [a for kv in KILL_SETS for a in ("--set", kv)]
+    env = dict(os.environ, PYTHONPATH=str(CONFIGS.parent))
+    return subprocess.Popen([sys.executable, "-m", "neural_brdf", "train", "lambert", "--out",
+                             str(run_dir), *sets, *extra], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def logged_steps(run_dir: Path) -> int:
+    try:
+        rows = (run_dir / "log.csv").read_text().splitlines()[1:]
+    except OSError:
+        return 0
+    return max((int(r.split(",")[0]) for r in rows if r.count(",") >= 4), default=0)
+
+
+def test_sigkill_mid_run_then_resume_matches_an_uninterrupted_run(tmp_path):
+    killed, straight = tmp_path / "killed", tmp_path / "straight"
+    proc = train_cli(killed)
+    deadline = time.monotonic() + 300
+    while logged_steps(killed) < 120 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.kill()                                    # SIGKILL: no handler, no last checkpoint
+    proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    step = torch.load(killed / "ckpt.pt", weights_only=True)["step"]
+    assert 100 <= step < KILL_STEPS and not (killed / "model.onnx").exists()
+
+    refused = train_cli(killed)                    # no --resume: refused, nothing touched
+    _, err = refused.communicate(timeout=300)
+    assert refused.returncode == 2 and "--resume" in err and "Traceback" not in err
+    resumed = train_cli(killed, "--resume")
+    reference = train_cli(straight)
+    for p in (resumed, reference):
+        out, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err
+    a = json.loads((killed / "metrics.json").read_text())
+    b = json.loads((straight / "metrics.json").read_text())
+    assert a["training"]["steps"] == b["training"]["steps"] == KILL_STEPS
+    assert a["training"]["final_loss"] == b["training"]["final_loss"]
+    assert a["accuracy"] == b["accuracy"] and a["checks"] == b["checks"]
+    assert same(weights(killed), weights(straight))
+    with open(killed / "log.csv") as fh:
+        steps = [int(r["step"]) for r in csv.DictReader(fh)]
+    assert steps == list(range(10, KILL_STEPS + 1, 10))   # no row lost or repeated

@@ -1,0 +1,32 @@
+"""The exceptions the command line maps to exit codes, in a module with no heavy imports.
+
+    from neural_brdf.errors import InputError          # == neural_brdf.config.InputError
+    raise InputError("train.steps: must be >= 0")      # -> one line on stderr, exit code 2
+
+``runtime`` (onnxruntime only), ``cli`` and the light entry points import from here so
+that evaluating an ONNX file or printing ``neural-brdf --help`` never loads torch or
+pydantic.  ``config``, ``train`` and ``export`` re-export these same classes.
+"""
+
+from __future__ import annotations
+
+
+class InputError(ValueError):
+    """Bad input from the user (a file, a path, a value).  The message is one line and
+    names the offending key or file; the CLI prints it and exits with code 2."""
+
+
+class ConfigError(InputError):
+    """A config file or override is invalid."""
+
+
+class Diverged(RuntimeError):
+    """The loss or the weights became NaN/inf (exit code 1)."""
+
+
+class Interrupted(RuntimeError):
+    """Ctrl-C: a checkpoint was written; ``--resume`` continues (exit code 130)."""
+
+
+class ParityError(RuntimeError):
+    """onnxruntime does not reproduce the torch model to ``export.parity_tol`` (exit 1)."""
