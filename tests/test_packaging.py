@@ -178,6 +178,11 @@ def test_wheel_ships_presets_typing_and_license(tmp_path):
     missing = [c for c in configs if f"neural_brdf/configs/{c}" not in names]
     assert missing == []
     assert {"neural_brdf/py.typed", "analytic/py.typed"} <= names
+    # every source file of the two packages (subpackages, the viewer's script, data)
+    shipped = sorted(p.relative_to(ROOT).as_posix() for name in ("analytic", "neural_brdf")
+                     for p in (ROOT / name).rglob("*")
+                     if p.is_file() and p.suffix in (".py", ".js", ".json", ".typed"))
+    assert [f for f in shipped if f not in names] == []
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names)
     assert not [n for n in names if n.split("/")[0] in ("configs", "tests", "benchmarks")]
     meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
