@@ -131,7 +131,7 @@ def main(argv=None) -> int:
 
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+        "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "loadavg": list(os.getloadavg()),
         "model": str(model_path) if args.model else f"quickstart, {args.steps} steps",
         "resolution": args.resolution, "spp": args.spp, "ref_spp": args.ref_spp,
         "bake": {"seconds": bake_s, "bytes": size,

@@ -330,6 +330,52 @@ def sweep_timing_section(d: dict) -> list[str]:
     return out
 
 
+def codegen_c_section(d: dict) -> list[str]:
+    m = d["machine"]
+    load = "{:.1f} before, {:.1f} after".format(m["loadavg_before"][0], m["loadavg_after"][0])
+    out = ["## Generated C against onnxruntime", "",
+           _source("benchmarks/results/codegen_c.json", "python benchmarks/codegen_c.py"),
+           _recorded(d["created"], f"{m['cpu']}, {m['cores']} cores", load),
+           f"`{m['compiler']}` with `{' '.join(m['cflags'])}`; one thread; best of "
+           f"{d['rounds']} interleaved rounds. Models: {d['models']}.", ""]
+    rows, big = [], f"batch_{d['batch']}"
+    for name, r in d["results"].items():
+        c, o, x = r["c_evals_per_s"], r["onnxruntime_evals_per_s"], r["c_over_onnxruntime"]
+        rows.append([name, _rate(c["batch_1"]), _rate(o["batch_1"]), f"{x['batch_1']:.3g}×",
+                     _rate(c[big]), _rate(o[big]), f"{x[big]:.3g}×",
+                     f"{r['c_parity_rel_error']:.2g}"])
+    out += _table(["encoding", "C, batch 1 (/s)", "ORT, batch 1 (/s)", "C / ORT",
+                   f"C, batch {d['batch']} (/s)", f"ORT, batch {d['batch']} (/s)", "C / ORT",
+                   "parity (rel.)"], rows)
+    return out
+
+
+def rgl_render_section(d: dict) -> list[str]:
+    b, t, q = d["bake"], d["render_seconds"], d["psnr_db"]
+    res = ", ".join(f"{k} {v}" for k, v in b["resolutions"].items())
+    out = ["## RGL `.bsdf` bake rendered by Mitsuba's `measured` plugin", "",
+           _source("benchmarks/results/rgl_render.json", "python benchmarks/rgl_render.py"),
+           _recorded(d["date"], f"{d['machine']}, {d['cpus']} cores",
+                     _load(d["loadavg"]) if "loadavg" in d else None),
+           f"Model: {d['model']}; {d['resolution']}², {d['spp']} spp (references "
+           f"{d['ref_spp']} spp). Bake: {b['bytes'] / 2**20:.1f} MiB ({res}) in "
+           f"{b['seconds']:.1f} s.", ""]
+    out += _table(["figure", "value"], [
+        ["baked file vs model, rel. RMSE of f cos (uniform pairs)",
+         _pct(b["rel_rmse_f_cos_uniform_pairs"])],
+        ["baked file vs model at the table nodes", f"{b['rel_rmse_f_cos_at_nodes']:.2g}"],
+        ["PSNR, `measured` vs `neural_brdf` (both at the reference spp)",
+         f"{q['measured_ref_vs_neural_ref']:.1f} dB"],
+        [f"PSNR at {d['spp']} spp vs the neural reference: `neural_brdf`",
+         f"{q['neural_vs_neural_ref']:.1f} dB"],
+        [f"PSNR at {d['spp']} spp vs the neural reference: `measured`",
+         f"{q['measured_vs_neural_ref']:.1f} dB"],
+        [f"render time at {d['spp']} spp, `neural_brdf` / `measured`",
+         f"{t['neural']:.1f} s / {t['measured']:.1f} s"],
+    ])
+    return out
+
+
 # ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
@@ -339,6 +385,8 @@ SECTIONS = (
     (RESULTS / "mitsuba_presets.json", mitsuba_presets_section),
     (RESULTS / "neural_throughput.json", neural_throughput_section),
     (RESULTS / "analytic_throughput.json", analytic_throughput_section),
+    (RESULTS / "codegen_c.json", codegen_c_section),
+    (RESULTS / "rgl_render.json", rgl_render_section),
     (SWEEP_TIMING, sweep_timing_section),
 )
 
