@@ -50,7 +50,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from .config import InputError
+from .errors import InputError
 
 # A shape vector (the value of an ONNX Shape op) holds this in place of the batch size N,
 # which is unknown while lowering.  Far from -1 and 0, which Reshape and Expand give

@@ -39,7 +39,7 @@ import torch
 from analytic import frame
 from analytic.microfacet import Distribution
 
-from .config import InputError
+from .errors import InputError
 from .runtime import OUTPUT
 
 KEY = "sampling_lobe"              # ONNX metadata key

@@ -85,7 +85,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import InputError
+from .errors import InputError
 from .fileio import atomic_write
 
 # ------------------------------------------------------------------ tensor file

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import InputError
+from .errors import InputError
 from .fileio import atomic_write
 
 SPHERE = 256                # sphere view size in pixels

@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import graph
 from .. import lobe as lobes
-from ..config import InputError
+from ..errors import InputError
 from . import lobe as lobe_ir
 
 PREFIX = "neural_brdf"
