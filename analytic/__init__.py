@@ -68,6 +68,14 @@ from .physics import (  # noqa: E402  (physics uses the registry-free base only)
 )
 
 __all__ = [
-    "BRDF", "ParameterError", "available", "create", "model_class",
-    "albedo", "hemispherical_albedo", "min_value", "reciprocity_error", "weak_white_furnace",
+    "BRDF",
+    "ParameterError",
+    "available",
+    "create",
+    "model_class",
+    "albedo",
+    "hemispherical_albedo",
+    "min_value",
+    "reciprocity_error",
+    "weak_white_furnace",
 ]

@@ -52,10 +52,12 @@ class AshikhminShirley(BRDF):
     reciprocal = True
     energy_conserving = True
     anisotropic = True
-    notes = ("Eq. 24.5 implemented (the seed's typeset 24.9 misplaces the denominator "
-             "inside the exponent). Measured max total albedo 0.9996 (rs = 1, "
-             "n_u = n_v = 1e4, normal incidence); rd = 1, rs = 0 gives at most 0.969 "
-             "(31/32 diffuse + small specular). Energy conserving for rd, rs in [0, 1].")
+    notes = (
+        "Eq. 24.5 implemented (the seed's typeset 24.9 misplaces the denominator "
+        "inside the exponent). Measured max total albedo 0.9996 (rs = 1, "
+        "n_u = n_v = 1e4, normal incidence); rd = 1, rs = 0 gives at most 0.969 "
+        "(31/32 diffuse + small specular). Energy conserving for rd, rs in [0, 1]."
+    )
     param_space = {
         "rd": ("rgb", 0.0, 1.0),
         "rs": ("rgb", 0.0, 1.0),
@@ -125,17 +127,25 @@ class AshikhminShirley(BRDF):
         s = wi + wo
         norm = torch.linalg.vector_norm(s, dim=-1)
         h = s / norm.clamp_min(1e-30)[..., None]
-        kh = (0.5 * norm).clamp_min(frame.EPS_COS)                     # k.h = |wi + wo| / 2
+        kh = (0.5 * norm).clamp_min(frame.EPS_COS)  # k.h = |wi + wo| / 2
         ci, co = wi[..., 2], wo[..., 2]
         cmax = torch.maximum(ci, co).clamp_min(frame.EPS_COS)
         # seed 000, eq. 24.5
-        spec = (math.sqrt((nu + 1.0) * (nv + 1.0)) / (8.0 * math.pi)
-                * clamped_power(h[..., 2], self._hexp(h)) / (kh * cmax))
+        spec = (
+            math.sqrt((nu + 1.0) * (nv + 1.0))
+            / (8.0 * math.pi)
+            * clamped_power(h[..., 2], self._hexp(h))
+            / (kh * cmax)
+        )
         fs = spec[..., None] * self._schlick(rs, kh)
         # seed 000, eq. 24.7
-        fd = (28.0 / (23.0 * math.pi)) * rd * (1.0 - rs) \
+        fd = (
+            (28.0 / (23.0 * math.pi))
+            * rd
+            * (1.0 - rs)
             * (self._diffuse_shape(ci) * self._diffuse_shape(co))[..., None]
-        return fs + fd                                                  # seed 000, eq. 24.8
+        )
+        return fs + fd  # seed 000, eq. 24.8
 
     def _lobes(self, wi) -> list[Lobe]:
         rd = self.const(self.params["rd"], wi)
@@ -145,5 +155,7 @@ class AshikhminShirley(BRDF):
         # albedo is about F for narrow lobes), floored so the lobe is always sampled.
         wd = (rd * (1.0 - rs)).mean(-1) * self._diffuse_shape(ci)
         ws = self._schlick(rs, ci).mean(-1).clamp_min(0.05)
-        return [Lobe(wd, frame.square_to_cosine_hemisphere, frame.cosine_hemisphere_pdf),
-                half_vector_lobe(wi, ws, self._sample_h, self._pdf_h)]
+        return [
+            Lobe(wd, frame.square_to_cosine_hemisphere, frame.cosine_hemisphere_pdf),
+            half_vector_lobe(wi, ws, self._sample_h, self._pdf_h),
+        ]

@@ -53,7 +53,7 @@ def normalization(n: float) -> float:
     k = int(np.argmax(vals))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
     g = (math.sqrt(5.0) - 1.0) / 2.0
-    for _ in range(60):                      # golden section on [lo, hi]
+    for _ in range(60):  # golden section on [lo, hi]
         c, d = hi - g * (hi - lo), lo + g * (hi - lo)
         if lobe_albedo(c, n) >= lobe_albedo(d, n):
             hi = d
@@ -96,8 +96,10 @@ class Bank(BRDF):
     reciprocal = True
     energy_conserving = True
     anisotropic = True
-    notes = ("Seed lobe divided by N(n) = (1 + 1e-4) x max_wi of its albedo (1-D "
-             "quadrature, cached); kd / pi added; kd + ks <= 1 enforced; T = +x.")
+    notes = (
+        "Seed lobe divided by N(n) = (1 + 1e-4) x max_wi of its albedo (1-D "
+        "quadrature, cached); kd / pi added; kd + ks <= 1 enforced; T = +x."
+    )
     param_space = {
         "kd": ("rgb", 0.0, 0.5),
         "ks": ("rgb", 0.0, 0.5),
@@ -132,7 +134,7 @@ class Bank(BRDF):
     # ---------------------------------------------------------------- cone sampling
     def _cone_lobe(self, wi: torch.Tensor, weight: float) -> Lobe:
         g = self._gamma
-        b0 = torch.acos((-wi[..., 0]).clamp(-1.0, 1.0))          # B0 = pi - A
+        b0 = torch.acos((-wi[..., 0]).clamp(-1.0, 1.0))  # B0 = pi - A
         lo = torch.atan(-b0 / g)
         hi = torch.atan((math.pi - b0) / g)
         w = torch.as_tensor(weight, dtype=wi.dtype, device=wi.device).expand(wi.shape[:-1])

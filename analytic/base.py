@@ -23,8 +23,8 @@ approximate their albedo ("mixtures choose lobes by albedo weight").
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -51,8 +51,9 @@ def rgb(name: str, value, *, lo: float = 0.0, hi: float = 1.0) -> tuple[float, f
     return tuple(float(a) for a in arr)
 
 
-def scalar(name: str, value, *, lo: float = -math.inf, hi: float = math.inf,
-           lo_open: bool = False) -> float:
+def scalar(
+    name: str, value, *, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False
+) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -69,8 +70,10 @@ def rgb_pair(name_a: str, a, name_b: str, b) -> tuple[tuple, tuple]:
     """Two RGB albedos that share the energy: each in [0, 1], their sum <= 1 per channel."""
     a, b = rgb(name_a, a), rgb(name_b, b)
     if any(x + y > 1.0 + 1e-12 for x, y in zip(a, b)):
-        raise ParameterError(f"{name_b}: {name_a} + {name_b} must be <= 1 per channel, "
-                             f"got {name_a}={a}, {name_b}={b}")
+        raise ParameterError(
+            f"{name_b}: {name_a} + {name_b} must be <= 1 per channel, "
+            f"got {name_a}={a}, {name_b}={b}"
+        )
     return a, b
 
 
@@ -115,9 +118,9 @@ def _out(t: torch.Tensor, is_numpy: bool):
 class Lobe:
     """One sampling strategy of a model: its mixture weight, sampler and density."""
 
-    weight: torch.Tensor                                   # (...), >= 0, unnormalised
-    sample: Callable[[torch.Tensor], torch.Tensor]         # u (..., 2) -> wo (..., 3)
-    pdf: Callable[[torch.Tensor], torch.Tensor]            # wo (..., 3) -> (...)
+    weight: torch.Tensor  # (...), >= 0, unnormalised
+    sample: Callable[[torch.Tensor], torch.Tensor]  # u (..., 2) -> wo (..., 3)
+    pdf: Callable[[torch.Tensor], torch.Tensor]  # wo (..., 3) -> (...)
 
 
 def cosine_lobe(wi: torch.Tensor, weight) -> Lobe:
@@ -134,10 +137,10 @@ class BRDF:
     """Base class.  Subclasses set the class attributes and implement ``_f`` and ``_lobes``."""
 
     name: str = "brdf"
-    reciprocal: bool = True          # f(wi, wo) == f(wo, wi) exactly (tested to 1e-6)
-    energy_conserving: bool = True   # rho(wi) <= 1 for all wi (tested to 1e-3)
-    anisotropic: bool = False        # depends on the azimuth of the tangent frame
-    notes: str = ""                  # what differs from the seed formula, and why
+    reciprocal: bool = True  # f(wi, wo) == f(wo, wi) exactly (tested to 1e-6)
+    energy_conserving: bool = True  # rho(wi) <= 1 for all wi (tested to 1e-3)
+    anisotropic: bool = False  # depends on the azimuth of the tangent frame
+    notes: str = ""  # what differs from the seed formula, and why
     # The parameter ranges the property tests draw from (tests/strategies.py), also a
     # summary for users.  name -> ("float", lo, hi) | ("logfloat", lo, hi) |
     # ("rgb", lo, hi) | ("choice", [options]).  Ranges are chosen so that any draw is
@@ -145,7 +148,7 @@ class BRDF:
     param_space: dict = {}
 
     def __init__(self, **params):
-        self.params: dict = params   # the resolved parameters (plain Python values)
+        self.params: dict = params  # the resolved parameters (plain Python values)
 
     def __repr__(self) -> str:
         body = ", ".join(f"{k}={v!r}" for k, v in self.params.items())
@@ -194,7 +197,7 @@ class BRDF:
         total = weights.sum(-1, keepdim=True)
         cdf = torch.cumsum(weights, -1) / total.clamp_min(1e-30)
         u0 = u[..., 0:1]
-        idx = (u0 >= cdf).sum(-1).clamp_max(len(lobes) - 1)                  # chosen lobe
+        idx = (u0 >= cdf).sum(-1).clamp_max(len(lobes) - 1)  # chosen lobe
         lo = torch.where(idx > 0, cdf.gather(-1, (idx - 1).clamp_min(0)[..., None])[..., 0], 0.0)
         hi = cdf.gather(-1, idx[..., None])[..., 0]
         # Re-use the selection number so every lobe still sees a uniform u0.
@@ -203,7 +206,7 @@ class BRDF:
         if len(lobes) == 1:
             wo = lobes[0].sample(ur)
         else:
-            cand = torch.stack([l.sample(ur) for l in lobes], -2)           # (..., L, 3)
+            cand = torch.stack([l.sample(ur) for l in lobes], -2)  # (..., L, 3)
             wo = cand.gather(-2, idx[..., None, None].expand(idx.shape + (1, 3)))[..., 0, :]
         pdf = self.pdf_t(wi, wo)
         return wo, pdf

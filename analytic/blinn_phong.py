@@ -53,8 +53,14 @@ def normalization_closed_form(n: float) -> float:
          = 8 pi [ 2 (1 - 2^{-(n+4)/2}) / (n+4) - (1 - 2^{-(n+2)/2}) / (n+2) ].
     I(0) = pi (a Lambertian lobe); I(n) ~ 8 pi / n for large n.
     """
-    return 8.0 * math.pi * (2.0 * (1.0 - 2.0 ** (-(n + 4.0) / 2.0)) / (n + 4.0)
-                            - (1.0 - 2.0 ** (-(n + 2.0) / 2.0)) / (n + 2.0))
+    return (
+        8.0
+        * math.pi
+        * (
+            2.0 * (1.0 - 2.0 ** (-(n + 4.0) / 2.0)) / (n + 4.0)
+            - (1.0 - 2.0 ** (-(n + 2.0) / 2.0)) / (n + 2.0)
+        )
+    )
 
 
 class BlinnPhong(BRDF):
@@ -89,8 +95,10 @@ class BlinnPhong(BRDF):
     reciprocal = True
     energy_conserving = True
     anisotropic = False
-    notes = ("Normalised so the specular lobe's albedo is exactly 1 at normal incidence, "
-             "closed-form I(n); measured to be the maximum over wi for n in [0, 1000].")
+    notes = (
+        "Normalised so the specular lobe's albedo is exactly 1 at normal incidence, "
+        "closed-form I(n); measured to be the maximum over wi for n in [0, 1000]."
+    )
     param_space = {
         "kd": ("rgb", 0.0, 0.5),
         "ks": ("rgb", 0.0, 0.5),
@@ -126,5 +134,7 @@ class BlinnPhong(BRDF):
             c = h[..., 2]
             return torch.where(c > 0, frame.power_cosine_pdf(c, n), torch.zeros_like(c))
 
-        return [cosine_lobe(wi, wd),
-                half_vector_lobe(wi, ws, lambda u: frame.square_to_power_cosine(u, n), pdf_h)]
+        return [
+            cosine_lobe(wi, wd),
+            half_vector_lobe(wi, ws, lambda u: frame.square_to_power_cosine(u, n), pdf_h),
+        ]

@@ -39,10 +39,12 @@ class Coupled(BRDF):
     reciprocal = True
     energy_conserving = True
     anisotropic = False
-    notes = ("Diffuse prefactor 21/(20 pi) (1 - R0): seed 000 eq. 24.3 drops the (1 - R0)^2 "
-             "of f(theta) f(theta') and, as printed, is not energy conserving "
-             "(R0 + Rm/(1 - R0) at normal incidence). The Dirac specular lobe is not part "
-             "of eval: see delta_reflectance / delta_direction.")
+    notes = (
+        "Diffuse prefactor 21/(20 pi) (1 - R0): seed 000 eq. 24.3 drops the (1 - R0)^2 "
+        "of f(theta) f(theta') and, as printed, is not energy conserving "
+        "(R0 + Rm/(1 - R0) at normal incidence). The Dirac specular lobe is not part "
+        "of eval: see delta_reflectance / delta_direction."
+    )
     param_space = {
         "rm": ("rgb", 0.0, 1.0),
         "r0": ("float", 0.0, 0.95),
@@ -71,7 +73,7 @@ class Coupled(BRDF):
         return k * rm * shape[..., None]
 
     def _lobes(self, wi):
-        return [cosine_lobe(wi, 1.0)]          # seed 000, fig. 24.5: cos(theta) / pi
+        return [cosine_lobe(wi, 1.0)]  # seed 000, fig. 24.5: cos(theta) / pi
 
     # ------------------------------------------------------------------ Dirac lobe
     def _delta_reflectance_t(self, wi: torch.Tensor) -> torch.Tensor:
@@ -90,4 +92,3 @@ class Coupled(BRDF):
         """The mirror direction of wi about the normal (where the Dirac lobe sends light)."""
         is_np, (wi_t,) = _common(wi)
         return _out(frame.reflect_z(wi_t), is_np)
-

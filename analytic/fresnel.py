@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import math
-from functools import lru_cache
+from functools import cache
 from importlib import resources
 
 import torch
@@ -26,7 +26,7 @@ def schlick(f0, cos: torch.Tensor) -> torch.Tensor:
     """Schlick 1994: F = F0 + (1 - F0)(1 - cos)^5.  # seed 000, eq. 24.6; seed 004, 9.2.4"""
     f0 = _rgb_like(f0, cos)
     m = (1.0 - cos.clamp(0.0, 1.0))[..., None]
-    return f0 + (1.0 - f0) * m ** 5
+    return f0 + (1.0 - f0) * m**5
 
 
 def schlick_f0(eta: float) -> float:
@@ -42,7 +42,7 @@ def dielectric(eta, cos: torch.Tensor) -> torch.Tensor:
     """
     eta = _rgb_like(eta, cos)
     ci = cos.clamp(0.0, 1.0)[..., None]
-    sin2_t = (1.0 - ci * ci) / (eta * eta)                       # Snell, seed 004, 9.1.3
+    sin2_t = (1.0 - ci * ci) / (eta * eta)  # Snell, seed 004, 9.1.3
     tir = sin2_t >= 1.0
     ct = torch.sqrt((1.0 - sin2_t).clamp_min(0.0))
     rs = (ci - eta * ct) / (ci + eta * ct).clamp_min(1e-30)
@@ -60,7 +60,7 @@ def conductor(eta, k, cos: torch.Tensor) -> torch.Tensor:
     c2 = c * c
     s2 = 1.0 - c2
     t0 = eta * eta - k * k - s2
-    a2b2 = torch.sqrt(t0 * t0 + 4.0 * eta * eta * k * k)           # a^2 + b^2
+    a2b2 = torch.sqrt(t0 * t0 + 4.0 * eta * eta * k * k)  # a^2 + b^2
     a = torch.sqrt((0.5 * (a2b2 + t0)).clamp_min(0.0))
     rs = (a2b2 + c2 - 2.0 * a * c) / (a2b2 + c2 + 2.0 * a * c).clamp_min(1e-30)
     t1 = a2b2 * c2 + s2 * s2
@@ -69,8 +69,9 @@ def conductor(eta, k, cos: torch.Tensor) -> torch.Tensor:
     return 0.5 * (rs + rp)
 
 
-def thin_film(film_eta: float, thickness_nm: float, eta, cos: torch.Tensor,
-              wavelengths=FILM_WAVELENGTHS) -> torch.Tensor:
+def thin_film(
+    film_eta: float, thickness_nm: float, eta, cos: torch.Tensor, wavelengths=FILM_WAVELENGTHS
+) -> torch.Tensor:
     """Air / non-absorbing film (index ``film_eta``, ``thickness_nm``) / dielectric
     substrate (index ``eta``), with all internal reflections summed (Airy):
 
@@ -93,7 +94,7 @@ def thin_film(film_eta: float, thickness_nm: float, eta, cos: torch.Tensor,
     c1 = torch.sqrt((1.0 - s1sq).clamp_min(0.0))
     c2 = torch.sqrt((1.0 - s2sq).clamp_min(0.0))
 
-    def amp(na, ca, nb, cb):                       # s and p amplitude reflectances a -> b
+    def amp(na, ca, nb, cb):  # s and p amplitude reflectances a -> b
         rs = (na * ca - nb * cb) / (na * ca + nb * cb).clamp_min(1e-30)
         rp = (nb * ca - na * cb) / (nb * ca + na * cb).clamp_min(1e-30)
         return rs, rp
@@ -111,7 +112,7 @@ def thin_film(film_eta: float, thickness_nm: float, eta, cos: torch.Tensor,
     return torch.where(tir, torch.ones_like(f), f).clamp(0.0, 1.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _presets() -> dict:
     text = resources.files("analytic").joinpath("data/conductors.json").read_text()
     return json.loads(text)
@@ -126,5 +127,8 @@ def conductor_ior(material: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     table = _presets()
     if material not in table or material.startswith("_"):
         from .base import ParameterError
-        raise ParameterError(f"material: unknown conductor {material!r}; presets: {conductor_presets()}")
+
+        raise ParameterError(
+            f"material: unknown conductor {material!r}; presets: {conductor_presets()}"
+        )
     return tuple(table[material]["eta"]), tuple(table[material]["k"])

@@ -44,8 +44,8 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from . import fresnel as fr
 from . import frame
+from . import fresnel as fr
 from .base import BRDF, Lobe, ParameterError, choice, cosine_lobe, rgb, scalar
 
 # Smallest alpha used in evaluation.  Below it the GGX peak 1/(pi a^2) and the slope
@@ -77,7 +77,7 @@ class Distribution:
         else:
             # seed 004, 9.2.2 (Beckmann), anisotropic slopes
             e = ((h[..., 0] / ax) ** 2 + (h[..., 1] / ay) ** 2) / (hz * hz)
-            d = torch.exp(-e) / (math.pi * ax * ay * hz ** 4)
+            d = torch.exp(-e) / (math.pi * ax * ay * hz**4)
         return torch.where(h[..., 2] > 0, d, torch.zeros_like(d))
 
     def _a2(self, w: torch.Tensor) -> torch.Tensor:
@@ -100,8 +100,9 @@ class Distribution:
     # -- visible normals
     def sample_visible(self, wi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         ax, ay = self.alpha_x, self.alpha_y
-        ws = frame.normalize(torch.stack([ax * wi[..., 0], ay * wi[..., 1],
-                                          wi[..., 2].clamp_min(frame.EPS_COS)], -1))
+        ws = frame.normalize(
+            torch.stack([ax * wi[..., 0], ay * wi[..., 1], wi[..., 2].clamp_min(frame.EPS_COS)], -1)
+        )
         if self.kind == "ggx":
             # Dupuy & Benyoub 2023: a point on the spherical cap below the stretched wi,
             # plus wi, is a visible normal of the unit-roughness GGX (a hemisphere).
@@ -109,8 +110,9 @@ class Distribution:
             z = (1.0 - u[..., 1]) * (1.0 + ws[..., 2]) - ws[..., 2]
             s = torch.sqrt((1.0 - z * z).clamp_min(0.0))
             hs = torch.stack([s * torch.cos(phi), s * torch.sin(phi), z], -1) + ws
-            return frame.normalize(torch.stack([ax * hs[..., 0], ay * hs[..., 1],
-                                                hs[..., 2].clamp_min(0.0)], -1))
+            return frame.normalize(
+                torch.stack([ax * hs[..., 0], ay * hs[..., 1], hs[..., 2].clamp_min(0.0)], -1)
+            )
         sx, sy = _beckmann_visible_slopes(ws, u)
         return frame.normalize(torch.stack([-ax * sx, -ay * sy, torch.ones_like(sx)], -1))
 
@@ -186,13 +188,29 @@ class Microfacet(BRDF):
         "fresnel": ("choice", list(FRESNELS)),
         "multiscatter": ("choice", [False, True]),
     }
-    notes = ("Seed 004's G1 is printed as G1*cos; Smith G1 = 1/(1+Lambda) is used. "
-             "Kulla-Conty uses F_add = Favg^2 Eavg / (1 - Favg (1 - Eavg)) instead of the "
-             "seed's Favg, which keeps the Fresnel-weighted albedo <= 1.")
+    notes = (
+        "Seed 004's G1 is printed as G1*cos; Smith G1 = 1/(1+Lambda) is used. "
+        "Kulla-Conty uses F_add = Favg^2 Eavg / (1 - Favg (1 - Eavg)) instead of the "
+        "seed's Favg, which keeps the Fresnel-weighted albedo <= 1."
+    )
 
-    def __init__(self, *, distribution="ggx", alpha=None, alpha_x=None, alpha_y=None,
-                 masking="smith_correlated", fresnel="none", f0=None, eta=None, k=None,
-                 material=None, film_eta=None, film_thickness=None, multiscatter=False):
+    def __init__(
+        self,
+        *,
+        distribution="ggx",
+        alpha=None,
+        alpha_x=None,
+        alpha_y=None,
+        masking="smith_correlated",
+        fresnel="none",
+        f0=None,
+        eta=None,
+        k=None,
+        material=None,
+        film_eta=None,
+        film_thickness=None,
+        multiscatter=False,
+    ):
         distribution = choice("distribution", distribution, DISTRIBUTIONS)
         masking = choice("masking", masking, MASKINGS)
         fresnel = choice("fresnel", fresnel, FRESNELS)
@@ -210,13 +228,29 @@ class Microfacet(BRDF):
         if not isinstance(multiscatter, bool):
             raise ParameterError(f"multiscatter: expected true or false, got {multiscatter!r}")
 
-        params = dict(distribution=distribution, alpha_x=alpha_x, alpha_y=alpha_y,
-                      masking=masking, fresnel=fresnel, multiscatter=multiscatter)
-        used = {"f0": f0, "eta": eta, "k": k, "material": material,
-                "film_eta": film_eta, "film_thickness": film_thickness}
-        allowed = {"none": (), "schlick": ("f0",), "dielectric": ("eta",),
-                   "conductor": ("eta", "k", "material"),
-                   "thin_film": ("film_eta", "film_thickness", "eta")}[fresnel]
+        params = dict(
+            distribution=distribution,
+            alpha_x=alpha_x,
+            alpha_y=alpha_y,
+            masking=masking,
+            fresnel=fresnel,
+            multiscatter=multiscatter,
+        )
+        used = {
+            "f0": f0,
+            "eta": eta,
+            "k": k,
+            "material": material,
+            "film_eta": film_eta,
+            "film_thickness": film_thickness,
+        }
+        allowed = {
+            "none": (),
+            "schlick": ("f0",),
+            "dielectric": ("eta",),
+            "conductor": ("eta", "k", "material"),
+            "thin_film": ("film_eta", "film_thickness", "eta"),
+        }[fresnel]
         for key, val in used.items():
             if val is not None and key not in allowed:
                 raise ParameterError(f"{key}: not used with fresnel={fresnel!r}")
@@ -238,17 +272,24 @@ class Microfacet(BRDF):
             params["eta"] = rgb("eta", eta, lo=1e-3, hi=20.0)
             params["k"] = rgb("k", k, lo=0.0, hi=50.0)
         elif fresnel == "thin_film":
-            params["film_eta"] = scalar("film_eta", 1.33 if film_eta is None else film_eta,
-                                        lo=1.0, hi=5.0)
+            params["film_eta"] = scalar(
+                "film_eta", 1.33 if film_eta is None else film_eta, lo=1.0, hi=5.0
+            )
             params["film_thickness"] = scalar(
-                "film_thickness", 400.0 if film_thickness is None else film_thickness,
-                lo=0.0, hi=1e5)
+                "film_thickness",
+                400.0 if film_thickness is None else film_thickness,
+                lo=0.0,
+                hi=1e5,
+            )
             params["eta"] = scalar("eta", 1.5 if eta is None else eta, lo=1.0, hi=5.0)
         super().__init__(**params)
         self.anisotropic = alpha_x != alpha_y
         self.dist = Distribution(distribution, alpha_x, alpha_y)
-        self._ms = _ms_table(distribution, self.dist.alpha_x, self.dist.alpha_y,
-                             masking) if multiscatter else None
+        self._ms = (
+            _ms_table(distribution, self.dist.alpha_x, self.dist.alpha_y, masking)
+            if multiscatter
+            else None
+        )
         self._f_add = self._fresnel_add() if multiscatter else None
 
     # -- pieces
@@ -270,9 +311,10 @@ class Microfacet(BRDF):
             return self.dist.G1(wi) * self.dist.G1(wo)
         if m == "smith_correlated":
             return 1.0 / (1.0 + self.dist.Lambda(wi) + self.dist.Lambda(wo))
-        # V-cavity (Cook & Torrance 1982): min(1, 2 hz co / (wo.h), 2 hz ci / (wi.h))  # seed 004, 9.2.3
+        # V-cavity (Cook & Torrance 1982; seed 004, 9.2.3):
+        # min(1, 2 hz co / (wo.h), 2 hz ci / (wi.h))
         hz = h[..., 2]
-        d = frame.dot(wi, h).clamp_min(frame.EPS_COS)      # wi.h == wo.h
+        d = frame.dot(wi, h).clamp_min(frame.EPS_COS)  # wi.h == wo.h
         g = torch.minimum(2.0 * hz * wo[..., 2] / d, 2.0 * hz * wi[..., 2] / d)
         return g.clamp(0.0, 1.0)
 
@@ -280,7 +322,7 @@ class Microfacet(BRDF):
         h = frame.half_vector(wi, wo)
         ci = wi[..., 2].clamp_min(frame.EPS_COS)
         co = wo[..., 2].clamp_min(frame.EPS_COS)
-        val = self.dist.D(h) * self.G(wi, wo, h) / (4.0 * ci * co)   # seed 004, 9.2.1
+        val = self.dist.D(h) * self.G(wi, wo, h) / (4.0 * ci * co)  # seed 004, 9.2.1
         val = val[..., None]
         if with_fresnel:
             val = val * self.fresnel(frame.dot(wi, h))
@@ -333,7 +375,7 @@ class _EnergyTable:
     distributions are symmetric under x -> -x and y -> -y, so phi folds into [0, pi/2]."""
 
     def __init__(self, table: np.ndarray, e_avg: float, alpha_x: float, alpha_y: float):
-        self.table = torch.from_numpy(table)            # (N_mu, N_phi) float64
+        self.table = torch.from_numpy(table)  # (N_mu, N_phi) float64
         self.e_avg = min(e_avg, 1.0 - 1e-6)
         self.alpha_x, self.alpha_y = alpha_x, alpha_y
 
@@ -346,7 +388,7 @@ class _EnergyTable:
         if n_phi == 1:
             col = tab[:, 0]
             return col[i0] * (1 - ft) + col[i0 + 1] * ft
-        ax2, ay2 = self.alpha_x ** 2, self.alpha_y ** 2
+        ax2, ay2 = self.alpha_x**2, self.alpha_y**2
         r2 = (w[..., 0] ** 2 + w[..., 1] ** 2).clamp_min(1e-30)
         a_phi = torch.sqrt((ax2 * w[..., 0] ** 2 + ay2 * w[..., 1] ** 2) / r2)
         phi = (a_phi - self.alpha_x) / (self.alpha_y - self.alpha_x) * (n_phi - 1)
@@ -368,21 +410,21 @@ N_MU, N_PHI_ANISO, N_SAMPLES_ISO, N_SAMPLES_ANISO = 64, 17, 4096, 1024
 
 @lru_cache(maxsize=256)
 def _ms_table(distribution: str, alpha_x: float, alpha_y: float, masking: str) -> _EnergyTable:
-    from .physics import sobol_points          # quadrature points (physics imports no models)
+    from .physics import sobol_points  # quadrature points (physics imports no models)
 
     ss = Microfacet(distribution=distribution, alpha_x=alpha_x, alpha_y=alpha_y, masking=masking)
     n_phi = 1 if alpha_x == alpha_y else N_PHI_ANISO
     mu = (torch.arange(N_MU, dtype=torch.float64) / (N_MU - 1)) ** 2
-    mu = mu.clamp_min(1e-6)              # node 0 stands for the grazing limit mu -> 0
-    if n_phi > 1:                        # node azimuths: alpha(phi_j) uniform in [alpha_x, alpha_y]
+    mu = mu.clamp_min(1e-6)  # node 0 stands for the grazing limit mu -> 0
+    if n_phi > 1:  # node azimuths: alpha(phi_j) uniform in [alpha_x, alpha_y]
         a_j = torch.linspace(alpha_x, alpha_y, n_phi, dtype=torch.float64)
-        sin2 = ((a_j ** 2 - alpha_x ** 2) / (alpha_y ** 2 - alpha_x ** 2)).clamp(0.0, 1.0)
+        sin2 = ((a_j**2 - alpha_x**2) / (alpha_y**2 - alpha_x**2)).clamp(0.0, 1.0)
         phi = torch.asin(torch.sqrt(sin2))
     else:
         phi = torch.zeros(1, dtype=torch.float64)
     M, P = torch.meshgrid(mu, phi, indexing="ij")
     s = torch.sqrt(1.0 - M * M)
-    wi = torch.stack([s * torch.cos(P), s * torch.sin(P), M], -1)[..., None, :]   # (N, P, 1, 3)
+    wi = torch.stack([s * torch.cos(P), s * torch.sin(P), M], -1)[..., None, :]  # (N, P, 1, 3)
     n_samples = N_SAMPLES_ISO if n_phi == 1 else N_SAMPLES_ANISO
     u = sobol_points(n_samples, 12345)
     with torch.no_grad():
@@ -393,9 +435,10 @@ def _ms_table(distribution: str, alpha_x: float, alpha_y: float, masking: str) -
         val = ss.single_scatter(wib, wo, with_fresnel=False)[..., 0] * wo[..., 2]
         contrib = torch.where((wo[..., 2] > 0) & (pdf > 0), val / pdf.clamp_min(1e-300), 0.0)
         table = contrib.mean(-1).clamp(0.0, 1.0).numpy()
-    # E_avg = (1/pi) int E(w) cos dw = (2/pi) int_0^{pi/2} dphi int_0^1 E mu dmu, from the interpolant
+    # E_avg = (1/pi) int E(w) cos dw = (2/pi) int_0^{pi/2} dphi int_0^1 E mu dmu,
+    # from the interpolant
     et = _EnergyTable(table, 0.5, alpha_x, alpha_y)
-    t = (torch.arange(8192, dtype=torch.float64) + 0.5) / 8192          # mu = t^2
+    t = (torch.arange(8192, dtype=torch.float64) + 0.5) / 8192  # mu = t^2
     n_ph = 256 if n_phi > 1 else 1
     ph = (torch.arange(n_ph, dtype=torch.float64) + 0.5) * (0.5 * math.pi / n_ph)
     T, PH = torch.meshgrid(t, ph, indexing="ij")

@@ -66,9 +66,11 @@ class OrenNayar(BRDF):
     reciprocal = True
     energy_conserving = False
     anisotropic = False
-    notes = ("Qualitative model unchanged. Not energy conserving: for albedo = 1 the "
-             "directional albedo tends to A + B/2 at grazing, > 1 for sigma < 0.326 rad, "
-             "max 1.0152 (+1.5%) at sigma = 0.199 rad; 1.0018 at the default 0.3.")
+    notes = (
+        "Qualitative model unchanged. Not energy conserving: for albedo = 1 the "
+        "directional albedo tends to A + B/2 at grazing, > 1 for sigma < 0.326 rad, "
+        "max 1.0152 (+1.5%) at sigma = 0.199 rad; 1.0018 at the default 0.3."
+    )
     param_space = {
         "albedo": ("rgb", 0.0, 1.0),
         "sigma": ("float", 0.0, 0.5 * math.pi),

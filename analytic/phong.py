@@ -77,9 +77,11 @@ class Phong(BRDF):
     reciprocal = True
     energy_conserving = True
     anisotropic = False
-    notes = ("Lewis 1994 normalisation (n+2)/(2 pi) added to the un-normalised seed "
-             "Phong lobe (seed 001); kd + ks <= 1 enforced; lobe clipped to r.wo > 0 "
-             "also at n = 0.")
+    notes = (
+        "Lewis 1994 normalisation (n+2)/(2 pi) added to the un-normalised seed "
+        "Phong lobe (seed 001); kd + ks <= 1 enforced; lobe clipped to r.wo > 0 "
+        "also at n = 0."
+    )
     param_space = {
         "kd": ("rgb", 0.0, 0.5),
         "ks": ("rgb", 0.0, 0.5),
@@ -107,7 +109,9 @@ class Phong(BRDF):
     def _lobes(self, wi):
         wd = luminance(torch.tensor(self.params["kd"])).item()
         ws = luminance(torch.tensor(self.params["ks"])).item()
-        if wd + ws <= 0.0:          # f == 0: any valid density will do
+        if wd + ws <= 0.0:  # f == 0: any valid density will do
             wd = 1.0
-        return [cosine_lobe(wi, wd),
-                power_cosine_lobe(frame.reflect_z(wi), self.params["exponent"], ws)]
+        return [
+            cosine_lobe(wi, wd),
+            power_cosine_lobe(frame.reflect_z(wi), self.params["exponent"], ws),
+        ]

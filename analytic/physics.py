@@ -26,7 +26,7 @@ from . import frame
 from .base import BRDF, _common, _out
 
 REPLICAS = 4
-DEFENSIVE = 1 / 8      # share of quadrature points drawn from the cosine hemisphere
+DEFENSIVE = 1 / 8  # share of quadrature points drawn from the cosine hemisphere
 
 
 def sobol_points(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
@@ -47,8 +47,14 @@ def _estimate(integrand: Callable[[torch.Tensor], torch.Tensor], n: int, seed: i
     return m.mean(0), m.std(0, unbiased=True) / math.sqrt(REPLICAS)
 
 
-def albedo(brdf: BRDF, wi: np.ndarray | torch.Tensor, n: int = 4096, *, seed: int = 0,
-           return_error: bool = False) -> Any:
+def albedo(
+    brdf: BRDF,
+    wi: np.ndarray | torch.Tensor,
+    n: int = 4096,
+    *,
+    seed: int = 0,
+    return_error: bool = False,
+) -> Any:
     """Directional albedo rho(wi) = int f(wi, wo) cos(theta_o) dwo, shape (..., 3).
 
     Computed in float64 and returned in the input's type and dtype.  With
@@ -58,9 +64,9 @@ def albedo(brdf: BRDF, wi: np.ndarray | torch.Tensor, n: int = 4096, *, seed: in
     out_dtype = wi_t.dtype
     wi64 = wi_t.detach().to(torch.float64)
 
-    def integrand(u):                                    # u (n, 2)
-        w = wi64[..., None, :]                           # (..., 1, 3)
-        uu = u.expand(wi64.shape[:-1] + u.shape)         # (..., n, 2)
+    def integrand(u):  # u (n, 2)
+        w = wi64[..., None, :]  # (..., 1, 3)
+        uu = u.expand(wi64.shape[:-1] + u.shape)  # (..., n, 2)
         nb = u.shape[0] - int(u.shape[0] * DEFENSIVE)
         wo_b, _ = brdf.sample_t(w.expand(uu.shape[:-1] + (3,))[..., :nb, :], uu[..., :nb, :])
         wo_c = frame.square_to_cosine_hemisphere(uu[..., nb:, :])
@@ -80,8 +86,9 @@ def albedo(brdf: BRDF, wi: np.ndarray | torch.Tensor, n: int = 4096, *, seed: in
     return _out(rho, is_np)
 
 
-def albedo_of(fn: Callable, wi: np.ndarray, n: int = 8192, *, seed: int = 0,
-              return_error: bool = False) -> Any:
+def albedo_of(
+    fn: Callable, wi: np.ndarray, n: int = 8192, *, seed: int = 0, return_error: bool = False
+) -> Any:
     """Directional albedo of any callable f(wi, wo) on numpy (N, 3) arrays.
 
     Cosine-weighted Sobol quadrature: rho = mean f(wi, wo) * pi.  Exact for a
@@ -90,7 +97,7 @@ def albedo_of(fn: Callable, wi: np.ndarray, n: int = 8192, *, seed: int = 0,
     wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
 
     def integrand(u):
-        wo = frame.square_to_cosine_hemisphere(u).numpy()                # (n, 3)
+        wo = frame.square_to_cosine_hemisphere(u).numpy()  # (n, 3)
         a = np.repeat(wi, len(wo), 0)
         b = np.tile(wo, (len(wi), 1))
         val = np.asarray(fn(a, b), dtype=np.float64).reshape(len(wi), len(wo), -1)
@@ -100,7 +107,9 @@ def albedo_of(fn: Callable, wi: np.ndarray, n: int = 8192, *, seed: int = 0,
     return (rho.numpy(), err.numpy()) if return_error else rho.numpy()
 
 
-def hemispherical_albedo(brdf: BRDF, n_wi: int = 256, n: int = 2048, *, seed: int = 0) -> np.ndarray:
+def hemispherical_albedo(
+    brdf: BRDF, n_wi: int = 256, n: int = 2048, *, seed: int = 0
+) -> np.ndarray:
     """rho_hh = (1/pi) int rho(wi) cos(theta_i) dwi, with wi cosine-distributed (RGB)."""
     u = sobol_points(n_wi, seed + 1000)
     wi = frame.square_to_cosine_hemisphere(u)
@@ -125,12 +134,16 @@ def weak_white_furnace(dist, wo, n_s: int = 384, n_phi: int = 256) -> np.ndarray
     dtheta = a / ((1.0 - s) ** 2 + (a * s) ** 2)
     phi = (torch.arange(n_phi, dtype=torch.float64) + 0.5) * (2 * math.pi / n_phi)
     T, P = torch.meshgrid(theta, phi, indexing="ij")
-    h = frame.spherical(T, P)                                              # (S, P, 3)
+    h = frame.spherical(T, P)  # (S, P, 3)
     jac = (torch.sin(theta) * dtheta * ws)[:, None] * (2 * math.pi / n_phi)  # (S, 1)
     woe = wo_t[..., None, None, :]
     with torch.no_grad():
-        integrand = dist.D(h) * dist.G1(woe.expand(woe.shape[:-3] + h.shape)) \
-            * frame.dot(woe, h).clamp_min(0.0) / woe[..., 2]
+        integrand = (
+            dist.D(h)
+            * dist.G1(woe.expand(woe.shape[:-3] + h.shape))
+            * frame.dot(woe, h).clamp_min(0.0)
+            / woe[..., 2]
+        )
         return (integrand * jac).sum((-1, -2)).numpy()
 
 

@@ -44,9 +44,11 @@ class Retroreflective(BRDF):
     reciprocal = True
     energy_conserving = True
     anisotropic = False
-    notes = ("Normalised Phong-like lobe about wi (not seed 004's A/cos(theta_i) Gaussian, "
-             "which is not reciprocal and assumes wi pointing into the surface); "
-             "kd + kr <= 1 enforced.")
+    notes = (
+        "Normalised Phong-like lobe about wi (not seed 004's A/cos(theta_i) Gaussian, "
+        "which is not reciprocal and assumes wi pointing into the surface); "
+        "kd + kr <= 1 enforced."
+    )
     param_space = {
         "kd": ("rgb", 0.0, 0.5),
         "kr": ("rgb", 0.0, 0.5),

@@ -30,11 +30,12 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:            # run from a checkout without `pip install -e .`
+if str(REPO) not in sys.path:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(REPO))
 
-import analytic  # noqa: E402
 from common import MATMUL_N, evals_per_second, matmul_flops_per_s, write_json  # noqa: E402
+
+import analytic  # noqa: E402
 
 DEFAULT_OUT = REPO / "benchmarks" / "results" / "analytic_throughput.json"
 
@@ -59,8 +60,7 @@ def bench_model(name: str, wi: np.ndarray, wo: np.ndarray, repeats: int) -> dict
     numpy_rate = evals_per_second(lambda: brdf.eval(wi, wo), n, repeats)
     with torch.inference_mode():
         torch_rate = evals_per_second(lambda: brdf.f(wi_t, wo_t), n, repeats)
-    return {"model": repr(brdf), "numpy_evals_per_s": numpy_rate,
-            "torch_evals_per_s": torch_rate}
+    return {"model": repr(brdf), "numpy_evals_per_s": numpy_rate, "torch_evals_per_s": torch_rate}
 
 
 def measure(batch: int, repeats: int, peak_flops: float) -> dict:
@@ -68,8 +68,13 @@ def measure(batch: int, repeats: int, peak_flops: float) -> dict:
     of the matmul at torch's current thread count)."""
     wi, wo = random_pairs(batch)
     models = {name: bench_model(name, wi, wo, repeats) for name in analytic.available()}
-    result = {"batch": batch, "repeats": repeats, "dtype": "float32",
-              "torch_threads": torch.get_num_threads(), "models": models}
+    result = {
+        "batch": batch,
+        "repeats": repeats,
+        "dtype": "float32",
+        "torch_threads": torch.get_num_threads(),
+        "models": models,
+    }
     normalise(result, peak_flops)
     return result
 
@@ -90,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.batch < 1 or args.repeats < 1:
         ap.error("--batch and --repeats must be >= 1")
 
-    load_at_start = os.getloadavg()[0]      # other work on the machine skews every figure
+    load_at_start = os.getloadavg()[0]  # other work on the machine skews every figure
     peak = matmul_flops_per_s(args.repeats)
     result = measure(args.batch, args.repeats, peak)
     result = {
@@ -111,14 +116,19 @@ def main(argv: list[str] | None = None) -> int:
     }
     write_json(args.out, result)
 
-    print(f"analytic throughput: batch {args.batch}, float32, best of {args.repeats}; "
-          f"{torch.get_num_threads()} torch threads")
-    print(f"fp32 matmul peak (torch.mm {MATMUL_N}^2): {peak / 1e9:.1f} GFLOP/s; "
-          f"1-min load average at start {load_at_start:.2f}")
+    print(
+        f"analytic throughput: batch {args.batch}, float32, best of {args.repeats}; "
+        f"{torch.get_num_threads()} torch threads"
+    )
+    print(
+        f"fp32 matmul peak (torch.mm {MATMUL_N}^2): {peak / 1e9:.1f} GFLOP/s; "
+        f"1-min load average at start {load_at_start:.2f}"
+    )
     print(f"{'model':<20}{'numpy M evals/s':>18}{'torch M evals/s':>18}")
     for name, m in result["models"].items():
-        print(f"{name:<20}{m['numpy_evals_per_s'] / 1e6:>18.2f}"
-              f"{m['torch_evals_per_s'] / 1e6:>18.2f}")
+        print(
+            f"{name:<20}{m['numpy_evals_per_s'] / 1e6:>18.2f}{m['torch_evals_per_s'] / 1e6:>18.2f}"
+        )
     print(f"wrote {args.out}")
     return 0
 

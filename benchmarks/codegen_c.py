@@ -47,8 +47,8 @@ from neural_brdf.export import relative_difference  # noqa: E402
 
 OUT = HERE / "results" / "codegen_c.json"
 BATCH = 4096
-CALLS_1 = 20000               # calls per block at batch 1
-LOBE = {"alpha": 0.3, "weight": 0.5}     # sampling is not timed; any lobe will do
+CALLS_1 = 20000  # calls per block at batch 1
+LOBE = {"alpha": 0.3, "weight": 0.5}  # sampling is not timed; any lobe will do
 CFLAGS = ["-std=c99", "-O2"]
 
 TIMER = r"""
@@ -110,8 +110,12 @@ def compile_timer(model: Path, folder: Path) -> Path:
 def c_round(exe: Path, folder: Path, rows: np.ndarray) -> tuple[float, float, np.ndarray]:
     src, dst = folder / "pairs.bin", folder / "f.bin"
     rows.astype(np.float32).tofile(src)
-    out = subprocess.run([str(exe), str(len(rows)), str(CALLS_1), str(src), str(dst)],
-                         check=True, capture_output=True, text=True).stdout.split()
+    out = subprocess.run(
+        [str(exe), str(len(rows)), str(CALLS_1), str(src), str(dst)],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.split()
     return float(out[0]), float(out[1]), np.fromfile(dst, np.float32).reshape(-1, 3)
 
 
@@ -121,8 +125,7 @@ def loadavg() -> list[float]:
 
 def compiler_version() -> str:
     cc = shutil.which("cc") or "cc"
-    return subprocess.run([cc, "--version"], capture_output=True, text=True).stdout.split(
-        "\n")[0]
+    return subprocess.run([cc, "--version"], capture_output=True, text=True).stdout.split("\n")[0]
 
 
 def bench_encoding(enc: str, folder: Path, rounds: int) -> dict:
@@ -134,7 +137,7 @@ def bench_encoding(enc: str, folder: Path, rounds: int) -> dict:
     brdf = neural_brdf.load(path, threads=1)
     c1, cn, ort1, ortn = [], [], [], []
     f = None
-    for _ in range(rounds):                      # interleaved
+    for _ in range(rounds):  # interleaved
         one, batch, f = c_round(exe, folder, rows)
         c1.append(one)
         cn.append(batch)
@@ -142,10 +145,11 @@ def bench_encoding(enc: str, folder: Path, rounds: int) -> dict:
         ortn.append(1.0 / evals_per_second(lambda: brdf.eval(wi, wo), BATCH, 3))
     return {
         "c_evals_per_s": {"batch_1": 1.0 / min(c1), f"batch_{BATCH}": 1.0 / min(cn)},
-        "onnxruntime_evals_per_s": {"batch_1": 1.0 / min(ort1),
-                                    f"batch_{BATCH}": 1.0 / min(ortn)},
-        "c_over_onnxruntime": {"batch_1": min(ort1) / min(c1),
-                               f"batch_{BATCH}": min(ortn) / min(cn)},
+        "onnxruntime_evals_per_s": {"batch_1": 1.0 / min(ort1), f"batch_{BATCH}": 1.0 / min(ortn)},
+        "c_over_onnxruntime": {
+            "batch_1": min(ort1) / min(c1),
+            f"batch_{BATCH}": min(ortn) / min(cn),
+        },
         "c_parity_rel_error": relative_difference(f, brdf.eval(wi, wo)),
         "header_lines": (folder / "model.h").read_text().count("\n"),
     }
@@ -162,18 +166,27 @@ def main() -> None:
         for enc in ("isotropic", "anisotropic"):
             results[enc] = bench_encoding(enc, Path(tmp) / enc, args.rounds)
             print(enc, results[enc], flush=True)
-    write_json(args.out, {
-        "benchmark": "codegen_c",
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "command": " ".join(["benchmarks/codegen_c.py"] + sys.argv[1:]),
-        "machine": {"cpu": platform.processor() or platform.machine(),
-                    "cores": os.cpu_count(), "compiler": compiler_version(),
-                    "cflags": CFLAGS, "loadavg_before": load_before,
-                    "loadavg_after": loadavg()},
-        "rounds": args.rounds, "batch": BATCH, "calls_batch_1": CALLS_1,
-        "models": "neural_throughput.build_model (default architecture, random weights)",
-        "results": results,
-    })
+    write_json(
+        args.out,
+        {
+            "benchmark": "codegen_c",
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "command": " ".join(["benchmarks/codegen_c.py"] + sys.argv[1:]),
+            "machine": {
+                "cpu": platform.processor() or platform.machine(),
+                "cores": os.cpu_count(),
+                "compiler": compiler_version(),
+                "cflags": CFLAGS,
+                "loadavg_before": load_before,
+                "loadavg_after": loadavg(),
+            },
+            "rounds": args.rounds,
+            "batch": BATCH,
+            "calls_batch_1": CALLS_1,
+            "models": "neural_throughput.build_model (default architecture, random weights)",
+            "results": results,
+        },
+    )
     print(f"wrote {args.out}")
 
 

@@ -51,7 +51,7 @@ def matmul_flops_per_s(repeats: int) -> float:
     current torch thread count: the machine's reference peak for ratios."""
     a = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
     b = torch.randn(MATMUL_N, MATMUL_N, dtype=torch.float32)
-    return 2.0 * MATMUL_N ** 3 / best_time(lambda: torch.mm(a, b), repeats)
+    return 2.0 * MATMUL_N**3 / best_time(lambda: torch.mm(a, b), repeats)
 
 
 def write_json(path: Path, data) -> None:
@@ -62,7 +62,7 @@ def write_json(path: Path, data) -> None:
         with os.fdopen(fd, "w") as fh:
             json.dump(data, fh, indent=2)
             fh.write("\n")
-        os.chmod(tmp, 0o644)                 # mkstemp makes it 0600
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

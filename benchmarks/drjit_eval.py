@@ -32,7 +32,6 @@ if mi.variant() is None:
 
 import neural_brdf.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
 
-
 _PLUGINS: dict[str, object] = {}
 
 
@@ -77,11 +76,20 @@ def reference_bsdfs(target: dict) -> dict[str, dict]:
     rough = {"type": "roughconductor", "distribution": "ggx", "alpha": float(p.get("alpha", 0.3))}
     if p.get("material"):
         rough["material"] = p["material"]
-    return {"roughconductor": rough,
-            "analytic_brdf": {"type": "analytic_brdf", "model": target["model"],
-                              "params": json.dumps(p)}}
+    return {
+        "roughconductor": rough,
+        "analytic_brdf": {
+            "type": "analytic_brdf",
+            "model": target["model"],
+            "params": json.dumps(p),
+        },
+    }
 
 
 def info() -> dict:
-    return {"variant": mi.variant(), "mitsuba": mi.__version__, "drjit": dr.__version__,
-            "drjit_threads": dr.thread_count()}
+    return {
+        "variant": mi.variant(),
+        "mitsuba": mi.__version__,
+        "drjit": dr.__version__,
+        "drjit_threads": dr.thread_count(),
+    }

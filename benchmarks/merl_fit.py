@@ -36,7 +36,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the CLI does (neural_brdf/cli.py)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does (neural_brdf/cli.py)
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
@@ -47,13 +47,22 @@ from benchmarks.common import write_json  # noqa: E402
 DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results" / "merl_fit.json"
 # Diffuse to near-mirror: a diffuse, a fabric, two plastics, a metallic paint, three metals.
-MATERIALS = ["white-diffuse-bball", "blue-fabric", "red-plastic", "specular-black-phenolic",
-             "gold-metallic-paint", "brass", "aluminium", "chrome"]
+MATERIALS = [
+    "white-diffuse-bball",
+    "blue-fabric",
+    "red-plastic",
+    "specular-black-phenolic",
+    "gold-metallic-paint",
+    "brass",
+    "aluminium",
+    "chrome",
+]
 SIZES = {"default": [], "nbrdf": ["model.hidden=[20,20]"]}
 
 
 def material_file(name: str, folder: Path) -> Path:
     from neural_brdf import merl
+
     path = folder / f"{name}.binary"
     if not path.is_file():
         npz = DATA / "nbrdf" / "merl_nbrdf_weights.npz"
@@ -64,21 +73,37 @@ def material_file(name: str, folder: Path) -> Path:
 def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]) -> dict:
     from neural_brdf import config, train
     from neural_brdf.model import RawBRDF
-    cfg = config.load(REPO / "configs" / "merl.yaml",
-                      [f"target.data={path}", "train.progress=false", f"train.threads={threads}",
-                       f"name={path.stem}-{size}"] + SIZES[size] + overrides)
-    report = train.run(cfg, run_dir, overwrite=True)       # a rerun replaces the last
+
+    cfg = config.load(
+        REPO / "configs" / "merl.yaml",
+        [
+            f"target.data={path}",
+            "train.progress=false",
+            f"train.threads={threads}",
+            f"name={path.stem}-{size}",
+        ]
+        + SIZES[size]
+        + overrides,
+    )
+    report = train.run(cfg, run_dir, overwrite=True)  # a rerun replaces the last
     c, acc = report["checks"], report["accuracy"]
-    return {"rel_rmse": acc["rel_rmse"], "nbrdf_log_error": acc["nbrdf_log_error"],
-            "bins": acc["pairs"], "reciprocity": c["reciprocity"]["value"],
-            "max_albedo": c["max_albedo"]["value"], "passed": report["passed"],
-            "train_seconds": report["training"]["train_seconds"],
-            "steps": report["training"]["steps"], "hidden": cfg.model.hidden,
-            "parameters": RawBRDF.parameter_count(cfg.model)}
+    return {
+        "rel_rmse": acc["rel_rmse"],
+        "nbrdf_log_error": acc["nbrdf_log_error"],
+        "bins": acc["pairs"],
+        "reciprocity": c["reciprocity"]["value"],
+        "max_albedo": c["max_albedo"]["value"],
+        "passed": report["passed"],
+        "train_seconds": report["training"]["train_seconds"],
+        "steps": report["training"]["steps"],
+        "hidden": cfg.model.hidden,
+        "parameters": RawBRDF.parameter_count(cfg.model),
+    }
 
 
 def abc_errors(name: str, path: Path) -> dict:
     from neural_brdf import data, merl, validate
+
     fn = merl.abc_fixture(DATA / "merl_abc_low2012_params.csv", name)
     acc = validate.accuracy(fn, data.MeasuredTarget.from_file(path), n=0, seed=0)
     return {"rel_rmse": acc["rel_rmse"], "nbrdf_log_error": acc["nbrdf_log_error"]}
@@ -95,11 +120,13 @@ def table(results: dict) -> str:
         row = [name]
         for s in sizes:
             n = m["neural"].get(s)
-            row += ([f"{n['nbrdf_log_error']:.4f}", f"{100 * n['rel_rmse']:.2f}%"] if n
-                    else ["-", "-"])
+            row += (
+                [f"{n['nbrdf_log_error']:.4f}", f"{100 * n['rel_rmse']:.2f}%"] if n else ["-", "-"]
+            )
         row += [f"{m['abc']['nbrdf_log_error']:.4f}", f"{100 * m['abc']['rel_rmse']:.1f}%"]
-        row += [f"{m['neural'][s]['train_seconds']:.0f}" if s in m["neural"] else "-"
-                for s in sizes]
+        row += [
+            f"{m['neural'][s]['train_seconds']:.0f}" if s in m["neural"] else "-" for s in sizes
+        ]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
 
@@ -109,10 +136,19 @@ def main(argv=None) -> int:
     p.add_argument("--materials", default=",".join(MATERIALS))
     p.add_argument("--sizes", default=",".join(SIZES))
     p.add_argument("--threads", type=int, default=2, help="train.threads of each fit")
-    p.add_argument("--set", dest="overrides", action="append", default=[],
-                   help="extra config override for every fit (recorded in the JSON)")
-    p.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "nbrdf-merl",
-                   help="folder for the .binary files and run directories")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        help="extra config override for every fit (recorded in the JSON)",
+    )
+    p.add_argument(
+        "--work",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "nbrdf-merl",
+        help="folder for the .binary files and run directories",
+    )
     p.add_argument("--out", type=Path, default=RESULTS)
     p.add_argument("--resume", action="store_true", help="keep finished fits in --out")
     p.add_argument("--table", action="store_true", help="print the table of --out and exit")
@@ -129,11 +165,17 @@ def main(argv=None) -> int:
     results = {"materials": {}}
     if args.resume and args.out.is_file():
         results = json.loads(args.out.read_text())
-    results.update({"reference": "NBRDF network of each MERL measurement, baked at the bin "
-                                 "centres (reciprocal average)",
-                    "config": "configs/merl.yaml", "overrides": args.overrides,
-                    "threads": args.threads, "cores": os.cpu_count(),
-                    "metric_pairs": "every measured bin centre"})
+    results.update(
+        {
+            "reference": "NBRDF network of each MERL measurement, baked at the bin "
+            "centres (reciprocal average)",
+            "config": "configs/merl.yaml",
+            "overrides": args.overrides,
+            "threads": args.threads,
+            "cores": os.cpu_count(),
+            "metric_pairs": "every measured bin centre",
+        }
+    )
     for name in materials:
         path = material_file(name, args.work)
         entry = results["materials"].setdefault(name, {"neural": {}})
@@ -141,13 +183,16 @@ def main(argv=None) -> int:
         for size in sizes:
             if size in entry["neural"]:
                 continue
-            entry["neural"][size] = fit(path, size, args.work / "runs" / f"{name}-{size}",
-                                        args.threads, args.overrides)
+            entry["neural"][size] = fit(
+                path, size, args.work / "runs" / f"{name}-{size}", args.threads, args.overrides
+            )
             n = entry["neural"][size]
-            print(f"{name:24s} {size:8s} log {n['nbrdf_log_error']:.4f} (ABC "
-                  f"{entry['abc']['nbrdf_log_error']:.4f})  rel {100 * n['rel_rmse']:.2f}% "
-                  f"(ABC {100 * entry['abc']['rel_rmse']:.1f}%)  {n['train_seconds']:.0f} s",
-                  flush=True)
+            print(
+                f"{name:24s} {size:8s} log {n['nbrdf_log_error']:.4f} (ABC "
+                f"{entry['abc']['nbrdf_log_error']:.4f})  rel {100 * n['rel_rmse']:.2f}% "
+                f"(ABC {100 * entry['abc']['rel_rmse']:.1f}%)  {n['train_seconds']:.0f} s",
+                flush=True,
+            )
             write_json(args.out, results)
     print(table(results))
     return 0

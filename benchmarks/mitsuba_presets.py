@@ -38,10 +38,10 @@ import tempfile
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the CLI does (neural_brdf/cli.py)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does (neural_brdf/cli.py)
 
 REPO = Path(__file__).resolve().parents[1]
-for p in (REPO, REPO / "benchmarks"):     # run from a checkout without `pip install -e .`
+for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip install -e .`
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
@@ -61,8 +61,11 @@ SKIP = {"defaults"}
 
 def presets(names: list[str]) -> dict:
     """name -> config of every preset with an analytic target (or of ``names``)."""
-    paths = [REPO / "configs" / f"{n}.yaml" for n in names] if names else \
-        sorted(p for p in (REPO / "configs").glob("*.yaml") if p.stem not in SKIP)
+    paths = (
+        [REPO / "configs" / f"{n}.yaml" for n in names]
+        if names
+        else sorted(p for p in (REPO / "configs").glob("*.yaml") if p.stem not in SKIP)
+    )
     out = {}
     for path in paths:
         cfg = config.load(path)
@@ -71,8 +74,9 @@ def presets(names: list[str]) -> dict:
     return out
 
 
-def model_for(name: str, cfg_path: Path, runs: Path | None, steps: int | None,
-              tmp: Path) -> tuple[Path, dict]:
+def model_for(
+    name: str, cfg_path: Path, runs: Path | None, steps: int | None, tmp: Path
+) -> tuple[Path, dict]:
     """An exported model of the preset, and how it was obtained."""
     if runs is not None and (runs / name / "model.onnx").is_file():
         model = runs / name / "model.onnx"
@@ -83,27 +87,38 @@ def model_for(name: str, cfg_path: Path, runs: Path | None, steps: int | None,
         sets.append(f"train.steps={steps}")
     cfg = config.load(cfg_path, sets)
     report = train.run(cfg, tmp / name)
-    return tmp / name / "model.onnx", {"source": "trained", "steps": cfg.train.steps,
-                                       "train_s": report["seconds"]["train"],
-                                       "rel_rmse": report["accuracy"]["rel_rmse"]}
+    return tmp / name / "model.onnx", {
+        "source": "trained",
+        "steps": cfg.train.steps,
+        "train_s": report["seconds"]["train"],
+        "rel_rmse": report["accuracy"]["rel_rmse"],
+    }
 
 
 def sampling_lobe(model: Path, metadata: dict) -> dict:
     """The lobe the plugin samples: stored by the exporter, or fitted at load (files
     exported before the exporter stored it) as the plugin does."""
     stored = lobe.from_metadata(metadata)
-    return {"sampling_lobe": stored or lobe.fit_onnx(model),
-            "lobe_source": "metadata" if stored else "fitted at load"}
+    return {
+        "sampling_lobe": stored or lobe.fit_onnx(model),
+        "lobe_source": "metadata" if stored else "fitted at load",
+    }
 
 
 def renders(model: Path, target: dict, spp: int, resolution: int) -> dict:
     """The three display images: neural, analytic (seed 0), analytic (seed 1)."""
     ref = nbr.analytic_bsdf(target)
-    bsdfs = {"neural": {"type": "neural_brdf", "filename": str(model)},
-             "analytic": ref, "analytic_seed1": ref}
-    return {k: nbr.to_display(nbr.render_scene(b, resolution=resolution, spp=spp,
-                                               seed=int(k.endswith("seed1"))))
-            for k, b in bsdfs.items()}
+    bsdfs = {
+        "neural": {"type": "neural_brdf", "filename": str(model)},
+        "analytic": ref,
+        "analytic_seed1": ref,
+    }
+    return {
+        k: nbr.to_display(
+            nbr.render_scene(b, resolution=resolution, spp=spp, seed=int(k.endswith("seed1")))
+        )
+        for k, b in bsdfs.items()
+    }
 
 
 def main() -> None:
@@ -127,29 +142,44 @@ def main() -> None:
             img = renders(model, target, args.spp, args.resolution)
             render_s = time.perf_counter() - t0
             if args.images:
-                nbr.write_png(args.images / f"{name}.png",
-                              nbr.side_by_side(img["neural"], img["analytic"]))
-            rows.append({"preset": name, "target": target, **how,
-                         "psnr_db": nbr.psnr(img["neural"], img["analytic"]),
-                         "psnr_noise_floor_db": nbr.psnr(img["analytic"],
-                                                         img["analytic_seed1"]),
-                         **sampling_lobe(model, brdf.metadata),
-                         "render_s": render_s})
+                nbr.write_png(
+                    args.images / f"{name}.png", nbr.side_by_side(img["neural"], img["analytic"])
+                )
+            rows.append(
+                {
+                    "preset": name,
+                    "target": target,
+                    **how,
+                    "psnr_db": nbr.psnr(img["neural"], img["analytic"]),
+                    "psnr_noise_floor_db": nbr.psnr(img["analytic"], img["analytic_seed1"]),
+                    **sampling_lobe(model, brdf.metadata),
+                    "render_s": render_s,
+                }
+            )
             r = rows[-1]
-            print(f"{name:16s} PSNR {r['psnr_db']:6.2f} dB  (noise floor "
-                  f"{r['psnr_noise_floor_db']:6.2f} dB)  steps {r['steps']}  "
-                  f"renders {render_s:5.1f} s", flush=True)
-    write_json(args.out, {
-        "benchmark": "mitsuba_presets",
-        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "variant": mi.variant(), "mitsuba": mi.__version__,
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
-        "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
-        "spp": args.spp, "resolution": args.resolution,
-        "steps_override": args.steps, "runs": None if args.runs is None else str(args.runs),
-        "psnr": "dB on sRGB display values in [0, 1]",
-        "presets": rows,
-    })
+            print(
+                f"{name:16s} PSNR {r['psnr_db']:6.2f} dB  (noise floor "
+                f"{r['psnr_noise_floor_db']:6.2f} dB)  steps {r['steps']}  "
+                f"renders {render_s:5.1f} s",
+                flush=True,
+            )
+    write_json(
+        args.out,
+        {
+            "benchmark": "mitsuba_presets",
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "variant": mi.variant(),
+            "mitsuba": mi.__version__,
+            "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
+            "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
+            "spp": args.spp,
+            "resolution": args.resolution,
+            "steps_override": args.steps,
+            "runs": None if args.runs is None else str(args.runs),
+            "psnr": "dB on sRGB display values in [0, 1]",
+            "presets": rows,
+        },
+    )
     print(f"wrote {args.out}")
 
 

@@ -47,7 +47,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-for p in (REPO, REPO / "benchmarks"):     # run from a checkout without `pip install -e .`
+for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip install -e .`
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
@@ -91,25 +91,33 @@ def bsdfs_for(model: Path) -> dict:
     target = neural_brdf.load(model).config.get("target") or {}
     out = {
         NEURAL: {"type": "neural_brdf", "filename": str(model)},
-        BUILTIN: {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
-                  "material": "Au"},
+        BUILTIN: {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3, "material": "Au"},
     }
     if target.get("model") and not target.get("data"):
-        out[ANALYTIC] = {"type": "analytic_brdf", "model": target["model"],
-                         "params": json.dumps(target.get("params") or {})}
+        out[ANALYTIC] = {
+            "type": "analytic_brdf",
+            "model": target["model"],
+            "params": json.dumps(target.get("params") or {}),
+        }
     return out
 
 
 def timed(scene, spp: int) -> tuple[dict, object]:
     """One render: wall, process CPU and JIT kernel seconds, and the image."""
-    dr.kernel_history()                                    # clear
+    dr.kernel_history()  # clear
     w, c = time.perf_counter(), time.process_time()
     img = mi.render(scene, spp=spp, seed=0)
     dr.eval(img)
     dr.sync_thread()
     w, c = time.perf_counter() - w, time.process_time() - c
-    kernels = sum(k.get("execution_time", 0.0) for k in dr.kernel_history()
-                  if k["type"] == dr.KernelType.JIT) / 1000.0       # ms -> s
+    kernels = (
+        sum(
+            k.get("execution_time", 0.0)
+            for k in dr.kernel_history()
+            if k["type"] == dr.KernelType.JIT
+        )
+        / 1000.0
+    )  # ms -> s
     return {"wall_s": w, "cpu_s": c, "kernel_s": kernels}, img
 
 
@@ -122,12 +130,15 @@ def bench_mode(scenes: dict, spp: int, repeats: int) -> tuple[dict, dict]:
         first[n] = t["wall_s"]
         print(f"  {n:15s} first render {first[n]:7.2f} s", flush=True)
     for r in range(repeats):
-        order = names[r % len(names):] + names[:r % len(names)]
+        order = names[r % len(names) :] + names[: r % len(names)]
         for n in order:
             t, images[n] = timed(scenes[n], spp)
             runs[n].append(t)
-        print(f"  round {r + 1}/{repeats}: " + "  ".join(
-            f"{n} {runs[n][-1]['wall_s']:.2f} s" for n in names), flush=True)
+        print(
+            f"  round {r + 1}/{repeats}: "
+            + "  ".join(f"{n} {runs[n][-1]['wall_s']:.2f} s" for n in names),
+            flush=True,
+        )
     return {"first_render_s": first, "renders": runs, "ratio": ratios(runs)}, images
 
 
@@ -140,10 +151,12 @@ def ratios(runs: dict) -> dict:
         per_round = [x / y for x, y in zip(a, b)]
         out[key.removesuffix("_s")] = {
             "best_over_best": min(a) / min(b),
-            "per_round_min": min(per_round), "per_round_median": statistics.median(per_round),
+            "per_round_min": min(per_round),
+            "per_round_median": statistics.median(per_round),
             "per_round_max": max(per_round),
             "best_s": {NEURAL: min(a), BUILTIN: min(b)},
-            "median_s": {NEURAL: statistics.median(a), BUILTIN: statistics.median(b)}}
+            "median_s": {NEURAL: statistics.median(a), BUILTIN: statistics.median(b)},
+        }
     return out
 
 
@@ -165,8 +178,7 @@ def main() -> None:
         scenes, load_s = {}, {}
         for n, b in bsdfs.items():
             t0 = time.perf_counter()
-            scenes[n] = mi.load_dict(nbr.preview_scene(b, resolution=args.resolution,
-                                                       spp=args.spp))
+            scenes[n] = mi.load_dict(nbr.preview_scene(b, resolution=args.resolution, spp=args.spp))
             load_s[n] = time.perf_counter() - t0
         results, psnr = {}, None
         for mode in args.modes:
@@ -174,22 +186,30 @@ def main() -> None:
             with execution_mode(mode):
                 results[mode], images = bench_mode(scenes, args.spp, args.repeats)
             if psnr is None and ANALYTIC in images:
-                psnr = nbr.psnr(nbr.to_display(images[NEURAL]),
-                                nbr.to_display(images[ANALYTIC]))
+                psnr = nbr.psnr(nbr.to_display(images[NEURAL]), nbr.to_display(images[ANALYTIC]))
 
     headline = results[args.modes[0]]["ratio"]["wall"]
     result = {
         "benchmark": "mitsuba_render",
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "variant": mi.variant(), "mitsuba": mi.__version__, "drjit": dr.__version__,
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                    "load_average_1min_at_end": os.getloadavg()[0]},
+        "variant": mi.variant(),
+        "mitsuba": mi.__version__,
+        "drjit": dr.__version__,
+        "machine": {
+            "platform": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "load_average_1min_at_end": os.getloadavg()[0],
+        },
         "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
-        "resolution": args.resolution, "spp": args.spp, "repeats": args.repeats,
-        "model": str(args.model or "configs/quickstart.yaml (train.threads=1), trained by "
-                                   "this script"),
+        "resolution": args.resolution,
+        "spp": args.spp,
+        "repeats": args.repeats,
+        "model": str(
+            args.model or "configs/quickstart.yaml (train.threads=1), trained by this script"
+        ),
         "bsdfs": bsdfs,
-        "sampling_lobe": stored, "load_s": load_s,
+        "sampling_lobe": stored,
+        "load_s": load_s,
         "modes": results,
         "ratio": headline["best_over_best"],
         "ratio_mode": args.modes[0],
@@ -197,15 +217,17 @@ def main() -> None:
         "target_ratio": 3.0,
         "psnr_neural_vs_analytic_db": psnr,
         "statistic": "ratio = best wall time of neural_brdf over best of roughconductor, "
-                     "renders interleaved in rotating order, after one compiling render each",
+        "renders interleaved in rotating order, after one compiling render each",
     }
     write_json(args.out, result)
     for mode in args.modes:
         r = results[mode]["ratio"]
-        print(f"{mode}: neural / roughconductor = {r['wall']['best_over_best']:.2f}x wall "
-              f"(per round {r['wall']['per_round_min']:.2f}-{r['wall']['per_round_max']:.2f}), "
-              f"{r['cpu']['best_over_best']:.2f}x CPU, {r['kernel']['best_over_best']:.2f}x "
-              f"kernel time")
+        print(
+            f"{mode}: neural / roughconductor = {r['wall']['best_over_best']:.2f}x wall "
+            f"(per round {r['wall']['per_round_min']:.2f}-{r['wall']['per_round_max']:.2f}), "
+            f"{r['cpu']['best_over_best']:.2f}x CPU, {r['kernel']['best_over_best']:.2f}x "
+            f"kernel time"
+        )
     print(f"PSNR neural vs analytic: {'n/a' if psnr is None else f'{psnr:.2f} dB'}")
     print(f"wrote {args.out}")
 

@@ -32,16 +32,16 @@ import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the CLI does (neural_brdf/cli.py)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does (neural_brdf/cli.py)
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:            # run from a checkout without `pip install -e .`
+if str(REPO) not in sys.path:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(REPO))
 
 import yaml  # noqa: E402
+from common import write_json  # noqa: E402
 
 from neural_brdf import config, train  # noqa: E402
-from common import write_json  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "neural_presets.json"
 SKIP = {"defaults"}
@@ -74,35 +74,50 @@ def first_below(log_csv: Path, target: float) -> tuple[int | None, float | None,
 
 def run_preset(name: str, root: Path, overrides: list[str] = ()) -> dict:
     """Train, export and validate one preset; the figures of the module doc."""
-    cfg = config.load(REPO / "configs" / f"{name}.yaml",
-                      ["train.progress=false", f"train.log_every={LOG_EVERY}",
-                       f"train.eval_every={EVAL_EVERY}"] + list(overrides))
+    cfg = config.load(
+        REPO / "configs" / f"{name}.yaml",
+        ["train.progress=false", f"train.log_every={LOG_EVERY}", f"train.eval_every={EVAL_EVERY}"]
+        + list(overrides),
+    )
     wall, cpu = time.perf_counter(), time.process_time()
-    report = train.run(cfg, root / name, overwrite=True)      # a rerun replaces the last
+    report = train.run(cfg, root / name, overwrite=True)  # a rerun replaces the last
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     step, seconds, curve = first_below(root / name / "log.csv", TARGET)
     c = report["checks"]
-    return {"preset": name, "target": report["target"],
-            "steps": cfg.train.steps, "threads": cfg.train.threads,
-            "target_rel_rmse": TARGET,
-            "steps_to_target": step, "seconds_to_target": seconds,
-            "final_val_rel_rmse": curve[-1][2] if curve else None,
-            "rel_rmse": report["accuracy"]["rel_rmse"],
-            "nbrdf_log_error": report["accuracy"]["nbrdf_log_error"],
-            "reciprocity": c["reciprocity"]["value"],
-            "max_albedo": c["max_albedo"]["value"], "min_value": c["min_value"]["value"],
-            "passed": report["passed"], "train_s": report["seconds"]["train"],
-            "wall_s": wall, "cpu_s": cpu,
-            "val_curve": [{"step": s, "seconds": t, "val_rel_rmse": e} for s, t, e in curve],
-            "run_dir": str(root / name)}
+    return {
+        "preset": name,
+        "target": report["target"],
+        "steps": cfg.train.steps,
+        "threads": cfg.train.threads,
+        "target_rel_rmse": TARGET,
+        "steps_to_target": step,
+        "seconds_to_target": seconds,
+        "final_val_rel_rmse": curve[-1][2] if curve else None,
+        "rel_rmse": report["accuracy"]["rel_rmse"],
+        "nbrdf_log_error": report["accuracy"]["nbrdf_log_error"],
+        "reciprocity": c["reciprocity"]["value"],
+        "max_albedo": c["max_albedo"]["value"],
+        "min_value": c["min_value"]["value"],
+        "passed": report["passed"],
+        "train_s": report["seconds"]["train"],
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "val_curve": [{"step": s, "seconds": t, "val_rel_rmse": e} for s, t, e in curve],
+        "run_dir": str(root / name),
+    }
 
 
 def summary_line(r: dict) -> str:
-    reach = ("not reached" if r["steps_to_target"] is None else
-             f"2% at step {r['steps_to_target']:5d} ({r['seconds_to_target']:5.1f} s)")
-    return (f"{r['preset']:16s} {reach}  final {100 * r['rel_rmse']:5.2f}%  "
-            f"recip {r['reciprocity']:.1g}  max albedo {r['max_albedo']:.4f}  "
-            f"train {r['train_s']:5.1f} s  wall {r['wall_s']:5.1f} s")
+    reach = (
+        "not reached"
+        if r["steps_to_target"] is None
+        else f"2% at step {r['steps_to_target']:5d} ({r['seconds_to_target']:5.1f} s)"
+    )
+    return (
+        f"{r['preset']:16s} {reach}  final {100 * r['rel_rmse']:5.2f}%  "
+        f"recip {r['reciprocity']:.1g}  max albedo {r['max_albedo']:.4f}  "
+        f"train {r['train_s']:5.1f} s  wall {r['wall_s']:5.1f} s"
+    )
 
 
 def main() -> None:

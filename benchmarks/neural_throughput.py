@@ -39,21 +39,21 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:            # run from a checkout without `pip install -e .`
+if str(REPO) not in sys.path:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(REPO))
 
 import onnx  # noqa: E402
+from common import evals_per_second, matmul_flops_per_s, write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
 from analytic import physics  # noqa: E402
 from neural_brdf import config, export  # noqa: E402
 from neural_brdf.model import NormalizedBRDF, RawBRDF  # noqa: E402
-from common import evals_per_second, matmul_flops_per_s, write_json  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "neural_throughput.json"
 ENCODINGS = ("isotropic", "anisotropic")
 # 1 to 4^10 = 1048576 pairs per call
-BATCHES = tuple(4 ** k for k in range(11))
+BATCHES = tuple(4**k for k in range(11))
 
 
 def cores() -> int:
@@ -65,8 +65,7 @@ def backends() -> list[tuple[str, int]]:
     Dr.Jit on its own pool (one thread per core by default)."""
     n = cores()
     threads = sorted({1, n})
-    return ([("torch", t) for t in threads] + [("onnxruntime", t) for t in threads]
-            + [("drjit", n)])
+    return [("torch", t) for t in threads] + [("onnxruntime", t) for t in threads] + [("drjit", n)]
 
 
 def linear_flops(proto: onnx.ModelProto) -> int:
@@ -86,7 +85,7 @@ def build_model(encoding: str, folder: Path, *, seed: int = 0) -> tuple[Normaliz
     torch.manual_seed(seed)
     raw = RawBRDF.from_config(cfg.model).eval()
     with torch.no_grad():
-        raw.mlp.head.weight.normal_(0.0, 0.1)     # initialised to zero: see the module doc
+        raw.mlp.head.weight.normal_(0.0, 0.1)  # initialised to zero: see the module doc
     n = cfg.normalization
     shape = (n.grid_size, n.grid_size, 3) if encoding != "isotropic" else (n.table_size, 3)
     model = NormalizedBRDF(raw, torch.full(shape, 1.5)).eval()
@@ -99,12 +98,15 @@ def build_model(encoding: str, folder: Path, *, seed: int = 0) -> tuple[Normaliz
 
 def random_pairs(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """float32 pairs above the horizon, 10% of them within a degree of grazing."""
-    return (physics.random_directions(n, seed).astype(np.float32),
-            physics.random_directions(n, seed + 1).astype(np.float32))
+    return (
+        physics.random_directions(n, seed).astype(np.float32),
+        physics.random_directions(n, seed + 1).astype(np.float32),
+    )
 
 
-def evaluator(backend: str, threads: int, model: NormalizedBRDF, path: Path,
-              wi: np.ndarray, wo: np.ndarray):
+def evaluator(
+    backend: str, threads: int, model: NormalizedBRDF, path: Path, wi: np.ndarray, wo: np.ndarray
+):
     """A no-argument callable evaluating the model on (wi, wo) with ``backend``."""
     if backend == "torch":
         torch.set_num_threads(threads)
@@ -113,12 +115,14 @@ def evaluator(backend: str, threads: int, model: NormalizedBRDF, path: Path,
         def call():
             with torch.inference_mode():
                 model(wi_t, wo_t)
+
         return call
     if backend == "onnxruntime":
         brdf = neural_brdf.load(path, threads=threads)
         return lambda: brdf.eval(wi, wo)
     if backend == "drjit":
-        import drjit_eval           # imports Mitsuba: only when Dr.Jit is benchmarked
+        import drjit_eval  # imports Mitsuba: only when Dr.Jit is benchmarked
+
         return drjit_eval.evaluator({"type": "neural_brdf", "filename": str(path)}, wi, wo)
     raise ValueError(f"unknown backend {backend!r}")
 
@@ -134,8 +138,9 @@ def measure_peaks(threads: list[int], repeats: int) -> dict[int, float]:
     return peaks
 
 
-def measure(n: int, repeats: int, peaks: dict[int, float], folder: Path, *,
-            drjit: bool = True) -> dict:
+def measure(
+    n: int, repeats: int, peaks: dict[int, float], folder: Path, *, drjit: bool = True
+) -> dict:
     """Rates at batch ``n`` for every encoding and backend, against the bound."""
     wi, wo = random_pairs(n)
     saved = torch.get_num_threads()
@@ -143,8 +148,10 @@ def measure(n: int, repeats: int, peaks: dict[int, float], folder: Path, *,
     for encoding in ENCODINGS:
         model, path = build_model(encoding, folder)
         flops = linear_flops(onnx.load(path))
-        models[encoding] = {"linear_flops_per_eval": flops,
-                            "parameters": sum(p.numel() for p in model.parameters())}
+        models[encoding] = {
+            "linear_flops_per_eval": flops,
+            "parameters": sum(p.numel() for p in model.parameters()),
+        }
         for backend, threads in backends():
             if backend == "drjit" and not drjit:
                 continue
@@ -152,11 +159,15 @@ def measure(n: int, repeats: int, peaks: dict[int, float], folder: Path, *,
             row = {"encoding": encoding, "backend": backend, "threads": threads}
             if backend == "drjit":
                 import drjit_eval
+
                 row["first_call_s"] = drjit_eval.first_call_seconds(call)
             row["evals_per_s"] = evals_per_second(call, n, repeats)
             rows.append(row)
-            print(f"  neural {encoding:11s} {backend:11s} {threads} thr  "
-                  f"{row['evals_per_s'] / 1e6:8.3f} M evals/s", flush=True)
+            print(
+                f"  neural {encoding:11s} {backend:11s} {threads} thr  "
+                f"{row['evals_per_s'] / 1e6:8.3f} M evals/s",
+                flush=True,
+            )
     torch.set_num_threads(saved)
     result = {"batch": n, "repeats": repeats, "models": models, "rows": rows}
     normalise(result, peaks)
@@ -168,12 +179,18 @@ def normalise(result: dict, peaks: dict[int, float]) -> None:
     for r in result["rows"]:
         peak = peaks[r["threads"]]
         bound = peak / result["models"][r["encoding"]]["linear_flops_per_eval"]
-        r.update({"bound_evals_per_s": bound, "fraction_of_bound": r["evals_per_s"] / bound,
-                  "matmul_flops_per_eval": peak / r["evals_per_s"]})
+        r.update(
+            {
+                "bound_evals_per_s": bound,
+                "fraction_of_bound": r["evals_per_s"] / bound,
+                "matmul_flops_per_eval": peak / r["evals_per_s"],
+            }
+        )
 
 
-def batch_curve(backend: str, threads: int, folder: Path, *, batches=BATCHES,
-                repeats: int = 3) -> list[dict]:
+def batch_curve(
+    backend: str, threads: int, folder: Path, *, batches=BATCHES, repeats: int = 3
+) -> list[dict]:
     """Rate against batch size for the isotropic default model."""
     model, path = build_model("isotropic", folder)
     saved = torch.get_num_threads()

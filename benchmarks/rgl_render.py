@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-for p in (REPO, REPO / "benchmarks"):     # run from a checkout without `pip install -e .`
+for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip install -e .`
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
@@ -51,6 +51,7 @@ def render_helpers():
     knows where the render helpers live (neural_brdf.render, formerly neural_brdf.mitsuba).
     Importing neural_brdf.mitsuba also registers the ``neural_brdf`` plugin."""
     import neural_brdf.mitsuba as plugins
+
     try:
         from neural_brdf import render
     except ImportError:
@@ -60,8 +61,11 @@ def render_helpers():
 
 def quickstart_model(tmp: Path, steps: int) -> Path:
     from neural_brdf import config, train
-    cfg = config.load(QUICKSTART, [f"train.steps={steps}", "train.progress=false",
-                                   "train.threads=1", "train.eval_every=0"])
+
+    cfg = config.load(
+        QUICKSTART,
+        [f"train.steps={steps}", "train.progress=false", "train.threads=1", "train.eval_every=0"],
+    )
     train.run(cfg, tmp / "quickstart")
     return tmp / "quickstart" / "model.onnx"
 
@@ -77,14 +81,17 @@ def fidelity(model, baked) -> dict:
     wi, wo = hemisphere(FIDELITY_PAIRS), hemisphere(FIDELITY_PAIRS)
     cos = wo[:, 2:3]
     a, b = baked.eval(wi, wo) * cos, np.asarray(model.eval(wi, wo), np.float64) * cos
-    rel = float(np.sqrt(np.sum((a - b) ** 2) / np.sum(b ** 2)))
+    rel = float(np.sqrt(np.sum((a - b) ** 2) / np.sum(b**2)))
     node_wi, node_wo = baked.node_pairs()
     c = node_wo[:, 2:3]
     na = baked.eval(node_wi, node_wo) * c
     nb = np.asarray(model.eval(node_wi, node_wo), np.float64) * c
-    return {"rel_rmse_f_cos_uniform_pairs": rel, "pairs": FIDELITY_PAIRS,
-            "rel_rmse_f_cos_at_nodes": float(np.sqrt(np.sum((na - nb) ** 2) / np.sum(nb ** 2))),
-            "nodes": len(node_wi)}
+    return {
+        "rel_rmse_f_cos_uniform_pairs": rel,
+        "pairs": FIDELITY_PAIRS,
+        "rel_rmse_f_cos_at_nodes": float(np.sqrt(np.sum((na - nb) ** 2) / np.sum(nb**2))),
+        "nodes": len(node_wi),
+    }
 
 
 def main(argv=None) -> int:
@@ -98,9 +105,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import mitsuba as mi
+
     mi.set_variant("llvm_ad_rgb")
     import neural_brdf
     from neural_brdf import rgl
+
     r = render_helpers()
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -113,8 +122,10 @@ def main(argv=None) -> int:
         bake_s = time.perf_counter() - t0
         size = os.path.getsize(bsdf_path)
         fid = fidelity(model, baked)
-        bsdfs = {"neural": {"type": "neural_brdf", "filename": str(model_path)},
-                 "measured": {"type": "measured", "filename": str(bsdf_path)}}
+        bsdfs = {
+            "neural": {"type": "neural_brdf", "filename": str(model_path)},
+            "measured": {"type": "measured", "filename": str(bsdf_path)},
+        }
 
         def render(name, spp, seed=0):
             t = time.perf_counter()
@@ -123,7 +134,7 @@ def main(argv=None) -> int:
 
         timing, imgs = {}, {}
         for name in bsdfs:
-            render(name, args.spp)                                   # compile
+            render(name, args.spp)  # compile
             imgs[name], timing[name] = render(name, args.spp)
         ref = {name: render(name, args.ref_spp, seed=1) for name in bsdfs}
         disp = {k: r.to_display(v) for k, v in imgs.items()}
@@ -131,11 +142,14 @@ def main(argv=None) -> int:
 
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(), "loadavg": list(os.getloadavg()),
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "loadavg": list(os.getloadavg()),
         "model": str(model_path) if args.model else f"quickstart, {args.steps} steps",
-        "resolution": args.resolution, "spp": args.spp, "ref_spp": args.ref_spp,
-        "bake": {"seconds": bake_s, "bytes": size,
-                 "resolutions": dict(rgl.DEFAULTS), **fid},
+        "resolution": args.resolution,
+        "spp": args.spp,
+        "ref_spp": args.ref_spp,
+        "bake": {"seconds": bake_s, "bytes": size, "resolutions": dict(rgl.DEFAULTS), **fid},
         "render_seconds": {k: v for k, v in timing.items()},
         "render_seconds_ref": {k: v[1] for k, v in ref.items()},
         "psnr_db": {
@@ -147,13 +161,19 @@ def main(argv=None) -> int:
     }
     write_json(Path(args.out), result)
     p = result["psnr_db"]
-    print(f"bake {bake_s:.1f} s, {size / 2**20:.2f} MiB, eval rel RMSE "
-          f"{100 * fid['rel_rmse_f_cos_uniform_pairs']:.2f} %")
-    print(f"render {args.spp} spp: neural {timing['neural']:.2f} s, measured "
-          f"{timing['measured']:.2f} s")
-    print(f"PSNR vs neural {args.ref_spp} spp: neural {p['neural_vs_neural_ref']:.2f} dB, "
-          f"measured {p['measured_vs_neural_ref']:.2f} dB; measured {args.ref_spp} spp vs "
-          f"neural {args.ref_spp} spp: {p['measured_ref_vs_neural_ref']:.2f} dB")
+    print(
+        f"bake {bake_s:.1f} s, {size / 2**20:.2f} MiB, eval rel RMSE "
+        f"{100 * fid['rel_rmse_f_cos_uniform_pairs']:.2f} %"
+    )
+    print(
+        f"render {args.spp} spp: neural {timing['neural']:.2f} s, measured "
+        f"{timing['measured']:.2f} s"
+    )
+    print(
+        f"PSNR vs neural {args.ref_spp} spp: neural {p['neural_vs_neural_ref']:.2f} dB, "
+        f"measured {p['measured_vs_neural_ref']:.2f} dB; measured {args.ref_spp} spp vs "
+        f"neural {args.ref_spp} spp: {p['measured_ref_vs_neural_ref']:.2f} dB"
+    )
     print(f"wrote {args.out}")
     return 0
 

@@ -43,26 +43,26 @@ from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # as the CLI does (neural_brdf/cli.py)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does (neural_brdf/cli.py)
 
 REPO = Path(__file__).resolve().parents[1]
 HERE = Path(__file__).resolve().parent
-for p in (str(REPO), str(HERE)):         # run from a checkout without `pip install -e .`
+for p in (str(REPO), str(HERE)):  # run from a checkout without `pip install -e .`
     if p not in sys.path:
         sys.path.insert(0, p)
-
-import torch  # noqa: E402
 
 import analytic_throughput  # noqa: E402
 import neural_presets  # noqa: E402
 import neural_throughput as nt  # noqa: E402
+import torch  # noqa: E402
 from common import MATMUL_N, evals_per_second, write_json  # noqa: E402
+
 from neural_brdf import config  # noqa: E402
 
 OUT = HERE / "results" / "suite.json"
 SECTIONS = ("analytic", "neural", "drjit", "curves", "training", "render")
 QUICK_PRESETS = ("quickstart", "lambert", "brushed_ggx")
-QUICKSTART = "quickstart"            # its model is the one rendered
+QUICKSTART = "quickstart"  # its model is the one rendered
 PACKAGES = ("torch", "numpy", "onnx", "onnxruntime", "mitsuba", "drjit")
 
 
@@ -84,16 +84,23 @@ def machine_info() -> dict:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             versions[name] = None
-    return {"platform": platform.platform(), "cpu": cpu_model(), "cpu_count": os.cpu_count(),
-            "cores_available": nt.cores(), "python": platform.python_version(),
-            "torch_threads": torch.get_num_threads(), "versions": versions,
-            "load_average_at_start": list(os.getloadavg())}
+    return {
+        "platform": platform.platform(),
+        "cpu": cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "cores_available": nt.cores(),
+        "python": platform.python_version(),
+        "torch_threads": torch.get_num_threads(),
+        "versions": versions,
+        "load_average_at_start": list(os.getloadavg()),
+    }
 
 
 # ------------------------------------------------------------------ sections
 def section_drjit(n: int, repeats: int) -> dict:
     """The built-in and analytic BSDFs in Dr.Jit, as the neural plugin is measured."""
     import drjit_eval
+
     target = config.load(REPO / "configs" / f"{QUICKSTART}.yaml").target.model_dump()
     wi, wo = nt.random_pairs(n)
     rows = {}
@@ -103,8 +110,7 @@ def section_drjit(n: int, repeats: int) -> dict:
         rate = evals_per_second(call, n, repeats)
         rows[name] = {"bsdf": bsdf, "first_call_s": first, "evals_per_s": rate}
         print(f"  drjit {name:15s} {rate / 1e6:8.3f} M evals/s", flush=True)
-    return {"batch": n, "repeats": repeats, "target": target, **drjit_eval.info(),
-            "bsdfs": rows}
+    return {"batch": n, "repeats": repeats, "target": target, **drjit_eval.info(), "bsdfs": rows}
 
 
 def normalise(suite: dict, peaks: dict[int, float]) -> None:
@@ -129,10 +135,17 @@ def section_curves(repeats: int, folder: Path, drjit: bool) -> dict:
         key = f"{backend}_{threads}"
         curves[key] = nt.batch_curve(backend, threads, folder, repeats=repeats)
         best = max(c["evals_per_s"] for c in curves[key])
-        print(f"  curve {key:14s} batch 1: {curves[key][0]['evals_per_s'] / 1e3:9.2f} k/s, "
-              f"max {best / 1e6:7.3f} M/s", flush=True)
-    return {"model": "isotropic default architecture", "batches": list(nt.BATCHES),
-            "repeats": repeats, "curves": curves}
+        print(
+            f"  curve {key:14s} batch 1: {curves[key][0]['evals_per_s'] / 1e3:9.2f} k/s, "
+            f"max {best / 1e6:7.3f} M/s",
+            flush=True,
+        )
+    return {
+        "model": "isotropic default architecture",
+        "batches": list(nt.BATCHES),
+        "repeats": repeats,
+        "curves": curves,
+    }
 
 
 def section_training(presets: list[str], root: Path, threads: int | None) -> dict:
@@ -147,9 +160,14 @@ def section_training(presets: list[str], root: Path, threads: int | None) -> dic
             failed[name] = f"{type(e).__name__}: {e}"
             continue
         print("  " + neural_presets.summary_line(rows[name]), flush=True)
-    return {"target_rel_rmse": neural_presets.TARGET, "eval_every": neural_presets.EVAL_EVERY,
-            "train_threads": threads or "preset", "root": str(root), "presets": rows,
-            "failed": failed}
+    return {
+        "target_rel_rmse": neural_presets.TARGET,
+        "eval_every": neural_presets.EVAL_EVERY,
+        "train_threads": threads or "preset",
+        "root": str(root),
+        "presets": rows,
+        "failed": failed,
+    }
 
 
 def rendered_model(root: Path) -> Path | None:
@@ -191,44 +209,62 @@ def summarize(suite: dict) -> dict:
     ratios = {}
     if an and neural.get("rows"):
         mf, lam = an["microfacet"], an["lambertian"]
-        for backend, threads, ref, key in (("torch", cores, mf, "torch"),
-                                           ("onnxruntime", 1, mf, "numpy"),
-                                           ("onnxruntime", cores, mf, "numpy")):
+        for backend, threads, ref, key in (
+            ("torch", cores, mf, "torch"),
+            ("onnxruntime", 1, mf, "numpy"),
+            ("onnxruntime", cores, mf, "numpy"),
+        ):
             r = _row(neural, backend, threads)
             if r:
                 ratios[f"{backend}_{threads}_over_microfacet_{key}"] = (
-                    r["evals_per_s"] / ref[f"{key}_evals_per_s"])
+                    r["evals_per_s"] / ref[f"{key}_evals_per_s"]
+                )
                 ratios[f"{backend}_{threads}_over_lambertian_{key}"] = (
-                    r["evals_per_s"] / lam[f"{key}_evals_per_s"])
+                    r["evals_per_s"] / lam[f"{key}_evals_per_s"]
+                )
     r = _row(neural, "drjit", cores)
     if r and dj:
         for name, ref in dj.items():
             ratios[f"drjit_over_{name}_drjit"] = r["evals_per_s"] / ref["evals_per_s"]
     out["neural_over_analytic"] = ratios
-    out["fraction_of_bound"] = {f"{r['encoding']}_{r['backend']}_{r['threads']}":
-                                r["fraction_of_bound"] for r in neural.get("rows", [])}
+    out["fraction_of_bound"] = {
+        f"{r['encoding']}_{r['backend']}_{r['threads']}": r["fraction_of_bound"]
+        for r in neural.get("rows", [])
+    }
     curves = {}
     for key, c in suite.get("curves", {}).get("curves", {}).items():
         rates = [p["evals_per_s"] for p in c]
         best = max(rates)
         half = next(p["batch"] for p in c if p["evals_per_s"] >= 0.5 * best)
-        curves[key] = {"evals_per_s_at_batch_1": rates[0], "max_evals_per_s": best,
-                       "batch_at_max": c[rates.index(best)]["batch"],
-                       "batch_1_over_max": rates[0] / best, "first_batch_at_half_max": half}
+        curves[key] = {
+            "evals_per_s_at_batch_1": rates[0],
+            "max_evals_per_s": best,
+            "batch_at_max": c[rates.index(best)]["batch"],
+            "batch_1_over_max": rates[0] / best,
+            "first_batch_at_half_max": half,
+        }
     out["batch_curves"] = curves
     out["time_to_target"] = {
-        name: {k: r[k] for k in ("steps_to_target", "seconds_to_target", "steps", "train_s",
-                                 "rel_rmse")}
-        for name, r in suite.get("training", {}).get("presets", {}).items()}
+        name: {
+            k: r[k]
+            for k in ("steps_to_target", "seconds_to_target", "steps", "train_s", "rel_rmse")
+        }
+        for name, r in suite.get("training", {}).get("presets", {}).items()
+    }
     render = suite.get("render", {})
     if "ratio" in render:
         mode = render.get("ratio_mode")
         by_time = render.get("modes", {}).get(mode, {}).get("ratio", {})
         out["render_neural_over_roughconductor"] = {
-            "wall_best_over_best": render["ratio"], "mode": mode,
+            "wall_best_over_best": render["ratio"],
+            "mode": mode,
             "wall_per_round": render.get("ratio_per_round"),
-            **{f"{k}_best_over_best": v["best_over_best"] for k, v in by_time.items()
-               if k != "wall"}}
+            **{
+                f"{k}_best_over_best": v["best_over_best"]
+                for k, v in by_time.items()
+                if k != "wall"
+            },
+        }
     return out
 
 
@@ -242,67 +278,90 @@ def _m(x: float | None) -> str:
 def table(suite: dict) -> str:
     """The README's benchmark tables (markdown) from a suite.json."""
     m = suite["machine"]
-    peak = suite["peak"].get("gflops") or suite["peak"]["start_gflops"]   # older files: start
+    peak = suite["peak"].get("gflops") or suite["peak"]["start_gflops"]  # older files: start
     cores = m["cores_available"]
-    lines = [f"Measured {suite['created'][:10]} on {m['cpu']} ({cores} cores), "
-             f"{'quick' if suite['quick'] else 'full'} mode; fp32 matmul peak "
-             f"{peak[str(cores)]:.0f} GFLOP/s on {cores} threads, "
-             f"{peak['1']:.0f} on 1; load average "
-             f"{m['load_average_at_start'][0]:.1f} at the start, "
-             f"{suite['load_average_at_end'][0]:.1f} at the end.", ""]
+    lines = [
+        f"Measured {suite['created'][:10]} on {m['cpu']} ({cores} cores), "
+        f"{'quick' if suite['quick'] else 'full'} mode; fp32 matmul peak "
+        f"{peak[str(cores)]:.0f} GFLOP/s on {cores} threads, "
+        f"{peak['1']:.0f} on 1; load average "
+        f"{m['load_average_at_start'][0]:.1f} at the start, "
+        f"{suite['load_average_at_end'][0]:.1f} at the end.",
+        "",
+    ]
     neural = suite.get("neural")
     if neural and "rows" in neural:
         an = suite.get("analytic", {}).get("models", {})
-        lines += [f"**Throughput** (batch {neural['batch']:,}, evaluations/s; bound = matmul "
-                  f"peak / {neural['models']['isotropic']['linear_flops_per_eval']:,} FLOPs "
-                  "per evaluation):", "",
-                  "| model | backend | threads | evals/s | fraction of bound |",
-                  "|---|---|---|---|---|"]
+        lines += [
+            f"**Throughput** (batch {neural['batch']:,}, evaluations/s; bound = matmul "
+            f"peak / {neural['models']['isotropic']['linear_flops_per_eval']:,} FLOPs "
+            "per evaluation):",
+            "",
+            "| model | backend | threads | evals/s | fraction of bound |",
+            "|---|---|---|---|---|",
+        ]
         for r in neural["rows"]:
-            lines.append(f"| neural {r['encoding']} | {r['backend']} | {r['threads']} | "
-                         f"{_m(r['evals_per_s'])} | {r['fraction_of_bound']:.3f} |")
+            lines.append(
+                f"| neural {r['encoding']} | {r['backend']} | {r['threads']} | "
+                f"{_m(r['evals_per_s'])} | {r['fraction_of_bound']:.3f} |"
+            )
         for name, d in suite.get("drjit", {}).get("bsdfs", {}).items():
-            lines.append(f"| {name} (Mitsuba) | drjit | {suite['drjit']['drjit_threads']} | "
-                         f"{_m(d['evals_per_s'])} | - |")
+            lines.append(
+                f"| {name} (Mitsuba) | drjit | {suite['drjit']['drjit_threads']} | "
+                f"{_m(d['evals_per_s'])} | - |"
+            )
         for name in ("lambertian", "microfacet", "ashikhmin_shirley"):
             if name in an:
                 for api in ("numpy", "torch"):
-                    lines.append(f"| analytic {name} | {api} | "
-                                 f"{suite['analytic']['torch_threads']} | "
-                                 f"{_m(an[name][f'{api}_evals_per_s'])} | - |")
+                    lines.append(
+                        f"| analytic {name} | {api} | "
+                        f"{suite['analytic']['torch_threads']} | "
+                        f"{_m(an[name][f'{api}_evals_per_s'])} | - |"
+                    )
         lines.append("")
     curves = suite.get("curves", {}).get("curves")
     if curves:
         keys = list(curves)
-        lines += ["**Throughput against batch size** (evaluations/s, isotropic model):", "",
-                  "| batch | " + " | ".join(k.replace("_", ", ") + " thr" for k in keys) + " |",
-                  "|---" * (len(keys) + 1) + "|"]
+        lines += [
+            "**Throughput against batch size** (evaluations/s, isotropic model):",
+            "",
+            "| batch | " + " | ".join(k.replace("_", ", ") + " thr" for k in keys) + " |",
+            "|---" * (len(keys) + 1) + "|",
+        ]
         for i, b in enumerate(suite["curves"]["batches"]):
-            if i % 2 == 0:                      # powers of 16 keep the table short
-                lines.append(f"| {b:,} | " + " | ".join(_m(curves[k][i]["evals_per_s"])
-                                                        for k in keys) + " |")
+            if i % 2 == 0:  # powers of 16 keep the table short
+                lines.append(
+                    f"| {b:,} | " + " | ".join(_m(curves[k][i]["evals_per_s"]) for k in keys) + " |"
+                )
         lines.append("")
     train = suite.get("training", {}).get("presets")
     if train:
-        lines += ["**Training time to 2 %** (relative RMSE of f cos on held-out pairs, "
-                  f"checked every {suite['training']['eval_every']} steps):", "",
-                  "| preset | steps to 2 % | seconds to 2 % | steps | train s | "
-                  "final rel. RMSE |", "|---|---|---|---|---|---|"]
+        lines += [
+            "**Training time to 2 %** (relative RMSE of f cos on held-out pairs, "
+            f"checked every {suite['training']['eval_every']} steps):",
+            "",
+            "| preset | steps to 2 % | seconds to 2 % | steps | train s | final rel. RMSE |",
+            "|---|---|---|---|---|---|",
+        ]
         for name, r in train.items():
             s = "-" if r["steps_to_target"] is None else str(r["steps_to_target"])
             t = "-" if r["seconds_to_target"] is None else f"{r['seconds_to_target']:.1f}"
-            lines.append(f"| {name} | {s} | {t} | {r['steps']} | {r['train_s']:.0f} | "
-                         f"{100 * r['rel_rmse']:.2f} % |")
+            lines.append(
+                f"| {name} | {s} | {t} | {r['steps']} | {r['train_s']:.0f} | "
+                f"{100 * r['rel_rmse']:.2f} % |"
+            )
         lines.append("")
     ren = suite.get("summary", {}).get("render_neural_over_roughconductor")
     if ren:
         spread = ren.get("wall_per_round") or {}
-        lines.append(f"**Render time**, neural over Mitsuba's roughconductor (preview scene, "
-                     f"{suite['render']['resolution']}^2, {suite['render']['spp']} spp, "
-                     f"{ren['mode']} mode): {ren['wall_best_over_best']:.2f}x wall time, best "
-                     f"over best (per round {spread.get('min', 0):.2f}x to "
-                     f"{spread.get('max', 0):.2f}x); kernel time "
-                     f"{ren.get('kernel_best_over_best', float('nan')):.2f}x.")
+        lines.append(
+            f"**Render time**, neural over Mitsuba's roughconductor (preview scene, "
+            f"{suite['render']['resolution']}^2, {suite['render']['spp']} spp, "
+            f"{ren['mode']} mode): {ren['wall_best_over_best']:.2f}x wall time, best "
+            f"over best (per round {spread.get('min', 0):.2f}x to "
+            f"{spread.get('max', 0):.2f}x); kernel time "
+            f"{ren.get('kernel_best_over_best', float('nan')):.2f}x."
+        )
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -311,23 +370,32 @@ def run(args, presets: list[str], skip: set[str]) -> tuple[dict, bool]:
     cores = nt.cores()
     batch = 1 << (18 if args.quick else 20)
     repeats = 2 if args.quick else 3
-    suite = {"benchmark": "suite", "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-             "command": " ".join(["benchmarks/run_all.py"] + sys.argv[1:]),
-             "quick": args.quick, "batch": batch, "repeats": repeats,
-             "statistic": "best of repeats after a warm-up call; small batches timed in "
-                          "blocks of >= 20 ms", "machine": machine_info()}
+    suite = {
+        "benchmark": "suite",
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(["benchmarks/run_all.py"] + sys.argv[1:]),
+        "quick": args.quick,
+        "batch": batch,
+        "repeats": repeats,
+        "statistic": "best of repeats after a warm-up call; small batches timed in "
+        "blocks of >= 20 ms",
+        "machine": machine_info(),
+    }
     threads = sorted({1, cores})
     peaks = nt.measure_peaks(threads, repeats + 2)
-    suite["peak"] = {"matmul": f"torch.mm {MATMUL_N}x{MATMUL_N} float32",
-                     "start_gflops": {str(t): p / 1e9 for t, p in peaks.items()}}
+    suite["peak"] = {
+        "matmul": f"torch.mm {MATMUL_N}x{MATMUL_N} float32",
+        "start_gflops": {str(t): p / 1e9 for t, p in peaks.items()},
+    }
     print(f"matmul peak: {suite['peak']['start_gflops']} GFLOP/s", flush=True)
     ok = True
     root = Path(args.root)
     with tempfile.TemporaryDirectory() as tmp:
         steps = {
             "analytic": lambda: analytic_throughput.measure(batch, repeats, peaks[cores]),
-            "neural": lambda: nt.measure(batch, repeats, peaks, Path(tmp),
-                                         drjit="drjit" not in skip),
+            "neural": lambda: nt.measure(
+                batch, repeats, peaks, Path(tmp), drjit="drjit" not in skip
+            ),
             "drjit": lambda: section_drjit(batch, repeats),
             "curves": lambda: section_curves(repeats, Path(tmp), "drjit" not in skip),
             "training": lambda: section_training(presets, root, args.train_threads),
@@ -341,7 +409,7 @@ def run(args, presets: list[str], skip: set[str]) -> tuple[dict, bool]:
             try:
                 suite[name] = steps[name]()
                 ok = ok and not suite[name].get("failed")
-            except Exception as e:             # record, and go on with the other sections
+            except Exception as e:  # record, and go on with the other sections
                 traceback.print_exc()
                 suite[name] = {"error": f"{type(e).__name__}: {e}"}
                 ok = False
@@ -359,18 +427,31 @@ def run(args, presets: list[str], skip: set[str]) -> tuple[dict, bool]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true",
-                    help=f"batch 2^18, 2 repeats, presets {','.join(QUICK_PRESETS)}, a "
-                         "128^2 16 spp render (3 rounds)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"batch 2^18, 2 repeats, presets {','.join(QUICK_PRESETS)}, a "
+        "128^2 16 spp render (3 rounds)",
+    )
     ap.add_argument("--presets", help="comma-separated names in configs/ (default: all)")
     ap.add_argument("--skip", default="", help=f"comma-separated sections: {','.join(SECTIONS)}")
-    ap.add_argument("--train-threads", type=int, metavar="N",
-                    help="train.threads for every preset (default: each preset's own, 2)")
-    ap.add_argument("--root", default=str(REPO / "runs" / "bench"),
-                    help="where the presets are trained (default: runs/bench)")
+    ap.add_argument(
+        "--train-threads",
+        type=int,
+        metavar="N",
+        help="train.threads for every preset (default: each preset's own, 2)",
+    )
+    ap.add_argument(
+        "--root",
+        default=str(REPO / "runs" / "bench"),
+        help="where the presets are trained (default: runs/bench)",
+    )
     ap.add_argument("--out", type=Path, default=OUT, help="the JSON file (default: %(default)s)")
-    ap.add_argument("--table", action="store_true",
-                    help="print the markdown tables of an existing --out file and exit")
+    ap.add_argument(
+        "--table",
+        action="store_true",
+        help="print the markdown tables of an existing --out file and exit",
+    )
     args = ap.parse_args(argv)
     if args.table:
         if not args.out.is_file():
@@ -378,15 +459,24 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(table(json.loads(args.out.read_text())), end="")
         return 0
-    presets = (args.presets.split(",") if args.presets
-               else list(QUICK_PRESETS) if args.quick else neural_presets.preset_names())
+    presets = (
+        args.presets.split(",")
+        if args.presets
+        else list(QUICK_PRESETS)
+        if args.quick
+        else neural_presets.preset_names()
+    )
     skip = set(filter(None, args.skip.split(",")))
     unknown = sorted(set(presets) - set(neural_presets.preset_names()))
-    bad = (f"--presets: unknown {unknown} (see configs/)" if unknown else
-           f"--skip: unknown {sorted(skip - set(SECTIONS))} (sections: {','.join(SECTIONS)})"
-           if skip - set(SECTIONS) else
-           "--train-threads: must be >= 1" if args.train_threads is not None
-           and args.train_threads < 1 else None)
+    bad = (
+        f"--presets: unknown {unknown} (see configs/)"
+        if unknown
+        else f"--skip: unknown {sorted(skip - set(SECTIONS))} (sections: {','.join(SECTIONS)})"
+        if skip - set(SECTIONS)
+        else "--train-threads: must be >= 1"
+        if args.train_threads is not None and args.train_threads < 1
+        else None
+    )
     if bad:
         print(f"error: {bad}", file=sys.stderr)
         return 2

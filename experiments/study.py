@@ -42,8 +42,14 @@ def rows(name: str, out: Path) -> list[dict]:
     for r in results["trials"]:
         o = dict(r["overrides"])
         preset = Path(o.pop("config")).stem if "config" in o else None
-        row = {"trial": r["trial"], "status": r["status"], "error": r["error"],
-               "preset": preset, **o, **r["metrics"]}
+        row = {
+            "trial": r["trial"],
+            "status": r["status"],
+            "error": r["error"],
+            "preset": preset,
+            **o,
+            **r["metrics"],
+        }
         metrics = out / name / r["run_dir"] / "metrics.json"
         if r["status"] == "ok":
             m = json.loads(metrics.read_text())
@@ -58,8 +64,10 @@ def write_json(name: str, data: list[dict], settings: dict) -> None:
     path = DOCS / "results" / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"sweep": f"configs/sweeps/{name}.yaml", **settings,
-                               "trials": data}, indent=2) + "\n")
+    tmp.write_text(
+        json.dumps({"sweep": f"configs/sweeps/{name}.yaml", **settings, "trials": data}, indent=2)
+        + "\n"
+    )
     os.replace(tmp, path)
 
 
@@ -82,8 +90,11 @@ def table(header: list[str], body: list[list[str]]) -> str:
 def size(data: list[dict]) -> str:
     fig, (ax, bx) = figure(2)
     for preset in PRESETS:
-        pts = sorted((r["params"], r["rel_rmse"], r["train_seconds"]) for r in data
-                     if r["preset"] == preset and r["status"] == "ok")
+        pts = sorted(
+            (r["params"], r["rel_rmse"], r["train_seconds"])
+            for r in data
+            if r["preset"] == preset and r["status"] == "ok"
+        )
         ax.plot([p[0] for p in pts], [100 * p[1] for p in pts], "o-", label=preset)
         bx.plot([p[0] for p in pts], [p[2] for p in pts], "o-", label=preset)
     ax.axhline(2.0, color="k", ls="--", lw=0.8, label="2 % target")
@@ -100,8 +111,9 @@ def size(data: list[dict]) -> str:
     for w in widths:
         cells = {r["preset"]: r for r in data if tuple(r["model.hidden"]) == w}
         params = f"{cells['gold'].get('params')} / {cells['brushed_ggx'].get('params')}"
-        body.append(["x".join(map(str, w)), params] +
-                    [pct(cells[p].get("rel_rmse")) for p in PRESETS])
+        body.append(
+            ["x".join(map(str, w)), params] + [pct(cells[p].get("rel_rmse")) for p in PRESETS]
+        )
     return table(["hidden", "params (isotropic / anisotropic)"] + list(PRESETS), body)
 
 
@@ -116,14 +128,25 @@ VARIANTS = ("symmetric, norm on", "symmetric, norm off", "raw, norm on", "raw, n
 
 def ablation(data: list[dict]) -> str:
     fig, axes = figure(3, width=4.6)
-    panels = [("reciprocity", "reciprocity error (0 = exact)", 1.0),
-              ("rel_rmse", "rel. RMSE of f cos (%)", 100.0),
-              ("max_albedo", "max directional albedo", 1.0)]
+    panels = [
+        ("reciprocity", "reciprocity error (0 = exact)", 1.0),
+        ("rel_rmse", "rel. RMSE of f cos (%)", 100.0),
+        ("max_albedo", "max directional albedo", 1.0),
+    ]
     step = 0.8 / len(VARIANTS)
     for ax, (key, label, scale) in zip(axes, panels):
         for k, v in enumerate(VARIANTS):
-            vals = [next((scale * r[key] for r in data if r["preset"] == p and _variant(r) == v
-                          and r["status"] == "ok"), math.nan) for p in PRESETS]
+            vals = [
+                next(
+                    (
+                        scale * r[key]
+                        for r in data
+                        if r["preset"] == p and _variant(r) == v and r["status"] == "ok"
+                    ),
+                    math.nan,
+                )
+                for p in PRESETS
+            ]
             ax.bar([i + (k - 1.5) * step for i in range(len(PRESETS))], vals, step, label=v)
         ax.set_xticks(range(len(PRESETS)), PRESETS, fontsize=8)
         ax.set_ylabel(label)
@@ -140,11 +163,30 @@ def ablation(data: list[dict]) -> str:
             if r["status"] != "ok":
                 body.append([p, v, "failed: " + r["error"], "", "", "", ""])
                 continue
-            body.append([p, v, f"{r['reciprocity']:.2g}", pct(r["rel_rmse"]),
-                         f"{r['max_albedo']:.4f}", *_table_cells(r),
-                         "yes" if r["passed"] else "**no**"])
-    return table(["preset", "variant", "reciprocity", "rel. RMSE", "max albedo",
-                  "raw max albedo (table)", "table nodes > 1", "physics passed"], body)
+            body.append(
+                [
+                    p,
+                    v,
+                    f"{r['reciprocity']:.2g}",
+                    pct(r["rel_rmse"]),
+                    f"{r['max_albedo']:.4f}",
+                    *_table_cells(r),
+                    "yes" if r["passed"] else "**no**",
+                ]
+            )
+    return table(
+        [
+            "preset",
+            "variant",
+            "reciprocity",
+            "rel. RMSE",
+            "max albedo",
+            "raw max albedo (table)",
+            "table nodes > 1",
+            "physics passed",
+        ],
+        body,
+    )
 
 
 def _table_cells(r: dict) -> list[str]:
@@ -164,11 +206,20 @@ def loss(data: list[dict]) -> str:
     seeds = sorted({r.get("train.seed", 0) for r in data})
 
     def values(p, name, key):
-        return [r[key] for s in seeds for r in data if r["preset"] == p
-                and r["train.loss"] == name and r.get("train.seed", 0) == s]
+        return [
+            r[key]
+            for s in seeds
+            for r in data
+            if r["preset"] == p and r["train.loss"] == name and r.get("train.seed", 0) == s
+        ]
 
-    for ax, (key, label, scale) in zip(axes, [("rel_rmse", "rel. RMSE of f cos (%)", 100.0),
-                                              ("nbrdf_log_error", "NBRDF log error", 1.0)]):
+    for ax, (key, label, scale) in zip(
+        axes,
+        [
+            ("rel_rmse", "rel. RMSE of f cos (%)", 100.0),
+            ("nbrdf_log_error", "NBRDF log error", 1.0),
+        ],
+    ):
         for k, name in enumerate(LOSSES):
             x = [i + (k - 1) * step for i in range(len(PRESETS))]
             v = [[scale * y for y in values(p, name, key)] for p in PRESETS]
@@ -194,34 +245,69 @@ def loss(data: list[dict]) -> str:
 
 # ------------------------------------------------------------------ furnace
 def _furnace_target(r: dict) -> str:
-    return "GGX, F = 1, multiple scattering" if r.get("target.model") == "microfacet" \
+    return (
+        "GGX, F = 1, multiple scattering"
+        if r.get("target.model") == "microfacet"
         else "white Lambertian"
+    )
 
 
 def furnace(data: list[dict]) -> str:
     fig, (ax,) = figure(1, width=6.0)
     labels = sorted({(_furnace_target(r), r["train.seed"]) for r in data})
     for k, on in enumerate((True, False)):
-        vals = [next(r["max_albedo"] for r in data if (_furnace_target(r), r["train.seed"]) == lab
-                     and r["normalization.enabled"] == on) for lab in labels]
-        ax.bar([i + (k - 0.5) * 0.4 for i in range(len(labels))], vals, 0.4,
-               label=f"normalisation {'on' if on else 'off'}")
+        vals = [
+            next(
+                r["max_albedo"]
+                for r in data
+                if (_furnace_target(r), r["train.seed"]) == lab and r["normalization.enabled"] == on
+            )
+            for lab in labels
+        ]
+        ax.bar(
+            [i + (k - 0.5) * 0.4 for i in range(len(labels))],
+            vals,
+            0.4,
+            label=f"normalisation {'on' if on else 'off'}",
+        )
     ax.axhline(1.001, color="k", ls="--", lw=0.8, label="limit 1 + 1e-3")
-    ax.set_xticks(range(len(labels)), ["\n".join(t.split(", ") + [f"seed {s}"])
-                                       for t, s in labels], fontsize=7)
+    ax.set_xticks(
+        range(len(labels)),
+        ["\n".join(t.split(", ") + [f"seed {s}"]) for t, s in labels],
+        fontsize=7,
+    )
     ax.set_ylim(0.98, 1.015)
     ax.set_ylabel("max directional albedo (validator)")
     ax.legend(fontsize=8)
     fig.savefig(DOCS / "figures" / "furnace.png", dpi=120)
     body = []
-    for r in sorted(data, key=lambda r: (_furnace_target(r), r["train.seed"],
-                                         not r["normalization.enabled"])):
-        body.append([_furnace_target(r), str(r["train.seed"]),
-                     "on" if r["normalization.enabled"] else "off", pct(r["rel_rmse"]),
-                     f"{r['max_albedo']:.4f}", *_table_cells(r),
-                     "yes" if r["passed"] else "**no**"])
-    return table(["target", "seed", "normalisation", "rel. RMSE", "max albedo",
-                  "raw max albedo (table)", "table nodes > 1", "physics passed"], body)
+    for r in sorted(
+        data, key=lambda r: (_furnace_target(r), r["train.seed"], not r["normalization.enabled"])
+    ):
+        body.append(
+            [
+                _furnace_target(r),
+                str(r["train.seed"]),
+                "on" if r["normalization.enabled"] else "off",
+                pct(r["rel_rmse"]),
+                f"{r['max_albedo']:.4f}",
+                *_table_cells(r),
+                "yes" if r["passed"] else "**no**",
+            ]
+        )
+    return table(
+        [
+            "target",
+            "seed",
+            "normalisation",
+            "rel. RMSE",
+            "max albedo",
+            "raw max albedo (table)",
+            "table nodes > 1",
+            "physics passed",
+        ],
+        body,
+    )
 
 
 def main() -> int:
@@ -229,19 +315,33 @@ def main() -> int:
     ap.add_argument("--analyse-only", action="store_true")
     ap.add_argument("--executor", default="local", choices=["local", "ray"])
     ap.add_argument("--workers", type=int)
-    ap.add_argument("--out", default=str(REPO / "runs" / "sweeps"),
-                    help="sweep folders (default runs/sweeps/)")
+    ap.add_argument(
+        "--out", default=str(REPO / "runs" / "sweeps"), help="sweep folders (default runs/sweeps/)"
+    )
     args = ap.parse_args()
     out = Path(args.out)
     (DOCS / "figures").mkdir(parents=True, exist_ok=True)
     for name in SWEEPS:
         if not args.analyse_only:
-            sweep.run_sweep(REPO / "configs" / "sweeps" / f"{name}.yaml", executor=args.executor,
-                            workers=args.workers, out=out / name, progress=sweep.print_progress)
-    settings = {"train.steps": 1500, "train.threads": 1, "train.seed": "0 unless stated",
-                "machine": "shared 2-core CPU, 2 trials in parallel"}
-    for name, analyse in (("size", size), ("ablation", ablation), ("loss", loss),
-                          ("furnace", furnace)):
+            sweep.run_sweep(
+                REPO / "configs" / "sweeps" / f"{name}.yaml",
+                executor=args.executor,
+                workers=args.workers,
+                out=out / name,
+                progress=sweep.print_progress,
+            )
+    settings = {
+        "train.steps": 1500,
+        "train.threads": 1,
+        "train.seed": "0 unless stated",
+        "machine": "shared 2-core CPU, 2 trials in parallel",
+    }
+    for name, analyse in (
+        ("size", size),
+        ("ablation", ablation),
+        ("loss", loss),
+        ("furnace", furnace),
+    ):
         data = rows(name, out)
         write_json(name, data, settings)
         print(f"\n### {name}\n\n{analyse(data)}")

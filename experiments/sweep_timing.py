@@ -30,14 +30,22 @@ import yaml  # noqa: E402
 
 from neural_brdf import sweep  # noqa: E402
 
-SETUPS = {"local, 1 worker": ("local", 1), "local, 2 workers": ("local", 2),
-          "ray, local instance (2 CPUs)": ("ray", 2)}
+SETUPS = {
+    "local, 1 worker": ("local", 1),
+    "local, 2 workers": ("local", 2),
+    "ray, local instance (2 CPUs)": ("ray", 2),
+}
 
 
 def metrics(results: dict) -> list:
-    return [(r["trial"], r["status"], {k: v for k, v in r["metrics"].items()
-                                       if not k.endswith("seconds")})
-            for r in results["trials"]]
+    return [
+        (
+            r["trial"],
+            r["status"],
+            {k: v for k, v in r["metrics"].items() if not k.endswith("seconds")},
+        )
+        for r in results["trials"]
+    ]
 
 
 def main() -> int:
@@ -47,8 +55,12 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=300)
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="sweep-timing-"))
-    spec = {"name": "timing", "base": str(REPO / "configs" / "quickstart.yaml"),
-            "set": {"train.steps": args.steps}, "grid": {"train.seed": list(range(args.trials))}}
+    spec = {
+        "name": "timing",
+        "base": str(REPO / "configs" / "quickstart.yaml"),
+        "set": {"train.steps": args.steps},
+        "grid": {"train.seed": list(range(args.trials))},
+    }
     path = work / "timing.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     times = {name: [] for name in SETUPS}
@@ -61,9 +73,11 @@ def main() -> int:
             t0 = time.perf_counter()
             results = sweep.run_sweep(path, executor=executor, workers=workers, out=out)
             wall = time.perf_counter() - t0
-            trials = [{k: r[k] for k in ("trial", "started", "finished", "pid")} |
-                      {k: r["metrics"][k] for k in ("train_seconds", "total_seconds")}
-                      for r in results["trials"]]
+            trials = [
+                {k: r[k] for k in ("trial", "started", "finished", "pid")}
+                | {k: r["metrics"][k] for k in ("train_seconds", "total_seconds")}
+                for r in results["trials"]
+            ]
             times[name].append({"seconds": wall, "load_before": load, "trials": trials})
             print(f"{name:32s} {wall:7.1f} s  (load average before: {load:.1f})", flush=True)
             if reference is None:
@@ -72,11 +86,15 @@ def main() -> int:
             assert all(r["status"] == "ok" for r in results["trials"])
     best = {name: min(t["seconds"] for t in ts) for name, ts in times.items()}
     base = best["local, 1 worker"]
-    report = {"sweep": {**spec, "base": "configs/quickstart.yaml"}, "cpus": os.cpu_count(),
-              "python": platform.python_version(),
-              "repeats": times, "best_seconds": best,
-              "ratio_to_local_1_worker": {k: v / base for k, v in best.items()},
-              "same_metrics_on_every_setup": True}
+    report = {
+        "sweep": {**spec, "base": "configs/quickstart.yaml"},
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "repeats": times,
+        "best_seconds": best,
+        "ratio_to_local_1_worker": {k: v / base for k, v in best.items()},
+        "same_metrics_on_every_setup": True,
+    }
     dest = REPO / "docs" / "results" / "sweep_timing.json"
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_suffix(".tmp")

@@ -32,5 +32,6 @@ def __getattr__(name: str) -> Any:
     # PEP 562: onnxruntime is imported when load/NeuralBRDF is first used, not by the CLI
     if name in _LAZY:
         from . import runtime
+
         return getattr(runtime, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -28,12 +28,21 @@ from pathlib import Path
 from .fileio import atomic_path
 
 CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--hide-scrollbars", "--force-device-scale-factor=1")
-WIDTH = 1200                # window width in CSS pixels
-MAX_HEIGHT = 16384          # screenshots stop here (Chromium's texture size limit)
-TIMEOUT = 120               # seconds per Chromium run
+FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+    "--force-device-scale-factor=1",
+)
+WIDTH = 1200  # window width in CSS pixels
+MAX_HEIGHT = 16384  # screenshots stop here (Chromium's texture size limit)
+TIMEOUT = 120  # seconds per Chromium run
 PROBE_ID = "neural-brdf-probe"
 PROBE = f"""<script>
 window.addEventListener("load", () => {{
@@ -54,11 +63,14 @@ class BrowserError(RuntimeError):
 
 def _chromium(args: list[str]) -> str:
     if not Path(CHROMIUM).is_file():
-        raise BrowserError(f"{CHROMIUM}: not found; apt-get install chromium "
-                           "(or set $CHROMIUM)")
+        raise BrowserError(f"{CHROMIUM}: not found; apt-get install chromium (or set $CHROMIUM)")
     with tempfile.TemporaryDirectory(prefix="nbrdf-chromium-") as profile:
-        proc = subprocess.run([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", *args],
-                              capture_output=True, text=True, timeout=TIMEOUT)
+        proc = subprocess.run(
+            [CHROMIUM, *FLAGS, f"--user-data-dir={profile}", *args],
+            capture_output=True,
+            text=True,
+            timeout=TIMEOUT,
+        )
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or ["no output"]
         raise BrowserError(f"chromium exited with {proc.returncode}: {tail[0]}")
@@ -87,9 +99,14 @@ def screenshot(html_path, png_path, *, width: int = WIDTH) -> dict:
     seen = inspect(html_path)
     height = max(200, min(int(seen["height"]), MAX_HEIGHT))
     png_path = Path(png_path).resolve()
-    with atomic_path(png_path, suffix=".png", parents=True) as tmp:    # chromium writes a temp file
-        _chromium([f"--screenshot={tmp}", f"--window-size={width},{height}",
-                   Path(html_path).resolve().as_uri()])
+    with atomic_path(png_path, suffix=".png", parents=True) as tmp:  # chromium writes a temp file
+        _chromium(
+            [
+                f"--screenshot={tmp}",
+                f"--window-size={width},{height}",
+                Path(html_path).resolve().as_uri(),
+            ]
+        )
         if os.path.getsize(tmp) == 0:
             raise BrowserError(f"{png_path}: chromium wrote no screenshot")
     return seen
@@ -100,6 +117,8 @@ if __name__ == "__main__":
         sys.exit("usage: python -m neural_brdf.browser REPORT.html SCREENSHOT.png")
     info = screenshot(sys.argv[1], sys.argv[2])
     broken = [i["alt"] for i in info["images"] if not i["width"]]
-    print(f"wrote {sys.argv[2]}: page {info['height']} px, {len(info['images'])} images"
-          + (f", BROKEN: {broken}" if broken else ""))
+    print(
+        f"wrote {sys.argv[2]}: page {info['height']} px, {len(info['images'])} images"
+        + (f", BROKEN: {broken}" if broken else "")
+    )
     sys.exit(1 if broken else 0)

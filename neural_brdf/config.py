@@ -35,9 +35,9 @@ class _Section(BaseModel):
 
 
 class Target(_Section):
-    model: str = "lambertian"                    # a name in analytic.available()
-    params: dict[str, Any] = Field(default_factory=dict)   # passed to analytic.create
-    data: str | None = None                      # or: measured data, MERL .binary / RGL .bsdf
+    model: str = "lambertian"  # a name in analytic.available()
+    params: dict[str, Any] = Field(default_factory=dict)  # passed to analytic.create
+    data: str | None = None  # or: measured data, MERL .binary / RGL .bsdf
 
     @model_validator(mode="after")
     def _one_kind(self):
@@ -46,8 +46,10 @@ class Target(_Section):
                 raise ValueError("data: empty path")
             # (a resolved config.yaml repeats the default model: that is not a clash)
             if self.params or self.model != Target.model_fields["model"].default:
-                raise ValueError("data: give either target.data (measured) or "
-                                 "target.model/params (analytic), not both")
+                raise ValueError(
+                    "data: give either target.data (measured) or "
+                    "target.model/params (analytic), not both"
+                )
         return self
 
 
@@ -55,9 +57,9 @@ class Model(_Section):
     # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
     encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
     hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
-    activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"   # hidden layers
+    activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"  # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
-    output_scale: float = Field(1.0, gt=0.0)     # f = output_scale * softplus(y) (see model.py)
+    output_scale: float = Field(1.0, gt=0.0)  # f = output_scale * softplus(y) (see model.py)
 
     @model_validator(mode="after")
     def _widths(self):
@@ -67,21 +69,21 @@ class Model(_Section):
 
 
 class Normalization(_Section):
-    enabled: bool = True                         # albedo normalisation (off: ablations only)
-    table_size: int = Field(65, ge=4, le=1025)   # isotropic albedo table: nodes in theta
-    grid_size: int = Field(17, ge=4, le=257)     # anisotropic albedo table: nodes per axis
-    samples: int = Field(8192, ge=256)           # quadrature points per table node
-    sigmas: float = Field(3.0, ge=0.0)           # quadrature standard errors added to A
+    enabled: bool = True  # albedo normalisation (off: ablations only)
+    table_size: int = Field(65, ge=4, le=1025)  # isotropic albedo table: nodes in theta
+    grid_size: int = Field(17, ge=4, le=257)  # anisotropic albedo table: nodes per axis
+    samples: int = Field(8192, ge=256)  # quadrature points per table node
+    sigmas: float = Field(3.0, ge=0.0)  # quadrature standard errors added to A
     margin: float = Field(1e-3, ge=0.0, le=0.5)  # relative headroom on the tabulated A
 
 
 class Data(_Section):
-    batch_size: int = Field(4096, ge=16)         # pairs per step
-    pool_size: int = Field(262144, ge=16)        # pairs kept in the sample pool
-    reuse: float = Field(4.0, ge=1.0)            # mean number of times a pair is used
-    uniform: float = Field(0.2, ge=0.0)          # share of wo uniform on the hemisphere
-    cosine: float = Field(0.2, ge=0.0)           # share of wo cosine-distributed
-    importance: float = Field(0.6, ge=0.0)       # share of wo from the target's sampler
+    batch_size: int = Field(4096, ge=16)  # pairs per step
+    pool_size: int = Field(262144, ge=16)  # pairs kept in the sample pool
+    reuse: float = Field(4.0, ge=1.0)  # mean number of times a pair is used
+    uniform: float = Field(0.2, ge=0.0)  # share of wo uniform on the hemisphere
+    cosine: float = Field(0.2, ge=0.0)  # share of wo cosine-distributed
+    importance: float = Field(0.6, ge=0.0)  # share of wo from the target's sampler
 
     @model_validator(mode="after")
     def _shares(self):
@@ -93,41 +95,41 @@ class Data(_Section):
 
 
 class Train(_Section):
-    steps: int = Field(3000, ge=0)               # optimizer steps
-    seed: int = 0                                # seeds weights, data and quadrature
-    lr: float = Field(3e-2, gt=0.0)              # Adam learning rate after warm-up
+    steps: int = Field(3000, ge=0)  # optimizer steps
+    seed: int = 0  # seeds weights, data and quadrature
+    lr: float = Field(3e-2, gt=0.0)  # Adam learning rate after warm-up
     lr_min: float = Field(0.01, ge=0.0, le=1.0)  # final lr as a fraction of lr (cosine)
-    schedule: Literal["cosine", "constant"] = "cosine"   # lr decay after warm-up
-    warmup: int = Field(100, ge=0)               # linear warm-up steps
-    loss: Literal["log_l2", "log_l1", "nbrdf"] = "log_l2"   # see train.py
-    loss_eps: float = Field(1e-3, gt=0.0)        # offset inside the log (1/sr)
-    peak_weight: float = Field(10.0, ge=0.0)     # extra loss weight (f cos)^2 / mean (f cos)^2
-    peak_cap: float = Field(100.0, gt=0.0)       # cap on (f cos)^2 / mean (f cos)^2 in the weight
-    threads: int = Field(2, ge=1)                # torch CPU threads (fixed for determinism)
-    checkpoint_every: int = Field(500, ge=1)     # steps between checkpoints
-    log_every: int = Field(25, ge=1)             # steps between CSV rows
-    eval_every: int = Field(500, ge=0)           # steps between held-out errors (0: never)
-    progress: bool = True                        # tqdm progress bar on stderr
+    schedule: Literal["cosine", "constant"] = "cosine"  # lr decay after warm-up
+    warmup: int = Field(100, ge=0)  # linear warm-up steps
+    loss: Literal["log_l2", "log_l1", "nbrdf"] = "log_l2"  # see train.py
+    loss_eps: float = Field(1e-3, gt=0.0)  # offset inside the log (1/sr)
+    peak_weight: float = Field(10.0, ge=0.0)  # extra loss weight (f cos)^2 / mean (f cos)^2
+    peak_cap: float = Field(100.0, gt=0.0)  # cap on (f cos)^2 / mean (f cos)^2 in the weight
+    threads: int = Field(2, ge=1)  # torch CPU threads (fixed for determinism)
+    checkpoint_every: int = Field(500, ge=1)  # steps between checkpoints
+    log_every: int = Field(25, ge=1)  # steps between CSV rows
+    eval_every: int = Field(500, ge=0)  # steps between held-out errors (0: never)
+    progress: bool = True  # tqdm progress bar on stderr
 
 
 class Validation(_Section):
-    pairs: int = Field(20000, ge=100)            # random pairs for reciprocity / min value
-    furnace_dirs: int = Field(91, ge=2)          # furnace polar angles (aniso: half, x16 azimuths)
-    furnace_samples: int = Field(8192, ge=256)   # quadrature points per incoming direction
-    accuracy_samples: int = Field(131072, ge=1024)   # importance-sampled pairs for the error
-    reciprocity_tol: float = Field(1e-6, ge=0.0)     # max relative |f(a,b) - f(b,a)|
-    albedo_tol: float = Field(1e-3, ge=0.0)          # max albedo allowed: 1 + albedo_tol
-    seed: int = 1234                                 # independent of the training seeds
+    pairs: int = Field(20000, ge=100)  # random pairs for reciprocity / min value
+    furnace_dirs: int = Field(91, ge=2)  # furnace polar angles (aniso: half, x16 azimuths)
+    furnace_samples: int = Field(8192, ge=256)  # quadrature points per incoming direction
+    accuracy_samples: int = Field(131072, ge=1024)  # importance-sampled pairs for the error
+    reciprocity_tol: float = Field(1e-6, ge=0.0)  # max relative |f(a,b) - f(b,a)|
+    albedo_tol: float = Field(1e-3, ge=0.0)  # max albedo allowed: 1 + albedo_tol
+    seed: int = 1234  # independent of the training seeds
 
 
 class Export(_Section):
-    opset: int = Field(17, ge=13, le=20)         # ONNX opset of the legacy exporter
-    parity_pairs: int = Field(4096, ge=16)       # pairs for the torch-vs-onnxruntime check
-    parity_tol: float = Field(1e-5, gt=0.0)      # max relative difference
+    opset: int = Field(17, ge=13, le=20)  # ONNX opset of the legacy exporter
+    parity_pairs: int = Field(4096, ge=16)  # pairs for the torch-vs-onnxruntime check
+    parity_tol: float = Field(1e-5, gt=0.0)  # max relative difference
 
 
 class Config(_Section):
-    name: str = "run"                            # default run directory: runs/<name>/
+    name: str = "run"  # default run directory: runs/<name>/
     target: Target = Field(default_factory=Target)
     model: Model = Field(default_factory=Model)
     normalization: Normalization = Field(default_factory=Normalization)
@@ -147,11 +149,14 @@ class _Loader(yaml.SafeLoader):
 
 _Loader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
-    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
                     |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
                     |\.[0-9_]+(?:[eE][-+][0-9]+)?
                     |[-+]?\.(?:inf|Inf|INF)
-                    |\.(?:nan|NaN|NAN))$""", re.X),
+                    |\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
     list("-+0123456789."),
 )
 
@@ -178,7 +183,7 @@ def apply_override(raw: dict, item: str) -> None:
     for i, part in enumerate(path[:-1]):
         child = node.setdefault(part, {})
         if not isinstance(child, dict):
-            raise ConfigError(f"{'.'.join(path[:i + 1])}: is a value, not a section")
+            raise ConfigError(f"{'.'.join(path[: i + 1])}: is a value, not a section")
         node = child
     node[path[-1]] = value
 
@@ -221,8 +226,9 @@ def read_text(path: Path) -> str:
         raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8)") from None
 
 
-def load(path: str | Path | None, overrides: Sequence[str] = (), *,
-         name: str | None = None) -> Config:
+def load(
+    path: str | Path | None, overrides: Sequence[str] = (), *, name: str | None = None
+) -> Config:
     """Read a YAML config (or start from the defaults when ``path`` is None), apply
     ``--set`` overrides and validate.  ``name`` defaults to the file's stem."""
     raw: dict = {}
@@ -233,8 +239,9 @@ def load(path: str | Path | None, overrides: Sequence[str] = (), *,
         if raw is None:
             raw = {}
         if not isinstance(raw, dict):
-            raise ConfigError(f"{path}: expected a mapping of keys at the top level, "
-                              f"got {type(raw).__name__}")
+            raise ConfigError(
+                f"{path}: expected a mapping of keys at the top level, got {type(raw).__name__}"
+            )
         if "name" not in raw:
             raw["name"] = name or path.stem
     for item in overrides:

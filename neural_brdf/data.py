@@ -47,7 +47,7 @@ class MeasuredTarget:
         self._bins = np.flatnonzero(brdf.valid.reshape(-1) & merl.grid_above_horizon().reshape(-1))
 
     @classmethod
-    def from_file(cls, path, *, key: str = "target.data") -> "MeasuredTarget":
+    def from_file(cls, path, *, key: str = "target.data") -> MeasuredTarget:
         """A MERL ``.binary`` or an RGL ``.bsdf`` file (by its suffix) as a target."""
         p = Path(path)
         if p.suffix.lower() == ".bsdf":
@@ -129,13 +129,16 @@ def build_target(target: cfgmod.Target):
     if target.data is not None:
         return MeasuredTarget.from_file(target.data)
     if target.model not in analytic.available():
-        raise cfgmod.ConfigError(f"target.model: unknown model {target.model!r}; "
-                                 f"available: {analytic.available()}")
+        raise cfgmod.ConfigError(
+            f"target.model: unknown model {target.model!r}; available: {analytic.available()}"
+        )
     try:
         analytic.model_class(target.model)
     except ImportError:
-        raise cfgmod.ConfigError(f"target.model: {target.model!r} is registered but its module "
-                                 "is not importable in this installation") from None
+        raise cfgmod.ConfigError(
+            f"target.model: {target.model!r} is registered but its module "
+            "is not importable in this installation"
+        ) from None
     try:
         return analytic.create(target.model, **target.params)
     except (analytic.ParameterError, TypeError) as e:
@@ -163,7 +166,7 @@ class PairSource:
         wi = uniform_wi(n, g)
         wo_uni = frame.square_to_uniform_hemisphere(torch.rand(n_uni, 2, generator=g))
         wo_cos = frame.square_to_cosine_hemisphere(torch.rand(n_cos, 2, generator=g))
-        wo_imp, _ = self.target.sample_t(wi[n_uni + n_cos:], torch.rand(n_imp, 2, generator=g))
+        wo_imp, _ = self.target.sample_t(wi[n_uni + n_cos :], torch.rand(n_imp, 2, generator=g))
         wo = torch.cat([wo_uni, wo_cos, wo_imp.float()], 0)
         backup = frame.square_to_cosine_hemisphere(torch.rand(n, 2, generator=g))
         wo = torch.where(wo[:, 2:3] > 0, wo, backup)
@@ -207,8 +210,13 @@ class Pool:
         return self.wi[pick], self.wo[pick], self.f[pick]
 
     def state_dict(self) -> dict:
-        return {"wi": self.wi, "wo": self.wo, "f": self.f, "head": self.head,
-                "rng": self.gen.get_state()}
+        return {
+            "wi": self.wi,
+            "wo": self.wo,
+            "f": self.f,
+            "head": self.head,
+            "rng": self.gen.get_state(),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.wi, self.wo, self.f = state["wi"], state["wo"], state["f"]

@@ -108,7 +108,7 @@ def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
     ]
     if encoding == "anisotropic":
         hx, hy = s[..., 0] / norm_s, s[..., 1] / norm_s
-        r = torch.sqrt(hx * hx + hy * hy).clamp_min(EPS_NORM)     # |hx| / r <= 1, 0 at r = 0
+        r = torch.sqrt(hx * hx + hy * hy).clamp_min(EPS_NORM)  # |hx| / r <= 1, 0 at r = 0
         dx, dy = d[..., 0], d[..., 1]
         feats += [q * hx / r, q * hy / r, hx, hy, 0.25 * (dx * dx - dy * dy), 0.5 * dx * dy]
     elif encoding != "isotropic":

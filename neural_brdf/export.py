@@ -53,11 +53,13 @@ from .model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
 from .version import __version__
 
-PRODUCER_NAME = "neural-brdf"          # ONNX producer_name; producer_version: the package's
-PRODUCER = f"{PRODUCER_NAME} {__version__}"     # the ``producer`` metadata entry
-FRAME = ("local shading frame: z = normal, x = tangent (anisotropy axis), y = z cross x; "
-         "wi and wo are unit vectors pointing away from the surface; f = 0 when "
-         "wi_z <= 0 or wo_z <= 0")
+PRODUCER_NAME = "neural-brdf"  # ONNX producer_name; producer_version: the package's
+PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
+FRAME = (
+    "local shading frame: z = normal, x = tangent (anisotropy axis), y = z cross x; "
+    "wi and wo are unit vectors pointing away from the surface; f = 0 when "
+    "wi_z <= 0 or wo_z <= 0"
+)
 UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"
 # Parity is relative to max(|f|, PARITY_FLOOR * mean |f|).  Below a tenth of the model's
 # mean value the comparison is absolute: there the float32 network is itself no more
@@ -66,7 +68,7 @@ UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"
 # differs by 4.7e-5 relative without the floor and 5.9e-6 with it; torch vs
 # onnxruntime by 4.0e-5 and 7.7e-6.
 PARITY_FLOOR = 0.1
-ANALYTIC_OPSET = 17       # opset of analytic_onnx (as neural_brdf.mitsuba used)
+ANALYTIC_OPSET = 17  # opset of analytic_onnx (as neural_brdf.mitsuba used)
 
 
 class CheckpointError(cfgmod.InputError):
@@ -75,17 +77,22 @@ class CheckpointError(cfgmod.InputError):
 
 def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
     """The ONNX ``doc_string``: what the model is and its input/output contract."""
-    norm = ("albedo-normalised (max albedo <= 1 by construction)" if normalized
-            else "without albedo normalisation (an ablation)")
-    return (f"Neural BRDF ({PRODUCER_NAME} {__version__}) fitted to {target_desc}. "
-            f"Encoding: {cfg.model.encoding}; MLP hidden widths {cfg.model.hidden}; "
-            f"{norm}. Inputs wi, wo: float32 [N, 3] unit vectors in the local shading "
-            "frame (z = normal, x = tangent), both pointing away from the surface; output "
-            "f: float32 [N, 3], the RGB BRDF in 1/sr without the cosine factor, 0 when "
-            "either direction is at or below the horizon. The graph normalises wi and wo "
-            "itself and gives f = 0 for a row with a NaN, an infinity or a zero-length "
-            "direction, without affecting other rows. N is dynamic. Metadata "
-            "(metadata_props) hold the physics figures and the training config.")
+    norm = (
+        "albedo-normalised (max albedo <= 1 by construction)"
+        if normalized
+        else "without albedo normalisation (an ablation)"
+    )
+    return (
+        f"Neural BRDF ({PRODUCER_NAME} {__version__}) fitted to {target_desc}. "
+        f"Encoding: {cfg.model.encoding}; MLP hidden widths {cfg.model.hidden}; "
+        f"{norm}. Inputs wi, wo: float32 [N, 3] unit vectors in the local shading "
+        "frame (z = normal, x = tangent), both pointing away from the surface; output "
+        "f: float32 [N, 3], the RGB BRDF in 1/sr without the cosine factor, 0 when "
+        "either direction is at or below the horizon. The graph normalises wi and wo "
+        "itself and gives f = 0 for a row with a NaN, an infinity or a zero-length "
+        "direction, without affecting other rows. N is dynamic. Metadata "
+        "(metadata_props) hold the physics figures and the training config."
+    )
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
@@ -93,7 +100,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         raise CheckpointError(f"{path}: no checkpoint (train first, or check the run directory)")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:    # torch raises several unrelated types on a corrupt file
+    except Exception as e:  # torch raises several unrelated types on a corrupt file
         raise CheckpointError(f"{path}: unreadable checkpoint ({type(e).__name__})") from None
 
 
@@ -103,8 +110,9 @@ def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:
     return raw.eval()
 
 
-def normalized_model(raw: RawBRDF, cfg: cfgmod.Config,
-                     target: Any = None) -> tuple[NormalizedBRDF | RawBRDF, dict[str, Any]]:
+def normalized_model(
+    raw: RawBRDF, cfg: cfgmod.Config, target: Any = None
+) -> tuple[NormalizedBRDF | RawBRDF, dict[str, Any]]:
     """Tabulate A+ for ``raw`` and wrap it; returns (model, table info).
 
     With ``normalization.enabled: false`` (ablations) no table is built and the raw
@@ -114,13 +122,23 @@ def normalized_model(raw: RawBRDF, cfg: cfgmod.Config,
     if not n.enabled:
         return raw.eval(), {"enabled": False}
     aniso = is_anisotropic(cfg.model.encoding)
-    table, a, err = albedo_table(raw, size=n.grid_size if aniso else n.table_size,
-                                 anisotropic=aniso,
-                                 samples=n.samples, seed=cfg.train.seed + 17, sigmas=n.sigmas,
-                                 margin=n.margin, extra=target)
-    info = {"enabled": True, "raw_max_albedo": float(a.max()),
-            "raw_max_stderr": float(err.max()), "nodes": int(a.shape[0]),
-            "nodes_above_1": int((table.reshape(-1, 3) > 1).any(-1).sum())}
+    table, a, err = albedo_table(
+        raw,
+        size=n.grid_size if aniso else n.table_size,
+        anisotropic=aniso,
+        samples=n.samples,
+        seed=cfg.train.seed + 17,
+        sigmas=n.sigmas,
+        margin=n.margin,
+        extra=target,
+    )
+    info = {
+        "enabled": True,
+        "raw_max_albedo": float(a.max()),
+        "raw_max_stderr": float(err.max()),
+        "nodes": int(a.shape[0]),
+        "nodes_above_1": int((table.reshape(-1, 3) > 1).any(-1).sum()),
+    }
     return NormalizedBRDF(raw, table).eval(), info
 
 
@@ -128,10 +146,12 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     """The ``normalization`` metadata entry: the construction, or that there is none."""
     if not isinstance(model, NormalizedBRDF):
         return "none: f = raw network (normalization.enabled: false, an ablation)"
-    return (f"f = raw / max(1, A+(wi), A+(wo)) per channel; A+ = MIS quadrature albedo of "
-            f"the raw network + {n.sigmas:g} standard errors, neighbour maximum, times "
-            f"(1 + {n.margin:g}); table of {model.table.shape[0]} nodes per axis, "
-            f"{n.samples} points per node")
+    return (
+        f"f = raw / max(1, A+(wi), A+(wo)) per channel; A+ = MIS quadrature albedo of "
+        f"the raw network + {n.sigmas:g} standard errors, neighbour maximum, times "
+        f"(1 + {n.margin:g}); table of {model.table.shape[0]} nodes per axis, "
+        f"{n.samples} points per node"
+    )
 
 
 def to_onnx_bytes(model: torch.nn.Module, opset: int) -> bytes:
@@ -142,25 +162,34 @@ def to_onnx_bytes(model: torch.nn.Module, opset: int) -> bytes:
         # used on purpose: it writes one self-contained file and needs no onnxscript,
         # which is not a dependency of this project (docs/model.md, "Export and parity").
         warnings.filterwarnings("ignore", category=DeprecationWarning)
-        torch.onnx.export(model, example, buf, dynamo=False, opset_version=opset,
-                          input_names=list(INPUTS), output_names=[OUTPUT],
-                          dynamic_axes={"wi": {0: "N"}, "wo": {0: "N"}, "f": {0: "N"}})
+        torch.onnx.export(
+            model,
+            example,
+            buf,
+            dynamo=False,
+            opset_version=opset,
+            input_names=list(INPUTS),
+            output_names=[OUTPUT],
+            dynamic_axes={"wi": {0: "N"}, "wo": {0: "N"}, "f": {0: "N"}},
+        )
     return buf.getvalue()
 
 
 def parity_pairs(n: int, seed: int) -> torch.Tensor:
     """Random pairs: half above the horizon (10% near grazing), half anywhere on the sphere."""
     rng = np.random.default_rng(seed)
-    up = np.concatenate([physics.random_directions(n // 2, seed),
-                         physics.random_directions(n // 2, seed + 1)], -1)
+    up = np.concatenate(
+        [physics.random_directions(n // 2, seed), physics.random_directions(n // 2, seed + 1)], -1
+    )
     anywhere = rng.normal(size=(n - n // 2, 6))
     anywhere[:, :3] /= np.linalg.norm(anywhere[:, :3], axis=-1, keepdims=True)
     anywhere[:, 3:] /= np.linalg.norm(anywhere[:, 3:], axis=-1, keepdims=True)
     return torch.from_numpy(np.concatenate([up, anywhere], 0)).float()
 
 
-def parity_error(model: torch.nn.Module, session: ort.InferenceSession, n: int,
-                 seed: int) -> tuple[float, float]:
+def parity_error(
+    model: torch.nn.Module, session: ort.InferenceSession, n: int, seed: int
+) -> tuple[float, float]:
     """(onnxruntime vs torch, torch float32 vs the same network in float64), relative."""
     pairs = parity_pairs(n, seed)
     wi, wo = pairs[:, :3].contiguous(), pairs[:, 3:].contiguous()
@@ -178,8 +207,14 @@ def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)))
 
 
-def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: str | Path, *,
-           target_desc: str, extra: Any = None) -> dict[str, Any]:
+def export(
+    model: NormalizedBRDF | RawBRDF,
+    cfg: cfgmod.Config,
+    out: str | Path,
+    *,
+    target_desc: str,
+    extra: Any = None,
+) -> dict[str, Any]:
     """Write ``model`` to ``out`` with metadata; returns the measured figures.
 
     The graph written is ``TotalBRDF(model)``: it normalises its inputs and gives 0 for
@@ -194,16 +229,18 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: str | Path,
     parity, precision = parity_error(graph, session, cfg.export.parity_pairs, cfg.train.seed + 29)
     allowed = max(cfg.export.parity_tol, 2.0 * precision)
     if not parity <= allowed:
-        raise ParityError(f"torch and onnxruntime differ by {parity:.3g} relative (allowed "
-                          f"{allowed:.3g}: export.parity_tol, or twice the float32 precision "
-                          f"of the network, {precision:.3g}); nothing written")
+        raise ParityError(
+            f"torch and onnxruntime differ by {parity:.3g} relative (allowed "
+            f"{allowed:.3g}: export.parity_tol, or twice the float32 precision "
+            f"of the network, {precision:.3g}); nothing written"
+        )
 
     def fn(a, b):
-        return session.run([OUTPUT], {"wi": np.asarray(a, np.float32),
-                                      "wo": np.asarray(b, np.float32)})[0]
+        return session.run(
+            [OUTPUT], {"wi": np.asarray(a, np.float32), "wo": np.asarray(b, np.float32)}
+        )[0]
 
-    phys = validate.physics(fn, anisotropic=model.anisotropic, settings=cfg.validation,
-                            extra=extra)
+    phys = validate.physics(fn, anisotropic=model.anisotropic, settings=cfg.validation, extra=extra)
     checks = phys["checks"]
     meta = {
         "format_version": str(cfgmod.FORMAT_VERSION),
@@ -220,13 +257,13 @@ def export(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config, out: str | Path,
         "parity_rel_error": repr(parity),
         "float32_rel_precision": repr(precision),
         "training_config": cfg.to_yaml(),
-        lobe.KEY: lobe.to_json(lobe.fit(fn)),      # renderers' importance sampling
+        lobe.KEY: lobe.to_json(lobe.fit(fn)),  # renderers' importance sampling
     }
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)
     proto.producer_name = PRODUCER_NAME
     proto.producer_version = __version__
-    proto.model_version = cfgmod.FORMAT_VERSION          # the file format, an integer
+    proto.model_version = cfgmod.FORMAT_VERSION  # the file format, an integer
     proto.doc_string = doc_string(cfg, target_desc, isinstance(model, NormalizedBRDF))
     onnx.checker.check_model(proto)
     atomic_write(Path(out), proto.SerializeToString(), parents=True)
@@ -251,7 +288,6 @@ def export_run(run_dir: str | Path, out: str | Path | None = None) -> dict[str, 
     return info
 
 
-
 def analytic_onnx(model: str, params: dict | None = None) -> bytes:
     """An :mod:`analytic` model's own torch ``f(wi, wo)`` exported to ONNX bytes, with the
     contract of this module (inputs wi, wo [N, 3], output f [N, 3], no cosine) but no
@@ -265,5 +301,5 @@ def analytic_onnx(model: str, params: dict | None = None) -> bytes:
             return brdf.f(wi, wo).float()
 
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")     # also the tracer's warnings on Python values
+        warnings.simplefilter("ignore")  # also the tracer's warnings on Python values
         return to_onnx_bytes(_F(), ANALYTIC_OPSET)

@@ -35,7 +35,7 @@ def _umask() -> int:
 def _fsync_dir(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY)
-    except OSError:              # some file systems refuse to open folders: nothing to sync
+    except OSError:  # some file systems refuse to open folders: nothing to sync
         return
     try:
         os.fsync(fd)
@@ -46,8 +46,9 @@ def _fsync_dir(folder: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, *, suffix: str = ".tmp",
-                parents: bool = False) -> Iterator[str]:
+def atomic_path(
+    path: str | os.PathLike, *, suffix: str = ".tmp", parents: bool = False
+) -> Iterator[str]:
     """Yield a temporary file name beside ``path``; on success it replaces ``path``.
 
     ``suffix`` is the temporary file's extension, for writers that choose the format
@@ -64,7 +65,7 @@ def atomic_path(path: str | os.PathLike, *, suffix: str = ".tmp",
     os.close(fd)
     try:
         yield tmp
-        with open(tmp, "rb+") as fh:                 # the writer may have closed its handle
+        with open(tmp, "rb+") as fh:  # the writer may have closed its handle
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)

@@ -44,14 +44,24 @@ from .fileio import atomic_write
 # backend with or without --disable-gpu (which only warns that the automatic software
 # fallback is deprecated); WebGPU finds the SwiftShader adapter with
 # --enable-unsafe-webgpu alone.  These flags ask for both explicitly.
-GPU_FLAGS = ("--headless", "--no-sandbox", "--use-angle=swiftshader",
-             "--enable-unsafe-swiftshader", "--enable-unsafe-webgpu", "--disable-quic",
-             "--no-first-run", "--disable-background-networking",
-             "--disable-component-update", "--disable-sync", "--hide-scrollbars",
-             "--force-device-scale-factor=1", "--remote-debugging-pipe")
-TIMEOUT = 120               # seconds for one protocol call (a page load, an evaluation)
-TEXTURE_WIDTH = 1024        # pairs per texture row in the WebGL harness
-WORKGROUP = 64              # invocations per WebGPU workgroup
+GPU_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--enable-unsafe-webgpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+    "--force-device-scale-factor=1",
+    "--remote-debugging-pipe",
+)
+TIMEOUT = 120  # seconds for one protocol call (a page load, an evaluation)
+TEXTURE_WIDTH = 1024  # pairs per texture row in the WebGL harness
+WORKGROUP = 64  # invocations per WebGPU workgroup
 
 RUNNER_JS = r"""
 "use strict";
@@ -193,8 +203,10 @@ fn nb_main(@builtin(global_invocation_id) id: vec3<u32>) {
   return {f: nbEncode(out), renderer: `${ai.vendor || "?"} ${ai.architecture || "?"}`};
 }
 """
-RUNNER_PAGE = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>neural-brdf shader "
-               f"harness</title></head><body><script>{RUNNER_JS}</script></body></html>")
+RUNNER_PAGE = (
+    "<!DOCTYPE html><html><head><meta charset='utf-8'><title>neural-brdf shader "
+    f"harness</title></head><body><script>{RUNNER_JS}</script></body></html>"
+)
 
 
 class ShaderError(BrowserError):
@@ -208,22 +220,32 @@ class Session:
 
     def __init__(self, *, width: int = 1200, height: int = 900):
         if not Path(CHROMIUM).is_file():
-            raise BrowserError(f"{CHROMIUM}: not found; apt-get install chromium "
-                               "(or set $CHROMIUM)")
+            raise BrowserError(
+                f"{CHROMIUM}: not found; apt-get install chromium (or set $CHROMIUM)"
+            )
         self._tmp = tempfile.TemporaryDirectory(prefix="nbrdf-gpu-")
         to_chrome_r, self._w = os.pipe()
         self._r, from_chrome_w = os.pipe()
 
-        def _fds():                # the protocol pipe is fd 3 (commands) and fd 4 (replies)
+        def _fds():  # the protocol pipe is fd 3 (commands) and fd 4 (replies)
             r, w = (fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (to_chrome_r, from_chrome_w))
             os.dup2(r, 3)
             os.dup2(w, 4)
 
         self._proc = subprocess.Popen(
-            [CHROMIUM, *GPU_FLAGS, f"--user-data-dir={self._tmp.name}/profile",
-             f"--window-size={width},{height}", "about:blank"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            pass_fds=(3, 4), preexec_fn=_fds)
+            [
+                CHROMIUM,
+                *GPU_FLAGS,
+                f"--user-data-dir={self._tmp.name}/profile",
+                f"--window-size={width},{height}",
+                "about:blank",
+            ],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            pass_fds=(3, 4),
+            preexec_fn=_fds,
+        )
         os.close(to_chrome_r)
         os.close(from_chrome_w)
         self._buf = b""
@@ -233,14 +255,17 @@ class Session:
         self.renderer = ""
         try:
             target = self._call("Target.createTarget", {"url": "about:blank"})["targetId"]
-            self._session = self._call("Target.attachToTarget",
-                                       {"targetId": target, "flatten": True})["sessionId"]
+            self._session = self._call(
+                "Target.attachToTarget", {"targetId": target, "flatten": True}
+            )["sessionId"]
             self._call("Page.enable", session=True)
             self._call("Runtime.enable", session=True)
-            self._call("Emulation.setDeviceMetricsOverride", {
-                "width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
-                session=True)
-        except BaseException:          # no half-started browser left behind
+            self._call(
+                "Emulation.setDeviceMetricsOverride",
+                {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+                session=True,
+            )
+        except BaseException:  # no half-started browser left behind
             self.close()
             raise
 
@@ -267,11 +292,14 @@ class Session:
             self._buf += chunk
         msg, self._buf = self._buf.split(b"\0", 1)
         msg = json.loads(msg)
-        if msg.get("method") == "Runtime.consoleAPICalled" and \
-                msg["params"]["type"] in ("error", "assert"):
+        if msg.get("method") == "Runtime.consoleAPICalled" and msg["params"]["type"] in (
+            "error",
+            "assert",
+        ):
             args = msg["params"]["args"]
-            self.errors.append(" ".join(str(a.get("value", a.get("description", "")))
-                                        for a in args))
+            self.errors.append(
+                " ".join(str(a.get("value", a.get("description", ""))) for a in args)
+            )
         elif msg.get("method") == "Runtime.exceptionThrown":
             d = msg["params"]["exceptionDetails"]
             self.errors.append(d.get("exception", {}).get("description", d.get("text", "")))
@@ -311,8 +339,11 @@ class Session:
     def evaluate(self, expression: str):
         """The JSON value of a JS expression, awaited if it is a promise; a thrown
         exception raises :class:`ShaderError` with its message."""
-        r = self._call("Runtime.evaluate", {"expression": expression, "awaitPromise": True,
-                                            "returnByValue": True}, session=True)
+        r = self._call(
+            "Runtime.evaluate",
+            {"expression": expression, "awaitPromise": True, "returnByValue": True},
+            session=True,
+        )
         if "exceptionDetails" in r:
             d = r["exceptionDetails"]
             text = d.get("exception", {}).get("description", d.get("text", "error"))
@@ -360,10 +391,14 @@ class Session:
         if n == 0:
             return np.zeros(batch + (3,), np.float32)
         self._runner()
-        b64 = [base64.b64encode(np.ascontiguousarray(a.reshape(-1, 3)).tobytes()).decode()
-               for a in (wi, wo)]
-        r = self.evaluate(f"{call}({json.dumps(source)}, {json.dumps(b64[0])}, "
-                          f"{json.dumps(b64[1])}, {n}, {extra})")
+        b64 = [
+            base64.b64encode(np.ascontiguousarray(a.reshape(-1, 3)).tobytes()).decode()
+            for a in (wi, wo)
+        ]
+        r = self.evaluate(
+            f"{call}({json.dumps(source)}, {json.dumps(b64[0])}, "
+            f"{json.dumps(b64[1])}, {n}, {extra})"
+        )
         self.renderer = r["renderer"]
         f = np.frombuffer(base64.b64decode(r["f"]), dtype=np.float32)
         return f.reshape(batch + (3,)).copy()

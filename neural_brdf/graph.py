@@ -63,13 +63,32 @@ BATCH = -(1 << 40)
 # rate of one chain; 8 and 16 chains were no faster than 4.
 DOT_CHAINS = 4
 
-UNARY = ("neg", "abs", "sqrt", "exp", "log", "floor", "ceil", "sin", "cos", "atan", "asin",
-         "acos", "tanh", "erf")
+UNARY = (
+    "neg",
+    "abs",
+    "sqrt",
+    "exp",
+    "log",
+    "floor",
+    "ceil",
+    "sin",
+    "cos",
+    "atan",
+    "asin",
+    "acos",
+    "tanh",
+    "erf",
+)
 BINARY = ("add", "sub", "mul", "div", "max", "min", "pow")
 COMPARE = ("eq", "lt", "le", "gt", "ge")
 LOGIC = ("and", "or", "xor")
-OPS = frozenset(UNARY + BINARY + COMPARE + LOGIC
-                + ("input", "const", "not", "isnan", "isinf", "fma", "select", "cast", "gather"))
+OPS = frozenset(
+    UNARY
+    + BINARY
+    + COMPARE
+    + LOGIC
+    + ("input", "const", "not", "isnan", "isinf", "fma", "select", "cast", "gather")
+)
 
 
 class UnsupportedOnnxOp(InputError):
@@ -79,7 +98,7 @@ class UnsupportedOnnxOp(InputError):
 @dataclass(frozen=True)
 class Instr:
     op: str
-    dtype: str                      # "float" | "int" | "bool"
+    dtype: str  # "float" | "int" | "bool"
     args: tuple[int, ...] = ()
     attr: object = None
 
@@ -90,11 +109,11 @@ class Program:
 
     instrs: list[Instr]
     names: list[str]
-    tables: list[np.ndarray]                    # 1-D float32 or int32 arrays
-    inputs: dict[str, int]                      # input name -> width (columns)
-    outputs: dict[str, list[int]]               # output name -> instruction id per column
+    tables: list[np.ndarray]  # 1-D float32 or int32 arrays
+    inputs: dict[str, int]  # input name -> width (columns)
+    outputs: dict[str, list[int]]  # output name -> instruction id per column
     metadata: dict[str, str] = field(default_factory=dict)
-    op_counts: dict[str, int] = field(default_factory=dict)    # ONNX ops of the source graph
+    op_counts: dict[str, int] = field(default_factory=dict)  # ONNX ops of the source graph
 
     def count(self) -> dict[str, int]:
         """Instructions per op."""
@@ -123,19 +142,57 @@ def _fold(op: str, dtype: str, vals: list, attr):
     with np.errstate(all="ignore"):
         if op in UNARY:
             if op == "erf":
-                return None                       # numpy lacks erf: keep it an instruction
-            fn = {"neg": np.negative, "abs": np.abs, "sqrt": np.sqrt, "exp": np.exp,
-                  "log": np.log, "floor": np.floor, "ceil": np.ceil, "sin": np.sin,
-                  "cos": np.cos, "atan": np.arctan, "asin": np.arcsin, "acos": np.arccos,
-                  "tanh": np.tanh}[op]
+                return None  # numpy lacks erf: keep it an instruction
+            fn = {
+                "neg": np.negative,
+                "abs": np.abs,
+                "sqrt": np.sqrt,
+                "exp": np.exp,
+                "log": np.log,
+                "floor": np.floor,
+                "ceil": np.ceil,
+                "sin": np.sin,
+                "cos": np.cos,
+                "atan": np.arctan,
+                "asin": np.arcsin,
+                "acos": np.arccos,
+                "tanh": np.tanh,
+            }[op]
             r = fn(a[0])
-        elif op in ("add", "sub", "mul", "max", "min", "pow", "div", "eq", "lt", "le", "gt",
-                    "ge", "and", "or", "xor"):
-            fn = {"add": np.add, "sub": np.subtract, "mul": np.multiply, "max": np.maximum,
-                  "min": np.minimum, "pow": np.power, "div": np.divide, "eq": np.equal,
-                  "lt": np.less, "le": np.less_equal, "gt": np.greater,
-                  "ge": np.greater_equal, "and": np.logical_and, "or": np.logical_or,
-                  "xor": np.logical_xor}[op]
+        elif op in (
+            "add",
+            "sub",
+            "mul",
+            "max",
+            "min",
+            "pow",
+            "div",
+            "eq",
+            "lt",
+            "le",
+            "gt",
+            "ge",
+            "and",
+            "or",
+            "xor",
+        ):
+            fn = {
+                "add": np.add,
+                "sub": np.subtract,
+                "mul": np.multiply,
+                "max": np.maximum,
+                "min": np.minimum,
+                "pow": np.power,
+                "div": np.divide,
+                "eq": np.equal,
+                "lt": np.less,
+                "le": np.less_equal,
+                "gt": np.greater,
+                "ge": np.greater_equal,
+                "and": np.logical_and,
+                "or": np.logical_or,
+                "xor": np.logical_xor,
+            }[op]
             r = fn(a[0], a[1])
         elif op == "not":
             r = np.logical_not(a[0])
@@ -176,8 +233,12 @@ class Builder:
         self.hint = "t"
 
     def _add(self, ins: Instr) -> int:
-        key = (ins.op, ins.dtype, ins.args,
-               struct.pack("<f", ins.attr) if isinstance(ins.attr, float) else ins.attr)
+        key = (
+            ins.op,
+            ins.dtype,
+            ins.args,
+            struct.pack("<f", ins.attr) if isinstance(ins.attr, float) else ins.attr,
+        )
         if key in self.memo:
             return self.memo[key]
         self.instrs.append(ins)
@@ -187,8 +248,7 @@ class Builder:
 
     def const(self, value, dtype: str | None = None) -> int:
         dtype = dtype or _kind(value)
-        return self._add(Instr("const", dtype, (), _py(np.asarray(value).astype(
-            _np_dtype(dtype)))))
+        return self._add(Instr("const", dtype, (), _py(np.asarray(value).astype(_np_dtype(dtype)))))
 
     def input(self, name: str, column: int) -> int:
         return self._add(Instr("input", "float", (), (name, column)))
@@ -235,8 +295,13 @@ class Builder:
     def scalar(self, v: float) -> int:
         return self.const(float(v), "float")
 
-    def finish(self, inputs: dict[str, int], outputs: dict[str, list[int]],
-               metadata: dict | None = None, op_counts: dict | None = None) -> Program:
+    def finish(
+        self,
+        inputs: dict[str, int],
+        outputs: dict[str, list[int]],
+        metadata: dict | None = None,
+        op_counts: dict | None = None,
+    ) -> Program:
         """Prune to what the outputs need, renumber, name."""
         live = set()
         stack = [i for cols in outputs.values() for i in cols]
@@ -248,28 +313,43 @@ class Builder:
             stack.extend(self.instrs[i].args)
         order = sorted(live)
         new = {old: k for k, old in enumerate(order)}
-        instrs = [Instr(self.instrs[i].op, self.instrs[i].dtype,
-                        tuple(new[a] for a in self.instrs[i].args), self.instrs[i].attr)
-                  for i in order]
+        instrs = [
+            Instr(
+                self.instrs[i].op,
+                self.instrs[i].dtype,
+                tuple(new[a] for a in self.instrs[i].args),
+                self.instrs[i].attr,
+            )
+            for i in order
+        ]
         used_tables = sorted({ins.attr for ins in instrs if ins.op == "gather"})
         tmap = {old: k for k, old in enumerate(used_tables)}
-        instrs = [Instr(ins.op, ins.dtype, ins.args, tmap[ins.attr]) if ins.op == "gather"
-                  else ins for ins in instrs]
+        instrs = [
+            Instr(ins.op, ins.dtype, ins.args, tmap[ins.attr]) if ins.op == "gather" else ins
+            for ins in instrs
+        ]
         names, counters = [], {}
         for i, ins in zip(order, instrs, strict=True):
             if ins.op == "input":
                 name, col = ins.attr
-                names.append(f"{name}_{'xyzw'[col]}" if inputs.get(name, 1) <= 4
-                             else f"{name}_{col}")
+                names.append(
+                    f"{name}_{'xyzw'[col]}" if inputs.get(name, 1) <= 4 else f"{name}_{col}"
+                )
             elif ins.op == "const":
                 names.append("")
             else:
                 h = self.hints[i]
                 counters[h] = counters.get(h, -1) + 1
                 names.append(f"{h}{counters[h]}")
-        return Program(instrs, names, [self.tables[t] for t in used_tables], dict(inputs),
-                       {k: [new[i] for i in v] for k, v in outputs.items()},
-                       dict(metadata or {}), dict(op_counts or {}))
+        return Program(
+            instrs,
+            names,
+            [self.tables[t] for t in used_tables],
+            dict(inputs),
+            {k: [new[i] for i in v] for k, v in outputs.items()},
+            dict(metadata or {}),
+            dict(op_counts or {}),
+        )
 
 
 # ====================================================================== lowering
@@ -279,7 +359,7 @@ class Lanes:
     __slots__ = ("a",)
 
     def __init__(self, a):
-        if not isinstance(a, np.ndarray):       # numpy indexing returned one element
+        if not isinstance(a, np.ndarray):  # numpy indexing returned one element
             a = _obj([a], ())
         self.a = a
 
@@ -302,8 +382,10 @@ def _align(c: np.ndarray, rank: int, op: str) -> np.ndarray:
     first axis with the batch and must have size 1 there."""
     while c.ndim > rank:
         if c.shape[0] != 1:
-            raise UnsupportedOnnxOp(f"{op}: a constant of shape {c.shape} does not broadcast "
-                                    f"against a batch tensor of rank {rank + 1}")
+            raise UnsupportedOnnxOp(
+                f"{op}: a constant of shape {c.shape} does not broadcast "
+                f"against a batch tensor of rank {rank + 1}"
+            )
         c = c[0]
     return c
 
@@ -327,10 +409,20 @@ def _axes_arg(args, attrs, idx=1):
 
 
 _ONNX_FLOAT, _ONNX_INT32, _ONNX_INT64, _ONNX_BOOL, _ONNX_DOUBLE = 1, 6, 7, 9, 11
-_NP_TYPES = {_ONNX_FLOAT: np.float32, _ONNX_DOUBLE: np.float64, _ONNX_INT32: np.int32,
-             _ONNX_INT64: np.int64, _ONNX_BOOL: np.bool_}
-_IR_TYPES = {_ONNX_FLOAT: "float", _ONNX_DOUBLE: "float", _ONNX_INT32: "int",
-             _ONNX_INT64: "int", _ONNX_BOOL: "bool"}
+_NP_TYPES = {
+    _ONNX_FLOAT: np.float32,
+    _ONNX_DOUBLE: np.float64,
+    _ONNX_INT32: np.int32,
+    _ONNX_INT64: np.int64,
+    _ONNX_BOOL: np.bool_,
+}
+_IR_TYPES = {
+    _ONNX_FLOAT: "float",
+    _ONNX_DOUBLE: "float",
+    _ONNX_INT32: "int",
+    _ONNX_INT64: "int",
+    _ONNX_BOOL: "bool",
+}
 
 
 def _np_softplus(x):
@@ -344,30 +436,83 @@ def _np_div(a, b):
 
 
 _NP_UNARY = {
-    "Identity": lambda x: x, "Neg": np.negative, "Abs": np.abs, "Sqrt": np.sqrt,
-    "Exp": np.exp, "Log": np.log, "Floor": np.floor, "Ceil": np.ceil, "Sin": np.sin,
-    "Cos": np.cos, "Atan": np.arctan, "Asin": np.arcsin, "Acos": np.arccos, "Tanh": np.tanh,
-    "Erf": None, "Reciprocal": lambda x: (1.0 / x).astype(x.dtype),
+    "Identity": lambda x: x,
+    "Neg": np.negative,
+    "Abs": np.abs,
+    "Sqrt": np.sqrt,
+    "Exp": np.exp,
+    "Log": np.log,
+    "Floor": np.floor,
+    "Ceil": np.ceil,
+    "Sin": np.sin,
+    "Cos": np.cos,
+    "Atan": np.arctan,
+    "Asin": np.arcsin,
+    "Acos": np.arccos,
+    "Tanh": np.tanh,
+    "Erf": None,
+    "Reciprocal": lambda x: (1.0 / x).astype(x.dtype),
     "Relu": lambda x: np.maximum(x, 0).astype(x.dtype),
     "Sigmoid": lambda x: (1.0 / (1.0 + np.exp(-x))).astype(x.dtype),
-    "Softplus": _np_softplus, "Not": np.logical_not, "IsNaN": np.isnan, "IsInf": np.isinf,
+    "Softplus": _np_softplus,
+    "Not": np.logical_not,
+    "IsNaN": np.isnan,
+    "IsInf": np.isinf,
 }
 _NP_BINARY = {
-    "Add": np.add, "Sub": np.subtract, "Mul": np.multiply,
-    "Pow": lambda a, b: np.power(a, b).astype(a.dtype), "Div": _np_div,
-    "Equal": np.equal, "Greater": np.greater, "Less": np.less,
-    "GreaterOrEqual": np.greater_equal, "LessOrEqual": np.less_equal,
-    "And": np.logical_and, "Or": np.logical_or, "Xor": np.logical_xor,
-    "Max": np.maximum, "Min": np.minimum, "Sum": np.add,
+    "Add": np.add,
+    "Sub": np.subtract,
+    "Mul": np.multiply,
+    "Pow": lambda a, b: np.power(a, b).astype(a.dtype),
+    "Div": _np_div,
+    "Equal": np.equal,
+    "Greater": np.greater,
+    "Less": np.less,
+    "GreaterOrEqual": np.greater_equal,
+    "LessOrEqual": np.less_equal,
+    "And": np.logical_and,
+    "Or": np.logical_or,
+    "Xor": np.logical_xor,
+    "Max": np.maximum,
+    "Min": np.minimum,
+    "Sum": np.add,
 }
-_IR_BINARY = {"Add": "add", "Sub": "sub", "Mul": "mul", "Div": "div", "Max": "max",
-              "Min": "min", "Sum": "add", "Equal": "eq", "Greater": "gt", "Less": "lt",
-              "GreaterOrEqual": "ge", "LessOrEqual": "le", "And": "and", "Or": "or",
-              "Xor": "xor"}
-_IR_UNARY = {"Neg": "neg", "Abs": "abs", "Sqrt": "sqrt", "Exp": "exp", "Log": "log",
-             "Floor": "floor", "Ceil": "ceil", "Sin": "sin", "Cos": "cos", "Atan": "atan",
-             "Asin": "asin", "Acos": "acos", "Tanh": "tanh", "Erf": "erf", "Not": "not",
-             "IsNaN": "isnan", "IsInf": "isinf"}
+_IR_BINARY = {
+    "Add": "add",
+    "Sub": "sub",
+    "Mul": "mul",
+    "Div": "div",
+    "Max": "max",
+    "Min": "min",
+    "Sum": "add",
+    "Equal": "eq",
+    "Greater": "gt",
+    "Less": "lt",
+    "GreaterOrEqual": "ge",
+    "LessOrEqual": "le",
+    "And": "and",
+    "Or": "or",
+    "Xor": "xor",
+}
+_IR_UNARY = {
+    "Neg": "neg",
+    "Abs": "abs",
+    "Sqrt": "sqrt",
+    "Exp": "exp",
+    "Log": "log",
+    "Floor": "floor",
+    "Ceil": "ceil",
+    "Sin": "sin",
+    "Cos": "cos",
+    "Atan": "atan",
+    "Asin": "asin",
+    "Acos": "acos",
+    "Tanh": "tanh",
+    "Erf": "erf",
+    "Not": "not",
+    "IsNaN": "isnan",
+    "IsInf": "isinf",
+}
 
 
 class Lowering:
@@ -409,8 +554,9 @@ class Lowering:
         e = b.emit("exp", b.emit("neg", b.emit("abs", x)))
         u = b.emit("add", b.scalar(1.0), e)
         ratio = b.emit("div", e, b.emit("sub", u, b.scalar(1.0)))
-        log1p = b.emit("select", b.emit("eq", u, b.scalar(1.0)), e,
-                       b.emit("mul", b.emit("log", u), ratio))
+        log1p = b.emit(
+            "select", b.emit("eq", u, b.scalar(1.0)), e, b.emit("mul", b.emit("log", u), ratio)
+        )
         return b.emit("add", b.emit("max", x, b.scalar(0.0)), log1p)
 
     def power(self, x: int, y: int) -> int:
@@ -445,8 +591,9 @@ class Lowering:
         if op == "Relu":
             return b.emit("max", x, b.scalar(0.0))
         if op == "Sigmoid":
-            return b.emit("div", b.scalar(1.0),
-                          b.emit("add", b.scalar(1.0), b.emit("exp", b.emit("neg", x))))
+            return b.emit(
+                "div", b.scalar(1.0), b.emit("add", b.scalar(1.0), b.emit("exp", b.emit("neg", x)))
+            )
         if op == "Softplus":
             return self.softplus(x)
         return b.emit(_IR_UNARY[op], x)
@@ -470,20 +617,24 @@ class Lowering:
         for c in range(min(DOT_CHAINS, len(xs))):
             acc = b.scalar(bias) if (c == 0 and bias is not None) else None
             for x, w in zip(xs[c::DOT_CHAINS], ws[c::DOT_CHAINS], strict=True):
-                acc = b.emit("mul", x, b.scalar(w)) if acc is None else \
-                    b.emit("fma", x, b.scalar(w), acc)
+                acc = (
+                    b.emit("mul", x, b.scalar(w))
+                    if acc is None
+                    else b.emit("fma", x, b.scalar(w), acc)
+                )
             chains.append(acc)
         while len(chains) > 1:
-            chains = [b.emit("add", chains[i], chains[i + 1]) if i + 1 < len(chains)
-                      else chains[i] for i in range(0, len(chains), 2)]
+            chains = [
+                b.emit("add", chains[i], chains[i + 1]) if i + 1 < len(chains) else chains[i]
+                for i in range(0, len(chains), 2)
+            ]
         return chains[0]
 
     def linear(self, x: Lanes, w: np.ndarray, bias, scale: float) -> Lanes:
         """x (trailing (..., K)) @ w (K, M) * scale + bias (M,) as fused multiply-adds."""
         k, m = w.shape
         if x.shape[-1] != k:
-            raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights "
-                                    f"{w.shape}")
+            raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights {w.shape}")
         lead = x.shape[:-1]
         rows = x.a.reshape(-1, k)
         ws = [[float(v) for v in (w[:, j] * scale).astype(np.float32)] for j in range(m)]
@@ -499,13 +650,16 @@ class Lowering:
 def _unary(op):
     def run(lo, args, attrs):
         return lo.elementwise(op, _NP_UNARY[op], lambda x: lo.unary(op, x), args[0])
+
     return run
 
 
 def _binary(op):
     def run(lo, args, attrs):
-        return lo.elementwise(op, _NP_BINARY[op], lambda x, y: lo.binary(op, x, y),
-                              args[0], args[1])
+        return lo.elementwise(
+            op, _NP_BINARY[op], lambda x, y: lo.binary(op, x, y), args[0], args[1]
+        )
+
     return run
 
 
@@ -515,12 +669,12 @@ def _variadic(op):
         for b in args[1:]:
             acc = lo.elementwise(op, _NP_BINARY[op], lambda x, y: lo.binary(op, x, y), acc, b)
         return acc
+
     return run
 
 
 def _where(lo, args, attrs):
-    return lo.elementwise("Where", np.where, lambda c, a, b: lo.b.emit("select", c, a, b),
-                          *args)
+    return lo.elementwise("Where", np.where, lambda c, a, b: lo.b.emit("select", c, a, b), *args)
 
 
 def _clip(lo, args, attrs):
@@ -528,11 +682,21 @@ def _clip(lo, args, attrs):
     lo_v = args[1] if len(args) > 1 and args[1] is not None else attrs.get("min")
     hi_v = args[2] if len(args) > 2 and args[2] is not None else attrs.get("max")
     if lo_v is not None:
-        x = lo.elementwise("Clip", lambda a, b: np.maximum(a, b).astype(np.asarray(a).dtype),
-                           lambda a, b: lo.b.emit("max", a, b), x, np.asarray(lo_v))
+        x = lo.elementwise(
+            "Clip",
+            lambda a, b: np.maximum(a, b).astype(np.asarray(a).dtype),
+            lambda a, b: lo.b.emit("max", a, b),
+            x,
+            np.asarray(lo_v),
+        )
     if hi_v is not None:
-        x = lo.elementwise("Clip", lambda a, b: np.minimum(a, b).astype(np.asarray(a).dtype),
-                           lambda a, b: lo.b.emit("min", a, b), x, np.asarray(hi_v))
+        x = lo.elementwise(
+            "Clip",
+            lambda a, b: np.minimum(a, b).astype(np.asarray(a).dtype),
+            lambda a, b: lo.b.emit("min", a, b),
+            x,
+            np.asarray(hi_v),
+        )
     return x
 
 
@@ -542,15 +706,19 @@ def _cast(lo, args, attrs):
     if to not in _NP_TYPES:
         raise UnsupportedOnnxOp(f"Cast to ONNX type {to}")
     if not isinstance(x, Lanes):
-        return np.asarray(x).astype(_NP_TYPES[to])   # double is evaluated in float32
+        return np.asarray(x).astype(_NP_TYPES[to])  # double is evaluated in float32
     return lo.elementwise("Cast", None, lambda v: lo.b.emit("cast", v, attr=_IR_TYPES[to]), x)
 
 
 def _constant(lo, args, attrs):
     if "value" in attrs:
         return numpy_helper.to_array(attrs["value"])
-    for key, dtype in (("value_float", np.float32), ("value_int", np.int64),
-                       ("value_floats", np.float32), ("value_ints", np.int64)):
+    for key, dtype in (
+        ("value_float", np.float32),
+        ("value_int", np.int64),
+        ("value_floats", np.float32),
+        ("value_ints", np.int64),
+    ):
         if key in attrs:
             return np.asarray(attrs[key], dtype=dtype)
     raise UnsupportedOnnxOp(f"Constant with attributes {sorted(attrs)}")
@@ -560,13 +728,12 @@ def _shape(lo, args, attrs):
     x = args[0]
     s = [BATCH] + list(x.shape) if isinstance(x, Lanes) else list(np.shape(x))
     if "start" in attrs or "end" in attrs:
-        s = s[attrs.get("start", 0):attrs.get("end", len(s))]
+        s = s[attrs.get("start", 0) : attrs.get("end", len(s))]
     return np.asarray(s, dtype=np.int64)
 
 
 def _constant_of_shape(lo, args, attrs):
-    value = numpy_helper.to_array(attrs["value"]) if "value" in attrs \
-        else np.zeros(1, np.float32)
+    value = numpy_helper.to_array(attrs["value"]) if "value" in attrs else np.zeros(1, np.float32)
     shape = [int(v) for v in np.asarray(args[0]).reshape(-1)]
     if BATCH in shape[1:]:
         raise UnsupportedOnnxOp("ConstantOfShape: the batch must be the first axis")
@@ -639,8 +806,7 @@ def _squeeze(lo, args, attrs):
         return np.squeeze(np.asarray(x), axis=None if axes is None else tuple(axes))
     if axes is None:
         return Lanes(np.squeeze(x.a))
-    return Lanes(np.squeeze(x.a, axis=tuple(_axis(a, len(x.shape) + 1, "Squeeze")
-                                            for a in axes)))
+    return Lanes(np.squeeze(x.a, axis=tuple(_axis(a, len(x.shape) + 1, "Squeeze") for a in axes)))
 
 
 def _concat(lo, args, attrs):
@@ -656,8 +822,9 @@ def _concat(lo, args, attrs):
         else:
             c = np.asarray(x)
             if c.ndim != rank + 1 or c.shape[0] != 1:
-                raise UnsupportedOnnxOp("Concat of a batch tensor with a constant that does "
-                                        "not have batch size 1")
+                raise UnsupportedOnnxOp(
+                    "Concat of a batch tensor with a constant that does not have batch size 1"
+                )
             parts.append(lo.ids(c, rank, "Concat"))
     return Lanes(np.concatenate(parts, axis=ax))
 
@@ -668,8 +835,11 @@ def _slice(lo, args, attrs):
     ends = [int(v) for v in np.asarray(args[2]).reshape(-1)]
     rank = np.ndim(x) if not isinstance(x, Lanes) else len(x.shape) + 1
     axes = _axes_arg(args, {}, 3) or list(range(len(starts)))
-    steps = [int(v) for v in np.asarray(args[4]).reshape(-1)] if len(args) > 4 and \
-        args[4] is not None else [1] * len(starts)
+    steps = (
+        [int(v) for v in np.asarray(args[4]).reshape(-1)]
+        if len(args) > 4 and args[4] is not None
+        else [1] * len(starts)
+    )
     index = [slice(None)] * rank
     for s, e, a, st in zip(starts, ends, axes, steps, strict=False):
         a = a + rank if a < 0 else a
@@ -702,13 +872,16 @@ def _gather(lo, args, attrs):
     rest = data.shape[1:]
     cols = data.reshape(k, -1)
     floating = np.issubdtype(data.dtype, np.floating)
-    tables = [b.table(np.ascontiguousarray(cols[:, j], dtype=np.float32 if floating
-                                           else np.int32)) for j in range(cols.shape[1])]
+    tables = [
+        b.table(np.ascontiguousarray(cols[:, j], dtype=np.float32 if floating else np.int32))
+        for j in range(cols.shape[1])
+    ]
     out = []
     for i in idx.a.reshape(-1):
         i = b.emit("cast", i, attr="int")
-        i = b.emit("select", b.emit("lt", i, b.const(0, "int")),
-                   b.emit("add", i, b.const(k, "int")), i)
+        i = b.emit(
+            "select", b.emit("lt", i, b.const(0, "int")), b.emit("add", i, b.const(k, "int")), i
+        )
         out.extend(b.emit("gather", i, attr=t) for t in tables)
     return Lanes(_obj(out, idx.shape + rest))
 
@@ -727,10 +900,16 @@ def _reduce(kind):
         if not isinstance(x, Lanes):
             c = np.asarray(x)
             ax = None if not axes else tuple(axes)
-            fn = {"ReduceSum": np.sum, "ReduceMean": np.mean, "ReduceMax": np.max,
-                  "ReduceMin": np.min, "ReduceProd": np.prod,
-                  "ReduceL2": lambda v, axis, keepdims: np.sqrt(np.sum(v * v, axis=axis,
-                                                                        keepdims=keepdims))}[kind]
+            fn = {
+                "ReduceSum": np.sum,
+                "ReduceMean": np.mean,
+                "ReduceMax": np.max,
+                "ReduceMin": np.min,
+                "ReduceProd": np.prod,
+                "ReduceL2": lambda v, axis, keepdims: np.sqrt(
+                    np.sum(v * v, axis=axis, keepdims=keepdims)
+                ),
+            }[kind]
             return np.asarray(fn(c, axis=ax, keepdims=keep)).astype(c.dtype)
         rank = len(x.shape) + 1
         tax = tuple(sorted(_axis(a, rank, kind) for a in axes))
@@ -738,8 +917,14 @@ def _reduce(kind):
         moved = np.moveaxis(a, tax, tuple(range(len(tax))))
         count = int(np.prod([a.shape[i] for i in tax], dtype=np.int64))
         flat = moved.reshape(count, -1)
-        step = {"ReduceSum": "add", "ReduceMean": "add", "ReduceL2": "add", "ReduceMax": "max",
-                "ReduceMin": "min", "ReduceProd": "mul"}[kind]
+        step = {
+            "ReduceSum": "add",
+            "ReduceMean": "add",
+            "ReduceL2": "add",
+            "ReduceMax": "max",
+            "ReduceMin": "min",
+            "ReduceProd": "mul",
+        }[kind]
         out = []
         for j in range(flat.shape[1]):
             col = list(flat[:, j])
@@ -759,6 +944,7 @@ def _reduce(kind):
             for i in tax:
                 res = np.expand_dims(res, i)
         return Lanes(res)
+
     return run
 
 
@@ -767,8 +953,11 @@ def _gemm(lo, args, attrs):
     c = args[2] if len(args) > 2 else None
     alpha, beta = float(attrs.get("alpha", 1.0)), float(attrs.get("beta", 1.0))
     if not isinstance(a, Lanes):
-        raise UnsupportedOnnxOp("Gemm of two constants") if not isinstance(b, Lanes) \
+        raise (
+            UnsupportedOnnxOp("Gemm of two constants")
+            if not isinstance(b, Lanes)
             else UnsupportedOnnxOp("Gemm with batch-dependent weights")
+        )
     if isinstance(b, Lanes) or (c is not None and isinstance(c, Lanes)):
         raise UnsupportedOnnxOp("Gemm with batch-dependent weights or bias")
     if attrs.get("transA", 0):
@@ -803,19 +992,54 @@ def _transpose(lo, args, attrs):
 
 
 _OPS = {op: _unary(op) for op in _NP_UNARY}
-_OPS.update({op: _binary(op) for op in ("Add", "Sub", "Mul", "Pow", "Div", "Equal", "Greater",
-                                        "Less", "GreaterOrEqual", "LessOrEqual", "And", "Or",
-                                        "Xor")})
+_OPS.update(
+    {
+        op: _binary(op)
+        for op in (
+            "Add",
+            "Sub",
+            "Mul",
+            "Pow",
+            "Div",
+            "Equal",
+            "Greater",
+            "Less",
+            "GreaterOrEqual",
+            "LessOrEqual",
+            "And",
+            "Or",
+            "Xor",
+        )
+    }
+)
 _OPS.update({op: _variadic(op) for op in ("Max", "Min", "Sum")})
-_OPS.update({op: _reduce(op) for op in ("ReduceSum", "ReduceMean", "ReduceMax", "ReduceMin",
-                                          "ReduceProd", "ReduceL2")})
-_OPS.update({
-    "Where": _where, "Clip": _clip, "Cast": _cast, "Constant": _constant,
-    "Shape": _shape, "ConstantOfShape": _constant_of_shape, "Expand": _expand,
-    "Reshape": _reshape, "Unsqueeze": _unsqueeze, "Squeeze": _squeeze, "Concat": _concat,
-    "Slice": _slice, "Gather": _gather, "Gemm": _gemm, "MatMul": _matmul,
-    "Transpose": _transpose, "Dropout": lambda lo, args, attrs: args[0],
-})
+_OPS.update(
+    {
+        op: _reduce(op)
+        for op in ("ReduceSum", "ReduceMean", "ReduceMax", "ReduceMin", "ReduceProd", "ReduceL2")
+    }
+)
+_OPS.update(
+    {
+        "Where": _where,
+        "Clip": _clip,
+        "Cast": _cast,
+        "Constant": _constant,
+        "Shape": _shape,
+        "ConstantOfShape": _constant_of_shape,
+        "Expand": _expand,
+        "Reshape": _reshape,
+        "Unsqueeze": _unsqueeze,
+        "Squeeze": _squeeze,
+        "Concat": _concat,
+        "Slice": _slice,
+        "Gather": _gather,
+        "Gemm": _gemm,
+        "MatMul": _matmul,
+        "Transpose": _transpose,
+        "Dropout": lambda lo, args, attrs: args[0],
+    }
+)
 SUPPORTED_OPS = frozenset(_OPS)
 
 
@@ -828,9 +1052,11 @@ def load(model) -> onnx.ModelProto:
             return onnx.load_from_string(bytes(model))
         if isinstance(model, (str, os.PathLike)):
             return onnx.load(str(model))
-    except Exception as e:       # onnx raises DecodeError, OSError and others on a bad file
-        raise InputError(f"{model if not isinstance(model, bytes) else 'model bytes'}: not a "
-                         f"loadable ONNX model ({type(e).__name__})") from None
+    except Exception as e:  # onnx raises DecodeError, OSError and others on a bad file
+        raise InputError(
+            f"{model if not isinstance(model, bytes) else 'model bytes'}: not a "
+            f"loadable ONNX model ({type(e).__name__})"
+        ) from None
     raise TypeError(f"expected a path, bytes or onnx.ModelProto, got {type(model).__name__}")
 
 
@@ -847,12 +1073,14 @@ def check(proto: onnx.ModelProto) -> list:
     nodes = []
     for n in proto.graph.node:
         if n.domain not in ("", "ai.onnx"):
-            raise UnsupportedOnnxOp(f"node {n.name!r}: op {n.domain}.{n.op_type} is not "
-                                    f"a standard ONNX op")
+            raise UnsupportedOnnxOp(
+                f"node {n.name!r}: op {n.domain}.{n.op_type} is not a standard ONNX op"
+            )
         if n.op_type not in SUPPORTED_OPS:
             raise UnsupportedOnnxOp(
                 f"node {n.name!r}: ONNX op {n.op_type!r} is not supported "
-                f"(supported: {', '.join(sorted(SUPPORTED_OPS))})")
+                f"(supported: {', '.join(sorted(SUPPORTED_OPS))})"
+            )
         attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
         nodes.append((n.op_type, list(n.input), list(n.output), attrs, n))
     return nodes

@@ -42,7 +42,7 @@ from analytic.microfacet import Distribution
 from .errors import InputError
 from .runtime import OUTPUT
 
-KEY = "sampling_lobe"              # ONNX metadata key
+KEY = "sampling_lobe"  # ONNX metadata key
 KIND = "cosine+ggx_vndf"
 
 # The GGX alpha is never below this: Mitsuba's float32 GGX sampling loses accuracy for
@@ -55,9 +55,9 @@ MAX_WEIGHT = 0.9
 # near-grazing (degrees), each at its own azimuth so anisotropic models are probed
 # off-axis too.
 ALPHAS = np.geomspace(MIN_ALPHA, 1.0, 25)
-WEIGHTS = np.arange(10) / 10.0                  # 0, 0.1, ..., MAX_WEIGHT
+WEIGHTS = np.arange(10) / 10.0  # 0, 0.1, ..., MAX_WEIGHT
 THETA_DEG = (5.0, 20.0, 35.0, 50.0, 65.0, 80.0)
-SAMPLES = 1024                     # per candidate lobe (and the cosine lobe) per direction
+SAMPLES = 1024  # per candidate lobe (and the cosine lobe) per direction
 
 
 def fit(fn, *, seed: int = 0) -> dict:
@@ -68,21 +68,27 @@ def fit(fn, *, seed: int = 0) -> dict:
     dists = [Distribution("ggx", float(a), float(a)) for a in ALPHAS]
     score = np.zeros((len(ALPHAS), len(WEIGHTS)))
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)       # these small ops ran 5x slower on 2 threads than on 1
+    torch.set_num_threads(1)  # these small ops ran 5x slower on 2 threads than on 1
     try:
         for k, theta in enumerate(THETA_DEG):
             score += _second_moments(fn, dists, _incident(theta, 0.9 * k), rng) / len(THETA_DEG)
     finally:
         torch.set_num_threads(threads)
     i, j = np.unravel_index(np.argmin(score), score.shape)
-    return {"kind": KIND, "alpha": float(ALPHAS[i]), "weight": float(WEIGHTS[j]),
-            "second_moment": float(score[i, j]), "second_moment_cosine": float(score[0, 0])}
+    return {
+        "kind": KIND,
+        "alpha": float(ALPHAS[i]),
+        "weight": float(WEIGHTS[j]),
+        "second_moment": float(score[i, j]),
+        "second_moment_cosine": float(score[0, 0]),
+    }
 
 
 def _incident(theta_deg: float, phi: float) -> torch.Tensor:
     t = math.radians(theta_deg)
-    return torch.tensor([math.sin(t) * math.cos(phi), math.sin(t) * math.sin(phi),
-                         math.cos(t)], dtype=torch.float64)
+    return torch.tensor(
+        [math.sin(t) * math.cos(phi), math.sin(t) * math.sin(phi), math.cos(t)], dtype=torch.float64
+    )
 
 
 def _second_moments(fn, dists, wi1: torch.Tensor, rng) -> np.ndarray:
@@ -94,7 +100,7 @@ def _second_moments(fn, dists, wi1: torch.Tensor, rng) -> np.ndarray:
     wi = wi1.expand(n, 3)
     wos = [frame.square_to_cosine_hemisphere(u[0])]
     wos += [frame.reflect(wi, d.sample_visible(wi, uu)) for d, uu in zip(dists, u[1:])]
-    wo = torch.cat(wos, 0)                                                   # (L n, 3)
+    wo = torch.cat(wos, 0)  # (L n, 3)
     wi = wi1.expand(len(wo), 3)
     with torch.no_grad():
         p_cos = torch.where(wo[:, 2] > 0, frame.cosine_hemisphere_pdf(wo), 0.0)
@@ -108,12 +114,12 @@ def _second_moments(fn, dists, wi1: torch.Tensor, rng) -> np.ndarray:
     fc = f.astype(np.float64).mean(-1) * np.clip(wo[:, 2].numpy(), 0.0, None)
     live = (fc > 0) & (q > 0)
     albedo = np.sum(fc[live] / q[live]) / len(wo)
-    if not albedo > 0:                                 # black at this angle: no preference
+    if not albedo > 0:  # black at this angle: no preference
         return np.zeros((len(dists), len(WEIGHTS)))
     # (f cos)^2 / q per sample, then / p for every candidate; float32 suffices to rank
     c = (fc[live] ** 2 / q[live]).astype(np.float32)
     p_cos = p_cos.numpy()[live].astype(np.float32)
-    p_ggx = p_ggx.numpy()[:, live].astype(np.float32)                       # (A, M)
+    p_ggx = p_ggx.numpy()[:, live].astype(np.float32)  # (A, M)
     m2 = np.empty((len(dists), len(WEIGHTS)))
     with np.errstate(divide="ignore"):
         for j, w in enumerate(WEIGHTS.astype(np.float32)):
@@ -143,13 +149,14 @@ def parse(text: str) -> dict:
         lobe = json.loads(text)
         kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
     except (ValueError, KeyError, TypeError):
-        raise InputError(f"metadata {KEY!r}: expected JSON {{\"kind\": \"{KIND}\", "
-                         f"\"alpha\": a, \"weight\": w}}, got {text!r}") from None
+        raise InputError(
+            f'metadata {KEY!r}: expected JSON {{"kind": "{KIND}", '
+            f'"alpha": a, "weight": w}}, got {text!r}'
+        ) from None
     if kind != KIND:
         raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
     if not (alpha > 0 and 0.0 <= weight <= 1.0):
-        raise InputError(f"metadata {KEY!r}: alpha must be > 0 and weight in [0, 1], "
-                         f"got {text!r}")
+        raise InputError(f"metadata {KEY!r}: alpha must be > 0 and weight in [0, 1], got {text!r}")
     return {**lobe, "alpha": max(alpha, MIN_ALPHA), "weight": weight}
 
 

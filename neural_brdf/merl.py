@@ -51,9 +51,9 @@ import difflib
 import functools
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -66,8 +66,8 @@ from .fileio import atomic_write
 RES_THETA_H = 90
 RES_THETA_D = 90
 RES_PHI_D = 180
-SHAPE = (RES_THETA_H, RES_THETA_D, RES_PHI_D)          # header dims, in file order
-N_BINS = RES_THETA_H * RES_THETA_D * RES_PHI_D         # 1,458,000 per channel
+SHAPE = (RES_THETA_H, RES_THETA_D, RES_PHI_D)  # header dims, in file order
+N_BINS = RES_THETA_H * RES_THETA_D * RES_PHI_D  # 1,458,000 per channel
 SCALE = np.array([1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0])  # stored value * SCALE = f
 HEADER_BYTES = 3 * 4
 FILE_BYTES = HEADER_BYTES + 3 * N_BINS * 8
@@ -142,8 +142,9 @@ def _grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     wo = np.empty((N_BINS, 3))
     for s in range(0, N_BINS, CHUNK):
         ih, id_, ip = unravel(np.arange(s, min(s + CHUNK, N_BINS)))
-        wi[s:s + len(ih)], wo[s:s + len(ih)] = directions(
-            th_c[ih], np.zeros(len(ih)), td_c[id_], pd_c[ip])
+        wi[s : s + len(ih)], wo[s : s + len(ih)] = directions(
+            th_c[ih], np.zeros(len(ih)), td_c[id_], pd_c[ip]
+        )
     above = (wi[:, 2] > 0) & (wo[:, 2] > 0)
     for a in (wi, wo, above):
         a.flags.writeable = False
@@ -168,8 +169,10 @@ def grid_above_horizon() -> np.ndarray:
 
 def directions(theta_h, phi_h, theta_d, phi_d) -> tuple[np.ndarray, np.ndarray]:
     """(wi, wo) float64 numpy from Rusinkiewicz angles (broadcast together)."""
-    t = [torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
-         for a in (theta_h, phi_h, theta_d, phi_d)]
+    t = [
+        torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
+        for a in (theta_h, phi_h, theta_d, phi_d)
+    ]
     wi, wo = frame.from_rusinkiewicz(*t)
     return wi.numpy(), wo.numpy()
 
@@ -215,7 +218,7 @@ class MerlBRDF:
     """
 
     def __init__(self, raw, *, source: str = "<memory>"):
-        raw = np.array(raw, dtype=np.float64)          # a private copy
+        raw = np.array(raw, dtype=np.float64)  # a private copy
         if raw.shape != (3,) + SHAPE:
             raise ValueError(f"raw: expected shape {(3,) + SHAPE}, got {raw.shape}")
         bad = ~np.isfinite(raw)
@@ -226,7 +229,7 @@ class MerlBRDF:
         self.source = str(source)
         self.valid = np.all(raw >= 0, axis=0)
         self.valid.flags.writeable = False
-        table = (raw.reshape(3, N_BINS).T * SCALE).copy()              # (N, 3) f in 1/sr
+        table = (raw.reshape(3, N_BINS).T * SCALE).copy()  # (N, 3) f in 1/sr
         table[~self.valid.reshape(-1)] = 0.0
         table.flags.writeable = False
         self._table = table
@@ -282,11 +285,15 @@ class MerlBRDF:
         batch = wi.shape[:-1]
         wi, wo = wi.reshape(-1, 3), wo.reshape(-1, 3)
         out = np.zeros((len(wi), 3))
-        ok = (np.all(np.isfinite(wi), -1) & np.all(np.isfinite(wo), -1)
-              & (wi[:, 2] > 0) & (wo[:, 2] > 0))
+        ok = (
+            np.all(np.isfinite(wi), -1)
+            & np.all(np.isfinite(wo), -1)
+            & (wi[:, 2] > 0)
+            & (wo[:, 2] > 0)
+        )
         rows = np.flatnonzero(ok)
         for s in range(0, len(rows), CHUNK):
-            r = rows[s:s + CHUNK]
+            r = rows[s : s + CHUNK]
             a = wi[r] / np.linalg.norm(wi[r], axis=-1, keepdims=True)
             b = wo[r] / np.linalg.norm(wo[r], axis=-1, keepdims=True)
             out[r] = self.lookup(*_angles(a, b), interpolation=interpolation)
@@ -295,8 +302,9 @@ class MerlBRDF:
     def lookup(self, theta_h, theta_d, phi_d, *, interpolation: str = "trilinear") -> np.ndarray:
         """f at Rusinkiewicz angles (broadcast together) -> (..., 3).  phi_d is folded."""
         _choice("interpolation", interpolation, INTERPOLATIONS)
-        th, td, pd = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
-                                           for a in (theta_h, theta_d, phi_d)))
+        th, td, pd = np.broadcast_arrays(
+            *(np.asarray(a, dtype=np.float64) for a in (theta_h, theta_d, phi_d))
+        )
         batch = th.shape
         uh = theta_h_index(th.reshape(-1))
         ud = theta_d_index(td.reshape(-1))
@@ -316,10 +324,10 @@ class MerlBRDF:
 
         h0, h1, fh = clamped(uh, RES_THETA_H)
         d0, d1, fd = clamped(ud, RES_THETA_D)
-        xp = _snap(up - 0.5)                                          # in [-0.5, 179.5)
+        xp = _snap(up - 0.5)  # in [-0.5, 179.5)
         p0 = np.floor(xp).astype(np.int64)
         fp = xp - p0
-        p0, p1 = p0 % RES_PHI_D, (p0 + 1) % RES_PHI_D                 # periodic in phi_d
+        p0, p1 = p0 % RES_PHI_D, (p0 + 1) % RES_PHI_D  # periodic in phi_d
 
         acc = np.zeros((len(uh), 3))
         wsum = np.zeros(len(uh))
@@ -337,8 +345,9 @@ class MerlBRDF:
         return out.reshape(batch + (3,))
 
     # -- training data
-    def sample_pairs(self, n: int, rng=None, *, space: str = "index",
-                     interpolation: str = "trilinear"):
+    def sample_pairs(
+        self, n: int, rng=None, *, space: str = "index", interpolation: str = "trilinear"
+    ):
         """Draw ``n`` direction pairs from the measured support -> (wi, wo, f), each (n, 3).
 
         A measured bin is drawn, then a point uniformly inside it; phi_h is uniform in
@@ -363,7 +372,7 @@ class MerlBRDF:
         p = None
         if space == "angle":
             ih = unravel(bins)[0]
-            p = (2.0 * ih + 1.0)                  # theta_h bin width ~ (i+1)^2 - i^2
+            p = 2.0 * ih + 1.0  # theta_h bin width ~ (i+1)^2 - i^2
             p = p / p.sum()
         wis, wos, got, tries = [], [], 0, 0
         while got < n:
@@ -385,7 +394,7 @@ class MerlBRDF:
             wos.append(wo[keep])
             got += int(keep.sum())
             tries += 1
-            if tries > 50 and got == 0:             # nothing above the horizon, ever
+            if tries > 50 and got == 0:  # nothing above the horizon, ever
                 raise ValueError(f"{self.source}: every measured bin lies below the horizon")
         wi = np.concatenate(wis)[:n]
         wo = np.concatenate(wos)[:n]
@@ -401,19 +410,23 @@ def read_merl(path) -> MerlBRDF:
             size = os.fstat(fh.fileno()).st_size
             head = fh.read(HEADER_BYTES)
             if len(head) < HEADER_BYTES:
-                raise MerlFormatError(f"{p}: truncated header ({len(head)} bytes; a MERL "
-                                      f"file starts with 3 int32 dims)")
+                raise MerlFormatError(
+                    f"{p}: truncated header ({len(head)} bytes; a MERL "
+                    f"file starts with 3 int32 dims)"
+                )
             order = "<"
             dims = tuple(int(d) for d in np.frombuffer(head, "<i4"))
             if dims != SHAPE:
                 if tuple(int(d) for d in np.frombuffer(head, ">i4")) != SHAPE:
-                    raise MerlFormatError(f"{p}: header dims {dims}, expected {SHAPE} "
-                                          f"(theta_h, theta_d, phi_d)")
-                order = ">"                                 # a big-endian file
+                    raise MerlFormatError(
+                        f"{p}: header dims {dims}, expected {SHAPE} (theta_h, theta_d, phi_d)"
+                    )
+                order = ">"  # a big-endian file
             if size != FILE_BYTES:
                 what = "truncated" if size < FILE_BYTES else "trailing bytes after the data"
-                raise MerlFormatError(f"{p}: {size} bytes, expected {FILE_BYTES} for dims "
-                                      f"{SHAPE} ({what})")
+                raise MerlFormatError(
+                    f"{p}: {size} bytes, expected {FILE_BYTES} for dims {SHAPE} ({what})"
+                )
             body = fh.read()
     except FileNotFoundError:
         raise MerlFormatError(f"{p}: no such file") from None
@@ -421,16 +434,19 @@ def read_merl(path) -> MerlBRDF:
         raise MerlFormatError(f"{p}: is a directory, not a MERL file") from None
     except OSError as e:
         raise MerlFormatError(f"{p}: cannot read ({e.strerror or e})") from None
-    if len(body) != FILE_BYTES - HEADER_BYTES:                # the file changed under us
-        raise MerlFormatError(f"{p}: read {len(body) + HEADER_BYTES} bytes, expected "
-                              f"{FILE_BYTES} (truncated)")
+    if len(body) != FILE_BYTES - HEADER_BYTES:  # the file changed under us
+        raise MerlFormatError(
+            f"{p}: read {len(body) + HEADER_BYTES} bytes, expected {FILE_BYTES} (truncated)"
+        )
     raw = np.frombuffer(body, order + "f8").reshape((3,) + SHAPE)
     bad = ~np.isfinite(raw)
     if bad.any():
         c, ih, id_, ip = (int(i[0]) for i in np.nonzero(bad))
-        raise MerlFormatError(f"{p}: {int(bad.sum())} non-finite values (first: channel "
-                              f"{'RGB'[c]}, bin theta_h {ih}, theta_d {id_}, phi_d {ip})")
-    return MerlBRDF(raw, source=str(p))                 # copies to native float64
+        raise MerlFormatError(
+            f"{p}: {int(bad.sum())} non-finite values (first: channel "
+            f"{'RGB'[c]}, bin theta_h {ih}, theta_d {id_}, phi_d {ip})"
+        )
+    return MerlBRDF(raw, source=str(p))  # copies to native float64
 
 
 def write_merl(path, brdf_or_array) -> None:
@@ -452,7 +468,7 @@ def write_merl(path, brdf_or_array) -> None:
 def _as_function(fn) -> Callable:
     if callable(fn):
         return fn
-    if hasattr(fn, "eval"):                      # an analytic.BRDF or a MerlBRDF
+    if hasattr(fn, "eval"):  # an analytic.BRDF or a MerlBRDF
         return fn.eval
     raise TypeError(f"fn: expected a callable f(wi, wo) or an object with .eval, got {fn!r}")
 
@@ -480,14 +496,17 @@ def bake_brdf(fn, *, chunk: int = CHUNK, source: str = "<baked>") -> MerlBRDF:
             val = val.detach().cpu().numpy()
         val = np.asarray(val, dtype=np.float64)
         if val.shape != (len(up), 3):
-            raise ValueError(f"fn: returned shape {val.shape} for {len(up)} pairs, "
-                             f"expected ({len(up)}, 3)")
+            raise ValueError(
+                f"fn: returned shape {val.shape} for {len(up)} pairs, expected ({len(up)}, 3)"
+            )
         bad = ~np.all(np.isfinite(val), -1)
         if bad.any():
             k = s + int(up[np.argmax(bad)])
             th, td, pd = (c[i] for c, i in zip(bin_centres(), unravel(k)))
-            raise ValueError(f"fn: non-finite value at bin {unravel(k)} (theta_h {th:.6g}, "
-                             f"theta_d {td:.6g}, phi_d {pd:.6g})")
+            raise ValueError(
+                f"fn: non-finite value at bin {unravel(k)} (theta_h {th:.6g}, "
+                f"theta_d {td:.6g}, phi_d {pd:.6g})"
+            )
         raw[:, s + up] = (np.maximum(val, 0.0) / SCALE).T
     return MerlBRDF(raw.reshape((3,) + SHAPE), source=source)
 
@@ -502,10 +521,11 @@ def bake(fn, path, *, chunk: int = CHUNK) -> MerlBRDF:
 # ------------------------------------------------------------ real-material fixtures
 def _edge_in(wi, wo):
     """Numpy or torch in -> (was it torch, wi, wo) as broadcast tensors of one dtype."""
+
     def tensor(x):
         if isinstance(x, torch.Tensor):
             return x
-        return torch.from_numpy(np.array(x, dtype=np.float64))   # a copy: never read-only
+        return torch.from_numpy(np.array(x, dtype=np.float64))  # a copy: never read-only
 
     is_torch = isinstance(wi, torch.Tensor) or isinstance(wo, torch.Tensor)
     wi_t, wo_t = tensor(wi), tensor(wo)
@@ -551,21 +571,22 @@ def nbrdf_fixture(npz_path, name: str, *, reciprocal: bool = False) -> Callable:
         keys = [f"{name}/{k}" for k in ("W0", "b0", "W1", "b1", "W2", "b2")]
         if keys[0] not in z.files:
             names = {k.split("/")[0] for k in z.files}
-            raise ValueError(f"{npz_path}: no NBRDF network named {name!r}"
-                             f"{_closest(name, names)}")
+            raise ValueError(f"{npz_path}: no NBRDF network named {name!r}{_closest(name, names)}")
         # float32, as the networks were trained and shipped (and twice as fast as float64)
         params = [torch.from_numpy(np.asarray(z[k], dtype=np.float32)) for k in keys]
     w0, b0, w1, b1, w2, b2 = params
     if w0.shape != (6, 21) or w2.shape[1] != 3:
-        raise ValueError(f"{npz_path}: {name}: unexpected weight shapes "
-                         f"{tuple(w0.shape)}, {tuple(w2.shape)}")
+        raise ValueError(
+            f"{npz_path}: {name}: unexpected weight shapes {tuple(w0.shape)}, {tuple(w2.shape)}"
+        )
 
     def net(th, td, dx, dy):
-        x = torch.stack([torch.sin(th), torch.zeros_like(th), torch.cos(th),
-                         dx, dy, torch.cos(td)], -1).to(w0.dtype)      # (..., 6)
-        y = torch.relu(x @ w0 + b0)                                   # (..., 21)
-        y = torch.relu(y @ w1 + b1)                                   # (..., 21)
-        return torch.expm1(y @ w2 + b2).to(th.dtype)                  # exp(y) - 1, (..., 3)
+        x = torch.stack(
+            [torch.sin(th), torch.zeros_like(th), torch.cos(th), dx, dy, torch.cos(td)], -1
+        ).to(w0.dtype)  # (..., 6)
+        y = torch.relu(x @ w0 + b0)  # (..., 21)
+        y = torch.relu(y @ w1 + b1)  # (..., 21)
+        return torch.expm1(y @ w2 + b2).to(th.dtype)  # exp(y) - 1, (..., 3)
 
     def f(wi, wo):
         is_torch, wi_t, wo_t = _edge_in(wi, wo)
@@ -574,7 +595,7 @@ def nbrdf_fixture(npz_path, name: str, *, reciprocal: bool = False) -> Callable:
         th, _, td, pd = frame.rusinkiewicz(wi_t, wo_t)
         dx, dy = torch.sin(td) * torch.cos(pd), torch.sin(td) * torch.sin(pd)
         val = net(th, td, dx, dy)
-        if reciprocal:                      # phi_d + pi: the difference vector's x, y negated
+        if reciprocal:  # phi_d + pi: the difference vector's x, y negated
             val = 0.5 * (val + net(th, td, -dx, -dy))
         return _edge_out(val, wi_t, wo_t, is_torch)
 
@@ -605,8 +626,13 @@ def read_abc_params(csv_path) -> dict[str, ABCParams]:
         for row in reader:
             v = {k: float(row[k]) for k in cols[1:]}
             out[row["name"]] = ABCParams(
-                row["name"], (v["kD_r"], v["kD_g"], v["kD_b"]),
-                (v["A_r"], v["A_g"], v["A_b"]), v["B"], v["C"], v["ior"])
+                row["name"],
+                (v["kD_r"], v["kD_g"], v["kD_b"]),
+                (v["A_r"], v["A_g"], v["A_b"]),
+                v["B"],
+                v["C"],
+                v["ior"],
+            )
     return out
 
 

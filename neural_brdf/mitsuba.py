@@ -59,18 +59,30 @@ from .graph import SUPPORTED_OPS, UnsupportedOnnxOp
 from .runtime import INPUTS, OUTPUT
 
 if mi.variant() is None:
-    raise ImportError("neural_brdf.mitsuba: set a Mitsuba variant first, e.g. "
-                      "mi.set_variant('llvm_ad_rgb'); the plugins register for that variant")
+    raise ImportError(
+        "neural_brdf.mitsuba: set a Mitsuba variant first, e.g. "
+        "mi.set_variant('llvm_ad_rgb'); the plugins register for that variant"
+    )
 if not mi.is_rgb:
     # The graph returns RGB.  In a spectral or monochrome variant a scene would load and
     # the render then die inside Mitsuba with a bare std::bad_cast, so refuse here.
-    raise ImportError(f"neural_brdf.mitsuba: variant {mi.variant()!r} is not an RGB variant; "
-                      "the neural BSDF returns RGB values: use llvm_ad_rgb or cuda_ad_rgb "
-                      "(for spectral rendering, bake the model to an RGL .bsdf file for "
-                      "Mitsuba's own 'measured' plugin)")
+    raise ImportError(
+        f"neural_brdf.mitsuba: variant {mi.variant()!r} is not an RGB variant; "
+        "the neural BSDF returns RGB values: use llvm_ad_rgb or cuda_ad_rgb "
+        "(for spectral rendering, bake the model to an RGL .bsdf file for "
+        "Mitsuba's own 'measured' plugin)"
+    )
 
-__all__ = ["SUPPORTED_OPS", "AnalyticBSDF", "NeuralBSDF", "OnnxProgram", "UnsupportedOnnxOp",
-           "analytic_onnx", "read_model"]
+__all__ = [
+    "SUPPORTED_OPS",
+    "AnalyticBSDF",
+    "NeuralBSDF",
+    "OnnxProgram",
+    "UnsupportedOnnxOp",
+    "analytic_onnx",
+    "read_model",
+]
+
 
 # ====================================================================== BSDF plugins
 def _black(wi, wo):
@@ -82,18 +94,23 @@ class _GraphBSDF(mi.BSDF):
 
     def _setup(self, program: OnnxProgram, lobe: dict, label: str):
         if not dr.is_jit_v(mi.Float):
-            raise InputError(f"{label}: needs a JIT variant (llvm_ad_rgb, cuda_ad_rgb, ...); "
-                             f"the interpreter traces Dr.Jit arrays, and {mi.variant()} has none")
+            raise InputError(
+                f"{label}: needs a JIT variant (llvm_ad_rgb, cuda_ad_rgb, ...); "
+                f"the interpreter traces Dr.Jit arrays, and {mi.variant()} has none"
+            )
         if program.inputs != list(INPUTS) or program.outputs != [OUTPUT]:
-            raise InputError(f"{label}: expected inputs {list(INPUTS)} and output {OUTPUT!r}, "
-                             f"got {program.inputs} -> {program.outputs}")
+            raise InputError(
+                f"{label}: expected inputs {list(INPUTS)} and output {OUTPUT!r}, "
+                f"got {program.inputs} -> {program.outputs}"
+            )
         self.program = program
         self.lobe = dict(lobe)
         self.label = label
         self.lobe_weight = float(lobe["weight"])
         self.distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, float(lobe["alpha"]), True)
-        flags = (mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection
-                 | mi.BSDFFlags.FrontSide)
+        flags = (
+            mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+        )
         self.m_components = [flags]
         self.m_flags = flags
 
@@ -115,7 +132,7 @@ class _GraphBSDF(mi.BSDF):
         cos_i, cos_o = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
         valid = active & (cos_i > 0.0) & (cos_o > 0.0)
         p = (1.0 - self.lobe_weight) * mi.warp.square_to_cosine_hemisphere_pdf(wo)
-        if self.lobe_weight > 0.0:        # a Python float: decided once, not per lane
+        if self.lobe_weight > 0.0:  # a Python float: decided once, not per lane
             m = dr.normalize(wi + wo)
             dot_om = dr.dot(wo, m)
             p_m = self.distr.pdf(wi, m)
@@ -124,8 +141,9 @@ class _GraphBSDF(mi.BSDF):
         return dr.select(valid, p, 0.0)
 
     def _enabled(self, ctx) -> bool:
-        return ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0) or \
-            ctx.is_enabled(mi.BSDFFlags.DiffuseReflection, 0)
+        return ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0) or ctx.is_enabled(
+            mi.BSDFFlags.DiffuseReflection, 0
+        )
 
     def eval(self, ctx, si, wo, active=True):
         if not self._enabled(ctx):
@@ -162,8 +180,11 @@ class _GraphBSDF(mi.BSDF):
         bs.eta = 1.0
         # which lobe of the mixture drew the sample (integrators such as the path
         # guiders and AOVs read it); both lobes are component 0 of the one BSDF
-        bs.sampled_type = dr.select(glossy, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
-                                    mi.UInt32(+mi.BSDFFlags.DiffuseReflection))
+        bs.sampled_type = dr.select(
+            glossy,
+            mi.UInt32(+mi.BSDFFlags.GlossyReflection),
+            mi.UInt32(+mi.BSDFFlags.DiffuseReflection),
+        )
         bs.sampled_component = mi.UInt32(0)
         return bs, dr.select(ok, value / pdf, 0.0)
 
@@ -171,9 +192,11 @@ class _GraphBSDF(mi.BSDF):
         pass
 
     def to_string(self):
-        return (f"{type(self).__name__}[{self.label}, sampling lobe GGX alpha="
-                f"{self.lobe['alpha']:.4g} weight={self.lobe_weight:.3g} "
-                f"({self.lobe_source})]")
+        return (
+            f"{type(self).__name__}[{self.label}, sampling lobe GGX alpha="
+            f"{self.lobe['alpha']:.4g} weight={self.lobe_weight:.3g} "
+            f"({self.lobe_source})]"
+        )
 
 
 def _resolve(filename: str) -> Path:
@@ -182,8 +205,11 @@ def _resolve(filename: str) -> Path:
         # Mitsuba's resolver holds the scene file's folder while an XML scene loads.
         # mi.file_resolver() replaced Thread.file_resolver() (deprecated in 3.9, whose
         # warning escapes from a plugin constructor as a SystemError).
-        resolver = (mi.file_resolver() if hasattr(mi, "file_resolver")
-                    else mi.Thread.thread().file_resolver())
+        resolver = (
+            mi.file_resolver()
+            if hasattr(mi, "file_resolver")
+            else mi.Thread.thread().file_resolver()
+        )
         resolved = Path(str(resolver.resolve(str(path))))
         if resolved.is_file():
             path = resolved
@@ -201,9 +227,10 @@ def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
     path = _resolve(str(filename))
     try:
         proto = onnx.load(str(path))
-    except Exception as e:       # onnx raises DecodeError and others on a bad file
-        raise InputError(f"neural_brdf: {path}: not a loadable ONNX model "
-                         f"({type(e).__name__})") from None
+    except Exception as e:  # onnx raises DecodeError and others on a bad file
+        raise InputError(
+            f"neural_brdf: {path}: not a loadable ONNX model ({type(e).__name__})"
+        ) from None
     try:
         stored = lobes.from_metadata({p.key: p.value for p in proto.metadata_props})
     except InputError as e:
@@ -241,9 +268,16 @@ def analytic_onnx(model: str, params: dict | None = None) -> bytes:
         # The TorchScript exporter warns that it is deprecated (and about traced Python
         # values); it is used as neural_brdf.export uses it: one file, no onnxscript.
         warnings.simplefilter("ignore")
-        torch.onnx.export(_F(), (torch.zeros(4, 3), torch.zeros(4, 3)), buf, dynamo=False,
-                          opset_version=17, input_names=list(INPUTS), output_names=[OUTPUT],
-                          dynamic_axes={"wi": {0: "N"}, "wo": {0: "N"}, OUTPUT: {0: "N"}})
+        torch.onnx.export(
+            _F(),
+            (torch.zeros(4, 3), torch.zeros(4, 3)),
+            buf,
+            dynamo=False,
+            opset_version=17,
+            input_names=list(INPUTS),
+            output_names=[OUTPUT],
+            dynamic_axes={"wi": {0: "N"}, "wo": {0: "N"}, OUTPUT: {0: "N"}},
+        )
     return buf.getvalue()
 
 
@@ -265,7 +299,7 @@ def _analytic_params(props) -> tuple[str, dict]:
         value = props[key]
         if isinstance(value, (bool, int, float, str)):
             params[key] = value
-        else:           # an RGB colour or a vector
+        else:  # an RGB colour or a vector
             params[key] = [float(v) for v in value]
     return str(model), params
 
@@ -287,8 +321,18 @@ mi.register_bsdf("neural_brdf", lambda props: NeuralBSDF(props))
 mi.register_bsdf("analytic_brdf", lambda props: AnalyticBSDF(props))
 
 
-_MOVED_TO_RENDER = ("sky_bitmap", "preview_scene", "render_scene", "to_display", "psnr",
-                    "ERROR_GAIN", "write_png", "analytic_bsdf", "side_by_side", "render_preview")
+_MOVED_TO_RENDER = (
+    "sky_bitmap",
+    "preview_scene",
+    "render_scene",
+    "to_display",
+    "psnr",
+    "ERROR_GAIN",
+    "write_png",
+    "analytic_bsdf",
+    "side_by_side",
+    "render_preview",
+)
 
 
 def __getattr__(name: str):
@@ -296,5 +340,6 @@ def __getattr__(name: str):
     so that ``from neural_brdf.mitsuba import render_preview`` keeps working)."""
     if name in _MOVED_TO_RENDER:
         from . import render
+
         return getattr(render, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -43,8 +43,13 @@ import torch.nn.functional as F
 from . import encoding as enc
 from . import quadrature
 
-ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "gelu": nn.GELU, "tanh": nn.Tanh,
-               "softplus": nn.Softplus}
+ACTIVATIONS = {
+    "relu": nn.ReLU,
+    "silu": nn.SiLU,
+    "gelu": nn.GELU,
+    "tanh": nn.Tanh,
+    "softplus": nn.Softplus,
+}
 
 # Floor of the mean cosine in the grazing scale: only pairs both within 0.006 degrees of
 # the horizon reach it, and it keeps the division finite there.
@@ -60,8 +65,15 @@ def softplus_inverse(y: float) -> float:
 
 
 class MLP(nn.Module):
-    def __init__(self, n_in: int, hidden: list[int], activation: str, *, init_value: float = 0.3,
-                 output_scale: float = 1.0):
+    def __init__(
+        self,
+        n_in: int,
+        hidden: list[int],
+        activation: str,
+        *,
+        init_value: float = 0.3,
+        output_scale: float = 1.0,
+    ):
         super().__init__()
         self.output_scale = float(output_scale)
         layers, width = [], n_in
@@ -74,7 +86,7 @@ class MLP(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, softplus_inverse(init_value / self.output_scale))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:   # (N, F) -> (N, 3), >= 0
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # (N, F) -> (N, 3), >= 0
         y = F.softplus(self.head(self.body(x)))
         return y if self.output_scale == 1.0 else self.output_scale * y
 
@@ -92,14 +104,27 @@ class RawBRDF(nn.Module):
     turns it off (diffuse models).
     """
 
-    def __init__(self, encoding: str, hidden: list[int], activation: str, *,
-                 grazing_power: float = 1.0, init_value: float = 0.3, output_scale: float = 1.0):
+    def __init__(
+        self,
+        encoding: str,
+        hidden: list[int],
+        activation: str,
+        *,
+        grazing_power: float = 1.0,
+        init_value: float = 0.3,
+        output_scale: float = 1.0,
+    ):
         super().__init__()
         self.encoding = encoding
-        self.anisotropic = enc.is_anisotropic(encoding)    # as NormalizedBRDF.anisotropic
+        self.anisotropic = enc.is_anisotropic(encoding)  # as NormalizedBRDF.anisotropic
         self.grazing_power = float(grazing_power)
-        self.mlp = MLP(enc.num_features(encoding), hidden, activation, init_value=init_value,
-                       output_scale=output_scale)
+        self.mlp = MLP(
+            enc.num_features(encoding),
+            hidden,
+            activation,
+            init_value=init_value,
+            output_scale=output_scale,
+        )
 
     @staticmethod
     def parameter_count(m) -> int:
@@ -107,17 +132,23 @@ class RawBRDF(nn.Module):
         return sum(p.numel() for p in RawBRDF.from_config(m).parameters())
 
     @classmethod
-    def from_config(cls, m, *, init_value: float = 0.3) -> "RawBRDF":
+    def from_config(cls, m, *, init_value: float = 0.3) -> RawBRDF:
         """From the ``model`` section of a config (:class:`neural_brdf.config.Model`)."""
-        return cls(m.encoding, m.hidden, m.activation, grazing_power=m.grazing_power,
-                   init_value=init_value, output_scale=m.output_scale)
+        return cls(
+            m.encoding,
+            m.hidden,
+            m.activation,
+            grazing_power=m.grazing_power,
+            init_value=init_value,
+            output_scale=m.output_scale,
+        )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
         x = enc.features(wi, wo, self.encoding)
         f = self.mlp(x)
         if self.grazing_power != 0.0:
             mean_cos = (0.5 * (wi[..., 2:3] + wo[..., 2:3])).clamp_min(MIN_MEAN_COS)  # symmetric
-            f = f / (mean_cos if self.grazing_power == 1.0 else mean_cos ** self.grazing_power)
+            f = f / (mean_cos if self.grazing_power == 1.0 else mean_cos**self.grazing_power)
         valid = (wi[..., 2:3] > 0) & (wo[..., 2:3] > 0)
         return torch.where(valid, f, torch.zeros_like(f))
 
@@ -151,18 +182,27 @@ def node_directions(size: int, anisotropic: bool) -> torch.Tensor:
     return torch.stack([sz * px, sz * py, cz], -1)
 
 
-def albedo_table(raw: nn.Module, *, size: int, anisotropic: bool, samples: int, seed: int,
-                 sigmas: float, margin: float, extra=None):
+def albedo_table(
+    raw: nn.Module,
+    *,
+    size: int,
+    anisotropic: bool,
+    samples: int,
+    seed: int,
+    sigmas: float,
+    margin: float,
+    extra=None,
+):
     """A+ at the nodes: (K, 3) or (K, K, 3), plus the raw estimate and its error."""
     dirs = node_directions(size, anisotropic)
     with torch.no_grad():
         a, err = quadrature.albedo(raw, dirs, samples, seed=seed, extra=extra)
     upper = a + sigmas * err
     if anisotropic:
-        upper = upper.reshape(size, size, 3).permute(2, 0, 1)[None]       # (1, 3, K, K)
+        upper = upper.reshape(size, size, 3).permute(2, 0, 1)[None]  # (1, 3, K, K)
         upper = F.max_pool2d(upper, 3, stride=1, padding=1)[0].permute(1, 2, 0)
     else:
-        upper = F.max_pool1d(upper.T[None], 3, stride=1, padding=1)[0].T   # (K, 3)
+        upper = F.max_pool1d(upper.T[None], 3, stride=1, padding=1)[0].T  # (K, 3)
     return (upper * (1.0 + margin)).float(), a, err
 
 
@@ -173,9 +213,9 @@ class NormalizedBRDF(nn.Module):
         super().__init__()
         self.raw = raw
         self.anisotropic = table.dim() == 3
-        self.register_buffer("table", table.detach().float().clone())     # (K, 3) | (K, K, 3)
+        self.register_buffer("table", table.detach().float().clone())  # (K, 3) | (K, K, 3)
 
-    def lookup(self, w: torch.Tensor) -> torch.Tensor:   # (N, 3) -> (N, 3), linear interpolation
+    def lookup(self, w: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (N, 3), linear interpolation
         k = self.table.shape[0]
         c = table_coords(w, self.anisotropic)
         if not self.anisotropic:
@@ -184,15 +224,19 @@ class NormalizedBRDF(nn.Module):
             a = (t - i0)[..., None]
             i0 = i0.long()
             return self.table[i0] * (1.0 - a) + self.table[i0 + 1] * a
-        t = (c + 1.0) * (0.5 * (k - 1))                                     # (N, 2)
+        t = (c + 1.0) * (0.5 * (k - 1))  # (N, 2)
         i0 = torch.floor(t).clamp(0, k - 2)
         a = t - i0
         i0 = i0.long()
-        j = i0[..., 0] * k + i0[..., 1]                 # flat index of the (x0, y0) corner
+        j = i0[..., 0] * k + i0[..., 1]  # flat index of the (x0, y0) corner
         ax, ay = a[..., 0:1], a[..., 1:2]
         tb = self.table.reshape(k * k, 3)
-        return (tb[j] * (1 - ax) * (1 - ay) + tb[j + k] * ax * (1 - ay)
-                + tb[j + 1] * (1 - ax) * ay + tb[j + k + 1] * ax * ay)
+        return (
+            tb[j] * (1 - ax) * (1 - ay)
+            + tb[j + k] * ax * (1 - ay)
+            + tb[j + 1] * (1 - ax) * ay
+            + tb[j + k + 1] * ax * ay
+        )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         f = self.raw(wi, wo)
@@ -220,7 +264,9 @@ def unit_or_invalid(w: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, to
     m = torch.maximum(torch.maximum(a[..., 0:1], a[..., 1:2]), a[..., 2:3])
     ok = ok & (m > 0.0)
     u = torch.where(ok, w, torch.zeros_like(w)) / torch.where(ok, m, torch.ones_like(m))
-    n = torch.sqrt(u[..., 0:1] * u[..., 0:1] + u[..., 1:2] * u[..., 1:2] + u[..., 2:3] * u[..., 2:3])
+    n = torch.sqrt(
+        u[..., 0:1] * u[..., 0:1] + u[..., 1:2] * u[..., 1:2] + u[..., 2:3] * u[..., 2:3]
+    )
     return torch.where(ok, u / torch.where(ok, n, torch.ones_like(n)), up), ok
 
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 import importlib
 import io
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -41,11 +41,11 @@ from . import merl, quadrature
 
 Fn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
-THETA_I_DEG = (0.0, 30.0, 60.0, 80.0)          # incidence angles of the slices and lobes
-GRAZING_DEG = 89.5          # slices stop here: f cos -> 0 at 90 deg, which log scales cannot show
-DYNAMIC_RANGE = 1e-4        # log axes show at most this fraction of the peak
-LOBE_COMPRESSION = 100.0    # polar radius log10(1 + C x / max) / log10(1 + C): C sets the knee
-REL_ERROR_RANGE = (1e-3, 1.0)   # colour range of the relative-error image
+THETA_I_DEG = (0.0, 30.0, 60.0, 80.0)  # incidence angles of the slices and lobes
+GRAZING_DEG = 89.5  # slices stop here: f cos -> 0 at 90 deg, which log scales cannot show
+DYNAMIC_RANGE = 1e-4  # log axes show at most this fraction of the peak
+LOBE_COMPRESSION = 100.0  # polar radius log10(1 + C x / max) / log10(1 + C): C sets the knee
+REL_ERROR_RANGE = (1e-3, 1.0)  # colour range of the relative-error image
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights of linear RGB
 CHANNELS = (("R", "tab:red"), ("G", "tab:green"), ("B", "tab:blue"))
 DPI = 100
@@ -91,8 +91,7 @@ def slice_values(fn: Fn, theta_i_deg: float, n: int = 361) -> tuple[np.ndarray, 
     return theta_o, f * wo[:, 2:3]
 
 
-def incidence_slices(neural: Fn, reference: Fn | None = None, *,
-                     theta_i_deg=THETA_I_DEG) -> Figure:
+def incidence_slices(neural: Fn, reference: Fn | None = None, *, theta_i_deg=THETA_I_DEG) -> Figure:
     cols = 2
     rows = math.ceil(len(theta_i_deg) / cols)
     fig = Figure(figsize=(10, 3.2 * rows), layout="constrained")
@@ -101,14 +100,19 @@ def incidence_slices(neural: Fn, reference: Fn | None = None, *,
         x, y = slice_values(neural, ti)
         curves = [y]
         for c, (name, colour) in enumerate(CHANNELS):
-            ax.plot(x, _positive(y[:, c]), color=colour, lw=2.4, alpha=0.5,
-                    label=f"neural {name}")
+            ax.plot(x, _positive(y[:, c]), color=colour, lw=2.4, alpha=0.5, label=f"neural {name}")
         if reference is not None:
             _, r = slice_values(reference, ti)
             curves.append(r)
             for c, (name, colour) in enumerate(CHANNELS):
-                ax.plot(x, _positive(r[:, c]), color=colour, lw=1.0, ls=(0, (4, 3)),
-                        label=f"reference {name}")
+                ax.plot(
+                    x,
+                    _positive(r[:, c]),
+                    color=colour,
+                    lw=1.0,
+                    ls=(0, (4, 3)),
+                    label=f"reference {name}",
+                )
         top = max(float(np.nanmax(v)) for v in curves)
         ax.set_yscale("log")
         if top > 0:
@@ -120,7 +124,7 @@ def incidence_slices(neural: Fn, reference: Fn | None = None, *,
         ax.set_xlabel("θo in the incidence plane [deg]")
         ax.set_ylabel("f cos θo [1/sr]")
         ax.grid(True, which="major", alpha=0.3)
-    for ax in list(axes.flat)[len(theta_i_deg):]:
+    for ax in list(axes.flat)[len(theta_i_deg) :]:
         ax.set_visible(False)
     _legend(fig, axes.flat[0], reference is not None)
     return fig
@@ -128,8 +132,14 @@ def incidence_slices(neural: Fn, reference: Fn | None = None, *,
 
 def _legend(fig: Figure, ax, with_reference: bool) -> None:
     handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside upper center", ncols=6 if with_reference else 3,
-               fontsize=9, frameon=False)
+    fig.legend(
+        handles,
+        labels,
+        loc="outside upper center",
+        ncols=6 if with_reference else 3,
+        fontsize=9,
+        frameon=False,
+    )
 
 
 # ------------------------------------------------------------------ polar lobes
@@ -145,8 +155,9 @@ def polar_lobes(neural: Fn, reference: Fn | None = None, *, theta_i_deg=THETA_I_
     peak = peak if peak > 0 else 1.0
 
     def radius(v):
-        return np.log10(1.0 + LOBE_COMPRESSION * np.clip(v, 0.0, None) / peak) / \
-            math.log10(1.0 + LOBE_COMPRESSION)
+        return np.log10(1.0 + LOBE_COMPRESSION * np.clip(v, 0.0, None) / peak) / math.log10(
+            1.0 + LOBE_COMPRESSION
+        )
 
     fig = Figure(figsize=(9, 4.4), layout="constrained")
     ax = fig.add_subplot()
@@ -154,17 +165,25 @@ def polar_lobes(neural: Fn, reference: Fn | None = None, *, theta_i_deg=THETA_I_
     colours = colormaps["viridis"](np.linspace(0.0, 0.85, len(series)))
     for (ti, x, y, r), colour in zip(series, colours):
         t = np.radians(x)
-        ax.plot(radius(y) * np.sin(t), radius(y) * np.cos(t), color=colour, lw=2.4,
-                alpha=0.6, label=f"θi = {ti:g}°")
+        ax.plot(
+            radius(y) * np.sin(t),
+            radius(y) * np.cos(t),
+            color=colour,
+            lw=2.4,
+            alpha=0.6,
+            label=f"θi = {ti:g}°",
+        )
         if r is not None:
-            ax.plot(radius(r) * np.sin(t), radius(r) * np.cos(t), color="black", lw=0.9,
-                    ls=(0, (4, 3)))
+            ax.plot(
+                radius(r) * np.sin(t), radius(r) * np.cos(t), color="black", lw=0.9, ls=(0, (4, 3))
+            )
         a = math.radians(ti)
-        ax.plot([0.0, -1.05 * math.sin(a)], [0.0, 1.05 * math.cos(a)], color=colour, lw=0.9,
-                ls=":")
-    ax.set_title("luminance x of f cos θo in the incidence plane: neural solid, reference "
-                 "dashed black, wi dotted\nradius log10(1 + 100 x / peak) / log10(101)",
-                 fontsize=10)
+        ax.plot([0.0, -1.05 * math.sin(a)], [0.0, 1.05 * math.cos(a)], color=colour, lw=0.9, ls=":")
+    ax.set_title(
+        "luminance x of f cos θo in the incidence plane: neural solid, reference "
+        "dashed black, wi dotted\nradius log10(1 + 100 x / peak) / log10(101)",
+        fontsize=10,
+    )
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=9, frameon=False)
     return fig
 
@@ -179,8 +198,9 @@ def _polar_grid(ax) -> None:
     for deg in range(-90, 91, 30):
         a = math.radians(deg)
         ax.plot([0.0, math.sin(a)], [0.0, math.cos(a)], color="0.8", lw=0.7)
-        ax.text(1.08 * math.sin(a), 1.08 * math.cos(a), f"{deg}°", ha="center",
-                va="center", fontsize=9)
+        ax.text(
+            1.08 * math.sin(a), 1.08 * math.cos(a), f"{deg}°", ha="center", va="center", fontsize=9
+        )
     ax.set_aspect("equal")
     ax.set_xlim(-1.15, 1.15)
     ax.set_ylim(-0.08, 1.15)
@@ -192,7 +212,7 @@ def rusinkiewicz_grid(n: int = 128, phi_d_deg: float = 90.0):
     """(wi, wo) of shape (n, n, 3): rows theta_d, columns theta_h, both on [0, 90) deg,
     phi_h = 0.  Pixel centres, so no pair sits exactly on the horizon."""
     a = (np.arange(n) + 0.5) * (0.5 * math.pi / n)
-    th, td = np.meshgrid(a, a)                       # (n, n): [row = theta_d, col = theta_h]
+    th, td = np.meshgrid(a, a)  # (n, n): [row = theta_d, col = theta_h]
     return merl.directions(th, 0.0, td, math.radians(phi_d_deg))
 
 
@@ -224,16 +244,22 @@ def rusinkiewicz_images(neural: Fn, reference: Fn | None = None, *, n: int = 128
     cmap = colormaps["magma"].with_extremes(bad="0.85")
     extent = (0.0, 90.0, 0.0, 90.0)
     for ax, (name, _), v in zip(axes, images, logs):
-        im = ax.imshow(v, origin="lower", extent=extent, cmap=cmap, vmin=lo, vmax=hi,
-                       interpolation="nearest")
+        im = ax.imshow(
+            v, origin="lower", extent=extent, cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest"
+        )
         ax.set_title(f"{name}: log10 luminance of f", fontsize=10)
-    fig.colorbar(im, ax=list(axes[:len(images)]), shrink=0.85, label="log10 f [1/sr]")
+    fig.colorbar(im, ax=list(axes[: len(images)]), shrink=0.85, label="log10 f [1/sr]")
     if reference is not None:
         err = relative_error(images[0][1], images[1][1])
         err = np.clip(err, *REL_ERROR_RANGE)
-        im = axes[-1].imshow(err, origin="lower", extent=extent, interpolation="nearest",
-                             cmap=colormaps["viridis"].with_extremes(bad="0.85"),
-                             norm=LogNorm(*REL_ERROR_RANGE))
+        im = axes[-1].imshow(
+            err,
+            origin="lower",
+            extent=extent,
+            interpolation="nearest",
+            cmap=colormaps["viridis"].with_extremes(bad="0.85"),
+            norm=LogNorm(*REL_ERROR_RANGE),
+        )
         axes[-1].set_title("relative error |neural - ref| / ref", fontsize=10)
         fig.colorbar(im, ax=axes[-1], shrink=0.85, label="relative error")
     axes[0].set_ylabel("θd [deg]")
@@ -246,8 +272,9 @@ def rusinkiewicz_images(neural: Fn, reference: Fn | None = None, *, n: int = 128
 
 
 # ------------------------------------------------------------------ albedo
-def albedo_values(fn: Fn, theta_i_deg: np.ndarray, *, samples: int = 4096, seed: int = 0,
-                  sampler=None) -> np.ndarray:
+def albedo_values(
+    fn: Fn, theta_i_deg: np.ndarray, *, samples: int = 4096, seed: int = 0, sampler=None
+) -> np.ndarray:
     """rho(theta_i) (len, 3) by the MIS quadrature of :mod:`neural_brdf.quadrature`;
     ``sampler`` (an analytic model) adds its importance sampler to the proposals."""
     t = np.radians(np.asarray(theta_i_deg, dtype=np.float64))
@@ -256,9 +283,15 @@ def albedo_values(fn: Fn, theta_i_deg: np.ndarray, *, samples: int = 4096, seed:
     return rho.numpy()
 
 
-def albedo_curve(neural: Fn, reference: Fn | None = None, *, n_theta: int = 46,
-                 samples: int = 4096, sampler=None,
-                 validated_max: tuple[float, float] | None = None) -> Figure:
+def albedo_curve(
+    neural: Fn,
+    reference: Fn | None = None,
+    *,
+    n_theta: int = 46,
+    samples: int = 4096,
+    sampler=None,
+    validated_max: tuple[float, float] | None = None,
+) -> Figure:
     """rho(theta_i) per channel, theta_i on [0, 89.9] deg; ``validated_max`` =
     (theta_deg, value) marks the validator's measured maximum."""
     theta = np.linspace(0.0, 89.9, n_theta)
@@ -270,12 +303,18 @@ def albedo_curve(neural: Fn, reference: Fn | None = None, *, n_theta: int = 46,
     if reference is not None:
         ref = albedo_values(reference, theta, samples=samples, sampler=sampler)
         for c, (name, colour) in enumerate(CHANNELS):
-            ax.plot(theta, ref[:, c], color=colour, lw=1.0, ls=(0, (4, 3)),
-                    label=f"reference {name}")
+            ax.plot(
+                theta, ref[:, c], color=colour, lw=1.0, ls=(0, (4, 3)), label=f"reference {name}"
+            )
     ax.axhline(1.0, color="black", lw=1.0, ls=":", label="furnace limit 1")
     if validated_max is not None:
-        ax.plot([validated_max[0]], [validated_max[1]], "kx", ms=8,
-                label=f"validator max {validated_max[1]:.4f}")
+        ax.plot(
+            [validated_max[0]],
+            [validated_max[1]],
+            "kx",
+            ms=8,
+            label=f"validator max {validated_max[1]:.4f}",
+        )
     ax.set_xlim(0, 90)
     ax.set_xticks(range(0, 91, 15))
     ax.set_ylim(0.0, max(1.1, float(np.nanmax(rho)) * 1.05))
@@ -288,13 +327,19 @@ def albedo_curve(neural: Fn, reference: Fn | None = None, *, n_theta: int = 46,
 
 
 # ------------------------------------------------------------------ training
-def loss_curve(step: np.ndarray, loss: np.ndarray, val_step: np.ndarray,
-               val_rel_rmse: np.ndarray) -> Figure:
+def loss_curve(
+    step: np.ndarray, loss: np.ndarray, val_step: np.ndarray, val_rel_rmse: np.ndarray
+) -> Figure:
     """Training loss (left, log) and the held-out relative RMSE of f cos (right, %)."""
     fig = Figure(figsize=(7, 4), layout="constrained")
     ax = fig.subplots()
-    ax.plot(step, _positive(np.asarray(loss, dtype=np.float64)), color="tab:blue", lw=1.4,
-            label="training loss")
+    ax.plot(
+        step,
+        _positive(np.asarray(loss, dtype=np.float64)),
+        color="tab:blue",
+        lw=1.4,
+        label="training loss",
+    )
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("loss", color="tab:blue")
@@ -302,8 +347,15 @@ def loss_curve(step: np.ndarray, loss: np.ndarray, val_step: np.ndarray,
     handles = ax.get_legend_handles_labels()
     if len(val_step):
         ax2 = ax.twinx()
-        ax2.plot(val_step, 100.0 * np.asarray(val_rel_rmse), "o-", color="tab:orange",
-                 lw=1.4, ms=5, label="held-out rel. RMSE of f cos")
+        ax2.plot(
+            val_step,
+            100.0 * np.asarray(val_rel_rmse),
+            "o-",
+            color="tab:orange",
+            lw=1.4,
+            ms=5,
+            label="held-out rel. RMSE of f cos",
+        )
         ax2.set_ylabel("rel. RMSE [%]", color="tab:orange")
         ax2.set_ylim(bottom=0.0)
         h2 = ax2.get_legend_handles_labels()
@@ -318,19 +370,21 @@ def mitsuba_unavailable() -> str | None:
     """None when Mitsuba 3 can render here, else the reason (one line)."""
     try:
         import mitsuba as mi
+
         if mi.variant() is None:
             mi.set_variant("llvm_ad_rgb")
-        importlib.import_module(f"{__package__}.render")       # registers the plugins
+        importlib.import_module(f"{__package__}.render")  # registers the plugins
     except ImportError as e:
         return f"Mitsuba 3 is not available ({e}); install the mitsuba extra and libllvm19"
     return None
 
 
-def spheres(model_path, out_png, *, reference: dict | None = None, spp: int = 16,
-            resolution: int = 128) -> float | None:
+def spheres(
+    model_path, out_png, *, reference: dict | None = None, spp: int = 16, resolution: int = 128
+) -> float | None:
     """Render the model (and an analytic ``reference`` = {"model", "params"}) on the
     Mitsuba preview scene into ``out_png``; returns the PSNR against the reference.
     Call :func:`mitsuba_unavailable` first."""
     from .render import render_preview
-    return render_preview(model_path, out_png, reference=reference, spp=spp,
-                          resolution=resolution)
+
+    return render_preview(model_path, out_png, reference=reference, spp=spp, resolution=resolution)

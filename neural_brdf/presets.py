@@ -28,8 +28,8 @@ from pathlib import Path
 
 from .errors import InputError
 
-PACKAGE = "neural_brdf.configs"        # the installed name of the top-level configs/
-DESCRIPTION_CHARS = 100                # a description is cut to this length
+PACKAGE = "neural_brdf.configs"  # the installed name of the top-level configs/
+DESCRIPTION_CHARS = 100  # a description is cut to this length
 
 
 def _source_tree() -> Path | None:
@@ -55,8 +55,9 @@ def directory() -> Path:
         # a file inside it is a plain Path, whose parent is the folder itself
         anchor = resources.files(PACKAGE).joinpath("defaults.yaml")
     except ModuleNotFoundError:
-        raise InputError("presets: not installed with this copy of neural_brdf "
-                         "(reinstall the package)") from None
+        raise InputError(
+            "presets: not installed with this copy of neural_brdf (reinstall the package)"
+        ) from None
     if not isinstance(anchor, Path) or not anchor.is_file():
         raise InputError(f"presets: {anchor} is not a file on disk (install unzipped)")
     return anchor.parent
@@ -80,10 +81,10 @@ def description(path: Path) -> str:
             continue
         words.append(text)
     joined = " ".join(words)
-    end = re.search(r"\.(?=\s+[A-Z]|$)", joined)     # not "et al. 2003"
-    sentence = joined[:end.start() + 1] if end else joined
+    end = re.search(r"\.(?=\s+[A-Z]|$)", joined)  # not "et al. 2003"
+    sentence = joined[: end.start() + 1] if end else joined
     if len(sentence) > DESCRIPTION_CHARS:
-        sentence = sentence[:DESCRIPTION_CHARS - 3].rsplit(" ", 1)[0] + "..."
+        sentence = sentence[: DESCRIPTION_CHARS - 3].rsplit(" ", 1)[0] + "..."
     return sentence
 
 
@@ -111,5 +112,4 @@ def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
     if stem and stem in known:
         return directory() / folder / f"{stem}.yaml"
     kind = "sweep" if folder else "config"
-    raise InputError(f"{text}: neither a {kind} file nor a preset (presets: "
-                     f"{', '.join(known)})")
+    raise InputError(f"{text}: neither a {kind} file nor a preset (presets: {', '.join(known)})")

@@ -25,14 +25,14 @@ scramblings (as in :mod:`analytic.physics`).
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from analytic import frame, physics
 
-REPLICAS = physics.REPLICAS   # independently scrambled replicas for the standard error
+REPLICAS = physics.REPLICAS  # independently scrambled replicas for the standard error
 
 # (kind, alpha, share): kind "normal" = half vectors around +z, "retro" = around wi.
 PROPOSALS = (
@@ -44,7 +44,7 @@ PROPOSALS = (
     ("normal", 0.3, 0.1875),
     ("retro", 0.15, 0.125),
 )
-EXTRA_SHARE = 0.25          # share given to the reference model's sampler, when present
+EXTRA_SHARE = 0.25  # share given to the reference model's sampler, when present
 
 
 def _ggx_sample(u: torch.Tensor, alpha: float) -> torch.Tensor:
@@ -92,13 +92,22 @@ def _pdf(kind: str, alpha: float, wi: torch.Tensor, wo: torch.Tensor) -> torch.T
 def from_numpy(fn: Callable) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
     """A numpy BRDF callable (an ONNX model's ``eval``, say) as the torch callable
     :func:`albedo` takes, float64 out."""
+
     def tfn(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return torch.from_numpy(np.asarray(fn(a.numpy(), b.numpy()), dtype=np.float64))
+
     return tfn
 
 
-def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.Tensor,
-           n: int = 8192, *, seed: int = 0, extra=None, chunk: int = 1 << 19):
+def albedo(
+    fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    wi: torch.Tensor,
+    n: int = 8192,
+    *,
+    seed: int = 0,
+    extra=None,
+    chunk: int = 1 << 19,
+):
     """rho(wi) for each row of ``wi`` (M, 3) -> (rho (M, C), stderr (M, C)), float64.
 
     ``fn(wi, wo)`` takes float32 tensors (K, 3) and returns (K, C).  ``extra`` is an
@@ -111,11 +120,12 @@ def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.T
         extra = None
     props = list(PROPOSALS)
     if extra is not None:
-        props = [(k, a, s * (1.0 - EXTRA_SHARE)) for k, a, s in props] + \
-                [("extra", 0.0, EXTRA_SHARE)]
+        props = [(k, a, s * (1.0 - EXTRA_SHARE)) for k, a, s in props] + [
+            ("extra", 0.0, EXTRA_SHARE)
+        ]
     per = max(n // REPLICAS, len(props))
     counts = [max(1, int(round(s * per))) for _, _, s in props]
-    counts[0] += per - sum(counts)                       # the cosine share absorbs rounding
+    counts[0] += per - sum(counts)  # the cosine share absorbs rounding
     shares = [c / per for c in counts]
 
     rows_per_chunk = max(1, chunk // per)
@@ -124,7 +134,7 @@ def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.T
         us = [physics.sobol_points(c, seed * 7919 + r * 101 + j) for j, c in enumerate(counts)]
         out = []
         for start in range(0, len(wi), rows_per_chunk):
-            w = wi[start:start + rows_per_chunk, None, :]                   # (m, 1, 3)
+            w = wi[start : start + rows_per_chunk, None, :]  # (m, 1, 3)
             wos = []
             for (kind, alpha, _), u in zip(props, us):
                 wb = w.expand(-1, len(u), 3)
@@ -133,10 +143,12 @@ def albedo(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], wi: torch.T
                 else:
                     wo = _draw(kind, alpha, wb, u)
                 wos.append(wo)
-            wo = torch.cat(wos, 1)                                           # (m, per, 3)
+            wo = torch.cat(wos, 1)  # (m, per, 3)
             wb = w.expand_as(wo)
-            p = sum(s * (extra.pdf_t(wb, wo) if k == "extra" else _pdf(k, a, wb, wo))
-                    for (k, a, _), s in zip(props, shares))
+            p = sum(
+                s * (extra.pdf_t(wb, wo) if k == "extra" else _pdf(k, a, wb, wo))
+                for (k, a, _), s in zip(props, shares)
+            )
             ok = (wo[..., 2] > 0) & (p > 0)
             f = fn(wb.reshape(-1, 3).float(), wo.reshape(-1, 3).float()).double()
             f = f.reshape(wo.shape[:-1] + (-1,))

@@ -30,19 +30,20 @@ def sky_bitmap(height: int = 64) -> np.ndarray:
 
     Rows run from the zenith (+y, Mitsuba's envmap up axis) to the nadir."""
     v = (np.arange(height) + 0.5) / height
-    elev = (0.5 - v)[:, None] * math.pi                                   # (H, 1)
+    elev = (0.5 - v)[:, None] * math.pi  # (H, 1)
     horizon = np.array([1.0, 0.95, 0.85])
     zenith = np.array([0.25, 0.45, 0.9])
     ground = np.array([0.18, 0.16, 0.14])
     s = np.clip(np.sin(elev), 0.0, 1.0)[..., None]
     sky = horizon * (1.0 - s) + zenith * s
     img = np.where(elev[..., None] > 0, sky, ground)
-    img = np.broadcast_to(img, (height, 2 * height, 3)) + 0.05            # a constant fill
+    img = np.broadcast_to(img, (height, 2 * height, 3)) + 0.05  # a constant fill
     return np.ascontiguousarray(img, dtype=np.float32)
 
 
-def preview_scene(bsdf: dict, *, resolution: int = 256, spp: int = 64, max_depth: int = 8,
-                  seed: int = 0) -> dict:
+def preview_scene(
+    bsdf: dict, *, resolution: int = 256, spp: int = 64, max_depth: int = 8, seed: int = 0
+) -> dict:
     """The material-preview scene (a dict for ``mi.load_dict``): two spheres with ``bsdf``
     on a grey checkerboard floor, under :func:`sky_bitmap` and a directional key light."""
     T = mi.ScalarTransform4f
@@ -50,26 +51,39 @@ def preview_scene(bsdf: dict, *, resolution: int = 256, spp: int = 64, max_depth
         "type": "scene",
         "integrator": {"type": "path", "max_depth": max_depth},
         "sensor": {
-            "type": "perspective", "fov": 32.0,
-            "to_world": T().look_at(origin=[0.0, 1.6, 6.5], target=[0.2, 0.1, 0.0],
-                                    up=[0.0, 1.0, 0.0]),
+            "type": "perspective",
+            "fov": 32.0,
+            "to_world": T().look_at(
+                origin=[0.0, 1.6, 6.5], target=[0.2, 0.1, 0.0], up=[0.0, 1.0, 0.0]
+            ),
             "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
-            "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
-                     "rfilter": {"type": "gaussian"}},
+            "film": {
+                "type": "hdrfilm",
+                "width": resolution,
+                "height": resolution,
+                "rfilter": {"type": "gaussian"},
+            },
         },
         "sky": {"type": "envmap", "bitmap": mi.Bitmap(sky_bitmap()), "scale": 1.0},
-        "key": {"type": "directional", "direction": [-0.6, -1.0, -0.5],
-                "irradiance": {"type": "rgb", "value": [2.5, 2.4, 2.2]}},
+        "key": {
+            "type": "directional",
+            "direction": [-0.6, -1.0, -0.5],
+            "irradiance": {"type": "rgb", "value": [2.5, 2.4, 2.2]},
+        },
         "big": {"type": "sphere", "center": [-0.3, 0.0, 0.0], "radius": 1.0, "bsdf": bsdf},
         "small": {"type": "sphere", "center": [1.35, -0.5, 0.9], "radius": 0.5, "bsdf": bsdf},
         "floor": {
             "type": "rectangle",
-            "to_world": T().translate([0.0, -1.0, 0.0]).rotate([1.0, 0.0, 0.0], -90.0)
-            .scale(8.0),
-            "bsdf": {"type": "diffuse", "reflectance": {
-                "type": "checkerboard", "color0": {"type": "rgb", "value": 0.25},
-                "color1": {"type": "rgb", "value": 0.5},
-                "to_uv": mi.ScalarTransform4f().scale([8.0, 8.0, 1.0])}},
+            "to_world": T().translate([0.0, -1.0, 0.0]).rotate([1.0, 0.0, 0.0], -90.0).scale(8.0),
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {
+                    "type": "checkerboard",
+                    "color0": {"type": "rgb", "value": 0.25},
+                    "color1": {"type": "rgb", "value": 0.5},
+                    "to_uv": mi.ScalarTransform4f().scale([8.0, 8.0, 1.0]),
+                },
+            },
         },
     }
 
@@ -109,10 +123,14 @@ def analytic_bsdf(reference: dict) -> dict:
     """The ``analytic_brdf`` plugin dict of an analytic target (``{"model": name,
     "params": {...}}``, as in a training config)."""
     if "model" not in reference:
-        raise InputError(f"reference: expected {{'model': name, 'params': {{...}}}}, "
-                         f"got {reference!r}")
-    return {"type": "analytic_brdf", "model": reference["model"],
-            "params": json.dumps(reference.get("params") or {})}
+        raise InputError(
+            f"reference: expected {{'model': name, 'params': {{...}}}}, got {reference!r}"
+        )
+    return {
+        "type": "analytic_brdf",
+        "model": reference["model"],
+        "params": json.dumps(reference.get("params") or {}),
+    }
 
 
 def side_by_side(neural: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -126,8 +144,9 @@ def side_by_side(neural: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.concatenate([neural, gap, ref, gap, err_rgb], axis=1)
 
 
-def render_preview(onnx_path, out_png, *, reference: dict | None = None, spp: int = 64,
-                   resolution: int = 256) -> float | None:
+def render_preview(
+    onnx_path, out_png, *, reference: dict | None = None, spp: int = 64, resolution: int = 256
+) -> float | None:
     """Render the neural BRDF in the preview scene and write ``out_png``.
 
     With ``reference`` (an analytic target, see :func:`analytic_bsdf`) the PNG is
@@ -136,8 +155,9 @@ def render_preview(onnx_path, out_png, *, reference: dict | None = None, spp: in
     """
     path, _, _ = read_model(onnx_path)
     ref_bsdf = None if reference is None else analytic_bsdf(reference)
-    neural = to_display(render_scene({"type": "neural_brdf", "filename": str(path)},
-                                     resolution=resolution, spp=spp))
+    neural = to_display(
+        render_scene({"type": "neural_brdf", "filename": str(path)}, resolution=resolution, spp=spp)
+    )
     if ref_bsdf is None:
         write_png(Path(out_png), neural)
         return None

@@ -42,9 +42,9 @@ from .fileio import atomic_write
 from .runtime import load
 
 RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
-RENDER_SPP = 16             # Mitsuba preview: enough to judge the material, seconds to render
+RENDER_SPP = 16  # Mitsuba preview: enough to judge the material, seconds to render
 RENDER_RESOLUTION = 128
-VIEWER_FILE = "viewer.html"     # the interactive viewer, beside the report
+VIEWER_FILE = "viewer.html"  # the interactive viewer, beside the report
 
 
 # ------------------------------------------------------------------ document blocks
@@ -62,26 +62,26 @@ class Heading:
 @dataclass
 class Text:
     text: str
-    note: bool = False          # highlighted (a missing reference, no Mitsuba, ...)
+    note: bool = False  # highlighted (a missing reference, no Mitsuba, ...)
 
 
 @dataclass
 class Table:
     header: list[str]
-    rows: list[list]            # cells: str or Verdict
+    rows: list[list]  # cells: str or Verdict
 
 
 @dataclass
 class Image:
-    key: str                    # file name report-<key>.png
+    key: str  # file name report-<key>.png
     title: str
     caption: str
     png: bytes
-    zoom: int = 1               # shown this many times its size in HTML (small renders)
+    zoom: int = 1  # shown this many times its size in HTML (small renders)
 
     @property
     def width(self) -> int:
-        return struct.unpack(">I", self.png[16:20])[0]      # PNG IHDR width
+        return struct.unpack(">I", self.png[16:20])[0]  # PNG IHDR width
 
 
 @dataclass
@@ -94,8 +94,9 @@ class Code:
 class Attachment:
     """A file carried by the report: written beside it, and inside report.html as a
     download link (a data URI, so the page stays one file without script)."""
+
     name: str
-    text: str                   # the link text
+    text: str  # the link text
     data: bytes
     mime: str = "text/html"
 
@@ -107,8 +108,8 @@ class Run:
     config: cfgmod.Config
     config_text: str
     metrics: dict
-    log: dict                   # step, loss, val_step, val_rel_rmse: numpy arrays
-    model: object               # runtime.NeuralBRDF
+    log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays
+    model: object  # runtime.NeuralBRDF
 
 
 def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
@@ -131,7 +132,7 @@ def _as_number(x, key: str, path: Path) -> float:
     try:
         if isinstance(x, bool):
             raise TypeError
-        return float(x)          # write_json stores inf / nan as strings
+        return float(x)  # write_json stores inf / nan as strings
     except (TypeError, ValueError):
         raise InputError(f"{path}: {key}: not a number ({x!r})") from None
 
@@ -172,8 +173,10 @@ def _read_log(path: Path) -> dict:
                     raise InputError(f"{path}: line {line}: not a number") from None
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(f"{path}: cannot read ({e})") from None
-    return {k: np.asarray(v, dtype=np.float64) for k, v in
-            (("step", step), ("loss", loss), ("val_step", val_step), ("val_rel_rmse", val))}
+    return {
+        k: np.asarray(v, dtype=np.float64)
+        for k, v in (("step", step), ("loss", loss), ("val_step", val_step), ("val_rel_rmse", val))
+    }
 
 
 def load_run(run_dir) -> Run:
@@ -183,12 +186,18 @@ def load_run(run_dir) -> Run:
         raise InputError(f"{run_dir}: no such run directory")
     for name in RUN_FILES:
         if not (run_dir / name).is_file():
-            raise InputError(f"{run_dir / name}: missing (a run directory holds "
-                             f"{', '.join(RUN_FILES)})")
+            raise InputError(
+                f"{run_dir / name}: missing (a run directory holds {', '.join(RUN_FILES)})"
+            )
     cfg = cfgmod.load(run_dir / "config.yaml")
-    return Run(dir=run_dir, config=cfg, config_text=(run_dir / "config.yaml").read_text(),
-               metrics=_read_metrics(run_dir / "metrics.json"),
-               log=_read_log(run_dir / "log.csv"), model=load(run_dir / "model.onnx"))
+    return Run(
+        dir=run_dir,
+        config=cfg,
+        config_text=(run_dir / "config.yaml").read_text(),
+        metrics=_read_metrics(run_dir / "metrics.json"),
+        log=_read_log(run_dir / "log.csv"),
+        model=load(run_dir / "model.onnx"),
+    )
 
 
 def reference_of(cfg: cfgmod.Config):
@@ -198,8 +207,11 @@ def reference_of(cfg: cfgmod.Config):
     except InputError as e:
         if cfg.target.data is None:
             raise
-        return None, f"No reference: the measured target {cfg.target.data} could not be " \
-                     f"loaded here ({e}); the figures show the neural model alone."
+        return (
+            None,
+            f"No reference: the measured target {cfg.target.data} could not be "
+            f"loaded here ({e}); the figures show the neural model alone.",
+        )
 
 
 # ------------------------------------------------------------------ content
@@ -210,18 +222,22 @@ def _fmt(x, spec: str = ".4g") -> str:
 def _summary(run: Run) -> list:
     m, path, cfg = run.metrics, run.dir / "metrics.json", run.config
     rel = _number(m, "accuracy.rel_rmse", path, optional=True)
-    rows = [["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
-            ["target", cfg.target.data or f"{cfg.target.model} {json.dumps(cfg.target.params)}"],
-            ["model", f"{cfg.model.encoding} encoding, hidden {cfg.model.hidden}, "
-                      f"{cfg.model.activation}"],
-            ["rel. RMSE of f cos θo", "-" if rel is None else f"{100 * rel:.3f} %"],
-            ["max directional albedo", _fmt(_number(m, "checks.max_albedo.value", path,
-                                                    optional=True), ".6f")],
-            ["training steps", _fmt(_number(m, "training.steps", path, optional=True), ".0f")],
-            ["training time", _fmt(_number(m, "seconds.train", path, optional=True), ".1f")
-             + " s"]]
-    return [Heading(f"neural-brdf report: {cfg.name}", 1),
-            Table(["", ""], rows)]
+    rows = [
+        ["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
+        ["target", cfg.target.data or f"{cfg.target.model} {json.dumps(cfg.target.params)}"],
+        [
+            "model",
+            f"{cfg.model.encoding} encoding, hidden {cfg.model.hidden}, {cfg.model.activation}",
+        ],
+        ["rel. RMSE of f cos θo", "-" if rel is None else f"{100 * rel:.3f} %"],
+        [
+            "max directional albedo",
+            _fmt(_number(m, "checks.max_albedo.value", path, optional=True), ".6f"),
+        ],
+        ["training steps", _fmt(_number(m, "training.steps", path, optional=True), ".0f")],
+        ["training time", _fmt(_number(m, "seconds.train", path, optional=True), ".1f") + " s"],
+    ]
+    return [Heading(f"neural-brdf report: {cfg.name}", 1), Table(["", ""], rows)]
 
 
 def _physics(run: Run, albedo_png: bytes) -> list:
@@ -241,28 +257,43 @@ def _physics(run: Run, albedo_png: bytes) -> list:
     parity = _number(m, "export.parity_rel_error", path, optional=True)
     if parity is not None:
         tol = run.config.export.parity_tol
-        rows.append(["torch vs onnxruntime parity", f"{parity:.2g}", f"<= {tol:g}",
-                     Verdict(parity <= tol)])
-    blocks = [Heading("Physics checks"),
-              Text("Reciprocity and non-negativity over random pairs (10 % within 1° of "
-                   "grazing); the white furnace: the directional albedo ρ(θi) = ∫ f cos θo "
-                   "dωo by quadrature, whose maximum must stay below 1 + tolerance."),
-              Table(["check", "value", "limit", "result"], rows)]
+        rows.append(
+            ["torch vs onnxruntime parity", f"{parity:.2g}", f"<= {tol:g}", Verdict(parity <= tol)]
+        )
+    blocks = [
+        Heading("Physics checks"),
+        Text(
+            "Reciprocity and non-negativity over random pairs (10 % within 1° of "
+            "grazing); the white furnace: the directional albedo ρ(θi) = ∫ f cos θo "
+            "dωo by quadrature, whose maximum must stay below 1 + tolerance."
+        ),
+        Table(["check", "value", "limit", "result"], rows),
+    ]
     hemi = m.get("hemispherical_albedo")
     if isinstance(hemi, list) and hemi:
         values = (_number(m, f"hemispherical_albedo.{i}", path) for i in range(len(hemi)))
-        blocks.append(Text("Hemispherical albedo (R, G, B): "
-                           + ", ".join(f"{v:.4f}" for v in values)))
+        blocks.append(
+            Text("Hemispherical albedo (R, G, B): " + ", ".join(f"{v:.4f}" for v in values))
+        )
     raw_max = _number(m, "export.normalization.raw_max_albedo", path, optional=True)
     if raw_max is not None:
         n = m["export"]["normalization"]
-        blocks.append(Text(f"Albedo normalisation: the raw network's max albedo was "
-                           f"{raw_max:.4f}; {n.get('nodes_above_1', '?')} of "
-                           f"{n.get('nodes', '?')} table nodes needed scaling."))
-    blocks.append(Image("albedo", "Directional albedo (white furnace)",
-                        "ρ(θi) per channel in the incidence plane; the dotted line is the "
-                        "furnace limit 1, the cross the validator's measured maximum.",
-                        albedo_png))
+        blocks.append(
+            Text(
+                f"Albedo normalisation: the raw network's max albedo was "
+                f"{raw_max:.4f}; {n.get('nodes_above_1', '?')} of "
+                f"{n.get('nodes', '?')} table nodes needed scaling."
+            )
+        )
+    blocks.append(
+        Image(
+            "albedo",
+            "Directional albedo (white furnace)",
+            "ρ(θi) per channel in the incidence plane; the dotted line is the "
+            "furnace limit 1, the cross the validator's measured maximum.",
+            albedo_png,
+        )
+    )
     return blocks
 
 
@@ -272,27 +303,35 @@ def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
     if note:
         blocks.append(Text(note, note=True))
     if isinstance(m.get("accuracy"), dict):
-        rows = [["rel. RMSE of f cos θo (all pairs)",
-                 f"{100 * _number(m, 'accuracy.rel_rmse', path):.3f} %"]]
+        rows = [
+            [
+                "rel. RMSE of f cos θo (all pairs)",
+                f"{100 * _number(m, 'accuracy.rel_rmse', path):.3f} %",
+            ]
+        ]
         bands = m["accuracy"].get("rel_rmse_by_incidence")
-        for band, v in (bands.items() if isinstance(bands, dict) else ()):
-            v = None if v is None else _as_number(v, f"accuracy.rel_rmse_by_incidence.{band}",
-                                                  path)
+        for band, v in bands.items() if isinstance(bands, dict) else ():
+            v = None if v is None else _as_number(v, f"accuracy.rel_rmse_by_incidence.{band}", path)
             rows.append([f"rel. RMSE, {band}", "-" if v is None else f"{100 * v:.3f} %"])
         rows.append(["NBRDF log error", f"{_number(m, 'accuracy.nbrdf_log_error', path):.3g}"])
         pairs = _number(m, "accuracy.pairs", path, optional=True)
-        blocks += [Text(f"Against the target on {_fmt(pairs, '.0f')} held-out pairs "
-                        "(neural_brdf/validate.py): the relative RMSE of f cos θo, overall "
-                        "and by bands of cos θi, and the NBRDF log error, the mean of "
-                        "|log(1 + f̂ cos θo) − log(1 + f cos θo)|."),
-                   Table(["metric", "value"], rows)]
+        blocks += [
+            Text(
+                f"Against the target on {_fmt(pairs, '.0f')} held-out pairs "
+                "(neural_brdf/validate.py): the relative RMSE of f cos θo, overall "
+                "and by bands of cos θi, and the NBRDF log error, the mean of "
+                "|log(1 + f̂ cos θo) − log(1 + f cos θo)|."
+            ),
+            Table(["metric", "value"], rows),
+        ]
     return blocks + images
 
 
 def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     blocks = [Heading("Rendering")]
-    why = "rendering was switched off for this report" if not render \
-        else plots.mitsuba_unavailable()
+    why = (
+        "rendering was switched off for this report" if not render else plots.mitsuba_unavailable()
+    )
     if why:
         return blocks + [Text(f"No render: {why}.", note=True)]
     cfg = run.config
@@ -302,16 +341,24 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         png_path = Path(tmp) / "render.png"
         try:
-            psnr = plots.spheres(run.dir / "model.onnx", png_path, reference=ref,
-                                 spp=RENDER_SPP, resolution=RENDER_RESOLUTION)
-        except InputError as e:          # e.g. an ONNX op the Mitsuba plugin lacks
+            psnr = plots.spheres(
+                run.dir / "model.onnx",
+                png_path,
+                reference=ref,
+                spp=RENDER_SPP,
+                resolution=RENDER_RESOLUTION,
+            )
+        except InputError as e:  # e.g. an ONNX op the Mitsuba plugin lacks
             return blocks + [Text(f"No render: {e}.", note=True)]
         png = png_path.read_bytes()
     from .render import ERROR_GAIN
+
     caption = f"Mitsuba 3 preview, {RENDER_SPP} spp: neural"
     if ref is not None:
-        caption += (f" | reference | {ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB of "
-                    "neural against the reference, Monte Carlo noise included)")
+        caption += (
+            f" | reference | {ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB of "
+            "neural against the reference, Monte Carlo noise included)"
+        )
     return blocks + [Image("render", "Rendered spheres", caption, png, zoom=2)]
 
 
@@ -319,41 +366,58 @@ def _viewer(run: Run, reference) -> list:
     """The interactive WebGL2 viewer (neural_brdf.viewer) of the model, beside its analytic
     target when it has one; a note when the GLSL code generator cannot translate it."""
     from . import viewer
+
     blocks = [Heading("Interactive viewer")]
     cfg = run.config
     try:
         models = [viewer.onnx_model(run.dir / "model.onnx", "neural")]
         if reference is not None and cfg.target.data is None:
-            models.append(viewer.analytic_model(cfg.target.model, dict(cfg.target.params),
-                                                f"target: {cfg.target.model}"))
-    except InputError as e:             # no code generator, or an op it does not know
+            models.append(
+                viewer.analytic_model(
+                    cfg.target.model, dict(cfg.target.params), f"target: {cfg.target.model}"
+                )
+            )
+    except InputError as e:  # no code generator, or an op it does not know
         return blocks + [Text(f"No viewer: {e}.", note=True)]
     page = viewer.page(models, title=f"neural-brdf viewer: {cfg.name}")
     vs = " (beside its target, with a difference view)" if len(models) > 1 else ""
     return blocks + [
-        Text(f"{VIEWER_FILE} draws the model{vs} in WebGL2 with the GLSL generated from its "
-             "ONNX graph: a lit sphere with a draggable light, incidence-plane slices, the "
-             "polar lobe and the albedo curve.  It is written beside this report and "
-             "carried inside it (the link saves it); open it in a browser."),
-        Attachment(VIEWER_FILE, f"Save {VIEWER_FILE} (interactive viewer, "
-                                f"{len(page) // 1024} KiB)", page.encode("utf-8"))]
+        Text(
+            f"{VIEWER_FILE} draws the model{vs} in WebGL2 with the GLSL generated from its "
+            "ONNX graph: a lit sphere with a draggable light, incidence-plane slices, the "
+            "polar lobe and the albedo curve.  It is written beside this report and "
+            "carried inside it (the link saves it); open it in a browser."
+        ),
+        Attachment(
+            VIEWER_FILE,
+            f"Save {VIEWER_FILE} (interactive viewer, {len(page) // 1024} KiB)",
+            page.encode("utf-8"),
+        ),
+    ]
 
 
 def _training(run: Run) -> list:
     m, path, log = run.metrics, run.dir / "metrics.json", run.log
-    rows = [[k, f"{_number(m, f'seconds.{k}', path):.1f} s"]
-            for k in ("train", "export", "validate", "report", "total")
-            if _number(m, f"seconds.{k}", path, optional=True) is not None]
+    rows = [
+        [k, f"{_number(m, f'seconds.{k}', path):.1f} s"]
+        for k in ("train", "export", "validate", "report", "total")
+        if _number(m, f"seconds.{k}", path, optional=True) is not None
+    ]
     blocks = [Heading("Training")]
     if rows:
         blocks.append(Table(["stage", "time"], rows))
     if len(log["step"]):
-        blocks.append(Image("loss", "Training curve",
-                            "Loss per logged step (log scale) and the held-out relative RMSE "
-                            "of f cos θo of the raw network (before normalisation).",
-                            plots.png_bytes(plots.loss_curve(log["step"], log["loss"],
-                                                             log["val_step"],
-                                                             log["val_rel_rmse"]))))
+        blocks.append(
+            Image(
+                "loss",
+                "Training curve",
+                "Loss per logged step (log scale) and the held-out relative RMSE "
+                "of f cos θo of the raw network (before normalisation).",
+                plots.png_bytes(
+                    plots.loss_curve(log["step"], log["loss"], log["val_step"], log["val_rel_rmse"])
+                ),
+            )
+        )
     else:
         blocks.append(Text("No training steps were logged.", note=True))
     return blocks
@@ -367,26 +431,46 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
     m, path = run.metrics, run.dir / "metrics.json"
     theta = _number(m, "checks.max_albedo.at_theta_deg", path, optional=True)
     validated = None if theta is None else (theta, _number(m, "checks.max_albedo.value", path))
-    samples = run.config.validation.furnace_samples          # as many as the validator's
-    albedo = plots.png_bytes(plots.albedo_curve(neural, ref, samples=samples,
-                                                sampler=sampler, validated_max=validated))
+    samples = run.config.validation.furnace_samples  # as many as the validator's
+    albedo = plots.png_bytes(
+        plots.albedo_curve(neural, ref, samples=samples, sampler=sampler, validated_max=validated)
+    )
     vs = "neural (solid) against the reference (dashed)" if ref is not None else "neural"
     figures = [
-        Image("slices", "Incidence-plane slices",
-              f"f cos θo in the incidence plane (x-z) at θi = 0, 30, 60, 80°, log scale, "
-              f"{vs}, per RGB channel.", plots.png_bytes(plots.incidence_slices(neural, ref))),
-        Image("lobes", "Polar lobes", f"The same slices as lobes (luminance), {vs}.",
-              plots.png_bytes(plots.polar_lobes(neural, ref))),
-        Image("rusinkiewicz", "(θh, θd) slice",
-              "log10 luminance of f over the half and difference angles at φd = 90°"
-              + (", and the relative error of the neural model." if ref is not None else "."),
-              plots.png_bytes(plots.rusinkiewicz_images(neural, ref))),
+        Image(
+            "slices",
+            "Incidence-plane slices",
+            f"f cos θo in the incidence plane (x-z) at θi = 0, 30, 60, 80°, log scale, "
+            f"{vs}, per RGB channel.",
+            plots.png_bytes(plots.incidence_slices(neural, ref)),
+        ),
+        Image(
+            "lobes",
+            "Polar lobes",
+            f"The same slices as lobes (luminance), {vs}.",
+            plots.png_bytes(plots.polar_lobes(neural, ref)),
+        ),
+        Image(
+            "rusinkiewicz",
+            "(θh, θd) slice",
+            "log10 luminance of f over the half and difference angles at φd = 90°"
+            + (", and the relative error of the neural model." if ref is not None else "."),
+            plots.png_bytes(plots.rusinkiewicz_images(neural, ref)),
+        ),
     ]
-    return (_summary(run) + _physics(run, albedo) + _accuracy(run, note, figures)
-            + _rendering(run, render, out_dir, reference) + _viewer(run, reference)
-            + _training(run)
-            + [Heading("Config"), Text("The resolved config.yaml of the run."),
-               Code(run.config_text, "yaml")])
+    return (
+        _summary(run)
+        + _physics(run, albedo)
+        + _accuracy(run, note, figures)
+        + _rendering(run, render, out_dir, reference)
+        + _viewer(run, reference)
+        + _training(run)
+        + [
+            Heading("Config"),
+            Text("The resolved config.yaml of the run."),
+            Code(run.config_text, "yaml"),
+        ]
+    )
 
 
 # ------------------------------------------------------------------ HTML and Markdown
@@ -414,8 +498,11 @@ def _cell_html(c) -> str:
 
 def to_html(blocks: list) -> str:
     title = next((b.text for b in blocks if isinstance(b, Heading)), "neural-brdf report")
-    out = ["<!doctype html>", '<html lang="en"><head><meta charset="utf-8">',
-           f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><main>"]
+    out = [
+        "<!doctype html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><main>",
+    ]
     for b in blocks:
         if isinstance(b, Heading):
             out.append(f"<h{b.level}>{html.escape(b.text)}</h{b.level}>")
@@ -425,21 +512,25 @@ def to_html(blocks: list) -> str:
         elif isinstance(b, Table):
             head = "".join(f"<th>{html.escape(h)}</th>" for h in b.header)
             out.append(f"<table><tr>{head}</tr>" if any(b.header) else "<table>")
-            out += ["<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in r) + "</tr>"
-                    for r in b.rows]
+            out += [
+                "<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in r) + "</tr>" for r in b.rows
+            ]
             out.append("</table>")
         elif isinstance(b, Image):
             data_uri = "data:image/png;base64," + base64.b64encode(b.png).decode("ascii")
-            out.append(f'<figure><img src="{data_uri}" alt="{html.escape(b.title)}" '
-                       f'width="{b.zoom * b.width}">'
-                       f"<figcaption><b>{html.escape(b.title)}.</b> "
-                       f"{html.escape(b.caption)}</figcaption></figure>")
+            out.append(
+                f'<figure><img src="{data_uri}" alt="{html.escape(b.title)}" '
+                f'width="{b.zoom * b.width}">'
+                f"<figcaption><b>{html.escape(b.title)}.</b> "
+                f"{html.escape(b.caption)}</figcaption></figure>"
+            )
         elif isinstance(b, Code):
             out.append(f"<pre><code>{html.escape(b.text)}</code></pre>")
         elif isinstance(b, Attachment):
             uri = f"data:{b.mime};base64," + base64.b64encode(b.data).decode("ascii")
-            out.append(f'<p><a download="{html.escape(b.name)}" href="{uri}">'
-                       f"{html.escape(b.text)}</a></p>")
+            out.append(
+                f'<p><a download="{html.escape(b.name)}" href="{uri}">{html.escape(b.text)}</a></p>'
+            )
     out.append("</main></body></html>")
     return "\n".join(out) + "\n"
 
@@ -488,8 +579,7 @@ def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Pat
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise InputError(f"{out_dir}: cannot create the output directory ({e.strerror})") \
-            from None
+        raise InputError(f"{out_dir}: cannot create the output directory ({e.strerror})") from None
     blocks = _blocks(run, out_dir, render)
     paths = {}
     for b in blocks:

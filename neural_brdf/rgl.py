@@ -91,37 +91,47 @@ from .fileio import atomic_write
 # ------------------------------------------------------------------ tensor file
 MAGIC = b"tensor_file\0"
 VERSION = (1, 0)
-ALIGN = 8                      # data offsets are multiples of this (as Mitsuba's writer)
-DTYPES = {1: np.uint8, 2: np.int8, 3: np.uint16, 4: np.int16, 5: np.uint32, 6: np.int32,
-          7: np.uint64, 8: np.int64, 9: np.float16, 10: np.float32, 11: np.float64}
+ALIGN = 8  # data offsets are multiples of this (as Mitsuba's writer)
+DTYPES = {
+    1: np.uint8,
+    2: np.int8,
+    3: np.uint16,
+    4: np.int16,
+    5: np.uint32,
+    6: np.int32,
+    7: np.uint64,
+    8: np.int64,
+    9: np.float16,
+    10: np.float32,
+    11: np.float64,
+}
 DTYPE_CODES = {np.dtype(v): k for k, v in DTYPES.items()}
-MAX_NDIM = 16                  # a sanity bound on a field's rank (RGL files use <= 5)
+MAX_NDIM = 16  # a sanity bound on a field's rank (RGL files use <= 5)
 
 # ----------------------------------------------------------------- RGL content
-Y_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])    # Rec. 709 / sRGB luminance
+Y_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB luminance
 # D is floored at this fraction of its maximum: rho = f cos 4 sigma / D must stay finite
 # where the retro-reflection vanishes (e.g. at grazing m).
 NDF_FLOOR = 1e-4
 # The luminance (sampling) table is floored at this fraction of its slice maximum, so
 # that no region where rho > 0 has zero sampling density (an unbiased estimator).
 LUMINANCE_FLOOR = 1e-4
-POWER_ITERATIONS = 32          # fixed-point iterations of the NDF (converged to ~1e-6)
-QUAD_U = 1024                  # midpoints in u of the sigma quadrature
+POWER_ITERATIONS = 32  # fixed-point iterations of the NDF (converged to ~1e-6)
+QUAD_U = 1024  # midpoints in u of the sigma quadrature
 # Incident slices stop short of grazing: at theta_i = pi/2 every reflection is below the
 # horizon and the slice would be all zero.  Beyond the last slice Mitsuba clamps.
 THETA_I_MAX = math.radians(89.5)
-SAMPLE_EPS = 1e-7              # warp inputs are kept in [eps, 1 - eps] (as Mitsuba)
-SEGMENT_CONST = 1e-4           # a segment is treated as constant when |v0-v1| < this (v0+v1)
-CHUNK = 1 << 16                # pairs per call of the baked function
+SAMPLE_EPS = 1e-7  # warp inputs are kept in [eps, 1 - eps] (as Mitsuba)
+SEGMENT_CONST = 1e-4  # a segment is treated as constant when |v0-v1| < this (v0+v1)
+CHUNK = 1 << 16  # pairs per call of the baked function
 
 DEFAULTS = {"theta_i": 32, "sample": 64, "vndf": 128, "ndf": 256}
 # Wavelengths (nm) of a spectral bake: Mitsuba's visible range 360-830 in 20 nm steps (the
 # sigmoid spectra are smooth; Mitsuba interpolates linearly and clamps beyond the ends).
 WAVELENGTHS = np.arange(360.0, 831.0, 20.0)
-SPECTRAL_SUFFIX = "_spec.bsdf"   # the RGL database's name for spectral files
+SPECTRAL_SUFFIX = "_spec.bsdf"  # the RGL database's name for spectral files
 
-REQUIRED = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description",
-            "jacobian")
+REQUIRED = ("theta_i", "phi_i", "ndf", "sigma", "vndf", "luminance", "description", "jacobian")
 
 
 class RGLFormatError(InputError):
@@ -150,7 +160,7 @@ def parse_tensor_file(buf: bytes, *, source: str = "<bytes>") -> dict[str, np.nd
         nonlocal pos
         if pos + n > len(buf):
             raise RGLFormatError(f"{source}: truncated ({len(buf)} bytes) while reading {what}")
-        out = buf[pos:pos + n]
+        out = buf[pos : pos + n]
         pos += n
         return out
 
@@ -178,8 +188,10 @@ def parse_tensor_file(buf: bytes, *, source: str = "<bytes>") -> dict[str, np.nd
     for name, dtype, shape, offset in specs:
         size = math.prod(shape) * dtype.itemsize
         if offset + size > len(buf):
-            raise RGLFormatError(f"{source}: field {name!r}: data ends at byte "
-                                 f"{offset + size}, file has {len(buf)} (truncated)")
+            raise RGLFormatError(
+                f"{source}: field {name!r}: data ends at byte "
+                f"{offset + size}, file has {len(buf)} (truncated)"
+            )
         arr = np.frombuffer(buf, dtype=dtype, count=math.prod(shape), offset=offset)
         out[name] = arr.reshape(shape).astype(dtype.newbyteorder("="))
     return out
@@ -189,14 +201,18 @@ def tensor_file_bytes(fields: dict[str, object]) -> bytes:
     """The TensorFile encoding of ``fields`` (name -> array, or str stored as uint8)."""
     arrays = {}
     for name, v in fields.items():
-        a = (np.frombuffer(v.encode("utf-8"), np.uint8) if isinstance(v, str)
-             else np.ascontiguousarray(v))
+        a = (
+            np.frombuffer(v.encode("utf-8"), np.uint8)
+            if isinstance(v, str)
+            else np.ascontiguousarray(v)
+        )
         if a.dtype.newbyteorder("=") not in DTYPE_CODES:
             raise ValueError(f"{name}: unsupported dtype {a.dtype}")
         arrays[name] = a
     header = bytearray(MAGIC + bytes(VERSION) + struct.pack("<I", len(arrays)))
-    header_size = len(header) + sum(2 + len(n.encode("utf-8")) + 11 + 8 * a.ndim
-                                    for n, a in arrays.items())
+    header_size = len(header) + sum(
+        2 + len(n.encode("utf-8")) + 11 + 8 * a.ndim for n, a in arrays.items()
+    )
     body, offset = bytearray(), header_size
     for name, a in arrays.items():
         start = -(-offset // ALIGN) * ALIGN
@@ -242,25 +258,31 @@ class Marginal2D:
         d = np.array(data, dtype=np.float64)
         self.params = [np.asarray(p, dtype=np.float64).reshape(-1) for p in params]
         if d.ndim != 2 + len(self.params) or any(
-                d.shape[k] != len(p) for k, p in enumerate(self.params)):
-            raise ValueError(f"data: shape {d.shape} does not match parameters "
-                             f"{[len(p) for p in self.params]} + (H, W)")
+            d.shape[k] != len(p) for k, p in enumerate(self.params)
+        ):
+            raise ValueError(
+                f"data: shape {d.shape} does not match parameters "
+                f"{[len(p) for p in self.params]} + (H, W)"
+            )
         self.h, self.w = d.shape[-2:]
         if self.h < 2 or self.w < 2:
             raise ValueError(f"data: a 2D table needs at least 2 x 2 nodes, got {d.shape}")
         d = d.reshape(-1, self.h, self.w)
-        sx, sy = 0.5 / (self.w - 1), 0.5 / (self.h - 1)        # trapezoids
-        cond = np.cumsum(sx * (d[:, :, :-1] + d[:, :, 1:]), axis=2)          # (S, H, W-1)
+        sx, sy = 0.5 / (self.w - 1), 0.5 / (self.h - 1)  # trapezoids
+        cond = np.cumsum(sx * (d[:, :, :-1] + d[:, :, 1:]), axis=2)  # (S, H, W-1)
         rows = cond[:, :, -1]
-        marg = np.cumsum(sy * (rows[:, :-1] + rows[:, 1:]), axis=1)          # (S, H-1)
+        marg = np.cumsum(sy * (rows[:, :-1] + rows[:, 1:]), axis=1)  # (S, H-1)
         self.normalized = normalize
         if normalize:
             total = marg[:, -1]
             if not np.all(total > 0):
                 raise ValueError("data: a slice integrates to 0 (cannot be normalised)")
             norm = 1.0 / total
-            d, cond, marg = (d * norm[:, None, None], cond * norm[:, None, None],
-                             marg * norm[:, None])
+            d, cond, marg = (
+                d * norm[:, None, None],
+                cond * norm[:, None, None],
+                marg * norm[:, None],
+            )
         self.data = d.reshape(len(d), -1)
         self.cond = cond.reshape(len(d), -1)
         self.marg = marg
@@ -275,8 +297,11 @@ class Marginal2D:
                 continue
             i = np.clip(np.searchsorted(values, p, side="left") - 1, 0, len(values) - 2)
             t = np.clip((p - values[i]) / (values[i + 1] - values[i]), 0.0, 1.0)
-            corners = [(s * len(values) + i + k, w * (t if k else 1.0 - t))
-                       for s, w in corners for k in (0, 1)]
+            corners = [
+                (s * len(values) + i + k, w * (t if k else 1.0 - t))
+                for s, w in corners
+                for k in (0, 1)
+            ]
         return corners
 
     @staticmethod
@@ -293,9 +318,11 @@ class Marginal2D:
         fx, fy = x - ix, y - iy
         i = iy * self.w + ix
         lk = self._look
-        return _lerp(_lerp(lk(self.data, c, i), lk(self.data, c, i + 1), fx),
-                     _lerp(lk(self.data, c, i + self.w), lk(self.data, c, i + self.w + 1), fx),
-                     fy)
+        return _lerp(
+            _lerp(lk(self.data, c, i), lk(self.data, c, i + 1), fx),
+            _lerp(lk(self.data, c, i + self.w), lk(self.data, c, i + self.w + 1), fx),
+            fy,
+        )
 
     @staticmethod
     def _segment_sample(s, inv_width, v0, v1):
@@ -411,16 +438,20 @@ class RGLBRDF:
         if missing:
             raise bad(f"not an RGL material: missing field(s) {missing}")
         if "wavelengths" in f:
-            raise bad("spectral RGL file (field 'wavelengths'): only RGB files (field "
-                      "'rgb', the *_rgb.bsdf of the RGL database) can be read here")
+            raise bad(
+                "spectral RGL file (field 'wavelengths'): only RGB files (field "
+                "'rgb', the *_rgb.bsdf of the RGL database) can be read here"
+            )
         if "rgb" not in f:
             raise bad("missing field 'rgb'")
 
         def check(name, ndim, dtype=np.float32):
             a = f[name]
             if a.ndim != ndim or a.dtype != dtype:
-                raise bad(f"field {name!r}: expected {ndim}-D {np.dtype(dtype).name}, got "
-                          f"{a.ndim}-D {a.dtype.name} {a.shape}")
+                raise bad(
+                    f"field {name!r}: expected {ndim}-D {np.dtype(dtype).name}, got "
+                    f"{a.ndim}-D {a.dtype.name} {a.shape}"
+                )
             if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
                 raise bad(f"field {name!r}: non-finite values")
             return a
@@ -433,16 +464,22 @@ class RGLBRDF:
         lead = (len(ph), len(th))
         for name, a in (("vndf", vndf), ("luminance", lum), ("rgb", rgb)):
             if a.shape[:2] != lead:
-                raise bad(f"field {name!r}: leading shape {a.shape[:2]}, expected "
-                          f"(len(phi_i), len(theta_i)) = {lead}")
+                raise bad(
+                    f"field {name!r}: leading shape {a.shape[:2]}, expected "
+                    f"(len(phi_i), len(theta_i)) = {lead}"
+                )
         if rgb.shape[2] != 3 or rgb.shape[3:] != lum.shape[2:] or lum.shape[2] != lum.shape[3]:
-            raise bad(f"fields 'rgb' {rgb.shape} and 'luminance' {lum.shape}: expected "
-                      "(P, T, 3, N, N) and (P, T, N, N)")
+            raise bad(
+                f"fields 'rgb' {rgb.shape} and 'luminance' {lum.shape}: expected "
+                "(P, T, 3, N, N) and (P, T, N, N)"
+            )
         if len(jac) != 1:
             raise bad(f"field 'jacobian': expected 1 value, got {len(jac)}")
         if len(ph) > 2:
-            raise bad(f"anisotropic material ({len(ph)} phi_i slices): only isotropic "
-                      "files (phi_i of size 1 or 2) are supported")
+            raise bad(
+                f"anisotropic material ({len(ph)} phi_i slices): only isotropic "
+                "files (phi_i of size 1 or 2) are supported"
+            )
         if min(ndf.shape + sigma.shape + vndf.shape[2:] + lum.shape[2:]) < 2:
             raise bad("a 2D table has fewer than 2 nodes along an axis")
         if np.any(np.diff(th) <= 0):
@@ -457,13 +494,16 @@ class RGLBRDF:
             self._lum = Marginal2D(lum, (self.phi_i, self.theta_i))
         except ValueError as e:
             raise bad(f"{e}") from None
-        self._rgb = [Marginal2D(rgb[:, :, c], (self.phi_i, self.theta_i), normalize=False)
-                     for c in range(3)]
+        self._rgb = [
+            Marginal2D(rgb[:, :, c], (self.phi_i, self.theta_i), normalize=False) for c in range(3)
+        ]
 
     def __repr__(self) -> str:
         r = self.fields["rgb"].shape
-        return (f"RGLBRDF({self.source!r}, theta_i {r[1]}, sample grid {r[3]}x{r[4]}, "
-                f"{self.description!r})")
+        return (
+            f"RGLBRDF({self.source!r}, theta_i {r[1]}, sample grid {r[3]}x{r[4]}, "
+            f"{self.description!r})"
+        )
 
     def _params(self, wi):
         return np.arctan2(wi[:, 1], wi[:, 0]), elevation(wi)
@@ -476,11 +516,15 @@ class RGLBRDF:
         batch = wi.shape[:-1]
         wi, wo = wi.reshape(-1, 3), wo.reshape(-1, 3)
         out = np.zeros((len(wi), 3))
-        ok = (np.all(np.isfinite(wi), -1) & np.all(np.isfinite(wo), -1)
-              & (wi[:, 2] > 0) & (wo[:, 2] > 0))
+        ok = (
+            np.all(np.isfinite(wi), -1)
+            & np.all(np.isfinite(wo), -1)
+            & (wi[:, 2] > 0)
+            & (wo[:, 2] > 0)
+        )
         rows = np.flatnonzero(ok)
         for s in range(0, len(rows), CHUNK):
-            r = rows[s:s + CHUNK]
+            r = rows[s : s + CHUNK]
             a = wi[r] / np.linalg.norm(wi[r], axis=-1, keepdims=True)
             b = wo[r] / np.linalg.norm(wo[r], axis=-1, keepdims=True)
             out[r] = self._f_cos(a, b) / b[:, 2:3]
@@ -492,8 +536,9 @@ class RGLBRDF:
         m /= np.linalg.norm(m, axis=-1, keepdims=True)
         phi_i, theta_i = self._params(wi)
         u_wi = np.stack([theta_to_u(theta_i), phi_to_v(phi_i)], -1)
-        u_m = np.stack([theta_to_u(elevation(m)),
-                        phi_to_v(np.arctan2(m[:, 1], m[:, 0]) - phi_i)], -1)
+        u_m = np.stack(
+            [theta_to_u(elevation(m)), phi_to_v(np.arctan2(m[:, 1], m[:, 0]) - phi_i)], -1
+        )
         u_m[:, 1] -= np.floor(u_m[:, 1])
         params = (phi_i, theta_i)
         s, _ = self._vndf.invert(u_m, params)
@@ -514,7 +559,7 @@ class RGLBRDF:
         theta_m = u_to_theta(u_m[:, 0])
         m = _spherical(theta_m, v_to_phi(u_m[:, 1]) + phi_i)
         dot = np.sum(wi * m, -1)
-        jac = np.maximum(2 * math.pi ** 2 * u_m[:, 0] * np.sin(theta_m), 1e-6) * 4 * dot
+        jac = np.maximum(2 * math.pi**2 * u_m[:, 0] * np.sin(theta_m), 1e-6) * 4 * dot
         wo = 2.0 * dot[:, None] * m - wi
         return wo, p_lum * p_vndf / jac
 
@@ -580,16 +625,17 @@ def _call(f: Callable, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     """f on (N, 3) float64 pairs in chunks -> (N, 3) float64, clamped at 0."""
     out = np.zeros((len(wi), 3))
     for s in range(0, len(wi), CHUNK):
-        v = f(wi[s:s + CHUNK], wo[s:s + CHUNK])
-        if hasattr(v, "detach"):                              # a torch tensor
+        v = f(wi[s : s + CHUNK], wo[s : s + CHUNK])
+        if hasattr(v, "detach"):  # a torch tensor
             v = v.detach().cpu().numpy()
         v = np.asarray(v, dtype=np.float64)
-        if v.shape != (len(wi[s:s + CHUNK]), 3):
-            raise ValueError(f"fn: returned shape {v.shape}, expected "
-                             f"({len(wi[s:s + CHUNK])}, 3)")
+        if v.shape != (len(wi[s : s + CHUNK]), 3):
+            raise ValueError(
+                f"fn: returned shape {v.shape}, expected ({len(wi[s : s + CHUNK])}, 3)"
+            )
         if not np.all(np.isfinite(v)):
             raise ValueError("fn: non-finite values")
-        out[s:s + CHUNK] = np.maximum(v, 0.0)
+        out[s : s + CHUNK] = np.maximum(v, 0.0)
     return out
 
 
@@ -600,12 +646,12 @@ def _sigma_matrix(theta, u_nodes):
     tq = u_to_theta(uq)
     # dm = sin(theta_m) d theta_m d phi_m, d theta_m = pi u du
     wq = np.sin(tq) * math.pi * uq / QUAD_U
-    a = np.sin(theta)[:, None] * np.sin(tq)[None]               # <w.m> = a cos(phi) + b
+    a = np.sin(theta)[:, None] * np.sin(tq)[None]  # <w.m> = a cos(phi) + b
     b = np.cos(theta)[:, None] * np.cos(tq)[None]
     ratio = np.divide(-b, a, out=np.full_like(a, -1.0), where=a > 0)
-    phi0 = np.arccos(np.clip(ratio, -1.0, 1.0))                 # <w.m> > 0 for |phi| < phi0
-    g = 2.0 * (b * phi0 + a * np.sin(phi0))                     # int max(0, a cos + b) dphi
-    interp = np.zeros((QUAD_U, len(u_nodes)))                   # D(uq) = interp @ D_nodes
+    phi0 = np.arccos(np.clip(ratio, -1.0, 1.0))  # <w.m> > 0 for |phi| < phi0
+    g = 2.0 * (b * phi0 + a * np.sin(phi0))  # int max(0, a cos + b) dphi
+    interp = np.zeros((QUAD_U, len(u_nodes)))  # D(uq) = interp @ D_nodes
     k = np.minimum(np.searchsorted(u_nodes, uq, side="right") - 1, len(u_nodes) - 2)
     t = (uq - u_nodes[k]) / (u_nodes[k + 1] - u_nodes[k])
     interp[np.arange(QUAD_U), k] = 1.0 - t
@@ -621,10 +667,10 @@ def retroreflection_ndf(f: Callable, *, nodes: int = DEFAULTS["ndf"]) -> np.ndar
     w = _spherical(np.minimum(theta, THETA_I_MAX), np.zeros(nodes))
     f_bs = _call(f, w, w) @ Y_WEIGHTS
     s_mat = _sigma_matrix(theta, u)
-    cos_mat = _sigma_matrix(np.zeros(1), u)                   # int D cos(theta_m) dm
+    cos_mat = _sigma_matrix(np.zeros(1), u)  # int D cos(theta_m) dm
     d = np.ones(nodes)
     if not np.any(f_bs > 0):
-        f_bs = np.ones(nodes)                                  # no retro-reflection: flat D
+        f_bs = np.ones(nodes)  # no retro-reflection: flat D
     for _ in range(POWER_ITERATIONS):
         d = f_bs * np.cos(theta) * (s_mat @ d)
         d = np.maximum(d, NDF_FLOOR * d.max())
@@ -645,11 +691,14 @@ def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
     accuracy of the table.  0 stays 0."""
     try:
         import mitsuba
+
         fetch = mitsuba.scalar_spectral.srgb_model_fetch
         color = mitsuba.scalar_spectral.ScalarColor3f
     except (ImportError, AttributeError):
-        raise InputError("a spectral .bsdf needs Mitsuba 3 (its Jakob-Hanika RGB-to-spectrum "
-                         "table): pip install mitsuba") from None
+        raise InputError(
+            "a spectral .bsdf needs Mitsuba 3 (its Jakob-Hanika RGB-to-spectrum "
+            "table): pip install mitsuba"
+        ) from None
     rgb = np.asarray(rgb, dtype=np.float64)
     flat = np.maximum(rgb.reshape(-1, 3), 0.0)
     scale = flat.max(axis=-1)
@@ -657,7 +706,7 @@ def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
     keys, inverse = np.unique(np.round(unit, 6), axis=0, return_inverse=True)
     coef = np.array([list(fetch(color(*k))) for k in keys])[inverse.reshape(-1)]
     lam = np.asarray(wavelengths, dtype=np.float64)
-    x = coef[:, :1] * lam ** 2 + coef[:, 1:2] * lam + coef[:, 2:3]
+    x = coef[:, :1] * lam**2 + coef[:, 1:2] * lam + coef[:, 2:3]
     spec = (0.5 + x / (2.0 * np.sqrt(1.0 + x * x))) * scale[:, None]
     spec[flat.max(axis=-1) == 0] = 0.0
     return spec.reshape(rgb.shape[:-1] + (len(lam),))
@@ -672,10 +721,17 @@ def theta_i_nodes(n: int) -> np.ndarray:
     return THETA_I_MAX * np.sin(0.5 * math.pi * np.linspace(0.0, 1.0, n))
 
 
-def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULTS["sample"],
-                vndf: int = DEFAULTS["vndf"], ndf: int = DEFAULTS["ndf"],
-                spectral: bool = False, cosine: str = "outgoing",
-                description: str = "neural-brdf bake") -> dict[str, np.ndarray]:
+def bake_fields(
+    fn,
+    *,
+    theta_i: int = DEFAULTS["theta_i"],
+    sample: int = DEFAULTS["sample"],
+    vndf: int = DEFAULTS["vndf"],
+    ndf: int = DEFAULTS["ndf"],
+    spectral: bool = False,
+    cosine: str = "outgoing",
+    description: str = "neural-brdf bake",
+) -> dict[str, np.ndarray]:
     """The fields of an isotropic RGL file for ``fn(wi, wo)`` ((N, 3) numpy in, (N, 3)
     out, 1/sr).  ``theta_i`` slices, ``sample`` x ``sample`` value nodes, ``vndf`` x
     ``vndf`` VNDF nodes, ``ndf`` nodes along theta of the NDF and sigma tables.
@@ -691,24 +747,28 @@ def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULT
     if cosine not in ("outgoing", "incident"):
         raise ValueError(f"cosine: must be 'outgoing' or 'incident', got {cosine!r}")
     f = _as_function(fn)
-    for name, v, lo in (("theta_i", theta_i, 2), ("sample", sample, 2), ("vndf", vndf, 2),
-                        ("ndf", ndf, 2)):
+    for name, v, lo in (
+        ("theta_i", theta_i, 2),
+        ("sample", sample, 2),
+        ("vndf", vndf, 2),
+        ("ndf", ndf, 2),
+    ):
         if int(v) < lo:
             raise ValueError(f"{name}: must be >= {lo}, got {v!r}")
     d_nodes = retroreflection_ndf(f, nodes=ndf)
     u_nodes = np.linspace(0.0, 1.0, ndf)
     sigma_nodes = _sigma_matrix(u_to_theta(u_nodes), u_nodes) @ d_nodes
-    ndf_table = np.tile(d_nodes, (2, 1)).astype(np.float32)        # rows: phi (constant)
+    ndf_table = np.tile(d_nodes, (2, 1)).astype(np.float32)  # rows: phi (constant)
     sigma_table = np.tile(sigma_nodes, (2, 1)).astype(np.float32)
     ndf_map = Marginal2D(ndf_table, normalize=False)
     sigma_map = Marginal2D(sigma_table, normalize=False)
 
     thetas = theta_i_nodes(theta_i).astype(np.float32)
     # the VNDF table on the m square: D(m) <wi.m> 2 pi^2 u sin(theta_m) (density in u)
-    ux, vy = np.meshgrid(np.linspace(0, 1, vndf), np.linspace(0, 1, vndf))   # [row, col]
+    ux, vy = np.meshgrid(np.linspace(0, 1, vndf), np.linspace(0, 1, vndf))  # [row, col]
     m_grid = _spherical(u_to_theta(ux), v_to_phi(vy))
     d_grid = ndf_map.eval(np.stack([ux.ravel(), vy.ravel()], -1)).reshape(ux.shape)
-    jac_grid = 2 * math.pi ** 2 * ux * np.sin(u_to_theta(ux))
+    jac_grid = 2 * math.pi**2 * ux * np.sin(u_to_theta(ux))
     sx, sy = np.meshgrid(np.linspace(0, 1, sample), np.linspace(0, 1, sample))
     s_nodes = np.stack([sx.ravel(), sy.ravel()], -1)
 
@@ -719,7 +779,7 @@ def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULT
         wi1 = _spherical(np.array(th), np.array(0.0))
         vis = np.maximum(m_grid @ wi1, 0.0)
         vndf_t[0, k] = (d_grid * vis * jac_grid).astype(np.float32)
-        warp = Marginal2D(vndf_t[0, k])                       # as Mitsuba builds the slice
+        warp = Marginal2D(vndf_t[0, k])  # as Mitsuba builds the slice
         u_m, _ = warp.sample(s_nodes)
         m = _spherical(u_to_theta(u_m[:, 0]), v_to_phi(u_m[:, 1]))
         wi = np.broadcast_to(wi1, m.shape)
@@ -737,11 +797,18 @@ def bake_fields(fn, *, theta_i: int = DEFAULTS["theta_i"], sample: int = DEFAULT
         y = rho.reshape(sample, sample, 3) @ Y_WEIGHTS
         y = np.maximum(y, LUMINANCE_FLOOR * y.max()) if y.max() > 0 else np.ones_like(y)
         lum_t[0, k] = y
-    out = {"description": description, "jacobian": np.array([1], np.uint8),
-           "theta_i": thetas, "phi_i": np.zeros(1, np.float32),
-           "ndf": ndf_table, "sigma": sigma_table, "vndf": vndf_t, "luminance": lum_t}
+    out = {
+        "description": description,
+        "jacobian": np.array([1], np.uint8),
+        "theta_i": thetas,
+        "phi_i": np.zeros(1, np.float32),
+        "ndf": ndf_table,
+        "sigma": sigma_table,
+        "vndf": vndf_t,
+        "luminance": lum_t,
+    }
     if spectral:
-        spec = rgb_to_spectra(np.moveaxis(rgb_t, 2, -1))             # (1, T, N, N, L)
+        spec = rgb_to_spectra(np.moveaxis(rgb_t, 2, -1))  # (1, T, N, N, L)
         out["spectra"] = np.moveaxis(spec, -1, 2).astype(np.float32)
         out["wavelengths"] = WAVELENGTHS.astype(np.float32)
     else:

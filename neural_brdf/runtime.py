@@ -24,7 +24,7 @@ from .errors import InputError
 
 INPUTS = ("wi", "wo")
 OUTPUT = "f"
-CHUNK = 1 << 18            # pairs per onnxruntime call: bounds the memory of a large eval
+CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
 
 
 class NeuralBRDF:
@@ -35,20 +35,20 @@ class NeuralBRDF:
         if not path.is_file():
             raise InputError(f"{path}: no such model file")
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads     # 1 thread was fastest here (docs/results.md)
+        opts.intra_op_num_threads = threads  # 1 thread was fastest here (docs/results.md)
         opts.inter_op_num_threads = 1
         opts.log_severity_level = 3
         try:
-            self.session = ort.InferenceSession(str(path), opts,
-                                                providers=["CPUExecutionProvider"])
-        except Exception as e:   # onnxruntime raises its own untyped errors on bad files
+            self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own untyped errors on bad files
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise InputError(f"{path}: not a loadable ONNX model ({first[:200]})") from None
         names = tuple(i.name for i in self.session.get_inputs())
         outs = tuple(o.name for o in self.session.get_outputs())
         if names != INPUTS or outs != (OUTPUT,):
-            raise InputError(f"{path}: expected inputs {INPUTS} and output {OUTPUT!r}, "
-                             f"got {names} -> {outs}")
+            raise InputError(
+                f"{path}: expected inputs {INPUTS} and output {OUTPUT!r}, got {names} -> {outs}"
+            )
         self.path = path
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
 
@@ -72,8 +72,9 @@ class NeuralBRDF:
         b = np.ascontiguousarray(wo.reshape(-1, 3))
         out = np.empty((len(a), 3), dtype=np.float32)
         for s in range(0, len(a), CHUNK):
-            out[s:s + CHUNK] = self.session.run(
-                [OUTPUT], {"wi": a[s:s + CHUNK], "wo": b[s:s + CHUNK]})[0]
+            out[s : s + CHUNK] = self.session.run(
+                [OUTPUT], {"wi": a[s : s + CHUNK], "wo": b[s : s + CHUNK]}
+            )[0]
         return out.reshape(batch + (3,))
 
     __call__ = eval

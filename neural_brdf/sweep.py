@@ -69,10 +69,11 @@ import socket
 import time
 import traceback
 import zipfile
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -81,8 +82,17 @@ from .fileio import atomic_write
 
 TRIAL_DEFAULTS = {"train.threads": 1, "train.progress": False}
 MARKER = "trial.json"
-METRICS = ("rel_rmse", "nbrdf_log_error", "max_albedo", "reciprocity", "min_value", "passed",
-           "params", "train_seconds", "total_seconds")
+METRICS = (
+    "rel_rmse",
+    "nbrdf_log_error",
+    "max_albedo",
+    "reciprocity",
+    "min_value",
+    "passed",
+    "params",
+    "train_seconds",
+    "total_seconds",
+)
 MAX_SLUG = 80
 
 
@@ -96,17 +106,16 @@ class _Section(BaseModel):
 
 
 class Materials(_Section):
-    nbrdf: str                                   # NBRDF weights (.npz), relative to the file
-    names: list[str] | Literal["all"] = "all"    # networks in it to train on
+    nbrdf: str  # NBRDF weights (.npz), relative to the file
+    names: list[str] | Literal["all"] = "all"  # networks in it to train on
 
 
 class SweepFile(_Section):
-    name: str | None = None                      # default: the file's stem
-    base: str | None = None                      # base config, relative to the file
-    set: dict[str, Any] = Field(default_factory=dict)       # overrides for every trial
-    grid: dict[str, list[Any]] = Field(default_factory=dict)   # crossed axes
-    entries: list[dict[str, Any]] | dict[str, list[Any]] = Field(default_factory=list,
-                                                                 alias="list")
+    name: str | None = None  # default: the file's stem
+    base: str | None = None  # base config, relative to the file
+    set: dict[str, Any] = Field(default_factory=dict)  # overrides for every trial
+    grid: dict[str, list[Any]] = Field(default_factory=dict)  # crossed axes
+    entries: list[dict[str, Any]] | dict[str, list[Any]] = Field(default_factory=list, alias="list")
     materials: Materials | None = None
 
 
@@ -160,8 +169,11 @@ def _entries(spec: SweepFile, source: Path) -> list[dict]:
 
 def _check(spec: SweepFile, source: Path) -> None:
     here = source.parent
-    axes = [("grid", k) for k in spec.grid] + [("list", k) for e in _entries(spec, source)
-                                               for k in e] + [("set", k) for k in spec.set]
+    axes = (
+        [("grid", k) for k in spec.grid]
+        + [("list", k) for e in _entries(spec, source) for k in e]
+        + [("set", k) for k in spec.set]
+    )
     for section, key in axes:
         if key == "config" and section != "set":
             continue
@@ -184,6 +196,7 @@ def _axis_values(spec: SweepFile, source: Path, key: str) -> list:
 
 def _material_names(m: Materials, here: Path, source: Path) -> list[str]:
     from . import merl
+
     npz = here / m.nbrdf
     if not npz.is_file():
         raise SweepError(f"{source}: materials.nbrdf: no such file {m.nbrdf!r}")
@@ -230,8 +243,10 @@ def _names(points: list[dict]) -> list[str]:
     """Readable, stable run-directory names; a short hash only where needed."""
     slugs = [_slug(p) for p in points]
     taken = {s: slugs.count(s) for s in slugs}
-    return [s if len(s) <= MAX_SLUG and taken[s] == 1 else f"{s[:MAX_SLUG]}-{_digest(p)}"
-            for s, p in zip(slugs, points)]
+    return [
+        s if len(s) <= MAX_SLUG and taken[s] == 1 else f"{s[:MAX_SLUG]}-{_digest(p)}"
+        for s, p in zip(slugs, points)
+    ]
 
 
 def _points(spec: SweepFile, source: Path) -> list[dict]:
@@ -240,13 +255,15 @@ def _points(spec: SweepFile, source: Path) -> list[dict]:
         grid = {"material": _material_names(spec.materials, source.parent, source), **grid}
     crossed = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
     points = [{**e, **g} for e in (_entries(spec, source) or [{}]) for g in crossed]
-    first = ("config", "material")               # these lead the names
-    return [{**{k: p[k] for k in first if k in p}, **{k: v for k, v in p.items()
-                                                       if k not in first}} for p in points]
+    first = ("config", "material")  # these lead the names
+    return [
+        {**{k: p[k] for k in first if k in p}, **{k: v for k, v in p.items() if k not in first}}
+        for p in points
+    ]
 
 
 def _override(raw: dict, key: str, value) -> None:
-    cfgmod.apply_override(raw, f"{key}={json.dumps(value)}")   # JSON is YAML
+    cfgmod.apply_override(raw, f"{key}={json.dumps(value)}")  # JSON is YAML
 
 
 def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
@@ -257,8 +274,9 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
     keys = [json.dumps(p, sort_keys=True) for p in points]
     for point, key in zip(points, keys):
         if keys.count(key) > 1:
-            raise SweepError(f"{source}: the trial {_slug(point)!r} appears "
-                             f"{keys.count(key)} times")
+            raise SweepError(
+                f"{source}: the trial {_slug(point)!r} appears {keys.count(key)} times"
+            )
     jobs = []
     for name, point in zip(_names(points), points):
         base = point.get("config", spec.base)
@@ -266,16 +284,25 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
         if not isinstance(raw, dict):
             raise SweepError(f"{source}: {base}: expected a mapping of config keys")
         raw["name"] = name
-        job = {"name": name, "run_dir": str((out_dir / "trials" / name).resolve()),
-               "overrides": point, "config": None, "error": None, "materialise": None}
+        job = {
+            "name": name,
+            "run_dir": str((out_dir / "trials" / name).resolve()),
+            "overrides": point,
+            "config": None,
+            "error": None,
+            "materialise": None,
+        }
         for key, value in {**TRIAL_DEFAULTS, **spec.set}.items():
             _override(raw, key, value)
         for key, value in point.items():
             if key == "material":
                 data = (out_dir / "data" / f"{value}.binary").resolve()
-                job["materialise"] = {"npz": str((here / spec.materials.nbrdf).resolve()),
-                                      "name": value, "path": str(data)}
-                raw["target"] = {"data": str(data)}        # replaces an analytic target
+                job["materialise"] = {
+                    "npz": str((here / spec.materials.nbrdf).resolve()),
+                    "name": value,
+                    "path": str(data),
+                }
+                raw["target"] = {"data": str(data)}  # replaces an analytic target
             elif key != "config":
                 _override(raw, key, value)
         try:
@@ -301,21 +328,28 @@ def _finite(x):
 
 def _metrics(report: dict, cfg: cfgmod.Config) -> dict:
     from .model import RawBRDF
+
     checks, acc = report["checks"], report.get("accuracy", {})
     params = RawBRDF.parameter_count(cfg.model)
-    values = {"rel_rmse": acc.get("rel_rmse"), "nbrdf_log_error": acc.get("nbrdf_log_error"),
-              "max_albedo": checks["max_albedo"]["value"],
-              "reciprocity": checks["reciprocity"]["value"],
-              "min_value": checks["min_value"]["value"], "passed": report["passed"],
-              "params": params, "train_seconds": report["seconds"]["train"],
-              "total_seconds": report["seconds"]["total"]}
+    values = {
+        "rel_rmse": acc.get("rel_rmse"),
+        "nbrdf_log_error": acc.get("nbrdf_log_error"),
+        "max_albedo": checks["max_albedo"]["value"],
+        "reciprocity": checks["reciprocity"]["value"],
+        "min_value": checks["min_value"]["value"],
+        "passed": report["passed"],
+        "params": params,
+        "train_seconds": report["seconds"]["train"],
+        "total_seconds": report["seconds"]["total"],
+    }
     return {k: _finite(v) for k, v in values.items()}
 
 
 def _materialise(m: dict) -> None:
     from . import merl
+
     path = Path(m["path"])
-    if not path.is_file():                      # racing trials write the same bytes
+    if not path.is_file():  # racing trials write the same bytes
         path.parent.mkdir(parents=True, exist_ok=True)
         merl.bake(merl.nbrdf_fixture(m["npz"], m["name"], reciprocal=True), path)
 
@@ -323,11 +357,20 @@ def _materialise(m: dict) -> None:
 def run_trial(job: dict) -> dict:
     """Train one trial in ``job["run_dir"]``; never raises: returns its record."""
     from . import train
+
     run_dir = Path(job["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
-    record = {"trial": job["name"], "run_dir": str(run_dir), "overrides": job["overrides"],
-              "status": "running", "error": None, "metrics": {}, "started": _now(),
-              "host": socket.gethostname(), "pid": os.getpid()}
+    record = {
+        "trial": job["name"],
+        "run_dir": str(run_dir),
+        "overrides": job["overrides"],
+        "status": "running",
+        "error": None,
+        "metrics": {},
+        "started": _now(),
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+    }
     _write_json(run_dir / MARKER, record)
     try:
         if job["materialise"]:
@@ -335,7 +378,7 @@ def run_trial(job: dict) -> dict:
         cfg = cfgmod.from_dict(job["config"], source=f"trial {job['name']}")
         record["metrics"] = _metrics(train.run(cfg, run_dir, overwrite=True), cfg)
         record["status"] = "ok"
-    except Exception as e:                      # noqa: BLE001 -- recorded, then the next trial
+    except Exception as e:  # noqa: BLE001 -- recorded, then the next trial
         record["status"] = "failed"
         record["error"] = _one_line(e)
     record["finished"] = _now()
@@ -349,9 +392,18 @@ def _one_line(e: BaseException) -> str:
 
 
 def _failed(job: dict, error: str) -> dict:
-    return {"trial": job["name"], "run_dir": job["run_dir"], "overrides": job["overrides"],
-            "status": "failed", "error": error, "metrics": {}, "started": _now(),
-            "finished": _now(), "host": socket.gethostname(), "pid": os.getpid()}
+    return {
+        "trial": job["name"],
+        "run_dir": job["run_dir"],
+        "overrides": job["overrides"],
+        "status": "failed",
+        "error": error,
+        "metrics": {},
+        "started": _now(),
+        "finished": _now(),
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+    }
 
 
 def _read_marker(run_dir: Path) -> dict | None:
@@ -376,12 +428,15 @@ def _same_config(stored, config: dict) -> bool:
 def _finished(job: dict) -> dict | None:
     """The record of a trial finished earlier with this very config, else None."""
     marker = _read_marker(job["run_dir"])
-    if (marker is None or marker.get("status") != "ok"
-            or not (Path(job["run_dir"]) / "metrics.json").is_file()
-            or not _same_config(marker.get("config"), job["config"])):
+    if (
+        marker is None
+        or marker.get("status") != "ok"
+        or not (Path(job["run_dir"]) / "metrics.json").is_file()
+        or not _same_config(marker.get("config"), job["config"])
+    ):
         return None
     marker.pop("config")
-    return {**marker, "run_dir": job["run_dir"]}      # the sweep folder may have moved
+    return {**marker, "run_dir": job["run_dir"]}  # the sweep folder may have moved
 
 
 # ------------------------------------------------------------------ executors
@@ -403,8 +458,11 @@ def _run_local(jobs: list[dict], workers: int):
         # run_trial's first act is to write its marker: those without one never started
         started = [j for j in broken if _read_marker(j["run_dir"]) is not None] or broken
         for job in started:
-            yield _failed(job, "BrokenProcessPool: a worker process died while this trial "
-                               "was running (it or another trial in flight crashed)")
+            yield _failed(
+                job,
+                "BrokenProcessPool: a worker process died while this trial "
+                "was running (it or another trial in flight crashed)",
+            )
         pending = [j for j in broken if j not in started]
 
 
@@ -412,8 +470,11 @@ def _ray_trial(job: dict) -> tuple[dict, dict[str, bytes]]:
     """Ray task: the trial's record and its run directory's files."""
     record = run_trial(job)
     run_dir = Path(job["run_dir"])
-    files = {str(p.relative_to(run_dir)): p.read_bytes() for p in sorted(run_dir.rglob("*"))
-             if p.is_file() and p.name != MARKER}
+    files = {
+        str(p.relative_to(run_dir)): p.read_bytes()
+        for p in sorted(run_dir.rglob("*"))
+        if p.is_file() and p.name != MARKER
+    }
     return record, files
 
 
@@ -430,8 +491,9 @@ def _run_ray(jobs: list[dict], workers: int, address: str | None):
     try:
         import ray
     except ImportError:
-        raise cfgmod.InputError("--executor ray: Ray is not installed: "
-                                "pip install -e '.[ray]'") from None
+        raise cfgmod.InputError(
+            "--executor ray: Ray is not installed: pip install -e '.[ray]'"
+        ) from None
     ours = not ray.is_initialized()
     if ours:
         if address is None:
@@ -447,7 +509,7 @@ def _run_ray(jobs: list[dict], workers: int, address: str | None):
             job = refs[ref]
             try:
                 record, files = ray.get(ref)
-            except ray.exceptions.RayError as e:     # the worker died: this trial only
+            except ray.exceptions.RayError as e:  # the worker died: this trial only
                 yield _failed(job, _one_line(e))
                 continue
             _receive(Path(job["run_dir"]), files)
@@ -462,9 +524,15 @@ def default_workers() -> int:
 
 
 # ------------------------------------------------------------------ the sweep
-def run_sweep(path: str | Path, *, executor: str = "local", workers: int | None = None,
-              ray_address: str | None = None, out: str | Path | None = None,
-              progress: Callable[[dict, int, int], None] | None = None) -> dict:
+def run_sweep(
+    path: str | Path,
+    *,
+    executor: str = "local",
+    workers: int | None = None,
+    ray_address: str | None = None,
+    out: str | Path | None = None,
+    progress: Callable[[dict, int, int], None] | None = None,
+) -> dict:
     """Run (or resume) a sweep; returns the results (also written to ``out``)."""
     spec = load_sweep(path)
     if executor not in ("local", "ray"):
@@ -477,7 +545,7 @@ def run_sweep(path: str | Path, *, executor: str = "local", workers: int | None 
     jobs = plan(spec, Path(path), out_dir)
     records = {job["name"]: _finished(job) for job in jobs}
     todo = [job for job in jobs if records[job["name"]] is None]
-    for job in todo:                             # a fresh start for reruns
+    for job in todo:  # a fresh start for reruns
         shutil.rmtree(job["run_dir"], ignore_errors=True)
     configs = {job["name"]: job["config"] for job in jobs}
     done = len(jobs) - len(todo)
@@ -498,31 +566,42 @@ def run_sweep(path: str | Path, *, executor: str = "local", workers: int | None 
         finish(_failed(job, job["error"]))
     runnable = [j for j in todo if not j["error"]]
     if runnable:
-        run = _run_ray(runnable, workers, ray_address) if executor == "ray" else \
-            _run_local(runnable, workers)
+        run = (
+            _run_ray(runnable, workers, ray_address)
+            if executor == "ray"
+            else _run_local(runnable, workers)
+        )
         try:
             for record in run:
                 finish(record)
         except KeyboardInterrupt:
-            run.close()                          # stops the pool / shuts Ray down
-            write_results(out_dir, name, jobs, records)   # Ctrl-C may land mid-finish()
+            run.close()  # stops the pool / shuts Ray down
+            write_results(out_dir, name, jobs, records)  # Ctrl-C may land mid-finish()
             from .train import Interrupted
-            raise Interrupted(f"sweep interrupted after {done} of {len(jobs)} trials; "
-                              "run the same command again to resume") from None
+
+            raise Interrupted(
+                f"sweep interrupted after {done} of {len(jobs)} trials; "
+                "run the same command again to resume"
+            ) from None
     return write_results(out_dir, name, jobs, records, figure=True)
 
 
 def print_progress(record: dict, done: int, total: int) -> None:
     rel = record["metrics"].get("rel_rmse")
-    what = record["error"] if record["status"] != "ok" else \
-        (f"rel_rmse {100 * rel:.2f} %" if isinstance(rel, float) else "")
+    what = (
+        record["error"]
+        if record["status"] != "ok"
+        else (f"rel_rmse {100 * rel:.2f} %" if isinstance(rel, float) else "")
+    )
     print(f"[{done}/{total}] {record['status']:6s} {record['trial']}  {what}", flush=True)
 
 
 def summary_line(results: dict) -> str:
     failed = sum(r["status"] != "ok" for r in results["trials"])
-    return (f"{len(results['trials']) - failed} trials ok, {failed} failed: "
-            f"{results['folder']}/results.csv")
+    return (
+        f"{len(results['trials']) - failed} trials ok, {failed} failed: "
+        f"{results['folder']}/results.csv"
+    )
 
 
 # ------------------------------------------------------------------ results
@@ -532,15 +611,21 @@ def _cell(value) -> str:
     return value if isinstance(value, str) else json.dumps(value)
 
 
-def write_results(out_dir: Path, name: str, jobs: list[dict], records: dict, *,
-                  figure: bool = False) -> dict:
+def write_results(
+    out_dir: Path, name: str, jobs: list[dict], records: dict, *, figure: bool = False
+) -> dict:
     """results.json, results.csv (and summary.png) from the records, in plan order."""
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for job in jobs:
-        r = records.get(job["name"]) or {"trial": job["name"], "run_dir": job["run_dir"],
-                                         "overrides": job["overrides"], "status": "pending",
-                                         "error": None, "metrics": {}}
+        r = records.get(job["name"]) or {
+            "trial": job["name"],
+            "run_dir": job["run_dir"],
+            "overrides": job["overrides"],
+            "status": "pending",
+            "error": None,
+            "metrics": {},
+        }
         rows.append({**r, "run_dir": os.path.relpath(r["run_dir"], out_dir)})
     results = {"sweep": name, "folder": str(out_dir), "trials": rows}
     _write_json(out_dir / "results.json", results)
@@ -549,9 +634,16 @@ def write_results(out_dir: Path, name: str, jobs: list[dict], records: dict, *,
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["trial", "status", *keys, *METRICS, "error", "run_dir"])
     for r in rows:
-        w.writerow([r["trial"], r["status"], *(_cell(r["overrides"].get(k)) for k in keys),
-                    *(_cell(r["metrics"].get(m)) for m in METRICS), r["error"] or "",
-                    r["run_dir"]])
+        w.writerow(
+            [
+                r["trial"],
+                r["status"],
+                *(_cell(r["overrides"].get(k)) for k in keys),
+                *(_cell(r["metrics"].get(m)) for m in METRICS),
+                r["error"] or "",
+                r["run_dir"],
+            ]
+        )
     _write_text(out_dir / "results.csv", buf.getvalue())
     if figure:
         summary_figure(rows, out_dir / "summary.png")
@@ -571,26 +663,43 @@ def summary_figure(rows: list[dict], path: Path) -> None:
     fig = Figure(figsize=(13, 1.2 + 0.28 * len(rows)), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 3, sharey=True)
-    panels = [("rel_rmse", "rel. RMSE of f cos (%)", 100.0, "linear"),
-              ("max_albedo", "max directional albedo", 1.0, "linear"),
-              ("reciprocity", "reciprocity error", 1.0, "symlog")]
+    panels = [
+        ("rel_rmse", "rel. RMSE of f cos (%)", 100.0, "linear"),
+        ("max_albedo", "max directional albedo", 1.0, "linear"),
+        ("reciprocity", "reciprocity error", 1.0, "symlog"),
+    ]
     y = range(len(rows))
     for ax, (key, label, scale, xscale) in zip(axes, panels):
         values = [r["metrics"].get(key) for r in rows]
         ok = [isinstance(v, (int, float)) for v in values]
-        ax.barh([i for i, k in zip(y, ok) if k],
-                [scale * v for v, k in zip(values, ok) if k], color="tab:blue")
+        ax.barh(
+            [i for i, k in zip(y, ok) if k],
+            [scale * v for v, k in zip(values, ok) if k],
+            color="tab:blue",
+        )
         for i, (r, k) in enumerate(zip(rows, ok)):
             if not k:
-                ax.text(0.01, i, r["status"], va="center", color="tab:red",
-                        transform=ax.get_yaxis_transform())
+                ax.text(
+                    0.01,
+                    i,
+                    r["status"],
+                    va="center",
+                    color="tab:red",
+                    transform=ax.get_yaxis_transform(),
+                )
         if key == "max_albedo":
             ax.axvline(1.0, color="k", lw=0.8, ls="--")
-        if key == "reciprocity":                 # mostly exact zeros: write the values
+        if key == "reciprocity":  # mostly exact zeros: write the values
             for i, (v, k) in enumerate(zip(values, ok)):
                 if k:
-                    ax.text(0.02, i, f"{v:.2g}", va="center", fontsize=7,
-                            transform=ax.get_yaxis_transform())
+                    ax.text(
+                        0.02,
+                        i,
+                        f"{v:.2g}",
+                        va="center",
+                        fontsize=7,
+                        transform=ax.get_yaxis_transform(),
+                    )
             top = max([v for v, k in zip(values, ok) if k] + [0.0])
             ax.set_xlim(0.0, max(1e-6, 10 * top))
         ax.set_xscale(xscale, **({"linthresh": 1e-7} if xscale == "symlog" else {}))

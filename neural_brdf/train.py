@@ -72,7 +72,7 @@ from .model import RawBRDF
 LOG_COLUMNS = ["step", "loss", "lr", "seconds", "val_rel_rmse"]
 # Settings a resumed run must share with its checkpoint (the rest may change, e.g. steps).
 MUST_MATCH = ("target", "model", "data", "train.seed", "train.loss", "train.loss_eps")
-EVAL_PAIRS = 16384          # held-out importance-sampled pairs for the CSV's val_rel_rmse
+EVAL_PAIRS = 16384  # held-out importance-sampled pairs for the CSV's val_rel_rmse
 
 
 # Finished-run outputs: their presence means a fresh run here would destroy a result.
@@ -98,11 +98,15 @@ def check_fresh_run_dir(run_dir: Path, *, resume: bool, overwrite: bool) -> None
     finished = [n for n in FINISHED_FILES if (run_dir / n).exists()]
     if not overwrite:
         if finished:
-            raise RunExists(f"{run_dir}: holds a finished run ({finished[0]}); choose another "
-                            "--out, continue it with --resume, or replace it with --overwrite")
+            raise RunExists(
+                f"{run_dir}: holds a finished run ({finished[0]}); choose another "
+                "--out, continue it with --resume, or replace it with --overwrite"
+            )
         if (run_dir / "ckpt.pt").exists():
-            raise RunExists(f"{run_dir}: holds an unfinished run (ckpt.pt); continue it with "
-                            "--resume or replace it with --overwrite")
+            raise RunExists(
+                f"{run_dir}: holds an unfinished run (ckpt.pt); continue it with "
+                "--resume or replace it with --overwrite"
+            )
         return
     for path in [*(run_dir / n for n in RUN_OUTPUTS), *run_dir.glob("report-*.png")]:
         path.unlink(missing_ok=True)
@@ -112,8 +116,15 @@ def default_run_dir(cfg: cfgmod.Config) -> Path:
     return Path("runs") / cfg.name
 
 
-def loss_fn(kind: str, pred: torch.Tensor, ref: torch.Tensor, cos: torch.Tensor, eps: float,
-            peak_weight: float = 0.0, peak_cap: float = math.inf):
+def loss_fn(
+    kind: str,
+    pred: torch.Tensor,
+    ref: torch.Tensor,
+    cos: torch.Tensor,
+    eps: float,
+    peak_weight: float = 0.0,
+    peak_cap: float = math.inf,
+):
     a, b = pred * cos, ref * cos
     if kind == "nbrdf":
         d = (torch.log1p(a) - torch.log1p(b)).abs()
@@ -157,8 +168,10 @@ def check_resumable(saved: dict, cfg: cfgmod.Config) -> None:
     now = cfg.model_dump()
     for key in MUST_MATCH:
         if _get(saved, key) != _get(now, key):
-            raise cfgmod.ConfigError(f"{key}: differs from the checkpoint being resumed "
-                                     f"({_get(saved, key)!r} there, {_get(now, key)!r} here)")
+            raise cfgmod.ConfigError(
+                f"{key}: differs from the checkpoint being resumed "
+                f"({_get(saved, key)!r} there, {_get(now, key)!r} here)"
+            )
 
 
 @contextmanager
@@ -182,8 +195,9 @@ def deferred_sigint():
 
 
 # ------------------------------------------------------------------ the run
-def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
-          target: Any = None) -> tuple[RawBRDF, dict[str, Any]]:
+def train(
+    cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target: Any = None
+) -> tuple[RawBRDF, dict[str, Any]]:
     """Optimise the raw network; writes ckpt.pt and log.csv.  Returns (network, figures).
 
     ``target`` is the model of ``cfg.target`` (``data.build_target``) when the caller
@@ -207,8 +221,9 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
     init = float(pool.f.median().clamp(1e-3, 10.0))
     raw = RawBRDF.from_config(cfg.model, init_value=init)
     opt = torch.optim.Adam(raw.parameters(), lr=t.lr)
-    eval_wi, eval_wo, eval_f = (x.float() for x in
-                                data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101))
+    eval_wi, eval_wo, eval_f = (
+        x.float() for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
+    )
     step, seconds = 0, 0.0
     if ckpt is not None:
         raw.load_state_dict(ckpt["model"])
@@ -217,9 +232,15 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
         step, seconds = int(ckpt["step"]), float(ckpt["train_seconds"])
 
     def state():
-        return {"format_version": cfgmod.FORMAT_VERSION, "step": step, "config": cfg.model_dump(),
-                "model": raw.state_dict(), "optimizer": opt.state_dict(),
-                "pool": pool.state_dict(), "train_seconds": seconds}
+        return {
+            "format_version": cfgmod.FORMAT_VERSION,
+            "step": step,
+            "config": cfg.model_dump(),
+            "model": raw.state_dict(),
+            "optimizer": opt.state_dict(),
+            "pool": pool.state_dict(),
+            "train_seconds": seconds,
+        }
 
     def weights_finite() -> bool:
         return all(bool(torch.isfinite(p).all()) for p in raw.parameters())
@@ -236,8 +257,15 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
     log.writerows(rows)
 
     last_loss = math.nan
-    bar = tqdm(total=t.steps, initial=min(step, t.steps), desc=cfg.name, disable=not t.progress,
-               dynamic_ncols=True, mininterval=0.5, leave=False)
+    bar = tqdm(
+        total=t.steps,
+        initial=min(step, t.steps),
+        desc=cfg.name,
+        disable=not t.progress,
+        dynamic_ncols=True,
+        mininterval=0.5,
+        leave=False,
+    )
     start = time.perf_counter() - seconds
     try:
         with deferred_sigint() as sigint:
@@ -245,27 +273,35 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
                 if sigint["set"]:
                     seconds = time.perf_counter() - start
                     save_checkpoint(ckpt_path, state())
-                    raise Interrupted(f"interrupted at step {step}; checkpoint saved to "
-                                      f"{ckpt_path}; continue with --resume")
+                    raise Interrupted(
+                        f"interrupted at step {step}; checkpoint saved to "
+                        f"{ckpt_path}; continue with --resume"
+                    )
                 lr = learning_rate(t, step)
                 for group in opt.param_groups:
                     group["lr"] = lr
                 wi, wo, f = pool.batch()
                 pred = raw(wi, wo)
-                loss = loss_fn(t.loss, pred, f, wo[:, 2:3], t.loss_eps, t.peak_weight,
-                               t.peak_cap)
+                loss = loss_fn(t.loss, pred, f, wo[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)
                 last_loss = float(loss.detach())
                 if not math.isfinite(last_loss):
-                    raise Diverged(f"loss is {last_loss} at step {step}; the last good "
-                                   f"checkpoint is kept in {ckpt_path} (try a lower train.lr)")
+                    raise Diverged(
+                        f"loss is {last_loss} at step {step}; the last good "
+                        f"checkpoint is kept in {ckpt_path} (try a lower train.lr)"
+                    )
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
                 step += 1
                 bar.update(1)
                 if step % t.log_every == 0 or step == t.steps:
-                    row = {"step": step, "loss": f"{last_loss:.6g}", "lr": f"{lr:.4g}",
-                           "seconds": f"{time.perf_counter() - start:.2f}", "val_rel_rmse": ""}
+                    row = {
+                        "step": step,
+                        "loss": f"{last_loss:.6g}",
+                        "lr": f"{lr:.4g}",
+                        "seconds": f"{time.perf_counter() - start:.2f}",
+                        "val_rel_rmse": "",
+                    }
                     if t.eval_every and (step % t.eval_every == 0 or step == t.steps):
                         with torch.no_grad():
                             err = rel_rmse(raw(eval_wi, eval_wo), eval_f, eval_wo[:, 2:3])
@@ -277,8 +313,10 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
                     log_fh.flush()
                 if step % t.checkpoint_every == 0 or step == t.steps:
                     if not weights_finite():
-                        raise Diverged(f"weights became non-finite by step {step}; the last "
-                                       f"good checkpoint is kept in {ckpt_path}")
+                        raise Diverged(
+                            f"weights became non-finite by step {step}; the last "
+                            f"good checkpoint is kept in {ckpt_path}"
+                        )
                     seconds = time.perf_counter() - start
                     save_checkpoint(ckpt_path, state())
     finally:
@@ -287,12 +325,22 @@ def train(cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False,
     seconds = time.perf_counter() - start
     with torch.no_grad():
         err = rel_rmse(raw(eval_wi, eval_wo), eval_f, eval_wo[:, 2:3])
-    return raw.eval(), {"steps": step, "train_seconds": seconds, "final_loss": last_loss,
-                        "raw_val_rel_rmse": err, "target": target.describe()}
+    return raw.eval(), {
+        "steps": step,
+        "train_seconds": seconds,
+        "final_loss": last_loss,
+        "raw_val_rel_rmse": err,
+        "target": target.describe(),
+    }
 
 
-def run(cfg: cfgmod.Config, run_dir: str | Path | None = None, *, resume: bool = False,
-        overwrite: bool = False) -> dict[str, Any]:
+def run(
+    cfg: cfgmod.Config,
+    run_dir: str | Path | None = None,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+) -> dict[str, Any]:
     """Train, export ``model.onnx``, validate it; returns (and writes) ``metrics.json``.
 
     A fresh run (no ``resume``) into a folder that already holds a run raises
@@ -305,21 +353,31 @@ def run(cfg: cfgmod.Config, run_dir: str | Path | None = None, *, resume: bool =
     raw, training = train(cfg, run_dir, resume=resume, target=target)
     t1 = time.perf_counter()
     model, table = exp.normalized_model(raw, cfg, target)
-    info = exp.export(model, cfg, run_dir / "model.onnx", target_desc=target.describe(),
-                      extra=target)
+    info = exp.export(
+        model, cfg, run_dir / "model.onnx", target_desc=target.describe(), extra=target
+    )
     t2 = time.perf_counter()
-    report = validate.report(run_dir / "model.onnx", reference=target,
-                             physics_report=info["physics"])
+    report = validate.report(
+        run_dir / "model.onnx", reference=target, physics_report=info["physics"]
+    )
     t3 = time.perf_counter()
     report["training"] = training
-    report["export"] = {"parity_rel_error": info["parity_rel_error"],
-                        "float32_rel_precision": info["float32_rel_precision"],
-                        "normalization": table, "seconds": t2 - t1}
-    report["seconds"] = {"train": training["train_seconds"], "export": t2 - t1,
-                         "validate": t3 - t2, "total": t3 - t0}
+    report["export"] = {
+        "parity_rel_error": info["parity_rel_error"],
+        "float32_rel_precision": info["float32_rel_precision"],
+        "normalization": table,
+        "seconds": t2 - t1,
+    }
+    report["seconds"] = {
+        "train": training["train_seconds"],
+        "export": t2 - t1,
+        "validate": t3 - t2,
+        "total": t3 - t0,
+    }
     validate.write_json(report, run_dir / "metrics.json")
     from .report import write_report  # matplotlib: only when a run has finished
-    write_report(run_dir)                    # report.html / report.md from the files above
+
+    write_report(run_dir)  # report.html / report.md from the files above
     report["seconds"]["report"] = time.perf_counter() - t3
     report["seconds"]["total"] = time.perf_counter() - t0
     validate.write_json(report, run_dir / "metrics.json")

@@ -48,7 +48,7 @@ from .runtime import load
 
 # Directions of the furnace grid stop this far above the horizon (radians, 0.01 degree).
 HORIZON_GAP = math.radians(0.01)
-AZIMUTHS = 16               # per polar angle, for an anisotropic model
+AZIMUTHS = 16  # per polar angle, for an anisotropic model
 N_WORST = 5
 # cos(theta_i) bands of the per-band errors: for a model whose f cos grows without bound
 # at grazing angles (Ward, Ashikhmin-Shirley) the overall error is set by the first band.
@@ -73,15 +73,18 @@ def furnace_directions(n_theta: int, anisotropic: bool, seed: int) -> torch.Tens
     return analytic.frame.spherical(theta, phi).reshape(-1, 3)
 
 
-def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation,
-            extra: Any = None) -> dict[str, Any]:
+def physics(
+    fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, extra: Any = None
+) -> dict[str, Any]:
     """Physics checks of ``fn(wi, wo)`` on numpy (N, 3) arrays -> a report dict."""
     s = settings
     recip = analytic.reciprocity_error(fn, n=s.pairs, seed=s.seed)
     min_val = analytic.min_value(fn, n=s.pairs, seed=s.seed + 1)
     dirs = furnace_directions(s.furnace_dirs, anisotropic, s.seed + 2)
 
-    rho, err = quadrature.albedo(quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, extra=extra)
+    rho, err = quadrature.albedo(
+        quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, extra=extra
+    )
     rho, err = rho.numpy(), err.numpy()
     # hemispherical albedo: 2 int_0^1 rho(mu) mu dmu, rows averaged over azimuth
     n_theta = len(dirs) // AZIMUTHS if anisotropic else len(dirs)
@@ -93,16 +96,25 @@ def physics(fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation,
     imax = np.unravel_index(np.argmax(rho), rho.shape)
     max_albedo = float(rho.max()) if np.all(np.isfinite(rho)) else math.inf
     checks = {
-        "reciprocity": {"value": recip, "limit": s.reciprocity_tol,
-                        "passed": bool(recip <= s.reciprocity_tol)},
+        "reciprocity": {
+            "value": recip,
+            "limit": s.reciprocity_tol,
+            "passed": bool(recip <= s.reciprocity_tol),
+        },
         "min_value": {"value": min_val, "limit": 0.0, "passed": bool(min_val >= 0.0)},
-        "max_albedo": {"value": max_albedo, "limit": 1.0 + s.albedo_tol,
-                       "passed": bool(max_albedo <= 1.0 + s.albedo_tol),
-                       "at_theta_deg": float(np.degrees(np.arccos(dirs[imax[0], 2].item()))),
-                       "quadrature_stderr": float(err[imax])},
+        "max_albedo": {
+            "value": max_albedo,
+            "limit": 1.0 + s.albedo_tol,
+            "passed": bool(max_albedo <= 1.0 + s.albedo_tol),
+            "at_theta_deg": float(np.degrees(np.arccos(dirs[imax[0], 2].item()))),
+            "quadrature_stderr": float(err[imax]),
+        },
     }
-    return {"checks": checks, "hemispherical_albedo": hemi.tolist(),
-            "furnace": {"directions": len(dirs), "samples": s.furnace_samples}}
+    return {
+        "checks": checks,
+        "hemispherical_albedo": hemi.tolist(),
+        "furnace": {"directions": len(dirs), "samples": s.furnace_samples},
+    }
 
 
 def accuracy(fn: Callable, reference: Any, *, n: int, seed: int) -> dict[str, Any]:
@@ -116,21 +128,33 @@ def accuracy(fn: Callable, reference: Any, *, n: int, seed: int) -> dict[str, An
     pred = np.asarray(fn(wi, wo), dtype=np.float64)
     cos = np.clip(wo[:, 2:3], 0.0, None)
     a, b = pred * cos, ref * cos
-    rel = float(np.sqrt(np.sum((a - b) ** 2) / max(np.sum(b ** 2), 1e-300)))
+    rel = float(np.sqrt(np.sum((a - b) ** 2) / max(np.sum(b**2), 1e-300)))
     log_err = float(np.mean(np.abs(np.log1p(np.clip(a, 0, None)) - np.log1p(b))))
     bands = {}
     for lo, hi in INCIDENCE_BANDS:
         k = (wi[:, 2] >= lo) & (wi[:, 2] < hi)
         den = np.sum(b[k] ** 2)
-        bands[f"cos_i {lo:g}-{min(hi, 1.0):g}"] = (float(np.sqrt(np.sum((a[k] - b[k]) ** 2) / den))
-                                                   if den > 0 else None)
+        bands[f"cos_i {lo:g}-{min(hi, 1.0):g}"] = (
+            float(np.sqrt(np.sum((a[k] - b[k]) ** 2) / den)) if den > 0 else None
+        )
     per = np.abs(a - b).sum(-1)
     worst = []
     for i in np.argsort(-per)[:N_WORST]:
-        worst.append({"wi": wi[i].round(5).tolist(), "wo": wo[i].round(5).tolist(),
-                      "f": ref[i].tolist(), "f_model": pred[i].tolist()})
-    return {"rel_rmse": rel, "nbrdf_log_error": log_err, "pairs": n,
-            "rel_rmse_by_incidence": bands, "worst": worst}
+        worst.append(
+            {
+                "wi": wi[i].round(5).tolist(),
+                "wo": wo[i].round(5).tolist(),
+                "f": ref[i].tolist(),
+                "f_model": pred[i].tolist(),
+            }
+        )
+    return {
+        "rel_rmse": rel,
+        "nbrdf_log_error": log_err,
+        "pairs": n,
+        "rel_rmse_by_incidence": bands,
+        "worst": worst,
+    }
 
 
 def reference_from(path: str | Path) -> Any:
@@ -141,9 +165,13 @@ def reference_from(path: str | Path) -> Any:
     return data.build_target(cfgmod.load(path).target)
 
 
-def report(model_path: str | Path, *, reference: Any = None,
-           settings: cfgmod.Validation | None = None,
-           physics_report: dict[str, Any] | None = None) -> dict[str, Any]:
+def report(
+    model_path: str | Path,
+    *,
+    reference: Any = None,
+    settings: cfgmod.Validation | None = None,
+    physics_report: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Full report of an exported model; ``["passed"]`` is the physics verdict.
 
     ``reference``: a :class:`Config` (its target is built), or a target already built
@@ -157,18 +185,24 @@ def report(model_path: str | Path, *, reference: Any = None,
             settings = cfgmod.from_dict(model.config).validation
         except cfgmod.ConfigError:
             settings = cfgmod.Validation()
-    target = (data.build_target(reference.target) if isinstance(reference, cfgmod.Config)
-              else reference)
-    out = {"model": str(model_path), "encoding": model.encoding,
-           "target": model.metadata.get("target", "")}
+    target = (
+        data.build_target(reference.target) if isinstance(reference, cfgmod.Config) else reference
+    )
+    out = {
+        "model": str(model_path),
+        "encoding": model.encoding,
+        "target": model.metadata.get("target", ""),
+    }
     if physics_report is None:
-        physics_report = physics(model.eval, anisotropic=is_anisotropic(model.encoding),
-                                 settings=settings, extra=target)
+        physics_report = physics(
+            model.eval, anisotropic=is_anisotropic(model.encoding), settings=settings, extra=target
+        )
     out.update(physics_report)
     if target is not None:
         out["reference"] = target.describe()
-        out["accuracy"] = accuracy(model.eval, target, n=settings.accuracy_samples,
-                                   seed=settings.seed + 4)
+        out["accuracy"] = accuracy(
+            model.eval, target, n=settings.accuracy_samples, seed=settings.seed + 4
+        )
     out["passed"] = all(c["passed"] for c in out["checks"].values())
     return out
 
@@ -178,8 +212,7 @@ def format_table(report: dict[str, Any]) -> str:
     for name, c in report["checks"].items():
         op = "<=" if name != "min_value" else ">="
         value = f"{c['value']:.6f}" if name == "max_albedo" else f"{c['value']:.3g}"
-        rows.append((name, value, f"{op} {c['limit']:.6g}",
-                     "ok" if c["passed"] else "FAIL"))
+        rows.append((name, value, f"{op} {c['limit']:.6g}", "ok" if c["passed"] else "FAIL"))
     hemi = ", ".join(f"{v:.4f}" for v in report["hemispherical_albedo"])
     rows.append(("hemispherical_albedo", hemi, "", ""))
     if "accuracy" in report:

@@ -40,11 +40,11 @@ import numpy as np
 from .errors import InputError
 from .fileio import atomic_write
 
-SPHERE = 256                # sphere view size in pixels
-ALBEDO_THETA = np.linspace(0.0, 89.0, 30)   # theta_i of the precomputed albedo curve, deg
-ALBEDO_SAMPLES = 2048       # quadrature samples per theta_i
+SPHERE = 256  # sphere view size in pixels
+ALBEDO_THETA = np.linspace(0.0, 89.0, 30)  # theta_i of the precomputed albedo curve, deg
+ALBEDO_SAMPLES = 2048  # quadrature samples per theta_i
 SCRIPT = Path(__file__).with_name("viewer_page.js")
-TANGENT_EPS = 1e-6          # |(n.z, 0, -n.x)| below this: the tangent falls back to +x
+TANGENT_EPS = 1e-6  # |(n.z, 0, -n.x)| below this: the tangent falls back to +x
 
 CSS = """
 body { font: 14px/1.4 system-ui, sans-serif; color: #222; background: #fafafa; margin: 0; }
@@ -64,6 +64,7 @@ canvas.plot { border: 1px solid #ddd; }
 class Model:
     """One model of the page: its label, its GLSL (defining ``neural_brdf_eval``) and its
     albedo curve {"theta": [deg], "rho": [[r, g, b]]}."""
+
     name: str
     glsl: str
     albedo: dict
@@ -74,18 +75,21 @@ def albedo_curve(fn, theta_deg=ALBEDO_THETA, *, samples: int = ALBEDO_SAMPLES) -
     import torch
 
     from . import quadrature
+
     t = np.radians(np.asarray(theta_deg, dtype=np.float64))
     wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
     rho, _ = quadrature.albedo(quadrature.from_numpy(fn), wi, samples)
-    return {"theta": [round(float(x), 4) for x in theta_deg],
-            "rho": [[round(float(v), 6) for v in row] for row in rho.numpy()]}
+    return {
+        "theta": [round(float(x), 4) for x in theta_deg],
+        "rho": [[round(float(v), 6) for v in row] for row in rho.numpy()],
+    }
 
 
 def sphere_directions(size: int, light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(wi, wo, on_sphere) of every pixel (size, size, 3), rows bottom-up like readPixels:
     the page's geometry (viewer_page.js, SPHERE_MAIN) in float64."""
     c = (np.arange(size) + 0.5) / size * 2.0 - 1.0
-    x, y = np.meshgrid(c, c)                        # [row = y, column = x]
+    x, y = np.meshgrid(c, c)  # [row = y, column = x]
     r2 = x * x + y * y
     inside = r2 < 1.0
     n = np.stack([x, y, np.sqrt(np.clip(1.0 - r2, 0.0, None))], -1)
@@ -108,22 +112,30 @@ def page(models: list[Model], *, title: str = "neural-brdf viewer") -> str:
     """The viewer page for one or two models, as an HTML string."""
     if not 1 <= len(models) <= 2:
         raise ValueError(f"models: one or two, got {len(models)}")
-    data = {"sphere": SPHERE, "models": [
-        {"name": m.name, "glsl": m.glsl, "albedo": m.albedo} for m in models]}
+    data = {
+        "sphere": SPHERE,
+        "models": [{"name": m.name, "glsl": m.glsl, "albedo": m.albedo} for m in models],
+    }
     labels = [m.name for m in models] + (["relative difference"] if len(models) > 1 else [])
     label_html = "".join(f"<div>{html.escape(s)}</div>" for s in labels)
-    legend = ("" if len(models) == 1 else
-              f"<p>Plots: <b>{html.escape(models[0].name)}</b> solid, "
-              f"<b>{html.escape(models[1].name)}</b> dashed.  Difference: max over RGB of "
-              "|A − B| / max(A, B), log colour scale from 10<sup>−3</sup> (blue) to 1 "
-              "(yellow).</p>")
+    legend = (
+        ""
+        if len(models) == 1
+        else f"<p>Plots: <b>{html.escape(models[0].name)}</b> solid, "
+        f"<b>{html.escape(models[1].name)}</b> dashed.  Difference: max over RGB of "
+        "|A − B| / max(A, B), log colour scale from 10<sup>−3</sup> (blue) to 1 "
+        "(yellow).</p>"
+    )
     sliders = "".join(
         f'<label for="{i}">{html.escape(lab)}</label><input type="range" id="{i}" '
         f'min="{lo}" max="{hi}" step="{st}"><span id="{i}-v"></span>'
-        for i, lab, lo, hi, st in [("nb-thetaL", "light θ from the view axis [deg]", 0, 89, 1),
-                                   ("nb-phiL", "light φ [deg]", 0, 359, 1),
-                                   ("nb-ev", "exposure [stops]", -6, 6, 0.25),
-                                   ("nb-thetaI", "slice incidence θi [deg]", 0, 89, 1)])
+        for i, lab, lo, hi, st in [
+            ("nb-thetaL", "light θ from the view axis [deg]", 0, 89, 1),
+            ("nb-phiL", "light φ [deg]", 0, 359, 1),
+            ("nb-ev", "exposure [stops]", -6, 6, 0.25),
+            ("nb-thetaI", "slice incidence θi [deg]", 0, 89, 1),
+        ]
+    )
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>{CSS}</style></head><body><main>
@@ -158,15 +170,18 @@ def glsl_of(model, *, lobe: dict | None = None) -> str:
     try:
         from . import backends
     except ImportError:
-        raise InputError("view: the GLSL code generator (neural_brdf.backends) is not "
-                         "available in this installation") from None
+        raise InputError(
+            "view: the GLSL code generator (neural_brdf.backends) is not "
+            "available in this installation"
+        ) from None
     return backends.generate(str(model), "glsl", lobe=lobe)
 
 
 def onnx_model(path, label: str) -> Model:
     """A model of the page from an ONNX file: its generated GLSL and its albedo curve."""
     from .runtime import load
-    brdf = load(path)                  # a one-line InputError on a missing or bad file
+
+    brdf = load(path)  # a one-line InputError on a missing or bad file
     return Model(label, glsl_of(path), albedo_curve(brdf.eval))
 
 
@@ -176,6 +191,7 @@ def analytic_model(name: str, params: dict, label: str) -> Model:
     from . import lobe
     from .export import analytic_onnx
     from .runtime import load
+
     payload = analytic_onnx(name, params)
     with tempfile.TemporaryDirectory(prefix="nbrdf-view-") as tmp:
         onnx_path = Path(tmp) / "reference.onnx"
@@ -192,6 +208,7 @@ def _label(path: Path) -> str:
 def models_for(model, compare=None) -> list[Model]:
     """The page's models: ``model`` (.onnx) and optionally ``compare`` (.onnx or a config)."""
     from . import config
+
     model = Path(model)
     if model.suffix != ".onnx":
         raise InputError(f"{model}: expected an ONNX model (.onnx)")
@@ -203,13 +220,20 @@ def models_for(model, compare=None) -> list[Model]:
         elif compare.suffix in (".yaml", ".yml"):
             cfg = config.load(compare)
             if cfg.target.data is not None:
-                raise InputError(f"{compare}: target.data: the viewer compares analytic "
-                                 "targets only (measured data has no ONNX graph)")
-            out.append(analytic_model(cfg.target.model, dict(cfg.target.params),
-                                      f"target: {cfg.target.model}"))
+                raise InputError(
+                    f"{compare}: target.data: the viewer compares analytic "
+                    "targets only (measured data has no ONNX graph)"
+                )
+            out.append(
+                analytic_model(
+                    cfg.target.model, dict(cfg.target.params), f"target: {cfg.target.model}"
+                )
+            )
         else:
-            raise InputError(f"--compare {compare}: expected a model (.onnx) or a config "
-                             "(.yaml) whose analytic target is compared")
+            raise InputError(
+                f"--compare {compare}: expected a model (.onnx) or a config "
+                "(.yaml) whose analytic target is compared"
+            )
     return out
 
 

@@ -38,9 +38,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from scipy import stats
@@ -50,12 +50,12 @@ from scipy import stats
 SampleFn = Callable[[np.ndarray], np.ndarray]
 PdfFn = Callable[[np.ndarray], np.ndarray]
 
-MIN_EXPECTED = 5.0          # Pearson's rule of thumb: pool cells expecting fewer samples
-MASS_LIMIT = 1.0 + 1e-3     # a density may not integrate to more than this
-UNIT_TOL = 1e-6             # |wo| must be 1 to this (float64 samplers)
-CHUNK = 1 << 19             # pdf evaluations per call (bounds memory)
-RECHECK_SIGMA = 3.0         # cells this many standard deviations off are re-integrated ...
-RECHECK_MAX = 512           # ... at most this many, the worst first
+MIN_EXPECTED = 5.0  # Pearson's rule of thumb: pool cells expecting fewer samples
+MASS_LIMIT = 1.0 + 1e-3  # a density may not integrate to more than this
+UNIT_TOL = 1e-6  # |wo| must be 1 to this (float64 samplers)
+CHUNK = 1 << 19  # pdf evaluations per call (bounds memory)
+RECHECK_SIGMA = 3.0  # cells this many standard deviations off are re-integrated ...
+RECHECK_MAX = 512  # ... at most this many, the worst first
 
 
 # --------------------------------------------------------------------------- grid
@@ -107,8 +107,8 @@ class Quadrature:
     """Probability per cell, ``mass[iz, ip]`` = integral of the pdf over the cell."""
 
     mass: np.ndarray
-    pdf_min: float               # smallest pdf value seen at any node (NaN if one was NaN)
-    unconverged: int             # subcells still refining when max_depth was reached
+    pdf_min: float  # smallest pdf value seen at any node (NaN if one was NaN)
+    unconverged: int  # subcells still refining when max_depth was reached
     evaluations: int
 
     @property
@@ -119,13 +119,20 @@ class Quadrature:
 def _eval_pdf(pdf_fn: PdfFn, w: np.ndarray) -> np.ndarray:
     out = np.empty(len(w))
     for s in range(0, len(w), CHUNK):
-        out[s:s + CHUNK] = np.asarray(pdf_fn(w[s:s + CHUNK]), dtype=np.float64).reshape(-1)
+        out[s : s + CHUNK] = np.asarray(pdf_fn(w[s : s + CHUNK]), dtype=np.float64).reshape(-1)
     return out
 
 
-def integrate_cells(pdf_fn: PdfFn, grid: SphereGrid, *, n_samples: float = 1e6,
-                    order: int = 4, max_depth: int = 6, rel_tol: float = 0.1,
-                    max_active: int = 1 << 15) -> Quadrature:
+def integrate_cells(
+    pdf_fn: PdfFn,
+    grid: SphereGrid,
+    *,
+    n_samples: float = 1e6,
+    order: int = 4,
+    max_depth: int = 6,
+    rel_tol: float = 0.1,
+    max_active: int = 1 << 15,
+) -> Quadrature:
     """Adaptive tensor Gauss-Legendre quadrature of ``pdf_fn`` over every grid cell.
 
     A subcell at refinement level ``d`` is accepted once splitting it 2 x 2 changes its
@@ -134,9 +141,9 @@ def integrate_cells(pdf_fn: PdfFn, grid: SphereGrid, *, n_samples: float = 1e6,
     the quadrature error well below the sampling noise the test can resolve.
     """
     x, wts = np.polynomial.legendre.leggauss(order)
-    x, wts = 0.5 * (x + 1.0), 0.5 * wts                     # nodes and weights on [0, 1]
+    x, wts = 0.5 * (x + 1.0), 0.5 * wts  # nodes and weights on [0, 1]
     wz, wp = np.meshgrid(wts, wts, indexing="ij")
-    node_w = (wz * wp).reshape(-1)                           # (order^2,)
+    node_w = (wz * wp).reshape(-1)  # (order^2,)
     xz, xp = np.meshgrid(x, x, indexing="ij")
     xz, xp = xz.reshape(-1), xp.reshape(-1)
 
@@ -155,13 +162,13 @@ def integrate_cells(pdf_fn: PdfFn, grid: SphereGrid, *, n_samples: float = 1e6,
         return (vals * node_w[None, :]).sum(-1) * dz * dp
 
     iz, ip = np.meshgrid(np.arange(grid.n_z), np.arange(grid.n_phi), indexing="ij")
-    cell = (iz * grid.n_phi + ip).reshape(-1)                # base-cell id of each subcell
+    cell = (iz * grid.n_phi + ip).reshape(-1)  # base-cell id of each subcell
     z0 = -1.0 + grid.dz * iz.reshape(-1).astype(np.float64)
     p0 = -math.pi + grid.dphi * ip.reshape(-1).astype(np.float64)
     dz = np.full(z0.shape, grid.dz)
     dp = np.full(z0.shape, grid.dphi)
     est = estimate(z0, dz, p0, dp)
-    base = est.copy()                                        # coarse estimate, sets the tolerance
+    base = est.copy()  # coarse estimate, sets the tolerance
     tol_cell = rel_tol * np.sqrt(np.maximum(base * n_samples, 1.0)) / n_samples
     mass = np.zeros(grid.n_z * grid.n_phi)
     unconverged = 0
@@ -177,7 +184,7 @@ def integrate_cells(pdf_fn: PdfFn, grid: SphereGrid, *, n_samples: float = 1e6,
         refined = child.sum(0)
         if math.isnan(stats_["min"]):
             break
-        ok = np.abs(refined - est) <= tol_cell[cell] / 2.0 ** depth
+        ok = np.abs(refined - est) <= tol_cell[cell] / 2.0**depth
         last = depth == max_depth or 4 * int((~ok).sum()) > max_active
         if last:
             unconverged = int((~ok).sum())
@@ -193,12 +200,13 @@ def integrate_cells(pdf_fn: PdfFn, grid: SphereGrid, *, n_samples: float = 1e6,
     return Quadrature(mass.reshape(grid.shape), stats_["min"], unconverged, stats_["evals"])
 
 
-def integrate_cells_fine(pdf_fn: PdfFn, grid: SphereGrid, cells: np.ndarray, *,
-                         sub: int = 16, order: int = 6) -> tuple[np.ndarray, float]:
+def integrate_cells_fine(
+    pdf_fn: PdfFn, grid: SphereGrid, cells: np.ndarray, *, sub: int = 16, order: int = 6
+) -> tuple[np.ndarray, float]:
     """Mass of the given flat cell indices on a ``sub x sub`` subgrid of each cell with
     ``order``-point Gauss-Legendre per subcell (non-adaptive).  Returns (mass, pdf_min)."""
     x, wts = np.polynomial.legendre.leggauss(order)
-    t = (np.arange(sub)[:, None] + 0.5 * (x[None, :] + 1.0)).reshape(-1) / sub   # (sub*order,)
+    t = (np.arange(sub)[:, None] + 0.5 * (x[None, :] + 1.0)).reshape(-1) / sub  # (sub*order,)
     w = np.tile(0.5 * wts, sub) / sub
     wz, wp = np.meshgrid(w, w, indexing="ij")
     tz, tp = np.meshgrid(t, t, indexing="ij")
@@ -207,12 +215,12 @@ def integrate_cells_fine(pdf_fn: PdfFn, grid: SphereGrid, cells: np.ndarray, *,
     pdf_min = math.inf
     per = max(1, CHUNK // len(w2))
     for s in range(0, len(cells), per):
-        iz, ip = np.divmod(cells[s:s + per], grid.n_phi)
+        iz, ip = np.divmod(cells[s : s + per], grid.n_phi)
         z = -1.0 + grid.dz * (iz[:, None] + tz[None, :])
         p = -math.pi + grid.dphi * (ip[:, None] + tp[None, :])
         vals = _eval_pdf(pdf_fn, _direction(z.reshape(-1), p.reshape(-1))).reshape(z.shape)
         pdf_min = math.nan if np.isnan(vals).any() else min(pdf_min, float(vals.min()))
-        mass[s:s + per] = (vals * w2[None, :]).sum(-1) * grid.dz * grid.dphi
+        mass[s : s + per] = (vals * w2[None, :]).sum(-1) * grid.dz * grid.dphi
     return mass, pdf_min
 
 
@@ -229,17 +237,19 @@ class Chi2Result:
     p_value: float
     statistic: float
     dof: int
-    significance: float          # after the Sidak correction
-    pdf_mass: float              # integral of the pdf over the sphere
-    pooled_in: int = 0           # low-expectation cells pooled ...
-    pooled_out: int = 0          # ... into this many bins
+    significance: float  # after the Sidak correction
+    pdf_mass: float  # integral of the pdf over the sphere
+    pooled_in: int = 0  # low-expectation cells pooled ...
+    pooled_out: int = 0  # ... into this many bins
     messages: list[str] = field(default_factory=list)
     dump_path: Path | None = None
 
     def summary(self) -> str:
-        head = (f"chi2 {self.name}: {'passed' if self.passed else 'FAILED'}; "
-                f"statistic {self.statistic:.1f}, dof {self.dof}, p {self.p_value:.3g} "
-                f"(level {self.significance:.3g}); pdf mass {self.pdf_mass:.6f}")
+        head = (
+            f"chi2 {self.name}: {'passed' if self.passed else 'FAILED'}; "
+            f"statistic {self.statistic:.1f}, dof {self.dof}, p {self.p_value:.3g} "
+            f"(level {self.significance:.3g}); pdf mass {self.pdf_mass:.6f}"
+        )
         lines = [head] + ["  " + m for m in self.messages]
         if self.dump_path is not None:
             lines.append(f"  tables written to {self.dump_path}")
@@ -256,7 +266,7 @@ def pool(observed: np.ndarray, expected: np.ndarray, min_expected: float = MIN_E
     o, e = observed[keep], expected[keep]
     order = np.argsort(e, kind="stable")
     o, e = o[order], e[order]
-    small = int(np.searchsorted(e, min_expected))           # cells expecting < min_expected
+    small = int(np.searchsorted(e, min_expected))  # cells expecting < min_expected
     bins_o, bins_e = list(o[small:]), list(e[small:])
     acc_o = acc_e = 0.0
     extra = 0
@@ -268,7 +278,7 @@ def pool(observed: np.ndarray, expected: np.ndarray, min_expected: float = MIN_E
             pooled_o.append(acc_o)
             pooled_e.append(acc_e)
             acc_o = acc_e = 0.0
-    if acc_e > 0:                                           # a remainder joins a pooled bin
+    if acc_e > 0:  # a remainder joins a pooled bin
         if pooled_e:
             pooled_o[-1] += acc_o
             pooled_e[-1] += acc_e
@@ -291,10 +301,19 @@ def _slug(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "chi2"
 
 
-def chi2_test(sample_fn: SampleFn, pdf_fn: PdfFn, *, name: str = "chi2",
-              n_samples: int = 1_000_000, grid: SphereGrid | None = None, seed: int = 0,
-              significance: float = 0.01, test_count: int = 1,
-              dump_dir: str | Path | None = None, quadrature: dict | None = None) -> Chi2Result:
+def chi2_test(
+    sample_fn: SampleFn,
+    pdf_fn: PdfFn,
+    *,
+    name: str = "chi2",
+    n_samples: int = 1_000_000,
+    grid: SphereGrid | None = None,
+    seed: int = 0,
+    significance: float = 0.01,
+    test_count: int = 1,
+    dump_dir: str | Path | None = None,
+    quadrature: dict | None = None,
+) -> Chi2Result:
     """Pearson's chi-square test of ``sample_fn`` against ``pdf_fn`` on the whole sphere.
 
     ``sample_fn(u)`` receives ``n_samples`` uniform variates (N, 2) in [0, 1) from a
@@ -313,8 +332,9 @@ def chi2_test(sample_fn: SampleFn, pdf_fn: PdfFn, *, name: str = "chi2",
         fail = True
     norm_err = np.abs(np.linalg.norm(wo[finite], axis=-1) - 1.0)
     if norm_err.size and norm_err.max() > UNIT_TOL:
-        messages.append(f"sampler returned non-unit directions (max | |wo| - 1 | = "
-                        f"{norm_err.max():.3g})")
+        messages.append(
+            f"sampler returned non-unit directions (max | |wo| - 1 | = {norm_err.max():.3g})"
+        )
         fail = True
     observed = grid.histogram(wo[finite])
 
@@ -354,8 +374,10 @@ def chi2_test(sample_fn: SampleFn, pdf_fn: PdfFn, *, name: str = "chi2",
 
     stray = (expected <= 0) & (observed > 0)
     if stray.any():
-        messages.append(f"{int(observed[stray].sum())} samples in {int(stray.sum())} cells "
-                        "where the pdf integrates to 0")
+        messages.append(
+            f"{int(observed[stray].sum())} samples in {int(stray.sum())} cells "
+            "where the pdf integrates to 0"
+        )
         fail = True
 
     statistic, dof, p_value, pooled_in, pooled_out = math.nan, 0, math.nan, 0, 0
@@ -369,44 +391,75 @@ def chi2_test(sample_fn: SampleFn, pdf_fn: PdfFn, *, name: str = "chi2",
             statistic = float(((o - e) ** 2 / e).sum())
             p_value = float(stats.chi2.sf(statistic, dof))
             if pooled_in:
-                messages.append(f"pooled {pooled_in} cells expecting < {MIN_EXPECTED:g} "
-                                f"samples into {pooled_out} bins")
+                messages.append(
+                    f"pooled {pooled_in} cells expecting < {MIN_EXPECTED:g} "
+                    f"samples into {pooled_out} bins"
+                )
             if not (p_value >= level):
                 messages.append(f"rejected: p-value {p_value:.3g} < level {level:.3g}")
                 fail = True
 
-    result = Chi2Result(name, not fail, p_value, statistic, dof, level, expected.sum() / n_samples,
-                        pooled_in, pooled_out, messages)
+    result = Chi2Result(
+        name,
+        not fail,
+        p_value,
+        statistic,
+        dof,
+        level,
+        expected.sum() / n_samples,
+        pooled_in,
+        pooled_out,
+        messages,
+    )
     if fail and dump_dir is not None:
         result.dump_path = _dump(Path(dump_dir), name, grid, observed, expected, result)
     return result
 
 
-def _dump(dump_dir: Path, name: str, grid: SphereGrid, observed: np.ndarray,
-          expected: np.ndarray, result: Chi2Result) -> Path:
+def _dump(
+    dump_dir: Path,
+    name: str,
+    grid: SphereGrid,
+    observed: np.ndarray,
+    expected: np.ndarray,
+    result: Chi2Result,
+) -> Path:
     """Write observed/expected tables (npz) and a readable report with the worst cells."""
     dump_dir.mkdir(parents=True, exist_ok=True)
     stem = dump_dir / _slug(name)
     z_edges = np.linspace(-1.0, 1.0, grid.n_z + 1)
     phi_edges = np.linspace(-math.pi, math.pi, grid.n_phi + 1)
-    np.savez(stem.with_suffix(".npz"), observed=observed, expected=expected,
-             cos_theta_edges=z_edges, phi_edges=phi_edges)
+    np.savez(
+        stem.with_suffix(".npz"),
+        observed=observed,
+        expected=expected,
+        cos_theta_edges=z_edges,
+        phi_edges=phi_edges,
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
-        contrib = np.where(expected > 0, (observed - expected) ** 2 / expected,
-                           np.where(observed > 0, np.inf, 0.0))
+        contrib = np.where(
+            expected > 0, (observed - expected) ** 2 / expected, np.where(observed > 0, np.inf, 0.0)
+        )
     worst = np.argsort(contrib.reshape(-1))[::-1][:25]
-    lines = [result.summary().split("\n  tables")[0], "",
-             "worst cells: cos_theta range, phi range, observed, expected, (o-e)^2/e"]
+    lines = [
+        result.summary().split("\n  tables")[0],
+        "",
+        "worst cells: cos_theta range, phi range, observed, expected, (o-e)^2/e",
+    ]
     for flat in worst:
         iz, ip = divmod(int(flat), grid.n_phi)
-        lines.append(f"  [{z_edges[iz]:+.4f}, {z_edges[iz + 1]:+.4f}]  "
-                     f"[{phi_edges[ip]:+.4f}, {phi_edges[ip + 1]:+.4f}]  "
-                     f"{observed[iz, ip]:10.0f}  {expected[iz, ip]:12.2f}  "
-                     f"{contrib[iz, ip]:10.2f}")
+        lines.append(
+            f"  [{z_edges[iz]:+.4f}, {z_edges[iz + 1]:+.4f}]  "
+            f"[{phi_edges[ip]:+.4f}, {phi_edges[ip + 1]:+.4f}]  "
+            f"{observed[iz, ip]:10.0f}  {expected[iz, ip]:12.2f}  "
+            f"{contrib[iz, ip]:10.2f}"
+        )
     lines += ["", "row sums (cos_theta bins, low to high): observed / expected"]
     for iz in range(grid.n_z):
-        lines.append(f"  [{z_edges[iz]:+.4f}, {z_edges[iz + 1]:+.4f}]  "
-                     f"{observed[iz].sum():10.0f}  {expected[iz].sum():12.2f}")
+        lines.append(
+            f"  [{z_edges[iz]:+.4f}, {z_edges[iz + 1]:+.4f}]  "
+            f"{observed[iz].sum():10.0f}  {expected[iz].sum():12.2f}"
+        )
     txt = stem.with_suffix(".txt")
     txt.write_text("\n".join(lines) + "\n")
     return txt

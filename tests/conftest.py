@@ -18,7 +18,8 @@ DATA = SHARED / "data"
 def data_dir() -> Path:
     if not DATA.is_dir():
         raise FileNotFoundError(
-            f"reference data not found at {DATA}; set NEURAL_BRDF_SHARED to the shared/ folder")
+            f"reference data not found at {DATA}; set NEURAL_BRDF_SHARED to the shared/ folder"
+        )
     return DATA
 
 
@@ -42,6 +43,7 @@ def baked_materials(nbrdf_npz, tmp_path_factory):
     """name -> (NBRDF callable, path of its MERL file), written once per session
     (reciprocal NBRDF evaluation at every bin centre; about 10 s per material)."""
     from neural_brdf import merl
+
     folder = tmp_path_factory.mktemp("nbrdf")
     out = {}
     for name in MATERIALS:

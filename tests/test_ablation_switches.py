@@ -20,17 +20,30 @@ from neural_brdf.model import NormalizedBRDF, RawBRDF
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 # Small everything: mechanics, not accuracy (as in test_neural_train.py).
-TINY = ["train.steps=40", "train.warmup=2", "train.log_every=10", "train.eval_every=0",
-        "train.progress=false", "train.threads=1", "model.hidden=[16,16]",
-        "data.batch_size=256", "data.pool_size=2048",
-        "normalization.table_size=17", "normalization.grid_size=7", "normalization.samples=1024",
-        "validation.furnace_dirs=6", "validation.furnace_samples=2048",
-        "validation.pairs=2000", "validation.accuracy_samples=2048",
-        "export.parity_pairs=512"]
+TINY = [
+    "train.steps=40",
+    "train.warmup=2",
+    "train.log_every=10",
+    "train.eval_every=0",
+    "train.progress=false",
+    "train.threads=1",
+    "model.hidden=[16,16]",
+    "data.batch_size=256",
+    "data.pool_size=2048",
+    "normalization.table_size=17",
+    "normalization.grid_size=7",
+    "normalization.samples=1024",
+    "validation.furnace_dirs=6",
+    "validation.furnace_samples=2048",
+    "validation.pairs=2000",
+    "validation.accuracy_samples=2048",
+    "export.parity_pairs=512",
+]
 
 
-def _random_raw(enc: str, *, bias: float = 0.0, scale: float = 1.0, seed: int = 0,
-                grazing_power: float = 1.0) -> RawBRDF:
+def _random_raw(
+    enc: str, *, bias: float = 0.0, scale: float = 1.0, seed: int = 0, grazing_power: float = 1.0
+) -> RawBRDF:
     """A raw network with random weights (the head too: at init it is constant)."""
     torch.manual_seed(seed)
     raw = RawBRDF(enc, [16, 16], "silu", grazing_power=grazing_power)
@@ -45,6 +58,7 @@ def _numpy_fn(model):
     def fn(a, b):
         with torch.no_grad():
             return model(torch.as_tensor(a).float(), torch.as_tensor(b).float()).double().numpy()
+
     return fn
 
 
@@ -62,9 +76,9 @@ def test_only_the_raw_encoding_breaks_reciprocity(enc):
     raw = _random_raw(enc)
     err = physics.reciprocity_error(_numpy_fn(raw), n=20000)
     if enc == "raw":
-        assert err > 1e-2          # measurably non-reciprocal: the ablation has something to show
+        assert err > 1e-2  # measurably non-reciprocal: the ablation has something to show
     else:
-        assert err == 0.0          # bit-exact by construction
+        assert err == 0.0  # bit-exact by construction
 
 
 def test_raw_encoding_trains_exports_and_fails_only_reciprocity(tmp_path, capsys):
@@ -110,15 +124,16 @@ def test_normalisation_switch_on_a_bright_network(tmp_path, enabled):
     if enabled:
         assert rho <= 1.0 + cfg.validation.albedo_tol + 3 * err
     else:
-        assert rho > 2.0                   # the raw network, untouched
+        assert rho > 2.0  # the raw network, untouched
     # the exported file is the same model, and its own metadata and validator say so
     path = tmp_path / "m.onnx"
     figures = export.export(model, cfg, path, target_desc="bright test network")
     onnx_model = neural_brdf.load(path)
     wi = physics.random_directions(3000, 7).astype(np.float32)
     wo = physics.random_directions(3000, 8).astype(np.float32)
-    np.testing.assert_allclose(onnx_model.eval(wi, wo), _numpy_fn(model)(wi, wo),
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        onnx_model.eval(wi, wo), _numpy_fn(model)(wi, wo), rtol=1e-5, atol=1e-6
+    )
     assert onnx_model.metadata["normalization"].startswith("none") is not enabled
     assert figures["physics"]["checks"]["max_albedo"]["passed"] is enabled
     assert validate.report(path)["passed"] is enabled

@@ -18,8 +18,9 @@ import analytic
 from strategies import directions, params
 
 NAMES = analytic.available()
-PROP = settings(max_examples=12, deadline=None, derandomize=True,
-                suppress_health_check=[HealthCheck.too_slow])
+PROP = settings(
+    max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
+)
 
 # Energy tolerance.  1e-3 is the bound; microfacet multiscatter with
 # anisotropic alphas is measured against its stated table tolerance (see
@@ -83,8 +84,12 @@ def test_reciprocity(name):
 
 @pytest.mark.parametrize("name", [n for n in NAMES if analytic.model_class(n).energy_conserving])
 def test_energy_conservation(name):
-    @settings(max_examples=8, deadline=None, derandomize=True,
-              suppress_health_check=[HealthCheck.too_slow])
+    @settings(
+        max_examples=8,
+        deadline=None,
+        derandomize=True,
+        suppress_health_check=[HealthCheck.too_slow],
+    )
     @given(p=params(name))
     def check(p):
         brdf = analytic.create(name, **p)
@@ -92,7 +97,7 @@ def test_energy_conservation(name):
             return
         wi = grazing_and_random_wi(11)
         rho, err = analytic.albedo(brdf, wi, n=4096, return_error=True)
-        rho = rho + brdf.delta_reflectance(wi)          # a Dirac lobe's share (coupled)
+        rho = rho + brdf.delta_reflectance(wi)  # a Dirac lobe's share (coupled)
         tol = ENERGY_TOL
         if name == "microfacet" and p.get("multiscatter") and p["alpha_x"] != p["alpha_y"]:
             tol = ENERGY_TOL_MS_ANISO

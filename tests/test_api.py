@@ -12,8 +12,17 @@ from strategies import directions
 
 def test_registry_lists_every_issue_model():
     assert analytic.available() == [
-        "lambertian", "phong", "blinn_phong", "microfacet", "ward", "ashikhmin_shirley",
-        "coupled", "bank", "oren_nayar", "retroreflective"]
+        "lambertian",
+        "phong",
+        "blinn_phong",
+        "microfacet",
+        "ward",
+        "ashikhmin_shirley",
+        "coupled",
+        "bank",
+        "oren_nayar",
+        "retroreflective",
+    ]
 
 
 @pytest.mark.parametrize("name", analytic.available())
@@ -70,19 +79,22 @@ def test_output_follows_input_device():
     assert brdf.eval(wi, wi).device == wi.device
 
 
-@pytest.mark.parametrize("name,params,field", [
-    ("microfacet", {"alpha": 0.0}, "alpha"),
-    ("microfacet", {"alpha": -0.1}, "alpha"),
-    ("microfacet", {"distribution": "phong"}, "distribution"),
-    ("microfacet", {"fresnel": "schlick", "eta": 1.5}, "eta"),
-    ("microfacet", {"fresnel": "conductor", "material": "Unobtainium"}, "material"),
-    ("microfacet", {"alpha": 0.2, "alpha_x": 0.1}, "alpha"),
-    ("microfacet", {"alphax": 0.2}, "alphax"),
-    ("lambertian", {"albedo": 1.2}, "albedo"),
-    ("lambertian", {"albedo": [0.5, 0.5]}, "albedo"),
-    ("lambertian", {"albedo": float("nan")}, "albedo"),
-    ("phong", {"kd": 0.7, "ks": 0.5}, "ks"),
-])
+@pytest.mark.parametrize(
+    "name,params,field",
+    [
+        ("microfacet", {"alpha": 0.0}, "alpha"),
+        ("microfacet", {"alpha": -0.1}, "alpha"),
+        ("microfacet", {"distribution": "phong"}, "distribution"),
+        ("microfacet", {"fresnel": "schlick", "eta": 1.5}, "eta"),
+        ("microfacet", {"fresnel": "conductor", "material": "Unobtainium"}, "material"),
+        ("microfacet", {"alpha": 0.2, "alpha_x": 0.1}, "alpha"),
+        ("microfacet", {"alphax": 0.2}, "alphax"),
+        ("lambertian", {"albedo": 1.2}, "albedo"),
+        ("lambertian", {"albedo": [0.5, 0.5]}, "albedo"),
+        ("lambertian", {"albedo": float("nan")}, "albedo"),
+        ("phong", {"kd": 0.7, "ks": 0.5}, "ks"),
+    ],
+)
 def test_bad_parameters_raise_naming_the_field(name, params, field):
     with pytest.raises(analytic.ParameterError, match=field):
         analytic.create(name, **params)
@@ -119,6 +131,7 @@ def test_hemispherical_albedo_of_lambertian_is_its_albedo():
 
 def test_checkers_detect_violations():
     """reciprocity_error and min_value can fail: a non-reciprocal, partly negative f."""
+
     def bad(wi, wo):
         return np.repeat((wi[..., 2] * 2.0 - wo[..., 2])[..., None], 3, -1)
 

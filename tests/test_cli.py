@@ -16,19 +16,29 @@ from neural_brdf import config, export, train
 from neural_brdf.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["train.steps=10", "train.progress=false", "model.hidden=[16,16]",
-        "data.batch_size=256", "data.pool_size=2048", "normalization.table_size=17",
-        "normalization.samples=2048", "validation.furnace_dirs=6",
-        "validation.furnace_samples=4096", "validation.pairs=2000",
-        "validation.accuracy_samples=2048", "export.parity_pairs=512"]
+TINY = [
+    "train.steps=10",
+    "train.progress=false",
+    "model.hidden=[16,16]",
+    "data.batch_size=256",
+    "data.pool_size=2048",
+    "normalization.table_size=17",
+    "normalization.samples=2048",
+    "validation.furnace_dirs=6",
+    "validation.furnace_samples=4096",
+    "validation.pairs=2000",
+    "validation.accuracy_samples=2048",
+    "export.parity_pairs=512",
+]
 SETS = [a for kv in TINY for a in ("--set", kv)]
 
 
 def run(*args, cwd=ROOT):
     """A real subprocess: checks that no traceback escapes and the exit status is real."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
 
 
 def cli(capsys, *args):
@@ -48,22 +58,32 @@ def assert_one_line_error(code, err, *needles):
 
 
 def test_train_py_config_error_is_one_line_and_exit_2(tmp_path):
-    proc = run("train.py", str(ROOT / "configs" / "lambert.yaml"), "--out", str(tmp_path / "r"),
-               "--set", "train.stepz=3")
+    proc = run(
+        "train.py",
+        str(ROOT / "configs" / "lambert.yaml"),
+        "--out",
+        str(tmp_path / "r"),
+        "--set",
+        "train.stepz=3",
+    )
     assert_one_line_error(proc.returncode, proc.stderr, "train.stepz")
     assert not (tmp_path / "r").exists()
 
 
-@pytest.mark.parametrize("args, key", [
-    (["--set", "train.steps=many"], "train.steps"),
-    (["--set", "model.encoding=spherical"], "model.encoding"),
-    (["--set", "target.model=velvet"], "target.model"),
-    (["--set", "target.params.albedo=7"], "albedo"),
-    (["--set", "oops"], "oops"),
-])
+@pytest.mark.parametrize(
+    "args, key",
+    [
+        (["--set", "train.steps=many"], "train.steps"),
+        (["--set", "model.encoding=spherical"], "model.encoding"),
+        (["--set", "target.model=velvet"], "target.model"),
+        (["--set", "target.params.albedo=7"], "albedo"),
+        (["--set", "oops"], "oops"),
+    ],
+)
 def test_config_errors_exit_2_naming_the_key(capsys, tmp_path, args, key):
-    code, _, err = cli(capsys, "train", str(ROOT / "configs" / "lambert.yaml"),
-                       "--out", str(tmp_path / "r"), *args)
+    code, _, err = cli(
+        capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out", str(tmp_path / "r"), *args
+    )
     assert_one_line_error(code, err, key)
     assert not (tmp_path / "r" / "ckpt.pt").exists()
 
@@ -77,8 +97,17 @@ def test_bad_arguments_and_files_exit_2(capsys, tmp_path):
     junk.write_bytes(b"not a model")
     assert_one_line_error(*cli(capsys, "validate", str(junk))[::2], "junk.onnx")
     assert_one_line_error(*cli(capsys, "export", str(tmp_path))[::2], str(tmp_path))
-    assert_one_line_error(*cli(capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out",
-                               str(tmp_path / "fresh"), "--resume")[::2], "ckpt.pt")
+    assert_one_line_error(
+        *cli(
+            capsys,
+            "train",
+            str(ROOT / "configs" / "lambert.yaml"),
+            "--out",
+            str(tmp_path / "fresh"),
+            "--resume",
+        )[::2],
+        "ckpt.pt",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -101,8 +130,15 @@ def test_train_shim_writes_the_run(run_dir):
 
 def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
     out = tmp_path / "report.json"
-    code, stdout, err = cli(capsys, "validate", str(run_dir / "model.onnx"), "--reference",
-                            str(ROOT / "configs" / "lambert.yaml"), "--json", str(out))
+    code, stdout, err = cli(
+        capsys,
+        "validate",
+        str(run_dir / "model.onnx"),
+        "--reference",
+        str(ROOT / "configs" / "lambert.yaml"),
+        "--json",
+        str(out),
+    )
     assert code == 0, err
     report = json.loads(out.read_text())
     assert report["passed"] is True
@@ -112,7 +148,7 @@ def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
 
 
 def test_validate_exit_1_on_a_physics_failure(tmp_path):
-    raw = train.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()   # albedo ~150
+    raw = train.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()  # albedo ~150
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(export.to_onnx_bytes(raw, 17))
     proc = run("-m", "neural_brdf", "validate", str(bad), "--json", str(tmp_path / "bad.json"))
@@ -131,22 +167,26 @@ def test_export_subcommand(capsys, run_dir, tmp_path):
 def test_neural_brdf_and_train_py_agree(capsys, run_dir, tmp_path):
     """`neural-brdf train` and `python train.py` are the same command."""
     out = tmp_path / "again"
-    code, _, err = cli(capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out",
-                       str(out), *SETS)
+    code, _, err = cli(
+        capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out", str(out), *SETS
+    )
     assert code == 0, err
     a = torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
     b = torch.load(out / "ckpt.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-@pytest.mark.parametrize("content, needle", [
-    (bytes(range(256)) * 4, "not a YAML text file"),          # binary garbage
-    (b"\xff\xfetarget: {}\n", "not UTF-8"),                   # UTF-16 BOM, not UTF-8
-    (b"- a\n- b\n", "mapping"),                                # a list
-    (b"just a string\n", "mapping"),                           # a scalar
-    (b"target: [\n", "invalid YAML"),
-    (b"train:\x00 {}\n", "invalid YAML"),                      # a NUL in UTF-8 text
-])
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        (bytes(range(256)) * 4, "not a YAML text file"),  # binary garbage
+        (b"\xff\xfetarget: {}\n", "not UTF-8"),  # UTF-16 BOM, not UTF-8
+        (b"- a\n- b\n", "mapping"),  # a list
+        (b"just a string\n", "mapping"),  # a scalar
+        (b"target: [\n", "invalid YAML"),
+        (b"train:\x00 {}\n", "invalid YAML"),  # a NUL in UTF-8 text
+    ],
+)
 def test_unreadable_or_non_mapping_config_exits_2_naming_the_file(tmp_path, content, needle):
     bad = tmp_path / "bad.yaml"
     bad.write_bytes(content)
@@ -165,8 +205,17 @@ def test_a_finished_run_is_not_replaced_without_overwrite(capsys, run_dir, tmp_p
     code, _, err = cli(capsys, "train", "lambert", "--out", str(done), "--resume", "--overwrite")
     assert_one_line_error(code, err, "--overwrite")
     # --overwrite replaces it: a 5-step run's metrics, and no stale report or model left over
-    code, _, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS,
-                       "--set", "train.steps=5", "--overwrite")
+    code, _, err = cli(
+        capsys,
+        "train",
+        "lambert",
+        "--out",
+        str(done),
+        *SETS,
+        "--set",
+        "train.steps=5",
+        "--overwrite",
+    )
     assert code == 0, err
     assert json.loads((done / "metrics.json").read_text())["training"]["steps"] == 5
 
@@ -174,7 +223,7 @@ def test_a_finished_run_is_not_replaced_without_overwrite(capsys, run_dir, tmp_p
 def test_an_unfinished_run_needs_resume_or_overwrite(capsys, tmp_path):
     half = tmp_path / "half"
     cfg = config.load(ROOT / "configs" / "lambert.yaml", TINY + ["train.steps=4"])
-    train.train(cfg, half)                       # ckpt.pt, no model.onnx: unfinished
+    train.train(cfg, half)  # ckpt.pt, no model.onnx: unfinished
     (half / "keep.txt").write_text("mine")
     code, _, err = cli(capsys, "train", "lambert", "--out", str(half), *SETS)
     assert_one_line_error(code, err, str(half), "unfinished", "--resume", "--overwrite")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -36,13 +35,15 @@ def test_bake_a_config_target_round_trips(capsys, tmp_path):
     target = analytic.create("lambertian", albedo=[0.8, 0.6, 0.4])
     wi = analytic.physics.random_directions(2000, 1, grazing_fraction=0.0)
     wo = analytic.physics.random_directions(2000, 2, grazing_fraction=0.0)
-    keep = (wi[:, 2] > 0.2) & (wo[:, 2] > 0.2)       # away from unmeasured horizon bins
-    np.testing.assert_allclose(baked.eval(wi[keep], wo[keep]), target.eval(wi[keep], wo[keep]),
-                               rtol=1e-6)
+    keep = (wi[:, 2] > 0.2) & (wo[:, 2] > 0.2)  # away from unmeasured horizon bins
+    np.testing.assert_allclose(
+        baked.eval(wi[keep], wo[keep]), target.eval(wi[keep], wo[keep]), rtol=1e-6
+    )
 
 
 def test_bake_a_neural_model_matches_onnxruntime(capsys, tiny_model, tmp_path):
     import neural_brdf
+
     out = tmp_path / "neural.binary"
     code, _, err = cli(capsys, "bake", str(tiny_model), "-o", str(out))
     assert code == 0, err
@@ -54,23 +55,43 @@ def test_bake_a_neural_model_matches_onnxruntime(capsys, tiny_model, tmp_path):
 
 
 def test_bake_and_render_bad_input_exit_2(capsys, tmp_path):
-    assert_one_line_error(*cli(capsys, "bake", str(tmp_path / "none.onnx"), "-o",
-                               str(tmp_path / "x.binary"))[::2], "none.onnx")
-    assert_one_line_error(*cli(capsys, "bake", str(LAMBERT), "-o",
-                               str(tmp_path / "no" / "such" / "dir" / "x.binary"))[::2], "x.binary")
+    assert_one_line_error(
+        *cli(capsys, "bake", str(tmp_path / "none.onnx"), "-o", str(tmp_path / "x.binary"))[::2],
+        "none.onnx",
+    )
+    assert_one_line_error(
+        *cli(
+            capsys, "bake", str(LAMBERT), "-o", str(tmp_path / "no" / "such" / "dir" / "x.binary")
+        )[::2],
+        "x.binary",
+    )
     assert_one_line_error(*cli(capsys, "bake", str(LAMBERT))[::2], "-o")
-    assert_one_line_error(*cli(capsys, "render", str(tmp_path / "none.onnx"), "-o",
-                               str(tmp_path / "x.png"))[::2], "none.onnx")
+    assert_one_line_error(
+        *cli(capsys, "render", str(tmp_path / "none.onnx"), "-o", str(tmp_path / "x.png"))[::2],
+        "none.onnx",
+    )
 
 
 @pytest.mark.mitsuba
 def test_render_writes_a_side_by_side_preview(capsys, tiny_model, tmp_path):
     out = tmp_path / "preview.png"
-    code, stdout, err = cli(capsys, "render", str(tiny_model), "--reference", str(LAMBERT),
-                            "--spp", "4", "--resolution", "32", "-o", str(out))
+    code, stdout, err = cli(
+        capsys,
+        "render",
+        str(tiny_model),
+        "--reference",
+        str(LAMBERT),
+        "--spp",
+        "4",
+        "--resolution",
+        "32",
+        "-o",
+        str(out),
+    )
     assert code == 0, err
     assert "PSNR" in stdout
     import matplotlib.image as mpimg
+
     img = mpimg.imread(out)
-    assert img.shape[1] > img.shape[0] * 2          # neural | reference | error map
-    assert img[..., :3].std() > 0.01                # not blank
+    assert img.shape[1] > img.shape[0] * 2  # neural | reference | error map
+    assert img[..., :3].std() > 0.01  # not blank

@@ -41,15 +41,26 @@ from neural_brdf.config import InputError
 from neural_brdf.export import relative_difference
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-TINY_RUN = ["train.steps=60", "train.threads=1", "train.warmup=10", "train.progress=false",
-            "train.checkpoint_every=1000", "train.eval_every=0", "model.hidden=[16,16]",
-            "data.batch_size=512", "data.pool_size=4096", "normalization.samples=2048",
-            "validation.furnace_dirs=15", "validation.furnace_samples=512",
-            "validation.pairs=1000", "validation.accuracy_samples=2048",
-            "export.parity_pairs=256"]
+TINY_RUN = [
+    "train.steps=60",
+    "train.threads=1",
+    "train.warmup=10",
+    "train.progress=false",
+    "train.checkpoint_every=1000",
+    "train.eval_every=0",
+    "model.hidden=[16,16]",
+    "data.batch_size=512",
+    "data.pool_size=4096",
+    "normalization.samples=2048",
+    "validation.furnace_dirs=15",
+    "validation.furnace_samples=512",
+    "validation.pairs=1000",
+    "validation.accuracy_samples=2048",
+    "export.parity_pairs=256",
+]
 MODELS = {"isotropic": "quickstart.yaml", "anisotropic": "brushed_ggx.yaml"}
 
-C_TOL = 1e-5            # the export contract's parity tolerance
+C_TOL = 1e-5  # the export contract's parity tolerance
 # GPU transcendental functions are loose by specification (WGSL: exp 3 + 2|x| ULP, atan
 # 4096 ULP).  lavapipe measured: atan about 2e-5 relative; the anisotropic network turns
 # that into 4.4e-4 at one pair with wi == wo 0.01 degrees above the horizon (3e-5 at
@@ -57,17 +68,23 @@ C_TOL = 1e-5            # the export contract's parity tolerance
 GPU_TOL = 1e-3
 # lavapipe's asin and acos are accurate to about 4e-4 (relative to this graph's values)
 EVERY_OP_GPU_TOL = 1e-3
-SCALE_TOL = 1e-5        # f(k wi, wo) against f(wi, wo)
+SCALE_TOL = 1e-5  # f(k wi, wo) against f(wi, wo)
 # GPU division and sqrt need not be correctly rounded (WGSL: 2.5 ULP); lavapipe: 2e-5
 GPU_SCALE_TOL = 1e-4
-PDF_RTOL = 2e-4         # float32 pdf against the float64 reference
+PDF_RTOL = 2e-4  # float32 pdf against the float64 reference
 CHI2_SAMPLES = 200_000
-CHI2_BINS = (10, 12)    # cos theta_o, phi_o
-CHI2_SUB = 24           # quadrature points per bin edge
+CHI2_BINS = (10, 12)  # cos theta_o, phi_o
+CHI2_SUB = 24  # quadrature points per bin edge
 CHI2_MIN_EXPECTED = 5.0
 CHI2_P = 1e-4
-HOSTILE = [[np.nan, 0.2, 0.9], [np.inf, 0.0, 1.0], [0.1, -np.inf, 0.5], [0.0, 0.0, np.inf],
-           [0.0, 0.0, 0.0], [np.nan, np.nan, np.nan]]
+HOSTILE = [
+    [np.nan, 0.2, 0.9],
+    [np.inf, 0.0, 1.0],
+    [0.1, -np.inf, 0.5],
+    [0.0, 0.0, np.inf],
+    [0.0, 0.0, 0.0],
+    [np.nan, np.nan, np.nan],
+]
 SCALES = (1e-3, 7.5, 1e4)
 
 DRIVER = r"""
@@ -146,12 +163,13 @@ def test_pairs(seed: int = 0, n: int = 3000) -> tuple[np.ndarray, np.ndarray]:
 
 
 pairs = test_pairs
-del test_pairs                   # not a test
+del test_pairs  # not a test
 
 
 def onnx_ref(model, wi, wo) -> np.ndarray:
-    sess = ort.InferenceSession(str(model) if not isinstance(model, bytes) else model,
-                                providers=["CPUExecutionProvider"])
+    sess = ort.InferenceSession(
+        str(model) if not isinstance(model, bytes) else model, providers=["CPUExecutionProvider"]
+    )
     return sess.run(None, {"wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]
 
 
@@ -166,8 +184,21 @@ class CProgram:
         (folder / "driver.c").write_text(DRIVER)
         self.exe = folder / "driver"
         self.folder = folder
-        subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(self.exe),
-                        str(folder / "driver.c"), "-lm"], check=True, capture_output=True)
+        subprocess.run(
+            [
+                cc,
+                "-std=c99",
+                "-O2",
+                "-Wall",
+                "-Werror",
+                "-o",
+                str(self.exe),
+                str(folder / "driver.c"),
+                "-lm",
+            ],
+            check=True,
+            capture_output=True,
+        )
 
     def _run(self, mode: str, rows: np.ndarray, width: int) -> np.ndarray:
         rows = np.ascontiguousarray(rows, dtype=np.float32)
@@ -189,8 +220,9 @@ class CProgram:
 
 @pytest.fixture(scope="module")
 def c_programs(models, tmp_path_factory):
-    return {enc: CProgram(path, tmp_path_factory.mktemp(f"c_{enc}"))
-            for enc, path in models.items()}
+    return {
+        enc: CProgram(path, tmp_path_factory.mktemp(f"c_{enc}")) for enc, path in models.items()
+    }
 
 
 def hostile_rows(n_good: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -204,7 +236,7 @@ def hostile_rows(n_good: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     wi = np.concatenate([wi[:25], bad, good, wi[25:]])
     wo = np.concatenate([wo[:25], good, bad, wo[25:]])
     mask = np.zeros(len(wi), bool)
-    mask[25:25 + 2 * len(bad)] = True
+    mask[25 : 25 + 2 * len(bad)] = True
     return wi.astype(np.float32), wo.astype(np.float32), mask
 
 
@@ -231,7 +263,7 @@ def check_total(evaluate, model, tol, scale_tol=SCALE_TOL):
     base = got[1]
     assert (base != 0).all()
     for j, k in enumerate(SCALES):
-        scaled_wi, scaled_wo, any_pair = got[2 + 3 * j: 5 + 3 * j]
+        scaled_wi, scaled_wo, any_pair = got[2 + 3 * j : 5 + 3 * j]
         assert relative_difference(scaled_wi, base) <= scale_tol, k
         assert relative_difference(scaled_wo, base) <= scale_tol, k
         swi, swo = blocks[4 + 3 * j]
@@ -279,14 +311,18 @@ def mixture_pdf(wi, wo, alpha, weight):
 
 def stored_lobe(model):
     from neural_brdf import lobe
+
     return lobe.from_metadata({p.key: p.value for p in onnx.load(str(model)).metadata_props})
 
 
 @pytest.mark.parametrize("override", [None, {"alpha": 0.08, "weight": 0.5}])
 def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     path = models["isotropic"]
-    c = c_programs["isotropic"] if override is None else \
-        CProgram(path, tmp_path / "c", lobe=override)
+    c = (
+        c_programs["isotropic"]
+        if override is None
+        else CProgram(path, tmp_path / "c", lobe=override)
+    )
     lobe = override or stored_lobe(path)
     rng = np.random.default_rng(4)
     wi = unit(rng, 4000)
@@ -322,14 +358,13 @@ def test_c_sample_follows_pdf(models, c_programs, theta_deg):
 
     c = c_programs["anisotropic"]
     lobe = stored_lobe(models["anisotropic"])
-    assert lobe["weight"] > 0.0                      # both branches are drawn
+    assert lobe["weight"] > 0.0  # both branches are drawn
     t = math.radians(theta_deg)
     wi1 = np.array([math.sin(t) * math.cos(0.6), math.sin(t) * math.sin(0.6), math.cos(t)])
     rng = np.random.default_rng(int(theta_deg))
     n = CHI2_SAMPLES
     wi = np.broadcast_to(wi1, (n, 3)).astype(np.float32)
-    wo, pdf = c.sample(wi, rng.random(n).astype(np.float32),
-                       rng.random((n, 2)).astype(np.float32))
+    wo, pdf = c.sample(wi, rng.random(n).astype(np.float32), rng.random((n, 2)).astype(np.float32))
     ok = pdf > 0
     assert ok.mean() > 0.5
     # sample() returns pdf(wo) of its wo; below the horizon it reports 0 (rejected)
@@ -341,8 +376,10 @@ def test_c_sample_follows_pdf(models, c_programs, theta_deg):
     nz, nphi = CHI2_BINS
     w = wo[ok].astype(np.float64)
     iz = np.minimum((w[:, 2] * nz).astype(int), nz - 1)
-    iphi = np.minimum((np.mod(np.arctan2(w[:, 1], w[:, 0]), 2 * math.pi) / (2 * math.pi)
-                       * nphi).astype(int), nphi - 1)
+    iphi = np.minimum(
+        (np.mod(np.arctan2(w[:, 1], w[:, 0]), 2 * math.pi) / (2 * math.pi) * nphi).astype(int),
+        nphi - 1,
+    )
     counts = np.bincount(iz * nphi + iphi, minlength=nz * nphi).astype(float)
     prob = expected_bin_probabilities(c, wi1).reshape(-1)
     assert 0.5 < prob.sum() <= 1.0 + 1e-3
@@ -370,7 +407,8 @@ void main() {
 }
 """
 VK_MAIN = ES_MAIN.replace("uniform vec4 v;", "layout(location = 0) in vec4 v;").replace(
-    "out vec4 color;", "layout(location = 0) out vec4 color;")
+    "out vec4 color;", "layout(location = 0) out vec4 color;"
+)
 
 
 def glsl_validate(source: str, folder: Path) -> None:
@@ -378,14 +416,16 @@ def glsl_validate(source: str, folder: Path) -> None:
     assert tool, "glslangValidator (Debian glslang-tools) is needed"
     folder.mkdir(parents=True, exist_ok=True)
     es = folder / "es.frag"
-    es.write_text("#version 300 es\nprecision highp float;\nprecision highp int;\n"
-                  + source + ES_MAIN)
+    es.write_text(
+        "#version 300 es\nprecision highp float;\nprecision highp int;\n" + source + ES_MAIN
+    )
     r = subprocess.run([tool, str(es)], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout[-2000:]
     vk = folder / "vk.frag"
     vk.write_text("#version 450\n" + source + VK_MAIN)
-    r = subprocess.run([tool, "-V", str(vk), "-o", str(folder / "vk.spv")], capture_output=True,
-                       text=True)
+    r = subprocess.run(
+        [tool, "-V", str(vk), "-o", str(folder / "vk.spv")], capture_output=True, text=True
+    )
     assert r.returncode == 0, r.stdout[-2000:]
 
 
@@ -435,11 +475,10 @@ def wgpu_device():
 def wgsl_eval(device, source: str, wi, wo) -> np.ndarray:
     from wgpu.utils.compute import compute_with_buffers
 
-    device.create_shader_module(code=source)          # naga validation; raises on error
+    device.create_shader_module(code=source)  # naga validation; raises on error
     n = len(wi)
     rows = np.concatenate([wi, wo], 1).astype(np.float32).reshape(-1)
-    out = compute_with_buffers({0: rows}, {1: (n * 3, "f")}, source + WGSL_KERNEL,
-                               n=(n + 63) // 64)
+    out = compute_with_buffers({0: rows}, {1: (n * 3, "f")}, source + WGSL_KERNEL, n=(n + 63) // 64)
     return np.frombuffer(out[1], np.float32).reshape(n, 3).copy()
 
 
@@ -454,8 +493,9 @@ def test_wgsl_validates_and_matches_onnxruntime(models, wgpu_device, enc):
     wi, wo = pairs(1)
     got = wgsl_eval(wgpu_device, source, wi, wo)
     assert relative_difference(got, onnx_ref(models[enc], wi, wo)) <= GPU_TOL
-    check_total(lambda a, b: wgsl_eval(wgpu_device, source, a, b), models[enc], GPU_TOL,
-                GPU_SCALE_TOL)
+    check_total(
+        lambda a, b: wgsl_eval(wgpu_device, source, a, b), models[enc], GPU_TOL, GPU_SCALE_TOL
+    )
 
 
 # ------------------------------------------------------------------ Dr.Jit
@@ -467,9 +507,11 @@ def drjit_eval():
     from neural_brdf.backends.drjit import OnnxProgram
 
     def run(model, wi, wo):
-        cols = OnnxProgram(model)(wi=[mi.Float(wi[:, k]) for k in range(3)],
-                                  wo=[mi.Float(wo[:, k]) for k in range(3)])["f"]
+        cols = OnnxProgram(model)(
+            wi=[mi.Float(wi[:, k]) for k in range(3)], wo=[mi.Float(wo[:, k]) for k in range(3)]
+        )["f"]
         return np.stack([np.asarray(c) for c in cols], -1)
+
     return run
 
 
@@ -487,16 +529,22 @@ def every_op_model() -> bytes:
     """wi, wo [N, 3] -> f [N, 3]: a sum of terms that use every op the lowering supports."""
     f32 = TensorProto.FLOAT
     inits = {
-        "one": np.array([1.0], np.float32), "three": np.array([3.0], np.float32),
-        "half": np.array([0.5], np.float32), "p17": np.array([1.7], np.float32),
-        "two": np.array([2.0], np.float32), "lo": np.array(-1.0, np.float32),
-        "hi": np.array(1.0, np.float32), "zero": np.array([0.0], np.float32),
+        "one": np.array([1.0], np.float32),
+        "three": np.array([3.0], np.float32),
+        "half": np.array([0.5], np.float32),
+        "p17": np.array([1.7], np.float32),
+        "two": np.array([2.0], np.float32),
+        "lo": np.array(-1.0, np.float32),
+        "hi": np.array(1.0, np.float32),
+        "zero": np.array([0.0], np.float32),
         "W": np.array([[0.3, -0.2, 0.5], [0.1, 0.4, -0.6], [-0.7, 0.2, 0.9]], np.float32),
         "b": np.array([0.05, -0.1, 0.2], np.float32),
         "W2": np.array([[0.2, 0.1, 0.0], [-0.3, 0.5, 0.2], [0.4, -0.1, 0.6]], np.float32),
         "T": np.linspace(0.1, 2.0, 48, dtype=np.float32).reshape(16, 3),
-        "four": np.array(4.0, np.float32), "tlo": np.array(0.0, np.float32),
-        "thi": np.array(15.0, np.float32), "eight": np.array(8, np.int64),
+        "four": np.array(4.0, np.float32),
+        "tlo": np.array(0.0, np.float32),
+        "thi": np.array(15.0, np.float32),
+        "eight": np.array(8, np.int64),
         "ax1": np.array([1], np.int64),
     }
     nodes, terms = [], []
@@ -509,42 +557,79 @@ def every_op_model() -> bytes:
     s, d, p = n("Add", ["wi", "wo"]), n("Sub", ["wi", "wo"]), n("Mul", ["wi", "wo"])
     a = n("Abs", [d])
     a1 = n("Add", [a, "one"])
-    terms += [n("Sqrt", [a]), n("Exp", [n("Neg", [a])]), n("Log", [a1]),
-              n("Floor", [n("Mul", [s, "three"])]), n("Ceil", [n("Mul", [d, "three"])]),
-              n("Sin", [s]), n("Cos", [d]), n("Atan", [p]),
-              n("Asin", [n("Clip", [p, "lo", "hi"])]), n("Acos", [n("Mul", [p, "half"])]),
-              n("Tanh", [s]), n("Erf", [d]), n("Reciprocal", [a1]), n("Relu", [d]),
-              n("Sigmoid", [s]), n("Softplus", [d]), n("Pow", [a, "p17"]), n("Pow", [d, "two"]),
-              n("Max", [s, d, p]), n("Min", [s, d]), n("Sum", [s, d, p]), n("Div", [s, a1]),
-              n("Identity", [p])]
-    nan = n("IsNaN", [n("Div", [d, d])])                 # 0 / 0 where wi == wo
-    inf = n("IsInf", [n("Div", ["one", d])])             # 1 / 0 there too
+    terms += [
+        n("Sqrt", [a]),
+        n("Exp", [n("Neg", [a])]),
+        n("Log", [a1]),
+        n("Floor", [n("Mul", [s, "three"])]),
+        n("Ceil", [n("Mul", [d, "three"])]),
+        n("Sin", [s]),
+        n("Cos", [d]),
+        n("Atan", [p]),
+        n("Asin", [n("Clip", [p, "lo", "hi"])]),
+        n("Acos", [n("Mul", [p, "half"])]),
+        n("Tanh", [s]),
+        n("Erf", [d]),
+        n("Reciprocal", [a1]),
+        n("Relu", [d]),
+        n("Sigmoid", [s]),
+        n("Softplus", [d]),
+        n("Pow", [a, "p17"]),
+        n("Pow", [d, "two"]),
+        n("Max", [s, d, p]),
+        n("Min", [s, d]),
+        n("Sum", [s, d, p]),
+        n("Div", [s, a1]),
+        n("Identity", [p]),
+    ]
+    nan = n("IsNaN", [n("Div", [d, d])])  # 0 / 0 where wi == wo
+    inf = n("IsInf", [n("Div", ["one", d])])  # 1 / 0 there too
     gt, lt = n("Greater", [s, d]), n("Less", [s, p])
     ge, le = n("GreaterOrEqual", [d, p]), n("LessOrEqual", [s, d])
     eq = n("Equal", [n("Floor", [s]), n("Ceil", [d])])
-    logic = [n("Not", [gt]), n("And", [gt, lt]), n("Or", [nan, inf]), n("Xor", [ge, le]), eq,
-             nan, inf]
+    logic = [
+        n("Not", [gt]),
+        n("And", [gt, lt]),
+        n("Or", [nan, inf]),
+        n("Xor", [ge, le]),
+        eq,
+        nan,
+        inf,
+    ]
     terms += [n("Cast", [x], to=TensorProto.FLOAT) for x in logic]
     terms.append(n("Where", [n("Or", [nan, inf]), "zero", n("Div", [s, a1])]))
     as_int = n("Cast", [n("Floor", [n("Mul", [s, "three"])])], to=TensorProto.INT32)
     terms.append(n("Cast", [as_int], to=TensorProto.FLOAT))
     terms += [n("Gemm", [s, "W", "b"], transB=1, alpha=0.7), n("MatMul", [d, "W2"])]
-    terms += [n("ReduceMax", [p], axes=[1]), n("ReduceMin", [p], axes=[1]),
-              n("ReduceSum", [p, "ax1"]), n("ReduceMean", [s], axes=[1]),
-              n("ReduceL2", [d], axes=[1]), n("ReduceProd", [s], axes=[1])]
+    terms += [
+        n("ReduceMax", [p], axes=[1]),
+        n("ReduceMin", [p], axes=[1]),
+        n("ReduceSum", [p, "ax1"]),
+        n("ReduceMean", [s], axes=[1]),
+        n("ReduceL2", [d], axes=[1]),
+        n("ReduceProd", [s], axes=[1]),
+    ]
     key = n("ReduceSum", [a, "ax1"], keepdims=0)
-    idx = n("Cast", [n("Clip", [n("Floor", [n("Mul", [key, "four"])]), "tlo", "thi"])],
-            to=TensorProto.INT64)
-    terms.append(n("Gather", ["T", n("Sub", [idx, "eight"])], axis=0))   # negative: wraps
+    idx = n(
+        "Cast",
+        [n("Clip", [n("Floor", [n("Mul", [key, "four"])]), "tlo", "thi"])],
+        to=TensorProto.INT64,
+    )
+    terms.append(n("Gather", ["T", n("Sub", [idx, "eight"])], axis=0))  # negative: wraps
     acc = terms[0]
     for t in terms[1:]:
         acc = n("Add", [acc, t])
     n("Mul", [acc, "half"], out="f")
-    g = helper.make_graph(nodes, "every_op",
-                          [helper.make_tensor_value_info("wi", f32, ["N", 3]),
-                           helper.make_tensor_value_info("wo", f32, ["N", 3])],
-                          [helper.make_tensor_value_info("f", f32, ["N", 3])],
-                          [onnx.numpy_helper.from_array(v, k) for k, v in inits.items()])
+    g = helper.make_graph(
+        nodes,
+        "every_op",
+        [
+            helper.make_tensor_value_info("wi", f32, ["N", 3]),
+            helper.make_tensor_value_info("wo", f32, ["N", 3]),
+        ],
+        [helper.make_tensor_value_info("f", f32, ["N", 3])],
+        [onnx.numpy_helper.from_array(v, k) for k, v in inits.items()],
+    )
     model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     onnx.checker.check_model(model)
@@ -558,14 +643,14 @@ EVERY_OP_LOBE = {"alpha": 0.3, "weight": 0.5}
 def every_op(tmp_path_factory):
     payload = every_op_model()
     wi, wo = pairs(5, 1000)
-    wi = np.concatenate([wi, wo[:200]])                  # wi == wo rows: 0 / 0, 1 / 0
+    wi = np.concatenate([wi, wo[:200]])  # wi == wo rows: 0 / 0, 1 / 0
     wo = np.concatenate([wo, wo[:200]])
     return payload, wi, wo, onnx_ref(payload, wi, wo)
 
 
 def test_every_op_is_lowered(every_op):
     prog = graph.lower(every_op[0])
-    missing = graph.OPS - set(prog.count()) - {"const"}     # constants are folded away
+    missing = graph.OPS - set(prog.count()) - {"const"}  # constants are folded away
     assert not missing, missing
 
 
@@ -594,10 +679,12 @@ def test_every_op_in_drjit(every_op, drjit_eval):
 
 def test_unknown_op_is_named():
     node = helper.make_node("Einsum", ["wi", "wo"], ["f"], name="mix", equation="ni,ni->ni")
-    g = helper.make_graph([node], "g",
-                          [helper.make_tensor_value_info(k, TensorProto.FLOAT, ["N", 3])
-                           for k in ("wi", "wo")],
-                          [helper.make_tensor_value_info("f", TensorProto.FLOAT, ["N", 3])])
+    g = helper.make_graph(
+        [node],
+        "g",
+        [helper.make_tensor_value_info(k, TensorProto.FLOAT, ["N", 3]) for k in ("wi", "wo")],
+        [helper.make_tensor_value_info("f", TensorProto.FLOAT, ["N", 3])],
+    )
     model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
     with pytest.raises(graph.UnsupportedOnnxOp, match="'mix'.*'Einsum'"):
         backends.generate(model.SerializeToString(), "c", lobe=EVERY_OP_LOBE)
@@ -618,18 +705,30 @@ def test_cli_codegen(models, tmp_path, capsys):
 
     for target in backends.TARGETS:
         out = tmp_path / f"brdf.{target}"
-        assert main(["codegen", str(models["isotropic"]), "--target", target,
-                     "-o", str(out)]) == 0
+        assert main(["codegen", str(models["isotropic"]), "--target", target, "-o", str(out)]) == 0
         text = out.read_text()
         assert "neural_brdf_eval" in text and "neural_brdf_sample" in text
         assert "max_albedo" in text
-    assert main(["codegen", str(models["isotropic"]), "--target", "hlsl", "-o",
-                 str(tmp_path / "x")]) == 2
+    assert (
+        main(["codegen", str(models["isotropic"]), "--target", "hlsl", "-o", str(tmp_path / "x")])
+        == 2
+    )
     bad = tmp_path / "bad.onnx"
     bad.write_text("not a model")
     assert main(["codegen", str(bad), "--target", "c", "-o", str(tmp_path / "x.h")]) == 2
-    assert main(["codegen", str(tmp_path / "missing.onnx"), "--target", "c", "-o",
-                 str(tmp_path / "x.h")]) == 2
+    assert (
+        main(
+            [
+                "codegen",
+                str(tmp_path / "missing.onnx"),
+                "--target",
+                "c",
+                "-o",
+                str(tmp_path / "x.h"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("error: ") for line in err)
     assert not (tmp_path / "x.h").exists()

@@ -1,6 +1,6 @@
 """The documentation cannot drift: generated tables, links, config keys, no outside paths.
 
-    PYTHONPATH=$PWD python -m pytest -q tests/test_docs.py      # about a second
+PYTHONPATH=$PWD python -m pytest -q tests/test_docs.py      # about a second
 """
 
 from __future__ import annotations
@@ -13,14 +13,16 @@ import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-DOCS = sorted([REPO / "README.md", *(REPO / "docs").glob("*.md"),
-               REPO / "benchmarks" / "README.md"])
-LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")          # [text](target)
+DOCS = sorted(
+    [REPO / "README.md", *(REPO / "docs").glob("*.md"), REPO / "benchmarks" / "README.md"]
+)
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")  # [text](target)
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("results_tables",
-                                                  REPO / "tools" / "results_tables.py")
+    spec = importlib.util.spec_from_file_location(
+        "results_tables", REPO / "tools" / "results_tables.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -30,7 +32,8 @@ def test_results_page_is_generated_from_the_json():
     """docs/results.md is exactly what tools/results_tables.py makes of the JSON now."""
     committed = (REPO / "docs" / "results.md").read_text()
     assert _tool().render() == committed, (
-        "docs/results.md differs from the benchmark JSON: run python tools/results_tables.py")
+        "docs/results.md differs from the benchmark JSON: run python tools/results_tables.py"
+    )
 
 
 def test_results_page_changes_with_the_json(tmp_path):
@@ -54,15 +57,16 @@ def test_results_page_names_its_sources():
 
 def _links():
     for doc in DOCS:
-        text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)   # not code blocks
+        text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)  # not code blocks
         for target in LINK.findall(text):
             if re.match(r"[a-z]+:", target) or target.startswith("#"):
-                continue                                   # web links, in-page anchors
+                continue  # web links, in-page anchors
             yield doc, target
 
 
-@pytest.mark.parametrize("doc,target", list(_links()),
-                         ids=lambda x: x if isinstance(x, str) else x.name)
+@pytest.mark.parametrize(
+    "doc,target", list(_links()), ids=lambda x: x if isinstance(x, str) else x.name
+)
 def test_relative_links_point_at_files_in_the_repository(doc, target):
     file, _, anchor = target.partition("#")
     path = (doc.parent / file).resolve()
@@ -75,8 +79,10 @@ def test_relative_links_point_at_files_in_the_repository(doc, target):
 def _anchors(page: Path) -> set[str]:
     """GitHub's heading anchors: lower case, punctuation dropped, spaces to hyphens."""
     text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
-    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
-            for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+    return {
+        re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+        for h in re.findall(r"^#+ (.+)$", text, flags=re.M)
+    }
 
 
 def test_anchor_rule():

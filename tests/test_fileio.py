@@ -38,7 +38,7 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
 def test_missing_folders_only_on_request(tmp_path):
     path = tmp_path / "a" / "b" / "model.onnx"
     with pytest.raises(FileNotFoundError):
-        atomic_write(path, b"1")                  # a mistyped -o folder is an error
+        atomic_write(path, b"1")  # a mistyped -o folder is an error
     assert not (tmp_path / "a").exists()
     atomic_write(path, b"1", parents=True)
     atomic_write(path, b"22")

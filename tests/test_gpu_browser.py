@@ -37,8 +37,10 @@ def blinn_phong(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     normalisation as in Akenine-Moller et al., Real-Time Rendering, 3rd ed., eq. 7.49)."""
     h = wi + wo
     h = h / np.linalg.norm(h, axis=-1, keepdims=True)
-    f = np.asarray(KD) / np.pi + KS * (EXPONENT + 2) / (2 * np.pi) * \
-        np.maximum(h[..., 2:3], 0.0) ** EXPONENT
+    f = (
+        np.asarray(KD) / np.pi
+        + KS * (EXPONENT + 2) / (2 * np.pi) * np.maximum(h[..., 2:3], 0.0) ** EXPONENT
+    )
     return np.where((wi[..., 2:3] > 0) & (wo[..., 2:3] > 0), f, 0.0)
 
 
@@ -60,14 +62,14 @@ def check(f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> float:
     ref = blinn_phong(wi.astype(np.float64), wo.astype(np.float64))
     below = (wi[:, 2] <= 0) | (wo[:, 2] <= 0)
     assert below.sum() > len(wi) // 2 and (~below).sum() > len(wi) // 8
-    assert np.all(f[below] == 0.0)                         # zero below the horizon, no NaN
+    assert np.all(f[below] == 0.0)  # zero below the horizon, no NaN
     rel = np.abs(f - ref).max() / np.abs(ref).max()
     assert rel <= REL_TOL, rel
     return rel
 
 
 def test_glsl_in_webgl2_reproduces_numpy(session):
-    wi, wo = random_pairs(3000)          # > TEXTURE_WIDTH: several rows and a padded tail
+    wi, wo = random_pairs(3000)  # > TEXTURE_WIDTH: several rows and a padded tail
     f = session.eval_glsl(GLSL, wi, wo)
     assert f.shape == (3000, 3) and f.dtype == np.float32
     check(f, wi, wo)

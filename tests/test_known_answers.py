@@ -48,16 +48,23 @@ def test_cycles_ggx_directional_albedo(cycles_E):
         alpha = max(r[j] ** 2, 1e-4)
         rows = [i for i in range(1, len(mu_all)) if not (alpha < 1e-3 and mu_all[i] < 0.1)]
         mu = mu_all[rows]
-        brdf = analytic.create("microfacet", distribution="ggx", alpha=alpha,
-                               masking="smith_correlated", fresnel="none")
+        brdf = analytic.create(
+            "microfacet",
+            distribution="ggx",
+            alpha=alpha,
+            masking="smith_correlated",
+            fresnel="none",
+        )
         wi = np.stack([np.sqrt(1 - mu * mu), np.zeros_like(mu), mu], -1)
         ours, err = analytic.albedo(brdf, wi, n=8192, return_error=True)
         assert err.max() < 6e-4, "quadrature too noisy for a 2e-3 comparison"
         diff = np.abs(ours[:, 0] - E[rows, j])
         worst = max(worst, diff.max())
-        assert diff.max() <= 2e-3, (f"r={r[j]:.4f} mu={mu[np.argmax(diff)]:.4f}: "
-                                    f"ours {ours[np.argmax(diff), 0]:.5f} vs Cycles "
-                                    f"{E[rows, j][np.argmax(diff)]:.5f}")
+        assert diff.max() <= 2e-3, (
+            f"r={r[j]:.4f} mu={mu[np.argmax(diff)]:.4f}: "
+            f"ours {ours[np.argmax(diff), 0]:.5f} vs Cycles "
+            f"{E[rows, j][np.argmax(diff)]:.5f}"
+        )
 
 
 def test_cycles_ggx_average_albedo(data_dir):
@@ -88,7 +95,9 @@ def test_ggx_D_matches_mitsuba(data_dir):
     assert len(rows) >= 10
     for r in rows:
         d = Distribution("ggx", float(r["alpha_u"]), float(r["alpha_v"]))
-        h = torch.tensor([float(r["wo_x"]), float(r["wo_y"]), float(r["wo_z"])], dtype=torch.float64)
+        h = torch.tensor(
+            [float(r["wo_x"]), float(r["wo_y"]), float(r["wo_z"])], dtype=torch.float64
+        )
         ours, ref = d.D(h).item(), float(r["v_r"])
         assert ours == pytest.approx(ref, rel=1e-5, abs=1e-9), r
 
@@ -98,15 +107,22 @@ def test_ggx_G1_matches_mitsuba(data_dir):
     assert len(rows) >= 10
     for r in rows:
         d = Distribution("ggx", float(r["alpha_u"]), float(r["alpha_v"]))
-        w = torch.tensor([float(r["wo_x"]), float(r["wo_y"]), float(r["wo_z"])], dtype=torch.float64)
+        w = torch.tensor(
+            [float(r["wo_x"]), float(r["wo_y"]), float(r["wo_z"])], dtype=torch.float64
+        )
         assert d.G1(w).item() == pytest.approx(float(r["v_r"]), rel=1e-5), r
 
 
 def mitsuba_ior(data_dir):
     with open(data_dir / "conductor_ior_rgb_mitsuba3.csv") as fh:
         rows = csv.DictReader(line for line in fh if not line.startswith("#"))
-        return {r["material"]: ([float(r[f"eta_{c}"]) for c in "rgb"],
-                                [float(r[f"k_{c}"]) for c in "rgb"]) for r in rows}
+        return {
+            r["material"]: (
+                [float(r[f"eta_{c}"]) for c in "rgb"],
+                [float(r[f"k_{c}"]) for c in "rgb"],
+            )
+            for r in rows
+        }
 
 
 def test_conductor_fresnel_matches_mitsuba(data_dir):
@@ -159,8 +175,8 @@ COS = torch.linspace(0.0, 1.0, 101, dtype=torch.float64)
 
 def test_dielectric_fresnel_identities():
     f = fr.dielectric(1.5, COS)
-    assert f[-1, 0].item() == pytest.approx(0.04, abs=1e-12)        # ((n-1)/(n+1))^2
-    assert f[0, 0].item() == pytest.approx(1.0, abs=1e-12)          # grazing
+    assert f[-1, 0].item() == pytest.approx(0.04, abs=1e-12)  # ((n-1)/(n+1))^2
+    assert f[0, 0].item() == pytest.approx(1.0, abs=1e-12)  # grazing
     # Total internal reflection from inside glass beyond the critical angle.
     inside = fr.dielectric(1 / 1.5, COS)
     crit = math.sqrt(1 - (1 / 1.5) ** 2)
@@ -171,11 +187,13 @@ def test_dielectric_fresnel_identities():
 
 def test_thin_film_reduces_to_single_interfaces():
     # zero thickness: the film vanishes, leaving the substrate interface
-    torch.testing.assert_close(fr.thin_film(1.33, 0.0, 1.5, COS), fr.dielectric(1.5, COS),
-                               rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(
+        fr.thin_film(1.33, 0.0, 1.5, COS), fr.dielectric(1.5, COS), rtol=1e-9, atol=1e-12
+    )
     # film index equal to the substrate: one interface with the film's index
-    torch.testing.assert_close(fr.thin_film(1.5, 321.0, 1.5, COS), fr.dielectric(1.5, COS),
-                               rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(
+        fr.thin_film(1.5, 321.0, 1.5, COS), fr.dielectric(1.5, COS), rtol=1e-9, atol=1e-12
+    )
 
 
 def test_thin_film_is_a_reflectance_and_iridescent():
@@ -204,6 +222,7 @@ def test_weak_white_furnace(kind, ax, ay):
 
 def test_weak_white_furnace_detects_a_wrong_G1():
     """The check can fail: GGX D with the Beckmann G1 does not integrate to 1."""
+
     class Mixed(Distribution):
         def G1(self, w):
             return Distribution("beckmann", self.alpha_x, self.alpha_y).G1(w)
@@ -222,15 +241,20 @@ def test_kulla_conty_white_furnace(kind, alpha):
     wi = np.stack([np.sqrt(1 - mu * mu), np.zeros_like(mu), mu], -1)
     rho = analytic.albedo(brdf, wi, n=16384)
     np.testing.assert_allclose(rho, 1.0, atol=1e-3)
-    single = analytic.albedo(analytic.create("microfacet", distribution=kind, alpha=alpha), wi, n=16384)
-    assert single.min() < 0.99        # there was energy to restore
+    single = analytic.albedo(
+        analytic.create("microfacet", distribution=kind, alpha=alpha), wi, n=16384
+    )
+    assert single.min() < 0.99  # there was energy to restore
 
 
 def test_kulla_conty_with_fresnel_stays_below_one():
-    brdf = analytic.create("microfacet", alpha=0.8, multiscatter=True, fresnel="conductor", material="Au")
+    brdf = analytic.create(
+        "microfacet", alpha=0.8, multiscatter=True, fresnel="conductor", material="Au"
+    )
     mu = np.linspace(0.02, 1.0, 12)
     wi = np.stack([np.sqrt(1 - mu * mu), np.zeros_like(mu), mu], -1)
     rho = analytic.albedo(brdf, wi, n=8192)
-    single = analytic.albedo(analytic.create("microfacet", alpha=0.8, fresnel="conductor",
-                                             material="Au"), wi, n=8192)
+    single = analytic.albedo(
+        analytic.create("microfacet", alpha=0.8, fresnel="conductor", material="Au"), wi, n=8192
+    )
     assert np.all(rho <= 1.0 + 1e-3) and np.all(rho > single)

@@ -35,18 +35,17 @@ import pytest
 import torch
 
 import analytic
+import conftest
 from analytic import frame
 from neural_brdf import merl
 from neural_brdf.merl import MerlBRDF, MerlFormatError
-
-import conftest
 
 DIMS = (90, 90, 180)
 N = 90 * 90 * 180
 SCALE = (1.0 / 1500.0, 1.15 / 1500.0, 1.66 / 1500.0)
 FILE_BYTES = 12 + 3 * N * 8
 
-MATERIALS = conftest.MATERIALS   # the four real-data fixtures (baked once per session)
+MATERIALS = conftest.MATERIALS  # the four real-data fixtures (baked once per session)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -70,8 +69,11 @@ def stored(raw, ih, id_, ip):
 
 def centre_angles(ih, id_, ip):
     """Bin centres in index space: index i + 0.5 on each axis."""
-    return (((ih + 0.5) / 90) ** 2 * (math.pi / 2), (id_ + 0.5) / 90 * (math.pi / 2),
-            (ip + 0.5) / 180 * math.pi)
+    return (
+        ((ih + 0.5) / 90) ** 2 * (math.pi / 2),
+        (id_ + 0.5) / 90 * (math.pi / 2),
+        (ip + 0.5) / 180 * math.pi,
+    )
 
 
 def dirs_from_angles(th, ph, td, pd):
@@ -102,8 +104,10 @@ def random_raw(seed, *, unmeasured=0.0):
 
 def file_bytes(raw, dims=DIMS, order="<"):
     """The format, packed by hand: int32 dims, then float64 channel-major."""
-    return (np.asarray(dims, dtype=order + "i4").tobytes()
-            + np.ascontiguousarray(raw, dtype=order + "f8").tobytes())
+    return (
+        np.asarray(dims, dtype=order + "i4").tobytes()
+        + np.ascontiguousarray(raw, dtype=order + "f8").tobytes()
+    )
 
 
 def log_error(f_ref, f, cos):
@@ -147,8 +151,9 @@ def test_round_trip_is_bit_exact(tmp_path):
 
 def test_channel_order_scale_and_bin_layout(tmp_path):
     # raw[c, ih, id, ip] encodes its own position; the scale makes f = code * SCALE[c]
-    c, ih, id_, ip = np.meshgrid(np.arange(3), np.arange(90), np.arange(90), np.arange(180),
-                                 indexing="ij")
+    c, ih, id_, ip = np.meshgrid(
+        np.arange(3), np.arange(90), np.arange(90), np.arange(180), indexing="ij"
+    )
     code = (c * 1e7 + ih * 1e5 + id_ * 1e3 + ip).astype(np.float64)
     path = tmp_path / "code.binary"
     path.write_bytes(file_bytes(code))
@@ -164,7 +169,7 @@ def test_channel_order_scale_and_bin_layout(tmp_path):
 
 def test_values_array_is_scaled_on_write(tmp_path):
     f = np.random.default_rng(7).uniform(0.0, 3.0, size=DIMS + (3,))
-    f[0, 0, 0] = -1.0                                     # unmeasured
+    f[0, 0, 0] = -1.0  # unmeasured
     path = tmp_path / "v.binary"
     merl.write_merl(path, f)
     raw = np.frombuffer(path.read_bytes(), "<f8", offset=12).reshape((3,) + DIMS)
@@ -190,7 +195,7 @@ BAD_FILES = {
     "wrong dims": (lambda g: np.asarray((90, 90, 360), "<i4").tobytes() + g[12:], "dims"),
     "garbage dims": (lambda g: b"\x00\x01\x02\x03" * 3 + g[12:], "dims"),
     "truncated": (lambda g: g[:-8], "truncated"),
-    "half the data": (lambda g: g[:FILE_BYTES // 2], "truncated"),
+    "half the data": (lambda g: g[: FILE_BYTES // 2], "truncated"),
     "trailing bytes": (lambda g: g + b"\x00" * 8, "trailing"),
 }
 
@@ -238,8 +243,8 @@ def test_write_is_atomic(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="simulated"):
         merl.write_merl(path, MerlBRDF(random_raw(12)))
     monkeypatch.undo()
-    assert path.read_bytes() == old                      # the old file is untouched
-    assert sorted(os.listdir(tmp_path)) == ["keep.binary"]   # and no temporary is left
+    assert path.read_bytes() == old  # the old file is untouched
+    assert sorted(os.listdir(tmp_path)) == ["keep.binary"]  # and no temporary is left
     merl.write_merl(path, MerlBRDF(random_raw(12)))
     assert sorted(os.listdir(tmp_path)) == ["keep.binary"]
     np.testing.assert_array_equal(merl.read_merl(path).raw, random_raw(12))
@@ -293,20 +298,29 @@ def test_trilinear_interpolates_between_centres(noise_brdf):
     mid_h = ((ih + 1) / 90) ** 2 * (math.pi / 2)
     mid_d = (id_ + 1) / 90 * (math.pi / 2)
     mid_p = (ip + 1) / 180 * math.pi
-    cases = [((mid_h, td, pd), v[ih + 1, id_, ip]),
-             ((th, mid_d, pd), v[ih, id_ + 1, ip]),
-             ((th, td, mid_p), v[ih, id_, ip + 1])]
+    cases = [
+        ((mid_h, td, pd), v[ih + 1, id_, ip]),
+        ((th, mid_d, pd), v[ih, id_ + 1, ip]),
+        ((th, td, mid_p), v[ih, id_, ip + 1]),
+    ]
     for args, other in cases:
-        np.testing.assert_allclose(noise_brdf.lookup(*args), 0.5 * (v[ih, id_, ip] + other),
-                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            noise_brdf.lookup(*args), 0.5 * (v[ih, id_, ip] + other), rtol=1e-12
+        )
     # a quarter of the way along theta_d: weights 3/4 and 1/4
     q_d = (id_ + 0.75) / 90 * (math.pi / 2)
-    np.testing.assert_allclose(noise_brdf.lookup(th, q_d, pd),
-                               0.75 * v[ih, id_, ip] + 0.25 * v[ih, id_ + 1, ip], rtol=1e-12)
+    np.testing.assert_allclose(
+        noise_brdf.lookup(th, q_d, pd),
+        0.75 * v[ih, id_, ip] + 0.25 * v[ih, id_ + 1, ip],
+        rtol=1e-12,
+    )
     # phi_d is periodic with period pi: phi_d = 0 sits halfway between bins 179 and 0
     for p0 in (0.0, math.pi, -math.pi):
-        np.testing.assert_allclose(noise_brdf.lookup(th, td, np.full(500, p0)),
-                                   0.5 * (v[ih, id_, 179] + v[ih, id_, 0]), rtol=1e-12)
+        np.testing.assert_allclose(
+            noise_brdf.lookup(th, td, np.full(500, p0)),
+            0.5 * (v[ih, id_, 179] + v[ih, id_, 0]),
+            rtol=1e-12,
+        )
     # theta_h and theta_d clamp beyond the first and last centres
     np.testing.assert_array_equal(noise_brdf.lookup(0.0, td, pd), v[0, id_, ip])
     np.testing.assert_array_equal(noise_brdf.lookup(th, math.pi / 2, pd), v[ih, 89, ip])
@@ -315,8 +329,10 @@ def test_trilinear_interpolates_between_centres(noise_brdf):
 def test_lookups_are_reciprocal_through_the_phi_d_fold(noise_brdf):
     wi, wo = upper_hemisphere(50000, 16), upper_hemisphere(50000, 17)
     for interpolation in ("trilinear", "nearest"):
-        np.testing.assert_array_equal(noise_brdf.eval(wi, wo, interpolation=interpolation),
-                                      noise_brdf.eval(wo, wi, interpolation=interpolation))
+        np.testing.assert_array_equal(
+            noise_brdf.eval(wi, wo, interpolation=interpolation),
+            noise_brdf.eval(wo, wi, interpolation=interpolation),
+        )
     # the fold itself: phi_d and phi_d + pi are one configuration
     rng = np.random.default_rng(18)
     th, td = rng.uniform(0, 1.2, 20000), rng.uniform(0, 1.2, 20000)
@@ -324,16 +340,24 @@ def test_lookups_are_reciprocal_through_the_phi_d_fold(noise_brdf):
     a = dirs_from_angles(th, ph, td, pd)
     b = dirs_from_angles(th, ph, td, pd + math.pi)
     np.testing.assert_allclose(noise_brdf.eval(*a), noise_brdf.eval(*b), rtol=1e-6)
-    np.testing.assert_allclose(noise_brdf.lookup(th, td, pd),
-                               noise_brdf.lookup(th, td, pd + math.pi), rtol=1e-6)
+    np.testing.assert_allclose(
+        noise_brdf.lookup(th, td, pd), noise_brdf.lookup(th, td, pd + math.pi), rtol=1e-6
+    )
 
 
 def test_below_horizon_and_degenerate_inputs_give_zero(noise_brdf):
     up = upper_hemisphere(100, 19)
     down = up * np.array([1.0, 1.0, -1.0])
     flat = up * np.array([1.0, 1.0, 0.0])
-    for wi, wo in ((up, down), (down, up), (down, down), (flat, up), (np.zeros((100, 3)), up),
-                   (np.full((100, 3), np.nan), up), (np.full((100, 3), np.inf), up)):
+    for wi, wo in (
+        (up, down),
+        (down, up),
+        (down, down),
+        (flat, up),
+        (np.zeros((100, 3)), up),
+        (np.full((100, 3), np.nan), up),
+        (np.full((100, 3), np.inf), up),
+    ):
         np.testing.assert_array_equal(noise_brdf.eval(wi, wo), 0.0)
     # batch shapes broadcast; unnormalised directions are normalised
     other = upper_hemisphere(1, 46)[0]
@@ -355,7 +379,7 @@ def test_unmeasured_bins_never_enter_the_interpolation():
     assert np.all(np.isfinite(f))
     ok = np.isclose(f, 2.0, rtol=1e-12, atol=0) | (f == 0.0)
     assert ok.all(), f[~ok][:5]
-    assert (f == 0).mean() < 0.01              # 0 only where all 8 neighbours are unmeasured
+    assert (f == 0).mean() < 0.01  # 0 only where all 8 neighbours are unmeasured
     # at an unmeasured centre the only weight is its own: 0; a tiny step away: 2
     ih, id_, ip = np.argwhere(mask[10:80, 10:80, 10:170])[0] + 10
     th, td, pd = centre_angles(ih, id_, ip)
@@ -475,12 +499,13 @@ def test_bake_reproduces_ggx_at_bin_centres(baked_ggx):
     gwi, gwo = merl.grid_directions(int(k[0]), int(k[-1]) + 1)
     gwi, gwo = gwi[k - k[0]], gwo[k - k[0]]
     th, td, pd = centre_angles(*np.unravel_index(k, DIMS))
-    rwi, rwo = dirs_from_angles(th, np.zeros(len(k)), td, pd)      # phi_h = 0
+    rwi, rwo = dirs_from_angles(th, np.zeros(len(k)), td, pd)  # phi_h = 0
     np.testing.assert_allclose(gwi, rwi, atol=1e-15)
     np.testing.assert_allclose(gwo, rwo, atol=1e-15)
     ok = m.valid.reshape(-1)[k]
-    np.testing.assert_allclose(m.values.reshape(-1, 3)[k][ok],
-                               np.maximum(model.eval(gwi[ok], gwo[ok]), 0), rtol=1e-13)
+    np.testing.assert_allclose(
+        m.values.reshape(-1, 3)[k][ok], np.maximum(model.eval(gwi[ok], gwo[ok]), 0), rtol=1e-13
+    )
 
 
 def test_bake_reproduces_ggx_within_interpolation_error(baked_ggx):
@@ -497,7 +522,7 @@ def test_bake_reproduces_ggx_within_interpolation_error(baked_ggx):
 
 
 def test_bake_clamps_negative_values_and_checks_the_callable(tmp_path):
-    def signed(wi, wo):                      # negative where wi.x < 0
+    def signed(wi, wo):  # negative where wi.x < 0
         return np.where(wi[:, :1] < 0, -0.5, 0.25) * np.ones(3)
 
     m = merl.bake_brdf(signed)
@@ -527,8 +552,17 @@ def test_nbrdf_fixture_follows_the_documented_formula(nbrdf_npz):
     pd, ph = rng.uniform(0, math.pi, 5000), rng.uniform(0, 2 * math.pi, 5000)
     wi, wo = dirs_from_angles(th, ph, td, pd)
     up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    x = np.stack([np.sin(th), np.zeros_like(th), np.cos(th), np.sin(td) * np.cos(pd),
-                  np.sin(td) * np.sin(pd), np.cos(td)], -1)
+    x = np.stack(
+        [
+            np.sin(th),
+            np.zeros_like(th),
+            np.cos(th),
+            np.sin(td) * np.cos(pd),
+            np.sin(td) * np.sin(pd),
+            np.cos(td),
+        ],
+        -1,
+    )
     with np.load(nbrdf_npz) as z:
         for name in MATERIALS:
             w = [z[f"{name}/{k}"].astype(np.float64) for k in ("W0", "b0", "W1", "b1", "W2", "b2")]
@@ -570,8 +604,9 @@ def test_nbrdf_material_written_and_read_back(baked_materials, name):
     th, td, pd = centre_angles(ih, id_, ip)
     wi, wo = dirs_from_angles(th, rng.uniform(0, 2 * math.pi, 5000), td, pd)
     up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    np.testing.assert_allclose(m.eval(wi[up], wo[up]), np.maximum(fn(wi[up], wo[up]), 0.0),
-                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        m.eval(wi[up], wo[up]), np.maximum(fn(wi[up], wo[up]), 0.0), rtol=1e-9, atol=1e-12
+    )
     # anywhere: within the grid's interpolation error, by the issue's two metrics
     wi, wo = upper_hemisphere(100000, 40), upper_hemisphere(100000, 41)
     f_ref = np.maximum(fn(wi, wo), 0.0)
@@ -610,7 +645,7 @@ def _abc_scalar(p, wi, wo):
     n = math.sqrt(sum(x * x for x in h))
     h = [x / n for x in h]
     c = sum(a * b for a, b in zip(wi, h))
-    g = math.sqrt(p.ior ** 2 + c * c - 1)
+    g = math.sqrt(p.ior**2 + c * c - 1)
     t1, t2 = c * (g + c) - 1, c * (g - c) + 1
     fres = 0.5 * (g - c) ** 2 / (g + c) ** 2 * (1 + t1 * t1 / (t2 * t2))
     G = min(1.0, 2 * h[2] * wi[2] / c, 2 * h[2] * wo[2] / c)
@@ -631,8 +666,9 @@ def test_abc_fixture_matches_the_dj_brdf_equations(abc_csv, name):
     np.testing.assert_array_equal(f(wi, wo * np.array([1, 1, -1])), 0.0)
 
 
-@pytest.mark.parametrize("name", ["white-diffuse-bball", "gray-plastic", "white-paint",
-                                  "red-plastic", "blue-acrylic"])
+@pytest.mark.parametrize(
+    "name", ["white-diffuse-bball", "gray-plastic", "white-paint", "red-plastic", "blue-acrylic"]
+)
 def test_abc_and_nbrdf_fits_of_one_material_agree(abc_csv, nbrdf_npz, name):
     # Two independent fits of the same measurements agree away from the peak and the
     # horizon to ~20%.  A misplaced 1/pi would put the ratio near 3.1 or 0.32.

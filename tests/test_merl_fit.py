@@ -13,19 +13,28 @@ import pytest
 import torch
 
 import analytic
-from neural_brdf import cli, config, data, merl, train, validate
-
 import conftest
+from neural_brdf import cli, config, data, merl, train, validate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 # Short fits: mechanics and a fair comparison, not the benchmark's accuracy.
-SHORT = ["train.steps=1000", "train.warmup=20", "train.progress=false", "train.threads=1",
-         "train.eval_every=250", "model.hidden=[32,32]",
-         "data.batch_size=2048", "data.pool_size=65536",
-         "normalization.table_size=33", "normalization.samples=4096",
-         "validation.furnace_dirs=31", "validation.furnace_samples=4096",
-         "validation.pairs=4000", "export.parity_pairs=512"]
+SHORT = [
+    "train.steps=1000",
+    "train.warmup=20",
+    "train.progress=false",
+    "train.threads=1",
+    "train.eval_every=250",
+    "model.hidden=[32,32]",
+    "data.batch_size=2048",
+    "data.pool_size=65536",
+    "normalization.table_size=33",
+    "normalization.samples=4096",
+    "validation.furnace_dirs=31",
+    "validation.furnace_samples=4096",
+    "validation.pairs=4000",
+    "export.parity_pairs=512",
+]
 
 
 def merl_config(path, *extra) -> config.Config:
@@ -38,7 +47,7 @@ def ggx_binary(tmp_path_factory):
     ggx = analytic.create("microfacet", alpha=0.3, fresnel="conductor", material="Au")
     grid = merl.bake_brdf(ggx)
     valid = grid.valid.copy()
-    valid[:, 60:, :] = False                      # theta_d >= 60 deg: "not measured"
+    valid[:, 60:, :] = False  # theta_d >= 60 deg: "not measured"
     path = tmp_path_factory.mktemp("ggx") / "ggx.binary"
     merl.write_merl(path, merl.MerlBRDF.from_values(grid.values, valid=valid))
     return ggx, path
@@ -51,12 +60,12 @@ def test_measured_pairs_stay_on_the_measured_support(ggx_binary):
     wi, wo, f = target.draw(20000, torch.Generator().manual_seed(0))
     assert wi.dtype == torch.float32 and f.shape == (20000, 3)
     _, _, theta_d, _ = analytic.frame.rusinkiewicz(wi.double(), wo.double())
-    assert float(theta_d.max()) < math.radians(60.0) + 1e-6     # never in unmeasured bins
+    assert float(theta_d.max()) < math.radians(60.0) + 1e-6  # never in unmeasured bins
     assert bool((wi[:, 2] > 0).all() and (wo[:, 2] > 0).all())
     # f is the interpolated data, which is close to the model it was baked from
     ref = ggx.eval(wi.double().numpy(), wo.double().numpy())
     cos = wo[:, 2:3].double().numpy()
-    err = np.sqrt(np.sum((f.numpy() - ref) ** 2 * cos ** 2) / np.sum((ref * cos) ** 2))
+    err = np.sqrt(np.sum((f.numpy() - ref) ** 2 * cos**2) / np.sum((ref * cos) ** 2))
     assert err < 0.05
 
 
@@ -65,8 +74,7 @@ def test_grid_pairs_are_the_measured_bin_centres(ggx_binary):
     target = data.MeasuredTarget.from_file(path)
     wi, wo, f = target.grid_pairs(5000, seed=3)
     # at a bin centre the stored value is the model's value there (a bake is exact there)
-    np.testing.assert_allclose(f.numpy(), ggx.eval(wi.numpy(), wo.numpy()), rtol=1e-9,
-                               atol=1e-12)
+    np.testing.assert_allclose(f.numpy(), ggx.eval(wi.numpy(), wo.numpy()), rtol=1e-9, atol=1e-12)
     everything = target.grid_pairs(None)[0]
     m = merl.read_merl(path)
     assert len(everything) == int((m.valid & merl.grid_above_horizon()).sum())
@@ -85,8 +93,14 @@ def test_accuracy_against_data_is_zero_for_the_baked_model_and_not_for_another(g
 
 def test_resume_on_measured_data_continues_exactly(ggx_binary, tmp_path):
     _, path = ggx_binary
-    extra = ["train.schedule=constant", "train.steps=12", "train.checkpoint_every=5",
-             "data.batch_size=256", "data.pool_size=2048", "model.hidden=[8,8]"]
+    extra = [
+        "train.schedule=constant",
+        "train.steps=12",
+        "train.checkpoint_every=5",
+        "data.batch_size=256",
+        "data.pool_size=2048",
+        "model.hidden=[8,8]",
+    ]
     train.train(merl_config(path, *extra), tmp_path / "straight")
     train.train(merl_config(path, *extra, "train.steps=5"), tmp_path / "split")
     train.train(merl_config(path, *extra), tmp_path / "split", resume=True)
@@ -137,8 +151,7 @@ def fits(baked_materials, tmp_path_factory):
 
 
 @pytest.mark.parametrize("name", conftest.MATERIALS)
-def test_real_material_fit_is_physical_and_beats_the_abc_fit(fits, baked_materials, abc_csv,
-                                                             name):
+def test_real_material_fit_is_physical_and_beats_the_abc_fit(fits, baked_materials, abc_csv, name):
     run, report = fits[name]
     assert report["passed"]
     checks = report["checks"]
@@ -146,25 +159,32 @@ def test_real_material_fit_is_physical_and_beats_the_abc_fit(fits, baked_materia
     assert checks["max_albedo"]["value"] <= 1.001
     acc = report["accuracy"]
     target = data.MeasuredTarget.from_file(baked_materials[name][1])
-    assert acc["pairs"] == len(target.grid_pairs(None)[0])       # every measured bin
+    assert acc["pairs"] == len(target.grid_pairs(None)[0])  # every measured bin
     # the ABC analytic fit of the same measured material, on the same bins
     abc = validate.accuracy(merl.abc_fixture(abc_csv, name), target, n=0, seed=0)
     assert acc["nbrdf_log_error"] < abc["nbrdf_log_error"]
     assert acc["rel_rmse"] < abc["rel_rmse"]
-    assert acc["rel_rmse"] < 0.20          # a collapsed fit (floor at 0) measured 0.29
+    assert acc["rel_rmse"] < 0.20  # a collapsed fit (floor at 0) measured 0.29
 
 
 def test_validate_cli_against_the_measured_file(fits, baked_materials, tmp_path, capsys):
     name = "gold-metallic-paint"
     run, report = fits[name]
     out = tmp_path / "v.json"
-    rc = cli.main(["validate", str(run / "model.onnx"), "--reference",
-                   str(baked_materials[name][1]), "--json", str(out)])
+    rc = cli.main(
+        [
+            "validate",
+            str(run / "model.onnx"),
+            "--reference",
+            str(baked_materials[name][1]),
+            "--json",
+            str(out),
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "rel_rmse (f cos)" in text
     got = json.loads(out.read_text())
     # the same file against the same data gives the figures the training run reported
-    assert got["accuracy"]["rel_rmse"] == pytest.approx(report["accuracy"]["rel_rmse"],
-                                                        rel=1e-6)
+    assert got["accuracy"]["rel_rmse"] == pytest.approx(report["accuracy"]["rel_rmse"], rel=1e-6)
     assert got["reference"].startswith("MERL ")

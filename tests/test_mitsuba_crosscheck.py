@@ -41,9 +41,9 @@ import analytic
 pytestmark = pytest.mark.mitsuba
 
 RTOL = 1e-4
-ATOL = 1e-10            # Mitsuba sets D to 0 where D cos(theta_h) <= 1e-20
-N_DIRS = 20000          # direction pairs per parameter draw
-N_DRAWS = 4             # parameter draws per case
+ATOL = 1e-10  # Mitsuba sets D to 0 where D cos(theta_h) <= 1e-20
+N_DIRS = 20000  # direction pairs per parameter draw
+N_DRAWS = 4  # parameter draws per case
 BECKMANN_RAW_RTOL = 7e-3
 BECKMANN_EXACT_A = 2.5  # a = 1 / (alpha tan theta) above which both G1 are 1 to 1e-5
 
@@ -52,6 +52,7 @@ BECKMANN_EXACT_A = 2.5  # a = 1 / (alpha tan theta) above which both G1 are 1 to
 @pytest.fixture(scope="module")
 def mi():
     import mitsuba
+
     mitsuba.set_variant("llvm_ad_rgb")
     return mitsuba
 
@@ -93,7 +94,8 @@ def assert_close(mine, theirs, rtol, what: str, mask=None):
     assert not bad.any(), (
         f"{what}: {int(bad.any(-1).sum())} of {len(mine)} differ by more than {rtol:g} "
         f"relative (max {worst:.3g}); first: ours {mine[bad.any(-1)][:3].tolist()}, "
-        f"mitsuba {theirs[bad.any(-1)][:3].tolist()}")
+        f"mitsuba {theirs[bad.any(-1)][:3].tolist()}"
+    )
 
 
 # ------------------------------------------------------------------ directions
@@ -109,15 +111,26 @@ def direction_pairs(rng, n: int, spread: float = 1.0) -> tuple[np.ndarray, np.nd
     radians, so the lobe's peak is covered), 20% grazing (cos theta < 0.05)."""
     k_uni, k_mir = int(0.4 * n), int(0.4 * n)
     k_gr = n - k_uni - k_mir
-    wi = np.concatenate([hemisphere(rng, k_uni), hemisphere(rng, k_mir, 0.05, 1.0),
-                         hemisphere(rng, k_gr, 1e-3, 0.05)])
-    mirror = wi[k_uni:k_uni + k_mir] * np.array([-1.0, -1.0, 1.0])
+    wi = np.concatenate(
+        [
+            hemisphere(rng, k_uni),
+            hemisphere(rng, k_mir, 0.05, 1.0),
+            hemisphere(rng, k_gr, 1e-3, 0.05),
+        ]
+    )
+    mirror = wi[k_uni : k_uni + k_mir] * np.array([-1.0, -1.0, 1.0])
     jitter = rng.normal(0.0, spread, (k_mir, 3))
     near = mirror + jitter - (jitter * mirror).sum(-1, keepdims=True) * mirror
     near[:, 2] = np.abs(near[:, 2])
-    wo = np.concatenate([hemisphere(rng, k_uni), near,
-                         np.concatenate([hemisphere(rng, k_gr // 2, 1e-3, 0.05),
-                                         hemisphere(rng, k_gr - k_gr // 2)])])
+    wo = np.concatenate(
+        [
+            hemisphere(rng, k_uni),
+            near,
+            np.concatenate(
+                [hemisphere(rng, k_gr // 2, 1e-3, 0.05), hemisphere(rng, k_gr - k_gr // 2)]
+            ),
+        ]
+    )
     wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
     wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     keep = (wi[:, 2] > 0) & (wo[:, 2] > 0)
@@ -159,18 +172,23 @@ def test_diffuse_matches_lambertian(mi):
     for _ in range(N_DRAWS):
         albedo = rng.uniform(0.0, 1.0, 3)
         wi, wo = direction_pairs(rng, N_DIRS)
-        theirs = mitsuba_eval(mi, {"type": "diffuse",
-                                   "reflectance": {"type": "rgb", "value": albedo.tolist()}},
-                              wi, wo)
+        theirs = mitsuba_eval(
+            mi,
+            {"type": "diffuse", "reflectance": {"type": "rgb", "value": albedo.tolist()}},
+            wi,
+            wo,
+        )
         mine = ours(analytic.create("lambertian", albedo=albedo.tolist()), wi, wo)
         assert_close(mine, theirs, RTOL, f"diffuse albedo={albedo.tolist()}")
 
 
 def conductor_case_ids() -> list:
-    return [pytest.param(dist, aniso, fresnel,
-                         id=f"{dist}-{'aniso' if aniso else 'iso'}-{fresnel}")
-            for dist in ("ggx", "beckmann") for aniso in (False, True)
-            for fresnel in ("none", "conductor")]
+    return [
+        pytest.param(dist, aniso, fresnel, id=f"{dist}-{'aniso' if aniso else 'iso'}-{fresnel}")
+        for dist in ("ggx", "beckmann")
+        for aniso in (False, True)
+        for fresnel in ("none", "conductor")
+    ]
 
 
 def draw_conductor(rng, dist: str, aniso: bool, fresnel: str):
@@ -179,8 +197,13 @@ def draw_conductor(rng, dist: str, aniso: bool, fresnel: str):
     ax = float(math.exp(rng.uniform(math.log(0.01), 0.0)))
     ay = float(math.exp(rng.uniform(math.log(0.01), 0.0))) if aniso else ax
     props = {"type": "roughconductor", "distribution": dist, "alpha_u": ax, "alpha_v": ay}
-    params = {"distribution": dist, "alpha_x": ax, "alpha_y": ay, "masking": "smith_separable",
-              "fresnel": fresnel}
+    params = {
+        "distribution": dist,
+        "alpha_x": ax,
+        "alpha_y": ay,
+        "masking": "smith_separable",
+        "fresnel": fresnel,
+    }
     if fresnel == "none":
         props["material"] = "none"
     else:
@@ -194,8 +217,9 @@ def draw_conductor(rng, dist: str, aniso: bool, fresnel: str):
 
 @pytest.mark.parametrize("dist, aniso, fresnel", conductor_case_ids())
 def test_roughconductor_matches_microfacet(mi, dist, aniso, fresnel):
-    rng = np.random.default_rng({"ggx": 10, "beckmann": 20}[dist] + 2 * aniso
-                                + (fresnel == "conductor"))
+    rng = np.random.default_rng(
+        {"ggx": 10, "beckmann": 20}[dist] + 2 * aniso + (fresnel == "conductor")
+    )
     for _ in range(N_DRAWS):
         brdf, props, ax, ay = draw_conductor(rng, dist, aniso, fresnel)
         wi, wo = direction_pairs(rng, N_DIRS, spread=2.0 * max(ax, ay))
@@ -210,10 +234,16 @@ def test_roughconductor_matches_microfacet(mi, dist, aniso, fresnel):
         flat = (a_i >= BECKMANN_EXACT_A) & (a_o >= BECKMANN_EXACT_A)
         assert_close(mine, theirs, RTOL, f"{what} [G1 = 1 region]", mask=flat)
         # (b) everywhere, with Mitsuba's approximate G replaced by the exact Smith G
-        ratio = (g1_beckmann_exact(a_i) * g1_beckmann_exact(a_o)
-                 / (g1_beckmann_walter(a_i) * g1_beckmann_walter(a_o)))
-        ok = ~(near_threshold(a_i) | near_threshold(a_o)) & (g1_beckmann_walter(a_i) > 0) \
+        ratio = (
+            g1_beckmann_exact(a_i)
+            * g1_beckmann_exact(a_o)
+            / (g1_beckmann_walter(a_i) * g1_beckmann_walter(a_o))
+        )
+        ok = (
+            ~(near_threshold(a_i) | near_threshold(a_o))
+            & (g1_beckmann_walter(a_i) > 0)
             & (g1_beckmann_walter(a_o) > 0)
+        )
         assert_close(mine, theirs * ratio[:, None], RTOL, f"{what} [exact G]", mask=ok)
         # (c) everywhere, raw, within the approximation's stated error
         assert_close(mine, theirs, BECKMANN_RAW_RTOL, f"{what} [raw, approximate G]")
@@ -234,8 +264,10 @@ def conductor_ior(data_dir: Path, material: str) -> tuple[list[float], list[floa
     with path.open() as fh:
         for row in csv.DictReader(line for line in fh if not line.startswith("#")):
             if row["material"] == material:
-                return ([float(row[f"eta_{c}"]) for c in "rgb"],
-                        [float(row[f"k_{c}"]) for c in "rgb"])
+                return (
+                    [float(row[f"eta_{c}"]) for c in "rgb"],
+                    [float(row[f"k_{c}"]) for c in "rgb"],
+                )
     raise AssertionError(f"{path}: no row for {material}")
 
 
@@ -252,16 +284,32 @@ def test_reference_values_roughconductor(data_dir):
         wo = np.array([[float(row[f"wo_{c}"]) for c in "xyz"]])
         expected = np.array([[float(row[f"v_{c}"]) for c in "rgb"]])
         eta, k = conductor_ior(data_dir, mat)
-        brdf = analytic.create("microfacet", distribution=dist, alpha_x=ax, alpha_y=ay,
-                               masking="smith_separable", fresnel="conductor", eta=eta, k=k)
+        brdf = analytic.create(
+            "microfacet",
+            distribution=dist,
+            alpha_x=ax,
+            alpha_y=ay,
+            masking="smith_separable",
+            fresnel="conductor",
+            eta=eta,
+            k=k,
+        )
         mine = brdf.eval(wi, wo) * wo[:, 2:3]
-        if dist == "beckmann":     # Mitsuba's Beckmann G1 is Walter's approximation
+        if dist == "beckmann":  # Mitsuba's Beckmann G1 is Walter's approximation
             a_i, a_o = beckmann_a(wi, ax, ay), beckmann_a(wo, ax, ay)
-            expected = expected * (g1_beckmann_exact(a_i) * g1_beckmann_exact(a_o)
-                                   / (g1_beckmann_walter(a_i) * g1_beckmann_walter(a_o)))[:, None]
+            expected = (
+                expected
+                * (
+                    g1_beckmann_exact(a_i)
+                    * g1_beckmann_exact(a_o)
+                    / (g1_beckmann_walter(a_i) * g1_beckmann_walter(a_o))
+                )[:, None]
+            )
         err = float(rel_error(mine, expected).max())
         if err > RTOL:
-            failures.append(f"{mat} {dist} alpha=({ax}, {ay}) wi={wi[0].tolist()} "
-                            f"wo={wo[0].tolist()}: ours {mine[0].tolist()} vs "
-                            f"{expected[0].tolist()} (rel {err:.3g})")
+            failures.append(
+                f"{mat} {dist} alpha=({ax}, {ay}) wi={wi[0].tolist()} "
+                f"wo={wo[0].tolist()}: ours {mine[0].tolist()} vs "
+                f"{expected[0].tolist()} (rel {err:.3g})"
+            )
     assert not failures, f"{len(failures)} rows differ by > {RTOL:g}:\n" + "\n".join(failures[:10])

@@ -41,23 +41,34 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 # Short and small: the plugin, not the fit, is under test.  The normalisation keeps its
 # defaults except the sample count (its 3-sigma margin keeps the albedo bound).
-TINY_RUN = ["train.steps=150", "train.threads=1", "train.warmup=20", "train.progress=false",
-            "train.checkpoint_every=1000", "train.eval_every=0", "model.hidden=[16,16]",
-            "data.batch_size=1024", "data.pool_size=16384", "normalization.samples=4096",
-            "validation.furnace_dirs=31", "validation.furnace_samples=2048",
-            "validation.pairs=4000", "validation.accuracy_samples=8192",
-            "export.parity_pairs=1024"]
+TINY_RUN = [
+    "train.steps=150",
+    "train.threads=1",
+    "train.warmup=20",
+    "train.progress=false",
+    "train.checkpoint_every=1000",
+    "train.eval_every=0",
+    "model.hidden=[16,16]",
+    "data.batch_size=1024",
+    "data.pool_size=16384",
+    "normalization.samples=4096",
+    "validation.furnace_dirs=31",
+    "validation.furnace_samples=2048",
+    "validation.pairs=4000",
+    "validation.accuracy_samples=8192",
+    "export.parity_pairs=1024",
+]
 
-PARITY_TOL = 1e-5                  # the export contract's parity tolerance
+PARITY_TOL = 1e-5  # the export contract's parity tolerance
 CHI2_THETA_DEG = (10.0, 45.0, 75.0)
-CHI2_PHI = 0.6                     # incident azimuth, off-axis
+CHI2_PHI = 0.6  # incident azimuth, off-axis
 # Sub-intervals per cell edge of Mitsuba's pdf integration (tests/test_sampling.py
 # explains why its default, 4, is too coarse for a GGX lobe).
 CHI2_IRES = 10
 
-FURNACE_RES = 32                   # pixels per side
-FURNACE_SPP = 256                  # per render; two renders (seeds 0 and 1) per model
-FURNACE_SCALE = 1.1                # half-width of the orthographic view (sphere radius 1)
+FURNACE_RES = 32  # pixels per side
+FURNACE_SPP = 256  # per render; two renders (seeds 0 and 1) per model
+FURNACE_SCALE = 1.1  # half-width of the orthographic view (sphere radius 1)
 # Monte Carlo allowance: the noise of a pixel of the two-render mean is estimated from
 # the spread of the two renders over the sphere; a pixel may exceed 1 by this many
 # standard errors (about 600 sphere pixels: 5 sigma is ~1e-4 false alarms per model).
@@ -104,8 +115,7 @@ def with_metadata(src, dst, key, value=None):
 @pytest.fixture(scope="module")
 def legacy_model(tiny_model, tmp_path_factory):
     """The tiny model as exported before the lobe was stored: no ``sampling_lobe``."""
-    return with_metadata(tiny_model, tmp_path_factory.mktemp("legacy") / "model.onnx",
-                         lobe.KEY)
+    return with_metadata(tiny_model, tmp_path_factory.mktemp("legacy") / "model.onnx", lobe.KEY)
 
 
 # ------------------------------------------------------------------ helpers
@@ -149,18 +159,27 @@ def pairs(seed, n=20000):
 
 def furnace(mi, bsdf: dict, seed: int) -> np.ndarray:
     T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": -1},
-        "sensor": {"type": "orthographic",
-                   "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0])
-                   @ T().scale([FURNACE_SCALE, FURNACE_SCALE, 1.0]),
-                   "sampler": {"type": "independent", "sample_count": FURNACE_SPP},
-                   "film": {"type": "hdrfilm", "width": FURNACE_RES, "height": FURNACE_RES,
-                            "pixel_format": "rgb", "rfilter": {"type": "box"}}},
-        "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
-        "ball": {"type": "sphere", "bsdf": bsdf},
-    })
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": -1},
+            "sensor": {
+                "type": "orthographic",
+                "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0])
+                @ T().scale([FURNACE_SCALE, FURNACE_SCALE, 1.0]),
+                "sampler": {"type": "independent", "sample_count": FURNACE_SPP},
+                "film": {
+                    "type": "hdrfilm",
+                    "width": FURNACE_RES,
+                    "height": FURNACE_RES,
+                    "pixel_format": "rgb",
+                    "rfilter": {"type": "box"},
+                },
+            },
+            "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+            "ball": {"type": "sphere", "bsdf": bsdf},
+        }
+    )
     return np.asarray(mi.render(scene, seed=seed), dtype=np.float64)
 
 
@@ -198,24 +217,36 @@ def test_eval_matches_onnxruntime(mi, tiny_model):
     assert below.any() and (got[below] == 0).all()
 
 
-@pytest.mark.parametrize("name, params", [
-    ("lambertian", {"albedo": [0.2, 0.5, 0.8]}),
-    ("phong", {}), ("blinn_phong", {}), ("ward", {"alpha_x": 0.2, "alpha_y": 0.4}),
-    ("ashikhmin_shirley", {}), ("coupled", {}), ("bank", {}), ("oren_nayar", {}),
-    ("retroreflective", {}),
-    ("microfacet", {"alpha_x": 0.3, "alpha_y": 0.1, "fresnel": "conductor", "material": "Au"}),
-    ("microfacet", {"alpha": 0.5, "fresnel": "none", "multiscatter": True}),
-])
+@pytest.mark.parametrize(
+    "name, params",
+    [
+        ("lambertian", {"albedo": [0.2, 0.5, 0.8]}),
+        ("phong", {}),
+        ("blinn_phong", {}),
+        ("ward", {"alpha_x": 0.2, "alpha_y": 0.4}),
+        ("ashikhmin_shirley", {}),
+        ("coupled", {}),
+        ("bank", {}),
+        ("oren_nayar", {}),
+        ("retroreflective", {}),
+        ("microfacet", {"alpha_x": 0.3, "alpha_y": 0.1, "fresnel": "conductor", "material": "Au"}),
+        ("microfacet", {"alpha": 0.5, "fresnel": "none", "multiscatter": True}),
+    ],
+)
 def test_interpreter_matches_onnxruntime_on_analytic_graphs(mi, plugin, name, params):
     """The interpreter on graphs with a wider op set (Expand, Reshape, Pow, ReduceL2,
     table look-ups, ...) than the neural export, against onnxruntime on the same bytes."""
     payload = plugin.analytic_onnx(name, params)
     wi, wo = pairs(2, 4000)
-    cols = plugin.OnnxProgram(payload)(wi=[mi.Float(wi[:, k]) for k in range(3)],
-                                       wo=[mi.Float(wo[:, k]) for k in range(3)])["f"]
+    cols = plugin.OnnxProgram(payload)(
+        wi=[mi.Float(wi[:, k]) for k in range(3)], wo=[mi.Float(wo[:, k]) for k in range(3)]
+    )["f"]
     got = np.stack([to_np(c) for c in cols], -1)
-    ref = ort.InferenceSession(payload, providers=["CPUExecutionProvider"]).run(
-        ["f"], {"wi": wi, "wo": wo})[0].astype(np.float64)
+    ref = (
+        ort.InferenceSession(payload, providers=["CPUExecutionProvider"])
+        .run(["f"], {"wi": wi, "wo": wo})[0]
+        .astype(np.float64)
+    )
     err = relative_difference(got, ref)
     assert err <= PARITY_TOL, f"{name} {params}: interpreter vs onnxruntime {err:.3g}"
 
@@ -299,9 +330,15 @@ def test_chi2(mi, tiny_model, theta, tmp_path, monkeypatch):
 
     props = {"type": "neural_brdf", "filename": str(tiny_model)}
     sample_fn, pdf_fn = BSDFAdapter("neural_brdf", props, wi=incident(theta))
-    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_fn, pdf_func=pdf_fn,
-                         sample_dim=3, sample_count=1_000_000, ires=CHI2_IRES,
-                         seed=int(theta))
+    test = ChiSquareTest(
+        domain=SphericalDomain(),
+        sample_func=sample_fn,
+        pdf_func=pdf_fn,
+        sample_dim=3,
+        sample_count=1_000_000,
+        ires=CHI2_IRES,
+        seed=int(theta),
+    )
     ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG), quiet=True)
     if not ok:
         monkeypatch.chdir(tmp_path)
@@ -313,21 +350,28 @@ def test_chi2(mi, tiny_model, theta, tmp_path, monkeypatch):
 def test_sample_weight_is_eval_over_pdf(mi, tiny_model, kind):
     import drjit as dr
 
-    props = ({"type": "neural_brdf", "filename": str(tiny_model)} if kind == "neural" else
-             {"type": "analytic_brdf", "model": "microfacet",
-              "params": json.dumps({"alpha": 0.2, "fresnel": "conductor", "material": "Cu"})})
+    props = (
+        {"type": "neural_brdf", "filename": str(tiny_model)}
+        if kind == "neural"
+        else {
+            "type": "analytic_brdf",
+            "model": "microfacet",
+            "params": json.dumps({"alpha": 0.2, "fresnel": "conductor", "material": "Cu"}),
+        }
+    )
     bsdf = mi.load_dict(props)
     rng = np.random.default_rng(3)
     n = 20000
     wi = unit(rng, n)
     wi[:, 2] = np.abs(wi[:, 2])
-    wi[:100] = [0.0, 0.0, 1.0]                                   # normal incidence
-    wi[100:200] = [math.sqrt(1 - 1e-4), 0.0, 1e-2]               # grazing
+    wi[:100] = [0.0, 0.0, 1.0]  # normal incidence
+    wi[100:200] = [math.sqrt(1 - 1e-4), 0.0, 1e-2]  # grazing
     si = interaction(mi, wi)
     u = rng.random((n, 3)).astype(np.float32)
     ctx = mi.BSDFContext()
-    bs, weight = bsdf.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(mi.Float(u[:, 1]),
-                                                                      mi.Float(u[:, 2])))
+    bs, weight = bsdf.sample(
+        ctx, si, mi.Float(u[:, 0]), mi.Point2f(mi.Float(u[:, 1]), mi.Float(u[:, 2]))
+    )
     value_dr, pdf_dr = bsdf.eval_pdf(ctx, si, bs.wo)
     # eval / pdf as Dr.Jit computes it (a colour over a scalar: times the reciprocal)
     ratio = to_np(dr.select(pdf_dr > 0, value_dr / pdf_dr, 0.0))
@@ -350,12 +394,17 @@ def test_sample_weight_is_eval_over_pdf(mi, tiny_model, kind):
 def furnace_cases():
     return [
         pytest.param("neural", None, id="neural"),
-        pytest.param("analytic", ("microfacet", {"alpha": 0.5, "fresnel": "none",
-                                                 "multiscatter": True}, 1.0),
-                     id="ggx-F1-multiscatter"),
+        pytest.param(
+            "analytic",
+            ("microfacet", {"alpha": 0.5, "fresnel": "none", "multiscatter": True}, 1.0),
+            id="ggx-F1-multiscatter",
+        ),
         pytest.param("analytic", ("lambertian", {"albedo": 0.8}, 0.8), id="lambertian-0.8"),
-        pytest.param("analytic", ("microfacet", {"alpha": 0.3, "fresnel": "conductor",
-                                                 "material": "Au"}, None), id="ggx-gold"),
+        pytest.param(
+            "analytic",
+            ("microfacet", {"alpha": 0.3, "fresnel": "conductor", "material": "Au"}, None),
+            id="ggx-gold",
+        ),
     ]
 
 
@@ -369,8 +418,9 @@ def test_furnace(mi, tiny_model, kind, case):
         bsdf = {"type": "analytic_brdf", "model": name, "params": json.dumps(params)}
     mean, inside, sigma = furnace_stats(mi, bsdf)
     limit = 1.0 + FURNACE_SIGMAS * sigma
-    assert mean.max() <= limit, (f"{bsdf}: max pixel {mean.max():.4f} > 1 + "
-                                 f"{FURNACE_SIGMAS:g} sigma = {limit:.4f}")
+    assert mean.max() <= limit, (
+        f"{bsdf}: max pixel {mean.max():.4f} > 1 + {FURNACE_SIGMAS:g} sigma = {limit:.4f}"
+    )
     background = pixel_radius() > OUTER
     np.testing.assert_allclose(mean[background], 1.0, atol=1e-6)
     if expected is not None:

@@ -50,16 +50,19 @@ SCENE = """<scene version="3.0.0">
 
 def _scene_dict(bsdf: dict) -> dict:
     import mitsuba as mi
+
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": -1},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0],
-                                                              up=[0, 1, 0])
-                   @ mi.ScalarTransform4f().scale([1.1, 1.1, 1.0]),
-                   "film": {"type": "hdrfilm", "width": RES, "height": RES,
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": SPP}},
+        "sensor": {
+            "type": "orthographic",
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]
+            )
+            @ mi.ScalarTransform4f().scale([1.1, 1.1, 1.0]),
+            "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": SPP},
+        },
         "emitter": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         "shape": {"type": "sphere", "bsdf": bsdf},
     }
@@ -71,6 +74,7 @@ def mi():
 
     mitsuba.set_variant("llvm_ad_rgb")
     import neural_brdf.mitsuba  # noqa: F401  (registers the plugins)
+
     return mitsuba
 
 
@@ -79,11 +83,13 @@ def model_dir(tmp_path_factory):
     """A folder holding model.onnx: a small random network (the plumbing is under test)."""
     torch.manual_seed(1)
     raw = RawBRDF("isotropic", [8, 8], "silu", init_value=0.2)
-    table, _, _ = albedo_table(raw, size=16, anisotropic=False, samples=256, seed=0,
-                               sigmas=3.0, margin=1e-3)
+    table, _, _ = albedo_table(
+        raw, size=16, anisotropic=False, samples=256, seed=0, sigmas=3.0, margin=1e-3
+    )
     folder = tmp_path_factory.mktemp("scene")
     (folder / "model.onnx").write_bytes(
-        export.to_onnx_bytes(TotalBRDF(NormalizedBRDF(raw, table).eval()), 17))
+        export.to_onnx_bytes(TotalBRDF(NormalizedBRDF(raw, table).eval()), 17)
+    )
     return folder
 
 
@@ -91,43 +97,70 @@ def _render(mi, scene) -> np.ndarray:
     return np.asarray(mi.render(scene, spp=SPP, seed=0), dtype=np.float64)
 
 
-def test_xml_scene_with_relative_filename_renders_like_the_dict(mi, model_dir, tmp_path,
-                                                                 monkeypatch):
+def test_xml_scene_with_relative_filename_renders_like_the_dict(
+    mi, model_dir, tmp_path, monkeypatch
+):
     xml = model_dir / "scene.xml"
-    xml.write_text(SCENE.format(res=RES, spp=SPP, bsdf='<bsdf type="neural_brdf">'
-                                '<string name="filename" value="model.onnx"/></bsdf>'))
-    monkeypatch.chdir(tmp_path)                     # the model is found beside the scene
+    xml.write_text(
+        SCENE.format(
+            res=RES,
+            spp=SPP,
+            bsdf='<bsdf type="neural_brdf"><string name="filename" value="model.onnx"/></bsdf>',
+        )
+    )
+    monkeypatch.chdir(tmp_path)  # the model is found beside the scene
     assert not (tmp_path / "model.onnx").exists()
     img = _render(mi, mi.load_file(str(xml)))
-    ref = _render(mi, mi.load_dict(_scene_dict({"type": "neural_brdf",
-                                                "filename": str(model_dir / "model.onnx")})))
+    ref = _render(
+        mi,
+        mi.load_dict(
+            _scene_dict({"type": "neural_brdf", "filename": str(model_dir / "model.onnx")})
+        ),
+    )
     assert img.shape == (RES, RES, 3) and np.isfinite(img).all()
-    centre = img[RES // 2 - 2:RES // 2 + 2, RES // 2 - 2:RES // 2 + 2]
-    assert 0.01 < centre.mean() < 1.0 + 1e-3       # lit sphere, no energy gain
+    centre = img[RES // 2 - 2 : RES // 2 + 2, RES // 2 - 2 : RES // 2 + 2]
+    assert 0.01 < centre.mean() < 1.0 + 1e-3  # lit sphere, no energy gain
     assert np.allclose(img, ref, rtol=1e-5, atol=1e-6)
 
 
 def test_xml_scene_with_a_missing_model_names_the_file(mi, tmp_path):
     xml = tmp_path / "scene.xml"
-    xml.write_text(SCENE.format(res=RES, spp=SPP, bsdf='<bsdf type="neural_brdf">'
-                                '<string name="filename" value="nowhere.onnx"/></bsdf>'))
+    xml.write_text(
+        SCENE.format(
+            res=RES,
+            spp=SPP,
+            bsdf='<bsdf type="neural_brdf"><string name="filename" value="nowhere.onnx"/></bsdf>',
+        )
+    )
     with pytest.raises(Exception, match="nowhere.onnx"):
         mi.load_file(str(xml))
 
 
 def test_analytic_brdf_takes_plain_xml_properties(mi, tmp_path):
-    props = ('<bsdf type="analytic_brdf"><string name="model" value="microfacet"/>'
-             '<float name="alpha" value="0.3"/><string name="fresnel" value="conductor"/>'
-             '<string name="material" value="Au"/></bsdf>')
+    props = (
+        '<bsdf type="analytic_brdf"><string name="model" value="microfacet"/>'
+        '<float name="alpha" value="0.3"/><string name="fresnel" value="conductor"/>'
+        '<string name="material" value="Au"/></bsdf>'
+    )
     xml = tmp_path / "analytic.xml"
     xml.write_text(SCENE.format(res=RES, spp=SPP, bsdf=props))
     img = _render(mi, mi.load_file(str(xml)))
     params = {k: v for k, v in ANALYTIC.items() if k != "model"}
-    ref = _render(mi, mi.load_dict(_scene_dict({"type": "analytic_brdf", "model": "microfacet",
-                                                "params": __import__("json").dumps(params)})))
+    ref = _render(
+        mi,
+        mi.load_dict(
+            _scene_dict(
+                {
+                    "type": "analytic_brdf",
+                    "model": "microfacet",
+                    "params": __import__("json").dumps(params),
+                }
+            )
+        ),
+    )
     assert np.allclose(img, ref, rtol=1e-5, atol=1e-6)
     gold = img[RES // 2, RES // 2]
-    assert gold[0] > gold[2] > 0                    # gold: red above blue
+    assert gold[0] > gold[2] > 0  # gold: red above blue
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_spectral", "scalar_spectral", "llvm_ad_mono"])
@@ -137,8 +170,13 @@ def test_non_rgb_variant_is_refused_with_its_name(variant):
         mi.set_variant({variant!r})
         import neural_brdf.mitsuba
     """)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env=dict(os.environ), timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=300,
+    )
     assert out.returncode != 0
     last = out.stderr.strip().splitlines()[-1]
     assert "ImportError" in last and variant in last and "RGB" in last, last

@@ -28,6 +28,7 @@ def test_defaults_file_lists_exactly_the_schema_defaults():
 def lambert_binary(tmp_path_factory):
     """A MERL file for the presets that fit measured data (their path is a placeholder)."""
     from neural_brdf import merl
+
     path = tmp_path_factory.mktemp("merl") / "lambert.binary"
     merl.bake(analytic.create("lambertian"), path)
     return path
@@ -39,7 +40,7 @@ def test_every_preset_validates(path, request):
     assert cfg.name == path.stem
     if cfg.target.data is not None:
         with pytest.raises(config.ConfigError, match="target.data"):
-            data.build_target(cfg.target)          # the placeholder names no file here
+            data.build_target(cfg.target)  # the placeholder names no file here
         cfg = config.load(path, [f"target.data={request.getfixturevalue('lambert_binary')}"])
     else:
         assert cfg.target.model in analytic.available()
@@ -60,17 +61,20 @@ def test_every_model_family_has_a_preset():
     assert set(analytic.available()) <= families
 
 
-@pytest.mark.parametrize("override, key", [
-    ("train.stepz=5", "train.stepz"),
-    ("train.steps=2.5", "train.steps"),
-    ("train.steps='10'", "train.steps"),
-    ("train.lr=-1", "train.lr"),
-    ("model.activation=swish", "model.activation"),
-    ("model.hidden=[]", "model.hidden"),
-    ("data.pool_size=16", "data.pool_size"),
-    ("colour=red", "colour"),
-    ("train=5", "train"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("train.stepz=5", "train.stepz"),
+        ("train.steps=2.5", "train.steps"),
+        ("train.steps='10'", "train.steps"),
+        ("train.lr=-1", "train.lr"),
+        ("model.activation=swish", "model.activation"),
+        ("model.hidden=[]", "model.hidden"),
+        ("data.pool_size=16", "data.pool_size"),
+        ("colour=red", "colour"),
+        ("train=5", "train"),
+    ],
+)
 def test_bad_override_names_the_key_in_one_line(override, key):
     with pytest.raises(config.ConfigError) as err:
         config.load(CONFIGS / "lambert.yaml", [override])
@@ -96,9 +100,15 @@ def test_invalid_yaml_and_missing_file(tmp_path):
 
 
 def test_overrides_parse_as_yaml_and_reach_nested_keys():
-    cfg = config.load(CONFIGS / "lambert.yaml",
-                      ["train.lr=1e-3", "model.hidden=[8, 4]", "train.progress=false",
-                       "target.params.albedo=0.5"])
+    cfg = config.load(
+        CONFIGS / "lambert.yaml",
+        [
+            "train.lr=1e-3",
+            "model.hidden=[8, 4]",
+            "train.progress=false",
+            "target.params.albedo=0.5",
+        ],
+    )
     assert cfg.train.lr == pytest.approx(1e-3) and isinstance(cfg.train.lr, float)
     assert cfg.model.hidden == [8, 4]
     assert cfg.train.progress is False

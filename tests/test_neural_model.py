@@ -23,8 +23,9 @@ def _pairs(n, seed):
     return torch.from_numpy(a).float(), torch.from_numpy(b).float()
 
 
-def _bad_raw(enc: str, *, scale: float = 3.0, bias: float = 8.0, seed: int = 0,
-             grazing_power: float = 1.0) -> RawBRDF:
+def _bad_raw(
+    enc: str, *, scale: float = 3.0, bias: float = 8.0, seed: int = 0, grazing_power: float = 1.0
+) -> RawBRDF:
     """A raw network far from any physical BRDF: large random weights, huge outputs
     (softplus(~8 + noise) ~ 10/sr, so albedos of ~30), strongly angle-dependent."""
     torch.manual_seed(seed)
@@ -73,7 +74,7 @@ def test_anisotropic_features_separate_mirror_images():
 
 @pytest.mark.parametrize("enc", ENCODINGS)
 def test_raw_network_is_nonnegative_and_zero_below_the_horizon(enc):
-    raw = _bad_raw(enc, bias=-20.0)                 # outputs hug zero: softplus tails
+    raw = _bad_raw(enc, bias=-20.0)  # outputs hug zero: softplus tails
     wi, wo = _pairs(5000, 7)
     with torch.no_grad():
         assert (raw(wi, wo) >= 0).all()
@@ -87,12 +88,22 @@ def test_raw_network_is_nonnegative_and_zero_below_the_horizon(enc):
 def test_normalisation_fixes_a_bad_network(enc, kind):
     """wild: large random weights, outputs ~10/sr varying strongly with angle.
     huge: nearly constant 1000/sr (raw albedo ~3000)."""
-    raw = (_bad_raw(enc) if kind == "wild"
-           else _bad_raw(enc, scale=0.01, bias=1000.0, grazing_power=0.0))
+    raw = (
+        _bad_raw(enc)
+        if kind == "wild"
+        else _bad_raw(enc, scale=0.01, bias=1000.0, grazing_power=0.0)
+    )
     aniso = enc == "anisotropic"
-    table, a, _ = albedo_table(raw, size=17 if aniso else 33, anisotropic=aniso,
-                               samples=4096, seed=0, sigmas=3.0, margin=1e-3)
-    assert a.max() > 5.0                           # the raw network is far from physical
+    table, a, _ = albedo_table(
+        raw,
+        size=17 if aniso else 33,
+        anisotropic=aniso,
+        samples=4096,
+        seed=0,
+        sigmas=3.0,
+        margin=1e-3,
+    )
+    assert a.max() > 5.0  # the raw network is far from physical
     model = NormalizedBRDF(raw, table).eval()
 
     def fn(x, y):
@@ -135,8 +146,16 @@ def test_anisotropic_lookup_reproduces_table_at_nodes():
     table = torch.rand(k, k, 3) + 0.5
     model = NormalizedBRDF(_bad_raw("anisotropic"), table)
     nodes = node_directions(k, anisotropic=True).float()
-    inside = torch.linalg.vector_norm(torch.stack(torch.meshgrid(
-        torch.linspace(-1, 1, k), torch.linspace(-1, 1, k), indexing="ij"), -1), dim=-1) < 0.99
+    inside = (
+        torch.linalg.vector_norm(
+            torch.stack(
+                torch.meshgrid(torch.linspace(-1, 1, k), torch.linspace(-1, 1, k), indexing="ij"),
+                -1,
+            ),
+            dim=-1,
+        )
+        < 0.99
+    )
     got = model.lookup(nodes).reshape(k, k, 3)
     assert torch.allclose(got[inside], table[inside], atol=1e-4)
 
@@ -145,8 +164,11 @@ def test_quadrature_matches_analytic_albedo_on_a_glossy_lobe():
     brdf = analytic.create("lambertian", albedo=[0.2, 0.5, 0.9])
     wi = torch.tensor([[0.0, 0.0, 1.0], [0.8, 0.0, 0.6], [0.999, 0.0, 0.0447]], dtype=torch.float64)
     rho, err = quadrature.albedo(brdf.f, wi, 8192, seed=3)
-    assert torch.allclose(rho, torch.tensor([[0.2, 0.5, 0.9]] * 3, dtype=torch.float64),
-                          atol=5 * float(err.max()) + 1e-4)
+    assert torch.allclose(
+        rho,
+        torch.tensor([[0.2, 0.5, 0.9]] * 3, dtype=torch.float64),
+        atol=5 * float(err.max()) + 1e-4,
+    )
 
 
 def test_quadrature_resolves_a_sharp_peak_without_a_sampler():
@@ -166,8 +188,9 @@ def test_output_scale_multiplies_the_softplus_and_keeps_the_initial_value():
     torch.manual_seed(3)
     plain = RawBRDF("isotropic", [16, 16], "silu", grazing_power=0.0, init_value=0.5)
     torch.manual_seed(3)
-    scaled = RawBRDF("isotropic", [16, 16], "silu", grazing_power=0.0, init_value=0.5,
-                     output_scale=30.0)
+    scaled = RawBRDF(
+        "isotropic", [16, 16], "silu", grazing_power=0.0, init_value=0.5, output_scale=30.0
+    )
     with torch.no_grad():
         # a fresh network starts at the constant init_value whatever the scale (zero head)
         torch.testing.assert_close(plain(wi, wo), torch.full((2000, 3), 0.5))

@@ -23,13 +23,25 @@ from neural_brdf import config, data, export, train, validate
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 # Small everything: these runs check mechanics, not accuracy.
-TINY = ["train.steps=12", "train.warmup=2", "train.checkpoint_every=5", "train.log_every=2",
-        "train.eval_every=4", "train.progress=false", "model.hidden=[16,16]",
-        "data.batch_size=256", "data.pool_size=2048",
-        "normalization.table_size=17", "normalization.grid_size=7", "normalization.samples=2048",
-        "validation.furnace_dirs=6", "validation.furnace_samples=4096",
-        "validation.pairs=2000", "validation.accuracy_samples=2048",
-        "export.parity_pairs=512"]
+TINY = [
+    "train.steps=12",
+    "train.warmup=2",
+    "train.checkpoint_every=5",
+    "train.log_every=2",
+    "train.eval_every=4",
+    "train.progress=false",
+    "model.hidden=[16,16]",
+    "data.batch_size=256",
+    "data.pool_size=2048",
+    "normalization.table_size=17",
+    "normalization.grid_size=7",
+    "normalization.samples=2048",
+    "validation.furnace_dirs=6",
+    "validation.furnace_samples=4096",
+    "validation.pairs=2000",
+    "validation.accuracy_samples=2048",
+    "export.parity_pairs=512",
+]
 
 
 def tiny(*extra, preset="lambert"):
@@ -77,7 +89,7 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(tmp_path, monkeypatch):
 
     def batch(self):
         calls["n"] += 1
-        if calls["n"] == 4:                   # Ctrl-C arrives in the middle of step 4
+        if calls["n"] == 4:  # Ctrl-C arrives in the middle of step 4
             os.kill(os.getpid(), signal.SIGINT)
         return real_batch(self)
 
@@ -85,7 +97,7 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(tmp_path, monkeypatch):
     with pytest.raises(train.Interrupted, match="--resume"):
         train.train(tiny(), tmp_path / "i")
     ckpt = torch.load(tmp_path / "i" / "ckpt.pt", weights_only=True)
-    assert ckpt["step"] == 4                  # the step in flight was completed, then saved
+    assert ckpt["step"] == 4  # the step in flight was completed, then saved
     monkeypatch.setattr(data.Pool, "batch", real_batch)
     train.train(tiny(), tmp_path / "i", resume=True)
     train.train(tiny(), tmp_path / "ref")
@@ -99,13 +111,13 @@ def test_divergence_stops_and_keeps_a_good_checkpoint(tmp_path, monkeypatch):
     def loss_fn(*args, **kwargs):
         calls["n"] += 1
         loss = real_loss(*args, **kwargs)
-        return loss * float("nan") if calls["n"] == 8 else loss   # step index 7
+        return loss * float("nan") if calls["n"] == 8 else loss  # step index 7
 
     monkeypatch.setattr(train, "loss_fn", loss_fn)
     with pytest.raises(train.Diverged, match="checkpoint"):
         train.train(tiny("train.checkpoint_every=3"), tmp_path / "d")
     ckpt = torch.load(tmp_path / "d" / "ckpt.pt", weights_only=True)
-    assert ckpt["step"] == 6                       # the last checkpoint before the NaN
+    assert ckpt["step"] == 6  # the last checkpoint before the NaN
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values())
 
 
@@ -135,8 +147,15 @@ def test_export_is_one_file_with_dynamic_batch_and_metadata(gold_run):
     assert not list(run_dir.glob("*.onnx.data"))
     model = neural_brdf.load(run_dir / "model.onnx")
     meta = model.metadata
-    for key in ["format_version", "frame", "encoding", "target", "max_albedo",
-                "reciprocity_error", "training_config"]:
+    for key in [
+        "format_version",
+        "frame",
+        "encoding",
+        "target",
+        "max_albedo",
+        "reciprocity_error",
+        "training_config",
+    ]:
         assert meta.get(key), key
     assert meta["encoding"] == "anisotropic"
     assert config.from_dict(model.config) == cfg
@@ -160,9 +179,9 @@ def test_torch_and_onnxruntime_agree(gold_run, tmp_path):
     with torch.no_grad():
         ref = torch_model(wi, wo).double().numpy()
     got = onnx_model.eval(wi.numpy(), wo.numpy()).astype(np.float64)
-    assert (ref > 0).any() and (ref == 0).any()     # both sides of the horizon were tested
+    assert (ref > 0).any() and (ref == 0).any()  # both sides of the horizon were tested
     assert np.array_equal(got[ref == 0], ref[ref == 0])
-    floor = 0.1 * ref[ref > 0].mean()               # see export.PARITY_FLOOR
+    floor = 0.1 * ref[ref > 0].mean()  # see export.PARITY_FLOOR
     assert np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)) <= 1e-5
 
 
@@ -219,8 +238,11 @@ def test_onnx_file_describes_itself(gold_run):
     proto = onnx.load(run_dir / "model.onnx")
     assert proto.producer_name == "neural-brdf"
     assert proto.producer_version == neural_brdf.__version__
-    assert proto.model_version == config.FORMAT_VERSION == int(
-        neural_brdf.load(run_dir / "model.onnx").metadata["format_version"])
+    assert (
+        proto.model_version
+        == config.FORMAT_VERSION
+        == int(neural_brdf.load(run_dir / "model.onnx").metadata["format_version"])
+    )
     doc = proto.doc_string
     target = data.build_target(cfg.target).describe()
     for needle in [target, "anisotropic", "wi, wo", "1/sr", "horizon", "albedo-normalised"]:
@@ -229,16 +251,34 @@ def test_onnx_file_describes_itself(gold_run):
 
 # ------------------------------------------------------------------ a killed process
 KILL_STEPS = 600
-KILL_SETS = TINY + [f"train.steps={KILL_STEPS}", "train.checkpoint_every=20",
-                    "train.log_every=10", "train.eval_every=0"]
+KILL_SETS = TINY + [
+    f"train.steps={KILL_STEPS}",
+    "train.checkpoint_every=20",
+    "train.log_every=10",
+    "train.eval_every=0",
+]
 
 
 def train_cli(run_dir: Path, *extra: str) -> subprocess.Popen:
     sets = [a for kv in KILL_SETS for a in ("--set", kv)]
     env = dict(os.environ, PYTHONPATH=str(CONFIGS.parent))
-    return subprocess.Popen([sys.executable, "-m", "neural_brdf", "train", "lambert", "--out",
-                             str(run_dir), *sets, *extra], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "neural_brdf",
+            "train",
+            "lambert",
+            "--out",
+            str(run_dir),
+            *sets,
+            *extra,
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def logged_steps(run_dir: Path) -> int:
@@ -255,13 +295,13 @@ def test_sigkill_mid_run_then_resume_matches_an_uninterrupted_run(tmp_path):
     deadline = time.monotonic() + 300
     while logged_steps(killed) < 120 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
-    proc.kill()                                    # SIGKILL: no handler, no last checkpoint
+    proc.kill()  # SIGKILL: no handler, no last checkpoint
     proc.communicate(timeout=60)
     assert proc.returncode == -signal.SIGKILL
     step = torch.load(killed / "ckpt.pt", weights_only=True)["step"]
     assert 100 <= step < KILL_STEPS and not (killed / "model.onnx").exists()
 
-    refused = train_cli(killed)                    # no --resume: refused, nothing touched
+    refused = train_cli(killed)  # no --resume: refused, nothing touched
     _, err = refused.communicate(timeout=300)
     assert refused.returncode == 2 and "--resume" in err and "Traceback" not in err
     resumed = train_cli(killed, "--resume")
@@ -277,4 +317,4 @@ def test_sigkill_mid_run_then_resume_matches_an_uninterrupted_run(tmp_path):
     assert same(weights(killed), weights(straight))
     with open(killed / "log.csv") as fh:
         steps = [int(r["step"]) for r in csv.DictReader(fh)]
-    assert steps == list(range(10, KILL_STEPS + 1, 10))   # no row lost or repeated
+    assert steps == list(range(10, KILL_STEPS + 1, 10))  # no row lost or repeated

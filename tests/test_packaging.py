@@ -32,8 +32,9 @@ HEAVY = ("torch", "pydantic", "matplotlib", "scipy")
 def python(code: str, *, cwd: Path) -> subprocess.CompletedProcess:
     """Run ``code`` in a fresh interpreter that sees this source tree."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
+    )
 
 
 def pyproject_version() -> str:
@@ -46,12 +47,15 @@ def test_load_and_eval_do_not_import_torch(tmp_path):
     raw = RawBRDF("isotropic", [8], "silu", init_value=0.2).eval()
     path = tmp_path / "m.onnx"
     path.write_bytes(export.to_onnx_bytes(raw, 17))
-    proc = python(f"""
+    proc = python(
+        f"""
 import sys, json
 import neural_brdf
 f = neural_brdf.load({str(path)!r}).eval([[0, 0, 1.0]], [[0, 0.6, 0.8]])
 print(json.dumps({{"f": f.tolist(), "heavy": [m for m in {HEAVY!r} if m in sys.modules]}}))
-""", cwd=tmp_path)
+""",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert out["heavy"] == [], out
@@ -59,7 +63,8 @@ print(json.dumps({{"f": f.tolist(), "heavy": [m for m in {HEAVY!r} if m in sys.m
 
 
 def test_help_version_and_presets_do_not_import_torch(tmp_path):
-    proc = python(f"""
+    proc = python(
+        f"""
 import sys, json
 from neural_brdf.cli import main
 codes = []
@@ -71,7 +76,9 @@ for argv in (["--help"], ["--version"], ["train", "--help"]):
 codes.append(main(["presets"]))
 codes.append(main(["train", "no_such_preset"]))
 print(json.dumps({{"codes": codes, "heavy": [m for m in {HEAVY!r} if m in sys.modules]}}))
-""", cwd=tmp_path)
+""",
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out["codes"] == [0, 0, 0, 0, 2], out
@@ -80,6 +87,7 @@ print(json.dumps({{"codes": codes, "heavy": [m for m in {HEAVY!r} if m in sys.mo
 
 def test_input_error_is_one_class():
     from neural_brdf import config, train
+
     assert config.InputError is InputError and config.ConfigError.__mro__[1] is InputError
     assert issubclass(export.CheckpointError, InputError)
     assert issubclass(train.RunExists, InputError)
@@ -100,8 +108,12 @@ def test_one_version_everywhere(capsys):
     assert e.value.code == 0
     assert capsys.readouterr().out.strip() == f"neural-brdf {version}"
     assert export.PRODUCER == f"neural-brdf {version}"
-    hard_coded = [p for d in ("neural_brdf", "analytic") for p in (ROOT / d).rglob("*.py")
-                  if f'"{version}"' in p.read_text()]
+    hard_coded = [
+        p
+        for d in ("neural_brdf", "analytic")
+        for p in (ROOT / d).rglob("*.py")
+        if f'"{version}"' in p.read_text()
+    ]
     assert hard_coded == []
 
 
@@ -112,8 +124,10 @@ def test_presets_are_the_configs_folder():
     assert {"gold", "quickstart", "merl", "defaults"} <= set(presets.names())
     for name, text in presets.listing():
         assert text and "\n" not in text and len(text) <= presets.DESCRIPTION_CHARS, name
-    assert presets.description(ROOT / "configs" / "lambert.yaml") == \
-        "Lambertian diffuse, a constant 1/pi times the albedo."
+    assert (
+        presets.description(ROOT / "configs" / "lambert.yaml")
+        == "Lambertian diffuse, a constant 1/pi times the albedo."
+    )
 
 
 def test_a_path_wins_over_a_preset_and_unknown_names_list_presets(tmp_path, monkeypatch):
@@ -122,7 +136,7 @@ def test_a_path_wins_over_a_preset_and_unknown_names_list_presets(tmp_path, monk
     monkeypatch.chdir(tmp_path)
     Path("gold").write_text("target: {model: lambertian}\n")
     assert presets.resolve("gold") == Path("gold")
-    assert presets.resolve("sub/none.yaml") == Path("sub/none.yaml")   # read later: no file
+    assert presets.resolve("sub/none.yaml") == Path("sub/none.yaml")  # read later: no file
     with pytest.raises(InputError, match=r"^velvet: neither .*gold, lambert"):
         presets.resolve("velvet")
 
@@ -132,25 +146,61 @@ def test_cli_presets_lists_every_name_and_sweep(capsys):
     configs, _, rest = capsys.readouterr().out.partition("\n\n")
     assert [line.split()[0] for line in configs.splitlines()] == presets.names()
     sweeps = [line.split()[0] for line in rest.splitlines() if line.startswith("  ")]
-    assert sweeps == presets.names(folder="sweeps") == \
-        sorted(p.stem for p in (ROOT / "configs" / "sweeps").glob("*.yaml"))
-    assert presets.resolve("furnace", folder="sweeps") == \
-        presets.directory() / "sweeps" / "furnace.yaml"
-    assert main(["sweep", "gold"]) == 2                  # a config preset is not a sweep
+    assert (
+        sweeps
+        == presets.names(folder="sweeps")
+        == sorted(p.stem for p in (ROOT / "configs" / "sweeps").glob("*.yaml"))
+    )
+    assert (
+        presets.resolve("furnace", folder="sweeps")
+        == presets.directory() / "sweeps" / "furnace.yaml"
+    )
+    assert main(["sweep", "gold"]) == 2  # a config preset is not a sweep
     assert "gold: neither a sweep file nor a preset" in capsys.readouterr().err
 
 
 def test_train_a_preset_by_name_from_another_folder(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.run(
-        [sys.executable, "-m", "neural_brdf", "train", "lambert", "--out", "r",
-         "--set", "train.steps=3", "--set", "train.progress=false",
-         "--set", "model.hidden=[8]", "--set", "data.batch_size=64",
-         "--set", "data.pool_size=256", "--set", "normalization.table_size=9",
-         "--set", "normalization.samples=512", "--set", "validation.furnace_dirs=4",
-         "--set", "validation.furnace_samples=512", "--set", "validation.pairs=200",
-         "--set", "validation.accuracy_samples=2048", "--set", "export.parity_pairs=64"],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        [
+            sys.executable,
+            "-m",
+            "neural_brdf",
+            "train",
+            "lambert",
+            "--out",
+            "r",
+            "--set",
+            "train.steps=3",
+            "--set",
+            "train.progress=false",
+            "--set",
+            "model.hidden=[8]",
+            "--set",
+            "data.batch_size=64",
+            "--set",
+            "data.pool_size=256",
+            "--set",
+            "normalization.table_size=9",
+            "--set",
+            "normalization.samples=512",
+            "--set",
+            "validation.furnace_dirs=4",
+            "--set",
+            "validation.furnace_samples=512",
+            "--set",
+            "validation.pairs=200",
+            "--set",
+            "validation.accuracy_samples=2048",
+            "--set",
+            "export.parity_pairs=64",
+        ],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "r" / "model.onnx").is_file()
     assert "name: lambert" in (tmp_path / "r" / "config.yaml").read_text()
@@ -166,22 +216,39 @@ def test_wheel_ships_presets_typing_and_license(tmp_path):
     junk = shutil.ignore_patterns("__pycache__", "*.pyc")
     for name in ("analytic", "neural_brdf", "configs"):
         shutil.copytree(ROOT / name, src / name, ignore=junk)
-    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps",
-                           "--no-build-isolation", "--wheel-dir", str(tmp_path / "dist"),
-                           str(src)], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "--wheel-dir",
+            str(tmp_path / "dist"),
+            str(src),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     (wheel,) = (tmp_path / "dist").glob("neural_brdf-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    configs = sorted(p.relative_to(ROOT / "configs").as_posix()
-                     for p in (ROOT / "configs").rglob("*.yaml"))
+    configs = sorted(
+        p.relative_to(ROOT / "configs").as_posix() for p in (ROOT / "configs").rglob("*.yaml")
+    )
     assert any(c.startswith("sweeps/") for c in configs)
     missing = [c for c in configs if f"neural_brdf/configs/{c}" not in names]
     assert missing == []
     assert {"neural_brdf/py.typed", "analytic/py.typed"} <= names
     # every source file of the two packages (subpackages, the viewer's script, data)
-    shipped = sorted(p.relative_to(ROOT).as_posix() for name in ("analytic", "neural_brdf")
-                     for p in (ROOT / name).rglob("*")
-                     if p.is_file() and p.suffix in (".py", ".js", ".json", ".typed"))
+    shipped = sorted(
+        p.relative_to(ROOT).as_posix()
+        for name in ("analytic", "neural_brdf")
+        for p in (ROOT / name).rglob("*")
+        if p.is_file() and p.suffix in (".py", ".js", ".json", ".typed")
+    )
     assert [f for f in shipped if f not in names] == []
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names)
     assert not [n for n in names if n.split("/")[0] in ("configs", "tests", "benchmarks")]
@@ -191,7 +258,7 @@ def test_wheel_ships_presets_typing_and_license(tmp_path):
     base = [r for r in requires if "extra ==" not in r]
     assert not [r for r in base if "scipy" in r or "pytest" in r], base
     torch_req = next(r for r in base if r.startswith("Requires-Dist: torch"))
-    assert ">=2.5" in torch_req, torch_req      # torch.onnx.export(dynamo=False): 2.5+
+    assert ">=2.5" in torch_req, torch_req  # torch.onnx.export(dynamo=False): 2.5+
 
 
 # ------------------------------------------------------------------ typing
@@ -201,11 +268,23 @@ def test_public_api_is_annotated():
     import analytic
     from neural_brdf import config, train, validate
     from neural_brdf.runtime import NeuralBRDF
-    public = [neural_brdf.load, NeuralBRDF.eval, analytic.create, analytic.albedo,
-              config.load, presets.resolve, train.run, train.train, export.export,
-              export.export_run, validate.report, validate.physics]
+
+    public = [
+        neural_brdf.load,
+        NeuralBRDF.eval,
+        analytic.create,
+        analytic.albedo,
+        config.load,
+        presets.resolve,
+        train.run,
+        train.train,
+        export.export,
+        export.export_run,
+        validate.report,
+        validate.physics,
+    ]
     for fn in public:
-        hints = typing.get_type_hints(fn)          # resolvable, not only present
+        hints = typing.get_type_hints(fn)  # resolvable, not only present
         sig = inspect.signature(fn)
         missing = [p for p in sig.parameters if p != "self" and p not in hints]
         assert missing == [] and "return" in hints, (fn.__qualname__, missing)

@@ -26,11 +26,11 @@ import analytic
 from neural_brdf import cli, config, data, merl, rgl, train, validate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-LAMBERT = CONFIGS / "lambert.yaml"          # albedo (0.8, 0.6, 0.4)
+LAMBERT = CONFIGS / "lambert.yaml"  # albedo (0.8, 0.6, 0.4)
 
-EVAL_TOL = 0.04              # rel. RMSE of f cos between nodes (see the module docstring)
-MITSUBA_VS_READER = 1e-4     # float32 Mitsuba vs float64 numpy, relative to the peak
-NODE_TOL = 1e-5              # at the value nodes a bake is exact up to float32
+EVAL_TOL = 0.04  # rel. RMSE of f cos between nodes (see the module docstring)
+MITSUBA_VS_READER = 1e-4  # float32 Mitsuba vs float64 numpy, relative to the peak
+NODE_TOL = 1e-5  # at the value nodes a bake is exact up to float32
 
 CASES = {
     "lambertian": ("lambertian", {"albedo": [0.8, 0.5, 0.2]}),
@@ -46,7 +46,7 @@ def hemisphere(n, seed):
 
 
 def rel_rmse(a, b):
-    return float(np.sqrt(np.sum((a - b) ** 2) / np.sum(b ** 2)))
+    return float(np.sqrt(np.sum((a - b) ** 2) / np.sum(b**2)))
 
 
 @pytest.fixture(scope="module")
@@ -78,10 +78,14 @@ def assert_one_line_error(code, err, *needles):
 # ------------------------------------------------------------------ tensor file
 def test_tensor_file_round_trip_and_layout(tmp_path):
     rng = np.random.default_rng(0)
-    fields = {"a": rng.random((3, 4, 5)).astype(np.float32), "text": "héllo",
-              "b": rng.integers(0, 255, 7).astype(np.uint8), "c": rng.random(3),
-              "d": rng.integers(-5, 5, (2, 2)).astype(np.int32),
-              "e": np.arange(4, dtype=np.uint16)}
+    fields = {
+        "a": rng.random((3, 4, 5)).astype(np.float32),
+        "text": "héllo",
+        "b": rng.integers(0, 255, 7).astype(np.uint8),
+        "c": rng.random(3),
+        "d": rng.integers(-5, 5, (2, 2)).astype(np.int32),
+        "e": np.arange(4, dtype=np.uint16),
+    }
     path = tmp_path / "t.bsdf"
     rgl.write_tensor_file(path, fields)
     raw = path.read_bytes()
@@ -92,7 +96,7 @@ def test_tensor_file_round_trip_and_layout(tmp_path):
     ndim, code, offset = struct.unpack("<HBQ", raw[21:32])
     assert (ndim, code) == (3, 10) and offset % rgl.ALIGN == 0
     assert struct.unpack("<3Q", raw[32:56]) == (3, 4, 5)
-    assert raw[offset:offset + 60 * 4] == fields["a"].astype("<f4").tobytes()
+    assert raw[offset : offset + 60 * 4] == fields["a"].astype("<f4").tobytes()
     back = rgl.read_tensor_file(path)
     assert list(back) == list(fields)
     assert bytes(back["text"]).decode("utf-8") == "héllo" and back["text"].dtype == np.uint8
@@ -103,14 +107,14 @@ def test_tensor_file_round_trip_and_layout(tmp_path):
 
 
 def garbage_cases(good: bytes):
-    dtype_at = 20 + struct.unpack("<H", good[18:20])[0] + 2       # first field's dtype byte
+    dtype_at = 20 + struct.unpack("<H", good[18:20])[0] + 2  # first field's dtype byte
     return {
         "empty": b"",
         "garbage": b"this is not a tensor file at all, just text",
         "bad-version": good[:12] + bytes([2, 0]) + good[14:],
         "cut-header": good[:40],
-        "cut-data": good[:len(good) // 2],
-        "bad-dtype": good[:dtype_at] + bytes([99]) + good[dtype_at + 1:],
+        "cut-data": good[: len(good) // 2],
+        "bad-dtype": good[:dtype_at] + bytes([99]) + good[dtype_at + 1 :],
     }
 
 
@@ -155,7 +159,7 @@ def test_a_real_tensor_file_is_read(data_dir):
     assert fields["M"].dtype == np.float32 and fields["M"].shape == (22, 9, 9, 5, 4, 4)
     assert fields["wvls"].dtype == np.uint16 and fields["wvls"].shape == (5,)
     assert np.all(np.isfinite(fields["M"]))
-    assert 300 < fields["wvls"].min() and fields["wvls"].max() < 1000     # nanometres
+    assert 300 < fields["wvls"].min() and fields["wvls"].max() < 1000  # nanometres
     with pytest.raises(rgl.RGLFormatError, match="not an RGL material"):
         rgl.RGLBRDF(fields, source="spectralon")
 
@@ -163,7 +167,7 @@ def test_a_real_tensor_file_is_read(data_dir):
 # -------------------------------------------------------------------- the warp
 def test_marginal_warp_inverts_its_sample_and_integrates_to_one():
     rng = np.random.default_rng(1)
-    table = rng.random((3, 5, 7)) + 0.05                       # 3 slices of a 5 x 7 table
+    table = rng.random((3, 5, 7)) + 0.05  # 3 slices of a 5 x 7 table
     warp = rgl.Marginal2D(table, (np.array([0.0, 0.5, 1.2]),))
     u = rng.random((5000, 2))
     p = rng.random(5000) * 1.4 - 0.1
@@ -251,8 +255,12 @@ def test_bake_dispatches_on_the_extension(capsys, tmp_path):
     assert code == 0 and "MERL" in out, err
     merl.read_merl(tmp_path / "l.binary")
     for bad in ("l.exr", "l"):
-        assert_one_line_error(*cli_run(capsys, "bake", LAMBERT, "-o", tmp_path / bad)[::2],
-                              ".binary", ".bsdf", "extension")
+        assert_one_line_error(
+            *cli_run(capsys, "bake", LAMBERT, "-o", tmp_path / bad)[::2],
+            ".binary",
+            ".bsdf",
+            "extension",
+        )
         assert not (tmp_path / bad).exists()
     assert "'.exr'" in cli_run(capsys, "bake", LAMBERT, "-o", tmp_path / "l.exr")[2]
 
@@ -263,21 +271,41 @@ def test_bad_files_exit_2_through_the_cli(baked, tmp_path, capsys):
         path = tmp_path / f"{case}.bsdf"
         path.write_bytes(content)
         # --reference is read before the model: the model need not exist
-        assert_one_line_error(*cli_run(capsys, "validate", tmp_path / "m.onnx",
-                                       "--reference", path)[::2], str(path), "--reference")
-        argv = ["train", CONFIGS / "merl.yaml", "--out", tmp_path / "run",
-                "--set", f"target.data={path}"]
+        assert_one_line_error(
+            *cli_run(capsys, "validate", tmp_path / "m.onnx", "--reference", path)[::2],
+            str(path),
+            "--reference",
+        )
+        argv = [
+            "train",
+            CONFIGS / "merl.yaml",
+            "--out",
+            tmp_path / "run",
+            "--set",
+            f"target.data={path}",
+        ]
         assert_one_line_error(*cli_run(capsys, *argv)[::2], str(path), "target.data")
 
 
 # ---------------------------------------------------------- training round trip
-SHORT = ["train.steps=600", "train.warmup=20", "train.progress=false", "train.threads=1",
-         "train.eval_every=0", "model.hidden=[32,32]", "data.batch_size=1024",
-         "data.pool_size=32768", "normalization.table_size=33", "normalization.samples=4096",
-         "validation.furnace_dirs=31", "validation.furnace_samples=4096",
-         "validation.pairs=4000", "validation.accuracy_samples=8192",
-         "export.parity_pairs=512"]
-ROUND_TRIP_TOL = 0.10        # rel. RMSE of f cos after a 600-step fit (measured 3.4%)
+SHORT = [
+    "train.steps=600",
+    "train.warmup=20",
+    "train.progress=false",
+    "train.threads=1",
+    "train.eval_every=0",
+    "model.hidden=[32,32]",
+    "data.batch_size=1024",
+    "data.pool_size=32768",
+    "normalization.table_size=33",
+    "normalization.samples=4096",
+    "validation.furnace_dirs=31",
+    "validation.furnace_samples=4096",
+    "validation.pairs=4000",
+    "validation.accuracy_samples=8192",
+    "export.parity_pairs=512",
+]
+ROUND_TRIP_TOL = 0.10  # rel. RMSE of f cos after a 600-step fit (measured 3.4%)
 
 
 def test_train_on_a_bsdf_file_and_compare_with_the_analytic_model(baked, tmp_path, capsys):
@@ -325,16 +353,29 @@ def test_mitsuba_measured_eval_matches_the_model(mi, baked, name):
     brdf, path, m = baked[name]
     bsdf = mi.load_dict({"type": "measured", "filename": str(path)})
     wi, wo = hemisphere(20000, 6), hemisphere(20000, 7)
-    value = to_np(bsdf.eval(mi.BSDFContext(), interaction(mi, wi),
-                            mi.Vector3f(np.ascontiguousarray(wo.T, dtype=np.float32))))
+    value = to_np(
+        bsdf.eval(
+            mi.BSDFContext(),
+            interaction(mi, wi),
+            mi.Vector3f(np.ascontiguousarray(wo.T, dtype=np.float32)),
+        )
+    )
     cos = wo[:, 2:3]
     mine = m.eval(wi, wo) * cos
     assert np.max(np.abs(value - mine)) < MITSUBA_VS_READER * np.max(mine)
     assert rel_rmse(value, brdf.eval(wi, wo) * cos) < EVAL_TOL
     below = wo.copy()
     below[:, 2] *= -1
-    assert np.all(to_np(bsdf.eval(mi.BSDFContext(), interaction(mi, wi), mi.Vector3f(
-        np.ascontiguousarray(below.T, dtype=np.float32)))) == 0)
+    assert np.all(
+        to_np(
+            bsdf.eval(
+                mi.BSDFContext(),
+                interaction(mi, wi),
+                mi.Vector3f(np.ascontiguousarray(below.T, dtype=np.float32)),
+            )
+        )
+        == 0
+    )
 
 
 @pytest.mark.mitsuba
@@ -348,15 +389,15 @@ def test_mitsuba_measured_sample_weight_is_eval_over_pdf(mi, baked):
     si = interaction(mi, wi)
     u = rng.random((n, 3)).astype(np.float32)
     ctx = mi.BSDFContext()
-    bs, weight = bsdf.sample(ctx, si, mi.Float(u[:, 0]),
-                             mi.Point2f(mi.Float(u[:, 1]), mi.Float(u[:, 2])))
+    bs, weight = bsdf.sample(
+        ctx, si, mi.Float(u[:, 0]), mi.Point2f(mi.Float(u[:, 1]), mi.Float(u[:, 2]))
+    )
     value, pdf = bsdf.eval(ctx, si, bs.wo), bsdf.pdf(ctx, si, bs.wo)
     weight, value, pdf = to_np(weight), to_np(value), np.array(pdf, dtype=np.float64)
     live = (pdf > 0) & (to_np(bs.wo)[:, 2] > 0)
     assert live.mean() > 0.9
     np.testing.assert_allclose(np.array(bs.pdf)[live], pdf[live], rtol=1e-3)  # float32 warps
-    np.testing.assert_allclose(weight[live], value[live] / pdf[live, None], rtol=1e-3,
-                               atol=1e-6)
+    np.testing.assert_allclose(weight[live], value[live] / pdf[live, None], rtol=1e-3, atol=1e-6)
     assert np.all(np.isfinite(weight)) and np.all(weight >= 0)
     dr.eval()
 
@@ -368,11 +409,20 @@ def test_mitsuba_measured_chi2(mi, baked, theta, tmp_path, monkeypatch):
 
     t = math.radians(theta)
     props = {"type": "measured", "filename": str(baked["ggx-gold-0.3"][1])}
-    sample_fn, pdf_fn = BSDFAdapter("measured", props,
-                                    wi=[math.sin(t) * math.cos(0.6),
-                                        math.sin(t) * math.sin(0.6), math.cos(t)])
-    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_fn, pdf_func=pdf_fn,
-                         sample_dim=3, sample_count=1_000_000, ires=10, seed=int(theta))
+    sample_fn, pdf_fn = BSDFAdapter(
+        "measured",
+        props,
+        wi=[math.sin(t) * math.cos(0.6), math.sin(t) * math.sin(0.6), math.cos(t)],
+    )
+    test = ChiSquareTest(
+        domain=SphericalDomain(),
+        sample_func=sample_fn,
+        pdf_func=pdf_fn,
+        sample_dim=3,
+        sample_count=1_000_000,
+        ires=10,
+        seed=int(theta),
+    )
     ok = test.run(significance_level=0.01, test_count=2, quiet=True)
     if not ok:
         monkeypatch.chdir(tmp_path)
@@ -385,17 +435,18 @@ def test_rgb_to_spectra_is_mitsubas_sigmoid_model():
     import mitsuba
 
     m = mitsuba.scalar_spectral
-    rgb = np.array([[0.8, 0.5, 0.2], [0.1, 0.9, 0.3], [0.5, 0.5, 0.5], [2.0, 1.0, 0.5],
-                    [0.0, 0.0, 0.0]])
+    rgb = np.array(
+        [[0.8, 0.5, 0.2], [0.1, 0.9, 0.3], [0.5, 0.5, 0.5], [2.0, 1.0, 0.5], [0.0, 0.0, 0.0]]
+    )
     spec = rgl.rgb_to_spectra(rgb)
     assert spec.shape == (5, len(rgl.WAVELENGTHS))
-    for k in range(3):                       # Mitsuba's own evaluation of its coefficients
+    for k in range(3):  # Mitsuba's own evaluation of its coefficients
         top = rgb[k].max()
         c = m.srgb_model_fetch(m.ScalarColor3f(*map(float, rgb[k] / top)))
         ref = [top * m.srgb_model_eval(c, m.Spectrum(lam))[0] for lam in rgl.WAVELENGTHS]
         # (Mitsuba evaluates x = c0 l^2 + c1 l + c2 in float32, with cancellation)
         np.testing.assert_allclose(spec[k], ref, rtol=1e-3)
-    np.testing.assert_allclose(spec[2], 0.5, rtol=1e-3)                  # grey is flat
+    np.testing.assert_allclose(spec[2], 0.5, rtol=1e-3)  # grey is flat
     np.testing.assert_allclose(spec[3], 2.0 * rgl.rgb_to_spectra(rgb[3] / 2.0), rtol=1e-9)
     assert np.all(spec[4] == 0)
 
@@ -408,7 +459,7 @@ def test_spectral_bake_loads_and_evaluates_in_spectral_variants(variant, tmp_pat
 
     lambert = analytic.create("lambertian", albedo=[0.8, 0.5, 0.2])
     path = tmp_path / "lambert_spec.bsdf"
-    assert rgl.bake(lambert.eval, path) is None                  # spectral by its name
+    assert rgl.bake(lambert.eval, path) is None  # spectral by its name
     fields = rgl.read_tensor_file(path)
     assert "rgb" not in fields and fields["spectra"].shape[2] == len(rgl.WAVELENGTHS)
     with pytest.raises(rgl.RGLFormatError, match="spectral"):
@@ -434,15 +485,16 @@ def test_spectral_bake_loads_and_evaluates_in_spectral_variants(variant, tmp_pat
     np.testing.assert_allclose(value, expected, rtol=0.02)
     assert not mitsuba.variant().endswith("spectral")
     with pytest.raises(Exception, match="spectral variant"):
-        mitsuba.load_dict({"type": "measured", "filename": str(path)})    # not in RGB
+        mitsuba.load_dict({"type": "measured", "filename": str(path)})  # not in RGB
 
 
 def test_pbrt_convention_stores_the_incident_cosine(tmp_path):
     """cosine="incident": the stored product rho D / (4 sigma) is f cos(theta_i) of the
     slice direction (pbrt-v4 divides by that cosine), not f cos(theta_o) (Mitsuba)."""
     lambert = analytic.create("lambertian", albedo=[0.8, 0.5, 0.2])
-    m = rgl.bake(lambert.eval, tmp_path / "pbrt.bsdf", cosine="incident", theta_i=8,
-                 sample=32, vndf=64)
+    m = rgl.bake(
+        lambert.eval, tmp_path / "pbrt.bsdf", cosine="incident", theta_i=8, sample=32, vndf=64
+    )
     wi, wo = m.node_pairs(seed=1)
     product = m._f_cos(wi, wo)
     expected = lambert.eval(wi, wo) * wi[:, 2:3]
@@ -465,8 +517,12 @@ def test_mitsubas_own_tensor_reader_reads_our_files(baked, tmp_path):
     for k in ours:
         np.testing.assert_array_equal(np.asarray(theirs[k]), ours[k])
     other = tmp_path / "theirs.bsdf"
-    mitsuba.tensor_io.write(str(other), a=np.arange(6, dtype=np.float32).reshape(2, 3),
-                            b=np.array([7], np.uint8), text="abc")
+    mitsuba.tensor_io.write(
+        str(other),
+        a=np.arange(6, dtype=np.float32).reshape(2, 3),
+        b=np.array([7], np.uint8),
+        text="abc",
+    )
     back = rgl.read_tensor_file(other)
     np.testing.assert_array_equal(back["a"], np.arange(6, dtype=np.float32).reshape(2, 3))
     assert back["b"].tolist() == [7] and bytes(back["text"]) == b"abc"

@@ -33,19 +33,24 @@ import analytic
 import chi2
 
 REPO = Path(__file__).resolve().parents[1]
-DUMP_DIR = REPO / "runs" / "chi2"        # failing chi-square tables land here (git-ignored)
+DUMP_DIR = REPO / "runs" / "chi2"  # failing chi-square tables land here (git-ignored)
 
 MODELS = analytic.available()
-PHI_I = 0.6                              # incident azimuth: off-axis, so anisotropy shows
+PHI_I = 0.6  # incident azimuth: off-axis, so anisotropy shows
 # (parameter draw, incident theta in degrees, samples): the defaults from near-normal to
 # near-grazing incidence, then random draws from param_space with fixed seeds.
-CHI2_CASES = (("defaults", 5.0, 1_000_000), ("defaults", 45.0, 1_000_000),
-              ("defaults", 85.0, 1_000_000), (1, 60.0, 500_000), (2, 85.0, 500_000),
-              (3, 30.0, 500_000))
-CHECK_THETA_DEG = (0.0, 5.0, 45.0, 85.0, 89.5)   # for the cheap consistency checks
+CHI2_CASES = (
+    ("defaults", 5.0, 1_000_000),
+    ("defaults", 45.0, 1_000_000),
+    ("defaults", 85.0, 1_000_000),
+    (1, 60.0, 500_000),
+    (2, 85.0, 500_000),
+    (3, 30.0, 500_000),
+)
+CHECK_THETA_DEG = (0.0, 5.0, 45.0, 85.0, 89.5)  # for the cheap consistency checks
 CHECK_DRAWS = ("defaults", 1, 2, 3, 4, 5, 6, 7)
-CHECK_SAMPLES = 4000                     # per incident angle
-MITSUBA_CASES = {                        # model -> params, for Mitsuba's own chi2 test
+CHECK_SAMPLES = 4000  # per incident angle
+MITSUBA_CASES = {  # model -> params, for Mitsuba's own chi2 test
     "lambertian": {"albedo": [0.2, 0.5, 0.8]},
     "microfacet": {"distribution": "ggx", "alpha_x": 0.4, "alpha_y": 0.15},
     "microfacet-beckmann": {"distribution": "beckmann", "alpha": 0.3},
@@ -131,18 +136,21 @@ def sampler(brdf, wi):
     def sample_fn(u):
         wo, _ = brdf.sample(np.broadcast_to(wi, (len(u), 3)), u)
         return wo
+
     return sample_fn
 
 
 def density(brdf, wi):
     def pdf_fn(wo):
         return brdf.pdf(np.broadcast_to(wi, wo.shape), wo)
+
     return pdf_fn
 
 
 def chi2_cases():
-    return [pytest.param(m, d, t, n, id=f"{m}-{d}-{t:g}deg")
-            for m in MODELS for d, t, n in CHI2_CASES]
+    return [
+        pytest.param(m, d, t, n, id=f"{m}-{d}-{t:g}deg") for m in MODELS for d, t, n in CHI2_CASES
+    ]
 
 
 def check_cases():
@@ -170,9 +178,15 @@ def test_chi2_sample_matches_pdf(name, draw, theta, n_samples):
     wi = incident(theta)
     brdf = make_testable(name, draw, wi)
     seed = 1000 * MODELS.index(name) + 10 * int(theta) + (0 if draw == "defaults" else draw)
-    result = chi2.chi2_test(sampler(brdf, wi), density(brdf, wi),
-                            name=f"{name}-{draw}-{theta:g}deg", n_samples=n_samples,
-                            seed=seed, test_count=TEST_COUNT, dump_dir=DUMP_DIR)
+    result = chi2.chi2_test(
+        sampler(brdf, wi),
+        density(brdf, wi),
+        name=f"{name}-{draw}-{theta:g}deg",
+        n_samples=n_samples,
+        seed=seed,
+        test_count=TEST_COUNT,
+        dump_dir=DUMP_DIR,
+    )
     assert result.passed, f"{brdf!r}, wi={wi.tolist()}\n{result.summary()}"
 
 
@@ -191,8 +205,9 @@ def test_sampled_pdf_equals_pdf(name, draw):
     wo, pdf_s = brdf.sample(wi, u)
     assert np.isfinite(wo).all() and np.isfinite(pdf_s).all(), repr(brdf)
     assert np.abs(np.linalg.norm(wo, axis=-1) - 1.0).max() < 1e-9, repr(brdf)
-    assert (pdf_s > 0).all(), \
+    assert (pdf_s > 0).all(), (
         f"{brdf!r}: sampled directions with pdf <= 0 at wi={wi[pdf_s <= 0][:3].tolist()}"
+    )
     pdf_e = brdf.pdf(wi, wo)
     np.testing.assert_allclose(pdf_s, pdf_e, rtol=1e-6, atol=0, err_msg=repr(brdf))
 
@@ -211,8 +226,9 @@ def test_sample_weight_is_finite(name, draw, dtype):
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         weight = np.where(pdf[:, None] > 0, f * cos_o / pdf[:, None], 0.0)
     bad = ~np.isfinite(weight).all(-1)
-    assert not bad.any(), \
+    assert not bad.any(), (
         f"{brdf!r}: non-finite f cos / pdf at wi={wi[bad][:3].tolist()}, wo={wo[bad][:3].tolist()}"
+    )
     assert (weight >= 0).all()
     # zero density must mean zero contribution, else the estimator f cos / pdf is biased
     assert (f[pdf == 0] * cos_o[pdf == 0] == 0).all(), repr(brdf)
@@ -221,6 +237,7 @@ def test_sample_weight_is_finite(name, draw, dtype):
 # ------------------------------------------------------------------ Mitsuba's chi2
 def mitsuba_llvm():
     import mitsuba as mi
+
     mi.set_variant("llvm_ad_rgb")
     return mi
 
@@ -308,12 +325,19 @@ def test_mitsuba_chi2(case, theta, monkeypatch):
     wi = incident(theta)
     props = {"type": plugin, "model": case.split("-")[0], "params": json.dumps(MITSUBA_CASES[case])}
     sample_fn, pdf_fn = BSDFAdapter(plugin, props, wi=wi.tolist())
-    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_fn, pdf_func=pdf_fn,
-                         sample_dim=3, sample_count=1_000_000, ires=MITSUBA_IRES, seed=int(theta))
+    test = ChiSquareTest(
+        domain=SphericalDomain(),
+        sample_func=sample_fn,
+        pdf_func=pdf_fn,
+        sample_dim=3,
+        sample_count=1_000_000,
+        ires=MITSUBA_IRES,
+        seed=int(theta),
+    )
     ok = test.run(significance_level=0.01, test_count=TEST_COUNT, quiet=True)
     if not ok:
         out = DUMP_DIR / f"mitsuba-{case}-{theta:g}deg"
         out.mkdir(parents=True, exist_ok=True)
         monkeypatch.chdir(out)
-        test._dump_tables()                # writes chi2_data.py into the current directory
+        test._dump_tables()  # writes chi2_data.py into the current directory
     assert ok, f"{case} at {theta} deg:\n{test.messages}"

@@ -57,13 +57,16 @@ def test_metadata_round_trip():
     assert sharp["alpha"] == lobe.MIN_ALPHA
 
 
-@pytest.mark.parametrize("text, words", [
-    ("not json", "expected JSON"),
-    ('{"alpha": 0.3, "weight": 0.5}', "expected JSON"),
-    ('{"kind": "gaussian", "alpha": 0.3, "weight": 0.5}', "unknown lobe kind 'gaussian'"),
-    ('{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 1.5}', "weight in [0, 1]"),
-    ('{"kind": "cosine+ggx_vndf", "alpha": -1, "weight": 0.5}', "alpha must be > 0"),
-])
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("not json", "expected JSON"),
+        ('{"alpha": 0.3, "weight": 0.5}', "expected JSON"),
+        ('{"kind": "gaussian", "alpha": 0.3, "weight": 0.5}', "unknown lobe kind 'gaussian'"),
+        ('{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 1.5}', "weight in [0, 1]"),
+        ('{"kind": "cosine+ggx_vndf", "alpha": -1, "weight": 0.5}', "alpha must be > 0"),
+    ],
+)
 def test_bad_metadata_is_a_one_line_input_error(text, words):
     with pytest.raises(InputError) as e:
         lobe.from_metadata({lobe.KEY: text})

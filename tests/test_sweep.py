@@ -31,13 +31,26 @@ REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
 NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "nbrdf" / "merl_nbrdf_weights.npz"
 
-TINY = {"train.steps": 60, "train.warmup": 5, "train.eval_every": 0, "model.hidden": [8, 8],
-        "data.batch_size": 256, "data.pool_size": 2048, "normalization.table_size": 17,
-        "normalization.samples": 2048, "validation.furnace_dirs": 6,
-        "validation.furnace_samples": 4096, "validation.pairs": 2000,
-        "validation.accuracy_samples": 2048, "export.parity_pairs": 512}
-TRIALS = [{"train.seed": 0}, {"train.seed": 1},
-          {"model.encoding": "raw", "normalization.enabled": False}]
+TINY = {
+    "train.steps": 60,
+    "train.warmup": 5,
+    "train.eval_every": 0,
+    "model.hidden": [8, 8],
+    "data.batch_size": 256,
+    "data.pool_size": 2048,
+    "normalization.table_size": 17,
+    "normalization.samples": 2048,
+    "validation.furnace_dirs": 6,
+    "validation.furnace_samples": 4096,
+    "validation.pairs": 2000,
+    "validation.accuracy_samples": 2048,
+    "export.parity_pairs": 512,
+}
+TRIALS = [
+    {"train.seed": 0},
+    {"train.seed": 1},
+    {"model.encoding": "raw", "normalization.enabled": False},
+]
 NAMES = ["seed-0", "seed-1", "encoding-raw_enabled-false"]
 # what may differ between two runs of the same trial: clocks and where it ran
 VOLATILE = {"train_seconds", "total_seconds"}
@@ -52,10 +65,17 @@ def write_sweep(folder: Path, **spec) -> Path:
 
 def stable(results: dict) -> list[dict]:
     """The trials of a results table without clocks, hosts and process ids."""
-    return [{"trial": r["trial"], "status": r["status"], "error": r["error"],
-             "overrides": r["overrides"], "run_dir": r["run_dir"],
-             "metrics": {k: v for k, v in r["metrics"].items() if k not in VOLATILE}}
-            for r in results["trials"]]
+    return [
+        {
+            "trial": r["trial"],
+            "status": r["status"],
+            "error": r["error"],
+            "overrides": r["overrides"],
+            "run_dir": r["run_dir"],
+            "metrics": {k: v for k, v in r["metrics"].items() if k not in VOLATILE},
+        }
+        for r in results["trials"]
+    ]
 
 
 def read(path: Path) -> dict:
@@ -90,7 +110,7 @@ def test_local_sweep_table_matches_each_trials_own_metrics(local):
         assert m["reciprocity"] == own["checks"]["reciprocity"]["value"]
         assert m["passed"] == own["passed"]
         assert m["train_seconds"] == own["seconds"]["train"]
-        for key in ("rel_rmse", "max_albedo", "reciprocity"):     # the CSV holds the same
+        for key in ("rel_rmse", "max_albedo", "reciprocity"):  # the CSV holds the same
             assert float(row[key]) == m[key]
         # parameter count, counted independently from the checkpoint's weights
         weights = torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
@@ -118,9 +138,11 @@ def test_ray_executor_gives_the_same_table(local, tmp_path):
     path, out_local = local
     out = tmp_path / "ray"
     try:
-        assert cli.main(["sweep", str(path), "--executor", "ray", "--workers", "2",
-                         "--out", str(out)]) == 0
-        assert not ray.is_initialized()          # the sweep shut down the instance it started
+        assert (
+            cli.main(["sweep", str(path), "--executor", "ray", "--workers", "2", "--out", str(out)])
+            == 0
+        )
+        assert not ray.is_initialized()  # the sweep shut down the instance it started
     finally:
         ray.shutdown()
     a, b = read(out_local / "results.json"), read(out / "results.json")
@@ -128,8 +150,9 @@ def test_ray_executor_gives_the_same_table(local, tmp_path):
     assert stable(a) == stable(b)
     for r in b["trials"]:
         run_local, run_ray = out_local / r["run_dir"], out / r["run_dir"]
-        assert sorted(p.name for p in run_local.iterdir()) == \
-            sorted(p.name for p in run_ray.iterdir())
+        assert sorted(p.name for p in run_local.iterdir()) == sorted(
+            p.name for p in run_ray.iterdir()
+        )
         ma, mb = read(run_local / "metrics.json"), read(run_ray / "metrics.json")
         assert ma["checks"] == mb["checks"] and ma["accuracy"] == mb["accuracy"]
         assert read(run_ray / "trial.json")["status"] == "ok"
@@ -161,9 +184,10 @@ def test_resume_runs_only_unfinished_trials(local, tmp_path):
     before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in kept.iterdir()}
     seen = []
     t0 = time.time()
-    results = sweep.run_sweep(path, workers=2, out=out,
-                              progress=lambda r, done, total: seen.append(r["trial"]))
-    assert sorted(seen) == ["seed-0", "seed-1"]                 # only those two ran again
+    results = sweep.run_sweep(
+        path, workers=2, out=out, progress=lambda r, done, total: seen.append(r["trial"])
+    )
+    assert sorted(seen) == ["seed-0", "seed-1"]  # only those two ran again
     assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in kept.iterdir()} == before
     for name in ("seed-0", "seed-1"):
         assert (runs[name] / "metrics.json").stat().st_mtime >= t0
@@ -174,16 +198,31 @@ def test_resume_runs_only_unfinished_trials(local, tmp_path):
 def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
     path = write_sweep(tmp_path, list=TRIALS[:2])
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "neural_brdf", "sweep", str(path), "--workers", "1",
-           "--out", str(out)]
-    proc = subprocess.Popen(cmd, cwd=REPO, start_new_session=True, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    cmd = [
+        sys.executable,
+        "-m",
+        "neural_brdf",
+        "sweep",
+        str(path),
+        "--workers",
+        "1",
+        "--out",
+        str(out),
+    ]
+    proc = subprocess.Popen(
+        cmd,
+        cwd=REPO,
+        start_new_session=True,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     first = out / "trials" / "seed-0" / "trial.json"
     deadline = time.time() + 300
     while not (first.is_file() and read(first)["status"] == "ok"):
         assert proc.poll() is None and time.time() < deadline, proc.communicate()
         time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGINT)          # as a terminal's Ctrl-C: the whole group
+    os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole group
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "run the same command again" in err
     rows = {r["trial"]: r["status"] for r in read(out / "results.json")["trials"]}
@@ -196,9 +235,11 @@ def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
 
 
 def test_failing_trials_are_recorded_and_the_others_finish(tmp_path):
-    trials = [{"train.seed": 0},
-              {"target.params.albedo": -0.5},     # invalid: raised in the worker
-              {"train.lr": -1.0}]                 # invalid: caught when planning
+    trials = [
+        {"train.seed": 0},
+        {"target.params.albedo": -0.5},  # invalid: raised in the worker
+        {"train.lr": -1.0},
+    ]  # invalid: caught when planning
     path = write_sweep(tmp_path, list=trials)
     out = tmp_path / "out"
     assert cli.main(["sweep", str(path), "--workers", "2", "--out", str(out)]) == 1
@@ -210,7 +251,7 @@ def test_failing_trials_are_recorded_and_the_others_finish(tmp_path):
     assert "\n" not in bad["error"]
     lr = rows["lr--1.0"]
     assert lr["status"] == "failed" and "train.lr" in lr["error"] and "\n" not in lr["error"]
-    for r in rows.values():                       # every trial has its marker
+    for r in rows.values():  # every trial has its marker
         assert read(out / r["run_dir"] / "trial.json")["status"] == r["status"]
 
 
@@ -227,12 +268,19 @@ def test_a_diverging_trial_is_recorded_as_failed(tmp_path, monkeypatch):
 
 
 def test_materials_become_data_targets(tmp_path):
-    path = write_sweep(tmp_path, materials={"nbrdf": str(NPZ), "names": ["alum-bronze", "brass"]},
-                       grid={"train.seed": [0, 1]})
+    path = write_sweep(
+        tmp_path,
+        materials={"nbrdf": str(NPZ), "names": ["alum-bronze", "brass"]},
+        grid={"train.seed": [0, 1]},
+    )
     spec = sweep.load_sweep(path)
     jobs = sweep.plan(spec, path, tmp_path / "out")
-    assert [j["name"] for j in jobs] == ["alum-bronze_seed-0", "alum-bronze_seed-1",
-                                         "brass_seed-0", "brass_seed-1"]
+    assert [j["name"] for j in jobs] == [
+        "alum-bronze_seed-0",
+        "alum-bronze_seed-1",
+        "brass_seed-0",
+        "brass_seed-1",
+    ]
     for job in jobs:
         name = job["overrides"]["material"]
         data = (tmp_path / "out" / "data" / f"{name}.binary").resolve()
@@ -246,34 +294,42 @@ def test_materials_become_data_targets(tmp_path):
 
 
 def test_grid_crosses_and_list_zips(tmp_path):
-    path = write_sweep(tmp_path, grid={"train.seed": [0, 1, 2]},
-                       list={"model.hidden": [[4], [8, 8]], "train.lr": [0.01, 0.02]})
+    path = write_sweep(
+        tmp_path,
+        grid={"train.seed": [0, 1, 2]},
+        list={"model.hidden": [[4], [8, 8]], "train.lr": [0.01, 0.02]},
+    )
     spec = sweep.load_sweep(path)
     points = [j["overrides"] for j in sweep.plan(spec, path, tmp_path / "out")]
     assert len(points) == 6
-    assert {(tuple(p["model.hidden"]), p["train.lr"]) for p in points} == {((4,), 0.01),
-                                                                           ((8, 8), 0.02)}
+    assert {(tuple(p["model.hidden"]), p["train.lr"]) for p in points} == {
+        ((4,), 0.01),
+        ((8, 8), 0.02),
+    }
     assert sorted(p["train.seed"] for p in points) == [0, 0, 1, 1, 2, 2]
 
 
-@pytest.mark.parametrize("spec, key", [
-    ({"grids": {"train.seed": [0]}}, "grids"),
-    ({"grid": {"train.stepz": [1]}}, "train.stepz"),
-    ({"grid": {"train.seed": 3}}, "train.seed"),
-    ({"list": {"train.seed": [0, 1], "train.lr": [0.1]}}, "list"),
-    ({"base": "missing.yaml"}, "base"),
-    ({"grid": {"config": ["nowhere.yaml"]}}, "config"),
-    ({"materials": {"nbrdf": str(NPZ), "names": ["unobtainium"]}}, "materials.names"),
-    ({"materials": {"nbrdf": __file__}}, "materials.nbrdf"),
-    ({"list": [{"train.seed": 1}, {"train.seed": 1}]}, "'seed-1' appears 2 times"),
-])
+@pytest.mark.parametrize(
+    "spec, key",
+    [
+        ({"grids": {"train.seed": [0]}}, "grids"),
+        ({"grid": {"train.stepz": [1]}}, "train.stepz"),
+        ({"grid": {"train.seed": 3}}, "train.seed"),
+        ({"list": {"train.seed": [0, 1], "train.lr": [0.1]}}, "list"),
+        ({"base": "missing.yaml"}, "base"),
+        ({"grid": {"config": ["nowhere.yaml"]}}, "config"),
+        ({"materials": {"nbrdf": str(NPZ), "names": ["unobtainium"]}}, "materials.names"),
+        ({"materials": {"nbrdf": __file__}}, "materials.nbrdf"),
+        ({"list": [{"train.seed": 1}, {"train.seed": 1}]}, "'seed-1' appears 2 times"),
+    ],
+)
 def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
     path = write_sweep(tmp_path, **spec)
     assert cli.main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "\n" not in err and key in err
     assert str(path) in err
-    assert not (tmp_path / "out").exists()          # nothing ran
+    assert not (tmp_path / "out").exists()  # nothing ran
 
 
 @pytest.mark.parametrize("path", sorted((CONFIGS / "sweeps").glob("*.yaml")), ids=lambda p: p.stem)
@@ -281,5 +337,5 @@ def test_shipped_sweep_files_plan_cleanly(path, tmp_path):
     jobs = sweep.plan(sweep.load_sweep(path), path, tmp_path)
     assert jobs and all(j["error"] is None for j in jobs)
     assert len({j["name"] for j in jobs}) == len(jobs)
-    for job in jobs:                            # every trial is an ordinary 1-thread run
+    for job in jobs:  # every trial is an ordinary 1-thread run
         assert job["config"]["train"]["threads"] == 1

@@ -33,8 +33,8 @@ HOSTILE = {
     "zero": [0.0, 0.0, 0.0],
     "all_nan": [np.nan, np.nan, np.nan],
 }
-N = 100_000                      # "a large batch": the bad rows sit in its middle
-SCALE_TOL = 1e-5                 # the issue's bound for f(k wi, wo) vs f(wi, wo)
+N = 100_000  # "a large batch": the bad rows sit in its middle
+SCALE_TOL = 1e-5  # the issue's bound for f(k wi, wo) vs f(wi, wo)
 
 
 def _model(encoding: str) -> TotalBRDF:
@@ -44,9 +44,16 @@ def _model(encoding: str) -> TotalBRDF:
         for p in raw.mlp.body.parameters():
             p.mul_(3.0)
     aniso = encoding != "isotropic"
-    table, _, _ = albedo_table(raw, size=9 if aniso else 16, anisotropic=aniso, samples=256,
-                               seed=0, sigmas=3.0, margin=1e-3)
-    assert float(table.max()) > 1.0          # the normalisation really divides
+    table, _, _ = albedo_table(
+        raw,
+        size=9 if aniso else 16,
+        anisotropic=aniso,
+        samples=256,
+        seed=0,
+        sigmas=3.0,
+        margin=1e-3,
+    )
+    assert float(table.max()) > 1.0  # the normalisation really divides
     return TotalBRDF(NormalizedBRDF(raw, table).eval())
 
 
@@ -63,13 +70,16 @@ def session(model_file):
 
 
 def _run(session, wi, wo):
-    return session.run(["f"], {"wi": np.asarray(wi, np.float32),
-                               "wo": np.asarray(wo, np.float32)})[0]
+    return session.run(["f"], {"wi": np.asarray(wi, np.float32), "wo": np.asarray(wo, np.float32)})[
+        0
+    ]
 
 
 def _pairs(n, seed=0):
-    return (physics.random_directions(n, seed).astype(np.float32),
-            physics.random_directions(n, seed + 100).astype(np.float32))
+    return (
+        physics.random_directions(n, seed).astype(np.float32),
+        physics.random_directions(n, seed + 100).astype(np.float32),
+    )
 
 
 @pytest.mark.parametrize("side", ["wi", "wo", "both"])
@@ -87,7 +97,7 @@ def test_hostile_row_in_a_large_batch_gives_zero_and_leaves_the_rest(session, ki
     assert np.array_equal(got[rows], np.zeros((3, 3), np.float32))
     keep = np.ones(N, bool)
     keep[rows] = False
-    assert np.array_equal(got[keep], clean[keep])          # bit for bit
+    assert np.array_equal(got[keep], clean[keep])  # bit for bit
 
 
 def test_batch_of_zero_rows(session, model_file):
@@ -130,8 +140,8 @@ def test_runtime_eval_handles_every_hostile_row(model_file):
     for i, v in enumerate(HOSTILE.values()):
         wi[i] = v
     got = brdf.eval(wi, wo)
-    assert np.array_equal(got[:len(HOSTILE)], np.zeros((len(HOSTILE), 3), np.float32))
-    assert np.isfinite(got).all() and got[len(HOSTILE):].all()
+    assert np.array_equal(got[: len(HOSTILE)], np.zeros((len(HOSTILE), 3), np.float32))
+    assert np.isfinite(got).all() and got[len(HOSTILE) :].all()
 
 
 @pytest.mark.mitsuba
@@ -149,8 +159,9 @@ def test_drjit_plugin_evaluation_is_total_too(model_file, session):
     wo[20] = HOSTILE["zero"]
     wi[30] = HOSTILE["inf"]
     wi[40:50] *= 7.5
-    cols = program(wi=[mi.Float(wi[:, j]) for j in range(3)],
-                   wo=[mi.Float(wo[:, j]) for j in range(3)])["f"]
+    cols = program(
+        wi=[mi.Float(wi[:, j]) for j in range(3)], wo=[mi.Float(wo[:, j]) for j in range(3)]
+    )["f"]
     got = np.stack([np.asarray(dr.detach(c)) for c in cols], -1)
     ref = _run(session, wi, wo)
     assert np.array_equal(got[[10, 20, 30]], np.zeros((3, 3), np.float32))

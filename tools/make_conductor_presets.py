@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 MATERIALS = ("Au", "Ag", "Cu", "Al")
-LAMBDA = np.linspace(360.0, 830.0, 4701)                      # nm, 0.1 nm steps
-XYZ_TO_SRGB = np.array([[3.2406, -1.5372, -0.4986],
-                        [-0.9689, 1.8758, 0.0415],
-                        [0.0557, -0.2040, 1.0570]])
+LAMBDA = np.linspace(360.0, 830.0, 4701)  # nm, 0.1 nm steps
+XYZ_TO_SRGB = np.array(
+    [[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]]
+)
 
 
 def _lobe(lam, mu, s1, s2):
@@ -34,8 +34,11 @@ def _lobe(lam, mu, s1, s2):
 
 def cmf(lam: np.ndarray) -> np.ndarray:
     """CIE 1931 x-bar, y-bar, z-bar: Wyman et al. 2013, multi-lobe fit (their eq. 2)."""
-    x = (1.056 * _lobe(lam, 599.8, 37.9, 31.0) + 0.362 * _lobe(lam, 442.0, 16.0, 26.7)
-         - 0.065 * _lobe(lam, 501.1, 20.4, 26.2))
+    x = (
+        1.056 * _lobe(lam, 599.8, 37.9, 31.0)
+        + 0.362 * _lobe(lam, 442.0, 16.0, 26.7)
+        - 0.065 * _lobe(lam, 501.1, 20.4, 26.2)
+    )
     y = 0.821 * _lobe(lam, 568.8, 46.9, 40.5) + 0.286 * _lobe(lam, 530.9, 16.3, 31.1)
     z = 1.217 * _lobe(lam, 437.0, 11.8, 36.0) + 0.681 * _lobe(lam, 459.0, 26.0, 13.8)
     return np.stack([x, y, z], -1)
@@ -48,16 +51,21 @@ def spectrum_to_rgb(wl: np.ndarray, val: np.ndarray) -> np.ndarray:
 
 
 def read_spd(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    rows = [line.split() for line in path.read_text().splitlines()
-            if line.strip() and not line.lstrip().startswith("#")]
+    rows = [
+        line.split()
+        for line in path.read_text().splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     data = np.array(rows, dtype=np.float64)
     return data[:, 0], data[:, 1]
 
 
 def main(src: str) -> None:
-    out = {"_source": "luxpop spectral data (mitsuba-data ior/*.spd) projected to linear sRGB "
-                      "with CIE 1931 CMFs (Wyman et al. 2013 fit); "
-                      "regenerate with tools/make_conductor_presets.py"}
+    out = {
+        "_source": "luxpop spectral data (mitsuba-data ior/*.spd) projected to linear sRGB "
+        "with CIE 1931 CMFs (Wyman et al. 2013 fit); "
+        "regenerate with tools/make_conductor_presets.py"
+    }
     for m in MATERIALS:
         entry = {}
         for part in ("eta", "k"):

@@ -22,10 +22,30 @@ from .cstyle import PREFIX, CStyleRenderer
 class CRenderer(CStyleRenderer):
     name = "c"
     types = {"float": "float", "int": "int", "bool": "int"}
-    functions = {**CStyleRenderer.functions,
-                 **{op: f"{op}f" for op in ("sqrt", "exp", "log", "floor", "ceil", "sin", "cos",
-                                            "atan", "asin", "acos", "tanh", "erf", "pow")},
-                 "abs": "fabsf", "isnan": "isnan", "isinf": "isinf"}
+    functions = {
+        **CStyleRenderer.functions,
+        **{
+            op: f"{op}f"
+            for op in (
+                "sqrt",
+                "exp",
+                "log",
+                "floor",
+                "ceil",
+                "sin",
+                "cos",
+                "atan",
+                "asin",
+                "acos",
+                "tanh",
+                "erf",
+                "pow",
+            )
+        },
+        "abs": "fabsf",
+        "isnan": "isnan",
+        "isinf": "isinf",
+    }
     float_suffix = "f"
 
     def bool_literal(self, v: bool) -> str:
@@ -52,10 +72,15 @@ class CRenderer(CStyleRenderer):
         lines = []
         for t, s in (("float", "f"), ("int", "i")):
             sig = f"static inline {t} {PREFIX}_%s{s}({t} a, {t} b)"
-            lines += [sig % "max" + " { return a > b ? a : b; }",
-                      sig % "min" + " { return a < b ? a : b; }"]
-        lines += [f"static inline int {PREFIX}_clampi(int i, int lo, int hi) "
-                  "{ return i < lo ? lo : (i > hi ? hi : i); }", ""]
+            lines += [
+                sig % "max" + " { return a > b ? a : b; }",
+                sig % "min" + " { return a < b ? a : b; }",
+            ]
+        lines += [
+            f"static inline int {PREFIX}_clampi(int i, int lo, int hi) "
+            "{ return i < lo ? lo : (i > hi ? hi : i); }",
+            "",
+        ]
         return lines
 
     def table(self, name: str, values: np.ndarray) -> str:
@@ -67,12 +92,19 @@ class CRenderer(CStyleRenderer):
         lines, rendered = self.body(prog)
         outs = list(prog.outputs.items())
         ret = outs[-1] if len(outs[-1][1]) == 1 else None
-        params = [f"float {n}" if w == 1 else f"const float {n}[{w}]"
-                  for n, w in prog.inputs.items()]
+        params = [
+            f"float {n}" if w == 1 else f"const float {n}[{w}]" for n, w in prog.inputs.items()
+        ]
         params += [f"float {n}[{len(cols)}]" for n, cols in outs if (n, cols) != ret]
         sig = f"static inline {'float' if ret else 'void'} {fname}({', '.join(params)})"
-        body = [f"    const {line}" if line.startswith("float wi") or line.startswith("float wo")
-                or line.startswith("float u") else f"    {line}" for line in lines]
+        body = [
+            f"    const {line}"
+            if line.startswith("float wi")
+            or line.startswith("float wo")
+            or line.startswith("float u")
+            else f"    {line}"
+            for line in lines
+        ]
         for n, cols in outs:
             if (n, cols) != ret:
                 body += [f"    {n}[{k}] = {rendered[c]};" for k, c in enumerate(cols)]
@@ -81,17 +113,27 @@ class CRenderer(CStyleRenderer):
         return [f"/* {doc} */", sig, "{", *body, "}", ""]
 
     def usage(self) -> list[str]:
-        return ['#include "this_file.h"   (C99, only <math.h>; link with -lm)',
-                "float f[3]; neural_brdf_eval(wi, wo, f);",
-                "float pdf = neural_brdf_pdf(wi, wo);",
-                "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  "
-                "(float u1, u2[2])"]
+        return [
+            '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
+            "float f[3]; neural_brdf_eval(wi, wo, f);",
+            "float pdf = neural_brdf_pdf(wi, wo);",
+            "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  (float u1, u2[2])",
+        ]
 
     def wrap(self, header: list[str], parts: list[str]) -> str:
         guard = "NEURAL_BRDF_H"
         # a comment marker inside a metadata value must not end the block comment
         body = [" *" + line[2:].replace("*/", "* /").replace("/*", "/ *") for line in header]
-        text = ["/*", *body, " */",
-                f"#ifndef {guard}", f"#define {guard}", "", "#include <math.h>", "", *parts,
-                f"#endif /* {guard} */"]
+        text = [
+            "/*",
+            *body,
+            " */",
+            f"#ifndef {guard}",
+            f"#define {guard}",
+            "",
+            "#include <math.h>",
+            "",
+            *parts,
+            f"#endif /* {guard} */",
+        ]
         return "\n".join(text) + "\n"

@@ -32,17 +32,40 @@ class _Types:
 
 
 _UNARY = {
-    "neg": lambda x: -x, "abs": dr.abs, "sqrt": dr.sqrt, "exp": dr.exp, "log": dr.log,
-    "floor": dr.floor, "ceil": dr.ceil, "sin": dr.sin, "cos": dr.cos, "atan": dr.atan,
-    "asin": dr.asin, "acos": dr.acos, "tanh": dr.tanh, "erf": dr.erf, "not": lambda x: ~x,
-    "isnan": dr.isnan, "isinf": dr.isinf,
+    "neg": lambda x: -x,
+    "abs": dr.abs,
+    "sqrt": dr.sqrt,
+    "exp": dr.exp,
+    "log": dr.log,
+    "floor": dr.floor,
+    "ceil": dr.ceil,
+    "sin": dr.sin,
+    "cos": dr.cos,
+    "atan": dr.atan,
+    "asin": dr.asin,
+    "acos": dr.acos,
+    "tanh": dr.tanh,
+    "erf": dr.erf,
+    "not": lambda x: ~x,
+    "isnan": dr.isnan,
+    "isinf": dr.isinf,
 }
 _BINARY = {
-    "add": lambda a, b: a + b, "sub": lambda a, b: a - b, "mul": lambda a, b: a * b,
-    "div": lambda a, b: a / b, "max": dr.maximum, "min": dr.minimum, "pow": dr.power,
-    "eq": lambda a, b: a == b, "lt": lambda a, b: a < b, "le": lambda a, b: a <= b,
-    "gt": lambda a, b: a > b, "ge": lambda a, b: a >= b, "and": lambda a, b: a & b,
-    "or": lambda a, b: a | b, "xor": lambda a, b: a ^ b,
+    "add": lambda a, b: a + b,
+    "sub": lambda a, b: a - b,
+    "mul": lambda a, b: a * b,
+    "div": lambda a, b: a / b,
+    "max": dr.maximum,
+    "min": dr.minimum,
+    "pow": dr.power,
+    "eq": lambda a, b: a == b,
+    "lt": lambda a, b: a < b,
+    "le": lambda a, b: a <= b,
+    "gt": lambda a, b: a > b,
+    "ge": lambda a, b: a >= b,
+    "and": lambda a, b: a & b,
+    "or": lambda a, b: a | b,
+    "xor": lambda a, b: a ^ b,
 }
 
 
@@ -83,11 +106,13 @@ def run(prog: graph.Program, columns: dict[str, list]) -> dict[str, list]:
             table = tables[ins.attr]
             idx = dr.clip(vals[a[0]], 0, dr.width(table) - 1)
             v = dr.gather(type(table), table, t.UInt(idx))
-        else:                                   # graph.OPS is checked by the tests
+        else:  # graph.OPS is checked by the tests
             raise graph.UnsupportedOnnxOp(f"Dr.Jit back end: instruction {op!r}")
         vals[i] = v
-    return {name: [v if _is_array(v) else t.Float(v) for v in (vals[c] for c in cols)]
-            for name, cols in prog.outputs.items()}
+    return {
+        name: [v if _is_array(v) else t.Float(v) for v in (vals[c] for c in cols)]
+        for name, cols in prog.outputs.items()
+    }
 
 
 def _cast(t, x, src: str, dst: str):

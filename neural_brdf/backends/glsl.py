@@ -22,33 +22,44 @@ VEC = {1: "float", 2: "vec2", 3: "vec3", 4: "vec4"}
 def erf_helper(fn: str, ret: str, decl: str, ftype: str, sfx: str) -> list[str]:
     """erf(x) = 1 - (a1 t + ... + a5 t^5) exp(-x^2), t = 1 / (1 + p |x|), |error| <
     1.5e-7 (Abramowitz & Stegun 1964, formula 7.1.26); odd in x."""
-    k = {"p": "0.3275911", "a1": "0.254829592", "a2": "-0.284496736", "a3": "1.421413741",
-         "a4": "-1.453152027", "a5": "1.061405429"}
+    k = {
+        "p": "0.3275911",
+        "a1": "0.254829592",
+        "a2": "-0.284496736",
+        "a3": "1.421413741",
+        "a4": "-1.453152027",
+        "a5": "1.061405429",
+    }
     k = {n: f"{v}{sfx}" for n, v in k.items()}
-    return [f"{fn}{ret} {{",
-            f"    {decl}a = abs(x);",
-            f"    {decl}t = 1.0{sfx} / (1.0{sfx} + {k['p']} * a);",
-            f"    {decl}poly = t * ({k['a1']} + t * ({k['a2']} + t * ({k['a3']} + t * "
-            f"({k['a4']} + t * {k['a5']}))));",
-            f"    {decl}y = 1.0{sfx} - poly * exp(-a * a);",
-            "    return sign(x) * y;",
-            "}"]
+    return [
+        f"{fn}{ret} {{",
+        f"    {decl}a = abs(x);",
+        f"    {decl}t = 1.0{sfx} / (1.0{sfx} + {k['p']} * a);",
+        f"    {decl}poly = t * ({k['a1']} + t * ({k['a2']} + t * ({k['a3']} + t * "
+        f"({k['a4']} + t * {k['a5']}))));",
+        f"    {decl}y = 1.0{sfx} - poly * exp(-a * a);",
+        "    return sign(x) * y;",
+        "}",
+    ]
 
 
 class GLSLRenderer(CStyleRenderer):
     name = "glsl"
-    vectors = VEC                  # width -> type name
+    vectors = VEC  # width -> type name
     functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
 
     def bitcast_float(self, bits: str) -> str:
         return f"uintBitsToFloat({bits})"
 
     def helpers(self) -> list[str]:
-        return [f"bool {PREFIX}_isnan(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) > "
-                "0x7f800000u; }",
-                f"bool {PREFIX}_isinf(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) == "
-                "0x7f800000u; }",
-                *erf_helper(f"float {PREFIX}_erf(float x)", "", "float ", "float", ""), ""]
+        return [
+            f"bool {PREFIX}_isnan(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) > "
+            "0x7f800000u; }",
+            f"bool {PREFIX}_isinf(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) == "
+            "0x7f800000u; }",
+            *erf_helper(f"float {PREFIX}_erf(float x)", "", "float ", "float", ""),
+            "",
+        ]
 
     def table(self, name: str, values: np.ndarray) -> str:
         t = "float" if values.dtype.kind == "f" else "int"
@@ -76,7 +87,11 @@ class GLSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
-        return ["#version 300 es  (or #version 450)", "precision highp float;",
-                "precision highp int;", "<this file>",
-                "vec3 f = neural_brdf_eval(wi, wo);",
-                "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2"]
+        return [
+            "#version 300 es  (or #version 450)",
+            "precision highp float;",
+            "precision highp int;",
+            "<this file>",
+            "vec3 f = neural_brdf_eval(wi, wo);",
+            "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2",
+        ]

@@ -115,8 +115,9 @@ def _pdf(b: Builder, wi: list[V], wo: list[V], alpha: float, weight: float) -> V
         dot_im = _max(_dot(wi, m), 0.0)
         t = (m[0] * m[0] + m[1] * m[1]) * (1.0 / a2) + m[2] * m[2]
         d = 1.0 / (math.pi * a2 * t * t)
-        g1 = 2.0 * wi[2] / (wi[2] + (a2 * (wi[0] * wi[0] + wi[1] * wi[1])
-                                     + wi[2] * wi[2]).f("sqrt"))
+        g1 = (
+            2.0 * wi[2] / (wi[2] + (a2 * (wi[0] * wi[0] + wi[1] * wi[1]) + wi[2] * wi[2]).f("sqrt"))
+        )
         d_visible = g1 * dot_im * d / wi[2]
         ggx = _select(dot_om > 0.0, d_visible / (4.0 * dot_om), 0.0)
         p = p + weight * ggx
@@ -133,7 +134,7 @@ def pdf_program(*, alpha: float, weight: float) -> Program:
 def _ggx_vndf(b: Builder, wi: list[V], u: list[V], alpha: float) -> list[V]:
     """A visible normal of GGX(alpha) seen from wi (Heitz 2018, JCGT, listing 1)."""
     b.hint = "vndf"
-    vh = _normalize([alpha * wi[0], alpha * wi[1], wi[2]])      # the hemisphere config.
+    vh = _normalize([alpha * wi[0], alpha * wi[1], wi[2]])  # the hemisphere config.
     lensq = vh[0] * vh[0] + vh[1] * vh[1]
     has_xy = lensq > 0.0
     inv = 1.0 / _max(lensq, 1e-30).f("sqrt")
@@ -147,9 +148,11 @@ def _ggx_vndf(b: Builder, wi: list[V], u: list[V], alpha: float) -> list[V]:
     s = 0.5 * (1.0 + vh[2])
     p2 = (1.0 - s) * _max(1.0 - p1 * p1, 0.0).f("sqrt") + s * p2
     pz = _max(1.0 - p1 * p1 - p2 * p2, 0.0).f("sqrt")
-    nh = [p1 * t1[0] + p2 * t2[0] + pz * vh[0],
-          p1 * t1[1] + p2 * t2[1] + pz * vh[1],
-          p2 * t2[2] + pz * vh[2]]
+    nh = [
+        p1 * t1[0] + p2 * t2[0] + pz * vh[0],
+        p1 * t1[1] + p2 * t2[1] + pz * vh[1],
+        p2 * t2[2] + pz * vh[2],
+    ]
     return _normalize([alpha * nh[0], alpha * nh[1], _max(nh[2], 0.0)])
 
 
@@ -170,5 +173,4 @@ def sample_program(*, alpha: float, weight: float) -> Program:
         pick = u1 < weight
         wo = [_select(pick, k * m[j] - wi[j], wo[j]) for j in range(3)]
     p = _pdf(b, wi, wo, alpha, weight)
-    return b.finish({"wi": 3, "u1": 1, "u2": 2},
-                    {"wo": [v.i for v in wo], "pdf": [p.i]})
+    return b.finish({"wi": 3, "u1": 1, "u2": 2}, {"wo": [v.i for v in wo], "pdf": [p.i]})

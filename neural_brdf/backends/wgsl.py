@@ -21,7 +21,7 @@ VEC = {1: "f32", 2: "vec2<f32>", 3: "vec3<f32>", 4: "vec4<f32>"}
 
 class WGSLRenderer(CStyleRenderer):
     name = "wgsl"
-    vectors = VEC                  # width -> type name
+    vectors = VEC  # width -> type name
     types = {"float": "f32", "int": "i32", "bool": "bool"}
     functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
     float_suffix = "f"
@@ -43,10 +43,17 @@ class WGSLRenderer(CStyleRenderer):
 
     def helpers(self) -> list[str]:
         bits = "(bitcast<u32>(x) & 0x7fffffffu)"
-        return [f"fn {PREFIX}_isnan(x: f32) -> bool {{ return {bits} > 0x7f800000u; }}",
-                f"fn {PREFIX}_isinf(x: f32) -> bool {{ return {bits} == 0x7f800000u; }}",
-                *erf_helper(f"fn {PREFIX}_erf(x: f32)", " -> f32", "let ", "f32", "f"), "",
-                "struct NeuralBrdfSample {", "    wo: vec3<f32>,", "    pdf: f32,", "}", ""]
+        return [
+            f"fn {PREFIX}_isnan(x: f32) -> bool {{ return {bits} > 0x7f800000u; }}",
+            f"fn {PREFIX}_isinf(x: f32) -> bool {{ return {bits} == 0x7f800000u; }}",
+            *erf_helper(f"fn {PREFIX}_erf(x: f32)", " -> f32", "let ", "f32", "f"),
+            "",
+            "struct NeuralBrdfSample {",
+            "    wo: vec3<f32>,",
+            "    pdf: f32,",
+            "}",
+            "",
+        ]
 
     def table(self, name: str, values: np.ndarray) -> str:
         t = "f32" if values.dtype.kind == "f" else "i32"
@@ -77,5 +84,7 @@ class WGSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
-        return ["let f = neural_brdf_eval(wi, wo);            // vec3<f32>",
-                "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)"]
+        return [
+            "let f = neural_brdf_eval(wi, wo);            // vec3<f32>",
+            "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",
+        ]
