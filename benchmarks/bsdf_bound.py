@@ -32,7 +32,9 @@ summed over Gemm/MatMul weights: the issue's "FLOPs per eval"), and the lowered 
 instruction counts (``graph.lower``: every op of the total graph after constant folding,
 ``fma`` = one instruction).  The machine state (/proc/loadavg before and after, date,
 cores) is stored with every model, since other processes may share the machine.
-Results are merged into benchmarks/results/bsdf_bound.json by label (atomically).
+The relative RMSE of f cos and the training steps come from the run folder's
+metrics.json and config when the model has them.  Results are merged into
+benchmarks/results/bsdf_bound.json by label (atomically).
 Nothing here asserts a speed.
 """
 
@@ -216,8 +218,12 @@ def bench_model(label: str, path: Path, *, resolution: int, spp: int, repeats: i
     per_round = [a / b for a, b in zip(runs[NEURAL], runs[ref_name], strict=True)]
     rates = {n: eval_rate(b) for n, b in bsdfs.items()}
     m = cfg.get("model") or {}
+    metrics = path.parent / "metrics.json"            # a training run's folder has one
+    acc = (json.loads(metrics.read_text()).get("accuracy") or {}) if metrics.is_file() else {}
     return {
         "model": str(path), "reference": ref_name, "bsdfs": bsdfs,
+        "rel_rmse_f_cos": acc.get("rel_rmse"),
+        "train_steps": (cfg.get("train") or {}).get("steps"),
         "architecture": {"hidden": m.get("hidden"), "activation": m.get("activation"),
                          "encoding": m.get("encoding"), "grid": m.get("grid")},
         "size": model_size(path),
