@@ -13,10 +13,10 @@ import onnx
 import pytest
 import torch
 from test_cli import assert_one_line_error, cli
-from test_codegen import C_TOL, EVERY_OP_LOBE, TINY_RUN, CProgram, onnx_ref, pairs
+from test_codegen import C_TOL, EVERY_OP_LOBE, TINY_RUN, CProgram, glsl_validate, onnx_ref, pairs
 
 from analytic import physics
-from neural_brdf import config, train
+from neural_brdf import backends, config, train
 from neural_brdf.export import relative_difference, to_onnx_bytes
 from neural_brdf.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from neural_brdf.quadrature import albedo, from_numpy
@@ -95,6 +95,12 @@ def test_generated_c_matches_onnxruntime(exported, tmp_path):
     wi, wo = pairs(seed=2)
     got = CProgram(path, tmp_path / "c", lobe=EVERY_OP_LOBE).eval(wi, wo)   # any lobe: f only
     assert relative_difference(got, onnx_ref(path, wi, wo)) <= C_TOL
+
+
+def test_generated_glsl_compiles(exported, tmp_path):
+    """GLSL (WebGL2 and Vulkan) accepts the grid's look-up (values: the viewer's tests)."""
+    _, path = exported
+    glsl_validate(backends.generate(path, "glsl", lobe=EVERY_OP_LOBE), tmp_path)
 
 
 def test_reciprocity_is_bit_exact(exported):
