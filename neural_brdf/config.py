@@ -53,6 +53,20 @@ class Target(_Section):
         return self
 
 
+class Grid(_Section):
+    # learned (u, v) feature grid over the reciprocal half/difference angles (model.py)
+    size: int = Field(0, ge=0, le=257)  # nodes per axis; 0: off
+    channels: int = Field(4, ge=1, le=64)  # learned features per node
+    init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
+    lr_scale: float = Field(1.0, gt=0.0)  # the grid's learning rate / train.lr
+
+    @model_validator(mode="after")
+    def _size(self):
+        if self.size == 1:
+            raise ValueError("size: must be 0 (off) or >= 2 nodes per axis")
+        return self
+
+
 class Model(_Section):
     # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
     encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
@@ -60,11 +74,14 @@ class Model(_Section):
     activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"  # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
     output_scale: float = Field(1.0, gt=0.0)  # f = output_scale * softplus(y) (see model.py)
+    grid: Grid = Field(default_factory=Grid)  # learned feature grid (off by default)
 
     @model_validator(mode="after")
     def _widths(self):
         if not self.hidden or any(w < 1 for w in self.hidden):
             raise ValueError("hidden: needs at least one layer, each of width >= 1")
+        if self.grid.size and self.encoding == "raw":
+            raise ValueError("grid: needs the isotropic or anisotropic encoding, not raw")
         return self
 
 

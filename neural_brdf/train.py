@@ -220,7 +220,12 @@ def train(
     pool = data.Pool(data.pair_source(target, cfg.data, gen), cfg.data)
     init = float(pool.f.median().clamp(1e-3, 10.0))
     raw = RawBRDF.from_config(cfg.model, init_value=init)
-    opt = torch.optim.Adam(raw.parameters(), lr=t.lr)
+    grid = [p for n, p in raw.named_parameters() if n.startswith("grid.")]
+    rest = [p for n, p in raw.named_parameters() if not n.startswith("grid.")]
+    groups = [{"params": rest, "lr_scale": 1.0}]
+    if grid:  # model.grid: its own learning rate, lr_scale x the schedule
+        groups.append({"params": grid, "lr_scale": cfg.model.grid.lr_scale})
+    opt = torch.optim.Adam(groups, lr=t.lr)
     eval_wi, eval_wo, eval_f = (
         x.float() for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
     )
@@ -279,7 +284,7 @@ def train(
                     )
                 lr = learning_rate(t, step)
                 for group in opt.param_groups:
-                    group["lr"] = lr
+                    group["lr"] = lr * group.get("lr_scale", 1.0)
                 wi, wo, f = pool.batch()
                 pred = raw(wi, wo)
                 loss = loss_fn(t.loss, pred, f, wo[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)

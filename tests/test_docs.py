@@ -119,3 +119,15 @@ def test_docs_do_not_point_outside_the_repository():
         text = doc.read_text()
         for banned in ("NOTES.md", "../shared", "shared/data", "/work/"):
             assert banned not in text, f"{doc.relative_to(REPO)} mentions {banned}"
+
+
+def test_every_test_file_and_benchmark_script_is_listed():
+    listed = (REPO / "docs" / "testing.md").read_text() + (
+        REPO / "docs" / "benchmarks.md"
+    ).read_text()
+    files = sorted((REPO / "tests").glob("test_*.py")) + sorted(
+        p for p in (REPO / "benchmarks").glob("*.py") if p.name != "__init__.py"
+    )
+    assert len(files) > 30
+    missing = [p.name for p in files if p.name not in listed]
+    assert not missing, f"not listed in docs/testing.md or docs/benchmarks.md: {missing}"

@@ -5,9 +5,9 @@
     python tools/results_tables.py --stdout   # print the page instead of writing it
 
 Reads ``benchmarks/results/*.json`` (suite, neural_presets, neural_throughput,
-analytic_throughput, merl_fit, mitsuba_render, mitsuba_presets) and
-``docs/results/sweep_timing.json``.  Each section names the JSON file and the script that
-wrote it, and the date, machine and load average that file records (or says that it
+analytic_throughput, merl_fit, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
+bsdf_bound) and ``docs/results/sweep_timing.json``.  Each section names the JSON file and
+the script that wrote it, and the date, machine and load average that file records (or says that it
 records none).  ``render()`` is pure (JSON in, markdown out), so tests/test_docs.py can
 compare it with the committed page.  Only the standard library is needed.
 """
@@ -617,6 +617,65 @@ def rgl_render_section(d: dict) -> list[str]:
     return out
 
 
+def bsdf_bound_section(d: dict) -> list[str]:
+    models = d["models"]
+    first = next(iter(models.values()))["machine_before"]
+    out = [
+        "## Render cost where the BSDF dominates",
+        "",
+        _source("benchmarks/results/bsdf_bound.json", "python benchmarks/bsdf_bound.py"),
+        _recorded(first["date"], f"{first['platform']}, {first['cores']} cores", None),
+        f"Scene: {d['scene']}; {d['resolution']}², {d['spp']} spp, `{d['variant']}` "
+        f"(Mitsuba {d['mitsuba']}, Dr.Jit {d['drjit']}). Ratio: best of {d['repeats']} "
+        f"interleaved rounds, neural over reference; the issue's target is "
+        f"{d['target_ratio']:g}x. First render: fresh process, empty Dr.Jit kernel cache. "
+        "The load average is recorded per model (1-minute value, before -> after).",
+        "",
+    ]
+    rows = []
+    for name, m in models.items():
+        a, z, fr = m["architecture"], m["size"], m["first_render_fresh_cache"]
+        grid = a.get("grid") or {}
+        arch = f"{' x '.join(map(str, a['hidden']))} {a['activation']}"
+        if grid.get("size"):
+            arch = f"grid {grid['size']}²x{grid['channels']} + " + arch
+        per = m["ratio_per_round"]
+        ref = m["reference"]
+        rows.append(
+            [
+                name,
+                arch,
+                str(m["train_steps"]),
+                _pct(m["rel_rmse_f_cos"]),
+                f"{z['mlp_params']:,}",
+                f"{z['lowered_instructions']:,}",
+                f"**{m['ratio']:.2f}x** ({per['min']:.2f}-{per['max']:.2f})",
+                f"{fr['neural_brdf']['first_render_s']:.1f} s / {fr[ref]['first_render_s']:.1f} s",
+                f"{_rate(m['drjit_evals_per_s']['neural_brdf'])}/s",
+                f"`{ref}`",
+                f"{_load(m['machine_before']['loadavg'])} -> "
+                f"{_load(m['machine_after']['loadavg'])}",
+            ]
+        )
+    out += _table(
+        [
+            "model",
+            "architecture",
+            "steps",
+            "rel. RMSE f cos",
+            "MLP params",
+            "lowered instr.",
+            "render time ratio (per round)",
+            "first render neural / ref.",
+            "Dr.Jit eval",
+            "reference",
+            "load",
+        ],
+        rows,
+    )
+    return out
+
+
 # ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
@@ -628,6 +687,7 @@ SECTIONS = (
     (RESULTS / "analytic_throughput.json", analytic_throughput_section),
     (RESULTS / "codegen_c.json", codegen_c_section),
     (RESULTS / "rgl_render.json", rgl_render_section),
+    (RESULTS / "bsdf_bound.json", bsdf_bound_section),
     (SWEEP_TIMING, sweep_timing_section),
 )
 

@@ -1,0 +1,344 @@
+"""BSDF-bound render time of neural BRDFs against Mitsuba's built-in BSDF (llvm_ad_rgb).
+
+    python benchmarks/bsdf_bound.py runs/gold/model.onnx runs/gold2x16/model.onnx
+    python benchmarks/bsdf_bound.py --label gold=runs/gold/model.onnx --repeats 4
+
+The scene (:func:`scene`) makes the BSDF the cost: one unit sphere filling a square
+orthographic frame (every pixel hits it), a ``constant`` emitter (no light sampling
+geometry), the ``path`` integrator with ``max_depth: -1`` (paths end when they leave the
+convex sphere, after one scattering; Russian roulette never triggers), 256 x 256 pixels
+at 64 spp by default.
+
+Per model, three BSDFs render it (the reference is chosen from the model's target):
+
+* ``neural_brdf`` with the model;
+* the reference: Mitsuba's ``roughconductor`` (GGX, same alpha, material Au) when the
+  target is a GGX conductor with an Au material (the gold recipe; Mitsuba uses the
+  separable Smith G, the target the height-correlated one: same cost), otherwise the
+  ``analytic_brdf`` plugin running the target's exported graph (``reference`` says which);
+* the headline ``ratio`` is the best wall time of the neural BSDF over the best of the
+  reference, over ``--repeats`` interleaved rounds (rotating order, after one compiling
+  render each, in one process that shares Dr.Jit's kernel cache).
+
+Separately, the first render including tracing and kernel compilation is timed in a fresh
+subprocess per BSDF with ``DRJIT_CACHE_DIR`` set to a new empty directory (Dr.Jit's
+on-disk kernel cache, by default ~/.drjit, would otherwise return a kernel compiled in an
+earlier run): ``first_render_s`` (load excluded), its second render ``second_render_s``
+and ``compile_s`` = first - second.
+
+Also per model: Dr.Jit evaluations/s of the plugin's ``eval`` on 2^18 random pairs
+(``drjit_eval.evaluator``), the MLP's parameters and Linear FLOPs (2 * fan_in * fan_out
+summed over Gemm/MatMul weights: the issue's "FLOPs per eval"), and the lowered op list's
+instruction counts (``graph.lower``: every op of the total graph after constant folding,
+``fma`` = one instruction).  The machine state (/proc/loadavg before and after, date,
+cores) is stored with every model, since other processes may share the machine.
+The relative RMSE of f cos and the training steps come from the run folder's
+metrics.json and config when the model has them.  Results are merged into
+benchmarks/results/bsdf_bound.json by label (atomically).
+Nothing here asserts a speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip install -e .`
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+mi.set_variant("llvm_ad_rgb")
+
+import numpy as np  # noqa: E402
+import onnx  # noqa: E402
+from common import evals_per_second, write_json  # noqa: E402
+
+import neural_brdf  # noqa: E402
+import neural_brdf.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
+from neural_brdf import graph  # noqa: E402
+
+OUT = REPO / "benchmarks" / "results" / "bsdf_bound.json"
+NEURAL = "neural_brdf"
+EVAL_PAIRS = 1 << 18
+
+
+def scene(bsdf: dict, *, resolution: int = 256, spp: int = 64) -> dict:
+    """The BSDF-bound scene (a dict for ``mi.load_dict``)."""
+    T = mi.ScalarTransform4f
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": -1},
+        "sensor": {
+            # Mitsuba's orthographic camera sees [-1, 1]^2 of its local frame: the unit
+            # sphere touches the four edges of the frame.
+            "type": "orthographic",
+            "to_world": T().look_at(
+                origin=[0.0, 0.0, 5.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0]
+            ),
+            "sampler": {"type": "independent", "sample_count": spp},
+            "film": {
+                "type": "hdrfilm",
+                "width": resolution,
+                "height": resolution,
+                "rfilter": {"type": "box"},
+            },
+        },
+        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "sphere": {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 1.0, "bsdf": bsdf},
+    }
+
+
+def reference_bsdf(target: dict) -> tuple[str, dict]:
+    """(name, dict): roughconductor for a GGX Au conductor target, else analytic_brdf."""
+    p = target.get("params") or {}
+    if (
+        target.get("model") == "microfacet"
+        and p.get("distribution", "ggx") == "ggx"
+        and p.get("fresnel") == "conductor"
+        and p.get("material") == "Au"
+        and not target.get("data")
+    ):
+        return "roughconductor", {
+            "type": "roughconductor",
+            "distribution": "ggx",
+            "alpha": float(p.get("alpha", 0.3)),
+            "material": "Au",
+        }
+    if target.get("model") and not target.get("data"):
+        return "analytic_brdf", {
+            "type": "analytic_brdf",
+            "model": target["model"],
+            "params": json.dumps(p),
+        }
+    raise SystemExit(f"bsdf_bound: model target {target!r} has no analytic reference")
+
+
+def loadavg() -> list[float]:
+    with open("/proc/loadavg") as fh:
+        return [float(x) for x in fh.read().split()[:3]]
+
+
+def machine() -> dict:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "loadavg": loadavg(),
+        "cores": cores,
+        "drjit_threads": dr.thread_count(),
+        "platform": platform.platform(),
+    }
+
+
+def render_once(sc, spp: int) -> float:
+    t0 = time.perf_counter()
+    img = mi.render(sc, spp=spp, seed=0)
+    dr.eval(img)
+    dr.sync_thread()
+    return time.perf_counter() - t0
+
+
+def model_size(path: Path) -> dict:
+    """MLP parameters and Linear FLOPs per evaluation from the ONNX initializers, and the
+    lowered op list's instruction counts."""
+    proto = onnx.load(str(path))
+    init = {t.name: tuple(t.dims) for t in proto.graph.initializer}
+    params = flops = 0
+    for node in proto.graph.node:
+        if node.op_type in ("Gemm", "MatMul"):
+            for i in node.input[1:]:
+                d = init.get(i)
+                if d is None:
+                    continue
+                params += int(np.prod(d))
+                if len(d) == 2:
+                    flops += 2 * d[0] * d[1]
+    prog = graph.lower(proto)
+    counts = prog.count()
+    arith = {"add", "sub", "mul", "div", "fma", "neg", "abs", "min", "max"}
+    return {
+        "mlp_params": params,
+        "linear_flops_per_eval": flops,
+        "lowered_instructions": len(prog.instrs),
+        "lowered_arith_flops": sum(counts.get(k, 0) * (2 if k == "fma" else 1) for k in arith),
+        "lowered_op_counts": dict(sorted(counts.items())),
+        "table_entries": int(sum(t.size for t in prog.tables)),
+    }
+
+
+def first_render_child(bsdf_json: str, resolution: int, spp: int) -> None:
+    """In a fresh process (the parent gives it an empty DRJIT_CACHE_DIR): print JSON."""
+    sc = mi.load_dict(scene(json.loads(bsdf_json), resolution=resolution, spp=spp))
+    first = render_once(sc, spp)
+    second = render_once(sc, spp)
+    print(
+        json.dumps(
+            {"first_render_s": first, "second_render_s": second, "compile_s": first - second}
+        )
+    )
+
+
+def first_render(bsdf: dict, resolution: int, spp: int) -> dict:
+    with tempfile.TemporaryDirectory(prefix="drjit-cache-") as cache:
+        env = dict(
+            os.environ,
+            DRJIT_CACHE_DIR=cache,
+            PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+        )
+        out = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--child",
+                json.dumps(bsdf),
+                "--resolution",
+                str(resolution),
+                "--spp",
+                str(spp),
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+            check=False,
+        )
+    if out.returncode != 0:
+        raise SystemExit(f"bsdf_bound: first-render subprocess failed:\n{out.stderr[-2000:]}")
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    r["loadavg_after"] = loadavg()
+    return r
+
+
+def eval_rate(bsdf: dict, seed: int = 0) -> float:
+    from drjit_eval import evaluator
+
+    rng = np.random.default_rng(seed)
+
+    def hemi(n):
+        v = rng.normal(size=(n, 3))
+        v[:, 2] = np.abs(v[:, 2]) + 1e-3
+        return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+    return evals_per_second(evaluator(bsdf, hemi(EVAL_PAIRS), hemi(EVAL_PAIRS)), EVAL_PAIRS, 3)
+
+
+def bench_model(label: str, path: Path, *, resolution: int, spp: int, repeats: int) -> dict:
+    rt = neural_brdf.load(path)
+    cfg = rt.config or {}
+    ref_name, ref = reference_bsdf(cfg.get("target") or {})
+    bsdfs = {NEURAL: {"type": "neural_brdf", "filename": str(path)}, ref_name: ref}
+    before = machine()
+    print(f"{label}: {path} vs {ref_name}", flush=True)
+    first = {n: first_render(b, resolution, spp) for n, b in bsdfs.items()}
+    for n, r in first.items():
+        print(
+            f"  {n:15s} fresh-cache first render {r['first_render_s']:.2f} s "
+            f"(compile ~{r['compile_s']:.2f} s)",
+            flush=True,
+        )
+    scenes = {n: mi.load_dict(scene(b, resolution=resolution, spp=spp)) for n, b in bsdfs.items()}
+    names = list(scenes)
+    for n in names:
+        render_once(scenes[n], spp)  # trace + compile / cache hit
+    runs = {n: [] for n in names}
+    for r in range(repeats):
+        order = names[r % len(names) :] + names[: r % len(names)]
+        for n in order:
+            runs[n].append(render_once(scenes[n], spp))
+        print(
+            f"  round {r + 1}/{repeats}: " + "  ".join(f"{n} {runs[n][-1]:.2f} s" for n in names),
+            flush=True,
+        )
+    per_round = [a / b for a, b in zip(runs[NEURAL], runs[ref_name], strict=True)]
+    rates = {n: eval_rate(b) for n, b in bsdfs.items()}
+    m = cfg.get("model") or {}
+    metrics = path.parent / "metrics.json"  # a training run's folder has one
+    acc = (json.loads(metrics.read_text()).get("accuracy") or {}) if metrics.is_file() else {}
+    return {
+        "model": str(path),
+        "reference": ref_name,
+        "bsdfs": bsdfs,
+        "rel_rmse_f_cos": acc.get("rel_rmse"),
+        "train_steps": (cfg.get("train") or {}).get("steps"),
+        "architecture": {
+            "hidden": m.get("hidden"),
+            "activation": m.get("activation"),
+            "encoding": m.get("encoding"),
+            "grid": m.get("grid"),
+        },
+        "size": model_size(path),
+        "render_wall_s": runs,
+        "best_s": {n: min(v) for n, v in runs.items()},
+        "ratio": min(runs[NEURAL]) / min(runs[ref_name]),
+        "ratio_per_round": {"min": min(per_round), "max": max(per_round)},
+        "first_render_fresh_cache": first,
+        "drjit_evals_per_s": rates,
+        "machine_before": before,
+        "machine_after": machine(),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("models", nargs="*", help="LABEL=PATH or PATH (label: its folder name)")
+    ap.add_argument("--resolution", type=int, default=256)
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--repeats", type=int, default=4)
+    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child is not None:
+        first_render_child(args.child, args.resolution, args.spp)
+        return
+    if not args.models:
+        ap.error("give at least one model")
+    result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    result.update(
+        {
+            "benchmark": "bsdf_bound",
+            "variant": mi.variant(),
+            "mitsuba": mi.__version__,
+            "drjit": dr.__version__,
+            "scene": "unit sphere filling an orthographic frame, constant emitter, path "
+            "max_depth -1",
+            "resolution": args.resolution,
+            "spp": args.spp,
+            "repeats": args.repeats,
+            "statistic": "ratio = best wall time of neural_brdf over best of the reference, "
+            "interleaved rounds after one compiling render each; first renders "
+            "in fresh processes with an empty DRJIT_CACHE_DIR",
+            "target_ratio": 3.0,
+        }
+    )
+    models = result.setdefault("models", {})
+    for spec in args.models:
+        label, _, path = spec.rpartition("=")
+        path = Path(path)
+        label = label or path.parent.name
+        models[label] = bench_model(
+            label, path, resolution=args.resolution, spp=args.spp, repeats=args.repeats
+        )
+        write_json(args.out, result)
+        r = models[label]
+        print(
+            f"{label}: {r['ratio']:.2f}x {r['reference']} (best over best), "
+            f"{r['size']['mlp_params']} params, {r['size']['linear_flops_per_eval']} "
+            f"FLOP/eval, load {r['machine_after']['loadavg'][0]:.2f}",
+            flush=True,
+        )
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

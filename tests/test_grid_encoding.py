@@ -1,0 +1,205 @@
+"""The learned feature grid (``model.grid``): export, back-end parity, physics, config, training.
+
+A model with a grid is built in torch with random non-zero weights (speed and parity do
+not depend on training), exported by the project's exporter, and evaluated by torch,
+onnxruntime, the Dr.Jit interpreter and the generated C back end on the same pairs
+(random, grazing, equal, opposite, mirrored; half below the horizon).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from analytic import physics
+from neural_brdf import backends, config, train
+from neural_brdf.export import relative_difference, to_onnx_bytes
+from neural_brdf.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
+from neural_brdf.quadrature import albedo, from_numpy
+from test_cli import assert_one_line_error, cli
+from test_codegen import C_TOL, EVERY_OP_LOBE, TINY_RUN, CProgram, glsl_validate, onnx_ref, pairs
+
+GRID = 8
+CHANNELS = 3
+OPSET = 17
+ALBEDO_TOL = 1e-3  # the validator's bound: max albedo <= 1 + 1e-3
+
+
+def grid_raw(*, bright: float = 0.0, seed: int = 0) -> RawBRDF:
+    """1x16 ReLU over 8 features + an 8x8x3 grid; random non-zero weights.  ``bright``
+    adds a large positive grid value and head bias (an albedo far above 1)."""
+    torch.manual_seed(seed)
+    raw = RawBRDF(
+        "isotropic", [16], "relu", grid_size=GRID, grid_channels=CHANNELS, grid_init_std=0.5
+    )
+    with torch.no_grad():
+        torch.nn.init.normal_(raw.mlp.head.weight, std=0.3)
+        if bright:
+            raw.grid.table.add_(bright)
+            raw.mlp.head.bias.add_(bright)
+    return raw
+
+
+def total_model(raw: RawBRDF, table_size: int = 33, samples: int = 2048) -> TotalBRDF:
+    table, _, _ = albedo_table(
+        raw,
+        size=table_size,
+        anisotropic=False,
+        samples=samples,
+        seed=0,
+        sigmas=3.0,
+        margin=ALBEDO_TOL,
+    )
+    return TotalBRDF(NormalizedBRDF(raw, table)).eval()
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    model = total_model(grid_raw())
+    path = tmp_path_factory.mktemp("grid") / "model.onnx"
+    path.write_bytes(to_onnx_bytes(model, OPSET))
+    return model, path
+
+
+def torch_eval(model, wi, wo) -> np.ndarray:
+    with torch.no_grad():
+        return model(torch.from_numpy(wi), torch.from_numpy(wo)).numpy()
+
+
+def test_grid_is_in_the_graph_as_gather(exported):
+    _, path = exported
+    proto = onnx.load(str(path))
+    sizes = [int(np.prod(t.dims)) for t in proto.graph.initializer]
+    assert GRID * GRID * CHANNELS in sizes
+    assert sum(n.op_type == "Gather" for n in proto.graph.node) >= 4 + 2 * 2  # grid + tables
+
+
+def test_torch_onnxruntime_parity(exported):
+    model, path = exported
+    wi, wo = pairs()
+    ref = torch_eval(model, wi, wo)
+    assert np.count_nonzero(ref) > len(ref)  # not a trivially zero model
+    assert relative_difference(onnx_ref(path, wi, wo), ref) <= C_TOL
+
+
+@pytest.mark.mitsuba
+def test_drjit_matches_onnxruntime(exported):
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    from neural_brdf.backends.drjit import OnnxProgram
+
+    _, path = exported
+    wi, wo = pairs(seed=1)
+    cols = OnnxProgram(path)(
+        wi=[mi.Float(wi[:, k]) for k in range(3)], wo=[mi.Float(wo[:, k]) for k in range(3)]
+    )["f"]
+    got = np.stack([np.asarray(c) for c in cols], -1)
+    assert relative_difference(got, onnx_ref(path, wi, wo)) <= C_TOL
+
+
+def test_generated_c_matches_onnxruntime(exported, tmp_path):
+    _, path = exported
+    wi, wo = pairs(seed=2)
+    got = CProgram(path, tmp_path / "c", lobe=EVERY_OP_LOBE).eval(wi, wo)  # any lobe: f only
+    assert relative_difference(got, onnx_ref(path, wi, wo)) <= C_TOL
+
+
+def test_generated_glsl_compiles(exported, tmp_path):
+    """GLSL (WebGL2 and Vulkan) accepts the grid's look-up (values: the viewer's tests)."""
+    _, path = exported
+    glsl_validate(backends.generate(path, "glsl", lobe=EVERY_OP_LOBE), tmp_path)
+
+
+def test_reciprocity_is_bit_exact(exported):
+    model, path = exported
+    wi, wo = pairs(seed=3)
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    a, b = onnx_ref(path, wi, wo), onnx_ref(path, wo, wi)
+    assert np.count_nonzero(a[up]) == a[up].size
+    assert np.array_equal(a, b)
+    assert np.array_equal(torch_eval(model, wi, wo), torch_eval(model, wo, wi))
+
+
+def test_grid_changes_the_output():
+    """The grid is used: changing one node's features changes f near that node."""
+    raw = grid_raw()
+    wi, wo = (torch.from_numpy(x) for x in pairs(seed=4))
+    with torch.no_grad():
+        before = raw(wi, wo)
+        raw.grid.table.add_(1.0)
+        after = raw(wi, wo)
+    assert not torch.allclose(before, after)
+
+
+def test_furnace_bound_on_a_bright_grid():
+    raw = grid_raw(bright=3.0)
+    model = total_model(raw, samples=4096)
+    dirs = torch.from_numpy(physics.random_directions(64, 11)).double()
+    with torch.no_grad():
+        raw_rho, _ = albedo(from_numpy(lambda a, b: torch_eval_raw(raw, a, b)), dirs, 4096, seed=12)
+        rho, _ = albedo(
+            from_numpy(lambda a, b: torch_eval(model, a.astype(np.float32), b.astype(np.float32))),
+            dirs,
+            4096,
+            seed=12,
+        )
+    assert float(raw_rho.max()) > 2.0  # the raw grid model is far too bright
+    assert float(rho.max()) <= 1.0 + ALBEDO_TOL
+
+
+def torch_eval_raw(raw, wi, wo):
+    with torch.no_grad():
+        return raw(torch.from_numpy(wi).float(), torch.from_numpy(wo).float()).numpy()
+
+
+@pytest.mark.parametrize(
+    "value, key",
+    [
+        ("model.grid.size=1", "model.grid.size"),
+        ("model.grid.size=-3", "model.grid.size"),
+        ("model.grid.channels=0", "model.grid.channels"),
+        ("model.grid.sizes=4", "model.grid.sizes"),
+    ],
+)
+def test_bad_grid_config_is_exit_2_naming_the_key(capsys, tmp_path, value, key):
+    code, _, err = cli(
+        capsys, "train", "configs/gold.yaml", "--out", str(tmp_path / "r"), "--set", value
+    )
+    assert_one_line_error(code, err, key)
+    assert not (tmp_path / "r").exists()
+
+
+def test_grid_with_raw_encoding_is_a_config_error(capsys, tmp_path):
+    code, _, err = cli(
+        capsys,
+        "train",
+        "configs/gold.yaml",
+        "--out",
+        str(tmp_path / "r"),
+        "--set",
+        "model.grid.size=8",
+        "--set",
+        "model.encoding=raw",
+    )
+    assert_one_line_error(code, err, "model.grid")
+
+
+def test_training_reduces_the_error(tmp_path):
+    sets = [s for s in TINY_RUN if not s.startswith(("train.steps", "model.hidden"))]
+    sets += [
+        "model.grid.size=8",
+        "model.hidden=[16]",
+        "model.activation=relu",
+        "model.grid.lr_scale=3",
+    ]
+    errors = []
+    for steps in (0, 300):
+        cfg = config.load("configs/gold.yaml", sets + [f"train.steps={steps}"])
+        report = train.run(cfg, tmp_path / f"s{steps}")
+        errors.append(report["accuracy"]["rel_rmse"])
+        assert report["checks"]["reciprocity"]["value"] == 0.0
+        assert report["checks"]["max_albedo"]["passed"]
+    assert errors[1] < 0.5 * errors[0], errors
