@@ -123,6 +123,7 @@ class Train(_Section):
     peak_weight: float = Field(10.0, ge=0.0)  # extra loss weight (f cos)^2 / mean (f cos)^2
     peak_cap: float = Field(100.0, gt=0.0)  # cap on (f cos)^2 / mean (f cos)^2 in the weight
     threads: int = Field(2, ge=1)  # torch CPU threads (fixed for determinism)
+    device: Literal["cpu", "cuda", "auto"] = "cpu"  # auto: cuda when torch sees a GPU
     checkpoint_every: int = Field(500, ge=1)  # steps between checkpoints
     log_every: int = Field(25, ge=1)  # steps between CSV rows
     eval_every: int = Field(500, ge=0)  # steps between held-out errors (0: never)

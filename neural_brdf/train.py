@@ -195,6 +195,18 @@ def deferred_sigint():
 
 
 # ------------------------------------------------------------------ the run
+def resolve_device(name: str) -> torch.device:
+    """``train.device`` -> a torch device; "cuda" without a usable GPU is a config error."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise cfgmod.ConfigError(
+            f"train.device: cuda, but this torch ({torch.__version__}) sees no CUDA GPU "
+            "(use cpu or auto)"
+        )
+    return torch.device(name)
+
+
 def train(
     cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target: Any = None
 ) -> tuple[RawBRDF, dict[str, Any]]:
@@ -205,6 +217,7 @@ def train(
     """
     t = cfg.train
     torch.set_num_threads(t.threads)
+    device = resolve_device(t.device)
     if target is None:
         target = data.build_target(cfg.target)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -220,6 +233,9 @@ def train(
     pool = data.Pool(data.pair_source(target, cfg.data, gen), cfg.data)
     init = float(pool.f.median().clamp(1e-3, 10.0))
     raw = RawBRDF.from_config(cfg.model, init_value=init)
+    if ckpt is not None:
+        raw.load_state_dict(ckpt["model"])
+    raw.to(device)  # the pool, its generator and the checkpoints stay on the CPU
     grid = [p for n, p in raw.named_parameters() if n.startswith("grid.")]
     rest = [p for n, p in raw.named_parameters() if not n.startswith("grid.")]
     groups = [{"params": rest, "lr_scale": 1.0}]
@@ -227,12 +243,11 @@ def train(
         groups.append({"params": grid, "lr_scale": cfg.model.grid.lr_scale})
     opt = torch.optim.Adam(groups, lr=t.lr)
     eval_wi, eval_wo, eval_f = (
-        x.float() for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
+        x.float().to(device) for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
     )
     step, seconds = 0, 0.0
     if ckpt is not None:
-        raw.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
+        opt.load_state_dict(ckpt["optimizer"])  # moves Adam's moments to the weights' device
         pool.load_state_dict(ckpt["pool"])
         step, seconds = int(ckpt["step"]), float(ckpt["train_seconds"])
 
@@ -241,7 +256,7 @@ def train(
             "format_version": cfgmod.FORMAT_VERSION,
             "step": step,
             "config": cfg.model_dump(),
-            "model": raw.state_dict(),
+            "model": {k: v.cpu() for k, v in raw.state_dict().items()},
             "optimizer": opt.state_dict(),
             "pool": pool.state_dict(),
             "train_seconds": seconds,
@@ -285,7 +300,7 @@ def train(
                 lr = learning_rate(t, step)
                 for group in opt.param_groups:
                     group["lr"] = lr * group.get("lr_scale", 1.0)
-                wi, wo, f = pool.batch()
+                wi, wo, f = (x.to(device, non_blocking=True) for x in pool.batch())
                 pred = raw(wi, wo)
                 loss = loss_fn(t.loss, pred, f, wo[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)
                 last_loss = float(loss.detach())
@@ -330,8 +345,9 @@ def train(
     seconds = time.perf_counter() - start
     with torch.no_grad():
         err = rel_rmse(raw(eval_wi, eval_wo), eval_f, eval_wo[:, 2:3])
-    return raw.eval(), {
+    return raw.cpu().eval(), {
         "steps": step,
+        "device": str(device),
         "train_seconds": seconds,
         "final_loss": last_loss,
         "raw_val_rel_rmse": err,

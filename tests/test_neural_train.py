@@ -77,6 +77,34 @@ def test_resume_continues_exactly(tmp_path):
     assert steps == sorted(set(steps)) and steps[-1] == 12
 
 
+def test_device_auto_and_cpu_give_the_same_weights_and_record_the_device(tmp_path):
+    # auto is cuda where torch sees a GPU, else cpu: on a CPU machine it must be the cpu run
+    _, fig_cpu = train.train(tiny("train.device=cpu"), tmp_path / "cpu")
+    _, fig_auto = train.train(tiny("train.device=auto"), tmp_path / "auto")
+    expected = "cuda" if torch.cuda.is_available() else "cpu"
+    assert fig_cpu["device"] == "cpu" and fig_auto["device"].startswith(expected)
+    if expected == "cpu":
+        assert same(weights(tmp_path / "cpu"), weights(tmp_path / "auto"))
+    # checkpoints hold CPU tensors whatever the device, so any machine can resume them
+    assert all(v.device.type == "cpu" for v in weights(tmp_path / "auto").values())
+
+
+def test_device_cuda_trains_on_a_gpu_or_is_refused_by_name(tmp_path):
+    cfg = tiny("train.device=cuda")
+    if torch.cuda.is_available():
+        raw, fig = train.train(cfg, tmp_path / "gpu")
+        assert fig["device"].startswith("cuda") and next(raw.parameters()).device.type == "cpu"
+    else:
+        with pytest.raises(config.ConfigError, match=r"^train\.device: cuda"):
+            train.train(cfg, tmp_path / "gpu")
+        assert not (tmp_path / "gpu" / "ckpt.pt").exists()
+
+
+def test_device_must_be_cpu_cuda_or_auto():
+    with pytest.raises(config.ConfigError, match="train.device"):
+        tiny("train.device=tpu")
+
+
 def test_resume_refuses_a_different_model(tmp_path):
     train.train(tiny("train.steps=3"), tmp_path / "r")
     with pytest.raises(config.ConfigError, match="model"):
