@@ -139,15 +139,23 @@ def normalized_model(
         "nodes": int(a.shape[0]),
         "nodes_above_1": int((table.reshape(-1, 3) > 1).any(-1).sum()),
     }
-    return NormalizedBRDF(raw, table).eval(), info
+    model = NormalizedBRDF(raw, table).eval()
+    info["in_graph"] = not model.identity  # False: A+ <= 1 everywhere, the division is 1
+    return model, info
 
 
 def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     """The ``normalization`` metadata entry: the construction, or that there is none."""
     if not isinstance(model, NormalizedBRDF):
         return "none: f = raw network (normalization.enabled: false, an ablation)"
+    applied = (
+        "A+ <= 1 at every node, so the division is the identity and the graph omits it"
+        if model.identity
+        else "applied in the graph"
+    )
     return (
-        f"f = raw / max(1, A+(wi), A+(wo)) per channel; A+ = MIS quadrature albedo of "
+        f"f = raw / max(1, A+(wi), A+(wo)) per channel ({applied}); "
+        f"A+ = MIS quadrature albedo of "
         f"the raw network + {n.sigmas:g} standard errors, neighbour maximum, times "
         f"(1 + {n.margin:g}); table of {model.table.shape[0]} nodes per axis, "
         f"{n.samples} points per node"

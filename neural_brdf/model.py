@@ -253,13 +253,21 @@ def albedo_table(
 
 
 class NormalizedBRDF(nn.Module):
-    """raw / max(1, A+(wi), A+(wo)): reciprocal and energy conserving (see module doc)."""
+    """raw / max(1, A+(wi), A+(wo)): reciprocal and energy conserving (see module doc).
+
+    When no node of the table exceeds 1 the division is the identity: the look-up
+    interpolates nodes linearly (a convex combination), so A+ <= 1 for every direction and
+    max(1, A+(wi), A+(wo)) = 1.  ``identity`` is then True and :meth:`forward` returns the
+    raw network without the two look-ups, so the exported graph (and every renderer's
+    kernel) carries no table and no divide; the bound it would enforce holds already.
+    """
 
     def __init__(self, raw: RawBRDF, table: torch.Tensor):
         super().__init__()
         self.raw = raw
         self.anisotropic = table.dim() == 3
         self.register_buffer("table", table.detach().float().clone())  # (K, 3) | (K, K, 3)
+        self.identity = bool((self.table <= 1.0).all())
 
     def lookup(self, w: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (N, 3), linear interpolation
         k = self.table.shape[0]
@@ -286,6 +294,8 @@ class NormalizedBRDF(nn.Module):
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         f = self.raw(wi, wo)
+        if self.identity:  # A+ <= 1 everywhere: max(1, A+(wi), A+(wo)) == 1 (class doc)
+            return f
         denom = torch.maximum(self.lookup(wi), self.lookup(wo)).clamp_min(1.0)
         return f / denom
 

@@ -282,7 +282,12 @@ def _physics(run: Run, albedo_png: bytes) -> list:
             Text(
                 f"Albedo normalisation: the raw network's max albedo was "
                 f"{raw_max:.4f}; {n.get('nodes_above_1', '?')} of "
-                f"{n.get('nodes', '?')} table nodes needed scaling."
+                f"{n.get('nodes', '?')} table nodes needed scaling"
+                + (
+                    " (none: the division is the identity and the graph omits it)."
+                    if n.get("in_graph") is False
+                    else "."
+                )
             )
         )
     blocks.append(

@@ -200,3 +200,36 @@ def test_output_scale_multiplies_the_softplus_and_keeps_the_initial_value():
         for p_s, p_p in zip(scaled.mlp.body.parameters(), plain.mlp.body.parameters()):
             p_s.copy_(p_p)
         torch.testing.assert_close(scaled(wi, wo), 30.0 * plain(wi, wo))
+
+
+@pytest.mark.parametrize("enc", ["isotropic", "anisotropic"])
+def test_a_table_at_most_1_is_elided_exactly_and_one_above_1_is_kept(enc, tmp_path):
+    import onnx
+
+    from neural_brdf import export
+    from neural_brdf.model import TotalBRDF
+
+    dim = 2 if enc == "anisotropic" else 1
+    raw = _bad_raw(enc, scale=0.3, bias=-3.0)  # dim: softplus(-3) ~ 0.05/sr
+    k = 9
+    dark = torch.rand((k,) * dim + (3,), generator=torch.Generator().manual_seed(2))
+    dark[(0,) * dim] = 1.0  # a node exactly at the bound still needs no division
+    bright = dark.clone()
+    bright[(k // 2,) * dim + (1,)] = 1.25
+    elided, kept = NormalizedBRDF(raw, dark).eval(), NormalizedBRDF(raw, bright).eval()
+    assert elided.identity and not kept.identity
+    wi, wo = _pairs(4096, 7)
+    with torch.no_grad():
+        f_raw = raw(wi.float(), wo.float())
+        # the elided model is the raw network; the division it skips is by exactly 1
+        denom = torch.maximum(elided.lookup(wi.float()), elided.lookup(wo.float()))
+        assert torch.equal(elided(wi.float(), wo.float()), f_raw)
+        assert torch.equal(denom.clamp_min(1.0), torch.ones_like(denom))
+        assert not torch.equal(kept(wi.float(), wo.float()), f_raw)  # scaled where > 1
+    # the exported graph of the elided model is the raw network's: no table, no divide
+    ops = {}
+    for name, m in (("raw", raw), ("elided", elided), ("kept", kept)):
+        proto = onnx.load_from_string(export.to_onnx_bytes(TotalBRDF(m), 17))
+        ops[name] = [n.op_type for n in proto.graph.node]
+    assert ops["elided"] == ops["raw"]
+    assert ops["kept"].count("Gather") > ops["raw"].count("Gather")
