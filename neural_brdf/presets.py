@@ -63,9 +63,17 @@ def directory() -> Path:
     return anchor.parent
 
 
+SUBFOLDERS = ("compact",)  # preset families named "compact/gold", listed with the rest
+
+
 def names(*, folder: str = "") -> list[str]:
-    """The preset names: every ``*.yaml`` of the presets folder (or its ``folder``)."""
-    return sorted(p.stem for p in (directory() / folder).glob("*.yaml"))
+    """The preset names: every ``*.yaml`` of the presets folder (or its ``folder``), and
+    for the presets folder itself those of :data:`SUBFOLDERS` as ``compact/gold``."""
+    root = directory() / folder
+    found = [p.stem for p in root.glob("*.yaml")]
+    if not folder:
+        found += [f"{sub}/{p.stem}" for sub in SUBFOLDERS for p in (root / sub).glob("*.yaml")]
+    return sorted(found)
 
 
 def description(path: Path) -> str:
@@ -95,8 +103,9 @@ def listing(*, folder: str = "") -> list[tuple[str, str]]:
 
 
 def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
-    """A config file: an existing path wins; else a preset name (``gold`` or ``gold.yaml``),
-    looked up in the presets folder or, with ``folder="sweeps"``, among the sweeps.
+    """A config file: an existing path wins; else a preset name (``gold``, ``gold.yaml``,
+    ``compact/gold``), looked up in the presets folder or, with ``folder="sweeps"``, among
+    the sweeps.
 
     A bare name that is neither raises InputError naming it and listing the presets; a
     path with a folder in it is returned as it is (reading it reports a missing file).
@@ -105,10 +114,10 @@ def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
     if path.is_file():
         return path
     text = str(name_or_path)
-    if "/" in text or "\\" in text:
-        return path
     stem = text.removesuffix(".yaml").removesuffix(".yml")
     known = names(folder=folder)
+    if ("/" in text or "\\" in text) and stem not in known:
+        return path
     if stem and stem in known:
         return directory() / folder / f"{stem}.yaml"
     kind = "sweep" if folder else "config"

@@ -120,7 +120,11 @@ def test_one_version_everywhere(capsys):
 # ------------------------------------------------------------------ presets
 def test_presets_are_the_configs_folder():
     assert presets.directory().resolve() == (ROOT / "configs").resolve()
-    assert presets.names() == sorted(p.stem for p in (ROOT / "configs").glob("*.yaml"))
+    assert presets.names() == sorted(
+        [p.stem for p in (ROOT / "configs").glob("*.yaml")]
+        + [f"compact/{p.stem}" for p in (ROOT / "configs" / "compact").glob("*.yaml")]
+    )
+    assert "compact/gold" in presets.names()
     assert {"gold", "quickstart", "merl", "defaults"} <= set(presets.names())
     for name, text in presets.listing():
         assert text and "\n" not in text and len(text) <= presets.DESCRIPTION_CHARS, name
@@ -137,6 +141,9 @@ def test_a_path_wins_over_a_preset_and_unknown_names_list_presets(tmp_path, monk
     Path("gold").write_text("target: {model: lambertian}\n")
     assert presets.resolve("gold") == Path("gold")
     assert presets.resolve("sub/none.yaml") == Path("sub/none.yaml")  # read later: no file
+    # a family preset by name, from any folder
+    assert presets.resolve("compact/gold") == presets.directory() / "compact" / "gold.yaml"
+    assert presets.resolve("compact/gold.yaml").is_file()
     with pytest.raises(InputError, match=r"^velvet: neither .*gold, lambert"):
         presets.resolve("velvet")
 
@@ -290,3 +297,18 @@ def test_public_api_is_annotated():
         assert missing == [] and "return" in hints, (fn.__qualname__, missing)
     for package in ("neural_brdf", "analytic"):
         assert (ROOT / package / "py.typed").is_file()
+
+
+def test_presets_into_a_closed_pipe_exit_quietly():
+    # `neural-brdf presets | head -0`: the reader is gone before the first line is written
+    with subprocess.Popen(
+        [sys.executable, "-m", "neural_brdf.cli", "presets"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    ) as proc:
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        assert proc.wait(timeout=60) == 0, err
+    assert "Traceback" not in err and "BrokenPipe" not in err
