@@ -9,13 +9,14 @@ geometry), the ``path`` integrator with ``max_depth: -1`` (paths end when they l
 convex sphere, after one scattering; Russian roulette never triggers), 256 x 256 pixels
 at 64 spp by default.
 
-Per model, three BSDFs render it (the reference is chosen from the model's target):
+Per model, two BSDFs render it:
 
 * ``neural_brdf`` with the model;
-* the reference: Mitsuba's ``roughconductor`` (GGX, same alpha, material Au) when the
-  target is a GGX conductor with an Au material (the gold recipe; Mitsuba uses the
-  separable Smith G, the target the height-correlated one: same cost), otherwise the
-  ``analytic_brdf`` plugin running the target's exported graph (``reference`` says which);
+* the reference, always Mitsuba's built-in ``roughconductor`` (issue 12's yardstick):
+  with the target's distribution, alpha(s) and conductor when the target is a microfacet
+  conductor (``reference_matched``; Mitsuba uses the separable Smith G where the target
+  may use the height-correlated one: same cost), else gold's GGX alpha 0.3 Au for an
+  isotropic model and brushed_ggx's GGX 0.15 x 0.45 Al for an anisotropic one;
 * the headline ``ratio`` is the best wall time of the neural BSDF over the best of the
   reference, over ``--repeats`` interleaved rounds (rotating order, after one compiling
   render each, in one process that shares Dr.Jit's kernel cache).
@@ -26,7 +27,8 @@ on-disk kernel cache, by default ~/.drjit, would otherwise return a kernel compi
 earlier run): ``first_render_s`` (load excluded), its second render ``second_render_s``
 and ``compile_s`` = first - second.
 
-Also per model: Dr.Jit evaluations/s of the plugin's ``eval`` on 2^18 random pairs
+Also per model: onnxruntime evaluations/s of the file (one thread, batch 2^16), Dr.Jit
+evaluations/s of the plugin's ``eval`` on 2^18 random pairs
 (``drjit_eval.evaluator``), the MLP's parameters and Linear FLOPs (2 * fan_in * fan_out
 summed over Gemm/MatMul weights: the issue's "FLOPs per eval"), and the lowered op list's
 instruction counts (``graph.lower``: every op of the total graph after constant folding,
@@ -100,29 +102,42 @@ def scene(bsdf: dict, *, resolution: int = 256, spp: int = 64) -> dict:
     }
 
 
-def reference_bsdf(target: dict) -> tuple[str, dict]:
-    """(name, dict): roughconductor for a GGX Au conductor target, else analytic_brdf."""
+# The yardsticks of issue 12: Mitsuba's built-in roughconductor, matched to the target
+# where the target is a microfacet conductor, else gold's (GGX alpha 0.3, Au) for an
+# isotropic target and brushed_ggx's (GGX alpha 0.15 x 0.45, Al) for an anisotropic one.
+GOLD_REFERENCE = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3, "material": "Au"}
+ANISO_REFERENCE = {
+    "type": "roughconductor",
+    "distribution": "ggx",
+    "alpha_u": 0.15,
+    "alpha_v": 0.45,
+    "material": "Al",
+}
+MITSUBA_CONDUCTORS = {"Au", "Ag", "Al", "Cu"}  # named the same in Mitsuba's IOR list
+
+
+def reference_bsdf(target: dict, anisotropic: bool = False) -> tuple[dict, bool]:
+    """(Mitsuba's roughconductor dict, whether it is matched to the target)."""
     p = target.get("params") or {}
     if (
         target.get("model") == "microfacet"
-        and p.get("distribution", "ggx") == "ggx"
         and p.get("fresnel") == "conductor"
-        and p.get("material") == "Au"
+        and p.get("material") in MITSUBA_CONDUCTORS
+        and p.get("distribution", "ggx") in ("ggx", "beckmann")
         and not target.get("data")
     ):
-        return "roughconductor", {
+        ref = {
             "type": "roughconductor",
-            "distribution": "ggx",
-            "alpha": float(p.get("alpha", 0.3)),
-            "material": "Au",
+            "distribution": p.get("distribution", "ggx"),
+            "material": p["material"],
         }
-    if target.get("model") and not target.get("data"):
-        return "analytic_brdf", {
-            "type": "analytic_brdf",
-            "model": target["model"],
-            "params": json.dumps(p),
-        }
-    raise SystemExit(f"bsdf_bound: model target {target!r} has no analytic reference")
+        if "alpha_x" in p or "alpha_y" in p:
+            ref["alpha_u"] = float(p.get("alpha_x", p.get("alpha", 0.3)))
+            ref["alpha_v"] = float(p.get("alpha_y", p.get("alpha", 0.3)))
+        else:
+            ref["alpha"] = float(p.get("alpha", 0.3))
+        return ref, True
+    return dict(ANISO_REFERENCE if anisotropic else GOLD_REFERENCE), False
 
 
 def loadavg() -> list[float]:
@@ -233,10 +248,32 @@ def eval_rate(bsdf: dict, seed: int = 0) -> float:
     return evals_per_second(evaluator(bsdf, hemi(EVAL_PAIRS), hemi(EVAL_PAIRS)), EVAL_PAIRS, 3)
 
 
+def ort_rate(path: Path, batch: int = 1 << 16, repeats: int = 5, seed: int = 0) -> float:
+    """onnxruntime evaluations/s of the file (one intra-op thread, best of ``repeats``)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(seed)
+    wi, wo = (rng.normal(size=(batch, 3)).astype(np.float32) for _ in range(2))
+    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]), np.abs(wo[:, 2])
+    feed = {"wi": wi, "wo": wo}
+    sess.run(None, feed)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sess.run(None, feed)
+        best = min(best, time.perf_counter() - t0)
+    return batch / best
+
+
 def bench_model(label: str, path: Path, *, resolution: int, spp: int, repeats: int) -> dict:
     rt = neural_brdf.load(path)
     cfg = rt.config or {}
-    ref_name, ref = reference_bsdf(cfg.get("target") or {})
+    aniso = (cfg.get("model") or {}).get("encoding") == "anisotropic"
+    ref_name = "roughconductor"
+    ref, matched = reference_bsdf(cfg.get("target") or {}, aniso)
     bsdfs = {NEURAL: {"type": "neural_brdf", "filename": str(path)}, ref_name: ref}
     before = machine()
     print(f"{label}: {path} vs {ref_name}", flush=True)
@@ -262,12 +299,16 @@ def bench_model(label: str, path: Path, *, resolution: int, spp: int, repeats: i
         )
     per_round = [a / b for a, b in zip(runs[NEURAL], runs[ref_name], strict=True)]
     rates = {n: eval_rate(b) for n, b in bsdfs.items()}
+    ort_evals = ort_rate(path)
     m = cfg.get("model") or {}
-    metrics = path.parent / "metrics.json"  # a training run's folder has one
-    acc = (json.loads(metrics.read_text()).get("accuracy") or {}) if metrics.is_file() else {}
+    metrics_file = path.parent / "metrics.json"  # a training run's folder has one
+    metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
+    acc = metrics.get("accuracy") or {}
     return {
         "model": str(path),
         "reference": ref_name,
+        "reference_matched": matched,
+        "target": cfg.get("target"),
         "bsdfs": bsdfs,
         "rel_rmse_f_cos": acc.get("rel_rmse"),
         "train_steps": (cfg.get("train") or {}).get("steps"),
@@ -284,6 +325,10 @@ def bench_model(label: str, path: Path, *, resolution: int, spp: int, repeats: i
         "ratio_per_round": {"min": min(per_round), "max": max(per_round)},
         "first_render_fresh_cache": first,
         "drjit_evals_per_s": rates,
+        "onnxruntime_evals_per_s": ort_evals,
+        "albedo_table_in_graph": (metrics.get("export") or {})
+        .get("normalization", {})
+        .get("in_graph"),
         "machine_before": before,
         "machine_after": machine(),
     }

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -55,15 +53,7 @@ def matmul_flops_per_s(repeats: int) -> float:
 
 
 def write_json(path: Path, data) -> None:
-    """Write via a temporary file in the same folder and os.replace (atomic)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2)
-            fh.write("\n")
-        os.chmod(tmp, 0o644)  # mkstemp makes it 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write pretty JSON atomically (neural_brdf.fileio: temporary file, fsync, rename)."""
+    from neural_brdf.fileio import atomic_write
+
+    atomic_write(path, json.dumps(data, indent=2) + "\n", parents=True)
