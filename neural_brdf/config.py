@@ -59,6 +59,9 @@ class Grid(_Section):
     channels: int = Field(4, ge=1, le=64)  # learned features per node
     init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
     lr_scale: float = Field(1.0, gt=0.0)  # the grid's learning rate / train.lr
+    # theta: (sqrt(theta_h / (pi/2)), theta_d / (pi/2)); half_disc (anisotropic encoding):
+    # the half vector's polar map, sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h)
+    coords: Literal["theta", "half_disc"] = "theta"
 
     @model_validator(mode="after")
     def _size(self):
@@ -82,6 +85,8 @@ class Model(_Section):
             raise ValueError("hidden: needs at least one layer, each of width >= 1")
         if self.grid.size and self.encoding == "raw":
             raise ValueError("grid: needs the isotropic or anisotropic encoding, not raw")
+        if self.grid.size and self.grid.coords == "half_disc" and self.encoding != "anisotropic":
+            raise ValueError("grid.coords: half_disc needs the anisotropic encoding")
         return self
 
 

@@ -139,7 +139,10 @@ class RawBRDF(nn.Module):
     turns it off (diffuse models).
 
     ``grid_size`` > 0 appends ``grid_channels`` learned features (:class:`FeatureGrid`)
-    to the encoding's features.
+    to the encoding's features, looked up at (sqrt(theta_h / (pi/2)), theta_d / (pi/2))
+    or, with ``grid_coords="half_disc"`` (anisotropic encoding), at the half vector's
+    polar map sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h), where an anisotropic
+    distribution of normals (the D of GGX or Beckmann) lives.
     """
 
     def __init__(
@@ -154,6 +157,7 @@ class RawBRDF(nn.Module):
         grid_size: int = 0,
         grid_channels: int = 4,
         grid_init_std: float = 1e-2,
+        grid_coords: str = "theta",
     ):
         super().__init__()
         self.encoding = encoding
@@ -161,6 +165,13 @@ class RawBRDF(nn.Module):
         self.grazing_power = float(grazing_power)
         if grid_size and encoding == "raw":
             raise ValueError("grid: needs the isotropic or anisotropic encoding")
+        if grid_size and grid_coords == "half_disc" and encoding != "anisotropic":
+            raise ValueError("grid: half_disc coordinates need the anisotropic encoding")
+        # the encoding's features the grid is indexed by (encoding.features): 0, 1 are
+        # sqrt(theta_h / (pi/2)) and theta_d / (pi/2); 8, 9 are the half vector's polar map
+        # sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h), in the unit disc
+        self.grid_coords = grid_coords
+        self.grid_features = (8, 9) if grid_coords == "half_disc" else (0, 1)
         self.grid = (
             FeatureGrid(grid_size, grid_channels, init_std=grid_init_std) if grid_size else None
         )
@@ -185,12 +196,17 @@ class RawBRDF(nn.Module):
             grid_size=m.grid.size,
             grid_channels=m.grid.channels,
             grid_init_std=m.grid.init_std,
+            grid_coords=m.grid.coords,
         )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
         x = enc.features(wi, wo, self.encoding)
-        if self.grid is not None:  # features 0 and 1: u = sqrt(theta_h / (pi/2)), v
-            x = torch.cat([x, self.grid(x[..., 0], x[..., 1])], -1)
+        if self.grid is not None:
+            i, j = self.grid_features
+            u, v = x[..., i], x[..., j]
+            if self.grid_coords == "half_disc":  # the unit disc onto the grid's [0, 1]^2
+                u, v = 0.5 * (u + 1.0), 0.5 * (v + 1.0)
+            x = torch.cat([x, self.grid(u, v)], -1)
         f = self.mlp(x)
         if self.grazing_power != 0.0:
             mean_cos = (0.5 * (wi[..., 2:3] + wo[..., 2:3])).clamp_min(MIN_MEAN_COS)  # symmetric

@@ -15,6 +15,7 @@ import torch
 
 from analytic import physics
 from neural_brdf import backends, config, train
+from neural_brdf import encoding as enc
 from neural_brdf.export import relative_difference, to_onnx_bytes
 from neural_brdf.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from neural_brdf.quadrature import albedo, from_numpy
@@ -27,12 +28,19 @@ OPSET = 17
 ALBEDO_TOL = 1e-3  # the validator's bound: max albedo <= 1 + 1e-3
 
 
-def grid_raw(*, bright: float = 0.0, seed: int = 0) -> RawBRDF:
-    """1x16 ReLU over 8 features + an 8x8x3 grid; random non-zero weights.  ``bright``
-    adds a large positive grid value and head bias (an albedo far above 1)."""
+def grid_raw(*, bright: float = 0.0, seed: int = 0, coords: str = "theta") -> RawBRDF:
+    """1x16 ReLU over the features + an 8x8x3 grid; random non-zero weights.  ``bright``
+    adds a large positive grid value and head bias (an albedo far above 1).  ``coords``
+    "half_disc" makes it an anisotropic model with the grid over the half vector."""
     torch.manual_seed(seed)
     raw = RawBRDF(
-        "isotropic", [16], "relu", grid_size=GRID, grid_channels=CHANNELS, grid_init_std=0.5
+        "anisotropic" if coords == "half_disc" else "isotropic",
+        [16],
+        "relu",
+        grid_size=GRID,
+        grid_channels=CHANNELS,
+        grid_init_std=0.5,
+        grid_coords=coords,
     )
     with torch.no_grad():
         torch.nn.init.normal_(raw.mlp.head.weight, std=0.3)
@@ -45,8 +53,8 @@ def grid_raw(*, bright: float = 0.0, seed: int = 0) -> RawBRDF:
 def total_model(raw: RawBRDF, table_size: int = 33, samples: int = 2048) -> TotalBRDF:
     table, _, _ = albedo_table(
         raw,
-        size=table_size,
-        anisotropic=False,
+        size=9 if raw.anisotropic else table_size,
+        anisotropic=raw.anisotropic,
         samples=samples,
         seed=0,
         sigmas=3.0,
@@ -55,9 +63,9 @@ def total_model(raw: RawBRDF, table_size: int = 33, samples: int = 2048) -> Tota
     return TotalBRDF(NormalizedBRDF(raw, table)).eval()
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    model = total_model(grid_raw())
+@pytest.fixture(scope="module", params=["theta", "half_disc"])
+def exported(tmp_path_factory, request):
+    model = total_model(grid_raw(coords=request.param))
     path = tmp_path_factory.mktemp("grid") / "model.onnx"
     path.write_bytes(to_onnx_bytes(model, OPSET))
     return model, path
@@ -69,11 +77,12 @@ def torch_eval(model, wi, wo) -> np.ndarray:
 
 
 def test_grid_is_in_the_graph_as_gather(exported):
-    _, path = exported
+    model, path = exported
     proto = onnx.load(str(path))
     sizes = [int(np.prod(t.dims)) for t in proto.graph.initializer]
     assert GRID * GRID * CHANNELS in sizes
-    assert sum(n.op_type == "Gather" for n in proto.graph.node) >= 4 + 2 * 2  # grid + tables
+    tables = 0 if model.model.identity else 2 * (4 if model.anisotropic else 2)
+    assert sum(n.op_type == "Gather" for n in proto.graph.node) >= 4 + tables  # grid + A+
 
 
 def test_torch_onnxruntime_parity(exported):
@@ -185,6 +194,41 @@ def test_grid_with_raw_encoding_is_a_config_error(capsys, tmp_path):
         "model.encoding=raw",
     )
     assert_one_line_error(code, err, "model.grid")
+
+
+def test_half_disc_grid_needs_the_anisotropic_encoding(capsys, tmp_path):
+    code, _, err = cli(
+        capsys,
+        "train",
+        "configs/gold.yaml",
+        "--out",
+        str(tmp_path / "r"),
+        "--set",
+        "model.grid.size=8",
+        "--set",
+        "model.grid.coords=half_disc",
+    )
+    assert_one_line_error(code, err, "grid.coords")
+    assert not (tmp_path / "r").exists()
+
+
+def test_half_disc_grid_sees_the_half_vectors_azimuth():
+    """Rotating both directions about the normal moves the half vector on the grid: the
+    half_disc look-up changes, while theta_h and theta_d (a theta grid's axes) do not."""
+    raw = grid_raw(coords="half_disc")
+    wi, wo = (torch.from_numpy(x) for x in pairs(seed=5))
+    c, s_ = np.cos(np.pi / 2), np.sin(np.pi / 2)
+    rot = torch.tensor([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
+    grid = raw.grid
+    x = raw.grid_features
+    with torch.no_grad():
+        fa = enc.features(wi, wo, "anisotropic")
+        fb = enc.features(wi @ rot.T, wo @ rot.T, "anisotropic")
+        ga = grid(0.5 * (fa[..., x[0]] + 1), 0.5 * (fa[..., x[1]] + 1))
+        gb = grid(0.5 * (fb[..., x[0]] + 1), 0.5 * (fb[..., x[1]] + 1))
+    assert not torch.allclose(ga, gb)
+    # and theta_h, theta_d (features 0, 1) are the same: only the azimuth moved
+    assert torch.allclose(fa[..., :2], fb[..., :2], atol=1e-5)
 
 
 def test_training_reduces_the_error(tmp_path):
