@@ -181,7 +181,14 @@ def test_bad_grid_config_is_exit_2_naming_the_key(capsys, tmp_path, value, key):
     assert not (tmp_path / "r").exists()
 
 
-def test_grid_with_raw_encoding_is_a_config_error(capsys, tmp_path):
+@pytest.mark.parametrize(
+    "other, key",
+    [
+        ("model.encoding=raw", "model.grid"),  # the raw ablation encoding has no grid axes
+        ("model.grid.coords=half_disc", "grid.coords"),  # the half vector: anisotropic only
+    ],
+)
+def test_grid_on_an_encoding_without_its_axes_is_a_config_error(capsys, tmp_path, other, key):
     code, _, err = cli(
         capsys,
         "train",
@@ -191,24 +198,9 @@ def test_grid_with_raw_encoding_is_a_config_error(capsys, tmp_path):
         "--set",
         "model.grid.size=8",
         "--set",
-        "model.encoding=raw",
+        other,
     )
-    assert_one_line_error(code, err, "model.grid")
-
-
-def test_half_disc_grid_needs_the_anisotropic_encoding(capsys, tmp_path):
-    code, _, err = cli(
-        capsys,
-        "train",
-        "configs/gold.yaml",
-        "--out",
-        str(tmp_path / "r"),
-        "--set",
-        "model.grid.size=8",
-        "--set",
-        "model.grid.coords=half_disc",
-    )
-    assert_one_line_error(code, err, "grid.coords")
+    assert_one_line_error(code, err, key)
     assert not (tmp_path / "r").exists()
 
 
