@@ -76,6 +76,9 @@ class Model(_Section):
     hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
     activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"  # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
+    # the cosine of grazing_power: mean (cos_i + cos_o) / 2, or max(cos_i, cos_o), the
+    # denominator of Ashikhmin-Shirley's specular term (model.py)
+    grazing_cos: Literal["mean", "max"] = "mean"
     output_scale: float = Field(1.0, gt=0.0)  # f = output_scale * softplus(y) (see model.py)
     grid: Grid = Field(default_factory=Grid)  # learned feature grid (off by default)
 

@@ -233,3 +233,21 @@ def test_a_table_at_most_1_is_elided_exactly_and_one_above_1_is_kept(enc, tmp_pa
         ops[name] = [n.op_type for n in proto.graph.node]
     assert ops["elided"] == ops["raw"]
     assert ops["kept"].count("Gather") > ops["raw"].count("Gather")
+
+
+@pytest.mark.parametrize("form", ["mean", "max"])
+def test_grazing_cos_divides_by_its_cosine_and_stays_bit_exactly_reciprocal(form):
+    wi, wo = _pairs(4000, 13)
+    torch.manual_seed(5)
+    flat = RawBRDF("isotropic", [16], "relu", grazing_power=0.0, init_value=0.5)
+    torch.manual_seed(5)
+    grazed = RawBRDF("isotropic", [16], "relu", grazing_power=2.0, grazing_cos=form, init_value=0.5)
+    ci, co = wi[:, 2:3], wo[:, 2:3]
+    c = torch.maximum(ci, co) if form == "max" else 0.5 * (ci + co)
+    up = ((ci > 0.05) & (co > 0.05))[:, 0]
+    with torch.no_grad():
+        a, b = grazed(wi, wo), flat(wi, wo)
+        torch.testing.assert_close(a[up] * c[up] ** 2, b[up], rtol=1e-5, atol=1e-6)
+        assert torch.equal(a, grazed(wo, wi))
+    with pytest.raises(ValueError, match="grazing_cos"):
+        RawBRDF("isotropic", [16], "relu", grazing_cos="min")
