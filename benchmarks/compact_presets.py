@@ -5,6 +5,7 @@ held-out targets, trained, validated and timed in the BSDF-bound scene.
     python benchmarks/compact_presets.py gold plastic          # some presets
     python benchmarks/compact_presets.py --reuse               # keep finished runs, re-time
     python benchmarks/compact_presets.py --root /tmp/cb --no-default
+    python benchmarks/compact_presets.py gold --held-out-only
 
 Per preset NAME (each ``configs/compact/NAME.yaml``):
 
@@ -104,8 +105,8 @@ def validation(m: dict) -> dict:
     }
 
 
-def jobs(names: list[str], default: bool, held_out: bool, default_steps: int):
-    for name in names:
+def jobs(names: list[str], default: bool, held_out: bool, default_steps: int, only_held_out=False):
+    for name in [] if only_held_out else names:
         yield f"compact/{name}", name, "compact", COMPACT / f"{name}.yaml", []
         if default:
             yield (
@@ -128,6 +129,9 @@ def main() -> None:
     ap.add_argument("--reuse", action="store_true", help="keep runs that have metrics.json")
     ap.add_argument("--no-default", action="store_true", help="skip the default networks")
     ap.add_argument("--no-held-out", action="store_true", help="skip the held-out targets")
+    ap.add_argument(
+        "--held-out-only", action="store_true", help="only the held-out targets of the presets"
+    )
     ap.add_argument("--default-steps", type=int, default=300)
     ap.add_argument("--resolution", type=int, default=256)
     ap.add_argument("--spp", type=int, default=64)
@@ -156,7 +160,7 @@ def main() -> None:
     )
     models = result.setdefault("models", {})
     for label, preset, kind, cfg_path, overrides in jobs(
-        names, not args.no_default, not args.no_held_out, args.default_steps
+        names, not args.no_default, not args.no_held_out, args.default_steps, args.held_out_only
     ):
         print(f"{label}:", flush=True)
         run_dir = args.root / label
