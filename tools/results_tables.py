@@ -6,10 +6,11 @@
 
 Reads ``benchmarks/results/*.json`` (suite, neural_presets, neural_throughput,
 analytic_throughput, merl_fit, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
-bsdf_bound) and ``docs/results/sweep_timing.json``.  Each section names the JSON file and
-the script that wrote it, and the date, machine and load average that file records (or says that it
-records none).  ``render()`` is pure (JSON in, markdown out), so tests/test_docs.py can
-compare it with the committed page.  Only the standard library is needed.
+bsdf_bound, compact_presets, sampling_noise) and ``docs/results/sweep_timing.json``.
+Each section names the JSON file and the script that wrote it, and the date, machine and
+load average that file records (or says that it records none).  ``render()`` is pure
+(JSON in, markdown out), so tests/test_docs.py can compare it with the committed page.
+Only the standard library is needed.
 """
 
 from __future__ import annotations
@@ -617,6 +618,29 @@ def rgl_render_section(d: dict) -> list[str]:
     return out
 
 
+def _arch(a: dict) -> str:
+    grid = a.get("grid") or {}
+    arch = f"{' x '.join(map(str, a['hidden']))} {a['activation']}"
+    if grid.get("size"):
+        where = " (half vector)" if grid.get("coords") == "half_disc" else ""
+        arch = f"grid {grid['size']}²x{grid['channels']}{where} + " + arch
+    return arch
+
+
+def _pareto(points: dict[str, tuple[float, float | None]]) -> set[str]:
+    """Names not dominated: no other is at least as accurate (lower error) and faster."""
+    front = set()
+    for name, (err, rate) in points.items():
+        if rate is None:
+            continue
+        if not any(
+            o != name and r is not None and e <= err and r >= rate and (e < err or r > rate)
+            for o, (e, r) in points.items()
+        ):
+            front.add(name)
+    return front
+
+
 def bsdf_bound_section(d: dict) -> list[str]:
     models = d["models"]
     first = next(iter(models.values()))["machine_before"]
@@ -629,22 +653,26 @@ def bsdf_bound_section(d: dict) -> list[str]:
         f"(Mitsuba {d['mitsuba']}, Dr.Jit {d['drjit']}). Ratio: best of {d['repeats']} "
         f"interleaved rounds, neural over reference; the issue's target is "
         f"{d['target_ratio']:g}x. First render: fresh process, empty Dr.Jit kernel cache. "
-        "The load average is recorded per model (1-minute value, before -> after).",
+        "The load average is recorded per model (1-minute value, before -> after). "
+        "Pareto: on the accuracy vs evaluations/s front of these models in Dr.Jit (D) "
+        "and onnxruntime, one thread (O): no other model is both more accurate and faster.",
         "",
     ]
+    errs = {n: m["rel_rmse_f_cos"] for n, m in models.items()}
+    front_d = _pareto(
+        {n: (errs[n], m["drjit_evals_per_s"]["neural_brdf"]) for n, m in models.items()}
+    )
+    front_o = _pareto({n: (errs[n], m.get("onnxruntime_evals_per_s")) for n, m in models.items()})
     rows = []
     for name, m in models.items():
-        a, z, fr = m["architecture"], m["size"], m["first_render_fresh_cache"]
-        grid = a.get("grid") or {}
-        arch = f"{' x '.join(map(str, a['hidden']))} {a['activation']}"
-        if grid.get("size"):
-            arch = f"grid {grid['size']}²x{grid['channels']} + " + arch
+        z, fr = m["size"], m["first_render_fresh_cache"]
         per = m["ratio_per_round"]
         ref = m["reference"]
+        ort = m.get("onnxruntime_evals_per_s")
         rows.append(
             [
                 name,
-                arch,
+                _arch(m["architecture"]),
                 str(m["train_steps"]),
                 _pct(m["rel_rmse_f_cos"]),
                 f"{z['mlp_params']:,}",
@@ -652,7 +680,8 @@ def bsdf_bound_section(d: dict) -> list[str]:
                 f"**{m['ratio']:.2f}x** ({per['min']:.2f}-{per['max']:.2f})",
                 f"{fr['neural_brdf']['first_render_s']:.1f} s / {fr[ref]['first_render_s']:.1f} s",
                 f"{_rate(m['drjit_evals_per_s']['neural_brdf'])}/s",
-                f"`{ref}`",
+                f"{_rate(ort)}/s" if ort else "-",
+                " ".join(t for t, f in (("D", front_d), ("O", front_o)) if name in f) or "-",
                 f"{_load(m['machine_before']['loadavg'])} -> "
                 f"{_load(m['machine_after']['loadavg'])}",
             ]
@@ -668,8 +697,156 @@ def bsdf_bound_section(d: dict) -> list[str]:
             "render time ratio (per round)",
             "first render neural / ref.",
             "Dr.Jit eval",
-            "reference",
+            "onnxruntime (1 thread)",
+            "Pareto",
             "load",
+        ],
+        rows,
+    )
+    return out
+
+
+def compact_presets_section(d: dict) -> list[str]:
+    models = d["models"]
+    first = next(iter(models.values()))["render"]["machine_before"]
+    loads = [m["render"]["machine_before"]["loadavg"][0] for m in models.values()]
+    loads += [m["render"]["machine_after"]["loadavg"][0] for m in models.values()]
+    tgt = d["targets"]
+    out = [
+        "## Compact presets: accuracy and render cost per preset",
+        "",
+        _source("benchmarks/results/compact_presets.json", "python benchmarks/compact_presets.py"),
+        _recorded(
+            first["date"],
+            f"{first['platform']}, {first['cores']} cores",
+            f"{min(loads):.1f} to {max(loads):.1f} (1-minute, before and after each model)",
+        ),
+        f"Scene: {d['scene']}; {d['resolution']}², {d['spp']} spp. Render ratio: "
+        f"{d['statistic']} (best of {d['repeats']}; per-round range in brackets), "
+        "against `roughconductor` matched to the target where the target is a microfacet "
+        "conductor (*m*), else GGX α 0.3 Au (isotropic) or GGX α 0.15 x 0.45 Al "
+        f"(anisotropic). Bars: rel. RMSE of f cos ≤ {100 * tgt['rel_rmse_f_cos']:g} % and "
+        f"ratio ≤ {tgt['render_ratio']:g}x. Params: MLP weights + learned grid values. "
+        "FLOP: 2 x fan-in x fan-out summed over the dense layers. First render: fresh "
+        "process, empty kernel cache, neural / reference. Table: whether the albedo "
+        "normalisation is in the graph (no: every node of A+ is at most 1, so it is "
+        "the identity and omitted).",
+        "",
+    ]
+    rows = []
+    for label, m in models.items():
+        if m["kind"] == "default":
+            continue
+        r, v = m["render"], m["validation"]
+        z, fr = r["size"], r["first_render_fresh_cache"]
+        grid = r["architecture"].get("grid") or {}
+        grid_values = grid.get("size", 0) ** 2 * grid.get("channels", 0) if grid else 0
+        per = r["ratio_per_round"]
+        ok = (
+            v["passed"]
+            and v["rel_rmse_f_cos"] <= tgt["rel_rmse_f_cos"]
+            and r["ratio"] <= tgt["render_ratio"]
+        )
+        rows.append(
+            [
+                label,
+                _arch(r["architecture"]),
+                _pct(v["rel_rmse_f_cos"]),
+                "pass" if v["passed"] else "FAIL",
+                f"{z['mlp_params']:,} + {grid_values:,}",
+                f"{z['linear_flops_per_eval']:,}",
+                f"{_rate(r['drjit_evals_per_s']['neural_brdf'])}/s",
+                f"{_rate(r['onnxruntime_evals_per_s'])}/s",
+                f"**{r['ratio']:.2f}x** ({per['min']:.2f}-{per['max']:.2f})"
+                + (" *m*" if r.get("reference_matched") else ""),
+                f"{fr['neural_brdf']['first_render_s']:.1f} / "
+                f"{fr['roughconductor']['first_render_s']:.1f} s",
+                {True: "yes", False: "no"}.get(v.get("albedo_table_in_graph"), "-"),
+                "yes" if ok else "**no**",
+            ]
+        )
+    out += _table(
+        [
+            "model",
+            "architecture",
+            "rel. RMSE f cos",
+            "physics",
+            "params",
+            "FLOP/eval",
+            "Dr.Jit eval",
+            "onnxruntime (1 thread)",
+            "render ratio",
+            "first render",
+            "table",
+            "meets both bars",
+        ],
+        rows,
+    )
+    defaults = [(k, m) for k, m in models.items() if m["kind"] == "default"]
+    if defaults:
+        out += [
+            f"The default network of each preset (3 x 64 SiLU), trained {d['default_steps']} "
+            "steps only: its render cost does not depend on how well it is trained, and "
+            "its full-length accuracy is in the neural presets table above.",
+            "",
+        ]
+        rows = []
+        for label, m in defaults:
+            r = m["render"]
+            fr = r["first_render_fresh_cache"]
+            rows.append(
+                [
+                    label,
+                    f"**{r['ratio']:.2f}x**",
+                    f"{fr['neural_brdf']['first_render_s']:.1f} / "
+                    f"{fr['roughconductor']['first_render_s']:.1f} s",
+                    f"{_rate(r['drjit_evals_per_s']['neural_brdf'])}/s",
+                    f"{_rate(r['onnxruntime_evals_per_s'])}/s",
+                ]
+            )
+        out += _table(
+            ["model", "render ratio", "first render", "Dr.Jit eval", "onnxruntime (1 thread)"],
+            rows,
+        )
+    return out
+
+
+def sampling_noise_section(d: dict) -> list[str]:
+    out = [
+        "## Sampling noise: the stored lobe against the target's own sampler",
+        "",
+        _source("benchmarks/results/sampling_noise.json", "python benchmarks/sampling_noise.py"),
+        "Recorded in the file: no timing, so no machine or load.",
+        f"Estimator: {d['estimator']}; incident θ = "
+        f"{', '.join(f'{t:g}' for t in d['theta_deg'])}°. Noise ratio: the model's lobe over "
+        "the analytic target's native sampler at equal samples (the ratio of the mean "
+        "squared errors of a one-bounce render under a white constant environment). "
+        f"Above {d['worse_than']:g}x the issue asks for a better proxy; where the native "
+        "sampler is exact (variance 0) no ratio is defined.",
+        "",
+    ]
+    rows = []
+    for label, m in d["models"].items():
+        r = m["noise_ratio"]
+        ratio = "native exact" if r is None else f"**{r:.2f}x**"
+        if r is not None and r > d["worse_than"]:
+            ratio += " (worse)"
+        rows.append(
+            [
+                label,
+                f"{m['lobe']['alpha']:.3g} / {m['lobe']['weight']:.1f}",
+                f"{m['rel_var_lobe']:.3g}",
+                f"{m['rel_var_native']:.3g}",
+                ratio,
+            ]
+        )
+    out += _table(
+        [
+            "model",
+            "lobe alpha / GGX share",
+            "relative variance, lobe",
+            "relative variance, native",
+            "noise ratio",
         ],
         rows,
     )
@@ -688,6 +865,8 @@ SECTIONS = (
     (RESULTS / "codegen_c.json", codegen_c_section),
     (RESULTS / "rgl_render.json", rgl_render_section),
     (RESULTS / "bsdf_bound.json", bsdf_bound_section),
+    (RESULTS / "compact_presets.json", compact_presets_section),
+    (RESULTS / "sampling_noise.json", sampling_noise_section),
     (SWEEP_TIMING, sweep_timing_section),
 )
 
