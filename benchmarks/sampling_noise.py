@@ -53,20 +53,24 @@ EXACT = 1e-8  # a relative variance below this: the sampler is exact for this ta
 WORSE = 1.5  # issue 12: improve the proxy where the ratio exceeds this
 
 
-def lobe_sample(wi: torch.Tensor, u: torch.Tensor, alpha: float, weight: float):
-    """The stored lobe's sampler and density (float64): ``neural_brdf.lobe``'s mixture."""
-    dist = Distribution("ggx", alpha, alpha)
+def lobe_sample(wi: torch.Tensor, u: torch.Tensor, lobe: dict):
+    """The stored lobe's sampler and density (float64): ``neural_brdf.lobe``'s mixture
+    (a retro lobe is the mirror lobe turned by pi about the normal)."""
+    lobe = lobes.complete(lobe)
+    weight = lobe["weight"]
+    dist = Distribution("ggx", lobe["alpha_x"], lobe["alpha_y"])
+    turn = torch.tensor([-1.0, -1.0, 1.0], dtype=wi.dtype) if lobe["retro"] else 1.0
     pick_ggx = u[:, 0] < weight
     u_cos = torch.stack(
         [torch.where(pick_ggx, u[:, 0], (u[:, 0] - weight) / (1 - weight)), u[:, 1]], -1
     )
     u_ggx = torch.stack([torch.where(pick_ggx, u[:, 0] / max(weight, 1e-30), u[:, 0]), u[:, 1]], -1)
     wo_cos = frame.square_to_cosine_hemisphere(u_cos.clamp(0.0, 1.0 - 1e-12))
-    wo_ggx = frame.reflect(wi, dist.sample_visible(wi, u_ggx.clamp(0.0, 1.0 - 1e-12)))
+    wo_ggx = frame.reflect(wi, dist.sample_visible(wi, u_ggx.clamp(0.0, 1.0 - 1e-12))) * turn
     wo = torch.where(pick_ggx[:, None], wo_ggx, wo_cos)
-    h = frame.normalize(wi + wo)
+    h = frame.normalize(wi + wo * turn)
     p_cos = torch.where(wo[:, 2] > 0, frame.cosine_hemisphere_pdf(wo), 0.0)
-    p_ggx = dist.pdf_visible(wi, h) / (4.0 * frame.dot(wo, h).clamp_min(1e-12))
+    p_ggx = dist.pdf_visible(wi, h) / (4.0 * frame.dot(wo * turn, h).clamp_min(1e-12))
     return wo, (1 - weight) * p_cos + weight * p_ggx
 
 
@@ -96,7 +100,7 @@ def measure(path: Path, samples: int, seed: int) -> dict:
         wi1 = incident(theta, 0.9 * k)
         wi = wi1.expand(samples, 3)
         u = torch.from_numpy(rng.random((samples, 2)))
-        wo, pdf = lobe_sample(wi, u, lobe["alpha"], lobe["weight"])
+        wo, pdf = lobe_sample(wi, u, lobe)
         f = rt.eval(wi.numpy().astype(np.float32), wo.numpy().astype(np.float32))
         m_n, v_n = weight_stats(np.asarray(f), wo.numpy(), pdf.numpy())
         u = torch.from_numpy(rng.random((samples, 2)))
@@ -119,7 +123,7 @@ def measure(path: Path, samples: int, seed: int) -> dict:
     return {
         "model": str(path),
         "target": target_cfg,
-        "lobe": {k: lobe[k] for k in ("alpha", "weight")},
+        "lobe": {k: lobes.complete(lobe)[k] for k in ("alpha_x", "alpha_y", "retro", "weight")},
         "samples": samples,
         "directions": rows,
         "rel_var_lobe": v_lobe / mean_sq,
@@ -156,7 +160,8 @@ def main() -> None:
         ratio = "exact native sampler" if r["noise_ratio"] is None else f"{r['noise_ratio']:.2f}x"
         print(
             f"{label}: noise {ratio} (relative variance {r['rel_var_lobe']:.3g} vs "
-            f"{r['rel_var_native']:.3g}), lobe alpha {r['lobe']['alpha']:.3g} "
+            f"{r['rel_var_native']:.3g}), lobe alpha ({r['lobe']['alpha_x']:.3g}, "
+            f"{r['lobe']['alpha_y']:.3g}){' retro' if r['lobe']['retro'] else ''} "
             f"w {r['lobe']['weight']:.1f}",
             flush=True,
         )

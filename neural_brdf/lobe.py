@@ -4,27 +4,37 @@ A renderer cannot invert a network, so it importance-samples a mixture that is c
 sample and whose density is known exactly:
 
     pdf(wo) = (1 - w) cos(theta_o) / pi  [wo_z > 0]  +  w D_wi(m) / (4 |wo . m|),
-    m = normalize(wi + wo),
+    m = normalize(wi + R wo),   R = identity (a mirror lobe) or R (x, y, z) = (-x, -y, z)
+    (a retro lobe),
 
-a cosine-weighted hemisphere plus a GGX visible-normal lobe of roughness ``alpha``
-reflected about the sampled normal m (D_wi is the GGX distribution of visible normals,
-Heitz 2018).  The second term is Mitsuba's ``MicrofacetDistribution(GGX, alpha,
-sample_visible=True)``, so the plugin in :mod:`neural_brdf.mitsuba` samples it with
-Mitsuba's own code.
+a cosine-weighted hemisphere plus a GGX visible-normal lobe of roughness
+``(alpha_x, alpha_y)`` (anisotropic when they differ; x is the tangent) reflected about
+the sampled normal m (D_wi is the GGX distribution of visible normals, Heitz 2018).  A
+retro lobe is the mirror lobe turned by pi about the normal, so it is centred on wi
+itself: R is an isometry, so its density is the mirror lobe's at R wo.  The GGX term is
+Mitsuba's ``MicrofacetDistribution(GGX, alpha_x, alpha_y, sample_visible=True)``, so the
+plugin in :mod:`neural_brdf.mitsuba` samples it with Mitsuba's own code.
 
-:func:`fit` picks ``(alpha, w)`` on a grid, minimising the relative second moment of
-the sample weight f cos / pdf (1 + the relative variance of a one-sample albedo
-estimate), averaged over incident directions.  Every grid point is scored on one pooled
-set of samples, so the network is evaluated once per sample, not once per candidate;
-the fit takes about half a second.  :mod:`neural_brdf.export` stores the result in the
-metadata key ``sampling_lobe``:
+:func:`fit` minimises the relative second moment of the sample weight f cos / pdf
+(1 + the relative variance of a one-sample albedo estimate), averaged over incident
+directions.  Every candidate is scored on one pooled set of samples (a defensive mixture
+of the cosine lobe and isotropic mirror and retro lobes of every alpha of the grid), so
+the network is evaluated once per sample, not once per candidate:
 
-    {"kind": "cosine+ggx_vndf", "alpha": 0.26, "weight": 0.9,
-     "second_moment": 1.31, "second_moment_cosine": 3.9}
+1. isotropic mirror and retro lobes over the alpha grid, every share w;
+2. if turning the best lobe anisotropic (alpha_x != alpha_y) lowers the score by more
+   than ``ANISO_GAIN``, a coordinate search over (alpha_x, alpha_y) on the same grid.
 
-``weight`` is the GGX share w; the two second moments (the fitted lobe's and cosine
-sampling's alone) say how much the lobe helps.  This module needs numpy, torch and
-onnxruntime only: no renderer.
+It takes about a second.  :mod:`neural_brdf.export` stores the result in the metadata
+key ``sampling_lobe``:
+
+    {"kind": "cosine+ggx_vndf", "alpha": 0.26, "alpha_x": 0.26, "alpha_y": 0.26,
+     "retro": false, "weight": 0.9, "second_moment": 1.31, "second_moment_cosine": 3.9}
+
+``weight`` is the GGX share w; ``alpha`` is sqrt(alpha_x alpha_y) (files written before
+the anisotropic lobe hold ``alpha`` only, read as alpha_x = alpha_y = alpha, no retro);
+the two second moments (the fitted lobe's and cosine sampling's alone) say how much the
+lobe helps.  This module needs numpy, torch and onnxruntime only: no renderer.
 """
 
 from __future__ import annotations
@@ -57,30 +67,61 @@ MAX_WEIGHT = 0.9
 ALPHAS = np.geomspace(MIN_ALPHA, 1.0, 25)
 WEIGHTS = np.arange(10) / 10.0  # 0, 0.1, ..., MAX_WEIGHT
 THETA_DEG = (5.0, 20.0, 35.0, 50.0, 65.0, 80.0)
-SAMPLES = 1024  # per candidate lobe (and the cosine lobe) per direction
+SAMPLES = 512  # per proposal of the pool (cosine, mirror and retro per alpha) per direction
+# An anisotropic lobe is kept only if it lowers the second moment by this share: an
+# isotropic model keeps alpha_x == alpha_y whatever the sampling noise.
+ANISO_GAIN = 0.03
+ANISO_ROUNDS = 3  # coordinate-search rounds (alpha_x, then alpha_y)
 
 
-def fit(fn, *, seed: int = 0) -> dict:
+def fit(fn, *, seed: int = 0, anisotropic: bool = True, retro: bool = True) -> dict:
     """Fit the lobe to ``fn(wi, wo) -> f`` (numpy float32 (N, 3) in, (N, 3) out, 1/sr).
 
-    Returns the metadata dict (see the module docstring), with JSON-ready floats."""
+    ``anisotropic`` / ``retro`` False restrict the search to alpha_x == alpha_y / mirror
+    lobes.  Returns the metadata dict (see the module docstring), with JSON-ready floats."""
+    allow_retro = retro
     rng = np.random.default_rng(seed)
-    dists = [Distribution("ggx", float(a), float(a)) for a in ALPHAS]
-    score = np.zeros((len(ALPHAS), len(WEIGHTS)))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # these small ops ran 5x slower on 2 threads than on 1
     try:
-        for k, theta in enumerate(THETA_DEG):
-            score += _second_moments(fn, dists, _incident(theta, 0.9 * k), rng) / len(THETA_DEG)
+        pools = [_Pool(fn, _incident(t, 0.9 * k), rng) for k, t in enumerate(THETA_DEG)]
+        scores: dict[tuple, np.ndarray] = {}
+
+        def score(ia: int, ib: int, retro: bool) -> np.ndarray:
+            key = (ia, ib, retro)
+            if key not in scores:
+                scores[key] = sum(p.second_moments(ia, ib, retro) for p in pools)
+                scores[key] = scores[key] / len(pools)
+            return scores[key]
+
+        def best(keys) -> tuple[float, tuple, int]:
+            return min((float(score(*k).min()), k, int(np.argmin(score(*k)))) for k in keys)
+
+        n = len(ALPHAS)
+        shapes = (False, True) if allow_retro else (False,)
+        m2, (ia, ib, retro), j = best([(i, i, r) for r in shapes for i in range(n)])
+        cosine = float(score(0, 0, False)[0])  # w = 0: the cosine lobe alone
+        if j > 0 and anisotropic:  # a GGX lobe is used: try it anisotropic
+            step = [(ia + d, ib - d, retro) for d in (-2, 2) if 0 <= ia + d < n and 0 <= ib - d < n]
+            if step and best(step)[0] < (1.0 - ANISO_GAIN) * m2:
+                for _ in range(ANISO_ROUNDS):
+                    last = (ia, ib)
+                    m2, (ia, ib, retro), j = best([(i, ib, retro) for i in range(n)])
+                    m2, (ia, ib, retro), j = best([(ia, i, retro) for i in range(n)])
+                    if (ia, ib) == last:
+                        break
     finally:
         torch.set_num_threads(threads)
-    i, j = np.unravel_index(np.argmin(score), score.shape)
+    ax, ay = float(ALPHAS[ia]), float(ALPHAS[ib])
     return {
         "kind": KIND,
-        "alpha": float(ALPHAS[i]),
+        "alpha": math.sqrt(ax * ay) if ia != ib else ax,
+        "alpha_x": ax,
+        "alpha_y": ay,
+        "retro": bool(retro),
         "weight": float(WEIGHTS[j]),
-        "second_moment": float(score[i, j]),
-        "second_moment_cosine": float(score[0, 0]),
+        "second_moment": m2,
+        "second_moment_cosine": cosine,
     }
 
 
@@ -91,40 +132,80 @@ def _incident(theta_deg: float, phi: float) -> torch.Tensor:
     )
 
 
-def _second_moments(fn, dists, wi1: torch.Tensor, rng) -> np.ndarray:
-    """E_p[(f cos / p)^2] / A^2 for every (alpha, w) of the grid at one incident
-    direction, from samples pooled over every candidate lobe and the cosine lobe
-    (defensive mixture q); A = the albedo (RGB mean)."""
-    n = SAMPLES
-    u = torch.from_numpy(rng.random((len(dists) + 1, n, 2)))
-    wi = wi1.expand(n, 3)
-    wos = [frame.square_to_cosine_hemisphere(u[0])]
-    wos += [frame.reflect(wi, d.sample_visible(wi, uu)) for d, uu in zip(dists, u[1:])]
-    wo = torch.cat(wos, 0)  # (L n, 3)
-    wi = wi1.expand(len(wo), 3)
-    with torch.no_grad():
-        p_cos = torch.where(wo[:, 2] > 0, frame.cosine_hemisphere_pdf(wo), 0.0)
-        h = frame.normalize(wi + wo)
-        jac = 1.0 / (4.0 * frame.dot(wo, h).clamp_min(1e-12))
-        p_ggx = torch.stack([d.pdf_visible(wi, h) * jac for d in dists], 0)  # (A, L n)
-    # The pooled samples' density over the whole sphere: a visible normal may reflect
-    # wi below the horizon; such samples count, with f cos = 0.
-    q = ((p_cos + p_ggx.sum(0)) / (len(dists) + 1)).numpy()
-    f = np.asarray(fn(wi.numpy().astype(np.float32), wo.numpy().astype(np.float32)))
-    fc = f.astype(np.float64).mean(-1) * np.clip(wo[:, 2].numpy(), 0.0, None)
-    live = (fc > 0) & (q > 0)
-    albedo = np.sum(fc[live] / q[live]) / len(wo)
-    if not albedo > 0:  # black at this angle: no preference
-        return np.zeros((len(dists), len(WEIGHTS)))
-    # (f cos)^2 / q per sample, then / p for every candidate; float32 suffices to rank
-    c = (fc[live] ** 2 / q[live]).astype(np.float32)
-    p_cos = p_cos.numpy()[live].astype(np.float32)
-    p_ggx = p_ggx.numpy()[:, live].astype(np.float32)  # (A, M)
-    m2 = np.empty((len(dists), len(WEIGHTS)))
-    with np.errstate(divide="ignore"):
-        for j, w in enumerate(WEIGHTS.astype(np.float32)):
-            m2[:, j] = np.sum(c / ((1 - w) * p_cos + w * p_ggx), axis=-1, dtype=np.float64)
-    return m2 / (len(wo) * albedo * albedo)
+def _turn(w):
+    """R: a half turn about the normal, (x, y, z) -> (-x, -y, z)."""
+    return (
+        w * np.array([-1.0, -1.0, 1.0])
+        if isinstance(w, np.ndarray)
+        else w * torch.tensor([-1.0, -1.0, 1.0], dtype=w.dtype)
+    )
+
+
+def _ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
+    """Density of wo = reflect(wi, m), m a GGX(ax, ay) visible normal seen from wi
+    (Heitz 2018, eq. 1; GGX D and Smith G1 as in analytic.microfacet).  wi, wo: (N, 3);
+    ax, ay: floats or (C, 1) arrays, giving (N,) or (C, N)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    t = hx * hx / (ax * ax) + hy * hy / (ay * ay) + hz * hz
+    d = np.where(hz > 0, 1.0 / (math.pi * ax * ay * t * t), 0.0)
+    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
+    g1 = 2.0 * wz / (wz + np.sqrt(ax * ax * wx * wx + ay * ay * wy * wy + wz * wz))
+    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
+    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
+    return g1 * cos_ih * d / (wz * 4.0 * cos_oh)
+
+
+class _Pool:
+    """Samples at one incident direction, pooled over the cosine lobe and the isotropic
+    mirror and retro GGX lobes of every alpha of the grid (the defensive mixture q), with
+    what every candidate lobe's second moment needs: (f cos)^2 / q and p_cos."""
+
+    def __init__(self, fn, wi1: torch.Tensor, rng):
+        n, k = SAMPLES, len(ALPHAS)
+        u = torch.from_numpy(rng.random((2 * k + 1, n, 2)))
+        wi = wi1.expand(n, 3)
+        wos = [frame.square_to_cosine_hemisphere(u[0])]
+        for r, uu in enumerate(u[1:]):
+            d = Distribution("ggx", float(ALPHAS[r % k]), float(ALPHAS[r % k]))
+            wo = frame.reflect(wi, d.sample_visible(wi, uu))
+            wos.append(_turn(wo) if r >= k else wo)
+        wo = torch.cat(wos, 0).numpy()  # (P n, 3)
+        wi = np.broadcast_to(wi1.numpy(), wo.shape)
+        p_cos = np.where(wo[:, 2] > 0, np.clip(wo[:, 2], 0.0, None) / math.pi, 0.0)
+        a = ALPHAS[:, None]
+        p_iso = {False: _ggx_pdf(wi, wo, a, a), True: _ggx_pdf(wi, _turn(wo), a, a)}  # (A, N)
+        # The pooled samples' density over the whole sphere: a visible normal may reflect
+        # wi below the horizon; such samples count, with f cos = 0.
+        q = (p_cos + p_iso[False].sum(0) + p_iso[True].sum(0)) / (2 * k + 1)
+        f = np.asarray(fn(wi.astype(np.float32), wo.astype(np.float32)))
+        fc = f.astype(np.float64).mean(-1) * np.clip(wo[:, 2], 0.0, None)
+        live = (fc > 0) & (q > 0)
+        albedo = np.sum(fc[live] / q[live]) / len(wo)
+        self.black = not albedo > 0  # black at this angle: no preference
+        self.wi, self.wo = wi[live], wo[live]
+        self.p_iso = {r: p[:, live].astype(np.float32) for r, p in p_iso.items()}
+        # (f cos)^2 / q per sample, then / p for every candidate; float32 suffices to rank
+        self.c = (fc[live] ** 2 / q[live]).astype(np.float32)
+        self.p_cos = p_cos[live].astype(np.float32)
+        self.norm = len(wo) * albedo * albedo
+
+    def second_moments(self, ia: int, ib: int, retro: bool) -> np.ndarray:
+        """E_p[(f cos / p)^2] / A^2 for the lobe (ALPHAS[ia], ALPHAS[ib], retro) and
+        every share w of WEIGHTS (A = the albedo, RGB mean)."""
+        if self.black:
+            return np.zeros(len(WEIGHTS))
+        if ia == ib:
+            p = self.p_iso[retro][ia]
+        else:
+            wo = _turn(self.wo) if retro else self.wo
+            p = _ggx_pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib]).astype(np.float32)
+        m2 = np.empty(len(WEIGHTS))
+        with np.errstate(divide="ignore"):
+            for j, w in enumerate(WEIGHTS.astype(np.float32)):
+                m2[j] = np.sum(self.c / ((1 - w) * self.p_cos + w * p), dtype=np.float64)
+        return m2 / self.norm
 
 
 def fit_onnx(model, *, seed: int = 0) -> dict:
@@ -148,16 +229,36 @@ def parse(text: str) -> dict:
     try:
         lobe = json.loads(text)
         kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
-    except (ValueError, KeyError, TypeError):
+        ax, ay = float(lobe.get("alpha_x", alpha)), float(lobe.get("alpha_y", alpha))
+        retro = lobe.get("retro", False)
+    except (ValueError, KeyError, TypeError, AttributeError):
         raise InputError(
             f'metadata {KEY!r}: expected JSON {{"kind": "{KIND}", '
             f'"alpha": a, "weight": w}}, got {text!r}'
         ) from None
     if kind != KIND:
         raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
-    if not (alpha > 0 and 0.0 <= weight <= 1.0):
-        raise InputError(f"metadata {KEY!r}: alpha must be > 0 and weight in [0, 1], got {text!r}")
-    return {**lobe, "alpha": max(alpha, MIN_ALPHA), "weight": weight}
+    if not (alpha > 0 and ax > 0 and ay > 0 and 0.0 <= weight <= 1.0):
+        raise InputError(
+            f"metadata {KEY!r}: alpha, alpha_x and alpha_y must be > 0 and weight in [0, 1], "
+            f"got {text!r}"
+        )
+    if not isinstance(retro, bool):
+        raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
+    return {
+        **lobe,
+        "alpha": max(alpha, MIN_ALPHA),
+        "alpha_x": max(ax, MIN_ALPHA),
+        "alpha_y": max(ay, MIN_ALPHA),
+        "retro": retro,
+        "weight": weight,
+    }
+
+
+def complete(lobe: dict) -> dict:
+    """A lobe dict, possibly partial ({"alpha": a, "weight": w}), checked and with every
+    key: kind, alpha, alpha_x, alpha_y, retro, weight."""
+    return parse(to_json({"kind": KIND, **lobe}))
 
 
 def from_metadata(meta: dict) -> dict | None:

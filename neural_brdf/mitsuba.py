@@ -29,10 +29,11 @@ as fast as the neural plugin and never calls back into torch while rendering.
 
 Sampling (both plugins).  The mixture of :mod:`neural_brdf.lobe`: cosine-weighted
 hemisphere sampling (share 1 - w) and GGX visible-normal sampling of a reflection lobe
-of roughness ``alpha`` (share w); ``pdf`` is the mixture density of ``sample``.  The
-neural plugin reads ``(alpha, w)`` from the ONNX metadata key ``sampling_lobe``, which
-the exporter writes; for files exported before it did, it fits them when the model
-loads (about half a second), as the analytic plugin always does.  The sample weight is
+of roughness ``(alpha_x, alpha_y)`` (share w), turned by pi about the normal for a
+retro lobe; ``pdf`` is the mixture density of ``sample``.  The neural plugin reads the
+lobe from the ONNX metadata key ``sampling_lobe``, which the exporter writes; for files
+exported before it did, it fits them when the model loads (about a second), as the
+analytic plugin always does.  The sample weight is
 computed by the very same traced functions as ``eval`` and ``pdf`` (value / pdf), so it
 equals eval / pdf exactly.
 
@@ -89,6 +90,11 @@ def _black(wi, wo):
     return mi.Color3f(0.0)
 
 
+def _turn(w):
+    """A half turn about the normal, (x, y, z) -> (-x, -y, z): the retro lobe."""
+    return mi.Vector3f(-w.x, -w.y, w.z)
+
+
 class _GraphBSDF(mi.BSDF):
     """A BSDF evaluated by an ONNX graph (f, no cosine) with the mixture sampler."""
 
@@ -104,10 +110,13 @@ class _GraphBSDF(mi.BSDF):
                 f"got {program.inputs} -> {program.outputs}"
             )
         self.program = program
-        self.lobe = dict(lobe)
+        self.lobe = lobes.complete(lobe)
         self.label = label
         self.lobe_weight = float(lobe["weight"])
-        self.distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, float(lobe["alpha"]), True)
+        self.lobe_retro = self.lobe["retro"]
+        self.distr = mi.MicrofacetDistribution(
+            mi.MicrofacetType.GGX, self.lobe["alpha_x"], self.lobe["alpha_y"], True
+        )
         flags = (
             mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
         )
@@ -133,8 +142,9 @@ class _GraphBSDF(mi.BSDF):
         valid = active & (cos_i > 0.0) & (cos_o > 0.0)
         p = (1.0 - self.lobe_weight) * mi.warp.square_to_cosine_hemisphere_pdf(wo)
         if self.lobe_weight > 0.0:  # a Python float: decided once, not per lane
-            m = dr.normalize(wi + wo)
-            dot_om = dr.dot(wo, m)
+            v = _turn(wo) if self.lobe_retro else wo
+            m = dr.normalize(wi + v)
+            dot_om = dr.dot(v, m)
             p_m = self.distr.pdf(wi, m)
             p_ggx = dr.select(dot_om > 0.0, p_m / (4.0 * dot_om), 0.0)
             p = p + self.lobe_weight * p_ggx
@@ -170,7 +180,8 @@ class _GraphBSDF(mi.BSDF):
         if self.lobe_weight > 0.0:
             m, _ = self.distr.sample(wi, sample2)
             glossy = sample1 < self.lobe_weight
-            wo = dr.select(glossy, mi.reflect(wi, m), wo)
+            v = mi.reflect(wi, m)
+            wo = dr.select(glossy, _turn(v) if self.lobe_retro else v, wo)
         active = active & (mi.Frame3f.cos_theta(wi) > 0.0)
         pdf = self._pdf(si, wo, active)
         value = self._f_cos(si, wo, active)
@@ -194,7 +205,8 @@ class _GraphBSDF(mi.BSDF):
     def to_string(self):
         return (
             f"{type(self).__name__}[{self.label}, sampling lobe GGX alpha="
-            f"{self.lobe['alpha']:.4g} weight={self.lobe_weight:.3g} "
+            f"({self.lobe['alpha_x']:.4g}, {self.lobe['alpha_y']:.4g}) "
+            f"{'retro ' if self.lobe_retro else ''}weight={self.lobe_weight:.3g} "
             f"({self.lobe_source})]"
         )
 

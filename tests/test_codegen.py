@@ -297,16 +297,26 @@ def test_c_is_total(models, c_programs, enc):
     check_total(c_programs[enc].eval, models[enc], C_TOL)
 
 
-def mixture_pdf(wi, wo, alpha, weight):
-    """The lobe's density over the sphere, from analytic's GGX (float64)."""
+def mixture_pdf(wi, wo, lobe):
+    """The lobe's density over the sphere, from analytic's GGX (float64); a retro lobe is
+    the mirror lobe turned by pi about the normal, so its density at wo is the mirror
+    lobe's at the turned wo."""
     from analytic import frame
     from analytic.microfacet import Distribution
 
+    ax = lobe.get("alpha_x", lobe["alpha"])
+    ay = lobe.get("alpha_y", lobe["alpha"])
+    weight = lobe["weight"]
     wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
-    h = frame.normalize(wi + wo)
-    ggx = Distribution("ggx", alpha, alpha).pdf_visible(wi, h) / (4.0 * frame.dot(wo, h))
+    v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if lobe.get("retro") else wo
+    h = frame.normalize(wi + v)
+    ggx = Distribution("ggx", ax, ay).pdf_visible(wi, h) / (4.0 * frame.dot(v, h))
     p = (1.0 - weight) * frame.cosine_hemisphere_pdf(wo) + weight * ggx
     return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), p, 0.0).numpy()
+
+
+# an anisotropic retro lobe unlike any fitted one: the generated code follows the dict
+ANISO_RETRO = {"alpha": 0.2, "alpha_x": 0.1, "alpha_y": 0.4, "weight": 0.6, "retro": True}
 
 
 def stored_lobe(model):
@@ -315,7 +325,7 @@ def stored_lobe(model):
     return lobe.from_metadata({p.key: p.value for p in onnx.load(str(model)).metadata_props})
 
 
-@pytest.mark.parametrize("override", [None, {"alpha": 0.08, "weight": 0.5}])
+@pytest.mark.parametrize("override", [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO])
 def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     path = models["isotropic"]
     c = (
@@ -325,15 +335,17 @@ def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     )
     lobe = override or stored_lobe(path)
     rng = np.random.default_rng(4)
-    wi = unit(rng, 4000)
+    wi = unit(rng, 6000)
     wi[:, 2] = np.abs(wi[:, 2])
+    # wo near the mirror and the retro directions (where the GGX lobe matters) and anywhere
     mirror = wi * [-1.0, -1.0, 1.0] + rng.normal(0, 0.1, wi.shape)
-    wo = np.concatenate([mirror[:2000], unit(rng, 2000)])
+    retro = wi + rng.normal(0, 0.1, wi.shape)
+    wo = np.concatenate([mirror[:2000], retro[2000:4000], unit(rng, 2000)])
     wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     wi, wo = wi.astype(np.float32), wo.astype(np.float32)
     got = c.pdf(wi, wo)
-    ref = mixture_pdf(wi, wo, lobe["alpha"], lobe["weight"])
-    assert (ref > 0).sum() > 2000
+    ref = mixture_pdf(wi, wo, lobe)
+    assert (ref > 0).sum() > 3000
     np.testing.assert_allclose(got, ref, rtol=PDF_RTOL, atol=1e-6)
 
 
@@ -352,12 +364,15 @@ def expected_bin_probabilities(c: CProgram, wi1: np.ndarray) -> np.ndarray:
     return p.reshape(nz, CHI2_SUB, nphi, CHI2_SUB).sum((1, 3)) * cell
 
 
-@pytest.mark.parametrize("theta_deg", [20.0, 70.0])
-def test_c_sample_follows_pdf(models, c_programs, theta_deg):
+@pytest.mark.parametrize(
+    "theta_deg, override", [(20.0, None), (70.0, None), (20.0, ANISO_RETRO), (70.0, ANISO_RETRO)]
+)
+def test_c_sample_follows_pdf(models, c_programs, theta_deg, override, tmp_path):
     from scipy import stats
 
-    c = c_programs["anisotropic"]
-    lobe = stored_lobe(models["anisotropic"])
+    path = models["anisotropic"]
+    c = c_programs["anisotropic"] if override is None else CProgram(path, tmp_path, lobe=override)
+    lobe = override or stored_lobe(path)
     assert lobe["weight"] > 0.0  # both branches are drawn
     t = math.radians(theta_deg)
     wi1 = np.array([math.sin(t) * math.cos(0.6), math.sin(t) * math.sin(0.6), math.cos(t)])

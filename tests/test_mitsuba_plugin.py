@@ -285,34 +285,46 @@ def test_a_file_without_the_lobe_is_fitted_at_load(mi, tiny_model, legacy_model)
     assert bsdf.lobe == lobe.from_metadata(neural_brdf.load(tiny_model).metadata)
 
 
-def mixture_pdf(wi, wo, alpha, weight):
-    """The lobe's density over the sphere, from analytic's GGX (not Mitsuba's)."""
+def mixture_pdf(wi, wo, stored):
+    """The lobe's density over the sphere, from analytic's GGX (not Mitsuba's); a retro
+    lobe's density at wo is the mirror lobe's at wo turned by pi about the normal."""
     from analytic import frame
     from analytic.microfacet import Distribution
 
+    ax, ay = stored.get("alpha_x", stored["alpha"]), stored.get("alpha_y", stored["alpha"])
+    weight = stored["weight"]
     wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
-    h = frame.normalize(wi + wo)
-    ggx = Distribution("ggx", alpha, alpha).pdf_visible(wi, h) / (4.0 * frame.dot(wo, h))
+    v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if stored.get("retro") else wo
+    h = frame.normalize(wi + v)
+    ggx = Distribution("ggx", ax, ay).pdf_visible(wi, h) / (4.0 * frame.dot(v, h))
     p = (1.0 - weight) * frame.cosine_hemisphere_pdf(wo) + weight * ggx
     return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), p, 0.0).numpy()
 
 
-@pytest.mark.parametrize("alpha, weight", [(0.08, 0.5), (0.6, 0.2)])
-def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, alpha, weight):
+# an anisotropic retro lobe (x is the tangent): unlike any fitted one
+ANISO_RETRO = {"alpha": 0.2, "alpha_x": 0.1, "alpha_y": 0.4, "weight": 0.6, "retro": True}
+
+
+@pytest.mark.parametrize(
+    "stored", [{"alpha": 0.08, "weight": 0.5}, {"alpha": 0.6, "weight": 0.2}, ANISO_RETRO]
+)
+def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, stored):
     """A lobe unlike the fitted one is written into the file: the plugin's pdf must be
     that mixture (so the metadata, not a fit, drives sampling)."""
-    text = lobe.to_json({"kind": lobe.KIND, "alpha": alpha, "weight": weight})
+    text = lobe.to_json({"kind": lobe.KIND, **stored})
     path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, text)
     bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(path)})
-    assert (bsdf.lobe["alpha"], bsdf.lobe["weight"]) == (alpha, weight)
-    wi, _ = pairs(4, 4000)
-    # wo near the mirror direction (where the GGX lobe matters) and anywhere
-    mirror = wi * [-1.0, -1.0, 1.0] + np.random.default_rng(5).normal(0, 0.1, wi.shape)
-    wo = np.concatenate([mirror[:2000], pairs(6, 4000)[1][:2000]]).astype(np.float32)
+    assert all(bsdf.lobe[k] == v for k, v in stored.items())
+    wi, _ = pairs(4, 6000)
+    # wo near the mirror and retro directions (where the GGX lobe matters) and anywhere
+    noise = np.random.default_rng(5).normal(0, 0.1, wi.shape)
+    mirror, retro = wi * [-1.0, -1.0, 1.0] + noise, wi + noise
+    wo = np.concatenate([mirror[:2000], retro[2000:4000], pairs(6, 6000)[1][:2000]])
+    wo = wo.astype(np.float32)
     wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     got = to_np(bsdf.pdf(mi.BSDFContext(), interaction(mi, wi), vec3(mi, wo)))
-    ref = mixture_pdf(wi, wo, alpha, weight)
-    assert (ref > 0).sum() > 2000
+    ref = mixture_pdf(wi, wo, stored)
+    assert (ref > 0).sum() > 3000
     np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-6)
 
 
@@ -324,11 +336,17 @@ def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp
     assert "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("theta", CHI2_THETA_DEG)
-def test_chi2(mi, tiny_model, theta, tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    "theta, stored", [(t, None) for t in CHI2_THETA_DEG] + [(45.0, ANISO_RETRO)]
+)
+def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
 
-    props = {"type": "neural_brdf", "filename": str(tiny_model)}
+    path = tiny_model
+    if stored is not None:  # the anisotropic retro lobe is sampled as its pdf says
+        text = lobe.to_json({"kind": lobe.KIND, **stored})
+        path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, text)
+    props = {"type": "neural_brdf", "filename": str(path)}
     sample_fn, pdf_fn = BSDFAdapter("neural_brdf", props, wi=incident(theta))
     test = ChiSquareTest(
         domain=SphericalDomain(),
@@ -339,7 +357,7 @@ def test_chi2(mi, tiny_model, theta, tmp_path, monkeypatch):
         ires=CHI2_IRES,
         seed=int(theta),
     )
-    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG), quiet=True)
+    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 1, quiet=True)
     if not ok:
         monkeypatch.chdir(tmp_path)
         test._dump_tables()

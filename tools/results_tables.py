@@ -811,6 +811,15 @@ def compact_presets_section(d: dict) -> list[str]:
     return out
 
 
+def _lobe_text(lobe: dict) -> str:
+    """ "0.26 / 0.9", or "(0.12, 0.38) retro / 0.7" for an anisotropic or retro lobe."""
+    ax = lobe.get("alpha_x", lobe.get("alpha"))
+    ay = lobe.get("alpha_y", lobe.get("alpha"))
+    alpha = f"{ax:.3g}" if ax == ay else f"({ax:.3g}, {ay:.3g})"
+    retro = " retro" if lobe.get("retro") else ""
+    return f"{alpha}{retro} / {lobe['weight']:.1f}"
+
+
 def sampling_noise_section(d: dict) -> list[str]:
     out = [
         "## Sampling noise: the stored lobe against the target's own sampler",
@@ -834,7 +843,7 @@ def sampling_noise_section(d: dict) -> list[str]:
         rows.append(
             [
                 label,
-                f"{m['lobe']['alpha']:.3g} / {m['lobe']['weight']:.1f}",
+                _lobe_text(m["lobe"]),
                 f"{m['rel_var_lobe']:.3g}",
                 f"{m['rel_var_native']:.3g}",
                 ratio,
@@ -843,7 +852,7 @@ def sampling_noise_section(d: dict) -> list[str]:
     out += _table(
         [
             "model",
-            "lobe alpha / GGX share",
+            "lobe: GGX alpha (x, y) / share",
             "relative variance, lobe",
             "relative variance, native",
             "noise ratio",

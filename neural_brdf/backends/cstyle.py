@@ -232,8 +232,9 @@ class CStyleRenderer:
                 value = " ".join(str(meta[key]).split())  # one line
                 lines.append(f"{c} {key}: {value[:200]}")
         lines.append(
-            f"{c} sampling lobe: {lobes.KIND}, alpha={lobe['alpha']:.6g}, "
-            f"weight={lobe['weight']:.6g}"
+            f"{c} sampling lobe: {lobes.KIND}, alpha_x={lobe['alpha_x']:.6g}, "
+            f"alpha_y={lobe['alpha_y']:.6g}, weight={lobe['weight']:.6g}"
+            + (", retro (turned by pi about the normal)" if lobe["retro"] else "")
         )
         lines += [
             f"{c}",
@@ -273,7 +274,8 @@ class CStyleRenderer:
                     "codegen: the model has no stored sampling lobe (metadata "
                     f"{lobes.KEY!r}); re-export it with this version"
                 )
-        alpha, weight = float(lobe["alpha"]), float(lobe["weight"])
+        lobe = lobes.complete(lobe)
+        shape = {k: lobe[k] for k in ("alpha_x", "alpha_y", "weight", "retro")}
         if source is None:
             source = (
                 str(model)
@@ -287,14 +289,12 @@ class CStyleRenderer:
         )
         parts += self.function(
             f"{PREFIX}_pdf",
-            lobe_ir.pdf_program(alpha=alpha, weight=weight),
+            lobe_ir.pdf_program(**shape),
             "The sampling lobe's solid-angle density of wo given wi.",
         )
         parts += self.function(
             f"{PREFIX}_sample",
-            lobe_ir.sample_program(alpha=alpha, weight=weight),
+            lobe_ir.sample_program(**shape),
             "Draws wo from the lobe (u1, u2 uniform in [0, 1)); returns its pdf (0: reject).",
         )
-        return self.wrap(
-            self.header(prog.metadata, {**lobe, "alpha": alpha, "weight": weight}, source), parts
-        )
+        return self.wrap(self.header(prog.metadata, lobe, source), parts)

@@ -1,24 +1,27 @@
 """The stored sampling lobe (:mod:`neural_brdf.lobe`) as lowered programs for the back ends.
 
     from neural_brdf.backends import lobe
-    pdf = lobe.pdf_program(alpha=0.3, weight=0.6)      # inputs wi, wo -> output pdf
-    smp = lobe.sample_program(alpha=0.3, weight=0.6)   # inputs wi, u1, u2 -> wo, pdf
+    shape = {"alpha_x": 0.2, "alpha_y": 0.4, "weight": 0.6, "retro": False}
+    pdf = lobe.pdf_program(**shape)      # inputs wi, wo -> output pdf
+    smp = lobe.sample_program(**shape)   # inputs wi, u1, u2 -> wo, pdf
 
 The mixture of :mod:`neural_brdf.lobe`: a cosine-weighted hemisphere (share 1 - w) and
-a GGX visible-normal lobe of roughness alpha reflected about the sampled normal (share
-w).  It is written once here with the instruction builder of :mod:`neural_brdf.graph`
-and rendered by every code back end, like the network itself.
+a GGX visible-normal lobe of roughness (ax, ay) reflected about the sampled normal (share
+w), turned by pi about the normal for a retro lobe.  It is written once here with the
+instruction builder of :mod:`neural_brdf.graph` and rendered by every code back end,
+like the network itself.
 
-    pdf(wo) = (1 - w) cos(theta_o) / pi + w D_wi(m) / (4 (wo . m)),  m = normalize(wi + wo)
+    pdf(wo) = (1 - w) cos(theta_o) / pi + w D_wi(m) / (4 (v . m)),  m = normalize(wi + v)
+    v       = wo (mirror lobe), or (-wo_x, -wo_y, wo_z) (retro lobe)
     D_wi(m) = G1(wi) max(0, wi . m) D(m) / wi_z           (Heitz 2018, eq. 1)
-    D(m)    = 1 / (pi a^2 (m_x^2 / a^2 + m_y^2 / a^2 + m_z^2)^2)      (GGX, Walter 2007)
-    G1(wi)  = 2 wi_z / (wi_z + sqrt(a^2 (wi_x^2 + wi_y^2) + wi_z^2))   (Smith, GGX)
+    D(m)    = 1 / (pi ax ay (m_x^2 / ax^2 + m_y^2 / ay^2 + m_z^2)^2)   (GGX, Walter 2007)
+    G1(wi)  = 2 wi_z / (wi_z + sqrt(ax^2 wi_x^2 + ay^2 wi_y^2 + wi_z^2))   (Smith, GGX)
 
 0 when wi or wo is at or below the horizon.  ``sample`` draws the GGX branch when
 u1 < w (Heitz 2018, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4),
-listing 1, with u2) and the cosine branch otherwise (u2 -> r = sqrt(u2.x), phi =
-2 pi u2.y); it returns the sampled wo and pdf(wo) computed by the same instructions as
-``pdf`` (0 when wo is below the horizon).
+listing 1, with u2; turned for a retro lobe) and the cosine branch otherwise (u2 ->
+r = sqrt(u2.x), phi = 2 pi u2.y); it returns the sampled wo and pdf(wo) computed by the
+same instructions as ``pdf`` (0 when wo is below the horizon).
 """
 
 from __future__ import annotations
@@ -104,37 +107,44 @@ def _vec(b: Builder, name: str, n: int) -> list[V]:
     return [V(b, b.input(name, k)) for k in range(n)]
 
 
-def _pdf(b: Builder, wi: list[V], wo: list[V], alpha: float, weight: float) -> V:
+def _turn(w: list[V]) -> list[V]:
+    """A half turn about the normal: (x, y, z) -> (-x, -y, z)."""
+    return [-w[0], -w[1], w[2]]
+
+
+def _pdf(
+    b: Builder, wi: list[V], wo: list[V], ax: float, ay: float, weight: float, retro: bool
+) -> V:
     b.hint = "pdf"
     valid = (wi[2] > 0.0) & (wo[2] > 0.0)
     p = (1.0 - weight) / math.pi * wo[2]
     if weight > 0.0:
-        a2 = alpha * alpha
-        m = _normalize([wi[k] + wo[k] for k in range(3)])
-        dot_om = _dot(wo, m)
+        v = _turn(wo) if retro else wo
+        m = _normalize([wi[k] + v[k] for k in range(3)])
+        dot_om = _dot(v, m)
         dot_im = _max(_dot(wi, m), 0.0)
-        t = (m[0] * m[0] + m[1] * m[1]) * (1.0 / a2) + m[2] * m[2]
-        d = 1.0 / (math.pi * a2 * t * t)
-        g1 = (
-            2.0 * wi[2] / (wi[2] + (a2 * (wi[0] * wi[0] + wi[1] * wi[1]) + wi[2] * wi[2]).f("sqrt"))
-        )
+        t = m[0] * m[0] * (1.0 / (ax * ax)) + m[1] * m[1] * (1.0 / (ay * ay)) + m[2] * m[2]
+        d = 1.0 / (math.pi * ax * ay * t * t)
+        s = (ax * ax) * (wi[0] * wi[0]) + (ay * ay) * (wi[1] * wi[1]) + wi[2] * wi[2]
+        g1 = 2.0 * wi[2] / (wi[2] + s.f("sqrt"))
         d_visible = g1 * dot_im * d / wi[2]
         ggx = _select(dot_om > 0.0, d_visible / (4.0 * dot_om), 0.0)
         p = p + weight * ggx
     return _select(valid, p, 0.0)
 
 
-def pdf_program(*, alpha: float, weight: float) -> Program:
+def pdf_program(*, alpha_x: float, alpha_y: float, weight: float, retro: bool = False) -> Program:
     """Inputs ``wi``, ``wo`` (3 columns) -> output ``pdf`` (solid-angle density of wo)."""
     b = Builder()
     wi, wo = _vec(b, "wi", 3), _vec(b, "wo", 3)
-    return b.finish({"wi": 3, "wo": 3}, {"pdf": [_pdf(b, wi, wo, alpha, weight).i]})
+    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro)
+    return b.finish({"wi": 3, "wo": 3}, {"pdf": [p.i]})
 
 
-def _ggx_vndf(b: Builder, wi: list[V], u: list[V], alpha: float) -> list[V]:
-    """A visible normal of GGX(alpha) seen from wi (Heitz 2018, JCGT, listing 1)."""
+def _ggx_vndf(b: Builder, wi: list[V], u: list[V], ax: float, ay: float) -> list[V]:
+    """A visible normal of GGX(ax, ay) seen from wi (Heitz 2018, JCGT, listing 1)."""
     b.hint = "vndf"
-    vh = _normalize([alpha * wi[0], alpha * wi[1], wi[2]])  # the hemisphere config.
+    vh = _normalize([ax * wi[0], ay * wi[1], wi[2]])  # the hemisphere configuration
     lensq = vh[0] * vh[0] + vh[1] * vh[1]
     has_xy = lensq > 0.0
     inv = 1.0 / _max(lensq, 1e-30).f("sqrt")
@@ -153,10 +163,12 @@ def _ggx_vndf(b: Builder, wi: list[V], u: list[V], alpha: float) -> list[V]:
         p1 * t1[1] + p2 * t2[1] + pz * vh[1],
         p2 * t2[2] + pz * vh[2],
     ]
-    return _normalize([alpha * nh[0], alpha * nh[1], _max(nh[2], 0.0)])
+    return _normalize([ax * nh[0], ay * nh[1], _max(nh[2], 0.0)])
 
 
-def sample_program(*, alpha: float, weight: float) -> Program:
+def sample_program(
+    *, alpha_x: float, alpha_y: float, weight: float, retro: bool = False
+) -> Program:
     """Inputs ``wi`` (3), ``u1`` (1), ``u2`` (2) -> outputs ``wo`` (3) and ``pdf``."""
     b = Builder()
     wi = _vec(b, "wi", 3)
@@ -167,10 +179,12 @@ def sample_program(*, alpha: float, weight: float) -> Program:
     phi = 2.0 * math.pi * u2[1]
     wo = [r * phi.f("cos"), r * phi.f("sin"), _max(1.0 - u2[0], 0.0).f("sqrt")]
     if weight > 0.0:
-        m = _ggx_vndf(b, wi, u2, alpha)
+        m = _ggx_vndf(b, wi, u2, alpha_x, alpha_y)
         b.hint = "mirror"
         k = 2.0 * _dot(wi, m)
+        v = [k * m[j] - wi[j] for j in range(3)]
+        v = _turn(v) if retro else v
         pick = u1 < weight
-        wo = [_select(pick, k * m[j] - wi[j], wo[j]) for j in range(3)]
-    p = _pdf(b, wi, wo, alpha, weight)
+        wo = [_select(pick, v[j], wo[j]) for j in range(3)]
+    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro)
     return b.finish({"wi": 3, "u1": 1, "u2": 2}, {"wo": [v.i for v in wo], "pdf": [p.i]})
