@@ -7,12 +7,14 @@ sampler (issue 12, "Sampling for every preset").
 The noise measured is that of the one-sample estimator of the directional albedo,
 w = f(wi, wo) cos(theta_o) / pdf(wo) with wo drawn from the sampler: the pixel noise of
 one bounce under a white constant environment with BSDF sampling, the situation of the
-BSDF-bound render benchmark.  For each incident direction (theta 5 to 80 degrees, each
-at its own azimuth, as the lobe fit uses), ``--samples`` samples are drawn
+BSDF-bound render benchmark.  For each incident direction (theta 12.5 to 85 degrees,
+each at its own azimuth: between and beyond the directions the lobe is fitted at, so a
+per-incidence lobe is not scored on its own table nodes), ``--samples`` samples are drawn
 
 * from the model's stored sampling lobe (``neural_brdf.lobe``: a cosine hemisphere and
-  a GGX visible-normal lobe, the sampler the Mitsuba plugin and the generated shaders
-  use), with f the exported model evaluated by onnxruntime;
+  a GGX visible-normal lobe, anisotropic, retro or per-incidence where the fit chose
+  so: the sampler the Mitsuba plugin and the generated shaders use), with f the exported
+  model evaluated by onnxruntime;
 * from the analytic target's native sampler (``analytic``'s ``sample_t``/``pdf_t``, the
   lobes each seed model defines), with f the target.
 
@@ -48,7 +50,10 @@ from analytic.microfacet import Distribution  # noqa: E402
 from neural_brdf import lobe as lobes  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "sampling_noise.json"
-THETA_DEG = lobes.THETA_DEG
+# Incident directions between and beyond the lobe fit's (neural_brdf.lobe.THETA_DEG: 5 to
+# 80 degrees), at other azimuths: a per-incidence lobe is scored off its table's nodes.
+THETA_DEG = (12.5, 27.5, 42.5, 57.5, 72.5, 85.0)
+PHI0 = 0.4
 EXACT = 1e-8  # a relative variance below this: the sampler is exact for this target
 WORSE = 1.5  # issue 12: improve the proxy where the ratio exceeds this
 
@@ -57,8 +62,9 @@ def lobe_sample(wi: torch.Tensor, u: torch.Tensor, lobe: dict):
     """The stored lobe's sampler and density (float64): ``neural_brdf.lobe``'s mixture
     (a retro lobe is the mirror lobe turned by pi about the normal)."""
     lobe = lobes.complete(lobe)
-    weight = lobe["weight"]
-    dist = Distribution("ggx", lobe["alpha_x"], lobe["alpha_y"])
+    # one incident direction per call: the per-incidence table's values at its cos theta
+    ax, ay, weight = (float(v) for v in lobes.at(lobe, float(wi[0, 2])))
+    dist = Distribution("ggx", ax, ay)
     turn = torch.tensor([-1.0, -1.0, 1.0], dtype=wi.dtype) if lobe["retro"] else 1.0
     pick_ggx = u[:, 0] < weight
     u_cos = torch.stack(
@@ -97,7 +103,7 @@ def measure(path: Path, samples: int, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     rows = []
     for k, theta in enumerate(THETA_DEG):
-        wi1 = incident(theta, 0.9 * k)
+        wi1 = incident(theta, PHI0 + 0.9 * k)
         wi = wi1.expand(samples, 3)
         u = torch.from_numpy(rng.random((samples, 2)))
         wo, pdf = lobe_sample(wi, u, lobe)
@@ -123,7 +129,11 @@ def measure(path: Path, samples: int, seed: int) -> dict:
     return {
         "model": str(path),
         "target": target_cfg,
-        "lobe": {k: lobes.complete(lobe)[k] for k in ("alpha_x", "alpha_y", "retro", "weight")},
+        "lobe": {
+            k: v
+            for k, v in lobes.complete(lobe).items()
+            if k in ("alpha_x", "alpha_y", "retro", "weight", "table")
+        },
         "samples": samples,
         "directions": rows,
         "rel_var_lobe": v_lobe / mean_sq,

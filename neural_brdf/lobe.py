@@ -72,13 +72,24 @@ SAMPLES = 512  # per proposal of the pool (cosine, mirror and retro per alpha) p
 # isotropic model keeps alpha_x == alpha_y whatever the sampling noise.
 ANISO_GAIN = 0.03
 ANISO_ROUNDS = 3  # coordinate-search rounds (alpha_x, then alpha_y)
+# A per-incidence table (roughness and share per incident direction) is kept only if it
+# lowers the mean second moment by this share.
+PER_INCIDENCE_GAIN = 0.05
 
 
-def fit(fn, *, seed: int = 0, anisotropic: bool = True, retro: bool = True) -> dict:
+def fit(
+    fn,
+    *,
+    seed: int = 0,
+    anisotropic: bool = True,
+    retro: bool = True,
+    per_incidence: bool = True,
+) -> dict:
     """Fit the lobe to ``fn(wi, wo) -> f`` (numpy float32 (N, 3) in, (N, 3) out, 1/sr).
 
-    ``anisotropic`` / ``retro`` False restrict the search to alpha_x == alpha_y / mirror
-    lobes.  Returns the metadata dict (see the module docstring), with JSON-ready floats."""
+    ``anisotropic`` / ``retro`` / ``per_incidence`` False restrict the search to
+    alpha_x == alpha_y / mirror lobes / one lobe for every incident direction.  Returns
+    the metadata dict (see the module docstring), with JSON-ready floats."""
     allow_retro = retro
     rng = np.random.default_rng(seed)
     threads = torch.get_num_threads()
@@ -87,20 +98,22 @@ def fit(fn, *, seed: int = 0, anisotropic: bool = True, retro: bool = True) -> d
         pools = [_Pool(fn, _incident(t, 0.9 * k), rng) for k, t in enumerate(THETA_DEG)]
         scores: dict[tuple, np.ndarray] = {}
 
-        def score(ia: int, ib: int, retro: bool) -> np.ndarray:
+        def per_pool(ia: int, ib: int, retro: bool) -> np.ndarray:  # (pools, WEIGHTS)
             key = (ia, ib, retro)
             if key not in scores:
-                scores[key] = sum(p.second_moments(ia, ib, retro) for p in pools)
-                scores[key] = scores[key] / len(pools)
+                scores[key] = np.stack([p.second_moments(ia, ib, retro) for p in pools])
             return scores[key]
 
         def best(keys) -> tuple[float, tuple, int]:
-            return min((float(score(*k).min()), k, int(np.argmin(score(*k)))) for k in keys)
+            return min(
+                (float(per_pool(*k).mean(0).min()), k, int(np.argmin(per_pool(*k).mean(0))))
+                for k in keys
+            )
 
         n = len(ALPHAS)
         shapes = (False, True) if allow_retro else (False,)
         m2, (ia, ib, retro), j = best([(i, i, r) for r in shapes for i in range(n)])
-        cosine = float(score(0, 0, False)[0])  # w = 0: the cosine lobe alone
+        cosine = float(per_pool(0, 0, False).mean(0)[0])  # w = 0: the cosine lobe alone
         if j > 0 and anisotropic:  # a GGX lobe is used: try it anisotropic
             step = [(ia + d, ib - d, retro) for d in (-2, 2) if 0 <= ia + d < n and 0 <= ib - d < n]
             if step and best(step)[0] < (1.0 - ANISO_GAIN) * m2:
@@ -110,10 +123,30 @@ def fit(fn, *, seed: int = 0, anisotropic: bool = True, retro: bool = True) -> d
                     m2, (ia, ib, retro), j = best([(ia, i, retro) for i in range(n)])
                     if (ia, ib) == last:
                         break
+        table = None
+        if per_incidence and j > 0:
+            # each incident direction's own roughness (same aspect) and share
+            line = [
+                (ia + t, ib + t, retro) for t in range(-n, n) if 0 <= ia + t < n and 0 <= ib + t < n
+            ]
+            stack = np.stack([per_pool(*k) for k in line])  # (line, pools, WEIGHTS)
+            flat = stack.transpose(1, 0, 2).reshape(len(pools), -1)
+            pick = np.argmin(flat, axis=1)
+            m2_table = float(flat[np.arange(len(pools)), pick].mean())
+            if m2_table < (1.0 - PER_INCIDENCE_GAIN) * m2:
+                rows = [(line[c // len(WEIGHTS)], c % len(WEIGHTS)) for c in pick]
+                order = np.argsort(np.cos(np.radians(THETA_DEG)))  # cos theta ascending
+                table = {
+                    "cos_theta": [float(np.cos(np.radians(THETA_DEG[k]))) for k in order],
+                    "alpha_x": [float(ALPHAS[rows[k][0][0]]) for k in order],
+                    "alpha_y": [float(ALPHAS[rows[k][0][1]]) for k in order],
+                    "weight": [float(WEIGHTS[rows[k][1]]) for k in order],
+                }
+                m2 = m2_table
     finally:
         torch.set_num_threads(threads)
     ax, ay = float(ALPHAS[ia]), float(ALPHAS[ib])
-    return {
+    out = {
         "kind": KIND,
         "alpha": math.sqrt(ax * ay) if ia != ib else ax,
         "alpha_x": ax,
@@ -123,6 +156,20 @@ def fit(fn, *, seed: int = 0, anisotropic: bool = True, retro: bool = True) -> d
         "second_moment": m2,
         "second_moment_cosine": cosine,
     }
+    if table is not None:
+        out["table"] = table
+    return out
+
+
+def at(lobe: dict, cos_theta_i) -> tuple:
+    """(alpha_x, alpha_y, weight) of a lobe for incident cos(theta) (a float or an array):
+    the per-incidence table interpolated linearly in cos theta (clamped at its ends), or
+    the lobe's single values."""
+    t = lobe.get("table")
+    if not t:
+        return lobe["alpha_x"], lobe["alpha_y"], lobe["weight"]
+    c = np.asarray(cos_theta_i, dtype=np.float64)
+    return tuple(np.interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
 
 
 def _incident(theta_deg: float, phi: float) -> torch.Tensor:
@@ -245,7 +292,7 @@ def parse(text: str) -> dict:
         )
     if not isinstance(retro, bool):
         raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
-    return {
+    out = {
         **lobe,
         "alpha": max(alpha, MIN_ALPHA),
         "alpha_x": max(ax, MIN_ALPHA),
@@ -253,6 +300,38 @@ def parse(text: str) -> dict:
         "retro": retro,
         "weight": weight,
     }
+    if lobe.get("table") is not None:
+        out["table"] = _parse_table(lobe["table"], text)
+    return out
+
+
+def _parse_table(table, text: str) -> dict:
+    """The per-incidence table: equal-length lists (>= 2 nodes) of finite numbers,
+    cos_theta strictly ascending in [0, 1], alphas > 0 (raised to MIN_ALPHA), weights in
+    [0, 1]."""
+    keys = ("cos_theta", "alpha_x", "alpha_y", "weight")
+    try:
+        cols = {k: [float(v) for v in table[k]] for k in keys}
+    except (KeyError, TypeError, ValueError):
+        raise InputError(
+            f"metadata {KEY!r}: table must hold lists {', '.join(keys)}, got {text!r}"
+        ) from None
+    c = cols["cos_theta"]
+    if (
+        len({len(v) for v in cols.values()}) != 1
+        or len(c) < 2
+        or not all(math.isfinite(v) for col in cols.values() for v in col)
+        or not all(0.0 <= a < b <= 1.0 for a, b in zip(c, c[1:]))
+        or not all(a > 0 for k in ("alpha_x", "alpha_y") for a in cols[k])
+        or not all(0.0 <= w <= 1.0 for w in cols["weight"])
+    ):
+        raise InputError(
+            f"metadata {KEY!r}: table needs >= 2 nodes of equal length, cos_theta ascending "
+            f"in [0, 1], alphas > 0 and weights in [0, 1], got {text!r}"
+        )
+    for k in ("alpha_x", "alpha_y"):
+        cols[k] = [max(a, MIN_ALPHA) for a in cols[k]]
+    return cols
 
 
 def complete(lobe: dict) -> dict:

@@ -90,6 +90,16 @@ def _black(wi, wo):
     return mi.Color3f(0.0)
 
 
+def _interp(c, xs, ys):
+    """ys interpolated linearly at c over the ascending nodes xs, clamped at the ends."""
+    y = mi.Float(ys[0])
+    for k in range(1, len(xs)):
+        if ys[k] != ys[k - 1]:
+            t = dr.clip((c - xs[k - 1]) / (xs[k] - xs[k - 1]), 0.0, 1.0)
+            y = y + t * (ys[k] - ys[k - 1])
+    return y
+
+
 def _turn(w):
     """A half turn about the normal, (x, y, z) -> (-x, -y, z): the retro lobe."""
     return mi.Vector3f(-w.x, -w.y, w.z)
@@ -112,11 +122,12 @@ class _GraphBSDF(mi.BSDF):
         self.program = program
         self.lobe = lobes.complete(lobe)
         self.label = label
-        self.lobe_weight = float(lobe["weight"])
-        self.lobe_retro = self.lobe["retro"]
-        self.distr = mi.MicrofacetDistribution(
-            mi.MicrofacetType.GGX, self.lobe["alpha_x"], self.lobe["alpha_y"], True
+        self.lobe_table = self.lobe.get("table")
+        # the largest share decides whether the GGX branch exists at all
+        self.lobe_weight = (
+            max(self.lobe_table["weight"]) if self.lobe_table else float(self.lobe["weight"])
         )
+        self.lobe_retro = self.lobe["retro"]
         flags = (
             mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
         )
@@ -140,15 +151,29 @@ class _GraphBSDF(mi.BSDF):
         wi = si.wi
         cos_i, cos_o = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
         valid = active & (cos_i > 0.0) & (cos_o > 0.0)
-        p = (1.0 - self.lobe_weight) * mi.warp.square_to_cosine_hemisphere_pdf(wo)
+        distr, w = self._lobe(wi)
+        p = (1.0 - w) * mi.warp.square_to_cosine_hemisphere_pdf(wo)
         if self.lobe_weight > 0.0:  # a Python float: decided once, not per lane
             v = _turn(wo) if self.lobe_retro else wo
             m = dr.normalize(wi + v)
             dot_om = dr.dot(v, m)
-            p_m = self.distr.pdf(wi, m)
+            p_m = distr.pdf(wi, m)
             p_ggx = dr.select(dot_om > 0.0, p_m / (4.0 * dot_om), 0.0)
-            p = p + self.lobe_weight * p_ggx
+            p = p + w * p_ggx
         return dr.select(valid, p, 0.0)
+
+    def _lobe(self, wi):
+        """The GGX distribution and share of the lobe for wi: constants, or with a
+        per-incidence table interpolated linearly in cos theta_i (neural_brdf.lobe.at)."""
+        lobe, t = self.lobe, self.lobe_table
+        if not t:
+            ggx = mi.MicrofacetType.GGX
+            return mi.MicrofacetDistribution(ggx, lobe["alpha_x"], lobe["alpha_y"], True), mi.Float(
+                lobe["weight"]
+            )
+        c = mi.Frame3f.cos_theta(wi)
+        ax, ay, w = (_interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
+        return mi.MicrofacetDistribution(mi.MicrofacetType.GGX, ax, ay, True), w
 
     def _enabled(self, ctx) -> bool:
         return ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0) or ctx.is_enabled(
@@ -178,8 +203,9 @@ class _GraphBSDF(mi.BSDF):
         wo = mi.warp.square_to_cosine_hemisphere(sample2)
         glossy = mi.Bool(False)
         if self.lobe_weight > 0.0:
-            m, _ = self.distr.sample(wi, sample2)
-            glossy = sample1 < self.lobe_weight
+            distr, w = self._lobe(wi)
+            m, _ = distr.sample(wi, sample2)
+            glossy = sample1 < w
             v = mi.reflect(wi, m)
             wo = dr.select(glossy, _turn(v) if self.lobe_retro else v, wo)
         active = active & (mi.Frame3f.cos_theta(wi) > 0.0)
@@ -206,7 +232,8 @@ class _GraphBSDF(mi.BSDF):
         return (
             f"{type(self).__name__}[{self.label}, sampling lobe GGX alpha="
             f"({self.lobe['alpha_x']:.4g}, {self.lobe['alpha_y']:.4g}) "
-            f"{'retro ' if self.lobe_retro else ''}weight={self.lobe_weight:.3g} "
+            f"{'retro ' if self.lobe_retro else ''}weight={self.lobe['weight']:.3g}"
+            f"{' per-incidence table' if self.lobe_table else ''} "
             f"({self.lobe_source})]"
         )
 

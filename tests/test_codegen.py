@@ -297,6 +297,20 @@ def test_c_is_total(models, c_programs, enc):
     check_total(c_programs[enc].eval, models[enc], C_TOL)
 
 
+def lobe_params(stored: dict, cos_i: np.ndarray):
+    """Per-row (alpha_x, alpha_y, weight) of a stored lobe: its per-incidence table
+    interpolated linearly in cos theta_i with np.interp (clamped), or its constants."""
+    n = len(cos_i)
+    t = stored.get("table")
+    if t:
+        return tuple(
+            np.interp(cos_i, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight")
+        )
+    ax = stored.get("alpha_x", stored["alpha"])
+    ay = stored.get("alpha_y", stored["alpha"])
+    return np.full(n, ax), np.full(n, ay), np.full(n, stored["weight"])
+
+
 def mixture_pdf(wi, wo, lobe):
     """The lobe's density over the sphere, from analytic's GGX (float64); a retro lobe is
     the mirror lobe turned by pi about the normal, so its density at wo is the mirror
@@ -304,19 +318,37 @@ def mixture_pdf(wi, wo, lobe):
     from analytic import frame
     from analytic.microfacet import Distribution
 
-    ax = lobe.get("alpha_x", lobe["alpha"])
-    ay = lobe.get("alpha_y", lobe["alpha"])
-    weight = lobe["weight"]
+    ax, ay, weight = lobe_params(lobe, wi[:, 2])
     wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
     v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if lobe.get("retro") else wo
     h = frame.normalize(wi + v)
-    ggx = Distribution("ggx", ax, ay).pdf_visible(wi, h) / (4.0 * frame.dot(v, h))
+    ggx = (
+        torch.cat(
+            [  # one row at a time: analytic's Distribution takes scalar alphas
+                Distribution("ggx", a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
+                for k, (a, b) in enumerate(zip(ax, ay))
+            ]
+        )
+        / (4.0 * frame.dot(v, h))
+    )
+    weight = torch.from_numpy(np.asarray(weight, dtype=np.float64))
     p = (1.0 - weight) * frame.cosine_hemisphere_pdf(wo) + weight * ggx
     return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), p, 0.0).numpy()
 
 
 # an anisotropic retro lobe unlike any fitted one: the generated code follows the dict
 ANISO_RETRO = {"alpha": 0.2, "alpha_x": 0.1, "alpha_y": 0.4, "weight": 0.6, "retro": True}
+# a per-incidence lobe: roughness (anisotropic) and share vary with cos theta_i
+PER_INCIDENCE = {
+    "alpha": 0.2,
+    "weight": 0.5,
+    "table": {
+        "cos_theta": [0.1, 0.5, 0.9],
+        "alpha_x": [0.5, 0.2, 0.05],
+        "alpha_y": [0.3, 0.2, 0.1],
+        "weight": [0.9, 0.5, 0.2],
+    },
+}
 
 
 def stored_lobe(model):
@@ -325,7 +357,9 @@ def stored_lobe(model):
     return lobe.from_metadata({p.key: p.value for p in onnx.load(str(model)).metadata_props})
 
 
-@pytest.mark.parametrize("override", [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO])
+@pytest.mark.parametrize(
+    "override", [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO, PER_INCIDENCE]
+)
 def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     path = models["isotropic"]
     c = (
@@ -365,7 +399,8 @@ def expected_bin_probabilities(c: CProgram, wi1: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize(
-    "theta_deg, override", [(20.0, None), (70.0, None), (20.0, ANISO_RETRO), (70.0, ANISO_RETRO)]
+    "theta_deg, override",
+    [(20.0, None), (70.0, None), (20.0, ANISO_RETRO), (70.0, ANISO_RETRO), (50.0, PER_INCIDENCE)],
 )
 def test_c_sample_follows_pdf(models, c_programs, theta_deg, override, tmp_path):
     from scipy import stats

@@ -285,28 +285,62 @@ def test_a_file_without_the_lobe_is_fitted_at_load(mi, tiny_model, legacy_model)
     assert bsdf.lobe == lobe.from_metadata(neural_brdf.load(tiny_model).metadata)
 
 
+def lobe_params(stored: dict, cos_i: np.ndarray):
+    """Per-row (alpha_x, alpha_y, weight) of a stored lobe: its per-incidence table
+    interpolated linearly in cos theta_i with np.interp (clamped), or its constants."""
+    n = len(cos_i)
+    t = stored.get("table")
+    if t:
+        return tuple(
+            np.interp(cos_i, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight")
+        )
+    ax = stored.get("alpha_x", stored["alpha"])
+    ay = stored.get("alpha_y", stored["alpha"])
+    return np.full(n, ax), np.full(n, ay), np.full(n, stored["weight"])
+
+
 def mixture_pdf(wi, wo, stored):
     """The lobe's density over the sphere, from analytic's GGX (not Mitsuba's); a retro
     lobe's density at wo is the mirror lobe's at wo turned by pi about the normal."""
     from analytic import frame
     from analytic.microfacet import Distribution
 
-    ax, ay = stored.get("alpha_x", stored["alpha"]), stored.get("alpha_y", stored["alpha"])
-    weight = stored["weight"]
+    ax, ay, weight = lobe_params(stored, wi[:, 2])
     wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
     v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if stored.get("retro") else wo
     h = frame.normalize(wi + v)
-    ggx = Distribution("ggx", ax, ay).pdf_visible(wi, h) / (4.0 * frame.dot(v, h))
+    ggx = (
+        torch.cat(
+            [  # one row at a time: analytic's Distribution takes scalar alphas
+                Distribution("ggx", a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
+                for k, (a, b) in enumerate(zip(ax, ay))
+            ]
+        )
+        / (4.0 * frame.dot(v, h))
+    )
+    weight = torch.from_numpy(np.asarray(weight, dtype=np.float64))
     p = (1.0 - weight) * frame.cosine_hemisphere_pdf(wo) + weight * ggx
     return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), p, 0.0).numpy()
 
 
 # an anisotropic retro lobe (x is the tangent): unlike any fitted one
 ANISO_RETRO = {"alpha": 0.2, "alpha_x": 0.1, "alpha_y": 0.4, "weight": 0.6, "retro": True}
+# a per-incidence lobe: roughness (anisotropic) and share vary with cos theta_i
+PER_INCIDENCE = {
+    "alpha": 0.2,
+    "weight": 0.5,
+    "table": {
+        "cos_theta": [0.1, 0.5, 0.9],
+        "alpha_x": [0.5, 0.2, 0.05],
+        "alpha_y": [0.3, 0.2, 0.1],
+        "weight": [0.9, 0.5, 0.2],
+    },
+}
 
 
 @pytest.mark.parametrize(
-    "stored", [{"alpha": 0.08, "weight": 0.5}, {"alpha": 0.6, "weight": 0.2}, ANISO_RETRO]
+    "stored",
+    [{"alpha": 0.08, "weight": 0.5}, {"alpha": 0.6, "weight": 0.2}, ANISO_RETRO, PER_INCIDENCE],
 )
 def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, stored):
     """A lobe unlike the fitted one is written into the file: the plugin's pdf must be
@@ -337,7 +371,8 @@ def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp
 
 
 @pytest.mark.parametrize(
-    "theta, stored", [(t, None) for t in CHI2_THETA_DEG] + [(45.0, ANISO_RETRO)]
+    "theta, stored",
+    [(t, None) for t in CHI2_THETA_DEG] + [(45.0, ANISO_RETRO), (60.0, PER_INCIDENCE)],
 )
 def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
@@ -357,7 +392,7 @@ def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
         ires=CHI2_IRES,
         seed=int(theta),
     )
-    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 1, quiet=True)
+    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 2, quiet=True)
     if not ok:
         monkeypatch.chdir(tmp_path)
         test._dump_tables()

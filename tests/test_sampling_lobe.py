@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -49,19 +50,30 @@ def test_ggx_is_sampled_by_a_ggx_lobe_of_its_roughness(alpha):
     assert got["second_moment"] < 0.5 * got["second_moment_cosine"], got
 
 
+# incident directions between and beyond the fit's (5 to 80 degrees), at other azimuths
+THETA_OFF_NODES = (12.5, 27.5, 42.5, 57.5, 72.5, 85.0)
+
+
 def fresh_second_moment(brdf, got: dict, n: int = 1 << 15, seed: int = 7) -> float:
-    """E[(f cos / p)^2] / E[f cos / p]^2 of the lobe ``got``, averaged over the fit's
-    incident directions, from n fresh samples each (analytic's GGX sampler and pdf)."""
+    """E[(f cos / p)^2] / E[f cos / p]^2 of the lobe ``got``, averaged over incident
+    directions other than the fit's, from n fresh samples each (analytic's GGX sampler
+    and pdf)."""
     from analytic import frame
     from analytic.microfacet import Distribution
 
     gen = torch.Generator().manual_seed(seed)
-    dist = Distribution("ggx", got["alpha_x"], got["alpha_y"])
     turn = torch.tensor([-1.0, -1.0, 1.0], dtype=torch.float64) if got["retro"] else 1.0
-    w = got["weight"]
     out = []
-    for k, theta in enumerate(lobe.THETA_DEG):
-        t, phi = math.radians(theta), 0.9 * k
+    for k, theta in enumerate(THETA_OFF_NODES):
+        t, phi = math.radians(theta), 0.4 + 0.9 * k
+        ax, ay, w = got["alpha_x"], got["alpha_y"], got["weight"]
+        if got.get("table"):  # this direction's values, interpolated with np.interp
+            tab = got["table"]
+            ax, ay, w = (
+                float(np.interp(math.cos(t), tab["cos_theta"], tab[key]))
+                for key in ("alpha_x", "alpha_y", "weight")
+            )
+        dist = Distribution("ggx", ax, ay)
         wi = torch.tensor(
             [math.sin(t) * math.cos(phi), math.sin(t) * math.sin(phi), math.cos(t)],
             dtype=torch.float64,
@@ -100,6 +112,26 @@ def test_retroreflector_gets_a_retro_lobe():
     mirror = lobe.fit(brdf.eval, retro=False)
     assert got["retro"] and got["weight"] > 0 and not mirror["retro"], (got, mirror)
     assert fresh_second_moment(brdf, got) < 0.5 * fresh_second_moment(brdf, mirror)
+
+
+@pytest.mark.parametrize(
+    "name, params",
+    [
+        ("ashikhmin_shirley", {"rd": [0.6, 0.08, 0.05], "rs": 0.04, "nu": 200.0, "nv": 200.0}),
+        ("phong", {"kd": [0.4, 0.3, 0.2], "ks": 0.3, "exponent": 50.0}),
+    ],
+)
+def test_fresnel_and_phong_targets_get_a_per_incidence_lobe(name, params):
+    """Plastic's specular share grows towards grazing (Fresnel) and a Phong lobe widens
+    in half-vector space: one lobe for every incident direction fits neither."""
+    brdf = analytic.create(name, **params)
+    got = lobe.fit(brdf.eval)
+    single = lobe.fit(brdf.eval, per_incidence=False)
+    t = got["table"]
+    assert "table" not in single and len(t["cos_theta"]) == len(lobe.THETA_DEG), got
+    assert len(set(t["weight"])) > 1 or len(set(t["alpha_x"])) > 1, t
+    # scored off the table's nodes, so the interpolation is tested too
+    assert fresh_second_moment(brdf, got) < 0.9 * fresh_second_moment(brdf, single)
 
 
 def test_fit_is_deterministic():
@@ -141,6 +173,21 @@ def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
         (
             '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "alpha_x": "a", "weight": 0.5}',
             "expected JSON",
+        ),
+        (
+            '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, '
+            '"table": {"cos_theta": [0.5]}}',
+            "table must hold lists",
+        ),
+        (
+            '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "table": {"cos_theta": '
+            '[0.9, 0.5], "alpha_x": [0.1, 0.2], "alpha_y": [0.1, 0.2], "weight": [0.5, 0.5]}}',
+            "cos_theta ascending",
+        ),
+        (
+            '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "table": {"cos_theta": '
+            '[0.5, 0.9], "alpha_x": [0.1, 0.2], "alpha_y": [0.1], "weight": [0.5, 0.5]}}',
+            "equal length",
         ),
     ],
 )

@@ -817,6 +817,11 @@ def _lobe_text(lobe: dict) -> str:
     ay = lobe.get("alpha_y", lobe.get("alpha"))
     alpha = f"{ax:.3g}" if ax == ay else f"({ax:.3g}, {ay:.3g})"
     retro = " retro" if lobe.get("retro") else ""
+    if lobe.get("table"):  # per incidence: the range over the table's nodes
+        t = lobe["table"]
+        lo, hi = min(t["alpha_x"]), max(t["alpha_x"])
+        alpha = f"{lo:.3g}-{hi:.3g}" if t["alpha_x"] == t["alpha_y"] else alpha + " (scaled)"
+        return f"{alpha}{retro} / {min(t['weight']):.1f}-{max(t['weight']):.1f} per θi"
     return f"{alpha}{retro} / {lobe['weight']:.1f}"
 
 

@@ -235,6 +235,11 @@ class CStyleRenderer:
             f"{c} sampling lobe: {lobes.KIND}, alpha_x={lobe['alpha_x']:.6g}, "
             f"alpha_y={lobe['alpha_y']:.6g}, weight={lobe['weight']:.6g}"
             + (", retro (turned by pi about the normal)" if lobe["retro"] else "")
+            + (
+                ", per-incidence table (alpha_x, alpha_y, weight by cos theta_i)"
+                if lobe.get("table")
+                else ""
+            )
         )
         lines += [
             f"{c}",
@@ -276,6 +281,7 @@ class CStyleRenderer:
                 )
         lobe = lobes.complete(lobe)
         shape = {k: lobe[k] for k in ("alpha_x", "alpha_y", "weight", "retro")}
+        shape["table"] = lobe.get("table")
         if source is None:
             source = (
                 str(model)

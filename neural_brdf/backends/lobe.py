@@ -7,9 +7,10 @@
 
 The mixture of :mod:`neural_brdf.lobe`: a cosine-weighted hemisphere (share 1 - w) and
 a GGX visible-normal lobe of roughness (ax, ay) reflected about the sampled normal (share
-w), turned by pi about the normal for a retro lobe.  It is written once here with the
-instruction builder of :mod:`neural_brdf.graph` and rendered by every code back end,
-like the network itself.
+w), turned by pi about the normal for a retro lobe.  With a per-incidence ``table``, ax,
+ay and w are interpolated linearly in cos theta_i between its nodes.  It is written once
+here with the instruction builder of :mod:`neural_brdf.graph` and rendered by every code
+back end, like the network itself.
 
     pdf(wo) = (1 - w) cos(theta_o) / pi + w D_wi(m) / (4 (v . m)),  m = normalize(wi + v)
     v       = wo (mirror lobe), or (-wo_x, -wo_y, wo_z) (retro lobe)
@@ -112,13 +113,39 @@ def _turn(w: list[V]) -> list[V]:
     return [-w[0], -w[1], w[2]]
 
 
-def _pdf(
-    b: Builder, wi: list[V], wo: list[V], ax: float, ay: float, weight: float, retro: bool
-) -> V:
+def _interp(c: V, xs: list[float], ys: list[float]):
+    """ys interpolated linearly at c over the ascending nodes xs, clamped at the ends:
+    y0 + sum_k clamp((c - x_{k-1}) / (x_k - x_{k-1}), 0, 1) (y_k - y_{k-1})."""
+    y = float(ys[0])
+    for k in range(1, len(xs)):
+        dy = float(ys[k]) - float(ys[k - 1])
+        if dy != 0.0:
+            t = (c - float(xs[k - 1])) * (1.0 / (float(xs[k]) - float(xs[k - 1])))
+            y = y + c._op("min", _max(t, 0.0), 1.0) * dy
+    return y
+
+
+def _params(b: Builder, wi: list[V], ax, ay, weight, table) -> tuple:
+    """(alpha_x, alpha_y, weight): the lobe's constants, or with a per-incidence table
+    expressions of cos theta_i (neural_brdf.lobe.at)."""
+    if not table:
+        return ax, ay, weight
+    b.hint = "lobe_table"
+    c = table["cos_theta"]
+    return tuple(_interp(wi[2], c, table[k]) for k in ("alpha_x", "alpha_y", "weight"))
+
+
+def _uses_ggx(weight, table) -> bool:
+    return (max(table["weight"]) if table else weight) > 0.0
+
+
+def _pdf(b: Builder, wi: list[V], wo: list[V], ax, ay, weight, retro: bool, table=None) -> V:
+    uses_ggx = _uses_ggx(weight, table)
+    ax, ay, weight = _params(b, wi, ax, ay, weight, table)
     b.hint = "pdf"
     valid = (wi[2] > 0.0) & (wo[2] > 0.0)
-    p = (1.0 - weight) / math.pi * wo[2]
-    if weight > 0.0:
+    p = (1.0 - weight) * (1.0 / math.pi) * wo[2]
+    if uses_ggx:
         v = _turn(wo) if retro else wo
         m = _normalize([wi[k] + v[k] for k in range(3)])
         dot_om = _dot(v, m)
@@ -133,15 +160,22 @@ def _pdf(
     return _select(valid, p, 0.0)
 
 
-def pdf_program(*, alpha_x: float, alpha_y: float, weight: float, retro: bool = False) -> Program:
+def pdf_program(
+    *,
+    alpha_x: float,
+    alpha_y: float,
+    weight: float,
+    retro: bool = False,
+    table: dict | None = None,
+) -> Program:
     """Inputs ``wi``, ``wo`` (3 columns) -> output ``pdf`` (solid-angle density of wo)."""
     b = Builder()
     wi, wo = _vec(b, "wi", 3), _vec(b, "wo", 3)
-    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro)
+    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table)
     return b.finish({"wi": 3, "wo": 3}, {"pdf": [p.i]})
 
 
-def _ggx_vndf(b: Builder, wi: list[V], u: list[V], ax: float, ay: float) -> list[V]:
+def _ggx_vndf(b: Builder, wi: list[V], u: list[V], ax, ay) -> list[V]:
     """A visible normal of GGX(ax, ay) seen from wi (Heitz 2018, JCGT, listing 1)."""
     b.hint = "vndf"
     vh = _normalize([ax * wi[0], ay * wi[1], wi[2]])  # the hemisphere configuration
@@ -167,7 +201,12 @@ def _ggx_vndf(b: Builder, wi: list[V], u: list[V], ax: float, ay: float) -> list
 
 
 def sample_program(
-    *, alpha_x: float, alpha_y: float, weight: float, retro: bool = False
+    *,
+    alpha_x: float,
+    alpha_y: float,
+    weight: float,
+    retro: bool = False,
+    table: dict | None = None,
 ) -> Program:
     """Inputs ``wi`` (3), ``u1`` (1), ``u2`` (2) -> outputs ``wo`` (3) and ``pdf``."""
     b = Builder()
@@ -178,13 +217,14 @@ def sample_program(
     r = u2[0].f("sqrt")
     phi = 2.0 * math.pi * u2[1]
     wo = [r * phi.f("cos"), r * phi.f("sin"), _max(1.0 - u2[0], 0.0).f("sqrt")]
-    if weight > 0.0:
-        m = _ggx_vndf(b, wi, u2, alpha_x, alpha_y)
+    if _uses_ggx(weight, table):
+        ax, ay, w = _params(b, wi, alpha_x, alpha_y, weight, table)
+        m = _ggx_vndf(b, wi, u2, ax, ay)
         b.hint = "mirror"
         k = 2.0 * _dot(wi, m)
         v = [k * m[j] - wi[j] for j in range(3)]
         v = _turn(v) if retro else v
-        pick = u1 < weight
+        pick = u1 < w
         wo = [_select(pick, v[j], wo[j]) for j in range(3)]
-    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro)
+    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table)
     return b.finish({"wi": 3, "u1": 1, "u2": 2}, {"wo": [v.i for v in wo], "pdf": [p.i]})
