@@ -144,13 +144,19 @@ def measure(path: Path, samples: int, seed: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("models", nargs="+", help="LABEL=PATH or PATH (label: its folder name)")
+    ap.add_argument(
+        "models",
+        nargs="+",
+        help="LABEL=PATH or PATH (label: its two parent folders, e.g. compact/gold)",
+    )
     ap.add_argument("--samples", type=int, default=1 << 16)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     torch.set_num_threads(1)
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if result.get("theta_deg") != list(THETA_DEG):  # measured at other directions: stale
+        result = {}
     result.update(
         {
             "benchmark": "sampling_noise",
@@ -164,7 +170,8 @@ def main() -> None:
     for spec in args.models:
         label, _, path = spec.rpartition("=")
         path = Path(path)
-        label = label or path.parent.name
+        # by default "compact/gold" for runs/.../compact/gold/model.onnx
+        label = label or f"{path.parent.parent.name}/{path.parent.name}"
         models[label] = r = measure(path, args.samples, args.seed)
         write_json(args.out, result)
         ratio = "exact native sampler" if r["noise_ratio"] is None else f"{r['noise_ratio']:.2f}x"
