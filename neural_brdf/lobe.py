@@ -23,13 +23,20 @@ the network is evaluated once per sample, not once per candidate:
 
 1. isotropic mirror and retro lobes over the alpha grid, every share w;
 2. if turning the best lobe anisotropic (alpha_x != alpha_y) lowers the score by more
-   than ``ANISO_GAIN``, a coordinate search over (alpha_x, alpha_y) on the same grid.
+   than ``ANISO_GAIN``, a coordinate search over (alpha_x, alpha_y) on the same grid;
+3. if giving each incident direction its own roughness (same aspect) and share lowers
+   the score by more than ``PER_INCIDENCE_GAIN``, a per-incidence ``table`` of
+   (alpha_x, alpha_y, w) over cos theta_i at the fit's directions, interpolated linearly
+   and clamped at the ends (:func:`at`).
 
 It takes about a second.  :mod:`neural_brdf.export` stores the result in the metadata
 key ``sampling_lobe``:
 
     {"kind": "cosine+ggx_vndf", "alpha": 0.26, "alpha_x": 0.26, "alpha_y": 0.26,
      "retro": false, "weight": 0.9, "second_moment": 1.31, "second_moment_cosine": 3.9}
+
+plus, for a per-incidence lobe, ``"table": {"cos_theta": [...], "alpha_x": [...],
+"alpha_y": [...], "weight": [...]}`` (the top-level values are then the single lobe's).
 
 ``weight`` is the GGX share w; ``alpha`` is sqrt(alpha_x alpha_y) (files written before
 the anisotropic lobe hold ``alpha`` only, read as alpha_x = alpha_y = alpha, no retro);
@@ -135,6 +142,9 @@ def fit(
             m2_table = float(flat[np.arange(len(pools)), pick].mean())
             if m2_table < (1.0 - PER_INCIDENCE_GAIN) * m2:
                 rows = [(line[c // len(WEIGHTS)], c % len(WEIGHTS)) for c in pick]
+                # where the cosine lobe alone is best (share 0) every roughness ties: keep
+                # the single lobe's, so interpolation towards a glossy node stays smooth
+                rows = [(k if j_k > 0 else (ia, ib, retro), j_k) for k, j_k in rows]
                 order = np.argsort(np.cos(np.radians(THETA_DEG)))  # cos theta ascending
                 table = {
                     "cos_theta": [float(np.cos(np.radians(THETA_DEG[k]))) for k in order],
@@ -278,16 +288,18 @@ def parse(text: str) -> dict:
         kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
         ax, ay = float(lobe.get("alpha_x", alpha)), float(lobe.get("alpha_y", alpha))
         retro = lobe.get("retro", False)
-    except (ValueError, KeyError, TypeError, AttributeError):
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
         raise InputError(
             f'metadata {KEY!r}: expected JSON {{"kind": "{KIND}", '
             f'"alpha": a, "weight": w}}, got {text!r}'
         ) from None
     if kind != KIND:
         raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
-    if not (alpha > 0 and ax > 0 and ay > 0 and 0.0 <= weight <= 1.0):
+    finite = all(math.isfinite(v) for v in (alpha, ax, ay))
+    if not (finite and alpha > 0 and ax > 0 and ay > 0 and 0.0 <= weight <= 1.0):
         raise InputError(
-            f"metadata {KEY!r}: alpha, alpha_x and alpha_y must be > 0 and weight in [0, 1], "
+            f"metadata {KEY!r}: alpha, alpha_x and alpha_y must be finite and > 0 and weight "
+            f"in [0, 1], "
             f"got {text!r}"
         )
     if not isinstance(retro, bool):
@@ -311,8 +323,12 @@ def _parse_table(table, text: str) -> dict:
     [0, 1]."""
     keys = ("cos_theta", "alpha_x", "alpha_y", "weight")
     try:
+        if not all(isinstance(table[k], list) for k in keys) or any(
+            isinstance(v, bool) for k in keys for v in table[k]
+        ):
+            raise TypeError
         cols = {k: [float(v) for v in table[k]] for k in keys}
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise InputError(
             f"metadata {KEY!r}: table must hold lists {', '.join(keys)}, got {text!r}"
         ) from None
@@ -336,7 +352,7 @@ def _parse_table(table, text: str) -> dict:
 
 def complete(lobe: dict) -> dict:
     """A lobe dict, possibly partial ({"alpha": a, "weight": w}), checked and with every
-    key: kind, alpha, alpha_x, alpha_y, retro, weight."""
+    key: kind, alpha, alpha_x, alpha_y, retro, weight (and its table, if it has one)."""
     return parse(to_json({"kind": KIND, **lobe}))
 
 

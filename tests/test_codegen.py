@@ -349,6 +349,8 @@ PER_INCIDENCE = {
         "weight": [0.9, 0.5, 0.2],
     },
 }
+# both: a retro lobe whose roughness and share vary with cos theta_i
+RETRO_TABLE = {**PER_INCIDENCE, "retro": True}
 
 
 def stored_lobe(model):
@@ -358,7 +360,7 @@ def stored_lobe(model):
 
 
 @pytest.mark.parametrize(
-    "override", [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO, PER_INCIDENCE]
+    "override", [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO, PER_INCIDENCE, RETRO_TABLE]
 )
 def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     path = models["isotropic"]
@@ -400,7 +402,14 @@ def expected_bin_probabilities(c: CProgram, wi1: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize(
     "theta_deg, override",
-    [(20.0, None), (70.0, None), (20.0, ANISO_RETRO), (70.0, ANISO_RETRO), (50.0, PER_INCIDENCE)],
+    [
+        (20.0, None),
+        (70.0, None),
+        (20.0, ANISO_RETRO),
+        (70.0, ANISO_RETRO),
+        (50.0, PER_INCIDENCE),
+        (35.0, RETRO_TABLE),
+    ],
 )
 def test_c_sample_follows_pdf(models, c_programs, theta_deg, override, tmp_path):
     from scipy import stats
@@ -534,7 +543,7 @@ def wgsl_eval(device, source: str, wi, wo) -> np.ndarray:
 
 @pytest.mark.parametrize(
     "lobe",
-    [ANISO_RETRO, PER_INCIDENCE, {**ANISO_RETRO, "table": PER_INCIDENCE["table"]}],
+    [ANISO_RETRO, PER_INCIDENCE, RETRO_TABLE],
     ids=["aniso_retro", "per_incidence", "both"],
 )
 def test_shaders_with_every_lobe_shape_compile(models, wgpu_device, tmp_path, lobe):

@@ -336,11 +336,19 @@ PER_INCIDENCE = {
         "weight": [0.9, 0.5, 0.2],
     },
 }
+# both: a retro lobe whose roughness and share vary with cos theta_i
+RETRO_TABLE = {**PER_INCIDENCE, "retro": True}
 
 
 @pytest.mark.parametrize(
     "stored",
-    [{"alpha": 0.08, "weight": 0.5}, {"alpha": 0.6, "weight": 0.2}, ANISO_RETRO, PER_INCIDENCE],
+    [
+        {"alpha": 0.08, "weight": 0.5},
+        {"alpha": 0.6, "weight": 0.2},
+        ANISO_RETRO,
+        PER_INCIDENCE,
+        RETRO_TABLE,
+    ],
 )
 def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, stored):
     """A lobe unlike the fitted one is written into the file: the plugin's pdf must be
@@ -372,7 +380,8 @@ def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp
 
 @pytest.mark.parametrize(
     "theta, stored",
-    [(t, None) for t in CHI2_THETA_DEG] + [(45.0, ANISO_RETRO), (60.0, PER_INCIDENCE)],
+    [(t, None) for t in CHI2_THETA_DEG]
+    + [(45.0, ANISO_RETRO), (60.0, PER_INCIDENCE), (30.0, RETRO_TABLE)],
 )
 def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
@@ -392,7 +401,7 @@ def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
         ires=CHI2_IRES,
         seed=int(theta),
     )
-    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 2, quiet=True)
+    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 3, quiet=True)
     if not ok:
         monkeypatch.chdir(tmp_path)
         test._dump_tables()

@@ -161,10 +161,10 @@ def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
         ('{"alpha": 0.3, "weight": 0.5}', "expected JSON"),
         ('{"kind": "gaussian", "alpha": 0.3, "weight": 0.5}', "unknown lobe kind 'gaussian'"),
         ('{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 1.5}', "weight in [0, 1]"),
-        ('{"kind": "cosine+ggx_vndf", "alpha": -1, "weight": 0.5}', "must be > 0"),
+        ('{"kind": "cosine+ggx_vndf", "alpha": -1, "weight": 0.5}', "must be finite and > 0"),
         (
             '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "alpha_y": 0, "weight": 0.5}',
-            "alpha_y must be > 0",
+            "alpha_y must be finite and > 0",
         ),
         (
             '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "retro": "yes"}',
@@ -177,6 +177,19 @@ def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
         (
             '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, '
             '"table": {"cos_theta": [0.5]}}',
+            "table must hold lists",
+        ),
+        ('{"kind": "cosine+ggx_vndf", "alpha": ' + "9" * 400 + ', "weight": 0.5}', "expected JSON"),
+        ('{"kind": "cosine+ggx_vndf", "alpha": Infinity, "weight": 0.5}', "must be finite"),
+        (
+            '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "table": {"cos_theta": '
+            '{"0.1": 1, "0.9": 2}, "alpha_x": [0.1, 0.2], "alpha_y": [0.1, 0.2], '
+            '"weight": [0.5, 0.5]}}',
+            "table must hold lists",
+        ),
+        (
+            '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "table": {"cos_theta": '
+            '[0.1, 0.9], "alpha_x": [0.1, 0.2], "alpha_y": [0.1, 0.2], "weight": [true, 0.5]}}',
             "table must hold lists",
         ),
         (

@@ -487,7 +487,7 @@ def mitsuba_presets_section(d: dict) -> list[str]:
                 str(p["steps"]),
                 f"{p['psnr_db']:.1f}",
                 f"{p['psnr_noise_floor_db']:.1f}",
-                f"α {p['sampling_lobe']['alpha']:.2f}, weight {p['sampling_lobe']['weight']:.2f}",
+                _lobe_text(p["sampling_lobe"]),
             ]
             for p in d["presets"]
         ],
