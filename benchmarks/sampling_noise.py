@@ -64,7 +64,7 @@ def lobe_sample(wi: torch.Tensor, u: torch.Tensor, lobe: dict):
     lobe = lobes.complete(lobe)
     # one incident direction per call: the per-incidence table's values at its cos theta
     ax, ay, weight = (float(v) for v in lobes.at(lobe, float(wi[0, 2])))
-    dist = Distribution("ggx", ax, ay)
+    dist = Distribution(lobe["distribution"], ax, ay)
     turn = torch.tensor([-1.0, -1.0, 1.0], dtype=wi.dtype) if lobe["retro"] else 1.0
     pick_ggx = u[:, 0] < weight
     u_cos = torch.stack(
@@ -132,7 +132,7 @@ def measure(path: Path, samples: int, seed: int) -> dict:
         "lobe": {
             k: v
             for k, v in lobes.complete(lobe).items()
-            if k in ("alpha_x", "alpha_y", "retro", "weight", "table")
+            if k in ("alpha_x", "alpha_y", "retro", "distribution", "weight", "table")
         },
         "samples": samples,
         "directions": rows,

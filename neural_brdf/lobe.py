@@ -7,13 +7,15 @@ sample and whose density is known exactly:
     m = normalize(wi + R wo),   R = identity (a mirror lobe) or R (x, y, z) = (-x, -y, z)
     (a retro lobe),
 
-a cosine-weighted hemisphere plus a GGX visible-normal lobe of roughness
-``(alpha_x, alpha_y)`` (anisotropic when they differ; x is the tangent) reflected about
-the sampled normal m (D_wi is the GGX distribution of visible normals, Heitz 2018).  A
+a cosine-weighted hemisphere plus a GGX or Beckmann (``distribution``) visible-normal
+lobe of roughness ``(alpha_x, alpha_y)`` (anisotropic when they differ; x is the
+tangent) reflected about the sampled normal m (D_wi is the distribution of visible
+normals, Heitz 2018; for Beckmann, Heitz & d'Eon 2014).  A
 retro lobe is the mirror lobe turned by pi about the normal, so it is centred on wi
-itself: R is an isometry, so its density is the mirror lobe's at R wo.  The GGX term is
-Mitsuba's ``MicrofacetDistribution(GGX, alpha_x, alpha_y, sample_visible=True)``, so the
-plugin in :mod:`neural_brdf.mitsuba` samples it with Mitsuba's own code.
+itself: R is an isometry, so its density is the mirror lobe's at R wo.  The lobe term is
+Mitsuba's ``MicrofacetDistribution(GGX or Beckmann, alpha_x, alpha_y,
+sample_visible=True)``, so the plugin in :mod:`neural_brdf.mitsuba` samples it with
+Mitsuba's own code.
 
 :func:`fit` minimises the relative second moment of the sample weight f cos / pdf
 (1 + the relative variance of a one-sample albedo estimate), averaged over incident
@@ -21,7 +23,7 @@ directions.  Every candidate is scored on one pooled set of samples (a defensive
 of the cosine lobe and isotropic mirror and retro lobes of every alpha of the grid), so
 the network is evaluated once per sample, not once per candidate:
 
-1. isotropic mirror and retro lobes over the alpha grid, every share w;
+1. isotropic GGX and Beckmann, mirror and retro lobes over the alpha grid, every share w;
 2. if turning the best lobe anisotropic (alpha_x != alpha_y) lowers the score by more
    than ``ANISO_GAIN``, a coordinate search over (alpha_x, alpha_y) on the same grid;
 3. if giving each incident direction its own roughness (same aspect) and share lowers
@@ -33,13 +35,15 @@ It takes about a second.  :mod:`neural_brdf.export` stores the result in the met
 key ``sampling_lobe``:
 
     {"kind": "cosine+ggx_vndf", "alpha": 0.26, "alpha_x": 0.26, "alpha_y": 0.26,
-     "retro": false, "weight": 0.9, "second_moment": 1.31, "second_moment_cosine": 3.9}
+     "retro": false, "distribution": "ggx", "weight": 0.9, "second_moment": 1.31,
+     "second_moment_cosine": 3.9}
 
 plus, for a per-incidence lobe, ``"table": {"cos_theta": [...], "alpha_x": [...],
 "alpha_y": [...], "weight": [...]}`` (the top-level values are then the single lobe's).
 
-``weight`` is the GGX share w; ``alpha`` is sqrt(alpha_x alpha_y) (files written before
-the anisotropic lobe hold ``alpha`` only, read as alpha_x = alpha_y = alpha, no retro);
+``weight`` is the lobe's share w; ``alpha`` is sqrt(alpha_x alpha_y) (files written
+before these keys hold ``alpha`` only, read as a GGX mirror lobe with alpha_x = alpha_y
+= alpha; the kind keeps its historical name whatever the distribution);
 the two second moments (the fitted lobe's and cosine sampling's alone) say how much the
 lobe helps.  This module needs numpy, torch and onnxruntime only: no renderer.
 """
@@ -79,6 +83,8 @@ SAMPLES = 512  # per proposal of the pool (cosine, mirror and retro per alpha) p
 # isotropic model keeps alpha_x == alpha_y whatever the sampling noise.
 ANISO_GAIN = 0.03
 ANISO_ROUNDS = 3  # coordinate-search rounds (alpha_x, then alpha_y)
+# The microfacet distributions a lobe can sample: Mitsuba's MicrofacetType names.
+DISTRIBUTIONS = ("ggx", "beckmann")
 # A per-incidence table (roughness and share per incident direction) is kept only if it
 # lowers the mean second moment by this share.
 PER_INCIDENCE_GAIN = 0.05
@@ -91,12 +97,14 @@ def fit(
     anisotropic: bool = True,
     retro: bool = True,
     per_incidence: bool = True,
+    distributions: tuple[str, ...] = DISTRIBUTIONS,
 ) -> dict:
     """Fit the lobe to ``fn(wi, wo) -> f`` (numpy float32 (N, 3) in, (N, 3) out, 1/sr).
 
     ``anisotropic`` / ``retro`` / ``per_incidence`` False restrict the search to
-    alpha_x == alpha_y / mirror lobes / one lobe for every incident direction.  Returns
-    the metadata dict (see the module docstring), with JSON-ready floats."""
+    alpha_x == alpha_y / mirror lobes / one lobe for every incident direction, and
+    ``distributions`` to some of :data:`DISTRIBUTIONS`.  Returns the metadata dict (see
+    the module docstring), with JSON-ready floats."""
     allow_retro = retro
     rng = np.random.default_rng(seed)
     threads = torch.get_num_threads()
@@ -105,10 +113,10 @@ def fit(
         pools = [_Pool(fn, _incident(t, 0.9 * k), rng) for k, t in enumerate(THETA_DEG)]
         scores: dict[tuple, np.ndarray] = {}
 
-        def per_pool(ia: int, ib: int, retro: bool) -> np.ndarray:  # (pools, WEIGHTS)
-            key = (ia, ib, retro)
+        def per_pool(ia: int, ib: int, retro: bool, dist: str) -> np.ndarray:  # (pools, W)
+            key = (ia, ib, retro, dist)
             if key not in scores:
-                scores[key] = np.stack([p.second_moments(ia, ib, retro) for p in pools])
+                scores[key] = np.stack([p.second_moments(ia, ib, retro, dist) for p in pools])
             return scores[key]
 
         def best(keys) -> tuple[float, tuple, int]:
@@ -119,22 +127,32 @@ def fit(
 
         n = len(ALPHAS)
         shapes = (False, True) if allow_retro else (False,)
-        m2, (ia, ib, retro), j = best([(i, i, r) for r in shapes for i in range(n)])
-        cosine = float(per_pool(0, 0, False).mean(0)[0])  # w = 0: the cosine lobe alone
+        m2, (ia, ib, retro, dist), j = best(
+            [(i, i, r, d) for d in distributions for r in shapes for i in range(n)]
+        )
+        cosine = float(per_pool(0, 0, False, "ggx").mean(0)[0])  # w = 0: the cosine lobe
         if j > 0 and anisotropic:  # a GGX lobe is used: try it anisotropic
-            step = [(ia + d, ib - d, retro) for d in (-2, 2) if 0 <= ia + d < n and 0 <= ib - d < n]
+            step = [
+                (ia + d, ib - d, retro, dist)
+                for d in (-2, 2)
+                if 0 <= ia + d < n and 0 <= ib - d < n
+            ]
             if step and best(step)[0] < (1.0 - ANISO_GAIN) * m2:
                 for _ in range(ANISO_ROUNDS):
                     last = (ia, ib)
-                    m2, (ia, ib, retro), j = best([(i, ib, retro) for i in range(n)])
-                    m2, (ia, ib, retro), j = best([(ia, i, retro) for i in range(n)])
+                    m2, (ia, ib, retro, dist), j = best([(i, ib, retro, dist) for i in range(n)])
+                    m2, (ia, ib, retro, dist), j = best([(ia, i, retro, dist) for i in range(n)])
                     if (ia, ib) == last:
                         break
+        if j == 0:  # the cosine lobe alone: no GGX or Beckmann part to describe
+            ia, ib, retro, dist = 0, 0, False, "ggx"
         table = None
         if per_incidence and j > 0:
             # each incident direction's own roughness (same aspect) and share
             line = [
-                (ia + t, ib + t, retro) for t in range(-n, n) if 0 <= ia + t < n and 0 <= ib + t < n
+                (ia + t, ib + t, retro, dist)
+                for t in range(-n, n)
+                if 0 <= ia + t < n and 0 <= ib + t < n
             ]
             stack = np.stack([per_pool(*k) for k in line])  # (line, pools, WEIGHTS)
             flat = stack.transpose(1, 0, 2).reshape(len(pools), -1)
@@ -144,7 +162,7 @@ def fit(
                 rows = [(line[c // len(WEIGHTS)], c % len(WEIGHTS)) for c in pick]
                 # where the cosine lobe alone is best (share 0) every roughness ties: keep
                 # the single lobe's, so interpolation towards a glossy node stays smooth
-                rows = [(k if j_k > 0 else (ia, ib, retro), j_k) for k, j_k in rows]
+                rows = [(k if j_k > 0 else (ia, ib, retro, dist), j_k) for k, j_k in rows]
                 order = np.argsort(np.cos(np.radians(THETA_DEG)))  # cos theta ascending
                 table = {
                     "cos_theta": [float(np.cos(np.radians(THETA_DEG[k]))) for k in order],
@@ -162,6 +180,7 @@ def fit(
         "alpha_x": ax,
         "alpha_y": ay,
         "retro": bool(retro),
+        "distribution": dist,
         "weight": float(WEIGHTS[j]),
         "second_moment": m2,
         "second_moment_cosine": cosine,
@@ -214,6 +233,25 @@ def _ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
     return g1 * cos_ih * d / (wz * 4.0 * cos_oh)
 
 
+def _beckmann_pdf(wi: np.ndarray, wo: np.ndarray, ax: float, ay: float) -> np.ndarray:
+    """As :func:`_ggx_pdf` for the Beckmann distribution: D (Walter et al. 2007, eq. 25,
+    anisotropic slopes) and Smith Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
+    sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    hz_safe = np.maximum(hz, 1e-6)
+    e = (hx * hx / (ax * ax) + hy * hy / (ay * ay)) / (hz_safe * hz_safe)
+    d = np.where(hz > 1e-6, np.exp(-e) / (math.pi * ax * ay * hz_safe**4), 0.0)
+    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
+    a = 1.0 / np.sqrt(np.maximum((ax * ax * wx * wx + ay * ay * wy * wy) / (wz * wz), 1e-30))
+    erf = torch.special.erf(torch.from_numpy(np.ascontiguousarray(a))).numpy()
+    lam = 0.5 * (erf - 1.0) + np.exp(-a * a) / (2.0 * a * math.sqrt(math.pi))
+    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
+    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
+    return cos_ih * d / ((1.0 + lam) * wz * 4.0 * cos_oh)
+
+
 class _Pool:
     """Samples at one incident direction, pooled over the cosine lobe and the isotropic
     mirror and retro GGX lobes of every alpha of the grid (the defensive mixture q), with
@@ -248,16 +286,17 @@ class _Pool:
         self.p_cos = p_cos[live].astype(np.float32)
         self.norm = len(wo) * albedo * albedo
 
-    def second_moments(self, ia: int, ib: int, retro: bool) -> np.ndarray:
-        """E_p[(f cos / p)^2] / A^2 for the lobe (ALPHAS[ia], ALPHAS[ib], retro) and
-        every share w of WEIGHTS (A = the albedo, RGB mean)."""
+    def second_moments(self, ia: int, ib: int, retro: bool, dist: str = "ggx") -> np.ndarray:
+        """E_p[(f cos / p)^2] / A^2 for the lobe (ALPHAS[ia], ALPHAS[ib], retro, dist)
+        and every share w of WEIGHTS (A = the albedo, RGB mean)."""
         if self.black:
             return np.zeros(len(WEIGHTS))
-        if ia == ib:
+        if ia == ib and dist == "ggx":
             p = self.p_iso[retro][ia]
         else:
             wo = _turn(self.wo) if retro else self.wo
-            p = _ggx_pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib]).astype(np.float32)
+            pdf = _ggx_pdf if dist == "ggx" else _beckmann_pdf
+            p = pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib]).astype(np.float32)
         m2 = np.empty(len(WEIGHTS))
         with np.errstate(divide="ignore"):
             for j, w in enumerate(WEIGHTS.astype(np.float32)):
@@ -304,12 +343,18 @@ def parse(text: str) -> dict:
         )
     if not isinstance(retro, bool):
         raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
+    dist = lobe.get("distribution", "ggx")
+    if dist not in DISTRIBUTIONS:
+        raise InputError(
+            f"metadata {KEY!r}: unknown distribution {dist!r} (known: {', '.join(DISTRIBUTIONS)})"
+        )
     out = {
         **lobe,
         "alpha": max(alpha, MIN_ALPHA),
         "alpha_x": max(ax, MIN_ALPHA),
         "alpha_y": max(ay, MIN_ALPHA),
         "retro": retro,
+        "distribution": dist,
         "weight": weight,
     }
     if lobe.get("table") is not None:
@@ -352,7 +397,8 @@ def _parse_table(table, text: str) -> dict:
 
 def complete(lobe: dict) -> dict:
     """A lobe dict, possibly partial ({"alpha": a, "weight": w}), checked and with every
-    key: kind, alpha, alpha_x, alpha_y, retro, weight (and its table, if it has one)."""
+    key: kind, alpha, alpha_x, alpha_y, retro, distribution, weight (and its table, if it
+    has one)."""
     return parse(to_json({"kind": KIND, **lobe}))
 
 

@@ -319,13 +319,14 @@ def mixture_pdf(wi, wo, lobe):
     from analytic.microfacet import Distribution
 
     ax, ay, weight = lobe_params(lobe, wi[:, 2])
+    dist = lobe.get("distribution", "ggx")
     wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
     v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if lobe.get("retro") else wo
     h = frame.normalize(wi + v)
     ggx = (
         torch.cat(
             [  # one row at a time: analytic's Distribution takes scalar alphas
-                Distribution("ggx", a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
+                Distribution(dist, a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
                 for k, (a, b) in enumerate(zip(ax, ay))
             ]
         )
@@ -351,6 +352,8 @@ PER_INCIDENCE = {
 }
 # both: a retro lobe whose roughness and share vary with cos theta_i
 RETRO_TABLE = {**PER_INCIDENCE, "retro": True}
+# a Beckmann lobe (visible normals, bisection sampler), anisotropic and per incidence
+BECKMANN = {**PER_INCIDENCE, "distribution": "beckmann"}
 
 
 def stored_lobe(model):
@@ -360,7 +363,8 @@ def stored_lobe(model):
 
 
 @pytest.mark.parametrize(
-    "override", [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO, PER_INCIDENCE, RETRO_TABLE]
+    "override",
+    [None, {"alpha": 0.08, "weight": 0.5}, ANISO_RETRO, PER_INCIDENCE, RETRO_TABLE, BECKMANN],
 )
 def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     path = models["isotropic"]
@@ -409,6 +413,8 @@ def expected_bin_probabilities(c: CProgram, wi1: np.ndarray) -> np.ndarray:
         (70.0, ANISO_RETRO),
         (50.0, PER_INCIDENCE),
         (35.0, RETRO_TABLE),
+        (15.0, BECKMANN),
+        (75.0, BECKMANN),
     ],
 )
 def test_c_sample_follows_pdf(models, c_programs, theta_deg, override, tmp_path):
@@ -543,8 +549,8 @@ def wgsl_eval(device, source: str, wi, wo) -> np.ndarray:
 
 @pytest.mark.parametrize(
     "lobe",
-    [ANISO_RETRO, PER_INCIDENCE, RETRO_TABLE],
-    ids=["aniso_retro", "per_incidence", "both"],
+    [ANISO_RETRO, PER_INCIDENCE, RETRO_TABLE, BECKMANN],
+    ids=["aniso_retro", "per_incidence", "both", "beckmann"],
 )
 def test_shaders_with_every_lobe_shape_compile(models, wgpu_device, tmp_path, lobe):
     """The sampling code of anisotropic, retro and per-incidence lobes is valid GLSL ES

@@ -306,13 +306,14 @@ def mixture_pdf(wi, wo, stored):
     from analytic.microfacet import Distribution
 
     ax, ay, weight = lobe_params(stored, wi[:, 2])
+    dist = stored.get("distribution", "ggx")
     wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
     v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if stored.get("retro") else wo
     h = frame.normalize(wi + v)
     ggx = (
         torch.cat(
             [  # one row at a time: analytic's Distribution takes scalar alphas
-                Distribution("ggx", a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
+                Distribution(dist, a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
                 for k, (a, b) in enumerate(zip(ax, ay))
             ]
         )
@@ -338,6 +339,8 @@ PER_INCIDENCE = {
 }
 # both: a retro lobe whose roughness and share vary with cos theta_i
 RETRO_TABLE = {**PER_INCIDENCE, "retro": True}
+# a Beckmann lobe (visible normals, bisection sampler), anisotropic and per incidence
+BECKMANN = {**PER_INCIDENCE, "distribution": "beckmann"}
 
 
 @pytest.mark.parametrize(
@@ -348,6 +351,7 @@ RETRO_TABLE = {**PER_INCIDENCE, "retro": True}
         ANISO_RETRO,
         PER_INCIDENCE,
         RETRO_TABLE,
+        BECKMANN,
     ],
 )
 def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, stored):
@@ -381,7 +385,7 @@ def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp
 @pytest.mark.parametrize(
     "theta, stored",
     [(t, None) for t in CHI2_THETA_DEG]
-    + [(45.0, ANISO_RETRO), (60.0, PER_INCIDENCE), (30.0, RETRO_TABLE)],
+    + [(45.0, ANISO_RETRO), (60.0, PER_INCIDENCE), (30.0, RETRO_TABLE), (70.0, BECKMANN)],
 )
 def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
     from mitsuba.chi2 import BSDFAdapter, ChiSquareTest, SphericalDomain
@@ -401,7 +405,7 @@ def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
         ires=CHI2_IRES,
         seed=int(theta),
     )
-    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 3, quiet=True)
+    ok = test.run(significance_level=0.01, test_count=len(CHI2_THETA_DEG) + 4, quiet=True)
     if not ok:
         monkeypatch.chdir(tmp_path)
         test._dump_tables()

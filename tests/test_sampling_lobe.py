@@ -73,7 +73,7 @@ def fresh_second_moment(brdf, got: dict, n: int = 1 << 15, seed: int = 7) -> flo
                 float(np.interp(math.cos(t), tab["cos_theta"], tab[key]))
                 for key in ("alpha_x", "alpha_y", "weight")
             )
-        dist = Distribution("ggx", ax, ay)
+        dist = Distribution(got["distribution"], ax, ay)
         wi = torch.tensor(
             [math.sin(t) * math.cos(phi), math.sin(t) * math.sin(phi), math.cos(t)],
             dtype=torch.float64,
@@ -134,6 +134,20 @@ def test_fresnel_and_phong_targets_get_a_per_incidence_lobe(name, params):
     assert fresh_second_moment(brdf, got) < 0.9 * fresh_second_moment(brdf, single)
 
 
+@pytest.mark.parametrize("alpha, material", [(0.1, "Ag"), (0.6, "Cu")])
+def test_beckmann_target_gets_a_beckmann_lobe(alpha, material):
+    """A GGX lobe of any roughness differs from a Beckmann target in shape (most at
+    grazing incidence); the Beckmann visible-normal lobe follows it."""
+    brdf = analytic.create(
+        "microfacet", distribution="beckmann", alpha=alpha, fresnel="conductor", material=material
+    )
+    got = lobe.fit(brdf.eval)
+    ggx = lobe.fit(brdf.eval, distributions=("ggx",))
+    assert got["distribution"] == "beckmann" and ggx["distribution"] == "ggx", (got, ggx)
+    # relative variances (second moment - 1): the Beckmann lobe's is at most half
+    assert fresh_second_moment(brdf, got) - 1 < 0.5 * (fresh_second_moment(brdf, ggx) - 1)
+
+
 def test_fit_is_deterministic():
     brdf = analytic.create("phong")
     assert lobe.fit(brdf.eval) == lobe.fit(brdf.eval)
@@ -151,6 +165,7 @@ def test_metadata_round_trip():
 def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
     old = lobe.parse('{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5}')
     assert (old["alpha_x"], old["alpha_y"], old["retro"]) == (0.3, 0.3, False)
+    assert old["distribution"] == "ggx"
     assert lobe.complete({"alpha": 0.3, "weight": 0.5}) == old
 
 
@@ -181,6 +196,10 @@ def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
         ),
         ('{"kind": "cosine+ggx_vndf", "alpha": ' + "9" * 400 + ', "weight": 0.5}', "expected JSON"),
         ('{"kind": "cosine+ggx_vndf", "alpha": Infinity, "weight": 0.5}', "must be finite"),
+        (
+            '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "distribution": "phong"}',
+            "unknown distribution 'phong'",
+        ),
         (
             '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5, "table": {"cos_theta": '
             '{"0.1": 1, "0.9": 2}, "alpha_x": [0.1, 0.2], "alpha_y": [0.1, 0.2], '

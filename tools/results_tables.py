@@ -817,6 +817,7 @@ def _lobe_text(lobe: dict) -> str:
     ay = lobe.get("alpha_y", lobe.get("alpha"))
     alpha = f"{ax:.3g}" if ax == ay else f"({ax:.3g}, {ay:.3g})"
     retro = " retro" if lobe.get("retro") else ""
+    retro += " Beckmann" if lobe.get("distribution") == "beckmann" else ""
     if lobe.get("table"):  # per incidence: the range over the table's nodes
         t = lobe["table"]
         lo, hi = min(t["alpha_x"]), max(t["alpha_x"])
@@ -857,7 +858,7 @@ def sampling_noise_section(d: dict) -> list[str]:
     out += _table(
         [
             "model",
-            "lobe: GGX alpha (x, y) / share",
+            "lobe: alpha (x, y) / share (GGX unless named)",
             "relative variance, lobe",
             "relative variance, native",
             "noise ratio",

@@ -232,7 +232,8 @@ class CStyleRenderer:
                 value = " ".join(str(meta[key]).split())  # one line
                 lines.append(f"{c} {key}: {value[:200]}")
         lines.append(
-            f"{c} sampling lobe: {lobes.KIND}, alpha_x={lobe['alpha_x']:.6g}, "
+            f"{c} sampling lobe: {lobes.KIND}, {lobe['distribution']}, "
+            f"alpha_x={lobe['alpha_x']:.6g}, "
             f"alpha_y={lobe['alpha_y']:.6g}, weight={lobe['weight']:.6g}"
             + (", retro (turned by pi about the normal)" if lobe["retro"] else "")
             + (
@@ -282,6 +283,7 @@ class CStyleRenderer:
         lobe = lobes.complete(lobe)
         shape = {k: lobe[k] for k in ("alpha_x", "alpha_y", "weight", "retro")}
         shape["table"] = lobe.get("table")
+        shape["distribution"] = lobe["distribution"]
         if source is None:
             source = (
                 str(model)

@@ -7,8 +7,9 @@
 
 The mixture of :mod:`neural_brdf.lobe`: a cosine-weighted hemisphere (share 1 - w) and
 a GGX visible-normal lobe of roughness (ax, ay) reflected about the sampled normal (share
-w), turned by pi about the normal for a retro lobe.  With a per-incidence ``table``, ax,
-ay and w are interpolated linearly in cos theta_i between its nodes.  It is written once
+w; a Beckmann lobe with ``distribution="beckmann"``), turned by pi about the normal for
+a retro lobe.  With a per-incidence ``table``, ax, ay and w are interpolated linearly in
+cos theta_i between its nodes.  It is written once
 here with the instruction builder of :mod:`neural_brdf.graph` and rendered by every code
 back end, like the network itself.
 
@@ -139,7 +140,17 @@ def _uses_ggx(weight, table) -> bool:
     return (max(table["weight"]) if table else weight) > 0.0
 
 
-def _pdf(b: Builder, wi: list[V], wo: list[V], ax, ay, weight, retro: bool, table=None) -> V:
+def _pdf(
+    b: Builder,
+    wi: list[V],
+    wo: list[V],
+    ax,
+    ay,
+    weight,
+    retro: bool,
+    table=None,
+    distribution: str = "ggx",
+) -> V:
     uses_ggx = _uses_ggx(weight, table)
     ax, ay, weight = _params(b, wi, ax, ay, weight, table)
     b.hint = "pdf"
@@ -150,10 +161,24 @@ def _pdf(b: Builder, wi: list[V], wo: list[V], ax, ay, weight, retro: bool, tabl
         m = _normalize([wi[k] + v[k] for k in range(3)])
         dot_om = _dot(v, m)
         dot_im = _max(_dot(wi, m), 0.0)
-        t = m[0] * m[0] * (1.0 / (ax * ax)) + m[1] * m[1] * (1.0 / (ay * ay)) + m[2] * m[2]
-        d = 1.0 / (math.pi * ax * ay * t * t)
-        s = (ax * ax) * (wi[0] * wi[0]) + (ay * ay) * (wi[1] * wi[1]) + wi[2] * wi[2]
-        g1 = 2.0 * wi[2] / (wi[2] + s.f("sqrt"))
+        if distribution == "beckmann":
+            # D = exp(-(m_x^2 / ax^2 + m_y^2 / ay^2) / m_z^2) / (pi ax ay m_z^4) and
+            # Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a sqrt(pi)), a = 1 / (alpha
+            # tan theta) (Walter et al. 2007, eqs. 25 and 27)
+            mz = _max(m[2], 1e-6)
+            e = (m[0] * m[0] * (1.0 / (ax * ax)) + m[1] * m[1] * (1.0 / (ay * ay))) / (mz * mz)
+            d = _select(
+                m[2] > 1e-6, (-e).f("exp") / (math.pi * ax * ay * (mz * mz) * (mz * mz)), 0.0
+            )
+            a2 = ((ax * ax) * (wi[0] * wi[0]) + (ay * ay) * (wi[1] * wi[1])) / (wi[2] * wi[2])
+            a = 1.0 / _max(a2, 1e-30).f("sqrt")
+            lam = 0.5 * (a.f("erf") - 1.0) + (-(a * a)).f("exp") / (a * (2.0 * math.sqrt(math.pi)))
+            g1 = 1.0 / (1.0 + lam)
+        else:
+            t = m[0] * m[0] * (1.0 / (ax * ax)) + m[1] * m[1] * (1.0 / (ay * ay)) + m[2] * m[2]
+            d = 1.0 / (math.pi * ax * ay * t * t)
+            s = (ax * ax) * (wi[0] * wi[0]) + (ay * ay) * (wi[1] * wi[1]) + wi[2] * wi[2]
+            g1 = 2.0 * wi[2] / (wi[2] + s.f("sqrt"))
         d_visible = g1 * dot_im * d / wi[2]
         ggx = _select(dot_om > 0.0, d_visible / (4.0 * dot_om), 0.0)
         p = p + weight * ggx
@@ -167,11 +192,12 @@ def pdf_program(
     weight: float,
     retro: bool = False,
     table: dict | None = None,
+    distribution: str = "ggx",
 ) -> Program:
     """Inputs ``wi``, ``wo`` (3 columns) -> output ``pdf`` (solid-angle density of wo)."""
     b = Builder()
     wi, wo = _vec(b, "wi", 3), _vec(b, "wo", 3)
-    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table)
+    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table, distribution)
     return b.finish({"wi": 3, "wo": 3}, {"pdf": [p.i]})
 
 
@@ -200,6 +226,52 @@ def _ggx_vndf(b: Builder, wi: list[V], u: list[V], ax, ay) -> list[V]:
     return _normalize([ax * nh[0], ay * nh[1], _max(nh[2], 0.0)])
 
 
+# Bisection steps of the Beckmann visible-slope sampler: the interval [-6, 6] shrinks
+# to 12 / 2^20 ~ 1e-5 in slope, below float32's resolution of the directions it makes.
+BISECTIONS = 20
+
+
+def _beckmann_vndf(b: Builder, wi: list[V], u: list[V], ax, ay) -> list[V]:
+    """A visible normal of Beckmann(ax, ay) seen from wi.  Heitz & d'Eon 2014: stretch wi
+    to unit roughness; with it at polar angle t and azimuth 0 the visible slopes have the
+    density (cos t - x sin t) exp(-x^2 - y^2) / pi on x < cot t, so y ~ N(0, 1/2) and x
+    has the (unnormalised) CDF C(x) = cos t (1 + erf x) / 2 + sin t exp(-x^2) / (2
+    sqrt(pi)).  Both are inverted by bisection on [-6, 6] (the tails beyond hold < 1e-16
+    of the mass), u.x for x and u.y for y; the slopes are turned to wi's azimuth and
+    unstretched."""
+    b.hint = "vndf"
+    ws = _normalize([ax * wi[0], ay * wi[1], wi[2]])
+    ct = ws[2]
+    st = _max(1.0 - ct * ct, 0.0).f("sqrt")
+    hi = ct._op("min", ct / _max(st, 1e-30), 6.0)  # x < cot t
+
+    def cdf(x: V) -> V:
+        return ct * (0.5 * (1.0 + x.f("erf"))) + st * (-(x * x)).f("exp") * (
+            0.5 / math.sqrt(math.pi)
+        )
+
+    lo = V(b, b.scalar(-6.0))
+    target = u[0] * cdf(hi)
+    for _ in range(BISECTIONS):
+        mid = (lo + hi) * 0.5
+        below = cdf(mid) < target
+        lo, hi = _select(below, mid, lo), _select(below, hi, mid)
+    x = (lo + hi) * 0.5
+    ty = 2.0 * u[1] - 1.0  # erf(y) = 2 u.y - 1
+    lo, hi = V(b, b.scalar(-6.0)), V(b, b.scalar(6.0))
+    for _ in range(BISECTIONS):
+        mid = (lo + hi) * 0.5
+        below = mid.f("erf") < ty
+        lo, hi = _select(below, mid, lo), _select(below, hi, mid)
+    y = (lo + hi) * 0.5
+    r2 = ws[0] * ws[0] + ws[1] * ws[1]
+    has_xy = r2 > 0.0
+    inv = 1.0 / _max(r2, 1e-30).f("sqrt")
+    cp, sp = _select(has_xy, ws[0] * inv, 1.0), _select(has_xy, ws[1] * inv, 0.0)
+    sx, sy = cp * x - sp * y, sp * x + cp * y
+    return _normalize([-(ax * sx), -(ay * sy), 1.0])
+
+
 def sample_program(
     *,
     alpha_x: float,
@@ -207,6 +279,7 @@ def sample_program(
     weight: float,
     retro: bool = False,
     table: dict | None = None,
+    distribution: str = "ggx",
 ) -> Program:
     """Inputs ``wi`` (3), ``u1`` (1), ``u2`` (2) -> outputs ``wo`` (3) and ``pdf``."""
     b = Builder()
@@ -219,12 +292,13 @@ def sample_program(
     wo = [r * phi.f("cos"), r * phi.f("sin"), _max(1.0 - u2[0], 0.0).f("sqrt")]
     if _uses_ggx(weight, table):
         ax, ay, w = _params(b, wi, alpha_x, alpha_y, weight, table)
-        m = _ggx_vndf(b, wi, u2, ax, ay)
+        vndf = _beckmann_vndf if distribution == "beckmann" else _ggx_vndf
+        m = vndf(b, wi, u2, ax, ay)
         b.hint = "mirror"
         k = 2.0 * _dot(wi, m)
         v = [k * m[j] - wi[j] for j in range(3)]
         v = _turn(v) if retro else v
         pick = u1 < w
         wo = [_select(pick, v[j], wo[j]) for j in range(3)]
-    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table)
+    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table, distribution)
     return b.finish({"wi": 3, "u1": 1, "u2": 2}, {"wo": [v.i for v in wo], "pdf": [p.i]})
