@@ -28,9 +28,9 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-import torch
 
 import neural_brdf
+from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mixture_pdf
 from neural_brdf import config, lobe, train
 from neural_brdf.config import InputError
 from neural_brdf.export import relative_difference
@@ -283,64 +283,6 @@ def test_a_file_without_the_lobe_is_fitted_at_load(mi, tiny_model, legacy_model)
     assert bsdf.lobe_source == "fitted at load"
     # the same network, so the same fit as the exporter's
     assert bsdf.lobe == lobe.from_metadata(neural_brdf.load(tiny_model).metadata)
-
-
-def lobe_params(stored: dict, cos_i: np.ndarray):
-    """Per-row (alpha_x, alpha_y, weight) of a stored lobe: its per-incidence table
-    interpolated linearly in cos theta_i with np.interp (clamped), or its constants."""
-    n = len(cos_i)
-    t = stored.get("table")
-    if t:
-        return tuple(
-            np.interp(cos_i, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight")
-        )
-    ax = stored.get("alpha_x", stored["alpha"])
-    ay = stored.get("alpha_y", stored["alpha"])
-    return np.full(n, ax), np.full(n, ay), np.full(n, stored["weight"])
-
-
-def mixture_pdf(wi, wo, stored):
-    """The lobe's density over the sphere, from analytic's GGX (not Mitsuba's); a retro
-    lobe's density at wo is the mirror lobe's at wo turned by pi about the normal."""
-    from analytic import frame
-    from analytic.microfacet import Distribution
-
-    ax, ay, weight = lobe_params(stored, wi[:, 2])
-    dist = stored.get("distribution", "ggx")
-    wi, wo = torch.from_numpy(wi).double(), torch.from_numpy(wo).double()
-    v = wo * torch.tensor([-1.0, -1.0, 1.0], dtype=wo.dtype) if stored.get("retro") else wo
-    h = frame.normalize(wi + v)
-    ggx = (
-        torch.cat(
-            [  # one row at a time: analytic's Distribution takes scalar alphas
-                Distribution(dist, a, b).pdf_visible(wi[k : k + 1], h[k : k + 1])
-                for k, (a, b) in enumerate(zip(ax, ay))
-            ]
-        )
-        / (4.0 * frame.dot(v, h))
-    )
-    weight = torch.from_numpy(np.asarray(weight, dtype=np.float64))
-    p = (1.0 - weight) * frame.cosine_hemisphere_pdf(wo) + weight * ggx
-    return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), p, 0.0).numpy()
-
-
-# an anisotropic retro lobe (x is the tangent): unlike any fitted one
-ANISO_RETRO = {"alpha": 0.2, "alpha_x": 0.1, "alpha_y": 0.4, "weight": 0.6, "retro": True}
-# a per-incidence lobe: roughness (anisotropic) and share vary with cos theta_i
-PER_INCIDENCE = {
-    "alpha": 0.2,
-    "weight": 0.5,
-    "table": {
-        "cos_theta": [0.1, 0.5, 0.9],
-        "alpha_x": [0.5, 0.2, 0.05],
-        "alpha_y": [0.3, 0.2, 0.1],
-        "weight": [0.9, 0.5, 0.2],
-    },
-}
-# both: a retro lobe whose roughness and share vary with cos theta_i
-RETRO_TABLE = {**PER_INCIDENCE, "retro": True}
-# a Beckmann lobe (visible normals, bisection sampler), anisotropic and per incidence
-BECKMANN = {**PER_INCIDENCE, "distribution": "beckmann"}
 
 
 @pytest.mark.parametrize(

@@ -231,6 +231,15 @@ def _ggx_vndf(b: Builder, wi: list[V], u: list[V], ax, ay) -> list[V]:
 BISECTIONS = 20
 
 
+def _bisect(fn, target: V, lo: V, hi) -> V:
+    """x in [lo, hi] with fn(x) = target, fn increasing: BISECTIONS halvings."""
+    for _ in range(BISECTIONS):
+        mid = (lo + hi) * 0.5
+        below = fn(mid) < target
+        lo, hi = _select(below, mid, lo), _select(below, hi, mid)
+    return (lo + hi) * 0.5
+
+
 def _beckmann_vndf(b: Builder, wi: list[V], u: list[V], ax, ay) -> list[V]:
     """A visible normal of Beckmann(ax, ay) seen from wi.  Heitz & d'Eon 2014: stretch wi
     to unit roughness; with it at polar angle t and azimuth 0 the visible slopes have the
@@ -250,20 +259,8 @@ def _beckmann_vndf(b: Builder, wi: list[V], u: list[V], ax, ay) -> list[V]:
             0.5 / math.sqrt(math.pi)
         )
 
-    lo = V(b, b.scalar(-6.0))
-    target = u[0] * cdf(hi)
-    for _ in range(BISECTIONS):
-        mid = (lo + hi) * 0.5
-        below = cdf(mid) < target
-        lo, hi = _select(below, mid, lo), _select(below, hi, mid)
-    x = (lo + hi) * 0.5
-    ty = 2.0 * u[1] - 1.0  # erf(y) = 2 u.y - 1
-    lo, hi = V(b, b.scalar(-6.0)), V(b, b.scalar(6.0))
-    for _ in range(BISECTIONS):
-        mid = (lo + hi) * 0.5
-        below = mid.f("erf") < ty
-        lo, hi = _select(below, mid, lo), _select(below, hi, mid)
-    y = (lo + hi) * 0.5
+    x = _bisect(cdf, u[0] * cdf(hi), V(b, b.scalar(-6.0)), hi)
+    y = _bisect(lambda t: t.f("erf"), 2.0 * u[1] - 1.0, V(b, b.scalar(-6.0)), 6.0)
     r2 = ws[0] * ws[0] + ws[1] * ws[1]
     has_xy = r2 > 0.0
     inv = 1.0 / _max(r2, 1e-30).f("sqrt")
