@@ -4,8 +4,11 @@
     python benchmarks/merl_fit.py --materials chrome,brass --sizes default
     python benchmarks/merl_fit.py --table                  # print the README table
 
-The MERL measurements themselves are not shipped here; ../shared/data/nbrdf holds the
-NBRDF networks (Sztrajman et al. 2021) fitted to all 100 of them.  Each material is
+The MERL measurements themselves are not shipped here.  ``--data DIR`` (default
+``data/`` in the checkout, git-ignored) must hold ``nbrdf/merl_nbrdf_weights.npz``, the
+NBRDF networks (Sztrajman et al. 2021) fitted to all 100 of them (the authors' Keras
+weights as numpy arrays, layout in docs/merl.md), and ``merl_abc_low2012_params.csv``, the
+ABC fits (Low et al. 2012).  Each material is
 that network evaluated at every MERL bin centre (reciprocal average, as
 ``neural_brdf.merl.nbrdf_fixture(..., reciprocal=True)``) and written as a ``.binary``
 file, which is then fitted with ``configs/merl.yaml`` exactly as a user would:
@@ -44,7 +47,7 @@ if str(REPO) not in sys.path:
 
 from benchmarks.common import write_json  # noqa: E402
 
-DATA = REPO.parent / "shared" / "data"
+DATA = REPO / "data"  # default of --data
 RESULTS = REPO / "benchmarks" / "results" / "merl_fit.json"
 # Diffuse to near-mirror: a diffuse, a fabric, two plastics, a metallic paint, three metals.
 MATERIALS = [
@@ -60,12 +63,12 @@ MATERIALS = [
 SIZES = {"default": [], "nbrdf": ["model.hidden=[20,20]"]}
 
 
-def material_file(name: str, folder: Path) -> Path:
+def material_file(name: str, folder: Path, data: Path) -> Path:
     from neural_brdf import merl
 
     path = folder / f"{name}.binary"
     if not path.is_file():
-        npz = DATA / "nbrdf" / "merl_nbrdf_weights.npz"
+        npz = data / "nbrdf" / "merl_nbrdf_weights.npz"
         merl.bake(merl.nbrdf_fixture(npz, name, reciprocal=True), path)
     return path
 
@@ -101,10 +104,10 @@ def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]
     }
 
 
-def abc_errors(name: str, path: Path) -> dict:
+def abc_errors(name: str, path: Path, folder: Path) -> dict:
     from neural_brdf import data, merl, validate
 
-    fn = merl.abc_fixture(DATA / "merl_abc_low2012_params.csv", name)
+    fn = merl.abc_fixture(folder / "merl_abc_low2012_params.csv", name)
     acc = validate.accuracy(fn, data.MeasuredTarget.from_file(path), n=0, seed=0)
     return {"rel_rmse": acc["rel_rmse"], "nbrdf_log_error": acc["nbrdf_log_error"]}
 
@@ -149,6 +152,7 @@ def main(argv=None) -> int:
         default=Path(tempfile.gettempdir()) / "nbrdf-merl",
         help="folder for the .binary files and run directories",
     )
+    p.add_argument("--data", type=Path, default=DATA, help="NBRDF weights and ABC fits")
     p.add_argument("--out", type=Path, default=RESULTS)
     p.add_argument("--resume", action="store_true", help="keep finished fits in --out")
     p.add_argument("--table", action="store_true", help="print the table of --out and exit")
@@ -177,9 +181,9 @@ def main(argv=None) -> int:
         }
     )
     for name in materials:
-        path = material_file(name, args.work)
+        path = material_file(name, args.work, args.data)
         entry = results["materials"].setdefault(name, {"neural": {}})
-        entry["abc"] = abc_errors(name, path)
+        entry["abc"] = abc_errors(name, path, args.data)
         for size in sizes:
             if size in entry["neural"]:
                 continue

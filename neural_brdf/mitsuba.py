@@ -37,7 +37,7 @@ analytic plugin always does.  The sample weight is
 computed by the very same traced functions as ``eval`` and ``pdf`` (value / pdf), so it
 equals eval / pdf exactly.
 
-Conventions (Mitsuba's, and NOTES.md): ``eval`` returns f * cos(theta_o), 0 when wi or
+Conventions (Mitsuba's): ``eval`` returns f * cos(theta_o), 0 when wi or
 wo is at or below the horizon (one-sided, like Mitsuba's built-in BSDFs); ``pdf`` is 0
 below the horizon; a sample below it has weight 0.
 """
