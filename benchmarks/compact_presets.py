@@ -69,6 +69,26 @@ HELD_OUT = [
         ["target.params.alpha=0.3", "target.params.material=Au"],
     ),
     (
+        "held_out/as_blue_50",
+        "plastic",
+        [
+            "target.params.rd=[0.05,0.1,0.5]",
+            "target.params.rs=0.08",
+            "target.params.nu=50",
+            "target.params.nv=50",
+        ],
+    ),
+    (
+        "held_out/as_brushed_200x20",
+        "brushed_as",
+        [
+            "target.params.rd=0.3",
+            "target.params.rs=0.3",
+            "target.params.nu=20",
+            "target.params.nv=200",
+        ],
+    ),
+    (
         "held_out/brushed_ggx_cu_0.3x0.1",
         "brushed_ggx",
         [

@@ -70,6 +70,22 @@ class Grid(_Section):
         return self
 
 
+class CosineGrid(_Section):
+    # a second learned (u, v) grid over the two cosines, (cos_i + cos_o) / 2 and
+    # |cos_i - cos_o| (model.py): carries terms set by the cosines, as a diffuse term of
+    # Ashikhmin-Shirley's or Oren-Nayar's form
+    size: int = Field(0, ge=0, le=257)  # nodes per axis; 0: off
+    channels: int = Field(4, ge=1, le=64)  # learned features per node
+    init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
+    lr_scale: float = Field(1.0, gt=0.0)  # its learning rate / train.lr
+
+    @model_validator(mode="after")
+    def _size(self):
+        if self.size == 1:
+            raise ValueError("size: must be 0 (off) or >= 2 nodes per axis")
+        return self
+
+
 class Model(_Section):
     # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
     encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
@@ -81,6 +97,7 @@ class Model(_Section):
     grazing_cos: Literal["mean", "max"] = "mean"
     output_scale: float = Field(1.0, gt=0.0)  # f = output_scale * softplus(y) (see model.py)
     grid: Grid = Field(default_factory=Grid)  # learned feature grid (off by default)
+    cosine_grid: CosineGrid = Field(default_factory=CosineGrid)  # a second one (off)
 
     @model_validator(mode="after")
     def _widths(self):
@@ -90,6 +107,8 @@ class Model(_Section):
             raise ValueError("grid: needs the isotropic or anisotropic encoding, not raw")
         if self.grid.size and self.grid.coords == "half_disc" and self.encoding != "anisotropic":
             raise ValueError("grid.coords: half_disc needs the anisotropic encoding")
+        if self.cosine_grid.size and self.encoding == "raw":
+            raise ValueError("cosine_grid: needs the isotropic or anisotropic encoding, not raw")
         return self
 
 

@@ -146,6 +146,15 @@ class RawBRDF(nn.Module):
     or, with ``grid_coords="half_disc"`` (anisotropic encoding), at the half vector's
     polar map sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h), where an anisotropic
     distribution of normals (the D of GGX or Beckmann) lives.
+
+    ``cosine_grid_size`` > 0 appends a second grid's features, looked up at
+    ((cos_i + cos_o) / 2, |cos_i - cos_o| / (cos_i + cos_o)).  Terms set by the two
+    cosines, such as Ashikhmin-Shirley's diffuse term (a product of a function of cos_i
+    and the same of cos_o, seed 000, eq. 24.7) or the 1 / max(cos_i, cos_o) of its
+    specular term (eq. 24.5), are not functions of (theta_h, theta_d).  The second coordinate is a
+    ratio so that ratios of the cosines, such as min / max, are smooth on the grid down to
+    grazing angles (with |cos_i - cos_o| itself the plastic preset's error at
+    cos_i < 0.05 was 4.9 %; with the ratio 0.76 %).
     """
 
     def __init__(
@@ -162,6 +171,9 @@ class RawBRDF(nn.Module):
         grid_channels: int = 4,
         grid_init_std: float = 1e-2,
         grid_coords: str = "theta",
+        cosine_grid_size: int = 0,
+        cosine_grid_channels: int = 4,
+        cosine_grid_init_std: float = 1e-2,
     ):
         super().__init__()
         self.encoding = encoding
@@ -182,7 +194,20 @@ class RawBRDF(nn.Module):
         self.grid = (
             FeatureGrid(grid_size, grid_channels, init_std=grid_init_std) if grid_size else None
         )
-        n_in = enc.num_features(encoding) + (grid_channels if grid_size else 0)
+        if cosine_grid_size and encoding == "raw":
+            raise ValueError("cosine_grid: needs the isotropic or anisotropic encoding")
+        # a second grid over ((cos_i + cos_o) / 2, |cos_i - cos_o|): both bit-exactly
+        # symmetric in (wi, wo), so reciprocity stays exact
+        self.cos_grid = (
+            FeatureGrid(cosine_grid_size, cosine_grid_channels, init_std=cosine_grid_init_std)
+            if cosine_grid_size
+            else None
+        )
+        n_in = (
+            enc.num_features(encoding)
+            + (grid_channels if grid_size else 0)
+            + (cosine_grid_channels if cosine_grid_size else 0)
+        )
         self.mlp = MLP(n_in, hidden, activation, init_value=init_value, output_scale=output_scale)
 
     @staticmethod
@@ -205,6 +230,9 @@ class RawBRDF(nn.Module):
             grid_channels=m.grid.channels,
             grid_init_std=m.grid.init_std,
             grid_coords=m.grid.coords,
+            cosine_grid_size=m.cosine_grid.size,
+            cosine_grid_channels=m.cosine_grid.channels,
+            cosine_grid_init_std=m.cosine_grid.init_std,
         )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
@@ -215,6 +243,11 @@ class RawBRDF(nn.Module):
             if self.grid_coords == "half_disc":  # the unit disc onto the grid's [0, 1]^2
                 u, v = 0.5 * (u + 1.0), 0.5 * (v + 1.0)
             x = torch.cat([x, self.grid(u, v)], -1)
+        if self.cos_grid is not None:
+            ci, co = wi[..., 2], wo[..., 2]
+            total = ci + co
+            ratio = (ci - co).abs() / total.clamp_min(MIN_MEAN_COS)
+            x = torch.cat([x, self.cos_grid(0.5 * total, ratio.clamp_max(1.0))], -1)
         f = self.mlp(x)
         if self.grazing_power != 0.0:
             ci, co = wi[..., 2:3], wo[..., 2:3]

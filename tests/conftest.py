@@ -52,3 +52,13 @@ def baked_materials(nbrdf_npz, tmp_path_factory):
         merl.bake(fn, path)
         out[name] = (fn, path)
     return out
+
+
+@pytest.fixture(scope="session")
+def wgpu_device():
+    """A WebGPU device for the generated WGSL: lavapipe, Mesa's CPU Vulkan, in CI."""
+    import wgpu
+
+    adapter = wgpu.gpu.request_adapter_sync(power_preference="high-performance")
+    assert adapter is not None, "no WebGPU adapter (install mesa-vulkan-drivers: lavapipe)"
+    return adapter.request_device_sync()

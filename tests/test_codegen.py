@@ -469,15 +469,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
 """
 
 
-@pytest.fixture(scope="module")
-def wgpu_device():
-    import wgpu
-
-    adapter = wgpu.gpu.request_adapter_sync(power_preference="high-performance")
-    assert adapter is not None, "no WebGPU adapter (install mesa-vulkan-drivers: lavapipe)"
-    return adapter.request_device_sync()
-
-
 def wgsl_eval(device, source: str, wi, wo) -> np.ndarray:
     from wgpu.utils.compute import compute_with_buffers
 

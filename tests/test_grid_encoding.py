@@ -20,7 +20,17 @@ from neural_brdf.export import relative_difference, to_onnx_bytes
 from neural_brdf.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from neural_brdf.quadrature import albedo, from_numpy
 from test_cli import assert_one_line_error, cli
-from test_codegen import C_TOL, EVERY_OP_LOBE, TINY_RUN, CProgram, glsl_validate, onnx_ref, pairs
+from test_codegen import (
+    C_TOL,
+    EVERY_OP_LOBE,
+    GPU_TOL,
+    TINY_RUN,
+    CProgram,
+    glsl_validate,
+    onnx_ref,
+    pairs,
+    wgsl_eval,
+)
 
 GRID = 8
 CHANNELS = 3
@@ -28,10 +38,13 @@ OPSET = 17
 ALBEDO_TOL = 1e-3  # the validator's bound: max albedo <= 1 + 1e-3
 
 
-def grid_raw(*, bright: float = 0.0, seed: int = 0, coords: str = "theta") -> RawBRDF:
+def grid_raw(
+    *, bright: float = 0.0, seed: int = 0, coords: str = "theta", cosine: bool = False
+) -> RawBRDF:
     """1x16 ReLU over the features + an 8x8x3 grid; random non-zero weights.  ``bright``
     adds a large positive grid value and head bias (an albedo far above 1).  ``coords``
-    "half_disc" makes it an anisotropic model with the grid over the half vector."""
+    "half_disc" makes it an anisotropic model with the grid over the half vector.
+    ``cosine`` adds the second, cosine grid (``model.cosine_grid``), also 8x8x3."""
     torch.manual_seed(seed)
     raw = RawBRDF(
         "anisotropic" if coords == "half_disc" else "isotropic",
@@ -41,11 +54,16 @@ def grid_raw(*, bright: float = 0.0, seed: int = 0, coords: str = "theta") -> Ra
         grid_channels=CHANNELS,
         grid_init_std=0.5,
         grid_coords=coords,
+        cosine_grid_size=GRID if cosine else 0,
+        cosine_grid_channels=CHANNELS,
+        cosine_grid_init_std=0.5,
     )
     with torch.no_grad():
         torch.nn.init.normal_(raw.mlp.head.weight, std=0.3)
         if bright:
             raw.grid.table.add_(bright)
+            if cosine:
+                raw.cos_grid.table.add_(bright)
             raw.mlp.head.bias.add_(bright)
     return raw
 
@@ -63,9 +81,10 @@ def total_model(raw: RawBRDF, table_size: int = 33, samples: int = 2048) -> Tota
     return TotalBRDF(NormalizedBRDF(raw, table)).eval()
 
 
-@pytest.fixture(scope="module", params=["theta", "half_disc"])
+@pytest.fixture(scope="module", params=["theta", "half_disc", "theta+cosine"])
 def exported(tmp_path_factory, request):
-    model = total_model(grid_raw(coords=request.param))
+    coords, _, cosine = request.param.partition("+")
+    model = total_model(grid_raw(coords=coords, cosine=bool(cosine)))
     path = tmp_path_factory.mktemp("grid") / "model.onnx"
     path.write_bytes(to_onnx_bytes(model, OPSET))
     return model, path
@@ -80,9 +99,11 @@ def test_grid_is_in_the_graph_as_gather(exported):
     model, path = exported
     proto = onnx.load(str(path))
     sizes = [int(np.prod(t.dims)) for t in proto.graph.initializer]
-    assert GRID * GRID * CHANNELS in sizes
+    grids = 1 + (model.model.raw.cos_grid is not None)
+    assert sizes.count(GRID * GRID * CHANNELS) == grids
     tables = 0 if model.model.identity else 2 * (4 if model.anisotropic else 2)
-    assert sum(n.op_type == "Gather" for n in proto.graph.node) >= 4 + tables  # grid + A+
+    gathers = sum(n.op_type == "Gather" for n in proto.graph.node)
+    assert gathers >= 4 * grids + tables  # four corners per grid + the albedo table's
 
 
 def test_torch_onnxruntime_parity(exported):
@@ -116,6 +137,14 @@ def test_generated_c_matches_onnxruntime(exported, tmp_path):
     assert relative_difference(got, onnx_ref(path, wi, wo)) <= C_TOL
 
 
+def test_generated_wgsl_matches_onnxruntime(exported, wgpu_device):
+    """The grids' look-ups in WGSL, run on lavapipe (wgpu), against onnxruntime."""
+    _, path = exported
+    wi, wo = pairs(seed=7)
+    got = wgsl_eval(wgpu_device, backends.generate(path, "wgsl", lobe=EVERY_OP_LOBE), wi, wo)
+    assert relative_difference(got, onnx_ref(path, wi, wo)) <= GPU_TOL
+
+
 def test_generated_glsl_compiles(exported, tmp_path):
     """GLSL (WebGL2 and Vulkan) accepts the grid's look-up (values: the viewer's tests)."""
     _, path = exported
@@ -143,8 +172,28 @@ def test_grid_changes_the_output():
     assert not torch.allclose(before, after)
 
 
-def test_furnace_bound_on_a_bright_grid():
-    raw = grid_raw(bright=3.0)
+def test_cosine_grid_changes_the_output_and_only_with_the_cosines():
+    """The cosine grid is used, and it is indexed by the cosines alone: rotating both
+    directions about the normal leaves its look-up unchanged (so f changes only where the
+    theta grid and the features do), while moving one direction's elevation changes it."""
+    raw = grid_raw(cosine=True)
+    wi, wo = (torch.from_numpy(x) for x in pairs(seed=6))
+    with torch.no_grad():
+        before = raw(wi, wo)
+        raw.cos_grid.table[0].add_(5.0)  # node (0, 0): mean cosine 0, equal cosines
+        after = raw(wi, wo)
+    changed = (before != after).any(-1)
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    mean_cos = 0.5 * (wi[:, 2] + wo[:, 2])
+    ratio = (wi[:, 2] - wo[:, 2]).abs() / (wi[:, 2] + wo[:, 2])
+    in_cell = up & (mean_cos < 1 / (GRID - 1)) & (ratio < 1 / (GRID - 1))
+    assert changed[in_cell].all() and in_cell.any()
+    assert not changed[up & ~in_cell].any()  # a node only reaches its four cells
+
+
+@pytest.mark.parametrize("cosine", [False, True])
+def test_furnace_bound_on_a_bright_grid(cosine):
+    raw = grid_raw(bright=3.0, cosine=cosine)
     model = total_model(raw, samples=4096)
     dirs = torch.from_numpy(physics.random_directions(64, 11)).double()
     with torch.no_grad():
@@ -171,6 +220,8 @@ def torch_eval_raw(raw, wi, wo):
         ("model.grid.size=-3", "model.grid.size"),
         ("model.grid.channels=0", "model.grid.channels"),
         ("model.grid.sizes=4", "model.grid.sizes"),
+        ("model.cosine_grid.size=1", "model.cosine_grid.size"),
+        ("model.cosine_grid.lr_scale=0", "model.cosine_grid.lr_scale"),
     ],
 )
 def test_bad_grid_config_is_exit_2_naming_the_key(capsys, tmp_path, value, key):
@@ -201,6 +252,22 @@ def test_grid_on_an_encoding_without_its_axes_is_a_config_error(capsys, tmp_path
         other,
     )
     assert_one_line_error(code, err, key)
+    assert not (tmp_path / "r").exists()
+
+
+def test_cosine_grid_on_the_raw_encoding_is_a_config_error(capsys, tmp_path):
+    code, _, err = cli(
+        capsys,
+        "train",
+        "configs/gold.yaml",
+        "--out",
+        str(tmp_path / "r"),
+        "--set",
+        "model.cosine_grid.size=8",
+        "--set",
+        "model.encoding=raw",
+    )
+    assert_one_line_error(code, err, "cosine_grid")
     assert not (tmp_path / "r").exists()
 
 
