@@ -233,13 +233,16 @@ def test_bad_grid_config_is_exit_2_naming_the_key(capsys, tmp_path, value, key):
 
 
 @pytest.mark.parametrize(
-    "other, key",
+    "grid, other, key",
     [
-        ("model.encoding=raw", "model.grid"),  # the raw ablation encoding has no grid axes
-        ("model.grid.coords=half_disc", "grid.coords"),  # the half vector: anisotropic only
+        # the raw ablation encoding has no grid axes
+        ("model.grid.size=8", "model.encoding=raw", "model.grid"),
+        ("model.cosine_grid.size=8", "model.encoding=raw", "cosine_grid"),
+        # the half vector: anisotropic only
+        ("model.grid.size=8", "model.grid.coords=half_disc", "grid.coords"),
     ],
 )
-def test_grid_on_an_encoding_without_its_axes_is_a_config_error(capsys, tmp_path, other, key):
+def test_grid_on_an_encoding_without_its_axes_is_a_config_error(capsys, tmp_path, grid, other, key):
     code, _, err = cli(
         capsys,
         "train",
@@ -247,27 +250,11 @@ def test_grid_on_an_encoding_without_its_axes_is_a_config_error(capsys, tmp_path
         "--out",
         str(tmp_path / "r"),
         "--set",
-        "model.grid.size=8",
+        grid,
         "--set",
         other,
     )
     assert_one_line_error(code, err, key)
-    assert not (tmp_path / "r").exists()
-
-
-def test_cosine_grid_on_the_raw_encoding_is_a_config_error(capsys, tmp_path):
-    code, _, err = cli(
-        capsys,
-        "train",
-        "configs/gold.yaml",
-        "--out",
-        str(tmp_path / "r"),
-        "--set",
-        "model.cosine_grid.size=8",
-        "--set",
-        "model.encoding=raw",
-    )
-    assert_one_line_error(code, err, "cosine_grid")
     assert not (tmp_path / "r").exists()
 
 
