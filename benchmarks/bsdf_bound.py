@@ -317,6 +317,7 @@ def bench_model(label: str, path: Path, *, resolution: int, spp: int, repeats: i
             "activation": m.get("activation"),
             "encoding": m.get("encoding"),
             "grid": m.get("grid"),
+            "cosine_grid": m.get("cosine_grid"),
         },
         "size": model_size(path),
         "render_wall_s": runs,

@@ -57,3 +57,26 @@ def write_json(path: Path, data) -> None:
     from neural_brdf.fileio import atomic_write
 
     atomic_write(path, json.dumps(data, indent=2) + "\n", parents=True)
+
+
+def add_fit_arguments(p, *, work: str, data: Path, out: Path, resume: str, data_holds: str) -> None:
+    """The options the benchmarks that train many fits share: --set, --work, --data,
+    --out and --resume (``resume`` says what it keeps, ``data_holds`` what --data holds)."""
+    import tempfile
+
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        help="extra config override for every fit (recorded in the JSON)",
+    )
+    p.add_argument(
+        "--work",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / work,
+        help="folder for the .binary files and run directories",
+    )
+    p.add_argument("--data", type=Path, default=data, help=f"holds {data_holds}")
+    p.add_argument("--out", type=Path, default=out)
+    p.add_argument("--resume", action="store_true", help=f"keep {resume} in --out")

@@ -36,7 +36,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does (neural_brdf/cli.py)
@@ -45,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from benchmarks.common import write_json  # noqa: E402
+from benchmarks.common import add_fit_arguments, write_json  # noqa: E402
 
 DATA = REPO / "data"  # default of --data
 RESULTS = REPO / "benchmarks" / "results" / "merl_fit.json"
@@ -139,22 +138,14 @@ def main(argv=None) -> int:
     p.add_argument("--materials", default=",".join(MATERIALS))
     p.add_argument("--sizes", default=",".join(SIZES))
     p.add_argument("--threads", type=int, default=2, help="train.threads of each fit")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        help="extra config override for every fit (recorded in the JSON)",
+    add_fit_arguments(
+        p,
+        work="nbrdf-merl",
+        data=DATA,
+        out=RESULTS,
+        resume="finished fits",
+        data_holds="nbrdf/merl_nbrdf_weights.npz and merl_abc_low2012_params.csv",
     )
-    p.add_argument(
-        "--work",
-        type=Path,
-        default=Path(tempfile.gettempdir()) / "nbrdf-merl",
-        help="folder for the .binary files and run directories",
-    )
-    p.add_argument("--data", type=Path, default=DATA, help="NBRDF weights and ABC fits")
-    p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--resume", action="store_true", help="keep finished fits in --out")
     p.add_argument("--table", action="store_true", help="print the table of --out and exit")
     args = p.parse_args(argv)
     if args.table:

@@ -179,7 +179,7 @@ def main() -> None:
             f"{label}: noise {ratio} (relative variance {r['rel_var_lobe']:.3g} vs "
             f"{r['rel_var_native']:.3g}), lobe alpha ({r['lobe']['alpha_x']:.3g}, "
             f"{r['lobe']['alpha_y']:.3g}){' retro' if r['lobe']['retro'] else ''} "
-            f"w {r['lobe']['weight']:.1f}",
+            f"w {r['lobe']['weight']:.3g}",
             flush=True,
         )
     print(f"wrote {args.out}")

@@ -5,7 +5,7 @@
     python tools/results_tables.py --stdout   # print the page instead of writing it
 
 Reads ``benchmarks/results/*.json`` (suite, neural_presets, neural_throughput,
-analytic_throughput, merl_fit, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
+analytic_throughput, merl_fit, merl_sweep, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
 bsdf_bound, compact_presets, sampling_noise) and ``docs/results/sweep_timing.json``.
 Each section names the JSON file and the script that wrote it, and the date, machine and
 load average that file records (or says that it records none).  ``render()`` is pure
@@ -427,6 +427,99 @@ def merl_section(d: dict) -> list[str]:
     return out
 
 
+def _quantile(values: list[float], q: float) -> float:
+    """The q-quantile, linear between order statistics."""
+    v = sorted(values)
+    x = q * (len(v) - 1)
+    i = int(x)
+    return v[i] if i + 1 >= len(v) else v[i] + (x - i) * (v[i + 1] - v[i])
+
+
+def merl_sweep_section(d: dict) -> list[str]:
+    mats = d["materials"]
+    recipes = list(d["recipes"])
+    n = len(mats)
+    out = [
+        "## All MERL materials: compact recipe and default network, BRDF and render space",
+        "",
+        _source("benchmarks/results/merl_sweep.json", "python benchmarks/merl_sweep.py"),
+        _recorded(
+            d.get("date"),
+            d.get("machine"),
+            f"{d.get('load_at_start')} at the start, {d.get('load_at_end')} at the end",
+        ),
+        f"{n} materials. Reference: {d['reference']}. Recipes: "
+        + ", ".join(f"{k} = `{v}`" for k, v in d["recipes"].items())
+        + f" (overrides: {d['overrides'] or 'none'}), {d['workers']} worker processes of "
+        f"one thread (other jobs shared the machine at times: the training seconds are "
+        f"wall times under that load). Render: {d['render']}. BRDF-space errors over every "
+        "measured bin "
+        "centre. Medians, and the worst tenth (the 90th percentile of an error, the 10th "
+        "of a PSNR):",
+        "",
+    ]
+    metrics = [
+        ("rel RMSE of f cos", "rel_rmse", lambda x: _pct(x, 2), True),
+        ("NBRDF log error", "nbrdf_log_error", lambda x: f"{x:.4f}", True),
+        ("PSNR (dB)", "psnr_db", lambda x: f"{x:.1f}", False),
+        ("HDR-FLIP", "flip", lambda x: f"{x:.3f}", True),
+        ("training (s)", "train_seconds", lambda x: f"{x:.0f}", True),
+    ]
+    head = ["metric"]
+    for r in recipes:
+        head += [f"{r}: median", f"{r}: worst tenth"]
+    head += ["compact better"]
+    rows = []
+    for label, key, fmt, lower_is_better in metrics:
+        row = [label]
+        vals = {r: [m[r][key] for m in mats.values()] for r in recipes}
+        for r in recipes:
+            row += [
+                fmt(_quantile(vals[r], 0.5)),
+                fmt(_quantile(vals[r], 0.9 if lower_is_better else 0.1)),
+            ]
+        better = sum(
+            (m["compact"][key] < m["default"][key]) == lower_is_better
+            and m["compact"][key] != m["default"][key]
+            for m in mats.values()
+        )
+        row.append(f"{better} of {n}")
+        rows.append(row)
+    out += _table(head, rows)
+    size = {r: next(iter(mats.values()))[r] for r in recipes}
+    passed = {r: sum(m[r]["passed"] for m in mats.values()) for r in recipes}
+    recip = max(m[r]["reciprocity"] for m in mats.values() for r in recipes)
+    albedo = max(m[r]["max_albedo"] for m in mats.values() for r in recipes)
+    out += [
+        "Size per evaluation: "
+        + "; ".join(
+            f"{r} {size[r]['parameters']:,} parameters, {size[r]['flops']:,} arithmetic "
+            "operations in the lowered graph"
+            for r in recipes
+        )
+        + ". Physics checks passed: "
+        + ", ".join(f"{r} {passed[r]} of {n}" for r in recipes)
+        + f"; largest reciprocity error {recip:.2g}, largest max directional albedo "
+        f"{albedo:.3f}.",
+        "",
+        "![Reference, compact and default spheres of eight materials](figures/merl_spheres.png)",
+        "",
+        "<details><summary>Every material</summary>",
+        "",
+    ]
+    head = ["material"]
+    for r in recipes:
+        head += [f"rel RMSE ({r})", f"PSNR ({r})", f"FLIP ({r})"]
+    rows = []
+    for name, m in sorted(mats.items()):
+        row = [name]
+        for r in recipes:
+            row += [_pct(m[r]["rel_rmse"], 2), f"{m[r]['psnr_db']:.1f}", f"{m[r]['flip']:.3f}"]
+        rows.append(row)
+    out += _table(head, rows) + ["</details>", ""]
+    return out
+
+
 def mitsuba_render_section(d: dict) -> list[str]:
     m = d["machine"]
     mode = d["modes"][d["ratio_mode"]]
@@ -624,6 +717,9 @@ def _arch(a: dict) -> str:
     if grid.get("size"):
         where = " (half vector)" if grid.get("coords") == "half_disc" else ""
         arch = f"grid {grid['size']}²x{grid['channels']}{where} + " + arch
+    cos_grid = a.get("cosine_grid") or {}
+    if cos_grid.get("size"):
+        arch = f"cosine grid {cos_grid['size']}²x{cos_grid['channels']} + " + arch
     return arch
 
 
@@ -739,8 +835,10 @@ def compact_presets_section(d: dict) -> list[str]:
             continue
         r, v = m["render"], m["validation"]
         z, fr = r["size"], r["first_render_fresh_cache"]
-        grid = r["architecture"].get("grid") or {}
-        grid_values = grid.get("size", 0) ** 2 * grid.get("channels", 0) if grid else 0
+        grid_values = sum(
+            g.get("size", 0) ** 2 * g.get("channels", 0)
+            for g in (r["architecture"].get(k) or {} for k in ("grid", "cosine_grid"))
+        )
         per = r["ratio_per_round"]
         ok = (
             v["passed"]
@@ -822,8 +920,8 @@ def _lobe_text(lobe: dict) -> str:
         t = lobe["table"]
         lo, hi = min(t["alpha_x"]), max(t["alpha_x"])
         alpha = f"{lo:.3g}-{hi:.3g}" if t["alpha_x"] == t["alpha_y"] else alpha + " (scaled)"
-        return f"{alpha}{retro} / {min(t['weight']):.1f}-{max(t['weight']):.1f} per θi"
-    return f"{alpha}{retro} / {lobe['weight']:.1f}"
+        return f"{alpha}{retro} / {min(t['weight']):.3g}-{max(t['weight']):.3g} per θi"
+    return f"{alpha}{retro} / {lobe['weight']:.3g}"
 
 
 def sampling_noise_section(d: dict) -> list[str]:
@@ -873,6 +971,7 @@ SECTIONS = (
     (RESULTS / "suite.json", suite_section),
     (RESULTS / "neural_presets.json", neural_presets_section),
     (RESULTS / "merl_fit.json", merl_section),
+    (RESULTS / "merl_sweep.json", merl_sweep_section),
     (RESULTS / "mitsuba_render.json", mitsuba_render_section),
     (RESULTS / "mitsuba_presets.json", mitsuba_presets_section),
     (RESULTS / "neural_throughput.json", neural_throughput_section),
