@@ -378,6 +378,9 @@ def run_trial(job: dict) -> dict:
         cfg = cfgmod.from_dict(job["config"], source=f"trial {job['name']}")
         record["metrics"] = _metrics(train.run(cfg, run_dir, overwrite=True), cfg)
         record["status"] = "ok"
+    except train.Interrupted as e:  # Ctrl-C reached this worker: the sweep stops (run_sweep)
+        record["status"] = "interrupted"
+        record["error"] = _one_line(e)
     except Exception as e:  # noqa: BLE001 -- recorded, then the next trial
         record["status"] = "failed"
         record["error"] = _one_line(e)
@@ -573,6 +576,12 @@ def run_sweep(
         )
         try:
             for record in run:
+                if record["status"] == "interrupted":
+                    # The terminal's Ctrl-C reaches every process of the group, but the
+                    # worker's may be handled first (its trainer saves a checkpoint and
+                    # returns): that trial is not failed, the sweep is interrupted, and a
+                    # rerun starts the trial afresh.
+                    raise KeyboardInterrupt
                 finish(record)
         except KeyboardInterrupt:
             run.close()  # stops the pool / shuts Ray down

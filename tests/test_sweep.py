@@ -345,3 +345,24 @@ def test_shipped_sweep_files_plan_cleanly(path, tmp_path):
     assert len({j["name"] for j in jobs}) == len(jobs)
     for job in jobs:  # every trial is an ordinary 1-thread run
         assert job["config"]["train"]["threads"] == 1
+
+
+def test_a_trial_interrupted_in_its_worker_interrupts_the_sweep(tmp_path, monkeypatch):
+    """Ctrl-C reaches every process of the terminal's group; when a worker's trainer
+    handles it first and returns, the sweep stops as interrupted (not with a failed
+    trial), and the trial is left for the rerun."""
+    path = write_sweep(tmp_path, list=TRIALS[:2])
+    out = tmp_path / "out"
+
+    def worker_saw_ctrl_c(jobs, workers):
+        for job in jobs:
+            record = sweep.run_trial(job)  # a real trial
+            if job["name"] == "seed-1":
+                record = {**record, "status": "interrupted", "error": "Interrupted: step 5"}
+            yield record
+
+    monkeypatch.setattr(sweep, "_run_local", worker_saw_ctrl_c)
+    with pytest.raises(train.Interrupted, match="run the same command again"):
+        sweep.run_sweep(path, workers=1, out=out)
+    rows = {r["trial"]: r["status"] for r in read(out / "results.json")["trials"]}
+    assert rows["seed-0"] == "ok" and rows["seed-1"] not in ("ok", "failed")
