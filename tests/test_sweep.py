@@ -213,6 +213,9 @@ def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
         cmd,
         cwd=REPO,
         start_new_session=True,
+        # as a shell starts a foreground job: SIGINT at its default even where this test
+        # runs as a background job (`cmd &` in a script), which inherits SIGINT ignored
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         text=True,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
