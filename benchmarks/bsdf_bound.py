@@ -65,7 +65,7 @@ mi.set_variant("llvm_ad_rgb")
 
 import numpy as np  # noqa: E402
 import onnx  # noqa: E402
-from common import evals_per_second, write_json  # noqa: E402
+from common import arith_ops, evals_per_second, write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
 import neural_brdf.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
@@ -181,12 +181,11 @@ def model_size(path: Path) -> dict:
                     flops += 2 * d[0] * d[1]
     prog = graph.lower(proto)
     counts = prog.count()
-    arith = {"add", "sub", "mul", "div", "fma", "neg", "abs", "min", "max"}
     return {
         "mlp_params": params,
         "linear_flops_per_eval": flops,
         "lowered_instructions": len(prog.instrs),
-        "lowered_arith_flops": sum(counts.get(k, 0) * (2 if k == "fma" else 1) for k in arith),
+        "lowered_arith_flops": arith_ops(counts),
         "lowered_op_counts": dict(sorted(counts.items())),
         "table_entries": int(sum(t.size for t in prog.tables)),
     }

@@ -59,6 +59,15 @@ def write_json(path: Path, data) -> None:
     atomic_write(path, json.dumps(data, indent=2) + "\n", parents=True)
 
 
+# the arithmetic instructions of a lowered graph (neural_brdf.graph); an fma counts 2
+ARITH_OPS = {"add", "sub", "mul", "div", "fma", "neg", "abs", "min", "max"}
+
+
+def arith_ops(counts: dict[str, int]) -> int:
+    """Arithmetic operations per evaluation from ``graph.lower(proto).count()``."""
+    return sum(counts.get(k, 0) * (2 if k == "fma" else 1) for k in ARITH_OPS)
+
+
 def add_fit_arguments(p, *, work: str, data: Path, out: Path, resume: str, data_holds: str) -> None:
     """The options the benchmarks that train many fits share: --set, --work, --data,
     --out and --resume (``resume`` says what it keeps, ``data_holds`` what --data holds)."""

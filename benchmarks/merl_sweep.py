@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from benchmarks.common import add_fit_arguments, write_json  # noqa: E402
+from benchmarks.common import add_fit_arguments, arith_ops, write_json  # noqa: E402
 
 DATA = REPO / "data"  # default of --data
 RESULTS = REPO / "benchmarks" / "results" / "merl_sweep.json"
@@ -90,15 +90,12 @@ def fit(path: Path, recipe: str, run_dir: Path, overrides: list[str]) -> dict:
 
 
 def _flops(path: Path) -> int:
-    """Arithmetic operations per evaluation of the lowered graph (an fma counts 2), the
-    figure of benchmarks/bsdf_bound.py."""
+    """Arithmetic operations per evaluation of the lowered graph, as bsdf_bound.py."""
     import onnx
 
     from neural_brdf import graph
 
-    counts = graph.lower(onnx.load(str(path))).count()
-    arith = {"add", "sub", "mul", "div", "fma", "neg", "abs", "min", "max"}
-    return sum(counts.get(k, 0) * (2 if k == "fma" else 1) for k in arith)
+    return arith_ops(graph.lower(onnx.load(str(path))).count())
 
 
 def material(name: str, work: Path, data: Path, overrides: list[str]) -> dict:

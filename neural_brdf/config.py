@@ -53,37 +53,27 @@ class Target(_Section):
         return self
 
 
-class Grid(_Section):
-    # learned (u, v) feature grid over the reciprocal half/difference angles (model.py)
+class CosineGrid(_Section):
+    # a learned (u, v) feature grid (model.py); as model.cosine_grid, over the two
+    # cosines, (cos_i + cos_o) / 2 and |cos_i - cos_o| / (cos_i + cos_o): it carries terms
+    # set by the cosines, as a diffuse term of Ashikhmin-Shirley's form
     size: int = Field(0, ge=0, le=257)  # nodes per axis; 0: off
     channels: int = Field(4, ge=1, le=64)  # learned features per node
     init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
     lr_scale: float = Field(1.0, gt=0.0)  # the grid's learning rate / train.lr
+
+    @model_validator(mode="after")
+    def _size(self):
+        if self.size == 1:
+            raise ValueError("size: must be 0 (off) or >= 2 nodes per axis")
+        return self
+
+
+class Grid(CosineGrid):
+    # model.grid: over the reciprocal half/difference angles, or the half vector.
     # theta: (sqrt(theta_h / (pi/2)), theta_d / (pi/2)); half_disc (anisotropic encoding):
     # the half vector's polar map, sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h)
     coords: Literal["theta", "half_disc"] = "theta"
-
-    @model_validator(mode="after")
-    def _size(self):
-        if self.size == 1:
-            raise ValueError("size: must be 0 (off) or >= 2 nodes per axis")
-        return self
-
-
-class CosineGrid(_Section):
-    # a second learned (u, v) grid over the two cosines, (cos_i + cos_o) / 2 and
-    # |cos_i - cos_o| (model.py): carries terms set by the cosines, as a diffuse term of
-    # Ashikhmin-Shirley's or Oren-Nayar's form
-    size: int = Field(0, ge=0, le=257)  # nodes per axis; 0: off
-    channels: int = Field(4, ge=1, le=64)  # learned features per node
-    init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
-    lr_scale: float = Field(1.0, gt=0.0)  # its learning rate / train.lr
-
-    @model_validator(mode="after")
-    def _size(self):
-        if self.size == 1:
-            raise ValueError("size: must be 0 (off) or >= 2 nodes per axis")
-        return self
 
 
 class Model(_Section):

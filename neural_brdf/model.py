@@ -196,8 +196,8 @@ class RawBRDF(nn.Module):
         )
         if cosine_grid_size and encoding == "raw":
             raise ValueError("cosine_grid: needs the isotropic or anisotropic encoding")
-        # a second grid over ((cos_i + cos_o) / 2, |cos_i - cos_o|): both bit-exactly
-        # symmetric in (wi, wo), so reciprocity stays exact
+        # a second grid over ((cos_i + cos_o) / 2, |cos_i - cos_o| / (cos_i + cos_o)): both
+        # bit-exactly symmetric in (wi, wo), so reciprocity stays exact
         self.cos_grid = (
             FeatureGrid(cosine_grid_size, cosine_grid_channels, init_std=cosine_grid_init_std)
             if cosine_grid_size

@@ -236,14 +236,15 @@ def train(
     if ckpt is not None:
         raw.load_state_dict(ckpt["model"])
     raw.to(device)  # the pool, its generator and the checkpoints stay on the CPU
-    grid = [p for n, p in raw.named_parameters() if n.startswith("grid.")]
-    cos_grid = [p for n, p in raw.named_parameters() if n.startswith("cos_grid.")]
-    rest = [p for n, p in raw.named_parameters() if not n.startswith(("grid.", "cos_grid."))]
-    groups = [{"params": rest, "lr_scale": 1.0}]
-    if grid:  # model.grid: its own learning rate, lr_scale x the schedule
-        groups.append({"params": grid, "lr_scale": cfg.model.grid.lr_scale})
-    if cos_grid:  # model.cosine_grid: the same
-        groups.append({"params": cos_grid, "lr_scale": cfg.model.cosine_grid.lr_scale})
+    # the learned grids (model.grid, model.cosine_grid): their own learning rates,
+    # lr_scale x the schedule
+    scales = {"grid.": cfg.model.grid.lr_scale, "cos_grid.": cfg.model.cosine_grid.lr_scale}
+    groups = {prefix: [] for prefix in ("", *scales)}
+    for n, p in raw.named_parameters():
+        groups[next((k for k in scales if n.startswith(k)), "")].append(p)
+    groups = [
+        {"params": ps, "lr_scale": scales.get(k, 1.0)} for k, ps in groups.items() if ps or not k
+    ]
     opt = torch.optim.Adam(groups, lr=t.lr)
     eval_wi, eval_wo, eval_f = (
         x.float().to(device) for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
