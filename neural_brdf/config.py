@@ -71,8 +71,8 @@ class CosineGrid(_Section):
 
 class Grid(CosineGrid):
     # model.grid: over the reciprocal half/difference angles, or the half vector.
-    # theta: (sqrt(theta_h / (pi/2)), theta_d / (pi/2)); half_disc (anisotropic encoding):
-    # the half vector's polar map, sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h)
+    # theta: (u_h, theta_d / (pi/2)), u_h the peak coordinate (encoding.py); half_disc
+    # (anisotropic encoding): the half vector's polar map, sqrt(u_h) (cos phi_h, sin phi_h)
     coords: Literal["theta", "half_disc"] = "theta"
 
 
@@ -154,6 +154,7 @@ class Validation(_Section):
     accuracy_samples: int = Field(131072, ge=1024)  # importance-sampled pairs for the error
     reciprocity_tol: float = Field(1e-6, ge=0.0)  # max relative |f(a,b) - f(b,a)|
     albedo_tol: float = Field(1e-3, ge=0.0)  # max albedo allowed: 1 + albedo_tol
+    peak_tol: float = Field(0.03, ge=0.0)  # max |f / f_ref - 1| at and near the mirror direction
     seed: int = 1234  # independent of the training seeds
 
 

@@ -94,7 +94,8 @@ class MLP(nn.Module):
 class FeatureGrid(nn.Module):
     """A learned K x K table of ``channels`` features over (u, v), bilinearly interpolated.
 
-    u = sqrt(theta_h / (pi/2)) and v = theta_d / (pi/2) are the first two features of the
+    u = u_h (the peak coordinate, :func:`neural_brdf.encoding.peak_coordinate`) and
+    v = theta_d / (pi/2) are the first two features of the
     isotropic and anisotropic encodings (:func:`neural_brdf.encoding.features`), so the
     grid sees the same bit-exactly symmetric values for (wi, wo) and (wo, wi): the looked-up
     features, and hence the BRDF, stay exactly reciprocal.  Node (i, j) sits at
@@ -142,9 +143,10 @@ class RawBRDF(nn.Module):
     cos_i = cos_o that the network then need not learn.
 
     ``grid_size`` > 0 appends ``grid_channels`` learned features (:class:`FeatureGrid`)
-    to the encoding's features, looked up at (sqrt(theta_h / (pi/2)), theta_d / (pi/2))
-    or, with ``grid_coords="half_disc"`` (anisotropic encoding), at the half vector's
-    polar map sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h), where an anisotropic
+    to the encoding's features, looked up at (u_h, theta_d / (pi/2)) (u_h: the peak
+    coordinate of :mod:`neural_brdf.encoding`) or, with ``grid_coords="half_disc"``
+    (anisotropic encoding), at the half vector's polar map sqrt(u_h) (cos phi_h,
+    sin phi_h), where an anisotropic
     distribution of normals (the D of GGX or Beckmann) lives.
 
     ``cosine_grid_size`` > 0 appends a second grid's features, looked up at
@@ -187,8 +189,8 @@ class RawBRDF(nn.Module):
         if grid_size and grid_coords == "half_disc" and encoding != "anisotropic":
             raise ValueError("grid: half_disc coordinates need the anisotropic encoding")
         # the encoding's features the grid is indexed by (encoding.features): 0, 1 are
-        # sqrt(theta_h / (pi/2)) and theta_d / (pi/2); 8, 9 are the half vector's polar map
-        # sqrt(theta_h / (pi/2)) (cos phi_h, sin phi_h), in the unit disc
+        # u_h (the peak coordinate) and theta_d / (pi/2); 8, 9 are the half vector's polar
+        # map sqrt(u_h) (cos phi_h, sin phi_h), in the unit disc
         self.grid_coords = grid_coords
         self.grid_features = (8, 9) if grid_coords == "half_disc" else (0, 1)
         self.grid = (

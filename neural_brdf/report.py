@@ -329,7 +329,46 @@ def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
             ),
             Table(["metric", "value"], rows),
         ]
+    if isinstance(m.get("peak"), dict):
+        blocks += _peak(m["peak"], path)
     return blocks + images
+
+
+def _peak(peak: dict, path: Path) -> list:
+    """The validator's peak check: model / target at and near the mirror direction."""
+    value = _as_number(peak.get("value"), "peak.value", path)
+    limit = _as_number(peak.get("limit"), "peak.limit", path)
+    pairs = peak.get("pairs") if isinstance(peak.get("pairs"), list) else []
+    offsets = sorted({p["offset_deg"] for p in pairs if isinstance(p, dict)})
+    rows = []
+    keys = sorted({(p["phi_deg"], p["theta_deg"], p["way"]) for p in pairs if p["offset_deg"]})
+    for phi, theta, way in keys:
+        # the pair at the mirror direction itself (offset 0) heads every row
+        errors = {
+            p["offset_deg"]: p["error"]
+            for p in pairs
+            if (p["phi_deg"], p["theta_deg"]) == (phi, theta)
+            and (p["way"] == way or p["offset_deg"] == 0.0)
+        }
+        rows.append(
+            [f"{theta:g}°", f"{phi:g}°", way]
+            + [f"{100 * errors[o]:.2f} %" if o in errors else "-" for o in offsets]
+        )
+    verdict = "passed" if peak.get("passed") else "FAILED"
+    return [
+        Text(
+            f"At the highlight's peak: {100 * value:.2f} % (limit {100 * limit:g} %, {verdict}). "
+            "The largest |f̂ / f − 1| over RGB with wo at the exact mirror direction of wi and "
+            "0.01 to 1 degree off it, towards the normal, towards the horizon and across the "
+            "plane of incidence (both tangent planes for an anisotropic model). A defect "
+            "there, such as a notch a fraction of a degree wide, is the visible highlight of "
+            "a smooth material, yet it hardly moves the mean error above."
+        ),
+        Table(
+            ["θi", "φi", "towards"] + [f"{o:g}°" for o in offsets],
+            rows,
+        ),
+    ]
 
 
 def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:

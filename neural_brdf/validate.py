@@ -25,6 +25,17 @@ Accuracy, with a reference (``--reference CONFIG``, ``--reference material.binar
 * ``nbrdf_log_error``: the NBRDF loss, mean |log(1 + f cos) - log(1 + f^ cos)|;
 * ``rel_rmse_by_incidence``: the same error within bands of cos(theta_i);
 * ``worst``: the pairs with the largest |f^ cos - f cos|.
+
+Peak, with an analytic reference (:func:`peak`): the error right at the highlight,
+which a mean over random pairs cannot see (a notch 0.3 degrees wide at the mirror
+direction moved the relative RMSE by less than 0.1 %).  For incidences ``PEAK_THETAS``
+(10, 45, 70 degrees) wo is put at the exact mirror direction and at ``PEAK_OFFSETS``
+(0.01, 0.1, 0.3, 1 degree) from it, towards the normal, towards the horizon and out of
+the plane of incidence; for a model that may be anisotropic, in the two planes of
+incidence phi = 0 and phi = 90 degrees (both tangent axes).  The error at a pair is the
+largest over RGB of |f^ / f - 1|, with f floored at 1e-3 of the largest target value
+of the probe (so a channel with next to nothing in it cannot dominate).  The check passes
+when the largest error is <= ``validation.peak_tol`` (3 %).
 """
 
 from __future__ import annotations
@@ -53,6 +64,12 @@ N_WORST = 5
 # cos(theta_i) bands of the per-band errors: for a model whose f cos grows without bound
 # at grazing angles (Ward, Ashikhmin-Shirley) the overall error is set by the first band.
 INCIDENCE_BANDS = ((0.0, 0.05), (0.05, 0.2), (0.2, 0.5), (0.5, 1.01))
+# The peak probe: incidences and offsets from the mirror direction, in degrees.
+PEAK_THETAS = (10.0, 45.0, 70.0)
+PEAK_OFFSETS = (0.0, 0.01, 0.1, 0.3, 1.0)
+# offset directions: towards the normal, towards the horizon, out of the plane of incidence
+PEAK_DIRECTIONS = ("normal", "horizon", "across")
+PEAK_FLOOR = 1e-3  # relative floor of the target in the ratio (of the probe's largest value)
 
 
 def furnace_directions(n_theta: int, anisotropic: bool, seed: int) -> torch.Tensor:
@@ -157,6 +174,63 @@ def accuracy(fn: Callable, reference: Any, *, n: int, seed: int) -> dict[str, An
     }
 
 
+def peak_pairs(anisotropic: bool) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
+    """The peak probe (module doc): wi, wo (float64, (N, 3)) and one label per pair."""
+    wis, wos, labels = [], [], []
+    planes = (0.0, 90.0) if anisotropic else (0.0,)
+    for phi_deg in planes:
+        phi = math.radians(phi_deg)
+        ex = np.array([math.cos(phi), math.sin(phi), 0.0])  # in the plane, along the tangent
+        ey = np.array([-math.sin(phi), math.cos(phi), 0.0])  # across it
+        for th_deg in PEAK_THETAS:
+            th = math.radians(th_deg)
+            wi = math.sin(th) * ex + np.array([0.0, 0.0, math.cos(th)])
+            for way in PEAK_DIRECTIONS:
+                for off_deg in PEAK_OFFSETS:
+                    if off_deg == 0.0 and way != "normal":
+                        continue  # one pair at the mirror direction itself
+                    o = math.radians(off_deg)
+                    if way == "across":  # rotate the mirror direction about (its) ex x z
+                        wo = (
+                            -math.sin(th) * math.cos(o) * ex
+                            + math.sin(o) * ey
+                            + np.array([0.0, 0.0, math.cos(th) * math.cos(o)])
+                        )
+                    else:  # in the plane: the reflected polar angle th -/+ offset
+                        t = th - o if way == "normal" else th + o
+                        wo = -math.sin(t) * ex + np.array([0.0, 0.0, math.cos(t)])
+                    wis.append(wi)
+                    wos.append(wo / np.linalg.norm(wo))
+                    labels.append(
+                        {"phi_deg": phi_deg, "theta_deg": th_deg, "offset_deg": off_deg, "way": way}
+                    )
+    return np.array(wis), np.array(wos), labels
+
+
+def peak(fn: Callable, reference: Any, *, anisotropic: bool, tol: float) -> dict[str, Any]:
+    """Model / target at and around the mirror direction (module doc) -> a report dict:
+    the largest error, where it is, pass/fail against ``tol``, and every probed pair."""
+    wi, wo, labels = peak_pairs(anisotropic)
+    ref = np.asarray(reference.eval(wi, wo), dtype=np.float64)
+    pred = np.asarray(fn(wi, wo), dtype=np.float64)
+    floor = PEAK_FLOOR * max(float(np.max(ref)), 1e-300)
+    ratio = pred / np.maximum(ref, floor)
+    err = np.where(np.isfinite(ratio), np.abs(ratio - 1.0), np.inf).max(-1)
+    worst = int(np.argmax(err))
+    rows = [
+        dict(lab, ratio=[round(float(r), 5) for r in ratio[k]], error=float(err[k]))
+        for k, lab in enumerate(labels)
+    ]
+    value = float(err[worst]) if np.isfinite(err[worst]) else math.inf
+    return {
+        "value": value,
+        "limit": tol,
+        "passed": bool(value <= tol),
+        "at": labels[worst],
+        "pairs": rows,
+    }
+
+
 def reference_from(path: str | Path) -> Any:
     """``--reference``: a YAML config (its target), a MERL ``.binary`` or an RGL ``.bsdf``
     file."""
@@ -203,6 +277,13 @@ def report(
         out["accuracy"] = accuracy(
             model.eval, target, n=settings.accuracy_samples, seed=settings.seed + 4
         )
+        if not isinstance(target, data.MeasuredTarget):
+            out["peak"] = peak(
+                model.eval,
+                target,
+                anisotropic=is_anisotropic(model.encoding) or bool(target.anisotropic),
+                tol=settings.peak_tol,
+            )
     out["passed"] = all(c["passed"] for c in out["checks"].values())
     return out
 
@@ -221,6 +302,18 @@ def format_table(report: dict[str, Any]) -> str:
         for band, v in acc["rel_rmse_by_incidence"].items():
             rows.append((f"  {band}", "-" if v is None else f"{100 * v:.3f} %", "", ""))
         rows.append(("nbrdf_log_error", f"{acc['nbrdf_log_error']:.3g}", "", ""))
+    if "peak" in report:
+        pk = report["peak"]
+        at = pk["at"]
+        where = f"theta_i {at['theta_deg']:g}, {at['offset_deg']:g} deg {at['way']}"
+        rows.append(
+            (
+                "peak (max |f/f_ref - 1|)",
+                f"{100 * pk['value']:.2f} % at {where}",
+                f"<= {100 * pk['limit']:g} %",
+                "ok" if pk["passed"] else "FAIL",
+            )
+        )
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))

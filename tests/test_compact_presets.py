@@ -55,3 +55,6 @@ def test_the_gold_recipe_holds_on_a_conductor_and_roughness_it_was_not_tuned_on(
     metrics = train.run(cfg, tmp_path / "cu")
     assert metrics["passed"], json.dumps(metrics["checks"])
     assert metrics["accuracy"]["rel_rmse"] <= 0.01
+    # and right at the highlight's peak (issue 19: the old encoding read 0.12x there)
+    peak = metrics["peak"]
+    assert peak["passed"] and peak["value"] <= 0.03, json.dumps(peak["at"])

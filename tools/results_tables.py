@@ -6,7 +6,7 @@
 
 Reads ``benchmarks/results/*.json`` (suite, neural_presets, neural_throughput,
 analytic_throughput, merl_fit, merl_sweep, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
-bsdf_bound, compact_presets, sampling_noise) and ``docs/results/sweep_timing.json``.
+bsdf_bound, compact_presets, sampling_noise, peak) and ``docs/results/sweep_timing.json``.
 Each section names the JSON file and the script that wrote it, and the date, machine and
 load average that file records (or says that it records none).  ``render()`` is pure
 (JSON in, markdown out), so tests/test_docs.py can compare it with the committed page.
@@ -966,6 +966,42 @@ def sampling_noise_section(d: dict) -> list[str]:
     return out
 
 
+def peak_section(d: dict) -> list[str]:
+    offsets = [f"{o:g}" for o in d["offsets_deg"]]
+    out = [
+        "## The highlight's peak: every analytic preset at and around the mirror direction",
+        "",
+        _source("benchmarks/results/peak.json", "python benchmarks/peak.py"),
+        f"Recorded in the file: {d.get('machine', 'machine not recorded')} (no timing is "
+        "compared).",
+        f"Statistic: {d['statistic']}, for θi = "
+        f"{', '.join(f'{t:g}' for t in d['thetas_deg'])}°, wo at the mirror direction and "
+        f"{', '.join(offsets[1:])}° off it towards "
+        f"{', '.join(d['directions'])} (anisotropic models in both tangent planes); "
+        f"limit {100 * d['limit']:g} % (`validation.peak_tol`). Columns by offset: the "
+        "largest error at that offset. `legacy/` rows were trained with the "
+        "encoding's old peak coordinate √(θh/(π/2)) (`--legacy`), to show what the "
+        "check catches.",
+        "",
+    ]
+    rows = []
+    for label, m in d["models"].items():
+        by = m["peak_max_error_by_offset_deg"]
+        verdict = "ok" if m["peak_passed"] else "**FAIL**"
+        rows.append(
+            [label, f"{_pct(m['peak_max_error'])} {verdict}"]
+            + [_pct(by[o]) if o in by else "-" for o in offsets]
+            + [_pct(m["rel_rmse_f_cos"]), f"{m['steps']}"]
+        )
+    passed = sum(1 for m in d["models"].values() if m["peak_passed"])
+    out += _table(
+        ["model", "peak error"] + [f"{o}°" for o in offsets] + ["rel. RMSE f cos", "steps"],
+        rows,
+    )
+    out += [f"{passed} of {len(d['models'])} models within the limit.", ""]
+    return out
+
+
 # ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
@@ -981,6 +1017,7 @@ SECTIONS = (
     (RESULTS / "bsdf_bound.json", bsdf_bound_section),
     (RESULTS / "compact_presets.json", compact_presets_section),
     (RESULTS / "sampling_noise.json", sampling_noise_section),
+    (RESULTS / "peak.json", peak_section),
     (SWEEP_TIMING, sweep_timing_section),
 )
 

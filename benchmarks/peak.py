@@ -1,0 +1,183 @@
+"""Issue 19's peak figures: every analytic preset and its compact twin, trained as
+shipped, then probed at and around the mirror direction (neural_brdf.validate.peak).
+
+    python benchmarks/peak.py                         # every preset, both recipes (~1 h)
+    python benchmarks/peak.py gold beckmann_smooth    # some presets
+    python benchmarks/peak.py gold --legacy           # the old sqrt(theta_h) coordinate
+    python benchmarks/peak.py --reuse                 # keep finished runs, re-probe
+
+For each preset NAME with an analytic target, ``configs/NAME.yaml`` (the default 3 x 64
+SiLU network) and ``configs/compact/NAME.yaml`` (the compact grid recipe) are trained
+for their full step counts, exported and validated, without the HTML report.  The
+validator's ``peak`` entry (model / target at the mirror direction and 0.01, 0.1, 0.3 and
+1 degree off it, for theta_i 10, 45 and 70 degrees, towards the normal, the horizon and
+across the plane of incidence; anisotropic models in both tangent planes) is stored with
+the overall relative RMSE of f cos.
+
+``--legacy`` trains with the peak coordinate the encoding had before issue 19,
+sqrt(theta_h / (pi/2)) (and sqrt of it in the anisotropic slope features), to show what
+the peak check catches: labels get a ``legacy/`` prefix.  Results are merged by label
+into benchmarks/results/peak.json after each model.  Nothing here asserts anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the CLI does (neural_brdf/cli.py)
+
+REPO = Path(__file__).resolve().parents[1]
+for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip install -e .`
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
+
+import torch  # noqa: E402
+from common import write_json  # noqa: E402
+
+from neural_brdf import config, data, validate  # noqa: E402
+from neural_brdf import encoding as enc  # noqa: E402
+from neural_brdf import export as exp  # noqa: E402
+from neural_brdf import train as tr  # noqa: E402
+
+OUT = REPO / "benchmarks" / "results" / "peak.json"
+CONFIGS = REPO / "configs"
+
+
+def legacy_features(new_features):
+    """The encoding with the pre-issue-19 peak coordinate q = sqrt(theta_h / (pi/2))."""
+
+    def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
+        x = new_features(wi, wo, encoding)
+        if encoding == "raw":
+            return x
+        s = wi + wo
+        norm_s = torch.sqrt((s * s).sum(-1)).clamp_min(enc.EPS_NORM)
+        r_s = torch.sqrt(s[..., 0] * s[..., 0] + s[..., 1] * s[..., 1])
+        q = torch.sqrt(enc.half_angle(r_s, norm_s + s[..., 2]) / enc.HALF_PI)
+        cols = [q, *x[..., 1:8].unbind(-1)]
+        if encoding == "anisotropic":
+            hx, hy = s[..., 0] / norm_s, s[..., 1] / norm_s
+            r = torch.sqrt(hx * hx + hy * hy).clamp_min(enc.EPS_NORM)
+            cols += [q * hx / r, q * hy / r, *x[..., 10:].unbind(-1)]
+        return torch.stack(cols, -1)
+
+    return features
+
+
+def run_one(cfg: config.Config, run_dir: Path) -> dict:
+    """Train, export and validate (the pipeline of ``neural-brdf train`` less the report)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    target = data.build_target(cfg.target)
+    raw, training = tr.train(cfg, run_dir, resume=False, target=target)
+    model, _ = exp.normalized_model(raw, cfg, target)
+    info = exp.export(
+        model, cfg, run_dir / "model.onnx", target_desc=target.describe(), extra=target
+    )
+    report = validate.report(
+        run_dir / "model.onnx", reference=target, physics_report=info["physics"]
+    )
+    report["training"] = training
+    report["seconds"] = {"total": time.perf_counter() - t0}
+    validate.write_json(report, run_dir / "metrics.json")
+    return report
+
+
+def summary(m: dict) -> dict:
+    peak = m["peak"]
+    by_offset: dict[str, float] = {}
+    for row in peak["pairs"]:
+        key = f"{row['offset_deg']:g}"
+        by_offset[key] = max(by_offset.get(key, 0.0), row["error"])
+    # the issue's table: theta_i 45, in the plane towards the normal, first tangent plane
+    row45 = {
+        f"{r['offset_deg']:g}": r["ratio"]
+        for r in peak["pairs"]
+        if r["theta_deg"] == 45.0 and r["way"] == "normal" and r["phi_deg"] == 0.0
+    }
+    return {
+        "peak_max_error": peak["value"],
+        "peak_passed": peak["passed"],
+        "peak_at": peak["at"],
+        "peak_max_error_by_offset_deg": by_offset,
+        "ratio_theta45_towards_normal": row45,
+        "rel_rmse_f_cos": m["accuracy"]["rel_rmse"],
+        "physics_passed": m["passed"],
+        "reciprocity": m["checks"]["reciprocity"]["value"],
+        "max_albedo": m["checks"]["max_albedo"]["value"],
+        "steps": m["training"]["steps"],
+        "seconds": m["seconds"]["total"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("presets", nargs="*", help="preset names (default: every analytic one)")
+    ap.add_argument("--root", type=Path, default=REPO / "runs" / "peak-bench")
+    ap.add_argument("--reuse", action="store_true", help="keep runs that have metrics.json")
+    ap.add_argument("--recipes", default="compact,default", help="compact, default or both")
+    ap.add_argument("--legacy", action="store_true", help="the old sqrt(theta_h) coordinate")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    known = sorted(
+        p.stem for p in (CONFIGS / "compact").glob("*.yaml") if not config.load(p).target.data
+    )
+    names = args.presets or known
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        raise SystemExit(f"peak: no analytic preset {unknown[0]!r}; known: {known}")
+    if args.legacy:
+        enc.features = legacy_features(enc.features)
+    torch.set_num_threads(2)
+    result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    result.update(
+        {
+            "benchmark": "peak",
+            "limit": config.Validation().peak_tol,
+            "thetas_deg": list(validate.PEAK_THETAS),
+            "offsets_deg": list(validate.PEAK_OFFSETS),
+            "directions": list(validate.PEAK_DIRECTIONS),
+            "statistic": "max over probed pairs and RGB of |f_model / f_target - 1|",
+            "machine": f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f} at the start",
+        }
+    )
+    models = result.setdefault("models", {})
+    recipes = [r for r in ("compact", "default") if r in args.recipes.split(",")]
+    for recipe in recipes:
+        for name in names:
+            cfg_path = CONFIGS / "compact" / f"{name}.yaml" if recipe == "compact" else None
+            cfg_path = cfg_path or CONFIGS / f"{name}.yaml"
+            label = ("legacy/" if args.legacy else "") + f"{recipe}/{name}"
+            run_dir = args.root / label
+            metrics = run_dir / "metrics.json"
+            if args.reuse and metrics.is_file():
+                m = json.loads(metrics.read_text())
+            else:
+                print(f"{label}:", flush=True)
+                m = run_one(config.load(cfg_path, ["train.progress=false"]), run_dir)
+            models[label] = {
+                "preset": name,
+                "recipe": recipe,
+                "encoding": "legacy sqrt(theta_h)" if args.legacy else "u_h",
+                "config": cfg_path.relative_to(REPO).as_posix(),
+                **summary(m),
+            }
+            s = models[label]
+            print(
+                f"  {label}: peak {100 * s['peak_max_error']:.2f} % "
+                f"({'ok' if s['peak_passed'] else 'FAIL'}), rel_rmse "
+                f"{100 * s['rel_rmse_f_cos']:.2f} %, {s['seconds']:.0f} s",
+                flush=True,
+            )
+            write_json(args.out, result)
+    bad = [k for k, v in models.items() if not v["peak_passed"]]
+    print(f"peak: {len(models) - len(bad)} of {len(models)} within the limit")
+
+
+if __name__ == "__main__":
+    main()
