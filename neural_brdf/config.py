@@ -15,6 +15,7 @@ it into exit code 2.  Types are strict: an integer setting does not accept ``2.5
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,10 +35,35 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, validate_default=True)
 
 
+class ImageView(_Section):
+    # one entry of target.images (docs/inverse.md); paths relative to the config file
+    scene: str  # a Mitsuba 3 XML scene whose <bsdf id="fit"> is the BSDF to fit
+    image: str  # its target: a linear RGB EXR of the scene's film size
+
+
 class Target(_Section):
     model: str = "lambertian"  # a name in analytic.available()
     params: dict[str, Any] = Field(default_factory=dict)  # passed to analytic.create
     data: str | None = None  # or: measured data, MERL .binary / RGL .bsdf
+    images: list[ImageView] | None = None  # or: images, fitted by inverse rendering
+    variant: str | None = None  # Mitsuba variant of an images fit (null: from train.device)
+
+    @model_validator(mode="after")
+    def _images(self):
+        if self.images is not None:
+            if not self.images:
+                raise ValueError("images: empty; give at least one {scene, image} pair")
+            if self.data is not None or self.params or self.model != "lambertian":
+                raise ValueError("images: give target.images alone, not with data/model/params")
+        if self.variant is not None:
+            if self.images is None:
+                raise ValueError("variant: only for target.images")
+            if self.variant not in ("llvm_ad_rgb", "cuda_ad_rgb"):
+                raise ValueError(
+                    f"variant: {self.variant!r} is not a JIT AD RGB variant "
+                    "(llvm_ad_rgb or cuda_ad_rgb)"
+                )
+        return self
 
     @model_validator(mode="after")
     def _one_kind(self):
@@ -115,14 +141,15 @@ class Data(_Section):
     batch_size: int = Field(4096, ge=16)  # pairs per step
     pool_size: int = Field(262144, ge=16)  # pairs kept in the sample pool
     reuse: float = Field(4.0, ge=1.0)  # mean number of times a pair is used
-    uniform: float = Field(0.2, ge=0.0)  # share of wo uniform on the hemisphere
+    uniform: float = Field(0.1, ge=0.0)  # share of wo uniform on the hemisphere
     cosine: float = Field(0.2, ge=0.0)  # share of wo cosine-distributed
     importance: float = Field(0.6, ge=0.0)  # share of wo from the target's sampler
+    peak: float = Field(0.1, ge=0.0)  # share of wo about the mirror direction, uniform in u_h
 
     @model_validator(mode="after")
     def _shares(self):
-        if self.uniform + self.cosine + self.importance <= 0:
-            raise ValueError("uniform/cosine/importance: at least one share must be > 0")
+        if self.uniform + self.cosine + self.importance + self.peak <= 0:
+            raise ValueError("uniform/cosine/importance/peak: at least one share must be > 0")
         if self.pool_size < self.batch_size:
             raise ValueError("pool_size: must be >= batch_size")
         return self
@@ -262,6 +289,17 @@ def read_text(path: Path) -> str:
         raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8)") from None
 
 
+def _images_relative_to(raw: dict, folder: Path) -> None:
+    """target.images paths in a config file are relative to its folder: made absolute."""
+    target = raw.get("target")
+    images = target.get("images") if isinstance(target, dict) else None
+    for item in images if isinstance(images, list) else ():
+        for key in ("scene", "image") if isinstance(item, dict) else ():
+            value = item.get(key)
+            if isinstance(value, str) and value.strip() and not Path(value).is_absolute():
+                item[key] = os.path.abspath(folder / value)
+
+
 def load(
     path: str | Path | None, overrides: Sequence[str] = (), *, name: str | None = None
 ) -> Config:
@@ -280,6 +318,7 @@ def load(
             )
         if "name" not in raw:
             raw["name"] = name or path.stem
+        _images_relative_to(raw, path.parent)
     for item in overrides:
         apply_override(raw, item)
     return from_dict(raw, source=str(path) if path is not None else "config")

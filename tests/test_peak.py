@@ -135,3 +135,29 @@ def test_a_nan_at_the_peak_fails_the_check():
 
     report = validate.peak(fn, target, anisotropic=False, tol=0.03)
     assert not report["passed"] and math.isinf(report["value"])
+
+
+def test_peak_pairs_of_the_training_data_are_uniform_in_the_peak_coordinate():
+    from neural_brdf import config, data
+
+    g = torch.Generator().manual_seed(3)
+    wi = data.uniform_wi(20000, g)
+    u = torch.rand(20000, 2, generator=g)
+    wo = data.about_mirror(wi, u)
+    up = wo[:, 2] > 0
+    assert float(up.float().mean()) > 0.5
+    u_h = enc.features(wi, wo, "isotropic")[:, 0]
+    assert float((u_h - u[:, 0])[up].abs().max()) < 1e-4
+    # the share reaches the pool: a diffuse target, whose own sampler almost never puts a
+    # pair on the first tenth of u_h (within ~0.9 degree of the mirror direction's h),
+    # gets about data.peak / 10 of its pairs there
+    target = data.build_target(config.from_dict({"target": {"model": "lambertian"}}).target)
+
+    def share_near_peak(peak: float) -> float:
+        cfg = config.from_dict({"target": {"model": "lambertian"}, "data": {"peak": peak}})
+        src = data.pair_source(target, cfg.data, torch.Generator().manual_seed(0))
+        wi, wo, _ = src.draw(50000)
+        return float((enc.features(wi, wo, "isotropic")[:, 0] < 0.1).float().mean())
+
+    assert 0.01 < share_near_peak(0.2) < 0.03
+    assert share_near_peak(0.0) < 0.002
