@@ -190,6 +190,13 @@ class BRDF:
         return torch.where(ok, p, torch.zeros_like(p)).nan_to_num(0.0)
 
     def sample_t(self, wi: torch.Tensor, u: torch.Tensor):
+        """(wo, pdf): :meth:`sample_dir_t` and the mixture pdf of what it drew."""
+        wo = self.sample_dir_t(wi, u)
+        return wo, self.pdf_t(wi.expand_as(wo), wo)
+
+    def sample_dir_t(self, wi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """wo drawn from the lobe mixture, without its pdf (which costs every lobe's pdf:
+        the training data and the quadratures' proposals need only the direction)."""
         batch = torch.broadcast_shapes(wi.shape[:-1], u.shape[:-1])
         wi, u = wi.expand(batch + (3,)), u.expand(batch + (2,))
         lobes = self._lobes(wi)
@@ -208,8 +215,7 @@ class BRDF:
         else:
             cand = torch.stack([l.sample(ur) for l in lobes], -2)  # (..., L, 3)
             wo = cand.gather(-2, idx[..., None, None].expand(idx.shape + (1, 3)))[..., 0, :]
-        pdf = self.pdf_t(wi, wo)
-        return wo, pdf
+        return wo
 
     # -- public, array-typed API
     def eval(self, wi, wo):

@@ -68,7 +68,7 @@ def albedo(
         w = wi64[..., None, :]  # (..., 1, 3)
         uu = u.expand(wi64.shape[:-1] + u.shape)  # (..., n, 2)
         nb = u.shape[0] - int(u.shape[0] * DEFENSIVE)
-        wo_b, _ = brdf.sample_t(w.expand(uu.shape[:-1] + (3,))[..., :nb, :], uu[..., :nb, :])
+        wo_b = brdf.sample_dir_t(w.expand(uu.shape[:-1] + (3,))[..., :nb, :], uu[..., :nb, :])
         wo_c = frame.square_to_cosine_hemisphere(uu[..., nb:, :])
         wo = torch.cat([wo_b, wo_c], -2)
         wb = w.expand(wo.shape)

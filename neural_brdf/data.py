@@ -187,7 +187,7 @@ class PairSource:
         wo_uni = frame.square_to_uniform_hemisphere(torch.rand(n_uni, 2, generator=g))
         wo_cos = frame.square_to_cosine_hemisphere(torch.rand(n_cos, 2, generator=g))
         k = n_uni + n_cos
-        wo_imp, _ = self.target.sample_t(wi[k : k + n_imp], torch.rand(n_imp, 2, generator=g))
+        wo_imp = self.target.sample_dir_t(wi[k : k + n_imp], torch.rand(n_imp, 2, generator=g))
         wo_peak = about_mirror(wi[k + n_imp :], torch.rand(n_peak, 2, generator=g))
         wo = torch.cat([wo_uni, wo_cos, wo_imp.float(), wo_peak], 0)
         backup = frame.square_to_cosine_hemisphere(torch.rand(n, 2, generator=g))
@@ -263,6 +263,6 @@ def importance_pairs(target: analytic.BRDF, n: int, seed: int):
     """
     g = torch.Generator().manual_seed(seed)
     wi = frame.square_to_uniform_hemisphere(torch.rand(n, 2, generator=g, dtype=torch.float64))
-    wo, _ = target.sample_t(wi, torch.rand(n, 2, generator=g, dtype=torch.float64))
+    wo = target.sample_dir_t(wi, torch.rand(n, 2, generator=g, dtype=torch.float64))
     wo = frame.normalize(wo)
     return wi, wo, target.f(wi, wo)

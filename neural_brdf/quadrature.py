@@ -139,7 +139,7 @@ def albedo(
             for (kind, alpha, _), u in zip(props, us):
                 wb = w.expand(-1, len(u), 3)
                 if kind == "extra":
-                    wo, _ = extra.sample_t(wb, u.expand(len(w), -1, 2))
+                    wo = extra.sample_dir_t(wb, u.expand(len(w), -1, 2))
                 else:
                     wo = _draw(kind, alpha, wb, u)
                 wos.append(wo)
