@@ -142,8 +142,8 @@ class Data(_Section):
     pool_size: int = Field(262144, ge=16)  # pairs kept in the sample pool
     reuse: float = Field(4.0, ge=1.0)  # mean number of times a pair is used
     uniform: float = Field(0.1, ge=0.0)  # share of wo uniform on the hemisphere
-    cosine: float = Field(0.2, ge=0.0)  # share of wo cosine-distributed
-    importance: float = Field(0.6, ge=0.0)  # share of wo from the target's sampler
+    cosine: float = Field(0.1, ge=0.0)  # share of wo cosine-distributed
+    importance: float = Field(0.7, ge=0.0)  # share of wo from the target's sampler
     peak: float = Field(0.1, ge=0.0)  # share of wo about the mirror direction, uniform in u_h
 
     @model_validator(mode="after")
