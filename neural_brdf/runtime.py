@@ -4,7 +4,14 @@
     brdf = neural_brdf.load("runs/quickstart/model.onnx")
     f = brdf.eval(wi, wo)          # numpy (..., 3) in, (..., 3) float32 out, 1/sr, no cosine
     brdf.metadata["max_albedo"]    # every metadata_props entry, as strings
+    brdf.meta["max_albedo"]        # the same, decoded: JSON values parsed (read_metadata)
     brdf.config                    # the training config (dict)
+    brdf.target                    # what it was fitted to (dict: kind, model, params, ...)
+
+The metadata schema has a version (``metadata_version``, docs/portable.md): files of
+version 1, written before the key existed, hold the target as a description (for an
+analytic target the ``analytic.create(...)`` call) and the training config as YAML;
+version 2 holds both as JSON.  :func:`read_metadata` reads either into the same form.
 
 This module needs numpy, onnxruntime and yaml only; it never imports torch or pydantic
 (tests/test_packaging.py checks it in a fresh interpreter).
@@ -12,6 +19,9 @@ This module needs numpy, onnxruntime and yaml only; it never imports torch or py
 
 from __future__ import annotations
 
+import ast
+import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +35,83 @@ from .errors import InputError
 INPUTS = ("wi", "wo")
 OUTPUT = "f"
 CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
+
+METADATA_VERSION_KEY = "metadata_version"  # absent: version 1
+# metadata_props whose values are JSON (objects, arrays, numbers) in metadata_version 2;
+# the others are text.  neural_brdf/onnx_metadata.js (ONNX_JSON_KEYS) lists the same.
+JSON_KEYS = (
+    METADATA_VERSION_KEY,
+    "format_version",
+    "target",
+    "training_config",
+    "hemispherical_albedo",
+    "sampling_lobe",
+    "max_albedo",
+    "reciprocity_error",
+    "min_value",
+    "parity_rel_error",
+    "float32_rel_precision",
+)
+
+
+def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
+    """metadata_props (strings) -> values, for files of every metadata_version.
+
+    JSON values are parsed; ``target`` is always an object (:func:`parse_target` for
+    version 1's description) and ``training_config`` a dict (version 1's YAML is read);
+    ``metadata_version`` is an int, 1 when absent.  Other keys stay text, and so does a
+    number a version-1 file wrote as ``inf`` or ``nan``."""
+    out: dict[str, Any] = dict(props)
+    for key in JSON_KEYS:
+        if key in props:
+            try:
+                out[key] = json.loads(props[key])
+            except ValueError:
+                pass  # version 1 text (the target, the YAML config) or "inf"/"nan"
+    out[METADATA_VERSION_KEY] = int(out.get(METADATA_VERSION_KEY, 1))
+    if "target" in props and not isinstance(out["target"], dict):
+        out["target"] = parse_target(props["target"])
+    if "training_config" in props and not isinstance(out["training_config"], dict):
+        out["training_config"] = yaml.safe_load(props["training_config"]) or {}
+    return out
+
+
+def parse_target(text: str) -> dict[str, Any]:
+    """A version-1 ``target`` description as the version-2 object.
+
+    ``analytic.create('NAME', k=v, ...)`` (an analytic target's repr) gives
+    ``{"kind": "analytic", "model": NAME, "resolved": {k: v}, "description": text}``; it
+    is read with :mod:`ast` (literals only, nothing is evaluated).  Version 1 did not keep
+    the parameters as given, so there is no ``params``: ``resolved`` holds every value,
+    derived ones included.  ``MERL ...`` and ``RGL ...`` give kind ``measured``; anything
+    else kind ``unspecified``."""
+    try:
+        call = ast.parse(text.strip(), mode="eval").body
+        if not (
+            isinstance(call, ast.Call)
+            and ast.unparse(call.func) == "analytic.create"
+            and len(call.args) == 1
+        ):
+            raise ValueError
+        name = ast.literal_eval(call.args[0])
+        params = {k.arg: _lists(ast.literal_eval(k.value)) for k in call.keywords if k.arg}
+        if not isinstance(name, str):
+            raise ValueError
+        return {"kind": "analytic", "model": name, "resolved": params, "description": text}
+    except (SyntaxError, ValueError, TypeError, RecursionError):
+        pass
+    if text.startswith(("MERL ", "RGL ")):
+        return {"kind": "measured", "description": text}
+    return {"kind": "unspecified", "description": text}
+
+
+def _lists(value):
+    """Tuples as lists, as JSON gives them (eta=(0.1, 0.2, 0.3) in a repr)."""
+    if isinstance(value, (tuple, list)):
+        return [_lists(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _lists(v) for k, v in value.items()}
+    return value
 
 
 class NeuralBRDF:
@@ -51,10 +138,21 @@ class NeuralBRDF:
             )
         self.path = path
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.meta: dict[str, Any] = read_metadata(self.metadata)
+
+    @property
+    def metadata_version(self) -> int:
+        return self.meta[METADATA_VERSION_KEY]
 
     @property
     def config(self) -> dict[str, Any]:
-        return yaml.safe_load(self.metadata.get("training_config", "{}")) or {}
+        """The training config (JSON in metadata_version 2, YAML in 1), or {}."""
+        return self.meta.get("training_config") or {}
+
+    @property
+    def target(self) -> dict[str, Any]:
+        """What the model was fitted to: {"kind", "description", ...} (read_metadata)."""
+        return self.meta.get("target") or {"kind": "unspecified", "description": ""}
 
     @property
     def encoding(self) -> str:
@@ -80,7 +178,7 @@ class NeuralBRDF:
     __call__ = eval
 
     def __repr__(self) -> str:
-        return f"neural_brdf.load({str(self.path)!r})  # {self.metadata.get('target', '?')}"
+        return f"neural_brdf.load({str(self.path)!r})  # {self.target.get('description') or '?'}"
 
 
 def load(path: str | Path, *, threads: int = 1) -> NeuralBRDF:

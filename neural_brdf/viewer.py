@@ -22,13 +22,18 @@ function onnxruntime evaluates.  Slices and lobes are evaluated in the shader; t
 albedo curve is precomputed here with the MIS quadrature of
 :mod:`neural_brdf.quadrature` (onnxruntime) and embedded as JSON.
 
-The file has no external reference: the script and data are inline.  For tests the page
-exposes ``window.nbViewer`` (evalPairs, sphereRadiance, setState); :func:`sphere_directions`
-is the sphere geometry of the page, for comparing its pixels with onnxruntime.
+The file has no external reference: the script and data are inline.  A model read from
+an ONNX file carries the file itself (base64): the page reads its metadata_props from those
+bytes with ``readOnnxMetadata`` (``neural_brdf/onnx_metadata.js``, inlined before the
+page's script; docs/portable.md) and shows the target and the physics figures.  For tests
+the page exposes ``window.nbViewer`` (evalPairs, sphereRadiance, setState, metadata);
+:func:`sphere_directions` is the sphere geometry of the page, for comparing its pixels
+with onnxruntime.
 """
 
 from __future__ import annotations
 
+import base64
 import html
 import json
 import tempfile
@@ -44,6 +49,7 @@ SPHERE = 256  # sphere view size in pixels
 ALBEDO_THETA = np.linspace(0.0, 89.0, 30)  # theta_i of the precomputed albedo curve, deg
 ALBEDO_SAMPLES = 2048  # quadrature samples per theta_i
 SCRIPT = Path(__file__).with_name("viewer_page.js")
+METADATA_SCRIPT = Path(__file__).with_name("onnx_metadata.js")  # inlined before SCRIPT
 TANGENT_EPS = 1e-6  # |(n.z, 0, -n.x)| below this: the tangent falls back to +x
 
 CSS = """
@@ -57,17 +63,20 @@ h1 { font-size: 20px; margin: 0 0 8px; }
 .plots { display: flex; flex-wrap: wrap; gap: 10px; align-items: flex-start; }
 canvas.plot { border: 1px solid #ddd; }
 #nb-status, #nb-diff { color: #555; font-size: 13px; }
+#nb-meta { color: #444; font-size: 13px; white-space: pre-wrap; margin: 4px 0 8px; }
 """
 
 
 @dataclass
 class Model:
-    """One model of the page: its label, its GLSL (defining ``neural_brdf_eval``) and its
-    albedo curve {"theta": [deg], "rho": [[r, g, b]]}."""
+    """One model of the page: its label, its GLSL (defining ``neural_brdf_eval``), its
+    albedo curve {"theta": [deg], "rho": [[r, g, b]]} and, for a model read from a file,
+    the ONNX file's bytes (the page reads their metadata)."""
 
     name: str
     glsl: str
     albedo: dict
+    onnx: bytes | None = None
 
 
 def albedo_curve(fn, theta_deg=ALBEDO_THETA, *, samples: int = ALBEDO_SAMPLES) -> dict:
@@ -114,7 +123,15 @@ def page(models: list[Model], *, title: str = "neural-brdf viewer") -> str:
         raise ValueError(f"models: one or two, got {len(models)}")
     data = {
         "sphere": SPHERE,
-        "models": [{"name": m.name, "glsl": m.glsl, "albedo": m.albedo} for m in models],
+        "models": [
+            {
+                "name": m.name,
+                "glsl": m.glsl,
+                "albedo": m.albedo,
+                "onnx": None if m.onnx is None else base64.b64encode(m.onnx).decode("ascii"),
+            }
+            for m in models
+        ],
     }
     labels = [m.name for m in models] + (["relative difference"] if len(models) > 1 else [])
     label_html = "".join(f"<div>{html.escape(s)}</div>" for s in labels)
@@ -143,6 +160,7 @@ def page(models: list[Model], *, title: str = "neural-brdf viewer") -> str:
 <p>Drag on a sphere to move the light (a directional light of irradiance π: a white
 Lambertian facing it shows radiance 1).  Everything is drawn with the GLSL generated from
 the model's ONNX graph.</p>
+<pre id="nb-meta"></pre>
 <div class="labels">{label_html}</div>
 <canvas id="nb-gl"></canvas>
 <div id="nb-diff"></div>
@@ -158,6 +176,7 @@ the model's ONNX graph.</p>
 <pre id="nb-status">loading</pre>
 <script type="application/json" id="nb-data">{_json_for_script(data)}</script>
 <script>
+{METADATA_SCRIPT.read_text(encoding="utf-8")}
 {SCRIPT.read_text(encoding="utf-8")}
 </script>
 </main></body></html>
@@ -182,7 +201,7 @@ def onnx_model(path, label: str) -> Model:
     from .runtime import load
 
     brdf = load(path)  # a one-line InputError on a missing or bad file
-    return Model(label, glsl_of(path), albedo_curve(brdf.eval))
+    return Model(label, glsl_of(path), albedo_curve(brdf.eval), Path(path).read_bytes())
 
 
 def analytic_model(name: str, params: dict, label: str) -> Model:

@@ -11,6 +11,34 @@ const status = document.getElementById("nb-status");
 // a failure anywhere (no WebGL2, a shader the driver refuses) is shown on the page
 window.addEventListener("error", (e) => { status.textContent = "error: " + e.message; });
 const $ = (id) => document.getElementById(id);
+
+// ---------------------------------------------------------------- metadata
+// A model read from an ONNX file carries the file itself (base64, DATA.models[k].onnx);
+// its metadata_props are read from those bytes by readOnnxMetadata and decodeMetadata
+// (neural_brdf/onnx_metadata.js, inlined before this script).  Shown before WebGL starts,
+// so they are there even where WebGL2 is not.
+function b64ToBytes(s) {
+  const bin = atob(s), u = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) u[i] = bin.charCodeAt(i);
+  return u;
+}
+const METADATA = DATA.models.map((m) =>
+  m.onnx ? decodeMetadata(readOnnxMetadata(b64ToBytes(m.onnx))) : null);
+function metadataLine(name, meta) {
+  if (!meta) return name + ": no ONNX metadata (an analytic target)";
+  const t = meta.target;
+  const target = t && typeof t === "object" ? (t.kind === "analytic" ?
+    t.model + " " + JSON.stringify(t.params) : t.description || t.kind) : String(t || "?");
+  const num = (k) => typeof meta[k] === "number" ? meta[k].toPrecision(4) : String(meta[k] ?? "?");
+  const sl = meta.sampling_lobe;
+  const lobe = sl && typeof sl === "object" ? `, sampling lobe ${sl.distribution || "ggx"} ` +
+    `α ${Number(sl.alpha).toPrecision(3)}, share ${Number(sl.weight).toPrecision(3)}` : "";
+  return `${name}: fitted to ${target}; encoding ${meta.encoding || "?"}, max albedo ` +
+    `${num("max_albedo")}, reciprocity error ${num("reciprocity_error")}${lobe} ` +
+    `(metadata version ${meta.metadata_version}, ${meta.producer || "?"})`;
+}
+$("nb-meta").textContent = DATA.models.map((m, k) => metadataLine(m.name, METADATA[k])).join("\n");
+
 const canvas = $("nb-gl");
 canvas.width = S * (NM > 1 ? 3 : 1);
 canvas.height = S;
@@ -423,6 +451,8 @@ window.nbViewer = {
   // the float radiance image (S, S, 4), rows bottom-up, of model k lit from light (vec3)
   sphereRadiance: (k, light) => { renderSphere(k, light); return f32ToB64(readTarget(models[k].target)); },
   setState: (s) => { Object.assign(state, s); redraw("all"); return state; },
+  // model k's metadata, read from its ONNX bytes (null for an analytic target)
+  metadata: (k) => METADATA[k],
 };
 redraw("all");
 status.textContent = "ready";
