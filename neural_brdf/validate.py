@@ -265,7 +265,7 @@ def report(
     out = {
         "model": str(model_path),
         "encoding": model.encoding,
-        "target": model.metadata.get("target", ""),
+        "target": model.target.get("description", ""),  # text, as metadata_version 1 had
     }
     if physics_report is None:
         physics_report = physics(
