@@ -12,15 +12,24 @@
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
-message on stderr, never a traceback); 130 interrupted by Ctrl-C (a checkpoint was
-written; ``--resume`` continues).
+message on stderr, never a traceback: a bad key, file or option, a folder in use, a
+full disk); 130 interrupted by Ctrl-C, 143 (128 + 15) by SIGTERM, as docker, systemd,
+Slurm and Ray send it (a checkpoint was written; ``--resume`` continues).
+
+Output files are replaced atomically (a temporary file, then a rename); a symbolic link
+is followed, and a device or FIFO (``-o /dev/null``) is written in place.  ``-o -``
+writes a text output (codegen, view, validate --json) to stdout; binary outputs refuse
+it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 # Idle OpenMP threads that spin made torch's elementwise ops 10-40x slower on a busy
@@ -29,6 +38,8 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 EXIT_OK, EXIT_PHYSICS, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_TERMINATED = 128 + signal.SIGTERM  # 143: the shell's code for a process SIGTERM ended
+STDOUT = "-"  # -o -: the output on stdout (text formats only)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -148,17 +159,71 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _warn(message: str) -> None:
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def _output_file(out: str, what: str, flag: str = "-o") -> None:
+    """Refuse ``-o -`` for a binary output and ``-o FOLDER`` (InputError, exit 2)."""
+    from .errors import InputError
+
+    if out == STDOUT:
+        raise InputError(
+            f"{flag} -: {what} is binary, not for stdout; give a file name "
+            "(-o - is for text: codegen, view, validate --json)"
+        )
+    if Path(out).is_dir():
+        raise InputError(f"{flag} {out}: is a folder; give a file name ({what})")
+
+
+def _write_text(out: str, text: str) -> None:
+    """``text`` to the file ``out`` (atomic; see fileio) or, for ``-``, to stdout."""
+    from .errors import InputError
+    from .fileio import atomic_write
+
+    if out != STDOUT:
+        try:
+            atomic_write(out, text)
+        except OSError as e:
+            raise InputError(f"{out}: cannot write ({e.strerror})") from None
+        return
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        raise
+    except OSError as e:  # e.g. > /dev/full: no second try at exit
+        _stdout_to_devnull()
+        raise InputError(f"stdout: cannot write ({e.strerror})") from None
+
+
+def _stdout_to_devnull() -> None:
+    """Point fd 1 at /dev/null, so that the interpreter's last flush cannot fail."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 def _train(args) -> int:
     from . import presets
 
+    if args.out == STDOUT:
+        from .errors import InputError
+
+        raise InputError("--out -: a run is a folder, not stdout")
     path = presets.resolve(args.config)  # an unknown name fails before torch loads
     from . import config
 
-    cfg = config.load(path, args.overrides)  # a bad config fails before torch loads
+    # a bad config fails before torch loads
+    cfg = config.load(path, args.overrides, warn=_warn)
     from . import train, validate
 
     run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
     report = train.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
+    if report.get("already_finished") is not None:
+        print(
+            f"{run_dir}: already finished at step {report['already_finished']}; nothing "
+            "to do (raise train.steps to train on, or --overwrite to start again)"
+        )
+        return EXIT_OK
     print(validate.format_table(report))
     s = report["seconds"]
     print(
@@ -187,6 +252,8 @@ def _presets(args) -> int:
 
 
 def _export(args) -> int:
+    if args.out is not None:
+        _output_file(args.out, "an ONNX model")
     from . import export
 
     info = export.export_run(args.run_dir, args.out)
@@ -199,6 +266,10 @@ def _export(args) -> int:
 
 
 def _report(args) -> int:
+    if args.out == STDOUT:
+        from .errors import InputError
+
+        raise InputError("-o -: the report is a folder of files, not for stdout")
     from .report import write_report
 
     paths = write_report(args.run_dir, args.out)
@@ -207,12 +278,21 @@ def _report(args) -> int:
 
 
 def _validate(args) -> int:
+    import json
+
     from . import config, validate
 
+    if args.json and args.json != STDOUT and Path(args.json).is_dir():
+        raise config.InputError(f"--json {args.json}: is a folder; give a file name")
     reference = validate.reference_from(args.reference) if args.reference else None
     report = validate.report(args.model, reference=reference)
-    print(validate.format_table(report))
-    if args.json:
+    # with --json -, stdout carries the JSON alone and the table goes to stderr
+    table_to = sys.stderr if args.json == STDOUT else sys.stdout
+    print(validate.format_table(report), file=table_to)
+    if args.json == STDOUT:
+        # as validate.write_json writes it (NaN and infinities as strings)
+        _write_text(STDOUT, json.dumps(validate._finite(report), indent=2, allow_nan=False) + "\n")
+    elif args.json:
         try:
             validate.write_json(report, args.json)
         except OSError as e:
@@ -246,6 +326,7 @@ def _bake(args) -> int:
 
     from . import config
 
+    _output_file(args.out, "a tabulated BRDF (.binary, .bsdf)")
     suffix = Path(args.out).suffix.lower()
     if suffix not in BAKE_FORMATS:
         known = ", ".join(f"{s} ({n})" for s, (n, _) in BAKE_FORMATS.items())
@@ -269,34 +350,48 @@ def _bake(args) -> int:
 
 def _render(args) -> int:
     from .config import InputError
+    from .runtime import load
 
+    if args.spp < 1 or args.resolution < 8:
+        raise InputError("render: --spp must be >= 1 and --resolution >= 8")
+    _output_file(args.out, "a PNG image")
+    load(args.model)  # an empty, foreign or broken file: one line naming it, exit 2
     try:
         import mitsuba as mi
     except ImportError:
         raise InputError(
             "render: needs Mitsuba 3: pip install -e '.[mitsuba]' and apt-get install libllvm19"
         ) from None
-    if args.spp < 1 or args.resolution < 8:
-        raise InputError("render: --spp must be >= 1 and --resolution >= 8")
-    if mi.variant() is None:
-        mi.set_variant("llvm_ad_rgb")
-    from . import render as nbr
-
     reference = None
     if args.reference:
         name, params, _ = _analytic_target(args.reference)
         reference = {"model": name, "params": params}
-    psnr = nbr.render_preview(
+    if mi.variant() is None:
+        mi.set_variant("llvm_ad_rgb")
+    from . import render as nbr
+
+    info = nbr.render_comparison(
         args.model, args.out, reference=reference, spp=args.spp, resolution=args.resolution
     )
-    print(f"wrote {args.out}" + ("" if psnr is None else f"  (PSNR {psnr:.2f} dB vs reference)"))
+    if info["psnr"] is None:
+        print(f"wrote {args.out}")
+    else:
+        print(
+            f"wrote {args.out}  (PSNR {info['psnr']:.2f} dB vs reference; panels: neural, "
+            f"target, |difference| x {info['gain']:g})"
+        )
     return EXIT_OK
 
 
 def _view(args) -> int:
-    from .viewer import write_viewer
+    from . import viewer
 
-    print(f"wrote {write_viewer(args.model, args.out, compare=args.compare)}")
+    if args.out == STDOUT:
+        models = viewer.models_for(args.model, args.compare)
+        title = f"neural-brdf viewer: {Path(args.model).name}"  # as write_viewer's
+        _write_text(STDOUT, viewer.page(models, title=title))
+        return EXIT_OK
+    print(f"wrote {viewer.write_viewer(args.model, args.out, compare=args.compare)}")
     return EXIT_OK
 
 
@@ -321,17 +416,51 @@ def _sweep(args) -> int:
 def _codegen(args) -> int:
     from . import backends
     from .config import InputError
-    from .fileio import atomic_write
 
     if not Path(args.model).is_file():
         raise InputError(f"{args.model}: no such model file")
+    if args.out != STDOUT and Path(args.out).is_dir():
+        raise InputError(f"-o {args.out}: is a folder; give a file name")
     text = backends.generate(args.model, args.target)
-    try:
-        atomic_write(args.out, text)
-    except OSError as e:
-        raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
-    print(f"wrote {args.out} ({args.target}, {text.count(chr(10))} lines)")
+    _write_text(args.out, text)
+    # with -o -, stdout carries the code alone
+    print(
+        f"wrote {'stdout' if args.out == STDOUT else args.out} "
+        f"({args.target}, {text.count(chr(10))} lines)",
+        file=sys.stderr if args.out == STDOUT else sys.stdout,
+    )
     return EXIT_OK
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, as Ctrl-C raises KeyboardInterrupt: the
+    same clean-ups run (no temporary file is left) and the exit code is 143."""
+
+    signum = signal.SIGTERM
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated("terminated (SIGTERM)")
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt(command: str):
+    """SIGTERM behaves as Ctrl-C while ``command`` runs (training checkpoints between
+    steps: train.deferred_interrupt), except for ``sweep``: its workers stop on the
+    terminal's Ctrl-C, which reaches the whole process group."""
+    if command == "sweep" or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def _exit_code(e: BaseException) -> int:
+    """128 + the signal that interrupted the program: 130 (Ctrl-C), 143 (SIGTERM)."""
+    return 128 + int(getattr(e, "signum", None) or signal.SIGINT)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -352,7 +481,8 @@ def main(argv: list[str] | None = None) -> int:
             "codegen": _codegen,
             "view": _view,
         }
-        return commands[args.command](args)
+        with _sigterm_as_interrupt(args.command):
+            return commands[args.command](args)
     except (_UsageError, InputError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INPUT
@@ -364,12 +494,14 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_PHYSICS
     except (Interrupted, KeyboardInterrupt) as e:
         print(f"neural-brdf: {e or 'interrupted'}", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _exit_code(e)
     except BrokenPipeError:  # `neural-brdf presets | head`: the reader left; no traceback
-        import os
-
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _stdout_to_devnull()
         return 0
+    except OSError as e:  # the file system: a full disk, a read-only folder, ...
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_INPUT
 
 
 if __name__ == "__main__":

@@ -8,8 +8,9 @@ against this schema by the tests).  Overrides come from the command line::
 
 A value given by ``--set`` is parsed as YAML, so numbers, booleans and lists work.
 Unknown keys, wrong types and invalid values raise :class:`ConfigError` with a
-one-line message that names the key (``train.stepz: unknown key ...``); the CLI turns
-it into exit code 2.  Types are strict: an integer setting does not accept ``2.5`` or
+one-line message that names the key and where it was given (``gold.yaml: train.stepz:
+unknown key``, ``--set train.stepz=5: train.stepz: unknown key``); the CLI turns it
+into exit code 2.  Types are strict: an integer setting does not accept ``2.5`` or
 ``"2"``, a float setting accepts an integer.
 """
 
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -28,7 +29,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from .errors import ConfigError, InputError  # noqa: F401  (re-exported: config.InputError)
 
 # Of the resolved config, the checkpoint and the exported model (its ONNX model_version).
-FORMAT_VERSION = 1
+# 2: the encoding's peak coordinate u_h replaced sqrt(theta_h / (pi/2)) (issue 19), so a
+# version-1 checkpoint's weights mean something else: it is not resumed.
+FORMAT_VERSION = 2
 
 
 class _Section(BaseModel):
@@ -156,7 +159,7 @@ class Data(_Section):
 
 
 class Train(_Section):
-    steps: int = Field(3000, ge=0)  # optimizer steps
+    steps: int = Field(3000, ge=1)  # optimizer steps
     seed: int = 0  # seeds weights, data and quadrature
     lr: float = Field(3e-2, gt=0.0)  # Adam learning rate after warm-up
     lr_min: float = Field(0.01, ge=0.0, le=1.0)  # final lr as a fraction of lr (cosine)
@@ -246,9 +249,21 @@ def apply_override(raw: dict, item: str) -> None:
     for i, part in enumerate(path[:-1]):
         child = node.setdefault(part, {})
         if not isinstance(child, dict):
-            raise ConfigError(f"{'.'.join(path[: i + 1])}: is a value, not a section")
+            raise ConfigError(f"--set {item}: {'.'.join(path[: i + 1])}: is a value, not a section")
         node = child
     node[path[-1]] = value
+
+
+def _blame(loc: Sequence, overrides: Sequence[str]) -> str | None:
+    """``--set ITEM`` of the last override that sets the key at ``loc``, a key inside it
+    or the section holding it; None when the key comes from the file."""
+    loc = tuple(str(p) for p in loc)
+    for item in reversed(overrides):
+        key = tuple(item.partition("=")[0].strip().split("."))
+        n = min(len(key), len(loc))
+        if n and key[:n] == loc[:n]:
+            return f"--set {item}"
+    return None
 
 
 def _describe(err: dict) -> str:
@@ -264,7 +279,9 @@ def _describe(err: dict) -> str:
     return f"{loc}: {err['msg']}{shown}"
 
 
-def from_dict(raw: Any, *, source: str = "config") -> Config:
+def from_dict(raw: Any, *, source: str = "config", overrides: Sequence[str] = ()) -> Config:
+    """Validate a raw config.  An error names ``source``, or the ``--set`` of
+    ``overrides`` (already applied to ``raw``) that gave the offending key."""
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
@@ -274,7 +291,8 @@ def from_dict(raw: Any, *, source: str = "config") -> Config:
     except ValidationError as e:
         errs = e.errors()
         more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
-        raise ConfigError(f"{source}: {_describe(errs[0])}{more}") from None
+        where = _blame(errs[0]["loc"], overrides) or source
+        raise ConfigError(f"{where}: {_describe(errs[0])}{more}") from None
 
 
 def read_text(path: Path) -> str:
@@ -301,17 +319,27 @@ def _images_relative_to(raw: dict, folder: Path) -> None:
 
 
 def load(
-    path: str | Path | None, overrides: Sequence[str] = (), *, name: str | None = None
+    path: str | Path | None,
+    overrides: Sequence[str] = (),
+    *,
+    name: str | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> Config:
     """Read a YAML config (or start from the defaults when ``path`` is None), apply
-    ``--set`` overrides and validate.  ``name`` defaults to the file's stem."""
+    ``--set`` overrides and validate.  ``name`` defaults to the file's stem.
+
+    ``warn`` is called with a one-line message when the file (with the overrides)
+    gives no ``target``: an empty file, or one without a ``target:`` section, is valid,
+    and trains the default target, but is more likely a mistake.
+    """
     raw: dict = {}
+    empty = False
     if path is not None:
         path = Path(path)
         text = read_text(path)
         raw = parse_yaml(text, source=str(path))
         if raw is None:
-            raw = {}
+            raw, empty = {}, True
         if not isinstance(raw, dict):
             raise ConfigError(
                 f"{path}: expected a mapping of keys at the top level, got {type(raw).__name__}"
@@ -321,4 +349,8 @@ def load(
         _images_relative_to(raw, path.parent)
     for item in overrides:
         apply_override(raw, item)
-    return from_dict(raw, source=str(path) if path is not None else "config")
+    cfg = from_dict(raw, source=str(path) if path is not None else "config", overrides=overrides)
+    if warn is not None and path is not None and "target" not in raw:
+        what = "empty config" if empty else "no target: section"
+        warn(f"{path}: {what}: training the default target (a {cfg.target.model} BRDF)")
+    return cfg

@@ -8,9 +8,10 @@ vector whose peak coordinate u_h (:func:`neural_brdf.encoding.peak_coordinate`) 
 uniform in [0, 1], so that the region about the mirror direction, which the encoding
 stretches over half of u_h, is trained for any target.  Without them a diffuse target
 (Oren-Nayar) left the grid rows near u_h = 0 under-trained: compact clay read 8 % off
-its target within a degree of the mirror direction at 70 degrees.  A sampled wo below the horizon (possible with
-visible-normal or Phong lobes) is replaced by a cosine-distributed one, since the
-network is 0 there by construction and the pair would teach nothing.
+its target within a degree of the mirror direction at 70 degrees.  A sampled wo below
+the horizon (possible with visible-normal or Phong lobes) is replaced by a
+cosine-distributed one, since the network is 0 there by construction and the pair would
+teach nothing.
 
 Evaluating an analytic target costs more than a training step of the small MLP, so
 pairs live in a ring-buffer pool: each step replaces ``batch_size / reuse`` of the

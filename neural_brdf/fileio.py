@@ -1,21 +1,35 @@
-"""Atomic file writes: every file the package writes goes through here.
+"""Safe file writes: every file the package writes goes through here.
 
     atomic_write(path, b"...")             # bytes or str (UTF-8)
     with atomic_path(path) as tmp:         # for writers that want a file name
         torch.save(state, tmp)
 
-The data goes to a temporary file in the destination folder, is flushed and fsynced,
-gets the permissions a plain ``open(path, "w")`` would give (0o666 less the umask;
-``mkstemp`` alone leaves 0o600), and is renamed over ``path`` with ``os.replace``,
-which is atomic on POSIX.  The folder is then fsynced so that the rename itself
-survives a power cut.  A reader therefore sees the old file or the new one, never a
-torn one, and a crash or Ctrl-C mid-write leaves no temporary file behind.
+What happens depends on what ``path`` is:
+
+* a regular file, or nothing yet: the data go to a temporary file in the destination
+  folder, are flushed and fsynced, and the temporary file is renamed over ``path`` with
+  ``os.replace``, which is atomic on POSIX; the folder is then fsynced so that the rename
+  itself survives a power cut.  A reader sees the old file or the new one, never a torn
+  one, and a crash or Ctrl-C mid-write leaves no temporary file behind.  A new file gets
+  the permissions a plain ``open(path, "w")`` would give (0o666 less the umask;
+  ``mkstemp`` alone leaves 0o600); a replaced file keeps its own.
+* a symbolic link: it is followed, and the file it points to is replaced as above (or
+  created, for a dangling link); the link stays a link.
+* a device, a FIFO or a socket (``/dev/null``, ``/dev/stdout``, a named pipe): it cannot
+  be replaced, so it is opened and written directly, as ``open(path, "wb")`` would.
+  ``-o /dev/null`` leaves /dev/null a device, and ``/dev/full`` gives ENOSPC.
+* a folder: IsADirectoryError.
+
+Every OSError raised here names ``path`` (``e.filename``, ``e.strerror``): the command
+line prints ``PATH: cannot write (No space left on device)`` and exits with code 2.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import stat
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -45,39 +59,98 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def is_special(path: str | os.PathLike) -> bool:
+    """True when ``path`` (links followed) exists and is neither a regular file nor a
+    folder: a device, a FIFO or a socket, which a write must not replace."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
+def _destination(path: Path) -> tuple[Path, os.stat_result | None, bool]:
+    """(the file to write, its stat or None when new, whether it is replaced by rename)."""
+    try:
+        st = os.stat(path)  # follows links, /dev/stdout's magic ones included
+    except FileNotFoundError:  # a new file, or a dangling link: created where it points
+        return Path(os.path.realpath(path)), None, True
+    if stat.S_ISDIR(st.st_mode):
+        raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+    if not stat.S_ISREG(st.st_mode):
+        return path, st, False  # a device, FIFO or socket: written in place
+    return Path(os.path.realpath(path)), st, True
+
+
+def _renamed(e: OSError, path: Path) -> OSError:
+    """``e`` naming ``path`` (OSError(errno, ...) picks the subclass from the errno)."""
+    if e.errno is None:  # e.g. OSError("simulated"): nothing to name
+        return e
+    return OSError(e.errno, e.strerror or os.strerror(e.errno), str(path))
+
+
 @contextlib.contextmanager
 def atomic_path(
     path: str | os.PathLike, *, suffix: str = ".tmp", parents: bool = False
 ) -> Iterator[str]:
-    """Yield a temporary file name beside ``path``; on success it replaces ``path``.
+    """Yield a file name for the writer; on success its content is at ``path``.
 
+    For a regular (or new) ``path`` the name is a temporary file beside it, renamed over
+    it on success; for a device or FIFO it is the device itself (see the module doc).
     ``suffix`` is the temporary file's extension, for writers that choose the format
     from it (matplotlib, Chromium screenshots).  ``parents=True`` creates missing
     folders; otherwise a missing folder raises FileNotFoundError, so that a mistyped
     ``-o`` path is an error rather than a new folder.  On any exception,
     KeyboardInterrupt included, the temporary file is removed and ``path`` is left as
-    it was.
+    it was.  An OSError of the writer about the file it was given (or about no file: a
+    full disk) is raised again naming ``path``.
     """
     path = Path(path)
-    if parents:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
-    os.close(fd)
+    name = None  # what the writer was given, once it has been
     try:
-        yield tmp
-        with open(tmp, "rb+") as fh:  # the writer may have closed its handle
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    _fsync_dir(path.parent)
+        if parents:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        real, st, replace = _destination(path)
+        if not replace:
+            name = str(real)
+            yield name
+            return
+        fd, tmp = tempfile.mkstemp(dir=real.parent, prefix=f".{real.name}.", suffix=suffix)
+        os.close(fd)
+        try:
+            name = tmp
+            yield tmp
+            name = None
+            fd = os.open(tmp, os.O_RDWR)  # the writer may have closed its handle
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.chmod(tmp, stat.S_IMODE(st.st_mode) if st else 0o666 & ~_umask())
+            os.replace(tmp, real)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+        _fsync_dir(real.parent)
+    except OSError as e:
+        if name is not None and e.filename is not None and str(e.filename) != name:
+            raise  # the writer's own trouble with some other file
+        raise _renamed(e, path) from e
+
+
+def _write_all(name: str, payload: bytes) -> None:
+    fd = os.open(name, os.O_WRONLY | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0))
+    try:
+        view = memoryview(payload)
+        while view:
+            view = view[os.write(fd, view) :]
+    finally:
+        os.close(fd)
 
 
 def atomic_write(path: str | os.PathLike, data: bytes | str, *, parents: bool = False) -> None:
     """Write ``data`` (str is encoded as UTF-8) to ``path`` atomically (see atomic_path)."""
     payload = data.encode("utf-8") if isinstance(data, str) else data
-    with atomic_path(path, parents=parents) as tmp, open(tmp, "wb") as fh:
-        fh.write(payload)
+    with atomic_path(path, parents=parents) as name:
+        _write_all(name, payload)

@@ -2,9 +2,16 @@
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
-    from neural_brdf.render import render_preview
+    from neural_brdf.render import render_comparison, render_preview
     psnr = render_preview("model.onnx", "preview.png",
                           reference={"model": "microfacet", "params": {"alpha": 0.3}})
+    info = render_comparison("model.onnx", "preview.png", reference=...)  # gain: adaptive
+
+The PNG with a reference holds three labelled panels: "neural", "target" and
+"|difference| x K", the absolute difference of the display values times K.  K is fixed
+(``gain=ERROR_GAIN``, the report's render) or chosen so that the 99th percentile of the
+difference maps to 1 (``gain=None``, ``neural-brdf render``): a good model's difference
+is a few per cent, black at any fixed gain that also suits a poor one.
 
 Importing this module needs a Mitsuba variant to be set already; it imports
 :mod:`neural_brdf.mitsuba`, which registers the ``neural_brdf`` and ``analytic_brdf``
@@ -108,8 +115,10 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return math.inf if mse == 0 else 10.0 * math.log10(1.0 / mse)
 
 
-# The error map shows |neural - reference| (display values, channel mean) times this.
+# The error map shows |neural - reference| (display values, channel mean) times this
+# (render_preview's default, the report's render; neural-brdf render adapts it).
 ERROR_GAIN = 10.0
+GAIN_PERCENTILE = 99.0  # an adaptive gain maps this percentile of the difference to 1
 
 
 def write_png(path: Path, img: np.ndarray) -> None:
@@ -133,25 +142,87 @@ def analytic_bsdf(reference: dict) -> dict:
     }
 
 
-def side_by_side(neural: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Display images -> neural | reference | error map (|difference| of display values,
-    channel mean, x ERROR_GAIN, 'inferno' colours), with thin white gaps."""
+def difference(neural: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """|neural - reference| of display values, channel mean (H, W)."""
+    return np.abs(np.asarray(neural, np.float64) - np.asarray(ref, np.float64)).mean(-1)
+
+
+def adaptive_gain(err: np.ndarray) -> float:
+    """The gain that maps the GAIN_PERCENTILE-th percentile of ``err`` to 1 (the maximum
+    when that percentile is 0; 1 for identical images), to two significant digits."""
+    top = float(np.percentile(err, GAIN_PERCENTILE))
+    if top <= 0.0:
+        top = float(err.max())
+    return 1.0 if top <= 0.0 else float(f"{1.0 / top:.2g}")
+
+
+def side_by_side(neural: np.ndarray, ref: np.ndarray, gain: float = ERROR_GAIN) -> np.ndarray:
+    """Display images -> neural | reference | error map (:func:`difference` x ``gain``,
+    'inferno' colours), with thin white gaps; unlabelled (:func:`label_panels`)."""
     import matplotlib
 
-    err = np.abs(neural - ref).mean(-1) * ERROR_GAIN
+    err = difference(neural, ref) * gain
     err_rgb = matplotlib.colormaps["inferno"](np.clip(err, 0.0, 1.0))[..., :3]
-    gap = np.ones((neural.shape[0], max(2, neural.shape[0] // 64), 3))
+    gap = np.ones((neural.shape[0], _gap(neural.shape[0]), 3))
     return np.concatenate([neural, gap, ref, gap, err_rgb], axis=1)
 
 
-def render_preview(
-    onnx_path, out_png, *, reference: dict | None = None, spp: int = 64, resolution: int = 256
-) -> float | None:
+def _gap(height: int) -> int:
+    return max(2, height // 64)
+
+
+def label_panels(image: np.ndarray, labels: list[str], gap: int) -> np.ndarray:
+    """``image`` (H, W, 3): ``len(labels)`` equal panels side by side, ``gap`` pixels
+    apart, with a white strip above them holding each panel's label, centred, in black
+    (drawn by matplotlib's Agg renderer at one pixel per pixel; a label wider than its
+    panel, at the smallest sizes, is cut at the panel's edges)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.transforms import Bbox
+
+    h, w = image.shape[:2]
+    n = len(labels)
+    panel = (w - gap * (n - 1)) / n
+    strip = max(16, round(0.1 * h))
+    dpi = 100.0
+    fig = Figure(figsize=(w / dpi, strip / dpi), dpi=dpi, facecolor="white")
+    canvas = FigureCanvasAgg(fig)
+    longest = max(len(t) for t in labels)
+    # font size in pixels: 0.6 of the strip, smaller where a label would overflow
+    px = max(6.0, min(0.6 * strip, 1.7 * panel / max(longest, 1)))
+    for i, label in enumerate(labels):
+        x0 = i * (panel + gap)
+        text = fig.text(
+            (x0 + panel / 2) / w,
+            0.5,
+            label,
+            ha="center",
+            va="center",
+            fontsize=px * 72 / dpi,
+            color="black",
+            clip_on=True,
+        )
+        text.set_clip_box(Bbox.from_extents(x0, 0, x0 + panel, strip))
+    canvas.draw()
+    header = np.asarray(canvas.buffer_rgba(), dtype=np.float64)[..., :3] / 255.0
+    return np.concatenate([header[:strip, :w], np.clip(image, 0.0, 1.0)], axis=0)
+
+
+def render_comparison(
+    onnx_path,
+    out_png,
+    *,
+    reference: dict | None = None,
+    spp: int = 64,
+    resolution: int = 256,
+    gain: float | None = None,
+) -> dict:
     """Render the neural BRDF in the preview scene and write ``out_png``.
 
     With ``reference`` (an analytic target, see :func:`analytic_bsdf`) the PNG is
-    :func:`side_by_side` and the PSNR (dB, sRGB display values) of neural against
-    reference is returned; otherwise None.
+    :func:`side_by_side`, labelled "neural", "target" and "|difference| x K" with K =
+    ``gain`` (None: :func:`adaptive_gain`).  Returns {"psnr": dB of neural against the
+    reference (sRGB display values), "gain": K}; both None without a reference.
     """
     path, _, _ = read_model(onnx_path)
     ref_bsdf = None if reference is None else analytic_bsdf(reference)
@@ -160,7 +231,27 @@ def render_preview(
     )
     if ref_bsdf is None:
         write_png(Path(out_png), neural)
-        return None
+        return {"psnr": None, "gain": None}
     ref = to_display(render_scene(ref_bsdf, resolution=resolution, spp=spp))
-    write_png(Path(out_png), side_by_side(neural, ref))
-    return psnr(neural, ref)
+    if gain is None:
+        gain = adaptive_gain(difference(neural, ref))
+    labels = ["neural", "target", f"|difference| x {gain:g}"]
+    panels = side_by_side(neural, ref, gain)
+    write_png(Path(out_png), label_panels(panels, labels, _gap(resolution)))
+    return {"psnr": psnr(neural, ref), "gain": gain}
+
+
+def render_preview(
+    onnx_path,
+    out_png,
+    *,
+    reference: dict | None = None,
+    spp: int = 64,
+    resolution: int = 256,
+    gain: float | None = ERROR_GAIN,
+) -> float | None:
+    """:func:`render_comparison` with a fixed gain by default; returns the PSNR (None
+    without a reference)."""
+    return render_comparison(
+        onnx_path, out_png, reference=reference, spp=spp, resolution=resolution, gain=gain
+    )["psnr"]

@@ -41,18 +41,29 @@ new length.  ``target``, ``model``, ``data`` and the loss must match the checkpo
 A fresh run does not replace another run's files: ``run`` (and ``neural-brdf train``)
 refuses a folder holding model.onnx, metrics.json or ckpt.pt unless ``--resume`` (or
 ``resume=True``) continues it or ``--overwrite`` (``overwrite=True``) replaces it.
+Resuming a finished run (its checkpoint at ``train.steps``, model.onnx and metrics.json
+written) does nothing and touches no file; a ``train.steps`` below the checkpoint's step
+is refused.  ``run`` holds ``RUN_DIR/.lock`` (``fcntl.flock``, the holder's pid inside)
+from start to end, so that a second run into the same folder stops at once (RunLocked).
 
 Checkpoints are written to a temporary file and renamed (atomic), loaded with
-``weights_only=True``.  Ctrl-C finishes the current step, writes a checkpoint and raises
-:class:`Interrupted` (a second Ctrl-C aborts at once).  A non-finite loss or weight
-raises :class:`Diverged` and leaves the last good checkpoint in place.
+``weights_only=True``.  Ctrl-C or SIGTERM (what docker, systemd, Slurm and Ray send)
+finishes the current step, writes a checkpoint and raises :class:`Interrupted`, whose
+``signum`` is the signal (the CLI exits with 128 + signum: 130, 143); a second one
+aborts at once.  A non-finite loss or weight raises :class:`Diverged` and leaves the
+last good checkpoint in place.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
+import json
 import math
+import os
 import signal
+import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -66,8 +77,13 @@ from . import config as cfgmod
 from . import data, validate
 from . import export as exp
 from .errors import Diverged, InputError, Interrupted
-from .fileio import atomic_path, atomic_write
+from .fileio import atomic_write
 from .model import RawBRDF
+
+try:
+    import fcntl
+except ImportError:  # Windows: runs are not locked
+    fcntl = None
 
 LOG_COLUMNS = ["step", "loss", "lr", "seconds", "val_rel_rmse"]
 # Settings a resumed run must share with its checkpoint (the rest may change, e.g. steps).
@@ -112,6 +128,71 @@ def check_fresh_run_dir(run_dir: Path, *, resume: bool, overwrite: bool) -> None
         path.unlink(missing_ok=True)
 
 
+class RunLocked(InputError):
+    """Another process is running in the same run directory (exit code 2)."""
+
+
+LOCK_FILE = ".lock"  # in the run directory while a run holds it: the holder's pid
+
+
+@contextmanager
+def run_lock(run_dir: Path):
+    """Create ``run_dir`` if needed and hold ``run_dir/.lock`` (an exclusive
+    ``fcntl.flock``, the holder's pid written inside) until the block ends.
+
+    A second holder raises :class:`RunLocked` at once, naming the first one's pid.  The
+    lock dies with its process (even by SIGKILL), so a stale ``.lock`` file is no
+    obstacle.  The file is removed on release, and a folder this call created is
+    removed again if the run left it empty (an error before anything was written).
+    """
+    created = not run_dir.exists()
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise InputError(f"{run_dir}: is a file, not a run folder (choose another --out)") from None
+    except OSError as e:
+        raise InputError(f"{run_dir}: cannot create the run folder ({e.strerror})") from None
+    path = run_dir / LOCK_FILE
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        except OSError as e:
+            raise InputError(f"{path}: cannot create the run's lock file ({e.strerror})") from None
+        if fcntl is None:
+            break
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            raise RunLocked(
+                f"{run_dir}: in use by another run (pid {holder}); wait for it to end "
+                "or choose another --out"
+            ) from None
+        except OSError:  # a file system without flock (some network mounts): unlocked
+            break
+        # The holder before us may have removed the file between our open and our lock:
+        # then we hold a lock on a deleted file, and must lock the path's new file.
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(path)):
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    with contextlib.suppress(OSError):  # the pid only names the holder to a second run
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # before the unlock (above: a waiter then locks anew)
+        os.close(fd)
+        if created:
+            with contextlib.suppress(OSError):
+                run_dir.rmdir()  # only if empty
+
+
 def default_run_dir(cfg: cfgmod.Config) -> Path:
     return Path("runs") / cfg.name
 
@@ -154,8 +235,12 @@ def rel_rmse(pred: torch.Tensor, ref: torch.Tensor, cos: torch.Tensor) -> float:
 
 # ------------------------------------------------------------------ checkpoints
 def save_checkpoint(path: Path, state: dict) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    """Write a checkpoint atomically.  It is serialised in memory first: torch.save's
+    own file writer reports a full disk as a RuntimeError without the errno, and
+    atomic_write raises an OSError naming ``path`` (ENOSPC: "No space left on device")."""
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write(path, buf.getbuffer())
 
 
 def _get(d: dict, dotted: str):
@@ -174,24 +259,92 @@ def check_resumable(saved: dict, cfg: cfgmod.Config) -> None:
             )
 
 
+def load_resumable(cfg: cfgmod.Config, ckpt_path: Path) -> dict:
+    """The checkpoint that ``cfg`` resumes: same format version, same MUST_MATCH
+    settings, and ``train.steps`` not below its step (a resumed run only trains on)."""
+    ckpt = exp.load_checkpoint(ckpt_path)
+    if ckpt.get("format_version") != cfgmod.FORMAT_VERSION:  # e.g. another encoding
+        raise cfgmod.ConfigError(
+            f"{ckpt_path}: written by format version {ckpt.get('format_version')}, this "
+            f"is {cfgmod.FORMAT_VERSION}; it cannot be resumed: train anew (--overwrite)"
+        )
+    check_resumable(ckpt["config"], cfg)
+    step = int(ckpt["step"])
+    if cfg.train.steps < step:
+        raise cfgmod.ConfigError(
+            f"train.steps: {cfg.train.steps} is below the step of the checkpoint being "
+            f"resumed ({step}, {ckpt_path}); a resumed run only trains on: give "
+            f"train.steps >= {step}"
+        )
+    return ckpt
+
+
+def finished_report(run_dir: Path, step: int) -> dict | None:
+    """The metrics.json of a run that finished at ``step`` (its model.onnx written
+    too), or None: a run stopped before it finished exporting or validating."""
+    if not (run_dir / "model.onnx").is_file():
+        return None
+    try:
+        report = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    training = report.get("training") if isinstance(report, dict) else None
+    return report if isinstance(training, dict) and training.get("steps") == step else None
+
+
+INTERRUPT_SIGNALS = (signal.SIGINT, signal.SIGTERM)  # Ctrl-C; docker, systemd, Slurm, Ray
+
+
+def signal_name(signum: int | None) -> str:
+    return "Ctrl-C" if signum in (None, signal.SIGINT) else signal.Signals(signum).name
+
+
+def _abort(signum: int) -> KeyboardInterrupt:
+    e = KeyboardInterrupt(f"{signal_name(signum)} again: aborted")
+    e.signum = signum  # the CLI's exit code is 128 + signum
+    return e
+
+
 @contextmanager
-def deferred_sigint():
-    """Turn the first Ctrl-C into a flag checked between steps (main thread only)."""
-    flag = {"set": False}
+def deferred_interrupt():
+    """Turn the first Ctrl-C (SIGINT) or SIGTERM into a flag checked between steps
+    (main thread only): ``flag["set"]``, and ``flag["signum"]`` the signal.  A second
+    one raises KeyboardInterrupt at once.  An :class:`Interrupted` raised in the block
+    leaves it with ``e.signum`` set to the signal (the CLI exits with 128 + signum)."""
+    flag = {"set": False, "signum": None}
     if threading.current_thread() is not threading.main_thread():
         yield flag
         return
 
     def handler(signum, frame):
         if flag["set"]:
-            raise KeyboardInterrupt
-        flag["set"] = True
+            raise _abort(signum)
+        flag["set"], flag["signum"] = True, signum
 
-    previous = signal.signal(signal.SIGINT, handler)
+    previous = {s: signal.signal(s, handler) for s in INTERRUPT_SIGNALS}
     try:
         yield flag
+    except Interrupted as e:
+        if getattr(e, "signum", None) is None:
+            e.signum = flag["signum"] or signal.SIGINT
+        raise
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, h in previous.items():
+            signal.signal(s, signal.SIG_DFL if h is None else h)
+
+
+deferred_sigint = deferred_interrupt  # the former name (SIGINT only)
+
+
+def interrupted(flag: dict, step: int, ckpt_path: Path) -> Interrupted:
+    """The Interrupted of a run stopped by ``flag`` (:func:`deferred_interrupt`) after
+    ``step``, its checkpoint saved to ``ckpt_path``."""
+    e = Interrupted(
+        f"interrupted at step {step} ({signal_name(flag['signum'])}); checkpoint saved "
+        f"to {ckpt_path}; continue with --resume"
+    )
+    e.signum = flag["signum"] or signal.SIGINT
+    return e
 
 
 # ------------------------------------------------------------------ the run
@@ -208,12 +361,18 @@ def resolve_device(name: str) -> torch.device:
 
 
 def train(
-    cfg: cfgmod.Config, run_dir: Path, *, resume: bool = False, target: Any = None
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    *,
+    resume: bool = False,
+    target: Any = None,
+    checkpoint: dict | None = None,
 ) -> tuple[RawBRDF, dict[str, Any]]:
     """Optimise the raw network; writes ckpt.pt and log.csv.  Returns (network, figures).
 
     ``target`` is the model of ``cfg.target`` (``data.build_target``) when the caller
-    has built it.
+    has built it; ``checkpoint`` the run's checkpoint (:func:`load_resumable`) when the
+    caller has loaded it to resume.
     """
     t = cfg.train
     torch.set_num_threads(t.threads)
@@ -224,8 +383,7 @@ def train(
     ckpt_path, log_path = run_dir / "ckpt.pt", run_dir / "log.csv"
     ckpt = None
     if resume:
-        ckpt = exp.load_checkpoint(ckpt_path)
-        check_resumable(ckpt["config"], cfg)
+        ckpt = checkpoint if checkpoint is not None else load_resumable(cfg, ckpt_path)
     atomic_write(run_dir / "config.yaml", cfg.to_yaml())
 
     gen = torch.Generator().manual_seed(t.seed)
@@ -249,11 +407,13 @@ def train(
     eval_wi, eval_wo, eval_f = (
         x.float().to(device) for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
     )
-    step, seconds = 0, 0.0
+    step, seconds, last_loss = 0, 0.0, math.nan
     if ckpt is not None:
         opt.load_state_dict(ckpt["optimizer"])  # moves Adam's moments to the weights' device
         pool.load_state_dict(ckpt["pool"])
         step, seconds = int(ckpt["step"]), float(ckpt["train_seconds"])
+        last_loss = float(ckpt.get("loss", math.nan))  # older checkpoints: from log.csv
+        print(f"{cfg.name}: resuming {ckpt_path} at step {step} of {t.steps}", file=sys.stderr)
 
     def state():
         return {
@@ -264,6 +424,7 @@ def train(
             "optimizer": opt.state_dict(),
             "pool": pool.state_dict(),
             "train_seconds": seconds,
+            "loss": last_loss,  # of the last step: metrics' final_loss after a resume
         }
 
     def weights_finite() -> bool:
@@ -275,12 +436,16 @@ def train(
     if resume and log_path.is_file():
         with open(log_path, newline="") as fh:
             rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
-    log_fh = open(log_path, "w", newline="")
-    log = csv.DictWriter(log_fh, LOG_COLUMNS)
-    log.writeheader()
-    log.writerows(rows)
+        if rows and not math.isfinite(last_loss) and int(rows[-1]["step"]) == step:
+            last_loss = float(rows[-1]["loss"])
+    try:
+        log_fh = open(log_path, "w", newline="")
+        log = csv.DictWriter(log_fh, LOG_COLUMNS)
+        log.writeheader()
+        log.writerows(rows)
+    except OSError as e:
+        raise _cannot_write(log_path, e) from None
 
-    last_loss = math.nan
     bar = tqdm(
         total=t.steps,
         initial=min(step, t.steps),
@@ -291,16 +456,14 @@ def train(
         leave=False,
     )
     start = time.perf_counter() - seconds
+    ok = False
     try:
-        with deferred_sigint() as sigint:
+        with deferred_interrupt() as sigint:
             while step < t.steps:
                 if sigint["set"]:
                     seconds = time.perf_counter() - start
                     save_checkpoint(ckpt_path, state())
-                    raise Interrupted(
-                        f"interrupted at step {step}; checkpoint saved to "
-                        f"{ckpt_path}; continue with --resume"
-                    )
+                    raise interrupted(sigint, step, ckpt_path)
                 lr = learning_rate(t, step)
                 for group in opt.param_groups:
                     group["lr"] = lr * group.get("lr_scale", 1.0)
@@ -333,8 +496,11 @@ def train(
                         bar.set_postfix(loss=f"{last_loss:.4g}", err=f"{100 * err:.2f}%")
                     else:
                         bar.set_postfix(loss=f"{last_loss:.4g}")
-                    log.writerow(row)
-                    log_fh.flush()
+                    try:
+                        log.writerow(row)
+                        log_fh.flush()
+                    except OSError as e:
+                        raise _cannot_write(log_path, e) from None
                 if step % t.checkpoint_every == 0 or step == t.steps:
                     if not weights_finite():
                         raise Diverged(
@@ -343,9 +509,14 @@ def train(
                         )
                     seconds = time.perf_counter() - start
                     save_checkpoint(ckpt_path, state())
+        ok = True
     finally:
         bar.close()
-        log_fh.close()
+        try:
+            log_fh.close()
+        except OSError as e:  # a full disk: the buffered rows cannot be written
+            if ok:
+                raise _cannot_write(log_path, e) from None
     seconds = time.perf_counter() - start
     with torch.no_grad():
         err = rel_rmse(raw(eval_wi, eval_wo), eval_f, eval_wo[:, 2:3])
@@ -359,6 +530,10 @@ def train(
     }
 
 
+def _cannot_write(path: Path, e: OSError) -> InputError:
+    return InputError(f"{path}: cannot write ({e.strerror or e})")
+
+
 def run(
     cfg: cfgmod.Config,
     run_dir: str | Path | None = None,
@@ -369,13 +544,30 @@ def run(
     """Train, export ``model.onnx``, validate it; returns (and writes) ``metrics.json``.
 
     A fresh run (no ``resume``) into a folder that already holds a run raises
-    :class:`RunExists` unless ``overwrite`` (see :func:`check_fresh_run_dir`).
+    :class:`RunExists` unless ``overwrite`` (see :func:`check_fresh_run_dir`).  The run
+    holds the folder's lock (:func:`run_lock`) throughout.  Resuming a run that has
+    finished at ``train.steps`` writes nothing and returns its metrics.json with
+    ``"already_finished"`` set to the step.
     """
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
+    with run_lock(run_dir):
+        if cfg.target.images is not None:  # fit to images by inverse rendering (docs/inverse.md)
+            from . import inverse
+
+            return inverse.run(cfg, run_dir, resume=resume, overwrite=overwrite)
+        return _run(cfg, run_dir, resume=resume, overwrite=overwrite)
+
+
+def _run(cfg: cfgmod.Config, run_dir: Path, *, resume: bool, overwrite: bool) -> dict[str, Any]:
     check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
+    ckpt = load_resumable(cfg, run_dir / "ckpt.pt") if resume else None
+    if ckpt is not None and int(ckpt["step"]) == cfg.train.steps:
+        done = finished_report(run_dir, cfg.train.steps)
+        if done is not None:
+            return {**done, "already_finished": cfg.train.steps}
     t0 = time.perf_counter()
     target = data.build_target(cfg.target)
-    raw, training = train(cfg, run_dir, resume=resume, target=target)
+    raw, training = train(cfg, run_dir, resume=resume, target=target, checkpoint=ckpt)
     t1 = time.perf_counter()
     model, table = exp.normalized_model(raw, cfg, target)
     info = exp.export(

@@ -5,8 +5,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -14,6 +17,7 @@ import torch
 
 from neural_brdf import config, export, train
 from neural_brdf.cli import main
+from test_fileio import devices  # noqa: F401  (a fixture)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -232,3 +236,173 @@ def test_an_unfinished_run_needs_resume_or_overwrite(capsys, tmp_path):
     assert code == 0, err
     assert json.loads((half / "metrics.json").read_text())["training"]["steps"] == 10
     assert (half / "keep.txt").read_text() == "mine"
+
+
+# ------------------------------------------------- issue 19: safe wherever it writes
+def snapshot(folder: Path) -> dict:
+    """name -> (bytes, mtime_ns) of every file in ``folder``."""
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(folder.iterdir())}
+
+
+def test_a_run_leaves_no_lock_file(run_dir):
+    assert not (run_dir / train.LOCK_FILE).exists()
+
+
+def test_resume_of_a_finished_run_touches_nothing(capsys, run_dir, tmp_path):
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = snapshot(done)
+    code, out, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS, "--resume")
+    assert code == 0, err
+    assert f"{done}: already finished at step 10" in out
+    assert snapshot(done) == before  # metrics.json (final_loss) and config.yaml included
+
+
+def test_resume_refuses_fewer_steps_than_the_checkpoint(capsys, run_dir, tmp_path):
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = snapshot(done)
+    code, _, err = cli(
+        capsys, "train", "lambert", "--out", str(done), *SETS, "--set", "train.steps=5", "--resume"
+    )
+    assert_one_line_error(code, err, "train.steps", "10")
+    assert snapshot(done) == before
+
+
+def test_a_bad_override_names_the_set_not_the_file(capsys, tmp_path):
+    code, _, err = cli(
+        capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--set", "train.stepz=5"
+    )
+    assert_one_line_error(code, err, "--set train.stepz=5:", "train.stepz", "unknown key")
+    assert "lambert.yaml" not in err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train: {stepz: 5}\n")
+    code, _, err = cli(capsys, "train", str(bad), "--set", "train.steps=5")
+    assert_one_line_error(code, err, str(bad), "train.stepz")
+    assert "--set" not in err
+
+
+@pytest.mark.parametrize("text", ["train: {steps: 0}\n", ""], ids=["file", "set"])
+def test_zero_steps_are_refused(capsys, tmp_path, text):
+    cfg = tmp_path / "zero.yaml"
+    cfg.write_text("target: {model: lambertian}\n" + text)
+    sets = [] if text else ["--set", "train.steps=0"]
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"), *sets)
+    assert_one_line_error(code, err, "train.steps", "--set" if sets else str(cfg))
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("text, what", [("", "empty config"), ("train: {lr: 0.01}\n", "target")])
+def test_a_config_without_target_warns(capsys, tmp_path, text, what):
+    """One warning line (it trains the default target); here the run then stops at once
+    on a second mistake, an --out that is a file."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(a_file))
+    warning, error = err.strip().splitlines()
+    assert warning.startswith(f"warning: {cfg}: ") and what in warning
+    assert "lambertian" in warning
+    assert_one_line_error(code, error, str(a_file), "not a run folder")
+    assert a_file.read_text() == "mine"
+
+
+def test_an_out_that_cannot_be_a_folder_is_one_line(capsys, tmp_path):
+    code, _, err = cli(capsys, "train", "lambert", "--out", "/proc/neural-brdf-test", *SETS)
+    assert_one_line_error(code, err, "/proc/neural-brdf-test")
+
+
+@pytest.mark.usefixtures("devices")
+@pytest.mark.parametrize(
+    "name, extra",
+    [("config.yaml", []), ("ckpt.pt", ["--overwrite"]), ("log.csv", [])],
+)
+def test_a_full_disk_during_training_is_one_line(capsys, tmp_path, name, extra):
+    """A file of the run on a full device: /dev/full behind a link in the run folder."""
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / name).symlink_to("/dev/full")
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(out), *SETS, *extra)
+    assert_one_line_error(code, err, str(out / name), "No space left on device")
+    assert stat.S_ISCHR(os.lstat("/dev/full").st_mode)
+    assert (out / name).is_symlink()
+
+
+def test_a_locked_run_folder_is_refused_naming_the_holder(capsys, tmp_path):
+    out = tmp_path / "busy"
+    with train.run_lock(out):
+        assert (out / train.LOCK_FILE).read_text().strip() == str(os.getpid())
+        code, _, err = cli(capsys, "train", "lambert", "--out", str(out), *SETS)
+        assert_one_line_error(code, err, str(out), f"pid {os.getpid()}")
+        assert sorted(p.name for p in out.iterdir()) == [train.LOCK_FILE]  # nothing written
+    assert not out.exists()  # the folder the lock created, empty again, is removed
+
+
+SIGTERM_AT_STEP_4 = """
+import os, signal, sys
+from neural_brdf import cli, data
+real, calls = data.Pool.batch, [0]
+def batch(self):
+    calls[0] += 1
+    if calls[0] == 4:  # SIGTERM arrives in the middle of step 4
+        os.kill(os.getpid(), signal.SIGTERM)
+    return real(self)
+data.Pool.batch = batch
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_checkpoints_the_current_step_and_exits_143(capsys, tmp_path):
+    out = tmp_path / "t"
+    proc = run("-c", SIGTERM_AT_STEP_4, "train", "lambert", "--out", str(out), *SETS)
+    assert proc.returncode == 143, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "interrupted at step 4 (SIGTERM)" in lines[0] and "--resume" in lines[0]
+    assert torch.load(out / "ckpt.pt", weights_only=True)["step"] == 4
+    assert not (out / "model.onnx").exists() and not (out / train.LOCK_FILE).exists()
+    cfg = config.load(ROOT / "configs" / "lambert.yaml", TINY)
+    train.train(cfg, out, resume=True)
+    assert f"resuming {out / 'ckpt.pt'} at step 4 of 10" in capsys.readouterr().err
+    assert torch.load(out / "ckpt.pt", weights_only=True)["step"] == 10
+
+
+def test_a_second_train_into_a_running_folder_and_sigterm(tmp_path):
+    """Two real processes: the second stops naming the first's pid; the first, sent
+    SIGTERM as docker or systemd would, checkpoints and exits with 143."""
+    out = tmp_path / "long"
+    endless = ["--set", "train.steps=1000000", "--set", "train.log_every=1"]
+    first = subprocess.Popen(
+        [sys.executable, "-m", "neural_brdf", "train", "lambert", "--out", str(out)]
+        + SETS
+        + endless,
+        cwd=ROOT,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 300
+        while first.poll() is None and time.monotonic() < deadline:
+            log = out / "log.csv"
+            if log.is_file() and len(log.read_text().splitlines()) > 3:
+                break
+            time.sleep(0.05)
+        assert first.poll() is None, first.communicate()
+        second = run("-m", "neural_brdf", "train", "lambert", "--out", str(out), *SETS)
+        assert_one_line_error(second.returncode, second.stderr, str(out), f"pid {first.pid}")
+        first.send_signal(signal.SIGTERM)
+        _, err = first.communicate(timeout=300)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert first.returncode == 143, err
+    step = torch.load(out / "ckpt.pt", weights_only=True)["step"]
+    assert step >= 3
+    assert err.strip() == (
+        f"neural-brdf: interrupted at step {step} (SIGTERM); checkpoint saved to "
+        f"{out / 'ckpt.pt'}; continue with --resume"
+    )
+    assert not (out / train.LOCK_FILE).exists()

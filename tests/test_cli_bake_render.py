@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -72,8 +74,28 @@ def test_bake_and_render_bad_input_exit_2(capsys, tmp_path):
     )
 
 
+def foreign_onnx(path):
+    """A valid ONNX file that is not a BRDF: z = x + y."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    io = [helper.make_tensor_value_info(n, TensorProto.FLOAT, [None, 3]) for n in "xyz"]
+    graph = helper.make_graph([helper.make_node("Add", ["x", "y"], ["z"])], "add", io[:2], io[2:])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), path)
+    return path
+
+
+def test_render_refuses_an_empty_or_foreign_model_in_one_line(capsys, tmp_path):
+    empty = tmp_path / "empty.onnx"
+    empty.write_bytes(b"")
+    for model in (empty, foreign_onnx(tmp_path / "add.onnx")):
+        code, _, err = cli(capsys, "render", str(model), "-o", str(tmp_path / "x.png"))
+        assert_one_line_error(code, err, model.name)
+    assert not (tmp_path / "x.png").exists()
+
+
 @pytest.mark.mitsuba
-def test_render_writes_a_side_by_side_preview(capsys, tiny_model, tmp_path):
+def test_render_writes_a_labelled_side_by_side_preview(capsys, tiny_model, tmp_path):
     out = tmp_path / "preview.png"
     code, stdout, err = cli(
         capsys,
@@ -84,14 +106,26 @@ def test_render_writes_a_side_by_side_preview(capsys, tiny_model, tmp_path):
         "--spp",
         "4",
         "--resolution",
-        "32",
+        "64",
         "-o",
         str(out),
     )
     assert code == 0, err
     assert "PSNR" in stdout
+    gain = float(re.search(r"\|difference\| x ([0-9.e+-]+)", stdout).group(1))
     import matplotlib.image as mpimg
 
-    img = mpimg.imread(out)
-    assert img.shape[1] > img.shape[0] * 2  # neural | reference | error map
-    assert img[..., :3].std() > 0.01  # not blank
+    img = mpimg.imread(out)[..., :3].astype(np.float64)
+    strip = img.shape[0] - 64  # the label strip above the 64-pixel panels
+    assert strip >= 16 and img.shape[1] > 3 * 64
+    gap = (img.shape[1] - 3 * 64) // 2
+    panels = [img[strip:, i * (64 + gap) : i * (64 + gap) + 64] for i in range(3)]
+    labels = [img[:strip, i * (64 + gap) : i * (64 + gap) + 64] for i in range(3)]
+    for label in labels:  # black text on white, in each panel's own header
+        assert (label.mean(-1) > 0.95).mean() > 0.5 and (label.mean(-1) < 0.5).any()
+    neural, target, diff = panels
+    assert neural.std() > 0.01 and target.std() > 0.01  # not blank
+    # the stated scale: 99 % of |neural - target| x K is at most 1, the rest saturates
+    err_scaled = np.abs(neural - target).mean(-1) * gain
+    assert np.percentile(err_scaled, 99) == pytest.approx(1.0, abs=0.15)
+    assert diff.max() > 0.9  # inferno at 1: pale yellow, not black

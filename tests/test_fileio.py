@@ -1,6 +1,10 @@
-"""neural_brdf.fileio: the one atomic-write helper every writer uses."""
+"""neural_brdf.fileio: the one atomic-write helper every writer uses, and what it does
+with a path that is a FIFO, a device, a symbolic link or a folder."""
 
+import errno
 import os
+import stat
+import threading
 from pathlib import Path
 
 import pytest
@@ -50,3 +54,107 @@ def test_no_other_module_writes_through_mkstemp():
     package = Path(fileio.__file__).parent
     users = sorted(p.name for p in package.rglob("*.py") if "mkstemp" in p.read_text())
     assert users == ["fileio.py"]
+
+
+# ---------------------------------------------------------------- what the path already is
+DEVICES = {"/dev/null": (1, 3), "/dev/full": (1, 7)}
+
+
+@pytest.fixture
+def devices():
+    """Fails a test that turned /dev/null or /dev/full into a regular file, and puts the
+    device back (as root), so that a regression does not break the machine."""
+    yield
+    for path, (major, minor) in DEVICES.items():
+        if not stat.S_ISCHR(os.lstat(path).st_mode):
+            if os.geteuid() == 0:
+                os.unlink(path)
+                os.mknod(path, 0o666 | stat.S_IFCHR, os.makedev(major, minor))
+                os.chmod(path, 0o666)
+            pytest.fail(f"{path} is no longer a character device")
+
+
+def read_fifo_in_thread(path):
+    """Start a reader of the FIFO ``path``; returns a function that joins it -> bytes."""
+    got = []
+    reader = threading.Thread(target=lambda: got.append(Path(path).read_bytes()), daemon=True)
+    reader.start()
+
+    def join():
+        reader.join(timeout=60)
+        assert got, "the FIFO's reader got nothing"
+        return got[0]
+
+    return join
+
+
+def test_a_fifo_is_written_not_replaced(tmp_path):
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    payload = b"0123456789" * 20000  # more than a pipe buffer: written in several parts
+    join = read_fifo_in_thread(fifo)
+    atomic_write(fifo, payload)
+    assert join() == payload
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    join = read_fifo_in_thread(fifo)
+    with atomic_path(fifo, suffix=".png") as name:  # a writer that wants a file name
+        Path(name).write_bytes(b"through a name")
+    assert join() == b"through a name"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe"]
+
+
+def test_a_symlink_is_followed_and_stays_a_link(tmp_path):
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "brdf.h"
+    target.write_text("old")
+    link = tmp_path / "link.h"
+    link.symlink_to(target)
+    atomic_write(link, "new")
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert target.read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.h", "real"]
+    assert sorted(p.name for p in target.parent.iterdir()) == ["brdf.h"]
+    dangling = tmp_path / "dangling"
+    dangling.symlink_to(tmp_path / "real" / "new.json")
+    atomic_write(dangling, "{}")
+    assert dangling.is_symlink() and (tmp_path / "real" / "new.json").read_text() == "{}"
+
+
+def test_dev_null_stays_a_device(devices):
+    atomic_write("/dev/null", b"x" * 100)
+    with atomic_path("/dev/null", suffix=".png") as name:
+        Path(name).write_bytes(b"y")
+    assert stat.S_ISCHR(os.lstat("/dev/null").st_mode)
+
+
+def test_dev_full_is_enospc_naming_the_path(devices):
+    with pytest.raises(OSError) as err:
+        atomic_write("/dev/full", "x")
+    assert err.value.errno == errno.ENOSPC and err.value.filename == "/dev/full"
+    assert stat.S_ISCHR(os.lstat("/dev/full").st_mode)
+
+
+def test_a_full_disk_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
+    path = tmp_path / "ckpt.pt"
+    atomic_write(path, b"old")
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(OSError) as err:
+        atomic_write(path, b"new")
+    monkeypatch.undo()
+    assert err.value.errno == errno.ENOSPC and err.value.filename == str(path)
+    assert path.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
+
+
+def test_a_folder_is_refused_and_a_replaced_file_keeps_its_mode(tmp_path):
+    with pytest.raises(IsADirectoryError):
+        atomic_write(tmp_path, "x")
+    path = tmp_path / "private.json"
+    path.write_text("{}")
+    os.chmod(path, 0o600)
+    atomic_write(path, "[]")
+    assert path.read_text() == "[]" and os.stat(path).st_mode & 0o777 == 0o600

@@ -161,3 +161,28 @@ def test_peak_pairs_of_the_training_data_are_uniform_in_the_peak_coordinate():
 
     assert 0.01 < share_near_peak(0.2) < 0.03
     assert share_near_peak(0.0) < 0.002
+
+
+def test_a_checkpoint_of_the_old_encoding_is_not_resumed(tmp_path):
+    # format version 1 checkpoints hold weights for sqrt(theta_h): resuming them with u_h
+    # would train on silently wrong features
+    from neural_brdf import config, train
+    from neural_brdf.errors import ConfigError
+
+    cfg = config.from_dict(
+        {
+            "target": {"model": "lambertian"},
+            "model": {"hidden": [8]},
+            "data": {"batch_size": 64, "pool_size": 256},
+            "train": {"steps": 2, "progress": False, "eval_every": 0},
+        }
+    )
+    run_dir = tmp_path / "run"
+    train.train(cfg, run_dir)
+    ckpt = torch.load(run_dir / "ckpt.pt", weights_only=True)
+    assert ckpt["format_version"] == config.FORMAT_VERSION
+    ckpt["format_version"] = 1
+    torch.save(ckpt, run_dir / "ckpt.pt")
+    longer = cfg.model_copy(update={"train": cfg.train.model_copy(update={"steps": 4})})
+    with pytest.raises(ConfigError, match=r"ckpt\.pt: written by format version 1"):
+        train.train(longer, run_dir, resume=True)
