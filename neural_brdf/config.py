@@ -108,6 +108,7 @@ class Grid(CosineGrid):
 class Model(_Section):
     # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
     encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
+    peak_coordinate: Literal["u_h", "sqrt"] = "u_h"  # theta_h feature: u_h | sqrt (old, MERL)
     hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
     activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"  # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power

@@ -101,7 +101,7 @@ def is_anisotropic(encoding: str) -> bool:
     return encoding != "isotropic"
 
 
-def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
+def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str, peak: str = "u_h") -> torch.Tensor:
     """(..., 3), (..., 3) -> (..., F), bit-exactly invariant under wi <-> wo
     (except for the ``raw`` ablation encoding, which is (wi, wo) itself)."""
     if encoding == "raw":
@@ -115,7 +115,10 @@ def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
     cos_h = (s[..., 2] / norm_s).clamp(-1.0, 1.0)
     tan_h = r_s / (norm_s + s[..., 2]).clamp_min(EPS_NORM)  # tan(theta_h / 2)
     theta_d = half_angle(norm_d, 2.0 + norm_s)
-    u_h = peak_coordinate(tan_h)
+    if peak == "u_h":
+        u_h = peak_coordinate(tan_h)
+    else:  # "sqrt": the first version's sqrt(theta_h / (pi/2)); fits measured MERL data
+        u_h = torch.sqrt(half_angle(r_s, norm_s + s[..., 2]) / HALF_PI)  # better (merl.yaml)
     dz = d[..., 2]
     sz = s[..., 2].clamp_min(EPS_NORM)
     feats = [
@@ -132,7 +135,7 @@ def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
         hx, hy = s[..., 0] / norm_s, s[..., 1] / norm_s
         r = torch.sqrt(hx * hx + hy * hy).clamp_min(EPS_NORM)  # |hx| / r <= 1, 0 at r = 0
         dx, dy = d[..., 0], d[..., 1]
-        q = torch.sqrt(u_h)  # ~ tan(theta_h / 2) near 0: q h / r is smooth in h
+        q = torch.sqrt(u_h) if peak == "u_h" else u_h  # u_h: ~ tan(theta_h / 2) near 0
         feats += [q * hx / r, q * hy / r, hx, hy, 0.25 * (dx * dx - dy * dy), 0.5 * dx * dy]
     elif encoding != "isotropic":
         raise ValueError(f"encoding: must be one of {list(ENCODINGS)}, got {encoding!r}")

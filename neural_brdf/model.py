@@ -176,9 +176,11 @@ class RawBRDF(nn.Module):
         cosine_grid_size: int = 0,
         cosine_grid_channels: int = 4,
         cosine_grid_init_std: float = 1e-2,
+        peak_coordinate: str = "u_h",
     ):
         super().__init__()
         self.encoding = encoding
+        self.peak_coordinate = peak_coordinate
         self.anisotropic = enc.is_anisotropic(encoding)  # as NormalizedBRDF.anisotropic
         self.grazing_power = float(grazing_power)
         if grazing_cos not in ("mean", "max"):
@@ -235,10 +237,11 @@ class RawBRDF(nn.Module):
             cosine_grid_size=m.cosine_grid.size,
             cosine_grid_channels=m.cosine_grid.channels,
             cosine_grid_init_std=m.cosine_grid.init_std,
+            peak_coordinate=m.peak_coordinate,
         )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
-        x = enc.features(wi, wo, self.encoding)
+        x = enc.features(wi, wo, self.encoding, self.peak_coordinate)
         if self.grid is not None:
             i, j = self.grid_features
             u, v = x[..., i], x[..., j]
