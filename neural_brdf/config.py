@@ -170,7 +170,7 @@ class Train(_Section):
     loss_eps: float = Field(1e-3, gt=0.0)  # offset inside the log (1/sr)
     peak_weight: float = Field(10.0, ge=0.0)  # extra loss weight (f cos)^2 / mean (f cos)^2
     peak_cap: float = Field(100.0, gt=0.0)  # cap on (f cos)^2 / mean (f cos)^2 in the weight
-    threads: int = Field(2, ge=1)  # torch CPU threads (fixed for determinism)
+    threads: int = Field(1, ge=1)  # torch CPU threads (fixed for determinism; docs/config.md)
     device: Literal["cpu", "cuda", "auto"] = "cpu"  # auto: cuda when torch sees a GPU
     checkpoint_every: int = Field(500, ge=1)  # steps between checkpoints
     log_every: int = Field(25, ge=1)  # steps between CSV rows

@@ -44,10 +44,8 @@ below the horizon; a sample below it has weight 0.
 
 from __future__ import annotations
 
-import io
 import json
 import math
-import warnings
 from pathlib import Path
 
 import drjit as dr
@@ -309,34 +307,12 @@ class NeuralBSDF(_GraphBSDF):
 
 
 def analytic_onnx(model: str, params: dict | None = None) -> bytes:
-    """The analytic model's own torch ``f(wi, wo)`` exported to ONNX bytes (the contract
-    of :mod:`neural_brdf.export`: inputs wi, wo [N, 3], output f [N, 3], no cosine)."""
-    import torch
+    """The analytic model's own torch ``f(wi, wo)`` as ONNX bytes:
+    :func:`neural_brdf.export.analytic_onnx` (one writer, so that the same model gives
+    the same bytes here and in the viewer, and its lobe is fitted once)."""
+    from .export import analytic_onnx as write
 
-    import analytic
-
-    brdf = analytic.create(model, **(params or {}))
-
-    class _F(torch.nn.Module):
-        def forward(self, wi, wo):
-            return brdf.f(wi, wo).float()
-
-    buf = io.BytesIO()
-    with warnings.catch_warnings():
-        # The TorchScript exporter warns that it is deprecated (and about traced Python
-        # values); it is used as neural_brdf.export uses it: one file, no onnxscript.
-        warnings.simplefilter("ignore")
-        torch.onnx.export(
-            _F(),
-            (torch.zeros(4, 3), torch.zeros(4, 3)),
-            buf,
-            dynamo=False,
-            opset_version=17,
-            input_names=list(INPUTS),
-            output_names=[OUTPUT],
-            dynamic_axes={"wi": {0: "N"}, "wo": {0: "N"}, OUTPUT: {0: "N"}},
-        )
-    return buf.getvalue()
+    return write(model, params)
 
 
 def _analytic_params(props) -> tuple[str, dict]:

@@ -283,6 +283,11 @@ def albedo_values(
     return rho.numpy()
 
 
+def albedo_theta(n_theta: int = 46) -> np.ndarray:
+    """The incidences of :func:`albedo_curve`, deg: [0, 89.9]."""
+    return np.linspace(0.0, 89.9, n_theta)
+
+
 def albedo_curve(
     neural: Fn,
     reference: Fn | None = None,
@@ -291,17 +296,30 @@ def albedo_curve(
     samples: int = 4096,
     sampler=None,
     validated_max: tuple[float, float] | None = None,
+    values: dict | None = None,
+    measured: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Figure:
     """rho(theta_i) per channel, theta_i on [0, 89.9] deg; ``validated_max`` =
-    (theta_deg, value) marks the validator's measured maximum."""
-    theta = np.linspace(0.0, 89.9, n_theta)
+    (theta_deg, value) marks the validator's measured maximum.  ``values``, a dict, is
+    filled with "theta" and the curves ("neural", "reference"), numpy arrays, for a
+    caller that shows them elsewhere too (the report's viewer) without a second
+    quadrature.  ``measured`` = (theta_deg, rho) is the neural curve as the validator
+    measured it (metrics.json furnace.curve), drawn instead of a new quadrature."""
+    theta = albedo_theta(n_theta)
     fig = Figure(figsize=(7, 4), layout="constrained")
     ax = fig.subplots()
-    rho = albedo_values(neural, theta, samples=samples, sampler=sampler)
+    if measured is not None:
+        theta_n, rho = (np.asarray(x, dtype=np.float64) for x in measured)
+    else:
+        theta_n, rho = theta, albedo_values(neural, theta, samples=samples, sampler=sampler)
+    if values is not None:
+        values.update(theta=theta, neural_theta=theta_n, neural=rho)
     for c, (name, colour) in enumerate(CHANNELS):
-        ax.plot(theta, rho[:, c], color=colour, lw=2.4, alpha=0.5, label=f"neural {name}")
+        ax.plot(theta_n, rho[:, c], color=colour, lw=2.4, alpha=0.5, label=f"neural {name}")
     if reference is not None:
         ref = albedo_values(reference, theta, samples=samples, sampler=sampler)
+        if values is not None:
+            values["reference"] = ref
         for c, (name, colour) in enumerate(CHANNELS):
             ax.plot(
                 theta, ref[:, c], color=colour, lw=1.0, ls=(0, (4, 3)), label=f"reference {name}"

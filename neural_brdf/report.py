@@ -294,8 +294,10 @@ def _physics(run: Run, albedo_png: bytes) -> list:
         Image(
             "albedo",
             "Directional albedo (white furnace)",
-            "ρ(θi) per channel in the incidence plane; the dotted line is the "
-            "furnace limit 1, the cross the validator's measured maximum.",
+            "ρ(θi) per channel: the neural curve as the validator measured it (averaged "
+            "over azimuth for an anisotropic model), the reference's in the incidence "
+            "plane; the dotted line is the furnace limit 1, the cross the validator's "
+            "measured maximum.",
             albedo_png,
         )
     )
@@ -406,19 +408,30 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     return blocks + [Image("render", "Rendered spheres", caption, png, zoom=2)]
 
 
-def _viewer(run: Run, reference) -> list:
+def _viewer(run: Run, reference, curves: dict | None = None) -> list:
     """The interactive WebGL2 viewer (neural_brdf.viewer) of the model, beside its analytic
-    target when it has one; a note when the GLSL code generator cannot translate it."""
+    target when it has one; a note when the GLSL code generator cannot translate it.
+    ``curves``: the albedo curves of the report's plot (plots.albedo_curve's ``values``),
+    shown by the page too."""
     from . import viewer
 
     blocks = [Heading("Interactive viewer")]
     cfg = run.config
+    curves = curves or {}
+
+    def page_curve(key: str) -> dict | None:
+        theta = curves.get(f"{key}_theta", curves.get("theta"))
+        return viewer.curve(theta, curves[key]) if key in curves else None
+
     try:
-        models = [viewer.onnx_model(run.dir / "model.onnx", "neural")]
+        models = [viewer.onnx_model(run.dir / "model.onnx", "neural", albedo=page_curve("neural"))]
         if reference is not None and cfg.target.data is None:
             models.append(
                 viewer.analytic_model(
-                    cfg.target.model, dict(cfg.target.params), f"target: {cfg.target.model}"
+                    cfg.target.model,
+                    dict(cfg.target.params),
+                    f"target: {cfg.target.model}",
+                    albedo=page_curve("reference"),
                 )
             )
     except InputError as e:  # no code generator, or an op it does not know
@@ -476,8 +489,21 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
     theta = _number(m, "checks.max_albedo.at_theta_deg", path, optional=True)
     validated = None if theta is None else (theta, _number(m, "checks.max_albedo.value", path))
     samples = run.config.validation.furnace_samples  # as many as the validator's
+    curves: dict = {}  # the albedo curves, computed once for the plot and the viewer
+    curve = m.get("furnace", {}).get("curve") if isinstance(m.get("furnace"), dict) else None
+    measured = None
+    if isinstance(curve, dict) and curve.get("theta_deg") and curve.get("rho"):
+        measured = (curve["theta_deg"], curve["rho"])  # the validator's: no second quadrature
     albedo = plots.png_bytes(
-        plots.albedo_curve(neural, ref, samples=samples, sampler=sampler, validated_max=validated)
+        plots.albedo_curve(
+            neural,
+            ref,
+            samples=samples,
+            sampler=sampler,
+            validated_max=validated,
+            values=curves,
+            measured=measured,
+        )
     )
     vs = "neural (solid) against the reference (dashed)" if ref is not None else "neural"
     figures = [
@@ -507,7 +533,7 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
         + _physics(run, albedo)
         + _accuracy(run, note, figures)
         + _rendering(run, render, out_dir, reference)
-        + _viewer(run, reference)
+        + _viewer(run, reference, curves)
         + _training(run)
         + [
             Heading("Config"),

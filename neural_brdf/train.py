@@ -388,12 +388,12 @@ def train(
 
     gen = torch.Generator().manual_seed(t.seed)
     torch.manual_seed(t.seed)
-    pool = data.Pool(data.pair_source(target, cfg.data, gen), cfg.data)
+    pool = data.Pool(data.pair_source(target, cfg.data, gen), cfg.data, device)
     init = float(pool.f.median().clamp(1e-3, 10.0))
     raw = RawBRDF.from_config(cfg.model, init_value=init)
     if ckpt is not None:
         raw.load_state_dict(ckpt["model"])
-    raw.to(device)  # the pool, its generator and the checkpoints stay on the CPU
+    raw.to(device)  # the pool too; its generator and the checkpoints stay on the CPU
     # the learned grids (model.grid, model.cosine_grid): their own learning rates,
     # lr_scale x the schedule
     scales = {"grid.": cfg.model.grid.lr_scale, "cos_grid.": cfg.model.cosine_grid.lr_scale}
@@ -403,7 +403,9 @@ def train(
     groups = [
         {"params": ps, "lr_scale": scales.get(k, 1.0)} for k, ps in groups.items() if ps or not k
     ]
-    opt = torch.optim.Adam(groups, lr=t.lr)
+    # fused: one kernel for all parameters (CPU and CUDA); 0.04 ms a step against
+    # 0.12 ms for the per-tensor loop on compact/gold (2 cores)
+    opt = torch.optim.Adam(groups, lr=t.lr, fused=True)
     eval_wi, eval_wo, eval_f = (
         x.float().to(device) for x in data.accuracy_pairs(target, EVAL_PAIRS, t.seed + 101)
     )
@@ -455,33 +457,50 @@ def train(
         mininterval=0.5,
         leave=False,
     )
+    # The loss is read on the host only where it is logged or checkpointed (a read
+    # waits for a GPU); ``loss_sum`` turns non-finite with the first bad step's loss.
+    loss_sum = torch.zeros((), device=device)
+    checked = step
+
+    def check_loss() -> None:
+        nonlocal last_loss, checked
+        if step == checked:
+            return
+        last_loss = float(loss.detach())
+        total = float(loss_sum)
+        if not (math.isfinite(total) and math.isfinite(last_loss)):
+            bad = last_loss if not math.isfinite(last_loss) else total
+            where = f"at step {step - 1}" if step - 1 == checked else f"by step {step - 1}"
+            raise Diverged(
+                f"loss is {bad} {where}; the last good checkpoint is kept in "
+                f"{ckpt_path} (try a lower train.lr)"
+            )
+        checked = step
+
     start = time.perf_counter() - seconds
     ok = False
     try:
         with deferred_interrupt() as sigint:
             while step < t.steps:
                 if sigint["set"]:
+                    check_loss()
                     seconds = time.perf_counter() - start
                     save_checkpoint(ckpt_path, state())
                     raise interrupted(sigint, step, ckpt_path)
                 lr = learning_rate(t, step)
                 for group in opt.param_groups:
                     group["lr"] = lr * group.get("lr_scale", 1.0)
-                wi, wo, f = (x.to(device, non_blocking=True) for x in pool.batch())
+                wi, wo, f = pool.batch()  # on the training device
                 pred = raw(wi, wo)
                 loss = loss_fn(t.loss, pred, f, wo[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)
-                last_loss = float(loss.detach())
-                if not math.isfinite(last_loss):
-                    raise Diverged(
-                        f"loss is {last_loss} at step {step}; the last good "
-                        f"checkpoint is kept in {ckpt_path} (try a lower train.lr)"
-                    )
+                loss_sum += loss.detach()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
                 step += 1
                 bar.update(1)
                 if step % t.log_every == 0 or step == t.steps:
+                    check_loss()
                     row = {
                         "step": step,
                         "loss": f"{last_loss:.6g}",
@@ -502,6 +521,7 @@ def train(
                     except OSError as e:
                         raise _cannot_write(log_path, e) from None
                 if step % t.checkpoint_every == 0 or step == t.steps:
+                    check_loss()
                     if not weights_finite():
                         raise Diverged(
                             f"weights became non-finite by step {step}; the last "

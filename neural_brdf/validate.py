@@ -127,10 +127,20 @@ def physics(
             "quadrature_stderr": float(err[imax]),
         },
     }
+    theta = np.degrees(np.arccos(np.clip(mu[order], -1.0, 1.0)))
     return {
         "checks": checks,
         "hemispherical_albedo": hemi.tolist(),
-        "furnace": {"directions": len(dirs), "samples": s.furnace_samples},
+        "furnace": {
+            "directions": len(dirs),
+            "samples": s.furnace_samples,
+            # rho(theta_i) as measured (azimuth-averaged when anisotropic): the report
+            # plots it instead of a second quadrature
+            "curve": {
+                "theta_deg": [round(float(t), 4) for t in theta[::-1]],
+                "rho": [[float(v) for v in row] for row in rho_theta[order][::-1]],
+            },
+        },
     }
 
 

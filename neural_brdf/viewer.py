@@ -88,10 +88,7 @@ def albedo_curve(fn, theta_deg=ALBEDO_THETA, *, samples: int = ALBEDO_SAMPLES) -
     t = np.radians(np.asarray(theta_deg, dtype=np.float64))
     wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
     rho, _ = quadrature.albedo(quadrature.from_numpy(fn), wi, samples)
-    return {
-        "theta": [round(float(x), 4) for x in theta_deg],
-        "rho": [[round(float(v), 6) for v in row] for row in rho.numpy()],
-    }
+    return curve(theta_deg, rho.numpy())
 
 
 def sphere_directions(size: int, light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -196,17 +193,29 @@ def glsl_of(model, *, lobe: dict | None = None) -> str:
     return backends.generate(str(model), "glsl", lobe=lobe)
 
 
-def onnx_model(path, label: str) -> Model:
+def curve(theta_deg, rho) -> dict:
+    """An albedo curve of the page: {"theta": [deg], "rho": [[r, g, b]]}, rounded."""
+    return {
+        "theta": [round(float(x), 4) for x in theta_deg],
+        "rho": [[round(float(v), 6) for v in row] for row in np.asarray(rho)],
+    }
+
+
+def onnx_model(path, label: str, *, albedo: dict | None = None) -> Model:
     """A model of the page from an ONNX file: its generated GLSL and its albedo curve."""
     from .runtime import load
 
     brdf = load(path)  # a one-line InputError on a missing or bad file
-    return Model(label, glsl_of(path), albedo_curve(brdf.eval), Path(path).read_bytes())
+    if albedo is None:
+        albedo = albedo_curve(brdf.eval)
+    return Model(label, glsl_of(path), albedo, Path(path).read_bytes())
 
 
-def analytic_model(name: str, params: dict, label: str) -> Model:
+def analytic_model(name: str, params: dict, label: str, *, albedo: dict | None = None) -> Model:
     """An analytic model (a config's target), exported to ONNX and generated like a
-    trained one; its sampling lobe (unused by the page) is fitted as for the plugin."""
+    trained one; its sampling lobe (unused by the page) is fitted as for the plugin
+    (:func:`neural_brdf.lobe.fit_onnx` keeps it for the plugin's next load).  ``albedo``:
+    a precomputed curve (:func:`curve`), else one by quadrature."""
     from . import lobe
     from .export import analytic_onnx
     from .runtime import load
@@ -216,7 +225,8 @@ def analytic_model(name: str, params: dict, label: str) -> Model:
         onnx_path = Path(tmp) / "reference.onnx"
         onnx_path.write_bytes(payload)
         glsl = glsl_of(onnx_path, lobe=lobe.fit_onnx(payload))
-        albedo = albedo_curve(load(onnx_path).eval)
+        if albedo is None:
+            albedo = albedo_curve(load(onnx_path).eval)
     return Model(label, glsl, albedo)
 
 
