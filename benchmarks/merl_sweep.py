@@ -48,7 +48,7 @@ from benchmarks.common import add_fit_arguments, arith_ops, write_json  # noqa: 
 DATA = REPO / "data"  # default of --data
 RESULTS = REPO / "benchmarks" / "results" / "merl_sweep.json"
 FIGURE = REPO / "docs" / "figures" / "merl_spheres.png"
-RECIPES = {"compact": "compact/merl.yaml", "default": "merl.yaml"}
+RECIPES = {"compact": "merl.yaml", "default": "mlp/merl.yaml"}  # configs/ files
 # The figure's rows: diffuse to near-mirror.
 FIGURE_MATERIALS = [
     "white-diffuse-bball",

@@ -125,7 +125,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     known = sorted(
-        p.stem for p in (CONFIGS / "compact").glob("*.yaml") if not config.load(p).target.data
+        p.stem for p in (CONFIGS / "mlp").glob("*.yaml") if not config.load(p).target.data
     )
     names = args.presets or known
     unknown = sorted(set(names) - set(known))
@@ -150,8 +150,10 @@ def main() -> None:
     recipes = [r for r in ("compact", "default") if r in args.recipes.split(",")]
     for recipe in recipes:
         for name in names:
-            cfg_path = CONFIGS / "compact" / f"{name}.yaml" if recipe == "compact" else None
-            cfg_path = cfg_path or CONFIGS / f"{name}.yaml"
+            # the compact recipe: the top-level presets; "default": the 3 x 64 networks
+            # (configs/mlp/, the default recipe until issue 21)
+            folder = CONFIGS if recipe == "compact" else CONFIGS / "mlp"
+            cfg_path = folder / f"{name}.yaml"
             label = ("legacy/" if args.legacy else "") + f"{recipe}/{name}"
             run_dir = args.root / label
             metrics = run_dir / "metrics.json"

@@ -89,7 +89,7 @@ class CosineGrid(_Section):
     size: int = Field(0, ge=0, le=257)  # nodes per axis; 0: off
     channels: int = Field(4, ge=1, le=64)  # learned features per node
     init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
-    lr_scale: float = Field(1.0, gt=0.0)  # the grid's learning rate / train.lr
+    lr_scale: float = Field(10.0, gt=0.0)  # the grid's learning rate / train.lr
 
     @model_validator(mode="after")
     def _size(self):
@@ -103,26 +103,31 @@ class Grid(CosineGrid):
     # theta: (u_h, theta_d / (pi/2)), u_h the peak coordinate (encoding.py); half_disc
     # (anisotropic encoding): the half vector's polar map, sqrt(u_h) (cos phi_h, sin phi_h)
     coords: Literal["theta", "half_disc"] = "theta"
+    size: int = Field(32, ge=0, le=257)  # nodes per axis; 0: off (on by default: compact)
 
 
 class Model(_Section):
     # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
     encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
     peak_coordinate: Literal["u_h", "sqrt"] = "u_h"  # theta_h feature: u_h | sqrt (old, MERL)
-    hidden: list[int] = Field(default_factory=lambda: [64, 64, 64])  # hidden layer widths
-    activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "silu"  # hidden layers
+    # The defaults are the compact recipe (issues 12 and 21): a 32 x 32 x 4 learned grid
+    # and one ReLU layer of 32; the 3 x 64 SiLU networks are the configs/mlp/ presets.
+    hidden: list[int] = Field(default_factory=lambda: [32])  # hidden layer widths
+    activation: Literal["relu", "silu", "gelu", "tanh", "softplus"] = "relu"  # hidden layers
     grazing_power: float = Field(1.0, ge=0.0, le=4.0)  # output / ((cos_i + cos_o) / 2)^power
     # the cosine of grazing_power: mean (cos_i + cos_o) / 2, or max(cos_i, cos_o), the
     # denominator of Ashikhmin-Shirley's specular term (model.py)
     grazing_cos: Literal["mean", "max"] = "mean"
     output_scale: float = Field(1.0, gt=0.0)  # f = output_scale * softplus(y) (see model.py)
-    grid: Grid = Field(default_factory=Grid)  # learned feature grid (off by default)
+    grid: Grid = Field(default_factory=Grid)  # learned feature grid (on by default)
     cosine_grid: CosineGrid = Field(default_factory=CosineGrid)  # a second one (off)
 
     @model_validator(mode="after")
     def _widths(self):
         if not self.hidden or any(w < 1 for w in self.hidden):
             raise ValueError("hidden: needs at least one layer, each of width >= 1")
+        if self.encoding == "raw" and "grid" not in self.model_fields_set:
+            self.grid.size = 0  # the default grid needs the encoding's angles: off for raw
         if self.grid.size and self.encoding == "raw":
             raise ValueError("grid: needs the isotropic or anisotropic encoding, not raw")
         if self.grid.size and self.grid.coords == "half_disc" and self.encoding != "anisotropic":

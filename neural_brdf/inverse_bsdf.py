@@ -66,7 +66,7 @@ from .mitsuba import _GraphBSDF  # noqa: E402  (needs the variant set, like this
 from .model import RawBRDF  # noqa: E402
 
 PLUGIN = "neural_brdf_ad"
-# The compact recipe (configs/compact/gold.yaml): 32 x 32 x 4 grid + one ReLU layer of 32.
+# The compact recipe (configs/gold.yaml): 32 x 32 x 4 grid + one ReLU layer of 32.
 COMPACT = "{hidden: [32], activation: relu, grid: {size: 32, channels: 4, lr_scale: 10.0}}"
 # A start for the sampling lobe before it is fitted to the network.
 DEFAULT_LOBE = {"kind": lobes.KIND, "alpha": 0.3, "weight": 0.5}

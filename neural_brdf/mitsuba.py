@@ -328,7 +328,7 @@ def _analytic_params(props) -> tuple[str, dict]:
         if not isinstance(params, dict):
             raise InputError(f"analytic_brdf: 'params' must be a JSON object, got {params!r}")
     for key in props.keys():
-        if key in ("model", "params", "type", "id"):
+        if key in ("model", "params", "type", "id", "lobe"):
             continue
         value = props[key]
         if isinstance(value, (bool, int, float, str)):
@@ -340,15 +340,28 @@ def _analytic_params(props) -> tuple[str, dict]:
 
 class AnalyticBSDF(_GraphBSDF):
     """``{'type': 'analytic_brdf', 'model': 'microfacet', 'params': '{...}'}``; parameters
-    may also be given as plugin properties (``'alpha': 0.3``)."""
+    may also be given as plugin properties (``'alpha': 0.3``).  ``'lobe'``: a sampling
+    lobe as JSON (the ``sampling_lobe`` metadata of a model of the same target, say),
+    used instead of fitting one at load (about a second)."""
 
     def __init__(self, props):
         mi.BSDF.__init__(self, props)
         model, params = _analytic_params(props)
         payload = analytic_onnx(model, params)
         label = f"analytic {model} {json.dumps(params, sort_keys=True)}"
-        self.lobe_source = "fitted at load"
-        self._setup(OnnxProgram(payload), lobes.fit_onnx(payload), label)
+        if "lobe" in props:
+            try:  # a whole stored lobe, or a partial one ({"alpha": a, "weight": w})
+                given = json.loads(str(props["lobe"]))
+                if not isinstance(given, dict):
+                    raise ValueError(f"expected a JSON object, got {given!r}")
+                lobe = lobes.complete(given)
+            except (ValueError, InputError) as e:
+                raise InputError(f"analytic_brdf: 'lobe': {e}") from None
+            self.lobe_source = "given"
+        else:
+            lobe = lobes.fit_onnx(payload)
+            self.lobe_source = "fitted at load"
+        self._setup(OnnxProgram(payload), lobe, label)
 
 
 mi.register_bsdf("neural_brdf", lambda props: NeuralBSDF(props))

@@ -63,12 +63,15 @@ def directory() -> Path:
     return anchor.parent
 
 
-SUBFOLDERS = ("compact",)  # preset families named "compact/gold", listed with the rest
+SUBFOLDERS = ("mlp",)  # preset families named "mlp/gold", listed with the rest
+# Former names still accepted: the compact presets were "compact/gold" until they became
+# the top-level presets (issue 21); the 3 x 64 networks are now "mlp/gold".
+ALIASES = {"compact/": ""}
 
 
 def names(*, folder: str = "") -> list[str]:
     """The preset names: every ``*.yaml`` of the presets folder (or its ``folder``), and
-    for the presets folder itself those of :data:`SUBFOLDERS` as ``compact/gold``."""
+    for the presets folder itself those of :data:`SUBFOLDERS` as ``mlp/gold``."""
     root = directory() / folder
     found = [p.stem for p in root.glob("*.yaml")]
     if not folder:
@@ -104,8 +107,8 @@ def listing(*, folder: str = "") -> list[tuple[str, str]]:
 
 def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
     """A config file: an existing path wins; else a preset name (``gold``, ``gold.yaml``,
-    ``compact/gold``), looked up in the presets folder or, with ``folder="sweeps"``, among
-    the sweeps.
+    ``mlp/gold``; the former ``compact/gold`` is ``gold``), looked up in the presets
+    folder or, with ``folder="sweeps"``, among the sweeps.
 
     A bare name that is neither raises InputError naming it and listing the presets; a
     path with a folder in it is returned as it is (reading it reports a missing file).
@@ -116,6 +119,10 @@ def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
     text = str(name_or_path)
     stem = text.removesuffix(".yaml").removesuffix(".yml")
     known = names(folder=folder)
+    if not folder and stem not in known:
+        for old, new in ALIASES.items():
+            if stem.startswith(old) and new + stem[len(old) :] in known:
+                stem = new + stem[len(old) :]
     if ("/" in text or "\\" in text) and stem not in known:
         return path
     if stem and stem in known:

@@ -128,18 +128,22 @@ def write_png(path: Path, img: np.ndarray) -> None:
         matplotlib.image.imsave(tmp, np.clip(img, 0.0, 1.0))
 
 
-def analytic_bsdf(reference: dict) -> dict:
+def analytic_bsdf(reference: dict, *, lobe: dict | None = None) -> dict:
     """The ``analytic_brdf`` plugin dict of an analytic target (``{"model": name,
-    "params": {...}}``, as in a training config)."""
+    "params": {...}}``, as in a training config); ``lobe``: its sampling lobe (else the
+    plugin fits one when it loads)."""
     if "model" not in reference:
         raise InputError(
             f"reference: expected {{'model': name, 'params': {{...}}}}, got {reference!r}"
         )
-    return {
+    out = {
         "type": "analytic_brdf",
         "model": reference["model"],
         "params": json.dumps(reference.get("params") or {}),
     }
+    if lobe is not None:
+        out["lobe"] = json.dumps(lobe, sort_keys=True)
+    return out
 
 
 def difference(neural: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -224,8 +228,10 @@ def render_comparison(
     ``gain`` (None: :func:`adaptive_gain`).  Returns {"psnr": dB of neural against the
     reference (sRGB display values), "gain": K}; both None without a reference.
     """
-    path, _, _ = read_model(onnx_path)
-    ref_bsdf = None if reference is None else analytic_bsdf(reference)
+    path, _, stored = read_model(onnx_path)
+    # the reference is sampled with the model's lobe (fitted to a model of the same
+    # target): no second fit at load
+    ref_bsdf = None if reference is None else analytic_bsdf(reference, lobe=stored)
     neural = to_display(
         render_scene({"type": "neural_brdf", "filename": str(path)}, resolution=resolution, spp=spp)
     )

@@ -408,6 +408,19 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     return blocks + [Image("render", "Rendered spheres", caption, png, zoom=2)]
 
 
+def _stored_lobe(path: Path) -> dict | None:
+    """The sampling lobe in a model file's metadata, or None (older files, bad ones)."""
+    from . import lobe
+
+    try:
+        import onnx
+
+        model = onnx.load(str(path), load_external_data=False)
+        return lobe.from_metadata({p.key: p.value for p in model.metadata_props})
+    except Exception:  # the viewer then fits one, as for any file
+        return None
+
+
 def _viewer(run: Run, reference, curves: dict | None = None) -> list:
     """The interactive WebGL2 viewer (neural_brdf.viewer) of the model, beside its analytic
     target when it has one; a note when the GLSL code generator cannot translate it.
@@ -432,6 +445,7 @@ def _viewer(run: Run, reference, curves: dict | None = None) -> list:
                     dict(cfg.target.params),
                     f"target: {cfg.target.model}",
                     albedo=page_curve("reference"),
+                    lobe=_stored_lobe(run.dir / "model.onnx"),  # unused by the page
                 )
             )
     except InputError as e:  # no code generator, or an op it does not know

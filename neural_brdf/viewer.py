@@ -211,20 +211,25 @@ def onnx_model(path, label: str, *, albedo: dict | None = None) -> Model:
     return Model(label, glsl_of(path), albedo, Path(path).read_bytes())
 
 
-def analytic_model(name: str, params: dict, label: str, *, albedo: dict | None = None) -> Model:
+def analytic_model(
+    name: str, params: dict, label: str, *, albedo: dict | None = None, lobe: dict | None = None
+) -> Model:
     """An analytic model (a config's target), exported to ONNX and generated like a
     trained one; its sampling lobe (unused by the page) is fitted as for the plugin
-    (:func:`neural_brdf.lobe.fit_onnx` keeps it for the plugin's next load).  ``albedo``:
-    a precomputed curve (:func:`curve`), else one by quadrature."""
-    from . import lobe
+    (:func:`neural_brdf.lobe.fit_onnx` keeps it for the plugin's next load) unless
+    ``lobe`` is given.  ``albedo``: a precomputed curve (:func:`curve`), else one by
+    quadrature."""
+    from . import lobe as lobes
     from .export import analytic_onnx
+
+    given = lobe
     from .runtime import load
 
     payload = analytic_onnx(name, params)
     with tempfile.TemporaryDirectory(prefix="nbrdf-view-") as tmp:
         onnx_path = Path(tmp) / "reference.onnx"
         onnx_path.write_bytes(payload)
-        glsl = glsl_of(onnx_path, lobe=lobe.fit_onnx(payload))
+        glsl = glsl_of(onnx_path, lobe=given if given is not None else lobes.fit_onnx(payload))
         if albedo is None:
             albedo = albedo_curve(load(onnx_path).eval)
     return Model(label, glsl, albedo)

@@ -151,9 +151,11 @@ def test_divergence_stops_and_keeps_a_good_checkpoint(tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def gold_run(tmp_path_factory):
-    """A short anisotropic-capable microfacet run, exported (shared by the tests below)."""
+    """A short anisotropic-capable microfacet run, exported (shared by the tests below):
+    the 3 x 64 network, whose torch and onnxruntime agree to 1e-5 everywhere (a grid
+    model's may differ by twice its float32 precision: export.export)."""
     run_dir = tmp_path_factory.mktemp("gold")
-    cfg = tiny("train.steps=30", "model.encoding=anisotropic", preset="gold")
+    cfg = tiny("train.steps=30", "model.encoding=anisotropic", preset="mlp/gold")
     report = train.run(cfg, run_dir)
     return run_dir, cfg, report
 
@@ -346,3 +348,15 @@ def test_sigkill_mid_run_then_resume_matches_an_uninterrupted_run(tmp_path):
     with open(killed / "log.csv") as fh:
         steps = [int(r["step"]) for r in csv.DictReader(fh)]
     assert steps == list(range(10, KILL_STEPS + 1, 10))  # no row lost or repeated
+
+
+def test_metrics_carry_the_furnace_curve_the_report_plots(gold_run):
+    _, cfg, report = gold_run
+    curve = report["furnace"]["curve"]
+    theta, rho = np.array(curve["theta_deg"]), np.array(curve["rho"])
+    # one row per polar angle: (furnace_dirs + 1) // 2 of them for an anisotropic model
+    assert rho.shape == ((cfg.validation.furnace_dirs + 1) // 2, 3)
+    assert np.all(np.diff(theta) > 0) and theta[0] == 0.0 and 80.0 < theta[-1] < 90.0
+    # azimuth-averaged rows (an anisotropic model): none above the validator's maximum
+    assert rho.max() <= report["checks"]["max_albedo"]["value"] + 1e-12
+    assert rho.min() > 0.0

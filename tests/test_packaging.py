@@ -122,9 +122,9 @@ def test_presets_are_the_configs_folder():
     assert presets.directory().resolve() == (ROOT / "configs").resolve()
     assert presets.names() == sorted(
         [p.stem for p in (ROOT / "configs").glob("*.yaml")]
-        + [f"compact/{p.stem}" for p in (ROOT / "configs" / "compact").glob("*.yaml")]
+        + [f"mlp/{p.stem}" for p in (ROOT / "configs" / "mlp").glob("*.yaml")]
     )
-    assert "compact/gold" in presets.names()
+    assert "mlp/gold" in presets.names()
     assert {"gold", "quickstart", "merl", "defaults"} <= set(presets.names())
     for name, text in presets.listing():
         assert text and "\n" not in text and len(text) <= presets.DESCRIPTION_CHARS, name
@@ -142,8 +142,11 @@ def test_a_path_wins_over_a_preset_and_unknown_names_list_presets(tmp_path, monk
     assert presets.resolve("gold") == Path("gold")
     assert presets.resolve("sub/none.yaml") == Path("sub/none.yaml")  # read later: no file
     # a family preset by name, from any folder
-    assert presets.resolve("compact/gold") == presets.directory() / "compact" / "gold.yaml"
-    assert presets.resolve("compact/gold.yaml").is_file()
+    assert presets.resolve("mlp/gold") == presets.directory() / "mlp" / "gold.yaml"
+    assert presets.resolve("mlp/gold.yaml").is_file()
+    # the former names of the compact presets, now the top-level ones (issue 21)
+    assert presets.resolve("compact/gold") == presets.directory() / "gold.yaml"
+    assert presets.resolve("compact/gold.yaml") == presets.directory() / "gold.yaml"
     with pytest.raises(InputError, match=r"^velvet: neither .*gold, lambert"):
         presets.resolve("velvet")
 

@@ -1,0 +1,230 @@
+"""Training speed (issue 21): the project's loop against minimal loops of the same shapes,
+and the phases of ``neural-brdf train`` (start, train, export, validate, report).
+
+    python benchmarks/training_speed.py                 # quickstart, gold, mlp/gold
+    python benchmarks/training_speed.py gold --repeats 5 --steps 1000
+
+Loops, all on the same thread count (``train.threads`` of the preset), timed in one run,
+interleaved (project, model-only, plain MLP; again), the best of ``--repeats``:
+
+* ``project``: :func:`neural_brdf.train.train` for ``--steps`` steps: the pair pool and
+  its refresh from the analytic target, the loss, fused Adam, the CSV log, held-out
+  errors and checkpoints as configured (``train.seconds`` of the run: its loop, not the
+  process start or the target's first pool);
+* ``model_only``: the same RawBRDF, loss and fused Adam on batches sliced from one
+  pre-drawn tensor of pairs: what the loop would cost with free data and no bookkeeping;
+* ``plain_mlp``: ``nn.Sequential`` of the same layer widths (the encoding's and grids'
+  feature count in, 3 out, the preset's activation) with an MSE loss and fused Adam on a
+  fixed random batch: the minimal torch loop of the same shapes, without the encoding,
+  the grids' gathers or the log loss.
+
+Phases: ``neural-brdf train PRESET`` in a fresh process (``--phases`` times, the best
+total), its ``metrics.json`` ``seconds`` and the process's wall time; "start" is the
+wall time minus the run's own total (interpreter, imports, config).
+
+Results: ``benchmarks/results/training_speed.json`` (a table in docs/results.md).
+The machine's load is recorded at the start and the end: on the shared 2-core machine a
+busy second core changes the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+sys.path.insert(0, str(REPO))
+
+from common import write_json  # noqa: E402
+
+from neural_brdf import config, data, presets, train  # noqa: E402
+from neural_brdf import encoding as enc  # noqa: E402
+from neural_brdf.model import ACTIVATIONS, RawBRDF  # noqa: E402
+
+OUT = REPO / "benchmarks" / "results" / "training_speed.json"
+PRESETS = ("quickstart", "gold", "mlp/gold")
+
+
+def project_loop(cfg: config.Config, folder: Path) -> float:
+    """Seconds per step of train.train (its own clock: the loop, not the first pool)."""
+    run_dir = folder / "project"
+    shutil.rmtree(run_dir, ignore_errors=True)
+    _, fig = train.train(cfg, run_dir)
+    return fig["train_seconds"] / fig["steps"]
+
+
+def _timed_steps(step, steps: int) -> float:
+    for _ in range(min(20, steps)):  # warm-up: allocator, first-call dispatch
+        step()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    return (time.perf_counter() - t0) / steps
+
+
+def model_only_loop(cfg: config.Config, steps: int) -> float:
+    """Seconds per step of the same model, loss and optimizer on pre-drawn pairs."""
+    t, d = cfg.train, cfg.data
+    target = data.build_target(cfg.target)
+    gen = torch.Generator().manual_seed(t.seed)
+    wi, wo, f = data.pair_source(target, d, gen).draw(d.pool_size)
+    raw = RawBRDF.from_config(cfg.model)
+    opt = torch.optim.Adam(raw.parameters(), lr=t.lr, fused=True)
+    order = torch.randperm(d.pool_size, generator=gen)
+    state = {"k": 0}
+
+    def step():
+        k = state["k"]
+        if k + d.batch_size > d.pool_size:
+            k = 0
+        idx = order[k : k + d.batch_size]
+        state["k"] = k + d.batch_size
+        a, b, y = wi[idx], wo[idx], f[idx]
+        loss = train.loss_fn(t.loss, raw(a, b), y, b[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    return _timed_steps(step, steps)
+
+
+def plain_mlp_loop(cfg: config.Config, steps: int) -> float:
+    """Seconds per step of nn.Sequential of the same widths, MSE, fused Adam."""
+    m = cfg.model
+    n_in = (
+        enc.num_features(m.encoding)
+        + (m.grid.channels if m.grid.size else 0)
+        + (m.cosine_grid.channels if m.cosine_grid.size else 0)
+    )
+    layers, width = [], n_in
+    for h in m.hidden:
+        layers += [torch.nn.Linear(width, h), ACTIVATIONS[m.activation]()]
+        width = h
+    net = torch.nn.Sequential(*layers, torch.nn.Linear(width, 3))
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr, fused=True)
+    x = torch.rand(cfg.data.batch_size, n_in)
+    y = torch.rand(cfg.data.batch_size, 3)
+
+    def step():
+        loss = torch.nn.functional.mse_loss(net(x), y)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    return _timed_steps(step, steps)
+
+
+def phases(preset: str, folder: Path) -> dict:
+    """``neural-brdf train PRESET`` in a fresh process: its seconds and wall time."""
+    run_dir = folder / "phases"
+    shutil.rmtree(run_dir, ignore_errors=True)
+    cmd = [sys.executable, "-m", "neural_brdf", "train", preset, "--out", str(run_dir)]
+    cmd += ["--set", "train.progress=false"]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True, cwd=folder)
+    wall = time.perf_counter() - t0
+    m = json.loads((run_dir / "metrics.json").read_text())
+    s = m["seconds"]
+    return {
+        "wall": wall,
+        "start": wall - s["total"],
+        **{k: s[k] for k in ("train", "export", "validate", "report", "total")},
+        "rel_rmse": m["accuracy"]["rel_rmse"],
+        "peak_error": (m.get("peak") or {}).get("value"),
+        "passed": m["passed"],
+    }
+
+
+def measure(preset: str, steps: int, repeats: int, n_phases: int) -> dict:
+    base = config.load(presets.resolve(preset), ["train.progress=false"])
+    t = base.train
+    cfg = config.load(
+        presets.resolve(preset),
+        [
+            "train.progress=false",
+            f"train.steps={steps}",
+            # the preset's bookkeeping, scaled to the shorter run
+            f"train.checkpoint_every={max(1, t.checkpoint_every * steps // t.steps)}",
+            f"train.eval_every={max(1, t.eval_every * steps // t.steps)}",
+        ],
+    )
+    torch.set_num_threads(cfg.train.threads)
+    best = {"project": math.inf, "model_only": math.inf, "plain_mlp": math.inf}
+    with tempfile.TemporaryDirectory(prefix="nbrdf-speed-") as tmp:
+        folder = Path(tmp)
+        for _ in range(repeats):  # interleaved
+            best["project"] = min(best["project"], project_loop(cfg, folder))
+            best["model_only"] = min(best["model_only"], model_only_loop(cfg, steps))
+            best["plain_mlp"] = min(best["plain_mlp"], plain_mlp_loop(cfg, steps))
+        runs = [phases(preset, folder) for _ in range(n_phases)]
+    ms = {k: 1e3 * v for k, v in best.items()}
+    return {
+        "preset": preset,
+        "threads": cfg.train.threads,
+        "batch_size": cfg.data.batch_size,
+        "hidden": cfg.model.hidden,
+        "grid": cfg.model.grid.size,
+        "preset_steps": base.train.steps,
+        "timed_steps": steps,
+        "ms_per_step": ms,
+        "steps_per_s": {k: 1e3 / v for k, v in ms.items()},
+        "project_vs_model_only": ms["project"] / ms["model_only"],
+        "project_vs_plain_mlp": ms["project"] / ms["plain_mlp"],
+        "phases_best": min(runs, key=lambda r: r["total"]),
+        "phases_all_wall": [r["wall"] for r in runs],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("presets", nargs="*", default=list(PRESETS))
+    ap.add_argument("--steps", type=int, default=1000, help="steps per timed loop")
+    ap.add_argument("--repeats", type=int, default=3, help="interleaved rounds (best of)")
+    ap.add_argument("--phases", type=int, default=2, help="CLI runs per preset (best of)")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    load_start = os.getloadavg()
+    result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    models = result.setdefault("presets", {})
+    for name in args.presets:
+        print(f"{name}:", flush=True)
+        models[name] = measure(name, args.steps, args.repeats, args.phases)
+        r = models[name]
+        print(
+            f"  project {r['ms_per_step']['project']:.2f} ms/step, model only "
+            f"{r['ms_per_step']['model_only']:.2f}, plain MLP {r['ms_per_step']['plain_mlp']:.2f}"
+            f"; CLI total {r['phases_best']['wall']:.1f} s",
+            flush=True,
+        )
+    result.update(
+        {
+            "benchmark": "training_speed",
+            "machine": (
+                f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, "
+                f"torch {torch.__version__}"
+            ),
+            "load": {"start": load_start[0], "end": os.getloadavg()[0]},
+            "method": (
+                "per preset: the project's loop, the model-only loop and the plain-MLP "
+                "loop interleaved, best of the repeats; the CLI run best of --phases"
+            ),
+        }
+    )
+    write_json(args.out, result)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
