@@ -49,7 +49,7 @@ for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip instal
 import bsdf_bound  # noqa: E402  (sets the llvm_ad_rgb variant)
 from common import write_json  # noqa: E402
 
-from neural_brdf import config, train  # noqa: E402
+from neural_brdf import config, pipeline  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "compact_presets.json"
 COMPACT = REPO / "configs"  # the compact presets: the top-level ones since issue 21
@@ -107,7 +107,7 @@ def train_run(cfg_path: Path, overrides: list[str], run_dir: Path, reuse: bool) 
     if not (reuse and metrics.is_file()):
         cfg = config.load(cfg_path, ["train.progress=false", *overrides])
         t0 = time.perf_counter()
-        train.run(cfg, run_dir, overwrite=True)
+        pipeline.run(cfg, run_dir, overwrite=True)
         print(f"  trained {cfg_path.name} in {time.perf_counter() - t0:.0f} s", flush=True)
     return json.loads(metrics.read_text())
 

@@ -73,7 +73,7 @@ def material_file(name: str, folder: Path, data: Path) -> Path:
 
 
 def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]) -> dict:
-    from neural_brdf import config, train
+    from neural_brdf import config, pipeline
     from neural_brdf.model import RawBRDF
 
     cfg = config.load(
@@ -87,7 +87,7 @@ def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]
         + SIZES[size]
         + overrides,
     )
-    report = train.run(cfg, run_dir, overwrite=True)  # a rerun replaces the last
+    report = pipeline.run(cfg, run_dir, overwrite=True)  # a rerun replaces the last
     c, acc = report["checks"], report["accuracy"]
     return {
         "rel_rmse": acc["rel_rmse"],

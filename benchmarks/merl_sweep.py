@@ -67,14 +67,14 @@ def _npz(data: Path) -> Path:
 
 
 def fit(path: Path, recipe: str, run_dir: Path, overrides: list[str]) -> dict:
-    from neural_brdf import config, train
+    from neural_brdf import config, pipeline
     from neural_brdf.model import RawBRDF
 
     cfg = config.load(
         REPO / "configs" / RECIPES[recipe],
         [f"target.data={path}", "train.progress=false", "train.threads=1"] + overrides,
     )
-    report = train.run(cfg, run_dir, overwrite=True)
+    report = pipeline.run(cfg, run_dir, overwrite=True)
     c, acc = report["checks"], report["accuracy"]
     return {
         "rel_rmse": acc["rel_rmse"],

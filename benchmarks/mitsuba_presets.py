@@ -52,7 +52,7 @@ mi.set_variant("llvm_ad_rgb")
 from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
-from neural_brdf import config, lobe, train  # noqa: E402
+from neural_brdf import config, lobe, pipeline  # noqa: E402
 from neural_brdf import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_presets.json"
@@ -86,7 +86,7 @@ def model_for(
     if steps is not None:
         sets.append(f"train.steps={steps}")
     cfg = config.load(cfg_path, sets)
-    report = train.run(cfg, tmp / name)
+    report = pipeline.run(cfg, tmp / name)
     return tmp / name / "model.onnx", {
         "source": "trained",
         "steps": cfg.train.steps,

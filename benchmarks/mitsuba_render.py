@@ -59,7 +59,7 @@ mi.set_variant("llvm_ad_rgb")
 from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
-from neural_brdf import config, lobe, train  # noqa: E402
+from neural_brdf import config, lobe, pipeline  # noqa: E402
 from neural_brdf import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_render.json"
@@ -83,7 +83,7 @@ def execution_mode(mode: str):
 
 def quickstart_model(tmp: Path) -> Path:
     cfg = config.load(QUICKSTART, ["train.progress=false", "train.threads=1"])
-    train.run(cfg, tmp / "quickstart")
+    pipeline.run(cfg, tmp / "quickstart")
     return tmp / "quickstart" / "model.onnx"
 
 

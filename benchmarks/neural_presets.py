@@ -41,7 +41,7 @@ if str(REPO) not in sys.path:  # run from a checkout without `pip install -e .`
 import yaml  # noqa: E402
 from common import write_json  # noqa: E402
 
-from neural_brdf import config, train  # noqa: E402
+from neural_brdf import config, pipeline  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "neural_presets.json"
 SKIP = {"defaults"}
@@ -80,7 +80,7 @@ def run_preset(name: str, root: Path, overrides: list[str] = ()) -> dict:
         + list(overrides),
     )
     wall, cpu = time.perf_counter(), time.process_time()
-    report = train.run(cfg, root / name, overwrite=True)  # a rerun replaces the last
+    report = pipeline.run(cfg, root / name, overwrite=True)  # a rerun replaces the last
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     step, seconds, curve = first_below(root / name / "log.csv", TARGET)
     c = report["checks"]

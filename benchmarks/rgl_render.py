@@ -60,13 +60,13 @@ def render_helpers():
 
 
 def quickstart_model(tmp: Path, steps: int) -> Path:
-    from neural_brdf import config, train
+    from neural_brdf import config, pipeline
 
     cfg = config.load(
         QUICKSTART,
         [f"train.steps={steps}", "train.progress=false", "train.threads=1", "train.eval_every=0"],
     )
-    train.run(cfg, tmp / "quickstart")
+    pipeline.run(cfg, tmp / "quickstart")
     return tmp / "quickstart" / "model.onnx"
 
 

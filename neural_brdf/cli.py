@@ -214,10 +214,10 @@ def _train(args) -> int:
 
     # a bad config fails before torch loads
     cfg = config.load(path, args.overrides, warn=_warn)
-    from . import train, validate
+    from . import pipeline, train, validate
 
     run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
-    report = train.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
+    report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     if report.get("already_finished") is not None:
         print(
             f"{run_dir}: already finished at step {report['already_finished']}; nothing "

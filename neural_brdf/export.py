@@ -58,6 +58,7 @@ from .errors import ParityError
 from .fileio import atomic_write
 from .model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 from .runtime import INPUTS, OUTPUT
+from .train import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
 from .version import __version__
 
 PRODUCER_NAME = "neural-brdf"  # ONNX producer_name; producer_version: the package's
@@ -153,10 +154,6 @@ def target_json(cfg: cfgmod.Config, description: str, target: Any = None) -> dic
     return {"kind": "unspecified", "description": description}
 
 
-class CheckpointError(cfgmod.InputError):
-    """A run directory or checkpoint is missing or unusable."""
-
-
 def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
     """The ONNX ``doc_string``: what the model is and its input/output contract."""
     norm = (
@@ -175,15 +172,6 @@ def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
         "direction, without affecting other rows. N is dynamic. Metadata "
         "(metadata_props) hold the physics figures and the training config."
     )
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no checkpoint (train first, or check the run directory)")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises several unrelated types on a corrupt file
-        raise CheckpointError(f"{path}: unreadable checkpoint ({type(e).__name__})") from None
 
 
 def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:

@@ -3,7 +3,7 @@
     neural-brdf report runs/quickstart                        # into the run directory
     neural-brdf report runs/quickstart -o docs/sample_report  # elsewhere
 
-Training writes it at the end of every run (:func:`neural_brdf.train.run`).  It reads
+Training writes it at the end of every run (:func:`neural_brdf.pipeline.run`).  It reads
 the run directory (``config.yaml``, ``metrics.json``, ``log.csv``, ``model.onnx``) and
 holds: a summary, the physics checks with their verdicts and the furnace (albedo)
 curve, the accuracy against the target with the BRDF Explorer style figures of

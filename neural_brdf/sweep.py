@@ -20,7 +20,7 @@ A sweep file (YAML; paths in it are relative to the file)::
       nbrdf: path/to/merl_nbrdf_weights.npz
       names: [alum-bronze, gold-paint]         # or: all
 
-Each trial is ``train.run(cfg, run_dir, overwrite=True)`` (an unfinished trial is rerun
+Each trial is ``pipeline.run(cfg, run_dir, overwrite=True)`` (an unfinished trial is rerun
 from scratch in place): its own run directory under
 ``<out>/trials/<trial>/`` with ``config.yaml``, ``model.onnx``, ``metrics.json`` and the
 rest, plus ``trial.json``, written last, atomically, as the completion marker.
@@ -356,7 +356,7 @@ def _materialise(m: dict) -> None:
 
 def run_trial(job: dict) -> dict:
     """Train one trial in ``job["run_dir"]``; never raises: returns its record."""
-    from . import train
+    from . import pipeline, train
 
     run_dir = Path(job["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -376,7 +376,7 @@ def run_trial(job: dict) -> dict:
         if job["materialise"]:
             _materialise(job["materialise"])
         cfg = cfgmod.from_dict(job["config"], source=f"trial {job['name']}")
-        record["metrics"] = _metrics(train.run(cfg, run_dir, overwrite=True), cfg)
+        record["metrics"] = _metrics(pipeline.run(cfg, run_dir, overwrite=True), cfg)
         record["status"] = "ok"
     except train.Interrupted as e:  # Ctrl-C reached this worker: the sweep stops (run_sweep)
         record["status"] = "interrupted"

@@ -38,12 +38,13 @@ so an interrupted and resumed run ends with the same weights as an uninterrupted
 Resuming with a larger ``train.steps`` trains on; the cosine schedule then follows the
 new length.  ``target``, ``model``, ``data`` and the loss must match the checkpoint.
 
-A fresh run does not replace another run's files: ``run`` (and ``neural-brdf train``)
-refuses a folder holding model.onnx, metrics.json or ckpt.pt unless ``--resume`` (or
-``resume=True``) continues it or ``--overwrite`` (``overwrite=True``) replaces it.
+A fresh run does not replace another run's files: :func:`neural_brdf.pipeline.run` (and
+``neural-brdf train``) refuses a folder holding model.onnx, metrics.json or ckpt.pt unless
+``--resume`` (or ``resume=True``) continues it or ``--overwrite`` (``overwrite=True``)
+replaces it.
 Resuming a finished run (its checkpoint at ``train.steps``, model.onnx and metrics.json
 written) does nothing and touches no file; a ``train.steps`` below the checkpoint's step
-is refused.  ``run`` holds ``RUN_DIR/.lock`` (``fcntl.flock``, the holder's pid inside)
+is refused.  The run holds ``RUN_DIR/.lock`` (``fcntl.flock``, the holder's pid inside)
 from start to end, so that a second run into the same folder stops at once (RunLocked).
 
 Checkpoints are written to a temporary file and renamed (atomic), loaded with
@@ -74,8 +75,7 @@ import torch
 from tqdm import tqdm
 
 from . import config as cfgmod
-from . import data, validate
-from . import export as exp
+from . import data
 from .errors import Diverged, InputError, Interrupted
 from .fileio import atomic_write
 from .model import RawBRDF
@@ -249,6 +249,19 @@ def _get(d: dict, dotted: str):
     return d
 
 
+class CheckpointError(InputError):
+    """A run directory or checkpoint is missing or unusable."""
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint (train first, or check the run directory)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several unrelated types on a corrupt file
+        raise CheckpointError(f"{path}: unreadable checkpoint ({type(e).__name__})") from None
+
+
 def check_resumable(saved: dict, cfg: cfgmod.Config) -> None:
     now = cfg.model_dump()
     for key in MUST_MATCH:
@@ -262,7 +275,7 @@ def check_resumable(saved: dict, cfg: cfgmod.Config) -> None:
 def load_resumable(cfg: cfgmod.Config, ckpt_path: Path) -> dict:
     """The checkpoint that ``cfg`` resumes: same format version, same MUST_MATCH
     settings, and ``train.steps`` not below its step (a resumed run only trains on)."""
-    ckpt = exp.load_checkpoint(ckpt_path)
+    ckpt = load_checkpoint(ckpt_path)
     if ckpt.get("format_version") != cfgmod.FORMAT_VERSION:  # e.g. another encoding
         raise cfgmod.ConfigError(
             f"{ckpt_path}: written by format version {ckpt.get('format_version')}, this "
@@ -552,70 +565,3 @@ def train(
 
 def _cannot_write(path: Path, e: OSError) -> InputError:
     return InputError(f"{path}: cannot write ({e.strerror or e})")
-
-
-def run(
-    cfg: cfgmod.Config,
-    run_dir: str | Path | None = None,
-    *,
-    resume: bool = False,
-    overwrite: bool = False,
-) -> dict[str, Any]:
-    """Train, export ``model.onnx``, validate it; returns (and writes) ``metrics.json``.
-
-    A fresh run (no ``resume``) into a folder that already holds a run raises
-    :class:`RunExists` unless ``overwrite`` (see :func:`check_fresh_run_dir`).  The run
-    holds the folder's lock (:func:`run_lock`) throughout.  Resuming a run that has
-    finished at ``train.steps`` writes nothing and returns its metrics.json with
-    ``"already_finished"`` set to the step.
-    """
-    run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
-    with run_lock(run_dir):
-        if cfg.target.images is not None:  # fit to images by inverse rendering (docs/inverse.md)
-            from . import inverse
-
-            return inverse.run(cfg, run_dir, resume=resume, overwrite=overwrite)
-        return _run(cfg, run_dir, resume=resume, overwrite=overwrite)
-
-
-def _run(cfg: cfgmod.Config, run_dir: Path, *, resume: bool, overwrite: bool) -> dict[str, Any]:
-    check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
-    ckpt = load_resumable(cfg, run_dir / "ckpt.pt") if resume else None
-    if ckpt is not None and int(ckpt["step"]) == cfg.train.steps:
-        done = finished_report(run_dir, cfg.train.steps)
-        if done is not None:
-            return {**done, "already_finished": cfg.train.steps}
-    t0 = time.perf_counter()
-    target = data.build_target(cfg.target)
-    raw, training = train(cfg, run_dir, resume=resume, target=target, checkpoint=ckpt)
-    t1 = time.perf_counter()
-    model, table = exp.normalized_model(raw, cfg, target)
-    info = exp.export(
-        model, cfg, run_dir / "model.onnx", target_desc=target.describe(), extra=target
-    )
-    t2 = time.perf_counter()
-    report = validate.report(
-        run_dir / "model.onnx", reference=target, physics_report=info["physics"]
-    )
-    t3 = time.perf_counter()
-    report["training"] = training
-    report["export"] = {
-        "parity_rel_error": info["parity_rel_error"],
-        "float32_rel_precision": info["float32_rel_precision"],
-        "normalization": table,
-        "seconds": t2 - t1,
-    }
-    report["seconds"] = {
-        "train": training["train_seconds"],
-        "export": t2 - t1,
-        "validate": t3 - t2,
-        "total": t3 - t0,
-    }
-    validate.write_json(report, run_dir / "metrics.json")
-    from .report import write_report  # matplotlib: only when a run has finished
-
-    write_report(run_dir)  # report.html / report.md from the files above
-    report["seconds"]["report"] = time.perf_counter() - t3
-    report["seconds"]["total"] = time.perf_counter() - t0
-    validate.write_json(report, run_dir / "metrics.json")
-    return report

@@ -36,7 +36,7 @@ import pytest
 from onnx import TensorProto, helper
 
 from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mixture_pdf
-from neural_brdf import backends, config, graph, train
+from neural_brdf import backends, config, graph, pipeline
 from neural_brdf.config import InputError
 from neural_brdf.export import relative_difference
 
@@ -137,7 +137,7 @@ def models(tmp_path_factory):
     out = {}
     for enc, cfg_name in MODELS.items():
         run_dir = tmp_path_factory.mktemp(enc)
-        train.run(config.load(CONFIGS / cfg_name, TINY_RUN), run_dir)
+        pipeline.run(config.load(CONFIGS / cfg_name, TINY_RUN), run_dir)
         out[enc] = run_dir / "model.onnx"
     return out
 

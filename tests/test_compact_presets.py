@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from neural_brdf import config, presets, train
+from neural_brdf import config, pipeline, presets
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 COMPACT = sorted(p for p in CONFIGS.glob("*.yaml") if p.stem != "defaults")
@@ -62,7 +62,7 @@ def test_the_gold_recipe_holds_on_a_conductor_and_roughness_it_was_not_tuned_on(
             "validation.accuracy_samples=32768",
         ],
     )
-    metrics = train.run(cfg, tmp_path / "cu")
+    metrics = pipeline.run(cfg, tmp_path / "cu")
     assert metrics["passed"], json.dumps(metrics["checks"])
     assert metrics["accuracy"]["rel_rmse"] <= 0.01
     # and right at the highlight's peak (issue 19: the old encoding read 0.12x there)

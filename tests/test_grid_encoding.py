@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from analytic import physics
-from neural_brdf import backends, config, train
+from neural_brdf import backends, config, pipeline
 from neural_brdf import encoding as enc
 from neural_brdf.export import relative_difference, to_onnx_bytes
 from neural_brdf.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
@@ -288,7 +288,7 @@ def test_training_reduces_the_error(tmp_path):
     errors = []
     for steps in (1, 300):  # train.steps must be >= 1: one step is as good as untrained
         cfg = config.load("configs/gold.yaml", sets + [f"train.steps={steps}"])
-        report = train.run(cfg, tmp_path / f"s{steps}")
+        report = pipeline.run(cfg, tmp_path / f"s{steps}")
         errors.append(report["accuracy"]["rel_rmse"])
         assert report["checks"]["reciprocity"]["value"] == 0.0
         assert report["checks"]["max_albedo"]["passed"]

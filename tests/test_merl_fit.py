@@ -14,7 +14,7 @@ import torch
 
 import analytic
 import conftest
-from neural_brdf import cli, config, data, merl, train, validate
+from neural_brdf import cli, config, data, merl, pipeline, train, validate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -146,7 +146,7 @@ def fits(baked_materials, tmp_path_factory):
     out = {}
     for name, (_, path) in baked_materials.items():
         run = tmp_path_factory.mktemp(name)
-        out[name] = (run, train.run(merl_config(path, f"name={name}"), run))
+        out[name] = (run, pipeline.run(merl_config(path, f"name={name}"), run))
     return out
 
 

@@ -33,7 +33,7 @@ import pytest
 
 import neural_brdf
 from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mixture_pdf
-from neural_brdf import config, lobe, train
+from neural_brdf import config, lobe, pipeline
 from neural_brdf.config import InputError
 from neural_brdf.export import relative_difference
 
@@ -99,7 +99,7 @@ def plugin(mi):
 def tiny_model(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("tiny_run")
     cfg = config.load(CONFIGS / "mlp" / "gold.yaml", TINY_RUN)
-    train.run(cfg, run_dir)
+    pipeline.run(cfg, run_dir)
     return run_dir / "model.onnx"
 
 

@@ -18,7 +18,7 @@ import torch
 
 import neural_brdf
 from analytic import physics
-from neural_brdf import config, data, export, train, validate
+from neural_brdf import config, data, export, pipeline, train, validate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -156,7 +156,7 @@ def gold_run(tmp_path_factory):
     model's may differ by twice its float32 precision: export.export)."""
     run_dir = tmp_path_factory.mktemp("gold")
     cfg = tiny("train.steps=30", "model.encoding=anisotropic", preset="mlp/gold")
-    report = train.run(cfg, run_dir)
+    report = pipeline.run(cfg, run_dir)
     return run_dir, cfg, report
 
 

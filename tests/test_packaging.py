@@ -276,7 +276,7 @@ def test_public_api_is_annotated():
     import typing
 
     import analytic
-    from neural_brdf import config, train, validate
+    from neural_brdf import config, pipeline, train, validate
     from neural_brdf.runtime import NeuralBRDF
 
     public = [
@@ -286,7 +286,7 @@ def test_public_api_is_annotated():
         analytic.albedo,
         config.load,
         presets.resolve,
-        train.run,
+        pipeline.run,
         train.train,
         export.export,
         export.export_run,
@@ -315,3 +315,47 @@ def test_presets_into_a_closed_pipe_exit_quietly():
         err = proc.stderr.read().decode()
         assert proc.wait(timeout=60) == 0, err
     assert "Traceback" not in err and "BrokenPipe" not in err
+
+
+# ------------------------------------------------------------------ the flow of a run
+# docs/architecture.md: a stage imports only the stages before it; pipeline.py runs them
+# all.  Each module here, and the later stages it must not import (top level or in a
+# function).
+LATER_STAGES = {
+    "data": {"train", "export", "validate", "report", "pipeline"},
+    "model": {"data", "train", "export", "validate", "report", "pipeline"},
+    "train": {"export", "validate", "report", "pipeline", "inverse"},
+    "export": {"report", "pipeline"},
+    "validate": {"export", "report", "pipeline", "train"},
+}
+
+
+def _imported_modules(path: Path) -> set[str]:
+    import ast
+
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            if node.module:
+                names.add(node.module.split(".")[0])
+            else:  # from . import a, b
+                names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("neural_brdf."):
+            names.add(node.module.split(".")[1])
+    return names
+
+
+@pytest.mark.parametrize("module", sorted(LATER_STAGES))
+def test_a_stage_imports_no_later_stage(module):
+    imported = _imported_modules(ROOT / "neural_brdf" / f"{module}.py")
+    assert imported, module  # the parse sees its imports
+    assert not imported & LATER_STAGES[module], (
+        f"{module} imports {imported & LATER_STAGES[module]}"
+    )
+
+
+def test_the_pipeline_runs_every_stage_and_the_cli_calls_it():
+    assert {"train", "export", "validate", "data"} <= _imported_modules(
+        ROOT / "neural_brdf" / "pipeline.py"
+    )
+    assert "pipeline" in _imported_modules(ROOT / "neural_brdf" / "cli.py")

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import analytic
-from neural_brdf import cli, config, data, merl, rgl, train, validate
+from neural_brdf import cli, config, data, merl, pipeline, rgl, validate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LAMBERT = CONFIGS / "lambert.yaml"  # albedo (0.8, 0.6, 0.4)
@@ -313,7 +313,7 @@ def test_train_on_a_bsdf_file_and_compare_with_the_analytic_model(baked, tmp_pat
     cfg = config.load(CONFIGS / "merl.yaml", [f"target.data={path}"] + SHORT)
     target = data.build_target(cfg.target)
     assert isinstance(target, data.RGLTarget) and "RGL" in target.describe()
-    report = train.run(cfg, tmp_path / "run")
+    report = pipeline.run(cfg, tmp_path / "run")
     assert report["passed"]
     model = tmp_path / "run" / "model.onnx"
     # against the analytic model the file was baked from

@@ -1,0 +1,115 @@
+"""The pipeline of a run: train -> export -> validate -> report, in one place.
+
+    from neural_brdf import config, pipeline
+    metrics = pipeline.run(config.load("configs/gold.yaml"), "runs/gold")
+
+    target (analytic / measured data)  --train.train-->  RawBRDF + log.csv + ckpt.pt
+        (or images  --inverse.fit-->  RawBRDF)
+    RawBRDF  --export.normalized_model, export.export-->  model.onnx
+    model.onnx  --validate.report-->  metrics.json
+    run folder  --report.write_report-->  report.html, report.md
+
+``neural-brdf train`` calls :func:`run`.  Each stage module knows only the stages before
+it (train knows data and model; export knows the model; validate reads model.onnx), and
+this module is the only one that knows them all.  A run holds its folder's lock
+(:func:`neural_brdf.train.run_lock`) from start to end.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from . import config as cfgmod
+from . import data, validate
+from . import export as exp
+from . import train as trainmod
+
+
+def run(
+    cfg: cfgmod.Config,
+    run_dir: str | Path | None = None,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+) -> dict[str, Any]:
+    """Train, export ``model.onnx``, validate it, write the report; returns (and writes)
+    ``metrics.json``.
+
+    A fresh run (no ``resume``) into a folder that already holds a run raises
+    :class:`neural_brdf.train.RunExists` unless ``overwrite``
+    (:func:`neural_brdf.train.check_fresh_run_dir`).  Resuming a run that has finished at
+    ``train.steps`` writes nothing and returns its metrics.json with
+    ``"already_finished"`` set to the step.  A config with ``target.images`` is fitted by
+    inverse rendering (:mod:`neural_brdf.inverse`, docs/inverse.md).
+    """
+    run_dir = Path(run_dir) if run_dir is not None else trainmod.default_run_dir(cfg)
+    with trainmod.run_lock(run_dir):
+        if cfg.target.images is not None:
+            from . import inverse
+
+            return inverse.run(cfg, run_dir, resume=resume, overwrite=overwrite)
+        return _run(cfg, run_dir, resume=resume, overwrite=overwrite)
+
+
+def _run(cfg: cfgmod.Config, run_dir: Path, *, resume: bool, overwrite: bool) -> dict[str, Any]:
+    trainmod.check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
+    ckpt = trainmod.load_resumable(cfg, run_dir / "ckpt.pt") if resume else None
+    if ckpt is not None and int(ckpt["step"]) == cfg.train.steps:
+        done = trainmod.finished_report(run_dir, cfg.train.steps)
+        if done is not None:
+            return {**done, "already_finished": cfg.train.steps}
+    t0 = time.perf_counter()
+    target = data.build_target(cfg.target)
+    raw, training = trainmod.train(cfg, run_dir, resume=resume, target=target, checkpoint=ckpt)
+    return finish(cfg, run_dir, raw, training, t0=t0, target=target)
+
+
+def finish(
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    raw,
+    training: dict[str, Any],
+    *,
+    t0: float,
+    target: Any = None,
+    report: bool = True,
+) -> dict[str, Any]:
+    """The stages after training: export ``raw`` (normalised) to ``model.onnx``, validate
+    it (against ``target`` when there is one), write ``metrics.json`` and, with
+    ``report``, report.html / report.md.  ``t0``: when the run started
+    (``time.perf_counter()``), for the total."""
+    t1 = time.perf_counter()
+    model, table = exp.normalized_model(raw, cfg, target)
+    desc = target.describe() if target is not None else training["target"]
+    info = exp.export(model, cfg, run_dir / "model.onnx", target_desc=desc, extra=target)
+    t2 = time.perf_counter()
+    metrics = validate.report(
+        run_dir / "model.onnx", reference=target, physics_report=info["physics"]
+    )
+    t3 = time.perf_counter()
+    metrics["training"] = training
+    metrics["export"] = {
+        "parity_rel_error": info["parity_rel_error"],
+        "float32_rel_precision": info["float32_rel_precision"],
+        "normalization": table,
+        "seconds": t2 - t1,
+    }
+    metrics["seconds"] = {
+        "train": training["train_seconds"],
+        "export": t2 - t1,
+        "validate": t3 - t2,
+        **({} if report else {"report": 0.0}),
+        "total": t3 - t0,
+    }
+    validate.write_json(metrics, run_dir / "metrics.json")
+    if not report:
+        return metrics
+    from .report import write_report  # matplotlib: only when a run has finished
+
+    write_report(run_dir)  # report.html / report.md from the files above
+    metrics["seconds"]["report"] = time.perf_counter() - t3
+    metrics["seconds"]["total"] = time.perf_counter() - t0
+    validate.write_json(metrics, run_dir / "metrics.json")
+    return metrics
