@@ -28,10 +28,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 # The same classes as neural_brdf.errors (kept light for runtime and the CLI).
 from .errors import ConfigError, InputError  # noqa: F401  (re-exported: config.InputError)
 
-# Of the resolved config, the checkpoint and the exported model (its ONNX model_version).
-# 2: the encoding's peak coordinate u_h replaced sqrt(theta_h / (pi/2)) (issue 19), so a
-# version-1 checkpoint's weights mean something else: it is not resumed.
-FORMAT_VERSION = 2
+# Of the resolved config, the checkpoint and the exported model: neural_brdf.fileformat.
+from .fileformat import FORMAT_VERSION  # noqa: F401,E402  (config.FORMAT_VERSION)
 
 
 class _Section(BaseModel):

@@ -8,7 +8,7 @@
 
 The ONNX model fields describe the file: ``producer_name`` "neural-brdf",
 ``producer_version`` the package version (neural_brdf.version), ``model_version`` the
-integer ``config.FORMAT_VERSION`` (bumped when this contract changes) and ``doc_string``
+integer ``fileformat.FORMAT_VERSION`` (bumped when this contract changes) and ``doc_string``
 one paragraph: the target, the encoding and the input/output contract above.
 
 ``metadata_props`` (read with ``neural_brdf.load(path).meta``; schema in docs/portable.md):
@@ -55,20 +55,22 @@ from . import config as cfgmod
 from . import data, lobe, validate
 from .encoding import is_anisotropic
 from .errors import ParityError
+from .fileformat import (
+    FORMAT_VERSION,
+    FRAME,
+    INPUTS,
+    METADATA_VERSION,
+    METADATA_VERSION_KEY,
+    OUTPUT,
+    PRODUCER_NAME,
+    UNITS,
+)
 from .fileio import atomic_write
 from .model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
-from .runtime import INPUTS, OUTPUT
 from .train import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
 from .version import __version__
 
-PRODUCER_NAME = "neural-brdf"  # ONNX producer_name; producer_version: the package's
 PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
-FRAME = (
-    "local shading frame: z = normal, x = tangent (anisotropy axis), y = z cross x; "
-    "wi and wo are unit vectors pointing away from the surface; f = 0 when "
-    "wi_z <= 0 or wo_z <= 0"
-)
-UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"
 # Parity is relative to max(|f|, PARITY_FLOOR * mean |f|).  Below a tenth of the model's
 # mean value the comparison is absolute: there the float32 network is itself no more
 # accurate than ~1e-5 (softplus tails carry the absolute error of their argument).
@@ -77,13 +79,6 @@ UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"
 # onnxruntime by 4.0e-5 and 7.7e-6.
 PARITY_FLOOR = 0.1
 ANALYTIC_OPSET = 17  # opset of analytic_onnx (as neural_brdf.mitsuba used)
-
-
-# metadata_props: the version of their schema (docs/portable.md, "Metadata").  1: the files
-# written before the key existed (target a description, training_config YAML); 2: every
-# value that carries structure is JSON.  neural_brdf.runtime reads both.
-METADATA_VERSION_KEY = "metadata_version"
-METADATA_VERSION = 2
 
 
 def _json(value) -> str:
@@ -579,7 +574,7 @@ def export(
     checks = phys["checks"]
     meta = {
         METADATA_VERSION_KEY: str(METADATA_VERSION),
-        "format_version": str(cfgmod.FORMAT_VERSION),
+        "format_version": str(FORMAT_VERSION),
         "producer": PRODUCER,
         "frame": FRAME,
         "units": UNITS,
@@ -599,7 +594,7 @@ def export(
     onnx.helper.set_model_props(proto, meta)
     proto.producer_name = PRODUCER_NAME
     proto.producer_version = __version__
-    proto.model_version = cfgmod.FORMAT_VERSION  # the file format, an integer
+    proto.model_version = FORMAT_VERSION  # the file format, an integer
     proto.doc_string = doc_string(cfg, target_desc, isinstance(model, NormalizedBRDF))
     onnx.checker.check_model(proto)
     atomic_write(Path(out), proto.SerializeToString(), parents=True)

@@ -63,9 +63,9 @@ from analytic import frame
 from analytic.microfacet import Distribution
 
 from .errors import InputError
-from .runtime import OUTPUT
+from .fileformat import LOBE_KEY as KEY  # the ONNX metadata key
+from .fileformat import OUTPUT
 
-KEY = "sampling_lobe"  # ONNX metadata key
 KIND = "cosine+ggx_vndf"
 
 # The GGX alpha is never below this: Mitsuba's float32 GGX sampling loses accuracy for

@@ -32,26 +32,10 @@ from numpy.typing import ArrayLike
 
 from .errors import InputError
 
-INPUTS = ("wi", "wo")
-OUTPUT = "f"
-CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
+# the file's contract (names, versions, metadata keys): neural_brdf.fileformat
+from .fileformat import INPUTS, JSON_KEYS, METADATA_VERSION_KEY, OUTPUT  # noqa: F401
 
-METADATA_VERSION_KEY = "metadata_version"  # absent: version 1
-# metadata_props whose values are JSON (objects, arrays, numbers) in metadata_version 2;
-# the others are text.  neural_brdf/onnx_metadata.js (ONNX_JSON_KEYS) lists the same.
-JSON_KEYS = (
-    METADATA_VERSION_KEY,
-    "format_version",
-    "target",
-    "training_config",
-    "hemispherical_albedo",
-    "sampling_lobe",
-    "max_albedo",
-    "reciprocity_error",
-    "min_value",
-    "parity_rel_error",
-    "float32_rel_precision",
-)
+CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
 
 
 def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:

@@ -359,3 +359,14 @@ def test_the_pipeline_runs_every_stage_and_the_cli_calls_it():
         ROOT / "neural_brdf" / "pipeline.py"
     )
     assert "pipeline" in _imported_modules(ROOT / "neural_brdf" / "cli.py")
+
+
+def test_the_file_format_module_is_the_bottom_and_its_readers_import_it():
+    assert _imported_modules(ROOT / "neural_brdf" / "fileformat.py") == set()
+    for module in ("runtime", "export", "lobe", "config"):
+        assert "fileformat" in _imported_modules(ROOT / "neural_brdf" / f"{module}.py"), module
+    from neural_brdf import config, export, fileformat, lobe, runtime
+
+    assert runtime.JSON_KEYS is fileformat.JSON_KEYS and runtime.OUTPUT == fileformat.OUTPUT
+    assert config.FORMAT_VERSION == fileformat.FORMAT_VERSION == export.FORMAT_VERSION
+    assert lobe.KEY == fileformat.LOBE_KEY and lobe.KEY in fileformat.JSON_KEYS
