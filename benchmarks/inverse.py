@@ -15,11 +15,12 @@ every view with ``--primal-spp`` samples per pixel in the primal pass and ``--sp
 gradient pass:
 
 * ``neural``: the compact recipe (32 x 32 x 4 grid + 1 x 32 ReLU MLP) from its constant
-  start (``Settings.init = None``), through neural_brdf.inverse.run on the generated
+  start (``Settings.init = None``), through neural_brdf.pipeline.run on the generated
   ``fit.yaml`` (what ``neural-brdf train`` runs), which exports and validates model.onnx;
 * ``neural_ggx_init``: the same with the default ``"ggx"`` start: a roughconductor fit
-  (150 steps), the network trained on BRDF samples of that GGX, then the image fit at
-  ``init_lr_scale`` (0.2) times the learning rate;
+  (as many steps), the network trained on BRDF samples of that GGX (its BRDF error is
+  recorded as ``start_brdf_rel_rmse``), then the image fit at ``init_lr_scale`` times the
+  learning rate, the grids at ``init_grid_lr_scale`` times that;
 * ``roughconductor``: Mitsuba's roughconductor parameters (alpha, RGB eta and k).
 
 Measured for each: the held-out view rendered at 1024 spp (the neural fits from their
@@ -31,6 +32,9 @@ cosines above 0.5 (``neural_brdf.inverse.brdf_pairs``: wi uniform on that cap, w
 uniform on it, half from the true BRDF's sampler), against Mitsuba's own evaluation of
 the true roughconductor.  Times are wall-clock seconds with the machine's load average.
 Nothing here asserts anything; the JSON goes to benchmarks/results/inverse.json.
+``--resume`` keeps what ``--work`` already holds (targets, the roughconductor fit, finished
+runs) and resumes an interrupted neural fit from its checkpoint (its recorded fit time
+is the checkpointed time plus the rest).
 """
 
 from __future__ import annotations
@@ -73,18 +77,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-init", action="store_true", help="no neural_ggx_init fit")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "nbrdf-inverse")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep --work's targets, roughconductor fit and finished runs; resume the others",
+    )
     args = ap.parse_args(argv)
 
-    from neural_brdf import config, inverse, inverse_example, runtime
+    from neural_brdf import config, inverse, inverse_example, pipeline, runtime
 
     machine_before = {"loadavg": loadavg(), "cpus": os.cpu_count()}
     mi = inverse.use_variant("llvm_ad_rgb")
-    t0 = time.perf_counter()
     scenes = args.work / "scenes"
-    inverse_example.write(
-        scenes, resolution=RESOLUTION, spp=TARGET_SPP, heldout=True, steps=args.steps
-    )
-    targets_seconds = time.perf_counter() - t0
+    if not (args.resume and (scenes / "fit.yaml").is_file()):
+        inverse_example.write(
+            scenes, resolution=RESOLUTION, spp=TARGET_SPP, heldout=True, steps=args.steps
+        )
     cfg = config.load(scenes / "fit.yaml", ["train.progress=false"])
     tree4, _ = inverse.read_scene(scenes / "view4.xml", "heldout")
     heldout = inverse.View(scenes / "view4.xml", scenes / "view4.exr", tree4, None, "path")
@@ -125,15 +133,19 @@ def main(argv: list[str] | None = None) -> int:
             "psnr_db": inverse.psnr_linear(ref, floor, mask),
             "image_rel_rmse": inverse.image_rel_rmse(ref, floor, mask),
         },
-        "targets_seconds": targets_seconds,
         "fits": {},
     }
 
     # -- Mitsuba's roughconductor, same images, loss, optimiser and schedule
     views = inverse.read_views(cfg)
-    rough = inverse.fit_roughconductor(
-        views, cfg.train, spp=args.spp, primal_spp=args.primal_spp, steps=args.steps
-    )
+    rough_json = args.work / "roughconductor.json"
+    if args.resume and rough_json.is_file():
+        rough = json.loads(rough_json.read_text())
+    else:
+        rough = inverse.fit_roughconductor(
+            views, cfg.train, spp=args.spp, primal_spp=args.primal_spp, steps=args.steps
+        )
+        write_json(rough_json, rough)
     rough_el = inverse.roughconductor_element(rough)
     fc_rough = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(rough_el), wi, wo)
     result["fits"]["roughconductor"] = {
@@ -155,11 +167,31 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_init:
         ggx = inverse.Settings(init="ggx", init_train_steps=args.init_train_steps, **common)
         runs.append(("neural_ggx_init", ggx))
+
+    def start_error(ckpt: Path) -> float | None:
+        """The BRDF error of the network the GGX start hands to the image fit."""
+        if not ckpt.is_file():
+            return None
+        import torch
+
+        from neural_brdf.model import RawBRDF
+
+        state = torch.load(ckpt, weights_only=True)
+        raw = RawBRDF.from_config(config.from_dict(state["config"]).model)
+        raw.load_state_dict(state["model"])
+        with torch.no_grad():
+            f = raw.eval()(torch.from_numpy(wi).float(), torch.from_numpy(wo).float())
+        return inverse.brdf_rel_rmse(f.double().numpy() * wo[:, 2:3], fc_true)
+
     for label, settings in runs:
         run_dir = args.work / label
-        t = time.perf_counter()
-        metrics = inverse.run(cfg, run_dir, overwrite=True, settings=settings)
-        wall = time.perf_counter() - t
+        if args.resume and (run_dir / "metrics.json").is_file():
+            metrics = json.loads((run_dir / "metrics.json").read_text())
+        else:
+            resume = args.resume and (run_dir / "ckpt.pt").is_file()
+            metrics = pipeline.run(
+                cfg, run_dir, resume=resume, overwrite=not resume, inverse_settings=settings
+            )
         onnx = run_dir / "model.onnx"
         model = runtime.load(onnx)
         fc = np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3]
@@ -168,10 +200,12 @@ def main(argv: list[str] | None = None) -> int:
         result["fits"][label] = {
             "recipe": "compact: 32x32x4 grid + 1x32 ReLU",
             "fit_seconds": tr["train_seconds"],
-            "render_seconds": tr["render_seconds"],
             "init": tr.get("init"),
             "lr_factor": tr["lr_factor"],
-            "total_seconds": wall,
+            "grid_lr_scales": tr["grid_lr_scales"],
+            "start_brdf_rel_rmse": start_error(run_dir / "init" / "ckpt.pt"),
+            "export_validate_seconds": metrics["seconds"]["export"]
+            + metrics["seconds"]["validate"],
             "final_image_loss": tr["final_image_loss"],
             "brdf_rel_rmse": inverse.brdf_rel_rmse(fc, fc_true),
             **heldout_figures(inverse.bsdf_element("neural_brdf", filename=str(onnx))),

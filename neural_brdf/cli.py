@@ -77,6 +77,23 @@ def _parser() -> argparse.ArgumentParser:
         help="replace a run already in RUN_DIR (its results are deleted)",
     )
 
+    tm = sub.add_parser(
+        "train-many",
+        help="train several materials in one batch (same network and optimisation)",
+    )
+    tm.add_argument("configs", nargs="+", help="YAML config files or preset names")
+    tm.add_argument("--out", required=True, help="folder: one run folder per config name")
+    tm.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key in every config (repeatable)",
+    )
+    tm.add_argument("--overwrite", action="store_true", help="replace runs already there")
+    tm.add_argument("--report", action="store_true", help="also write each run's report")
+
     sub.add_parser("presets", help="list the shipped configs (neural-brdf train NAME)")
 
     e = sub.add_parser("export", help="export a run's checkpoint to ONNX")
@@ -231,6 +248,31 @@ def _train(args) -> int:
         f"validate {s['validate']:.1f} s, report {s['report']:.1f} s: report.html)"
     )
     return EXIT_OK if report["passed"] else EXIT_PHYSICS
+
+
+def _train_many(args) -> int:
+    from . import presets
+
+    paths = [presets.resolve(c) for c in args.configs]  # unknown names fail before torch
+    from . import config
+
+    cfgs = [config.load(path, args.overrides, warn=_warn) for path in paths]
+    from . import pipeline, validate
+
+    reports = pipeline.run_many(cfgs, Path(args.out), overwrite=args.overwrite, report=args.report)
+    for cfg, report in zip(cfgs, reports):
+        acc = report.get("accuracy") or {}
+        err = f"rel_rmse {100 * acc['rel_rmse']:.2f} %" if "rel_rmse" in acc else ""
+        verdict = "ok" if report["passed"] else "FAILED"
+        print(f"{cfg.name}: physics {verdict}  {err}  -> {Path(args.out) / cfg.name}")
+    s = reports[0]["seconds"]
+    print(
+        f"{len(cfgs)} materials in one batch: train {s['train']:.1f} s for all of them; "
+        f"{sum(r['passed'] for r in reports)} of {len(cfgs)} passed"
+    )
+    if any(not r["passed"] for r in reports):
+        print(validate.format_table(next(r for r in reports if not r["passed"])))
+    return EXIT_OK if all(r["passed"] for r in reports) else EXIT_PHYSICS
 
 
 def _presets(args) -> int:
@@ -471,6 +513,7 @@ def main(argv: list[str] | None = None) -> int:
         args = _parser().parse_args(argv)
         commands = {
             "train": _train,
+            "train-many": _train_many,
             "presets": _presets,
             "export": _export,
             "validate": _validate,

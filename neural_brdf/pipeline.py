@@ -33,6 +33,7 @@ def run(
     *,
     resume: bool = False,
     overwrite: bool = False,
+    inverse_settings: Any = None,
 ) -> dict[str, Any]:
     """Train, export ``model.onnx``, validate it, write the report; returns (and writes)
     ``metrics.json``.
@@ -42,15 +43,56 @@ def run(
     (:func:`neural_brdf.train.check_fresh_run_dir`).  Resuming a run that has finished at
     ``train.steps`` writes nothing and returns its metrics.json with
     ``"already_finished"`` set to the step.  A config with ``target.images`` is fitted by
-    inverse rendering (:mod:`neural_brdf.inverse`, docs/inverse.md).
+    inverse rendering (:mod:`neural_brdf.inverse`, docs/inverse.md; ``inverse_settings``:
+    its :class:`neural_brdf.inverse.Settings`), then exported and validated without a
+    reference and without a report.
     """
     run_dir = Path(run_dir) if run_dir is not None else trainmod.default_run_dir(cfg)
     with trainmod.run_lock(run_dir):
         if cfg.target.images is not None:
-            from . import inverse
+            from . import inverse  # Mitsuba: only for an images fit
 
-            return inverse.run(cfg, run_dir, resume=resume, overwrite=overwrite)
+            raw, training, t0 = inverse.fit(
+                cfg, run_dir, resume=resume, overwrite=overwrite, settings=inverse_settings
+            )
+            return finish(cfg, run_dir, raw, training, t0=t0, report=False)
         return _run(cfg, run_dir, resume=resume, overwrite=overwrite)
+
+
+def run_many(
+    cfgs: list[cfgmod.Config],
+    out: str | Path,
+    *,
+    overwrite: bool = False,
+    report: bool = False,
+) -> list[dict[str, Any]]:
+    """Train every config in one batch (:func:`neural_brdf.many.train_many`) into
+    ``out/NAME``, then export and validate each (and write its report with ``report``);
+    returns the metrics.json of each, in order."""
+    from contextlib import ExitStack
+
+    from . import many
+
+    many.check_batchable(cfgs)
+    names = [c.name for c in cfgs]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise cfgmod.ConfigError(
+            f"name: {twice[0]!r} is given to two materials of the batch (give each its "
+            "own name, in its config file)"
+        )
+    run_dirs = [Path(out) / n for n in names]
+    with ExitStack() as stack:
+        for run_dir in run_dirs:
+            stack.enter_context(trainmod.run_lock(run_dir))
+            trainmod.check_fresh_run_dir(run_dir, resume=False, overwrite=overwrite)
+        t0 = time.perf_counter()
+        targets = [data.build_target(c.target) for c in cfgs]
+        trained = many.train_many(cfgs, run_dirs, targets=targets)
+        return [
+            finish(cfg, run_dir, raw, training, t0=t0, target=target, report=report)
+            for cfg, run_dir, target, (raw, training) in zip(cfgs, run_dirs, targets, trained)
+        ]
 
 
 def _run(cfg: cfgmod.Config, run_dir: Path, *, resume: bool, overwrite: bool) -> dict[str, Any]:
@@ -69,7 +111,7 @@ def _run(cfg: cfgmod.Config, run_dir: Path, *, resume: bool, overwrite: bool) ->
 def finish(
     cfg: cfgmod.Config,
     run_dir: Path,
-    raw,
+    raw: Any,
     training: dict[str, Any],
     *,
     t0: float,

@@ -281,6 +281,12 @@ def load_resumable(cfg: cfgmod.Config, ckpt_path: Path) -> dict:
             f"{ckpt_path}: written by format version {ckpt.get('format_version')}, this "
             f"is {cfgmod.FORMAT_VERSION}; it cannot be resumed: train anew (--overwrite)"
         )
+    if ckpt.get("batched"):
+        raise cfgmod.ConfigError(
+            f"{ckpt_path}: trained in a batch of {ckpt['batched']} materials "
+            "(neural_brdf.many), which keeps no optimizer or pool: it cannot be resumed: "
+            "train anew (--overwrite)"
+        )
     check_resumable(ckpt["config"], cfg)
     step = int(ckpt["step"])
     if cfg.train.steps < step:
