@@ -18,6 +18,11 @@ interleaved (project, model-only, plain MLP; again), the best of ``--repeats``:
   fixed random batch: the minimal torch loop of the same shapes, without the encoding,
   the grids' gathers or the log loss.
 
+Many materials (``--many K``): K variants of configs/gold.yaml (conductor and roughness
+varied, seeds apart) trained for ``--steps`` steps one after the other with
+``train.train`` and together with ``neural_brdf.many.train_many``, interleaved, best of
+``--repeats``; materials per minute of each and the held-out errors of both.
+
 Phases: ``neural-brdf train PRESET`` in a fresh process (``--phases`` times, the best
 total), its ``metrics.json`` ``seconds`` and the process's wall time; "start" is the
 wall time minus the run's own total (interpreter, imports, config).
@@ -30,6 +35,7 @@ busy second core changes the figures.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import math
 import os
@@ -49,7 +55,7 @@ sys.path.insert(0, str(REPO))
 
 from common import write_json  # noqa: E402
 
-from neural_brdf import config, data, presets, train  # noqa: E402
+from neural_brdf import config, data, many, presets, train  # noqa: E402
 from neural_brdf import encoding as enc  # noqa: E402
 from neural_brdf.model import ACTIVATIONS, RawBRDF  # noqa: E402
 
@@ -187,12 +193,65 @@ def measure(preset: str, steps: int, repeats: int, n_phases: int) -> dict:
     }
 
 
+MANY_METALS = ("Au", "Cu", "Al", "Ag")
+MANY_ALPHAS = (0.2, 0.4)
+
+
+def measure_many(k: int, steps: int, repeats: int) -> dict:
+    """K gold-recipe materials: one after the other, and in one batch."""
+    combos = [(m, a) for a in MANY_ALPHAS for m in MANY_METALS]
+    cfgs = [
+        config.load(
+            presets.resolve("gold"),
+            [
+                "train.progress=false",
+                f"train.steps={steps}",
+                "train.eval_every=0",
+                f"target.params.material={combos[i % len(combos)][0]}",
+                f"target.params.alpha={combos[i % len(combos)][1]}",
+                f"train.seed={i}",
+                f"name=m{i}",
+            ],
+        )
+        for i in range(k)
+    ]
+    torch.set_num_threads(cfgs[0].train.threads)
+    best = {"sequential": math.inf, "batched": math.inf}
+    errors: dict[str, list[float]] = {}
+    with tempfile.TemporaryDirectory(prefix="nbrdf-many-") as tmp:
+        folder = Path(tmp)
+        for r in range(repeats):
+            t0 = time.perf_counter()
+            alone = [train.train(c, folder / f"s{r}" / c.name)[1] for c in cfgs]
+            best["sequential"] = min(best["sequential"], time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            together = many.train_many(cfgs, [folder / f"b{r}" / c.name for c in cfgs])
+            best["batched"] = min(best["batched"], time.perf_counter() - t0)
+            errors = {
+                "sequential": [f["raw_val_rel_rmse"] for f in alone],
+                "batched": [f["raw_val_rel_rmse"] for _, f in together],
+            }
+    return {
+        "materials": k,
+        "steps": steps,
+        "batch_size": cfgs[0].data.batch_size,
+        "seconds": best,
+        "materials_per_minute": {key: 60.0 * k / v for key, v in best.items()},
+        "speedup": best["sequential"] / best["batched"],
+        "raw_val_rel_rmse": errors,
+        "max_error_difference": max(
+            abs(a - b) for a, b in zip(errors["sequential"], errors["batched"])
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("presets", nargs="*", default=list(PRESETS))
     ap.add_argument("--steps", type=int, default=1000, help="steps per timed loop")
     ap.add_argument("--repeats", type=int, default=3, help="interleaved rounds (best of)")
     ap.add_argument("--phases", type=int, default=2, help="CLI runs per preset (best of)")
+    ap.add_argument("--many", type=int, default=8, help="materials of the batch (0: skip)")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     load_start = os.getloadavg()
@@ -208,9 +267,19 @@ def main() -> None:
             f"; CLI total {r['phases_best']['wall']:.1f} s",
             flush=True,
         )
+    if args.many:
+        print(f"many: {args.many} materials", flush=True)
+        result["many"] = measure_many(args.many, args.steps, args.repeats)
+        r = result["many"]
+        print(
+            f"  sequential {r['seconds']['sequential']:.1f} s, batched "
+            f"{r['seconds']['batched']:.1f} s ({r['speedup']:.2f}x)",
+            flush=True,
+        )
     result.update(
         {
             "benchmark": "training_speed",
+            "date": datetime.datetime.now().isoformat(timespec="seconds"),
             "machine": (
                 f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, "
                 f"torch {torch.__version__}"

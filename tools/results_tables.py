@@ -6,7 +6,8 @@
 
 Reads ``benchmarks/results/*.json`` (suite, neural_presets, neural_throughput,
 analytic_throughput, merl_fit, merl_sweep, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
-bsdf_bound, compact_presets, sampling_noise, peak) and ``docs/results/sweep_timing.json``.
+bsdf_bound, compact_presets, sampling_noise, peak, inverse, training_speed) and
+``docs/results/sweep_timing.json``.
 Each section names the JSON file and the script that wrote it, and the date, machine and
 load average that file records (or says that it records none).  ``render()`` is pure
 (JSON in, markdown out), so tests/test_docs.py can compare it with the committed page.
@@ -1002,7 +1003,210 @@ def peak_section(d: dict) -> list[str]:
     return out
 
 
+def inverse_section(d: dict) -> list[str]:
+    m, goals, fits = d["machine"], d["goals"], d["fits"]
+    load = f"{m['loadavg_before'][0]:.1f} before, {m['loadavg_after'][0]:.1f} after (1-minute)"
+    out = [
+        "## Neural BRDF from images: inverse rendering, held out",
+        "",
+        _source("benchmarks/results/inverse.json", "python benchmarks/inverse.py"),
+        _recorded(d["date"], f"{m['platform']}, {m['cpus']} cores, `{m['variant']}`", load),
+        f"Material: Mitsuba's `{d['material']['bsdf']}`, {d['material']['distribution']} "
+        f"α {d['material']['alpha']:g}, {d['material']['material']} (not a preset), on a "
+        f"sphere under {d['environment']}. Fitted to {d['views']['fitted']} views at "
+        f"{d['views']['resolution']}² rendered at {d['target_spp']} spp; every fit: the "
+        f"same images, loss (relative MSE) and optimiser (`mi.ad.Adam`), {d['steps']} "
+        f"steps, each rendering every view at {d['fit_primal_spp_per_step']} spp (primal "
+        f"pass) and {d['fit_spp_per_step']} spp (gradient pass). Fit time: wall-clock "
+        "seconds of the whole fit, the GGX start (a `roughconductor` fit of as many steps, "
+        "then training on its BRDF samples) included. Held-out view: "
+        f"{d['heldout_spp']} spp against the true material at {d['heldout_spp']} spp, "
+        f"{d['sphere_pixels']} sphere pixels; PSNR: {d['psnr_definition']}. BRDF error: "
+        f"{d['brdf_error_definition']} ({d['brdf_pairs']} pairs). Goals: held-out PSNR ≥ "
+        f"{goals['heldout_psnr_db']:g} dB and BRDF error ≤ {100 * goals['brdf_rel_rmse']:g} %.",
+        "",
+    ]
+    floor = d["noise_floor"]
+    rows = [
+        [
+            "noise floor: true material, another seed",
+            f"{floor['psnr_db']:.1f} dB",
+            _pct(floor["image_rel_rmse"]),
+            "-",
+            "-",
+            "-",
+            "-",
+        ]
+    ]
+    labels = {
+        "roughconductor": "`roughconductor` (α, RGB η, k)",
+        "neural": "neural, compact recipe, constant start",
+        "neural_ggx_init": "neural, compact recipe, GGX start (the default)",
+    }
+    for key, f in fits.items():
+        ok = (
+            f["psnr_db"] >= goals["heldout_psnr_db"]
+            and f["brdf_rel_rmse"] <= goals["brdf_rel_rmse"]
+        )
+        physics = (
+            f"recip. {f['reciprocity']:.0f}, max albedo {f['max_albedo']:.4f}"
+            if "reciprocity" in f
+            else "analytic"
+        )
+        seconds = f["fit_seconds"] + (f.get("init") or {}).get("seconds", 0.0)
+        rows.append(
+            [
+                labels.get(key, key),
+                f"{f['psnr_db']:.1f} dB",
+                _pct(f["image_rel_rmse"]),
+                _pct(f["brdf_rel_rmse"]),
+                f"{seconds:.0f} s",
+                "met" if ok else "**missed**",
+                physics,
+            ]
+        )
+    out += _table(
+        [
+            "fit",
+            "held-out PSNR",
+            "held-out rel. RMSE",
+            "BRDF rel. RMSE (cos > 0.5)",
+            "fit time",
+            "goals",
+            "physics of the export",
+        ],
+        rows,
+    )
+    rc = fits.get("roughconductor")
+    if rc:
+        p, t = rc["parameters"], rc["true_parameters"]
+        out += [
+            f"`roughconductor` fitted: α {p['alpha']:.4f} (true {t['alpha.value'][0]:.4f}), "
+            f"η ({', '.join(f'{x:.3f}' for x in p['eta'])}) (true "
+            f"{', '.join(f'{x:.3f}' for x in t['eta.value'])}), k "
+            f"({', '.join(f'{x:.3f}' for x in p['k'])}) (true "
+            f"{', '.join(f'{x:.3f}' for x in t['k.value'])}).",
+            "",
+        ]
+    ggx = fits.get("neural_ggx_init")
+    if ggx and ggx.get("start_brdf_rel_rmse") is not None:
+        scales = ", ".join(f"{s:g}" for s in (ggx.get("grid_lr_scales") or {}).values())
+        out += [
+            f"GGX initialisation: the network trained on the fitted GGX's samples starts the "
+            f"image fit at {_pct(ggx['start_brdf_rel_rmse'])} BRDF error; the image fit then "
+            f"runs at {ggx['lr_factor']:g} x the learning rate"
+            + (f", the grids at {scales} x that" if scales else "")
+            + ".",
+            "",
+        ]
+    return out
+
+
 # ------------------------------------------------------------------ page
+def training_speed_section(d: dict) -> list[str]:
+    load = d["load"]
+    out = [
+        "## Training speed: the loop against minimal loops, and the phases of a run",
+        "",
+        _source("benchmarks/results/training_speed.json", "python benchmarks/training_speed.py"),
+        _recorded(
+            d.get("date"),
+            d["machine"],
+            f"{load['start']:.1f} at the start, {load['end']:.1f} at the end (1-minute)",
+        ),
+        f"Method: {d['method']}. `model only`: the same network, loss and fused Adam on "
+        "pre-drawn pairs; `plain MLP`: `nn.Sequential` of the same widths on a fixed batch "
+        "with an MSE loss (no encoding, grids or log loss).",
+        "",
+    ]
+    rows = []
+    for name, m in d["presets"].items():
+        ms = m["ms_per_step"]
+        rows.append(
+            [
+                name,
+                f"{m['batch_size']}",
+                f"{m['threads']}",
+                f"{ms['project']:.2f}",
+                f"{ms['model_only']:.2f}",
+                f"{ms['plain_mlp']:.2f}",
+                f"{m['project_vs_model_only']:.2f}x",
+                f"{m['project_vs_plain_mlp']:.2f}x",
+            ]
+        )
+    out += _table(
+        [
+            "preset",
+            "batch",
+            "threads",
+            "project ms/step",
+            "model only",
+            "plain MLP",
+            "project / model only",
+            "project / plain MLP",
+        ],
+        rows,
+    )
+    out += [
+        "`neural-brdf train PRESET` in a fresh process, the best of its runs (seconds; "
+        "`start`: interpreter, imports and config, the wall time less the run's own total):",
+        "",
+    ]
+    rows = []
+    for name, m in d["presets"].items():
+        p = m["phases_best"]
+        peak = "-" if p.get("peak_error") is None else _pct(p["peak_error"])
+        rows.append(
+            [name, f"{m['preset_steps']}"]
+            + [f"{p[k]:.1f}" for k in ("start", "train", "export", "validate", "report", "wall")]
+            + [_pct(p["rel_rmse"]), peak]
+        )
+    out += _table(
+        [
+            "preset",
+            "steps",
+            "start",
+            "train",
+            "export",
+            "validate",
+            "report",
+            "total (wall)",
+            "rel. RMSE f cos",
+            "peak error",
+        ],
+        rows,
+    )
+    m = d.get("many")
+    if m:
+        sec, per_min, err = m["seconds"], m["materials_per_minute"], m["raw_val_rel_rmse"]
+        out += [
+            f"Many materials: {m['materials']} variants of the gold recipe (conductor and "
+            f"roughness varied), {m['steps']} steps each, batches of {m['batch_size']}; "
+            "one after the other (`train.train`) and in one batch (`neural_brdf.many`, "
+            "`neural-brdf train-many`), interleaved, the best of the repeats:",
+            "",
+        ]
+        out += _table(
+            ["", "seconds", "materials per minute", "held-out rel. RMSE (mean)"],
+            [
+                [
+                    key,
+                    f"{sec[key]:.1f}",
+                    f"{per_min[key]:.1f}",
+                    _pct(sum(err[key]) / len(err[key])),
+                ]
+                for key in ("sequential", "batched")
+            ],
+        )
+        out += [
+            f"The batch: {m['speedup']:.2f}x the materials per minute; the largest "
+            f"difference of a material's error between the two: "
+            f"{100 * m['max_error_difference']:.3f} percentage points.",
+            "",
+        ]
+    return out
+
+
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
     (RESULTS / "neural_presets.json", neural_presets_section),
@@ -1018,6 +1222,8 @@ SECTIONS = (
     (RESULTS / "compact_presets.json", compact_presets_section),
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
+    (RESULTS / "inverse.json", inverse_section),
+    (RESULTS / "training_speed.json", training_speed_section),
     (SWEEP_TIMING, sweep_timing_section),
 )
 
