@@ -2,24 +2,18 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-# ../shared/data beside the checkout (CI clones main with shared/ beside it);
-# NEURAL_BRDF_SHARED overrides.
-SHARED = Path(os.environ.get("NEURAL_BRDF_SHARED", REPO.parent / "shared"))
-DATA = SHARED / "data"
+# The reference data the tests compare with, in the repository (tests/data/README.md:
+# each file's origin and terms), so that a clone alone runs the whole suite.
+DATA = Path(__file__).resolve().parent / "data"
 
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
-    if not DATA.is_dir():
-        raise FileNotFoundError(
-            f"reference data not found at {DATA}; set NEURAL_BRDF_SHARED to the shared/ folder"
-        )
+    assert DATA.is_dir(), f"reference data not found at {DATA} (tests/data/README.md)"
     return DATA
 
 

@@ -1,4 +1,4 @@
-"""Known answers from independent sources (../shared/data, see its README).
+"""Known answers from independent sources (tests/data, see its README).
 
 Sources and tolerances:
   * Blender Cycles table_ggx_E / table_ggx_Eavg (Monte Carlo, 2^23 / 2^26 samples):

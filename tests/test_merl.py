@@ -7,7 +7,7 @@ Independent references used here (none of them is output of the code under test)
     ``merl_bin``: i_h = int(sqrt(theta_h / (pi/2)) * 90), i_d = int(theta_d / (pi/2) * 90),
     i_p = int(phi_d / pi * 180) after phi_d += pi for phi_d < 0;
   * baking: analytic models (Lambertian, GGX) are the ground truth of the round trip;
-  * NBRDF: a numpy forward pass of the documented formula (../shared/data/README.md) fed
+  * NBRDF: a numpy forward pass of the documented formula (tests/data/README.md) fed
     with the input vector built from the angles themselves;
   * ABC: the dj_brdf equations re-typed in scalar Python (with dj_brdf's algebraic form of
     the Fresnel term), and the NBRDF fit of the same measured material.

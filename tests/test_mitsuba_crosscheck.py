@@ -22,7 +22,7 @@ Mitsuba's approximate G by the exact one (Mitsuba's value times G_exact / G_appr
 both computed here from the published formulas); (c) everywhere, raw, at 7e-3
 (twice the approximation's 0.35% bound, one per G1 factor).
 
-The stored Mitsuba 3.9.1 (scalar_rgb) values in shared/data/mitsuba3_reference_values.csv
+The stored Mitsuba 3.9.1 (scalar_rgb) values in tests/data/mitsuba3_reference_values.csv
 (rows ``roughconductor_eval``) are matched as well, at 1e-4 (Beckmann rows as in (b)).
 """
 
