@@ -1,4 +1,7 @@
-"""Ashikhmin-Shirley anisotropic Phong with Fresnel and coupled diffuse (seed 000, 24.5)."""
+"""Ashikhmin-Shirley anisotropic Phong with Fresnel and coupled diffuse.
+
+Ashikhmin & Shirley 2000, as Shirley & Marschner 2009, eq. 24.5, give it.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ from .phong import clamped_power
 
 
 class AshikhminShirley(BRDF):
-    """Ashikhmin & Shirley 2000, "An Anisotropic Phong BRDF Model" (seed 000, 24.5).
+    """Ashikhmin & Shirley 2000, "An Anisotropic Phong BRDF Model" (Shirley & Marschner 2009, 24.5).
 
     With h = normalize(wi + wo), k.h = wi.h = wo.h = |wi + wo| / 2 and the anisotropic
     exponent e(h) = n_u cos^2 phi_h + n_v sin^2 phi_h = (n_u h_x^2 + n_v h_y^2) / (1 - h_z^2)::
@@ -35,15 +38,16 @@ class AshikhminShirley(BRDF):
       and n_u, n_v in {0, 1, 10, 100, 1000, 10000} (and anisotropic pairs), rd, rs in {0, 1}:
       0.9996 (rs = 1, n_u = n_v = 1e4, theta_i = 0; the specular bound is nearly
       reached); rd = 1, rs = 0 gives at most 0.969 (31/32 diffuse + small specular).
-    * Differs from the seed: the seed's typeset eq. 24.9 places the denominator
+    * Differs from the source (Shirley & Marschner 2009): the textbook's typeset
+      eq. 24.9 places the denominator
       (h.k_i) max(cos_i, cos_o) inside the exponent of (n.h); that is a typesetting
       error -- eq. 24.5 (implemented) has it as a factor of the BRDF.  The exponent's
       1 - h_z^2 is computed as h_x^2 + h_y^2 (no cancellation; at h = n, where phi_h
-      is undefined, h_z^e = 1 for any e).  All formulas are the seed's otherwise.
+      is undefined, h_z^e = 1 for any e).  All formulas are the textbook's otherwise.
 
     Sampling: half-vector sampling, eqs. 24.10-24.14 (the four-quadrant mapping of xi_1
     is one atan2: phi = atan(sqrt((n_u+1)/(n_v+1)) tan(2 pi xi_1)) kept in the quadrant
-    of 2 pi xi_1, which is the seed's mapping with the flips made continuous),
+    of 2 pi xi_1, which is the textbook's mapping with the flips made continuous),
     pdf = p_h / (4 k.h) (24.12), weight ~ F(cos_i); cosine for the diffuse term,
     weight rd (1 - rs)(1 - (1 - cos_i/2)^5), its exact albedo.
     """
@@ -53,7 +57,7 @@ class AshikhminShirley(BRDF):
     energy_conserving = True
     anisotropic = True
     notes = (
-        "Eq. 24.5 implemented (the seed's typeset 24.9 misplaces the denominator "
+        "Eq. 24.5 implemented (the textbook's typeset 24.9 misplaces the denominator "
         "inside the exponent). Measured max total albedo 0.9996 (rs = 1, "
         "n_u = n_v = 1e4, normal incidence); rd = 1, rs = 0 gives at most 0.969 "
         "(31/32 diffuse + small specular). Energy conserving for rd, rs in [0, 1]."
@@ -93,7 +97,8 @@ class AshikhminShirley(BRDF):
         return torch.where(ok, ratio, torch.full_like(s, 0.5 * (nu + nv)))
 
     def _pdf_h(self, h: torch.Tensor) -> torch.Tensor:
-        # seed 000, eq. 24.10: sqrt((nu+1)(nv+1)) / (2 pi) (n.h)^(nu cos^2 phi + nv sin^2 phi)
+        # Shirley & Marschner 2009, eq. 24.10:
+        #   sqrt((nu+1)(nv+1)) / (2 pi) (n.h)^(nu cos^2 phi + nv sin^2 phi)
         nu, nv = self.params["nu"], self.params["nv"]
         c = math.sqrt((nu + 1.0) * (nv + 1.0)) / (2.0 * math.pi)
         return c * clamped_power(h[..., 2], self._hexp(h))
@@ -101,18 +106,18 @@ class AshikhminShirley(BRDF):
     def _sample_h(self, u: torch.Tensor) -> torch.Tensor:
         nu, nv = self.params["nu"], self.params["nv"]
         t = 2.0 * math.pi * u[..., 1]
-        # seed 000, eq. 24.13 with the four-quadrant mapping of xi_1
+        # Shirley & Marschner 2009, eq. 24.13 with the four-quadrant mapping of xi_1
         phi = torch.atan2(math.sqrt(nu + 1.0) * torch.sin(t), math.sqrt(nv + 1.0) * torch.cos(t))
         cp, sp = torch.cos(phi), torch.sin(phi)
         e = nu * cp * cp + nv * sp * sp
-        # seed 000, eq. 24.14: cos theta = (1 - xi_2)^(1 / (e + 1))
+        # Shirley & Marschner 2009, eq. 24.14: cos theta = (1 - xi_2)^(1 / (e + 1))
         cos_t = (1.0 - u[..., 0]).clamp_min(0.0) ** (1.0 / (e + 1.0))
         sin_t = torch.sqrt((1.0 - cos_t * cos_t).clamp_min(0.0))
         return torch.stack([sin_t * cp, sin_t * sp, cos_t], -1)
 
     @staticmethod
     def _schlick(rs: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        # seed 000, eq. 24.6: F = Rs + (1 - Rs)(1 - k.h)^5
+        # Shirley & Marschner 2009, eq. 24.6: F = Rs + (1 - Rs)(1 - k.h)^5
         return rs + (1.0 - rs) * (1.0 - c[..., None]).clamp_min(0.0) ** 5
 
     @staticmethod
@@ -130,7 +135,7 @@ class AshikhminShirley(BRDF):
         kh = (0.5 * norm).clamp_min(frame.EPS_COS)  # k.h = |wi + wo| / 2
         ci, co = wi[..., 2], wo[..., 2]
         cmax = torch.maximum(ci, co).clamp_min(frame.EPS_COS)
-        # seed 000, eq. 24.5
+        # Shirley & Marschner 2009, eq. 24.5
         spec = (
             math.sqrt((nu + 1.0) * (nv + 1.0))
             / (8.0 * math.pi)
@@ -138,14 +143,14 @@ class AshikhminShirley(BRDF):
             / (kh * cmax)
         )
         fs = spec[..., None] * self._schlick(rs, kh)
-        # seed 000, eq. 24.7
+        # Shirley & Marschner 2009, eq. 24.7
         fd = (
             (28.0 / (23.0 * math.pi))
             * rd
             * (1.0 - rs)
             * (self._diffuse_shape(ci) * self._diffuse_shape(co))[..., None]
         )
-        return fs + fd  # seed 000, eq. 24.8
+        return fs + fd  # Shirley & Marschner 2009, eq. 24.8
 
     def _lobes(self, wi) -> list[Lobe]:
         rd = self.const(self.params["rd"], wi)

@@ -1,4 +1,4 @@
-"""The Bank anisotropic BRDF (seed 002, section 10.3), normalised by its maximum albedo."""
+"""The Bank anisotropic BRDF (Banks 1994), normalised by its maximum albedo."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def normalization(n: float) -> float:
 
 
 class Bank(BRDF):
-    """Bank's anisotropic lobe (seed 002, 10.3) plus a Lambertian term.
+    """Bank's anisotropic lobe (Banks 1994) plus a Lambertian term.
 
     Formula, with T = +x the tangent, a = wi.T, b = wo.T::
 
@@ -74,12 +74,12 @@ class Bank(BRDF):
     about T, peaked at B = pi - A (the "mirror" cone of a thin fibre along T).
 
     * Reciprocal: yes (symmetric in a, b; computed bit-symmetrically).
-    * Energy conserving: yes, with kd + ks <= 1.  The seed's lobe is not normalised
+    * Energy conserving: yes, with kd + ks <= 1.  Banks' lobe is not normalised
       (at n = 0 its albedo is pi).  N(n) is the maximum over wi of the raw lobe's
       directional albedo, computed once per exponent by quadrature (see
       :func:`normalization`), times a 1e-4 safety margin, so the specular albedo is
       <= 1 for every wi (1/(1 + 1e-4) for wi perpendicular to T).
-    * Differs from the seed: seed 002 gives only ``ks (...)^n_s`` for shading (no
+    * Differs from the source: Banks 1994 gives only ``ks (...)^n_s`` for shading (no
       normalisation, no 1/sr units, T from a cross product with the view vector); here
       T is the fixed tangent x, the lobe is divided by N(n), and kd / pi is added.
       For n = 0 the lobe is the indicator of a positive bracket (the limit n -> 0+).
@@ -127,7 +127,7 @@ class Bank(BRDF):
         # (clamped so that the gradient of sqrt stays finite when z^2 underflows)
         sa = torch.sqrt((wi[..., 1] ** 2 + wi[..., 2] ** 2).clamp_min(1e-30))
         sb = torch.sqrt((wo[..., 1] ** 2 + wo[..., 2] ** 2).clamp_min(1e-30))
-        # seed 002, section 10.3: ks (sqrt(1-(L.T)^2) sqrt(1-(V.T)^2) - (L.T)(V.T))^n_s
+        # Banks 1994: ks (sqrt(1-(L.T)^2) sqrt(1-(V.T)^2) - (L.T)(V.T))^n_s
         lobe = clamped_power(sa * sb - a * b, n) / self._norm
         return kd / math.pi + ks * lobe[..., None]
 

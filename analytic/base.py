@@ -140,7 +140,7 @@ class BRDF:
     reciprocal: bool = True  # f(wi, wo) == f(wo, wi) exactly (tested to 1e-6)
     energy_conserving: bool = True  # rho(wi) <= 1 for all wi (tested to 1e-3)
     anisotropic: bool = False  # depends on the azimuth of the tangent frame
-    notes: str = ""  # what differs from the seed formula, and why
+    notes: str = ""  # what differs from the published formula, and why
     # The parameter ranges the property tests draw from (tests/strategies.py), also a
     # summary for users.  name -> ("float", lo, hi) | ("logfloat", lo, hi) |
     # ("rgb", lo, hi) | ("choice", [options]).  Ranges are chosen so that any draw is

@@ -26,7 +26,7 @@ def half_vector_lobe(wi: torch.Tensor, weight, sample_h, pdf_h) -> Lobe:
         p(wo) = pdf_h(h+) / (4 |wi.h+|) = pdf_h(h+) / (2 |wi + wo|),
 
     with h+ the preimage flipped into z >= 0 (|wi.h| = |wi + wo| / 2 for unit vectors).
-    It integrates to exactly 1 over the sphere (seed 000, eq. 24.12 is the case h+ =
+    It integrates to exactly 1 over the sphere (Shirley & Marschner 2009, eq. 24.12 is the case h+ =
     normalize(wi + wo)).
     """
     w = torch.as_tensor(weight, dtype=wi.dtype, device=wi.device).expand(wi.shape[:-1])
@@ -82,7 +82,7 @@ class BlinnPhong(BRDF):
       is Lambertian and the albedo is 1 everywhere), and it falls off roughly like
       cos^2(theta_i) for large n (0.52 at 45 deg, 0.001 at 89.9 deg for n = 1000).
       So I(n) itself, not a separately computed maximum, is the normalisation.
-    * Differs from the seed: seed 002 mentions Blinn-Phong only by name; the lobe is
+    * Differs from the sources: they name Blinn-Phong only; the lobe is
       the classic (n.h)^n with the exact normal-incidence normalisation derived here
       (the common factor (n+8)/(8 pi) only approximates 1/I(n), which tends to
       (n+2)(n+4)/(8 pi n) for large n).

@@ -1,4 +1,4 @@
-"""The coupled smooth-layered model (Shirley, Smits, Hu & Lafortune 1997; seed 000, 24.4)."""
+"""The coupled smooth-layered model (Shirley et al. 1997; Shirley & Marschner 2009, 24.4)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ class Coupled(BRDF):
     * Energy conserving: yes.  int (1 - (1 - mu)^5) mu dmu = 1/2 - 1/42 = 10/21, so the
       diffuse albedo is exactly (1 - R0) Rm (1 - x_i^5) and the total is
       R_f + diffuse = R0 + (1 - R0) [x_i^5 + Rm (1 - x_i^5)] <= 1, with equality for Rm = 1.
-    * Differs from the seed: seed 000, eq. 24.3 as printed multiplies
+    * Differs from the source: Shirley & Marschner 2009, eq. 24.3 as printed multiplies
       k = 21 / (20 pi (1 - R0)) (eq. 24.2) by [1 - x_i^5][1 - x_o^5] alone, dropping the
       (1 - R0)^2 of f(theta) f(theta') = [1 - R_f(theta)][1 - R_f(theta')] from the line
       above it, from which k was derived.  As printed, the normal-incidence total is
@@ -40,7 +40,8 @@ class Coupled(BRDF):
     energy_conserving = True
     anisotropic = False
     notes = (
-        "Diffuse prefactor 21/(20 pi) (1 - R0): seed 000 eq. 24.3 drops the (1 - R0)^2 "
+        "Diffuse prefactor 21/(20 pi) (1 - R0): Shirley & Marschner 2009 eq. 24.3 drops "
+        "the (1 - R0)^2 "
         "of f(theta) f(theta') and, as printed, is not energy conserving "
         "(R0 + Rm/(1 - R0) at normal incidence). The Dirac specular lobe is not part "
         "of eval: see delta_reflectance / delta_direction."
@@ -67,18 +68,19 @@ class Coupled(BRDF):
     def _f(self, wi, wo):
         rm = self.const(self.params["rm"], wi)
         r0 = self.params["r0"]
-        # seed 000, eq. 24.3, with the (1 - R0)^2 factor of f(theta) f(theta') restored
+        # Shirley & Marschner 2009, eq. 24.3, with the (1 - R0)^2 factor of f(theta) f(theta')
+        # restored
         k = 21.0 / (20.0 * math.pi) * (1.0 - r0)
         shape = (1.0 - self._x5(wi[..., 2])) * (1.0 - self._x5(wo[..., 2]))
         return k * rm * shape[..., None]
 
     def _lobes(self, wi):
-        return [cosine_lobe(wi, 1.0)]  # seed 000, fig. 24.5: cos(theta) / pi
+        return [cosine_lobe(wi, 1.0)]  # Shirley & Marschner 2009, fig. 24.5: cos(theta) / pi
 
     # ------------------------------------------------------------------ Dirac lobe
     def _delta_reflectance_t(self, wi: torch.Tensor) -> torch.Tensor:
         r0 = self.params["r0"]
-        # seed 000, eq. 24.3 (Schlick, section 24.3): R_f = R0 + (1 - R0)(1 - cos)^5
+        # Shirley & Marschner 2009, eq. 24.3 (Schlick, section 24.3): R_f = R0 + (1 - R0)(1 - cos)^5
         rf = r0 + (1.0 - r0) * self._x5(wi[..., 2])
         rf = torch.where(wi[..., 2] > 0, rf, torch.zeros_like(rf))
         return rf[..., None].expand(wi.shape[:-1] + (3,)).clone()

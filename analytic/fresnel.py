@@ -23,26 +23,27 @@ def _rgb_like(value, cos: torch.Tensor) -> torch.Tensor:
 
 
 def schlick(f0, cos: torch.Tensor) -> torch.Tensor:
-    """Schlick 1994: F = F0 + (1 - F0)(1 - cos)^5.  # seed 000, eq. 24.6; seed 004, 9.2.4"""
+    """Schlick 1994: F = F0 + (1 - F0)(1 - cos)^5.  # Shirley & Marschner 2009, eq. 24.6"""
     f0 = _rgb_like(f0, cos)
     m = (1.0 - cos.clamp(0.0, 1.0))[..., None]
     return f0 + (1.0 - f0) * m**5
 
 
 def schlick_f0(eta: float) -> float:
-    """F0 = ((eta - 1) / (eta + 1))^2 for an interface with air.  # seed 000, sec. 24.3"""
+    """F0 = ((eta - 1) / (eta + 1))^2 for an interface with air (Shirley & Marschner
+    2009, sec. 24.3)."""
     return ((eta - 1.0) / (eta + 1.0)) ** 2
 
 
 def dielectric(eta, cos: torch.Tensor) -> torch.Tensor:
     """Exact unpolarised Fresnel reflectance of a dielectric interface, eta = n_t / n_i.
 
-    F = (rs^2 + rp^2) / 2 (seed 004, 9.2.4, F = (Fs + Fp) / 2); total internal
+    F = (rs^2 + rp^2) / 2 (Born & Wolf 1999, F = (Fs + Fp) / 2); total internal
     reflection (eta < 1 past the critical angle) gives 1.
     """
     eta = _rgb_like(eta, cos)
     ci = cos.clamp(0.0, 1.0)[..., None]
-    sin2_t = (1.0 - ci * ci) / (eta * eta)  # Snell, seed 004, 9.1.3
+    sin2_t = (1.0 - ci * ci) / (eta * eta)  # Snell's law (Born & Wolf 1999)
     tir = sin2_t >= 1.0
     ct = torch.sqrt((1.0 - sin2_t).clamp_min(0.0))
     rs = (ci - eta * ct) / (ci + eta * ct).clamp_min(1e-30)
@@ -76,7 +77,7 @@ def thin_film(
     substrate (index ``eta``), with all internal reflections summed (Airy):
 
         R = (r1^2 + r2^2 + 2 r1 r2 cos d) / (1 + r1^2 r2^2 + 2 r1 r2 cos d),
-        d = 4 pi n_f t cos(theta_f) / lambda                    # seed 004, 9.3.4
+        d = 4 pi n_f t cos(theta_f) / lambda                    # Born & Wolf 1999, thin films
 
     evaluated for s and p polarisation with signed amplitude coefficients and
     averaged; one wavelength per RGB channel.  Total internal reflection at either

@@ -23,5 +23,5 @@ class Lambertian(BRDF):
 
     def _f(self, wi, wo):
         a = self.const(self.params["albedo"], wi)
-        # seed 003, "Diffuse / Lambertian Material": f_r = rho / pi
+        # Lambert's law: f_r = rho / pi (Pharr et al. 2016, Yan 2020)
         return (a / math.pi).expand(wi.shape[:-1] + (3,))

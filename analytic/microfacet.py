@@ -1,27 +1,28 @@
 """Microfacet (Cook-Torrance / Torrance-Sparrow) reflection.
 
-    f(wi, wo) = F(wi.h) D(h) G(wi, wo) / (4 cos_i cos_o)        # seed 004, 9.2.1; seed 001 (pbrt)
+    f(wi, wo) = F(wi.h) D(h) G(wi, wo) / (4 cos_i cos_o)   # Walter et al. 2007; Pharr et al. 2016
 
 The pieces belong to :class:`Distribution` (D, Lambda, G1, visible-normal sampling);
 Fresnel terms are free functions in :mod:`analytic.fresnel`; :class:`Microfacet`
 combines them.
 
 * D: Beckmann or GGX, isotropic ``alpha`` or anisotropic ``alpha_x`` (along the
-  tangent x) / ``alpha_y``.  # seed 004, 9.2.2 and 9.3.1
+  tangent x) / ``alpha_y``.  # Walter et al. 2007; Heitz 2014
 * G: ``smith_separable`` G1(wi) G1(wo), ``smith_correlated`` (height-correlated)
-  1 / (1 + Lambda(wi) + Lambda(wo)), or ``v_cavity`` (Cook-Torrance).  # seed 004, 9.2.3
-  Note: seed 004 prints the GGX G1 as 2 cos / (1 + sqrt(1 + a^2 tan^2)), which is
+  1 / (1 + Lambda(wi) + Lambda(wo)), or ``v_cavity`` (Cook-Torrance).  # Heitz 2014;
+  Cook & Torrance 1982.  Note: a tutorial (docs/references.md) prints the GGX G1 as
+  2 cos / (1 + sqrt(1 + a^2 tan^2)), which is
   G1 * cos(theta) (a form that folds in a cosine of the denominator); we use the
   Smith G1 = 1 / (1 + Lambda) = 2 / (1 + sqrt(1 + a^2 tan^2)).
 * Sampling: visible normals (Heitz & d'Eon 2014).  GGX by the spherical-cap method of
   Dupuy & Benyoub 2023; Beckmann by inverting the visible-slope CDF in the stretched
   configuration.  pdf(wo) = D_wi(h) / (4 wi.h), D_wi(h) = G1(wi) max(0, wi.h) D(h) / cos_i.
-* ``multiscatter``: Kulla & Conty 2017 energy compensation (seed 004, 9.2.5):
+* ``multiscatter``: Kulla & Conty 2017 energy compensation (Kulla & Conty 2017):
 
       f_ms = F_add (1 - E(wi)) (1 - E(wo)) / (pi (1 - E_avg)),
       F_add = F_avg^2 E_avg / (1 - F_avg (1 - E_avg))
 
-  Seed 004 multiplies by F_avg alone; F_add is the sum of the Fresnel-weighted
+  The tutorial multiplies by F_avg alone; F_add is the sum of the Fresnel-weighted
   bounce series of Kulla & Conty and keeps rho <= 1.  E is tabulated per model
   (in mu = cos theta, and in the azimuth for anisotropic alphas) by quadrature of the
   single-scattering lobe, and E_avg is integrated from the *same* interpolant, so
@@ -71,11 +72,11 @@ class Distribution:
         ax, ay = self.alpha_x, self.alpha_y
         hz = h[..., 2].clamp_min(frame.EPS_COS)
         if self.kind == "ggx":
-            # seed 004, 9.3.1 (anisotropic GGX)
+            # Heitz 2014 (anisotropic GGX)
             t = (h[..., 0] / ax) ** 2 + (h[..., 1] / ay) ** 2 + hz * hz
             d = 1.0 / (math.pi * ax * ay * t * t)
         else:
-            # seed 004, 9.2.2 (Beckmann), anisotropic slopes
+            # Walter et al. 2007 (Beckmann), anisotropic slopes
             e = ((h[..., 0] / ax) ** 2 + (h[..., 1] / ay) ** 2) / (hz * hz)
             d = torch.exp(-e) / (math.pi * ax * ay * hz**4)
         return torch.where(h[..., 2] > 0, d, torch.zeros_like(d))
@@ -88,7 +89,7 @@ class Distribution:
     def Lambda(self, w: torch.Tensor) -> torch.Tensor:
         a2 = self._a2(w)
         if self.kind == "ggx":
-            # seed 004, 9.2.3: Lambda = (-1 + sqrt(1 + a^2 tan^2)) / 2
+            # Heitz 2014: Lambda = (-1 + sqrt(1 + a^2 tan^2)) / 2
             return 0.5 * (torch.sqrt(1.0 + a2) - 1.0)
         # Beckmann: a = 1 / (alpha tan), Lambda = (erf(a) - 1)/2 + exp(-a^2) / (2 a sqrt(pi))
         a = torch.rsqrt(a2.clamp_min(1e-30))
@@ -189,9 +190,9 @@ class Microfacet(BRDF):
         "multiscatter": ("choice", [False, True]),
     }
     notes = (
-        "Seed 004's G1 is printed as G1*cos; Smith G1 = 1/(1+Lambda) is used. "
+        "The tutorial's G1 is printed as G1*cos; Smith G1 = 1/(1+Lambda) is used. "
         "Kulla-Conty uses F_add = Favg^2 Eavg / (1 - Favg (1 - Eavg)) instead of the "
-        "seed's Favg, which keeps the Fresnel-weighted albedo <= 1."
+        "tutorial's Favg, which keeps the Fresnel-weighted albedo <= 1."
     )
 
     def __init__(
@@ -311,7 +312,7 @@ class Microfacet(BRDF):
             return self.dist.G1(wi) * self.dist.G1(wo)
         if m == "smith_correlated":
             return 1.0 / (1.0 + self.dist.Lambda(wi) + self.dist.Lambda(wo))
-        # V-cavity (Cook & Torrance 1982; seed 004, 9.2.3):
+        # V-cavity (Cook & Torrance 1982):
         # min(1, 2 hz co / (wo.h), 2 hz ci / (wi.h))
         hz = h[..., 2]
         d = frame.dot(wi, h).clamp_min(frame.EPS_COS)  # wi.h == wo.h
@@ -322,7 +323,7 @@ class Microfacet(BRDF):
         h = frame.half_vector(wi, wo)
         ci = wi[..., 2].clamp_min(frame.EPS_COS)
         co = wo[..., 2].clamp_min(frame.EPS_COS)
-        val = self.dist.D(h) * self.G(wi, wo, h) / (4.0 * ci * co)  # seed 004, 9.2.1
+        val = self.dist.D(h) * self.G(wi, wo, h) / (4.0 * ci * co)  # Walter et al. 2007
         val = val[..., None]
         if with_fresnel:
             val = val * self.fresnel(frame.dot(wi, h))
@@ -333,7 +334,8 @@ class Microfacet(BRDF):
         if self._ms is not None:
             e_i, e_o = self._ms.E(wi), self._ms.E(wo)
             fadd = self.const(self._f_add, wi)
-            ms = (1.0 - e_i) * (1.0 - e_o) / (math.pi * (1.0 - self._ms.e_avg))  # seed 004, 9.2.5
+            # Kulla & Conty 2017
+            ms = (1.0 - e_i) * (1.0 - e_o) / (math.pi * (1.0 - self._ms.e_avg))
             val = val + fadd * ms[..., None]
         return val
 

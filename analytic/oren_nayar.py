@@ -55,7 +55,7 @@ class OrenNayar(BRDF):
       for 0 < sigma < 0.3261 rad, by at most 1.52% (1.01518 at sigma = 0.1985 rad);
       at the default sigma = 0.3 it is 1.0018.  analytic.albedo agrees with the closed
       form (1.0067 at 80 deg, sigma = 0.1985).
-    * Differs from the seeds: seed 000 only cites Oren & Nayar 1994; this is the
+    * Differs from the sources: Shirley & Marschner 2009 only cite Oren & Nayar 1994; this is the
       paper's qualitative model unchanged (kept as is, so it is not energy
       conserving; scale albedo down by the measured maximum if that matters).
 

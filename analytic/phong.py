@@ -63,9 +63,9 @@ class Phong(BRDF):
       with a measured from r; at normal incidence it is exactly 1, and tilting the lobe
       (r_z = cos theta_i < 1) lowers it (Lewis 1994).  Measured (n from 0 to 1000,
       theta_i up to 89.9 deg): max 1.000 at theta_i = 0, e.g. 0.50 at 60 deg for n >= 100.
-    * Differs from the seed: seed 001 (its "Crash Course in BRDF Implementation"
+    * Differs from the source: Boksanský 2021 ("Crash Course in BRDF Implementation"
       excerpt) writes the classic un-normalised ``ks (R.V)^s cos theta_i`` shading formula, which is
-      neither a BRDF in 1/sr nor energy conserving; seed 000 (ch. 24, notes) cites
+      neither a BRDF in 1/sr nor energy conserving; Shirley & Marschner 2009 (ch. 24, notes) cite
       Lewis 1994 for the plausible version implemented here.  The lobe is clipped to
       ``r . wo > 0`` also for n = 0 (indicator), where ``0 ** 0`` would make it 1.
 
@@ -79,7 +79,7 @@ class Phong(BRDF):
     anisotropic = False
     notes = (
         "Lewis 1994 normalisation (n+2)/(2 pi) added to the un-normalised seed "
-        "Phong lobe (seed 001); kd + ks <= 1 enforced; lobe clipped to r.wo > 0 "
+        "Phong lobe (Boksanský 2021); kd + ks <= 1 enforced; lobe clipped to r.wo > 0 "
         "also at n = 0."
     )
     param_space = {
@@ -101,7 +101,7 @@ class Phong(BRDF):
         kd = self.const(self.params["kd"], wi)
         ks = self.const(self.params["ks"], wi)
         n = self.params["exponent"]
-        # Lewis 1994 normalised Phong lobe (cited by seed 000, ch. 24 notes)
+        # Lewis 1994 normalised Phong lobe (cited by Shirley & Marschner 2009, ch. 24 notes)
         cos_a = frame.dot(frame.reflect_z(wi), wo)
         spec = (n + 2.0) / (2.0 * math.pi) * clamped_power(cos_a, n)
         return kd / math.pi + ks * spec[..., None]

@@ -1,4 +1,7 @@
-"""A reciprocal, energy-conserving retroreflective lobe (seed 000 ex. 3; seed 004 ex. 9.6)."""
+"""A reciprocal, energy-conserving retroreflective lobe.
+
+Shirley & Marschner 2009, chapter 24, exercise 3.
+"""
 
 from __future__ import annotations
 
@@ -28,9 +31,10 @@ class Retroreflective(BRDF):
       normalised Phong (whose axis is the mirror direction, with the same z), so the
       same argument applies: it is exactly 1 at normal incidence and smaller
       elsewhere.  Measured max over wi: 1.000 (theta_i = 0).
-    * Differs from the seeds: seed 000, exercise 3 asks for exactly this (a Phong-
+    * Differs from the sources: Shirley & Marschner 2009, ch. 24 exercise 3 asks for
+      exactly this (a Phong-
       inspired, reciprocal, energy-conserving retroreflector) and gives no formula.
-      Seed 004, exercise 9.6's answer uses A / cos(theta_i) exp(-|wo + wi|^2 / (2
+      A tutorial's answer to it (docs/references.md) uses A / cos(theta_i) exp(-|wo + wi|^2 / (2
       sigma^2)): the 1/cos(theta_i) breaks reciprocity, and its |wo + wi| assumes wi
       points INTO the surface (with both pointing out, the peak is at wo = wi and the
       distance would be |wo - wi|).  The power-cosine lobe replaces the Gaussian so
@@ -45,7 +49,7 @@ class Retroreflective(BRDF):
     energy_conserving = True
     anisotropic = False
     notes = (
-        "Normalised Phong-like lobe about wi (not seed 004's A/cos(theta_i) Gaussian, "
+        "Normalised Phong-like lobe about wi (not the tutorial's A/cos(theta_i) Gaussian, "
         "which is not reciprocal and assumes wi pointing into the surface); "
         "kd + kr <= 1 enforced."
     )
@@ -68,7 +72,8 @@ class Retroreflective(BRDF):
         kd = self.const(self.params["kd"], wi)
         kr = self.const(self.params["kr"], wi)
         n = self.params["exponent"]
-        # seed 000, exercise 3: a Phong-style lobe about wi, normalised as in Lewis 1994
+        # Shirley & Marschner 2009, ch. 24 exercise 3: a Phong-style lobe about wi,
+        # normalised as in Lewis 1994
         lobe = (n + 2.0) / (2.0 * math.pi) * clamped_power(frame.dot(wi, wo), n)
         return kd / math.pi + kr * lobe[..., None]
 

@@ -8,7 +8,8 @@ Sources and tolerances:
     labels say).
   * Mitsuba 3.9.1 printed values (7 significant digits): GGX D, Smith G1, conductor
     Fresnel; 1e-5 relative.
-  * Seed 004 exercises (hand-computed to 3 digits): GGX D(30 deg, 0.3) ~ 0.284,
+  * A tutorial's exercises (docs/references.md; hand-computed to 3 digits):
+    GGX D(30 deg, 0.3) ~ 0.284,
     Schlick F(60 deg, eta 1.5) ~ 0.07.
 """
 
