@@ -197,6 +197,9 @@ def default_run_dir(cfg: cfgmod.Config) -> Path:
     return Path("runs") / cfg.name
 
 
+LOSSES = ("log_l2", "log_l1", "nbrdf")  # train.loss (config.Train lists the same names)
+
+
 def loss_fn(
     kind: str,
     pred: torch.Tensor,
@@ -206,6 +209,8 @@ def loss_fn(
     peak_weight: float = 0.0,
     peak_cap: float = math.inf,
 ):
+    if kind not in LOSSES:
+        raise ValueError(f"train.loss: one of {list(LOSSES)}, got {kind!r}")
     a, b = pred * cos, ref * cos
     if kind == "nbrdf":
         d = (torch.log1p(a) - torch.log1p(b)).abs()

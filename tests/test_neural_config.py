@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 import analytic
@@ -128,3 +129,19 @@ def test_resolved_config_round_trips():
     cfg = config.load(CONFIGS / "gold.yaml", ["train.steps=7"])
     again = config.from_dict(yaml.safe_load(cfg.to_yaml()))
     assert again == cfg
+
+
+def test_every_name_list_of_the_schema_is_the_one_its_module_implements():
+    # config.py stays free of torch, so it spells the names out; these tie them together
+    from typing import get_args
+
+    from neural_brdf import encoding, model, train
+
+    fields = config.Model.model_fields
+    assert get_args(fields["encoding"].annotation) == encoding.ENCODINGS
+    assert set(get_args(fields["activation"].annotation)) == set(model.ACTIVATIONS)
+    assert get_args(config.Train.model_fields["loss"].annotation) == train.LOSSES
+    for name in encoding.ENCODINGS:  # each has its feature count
+        assert encoding.num_features(name) > 0
+    with pytest.raises(ValueError, match="train.loss"):
+        train.loss_fn("l2", *(torch.ones(2, 3),) * 3, 1e-3)
