@@ -9,10 +9,12 @@
 
 The preview scene, PNG writing and PSNR are in :mod:`neural_brdf.render`.
 
-This is the only module of the package that imports mitsuba.  Importing it needs a
-Mitsuba variant to be set already (``mi.set_variant``); the plugins are registered for
-that variant, which must be a JIT one (``llvm_*`` or ``cuda_*``; scalar variants are
-refused when a plugin loads).
+This module holds the renderer plugins; the other modules that import mitsuba use it
+(render.py: preview renders; inverse.py, inverse_bsdf.py, inverse_example.py: fitting
+from images; plots.py and cli.py: to check that it is installed and set a variant).  Importing this
+module needs a Mitsuba variant to be set already (``mi.set_variant``); the plugins are
+registered for that variant, which must be a JIT one (``llvm_*`` or ``cuda_*``; scalar
+variants are refused when a plugin loads).
 
 Evaluation.  The plugin never evaluates a retyped copy of the model.  The exported ONNX
 graph is lowered once by :mod:`neural_brdf.graph` (constants folded, dense layers as
@@ -366,27 +368,3 @@ class AnalyticBSDF(_GraphBSDF):
 
 mi.register_bsdf("neural_brdf", lambda props: NeuralBSDF(props))
 mi.register_bsdf("analytic_brdf", lambda props: AnalyticBSDF(props))
-
-
-_MOVED_TO_RENDER = (
-    "sky_bitmap",
-    "preview_scene",
-    "render_scene",
-    "to_display",
-    "psnr",
-    "ERROR_GAIN",
-    "write_png",
-    "analytic_bsdf",
-    "side_by_side",
-    "render_preview",
-)
-
-
-def __getattr__(name: str):
-    """The preview-render helpers live in :mod:`neural_brdf.render` (imported lazily here,
-    so that ``from neural_brdf.mitsuba import render_preview`` keeps working)."""
-    if name in _MOVED_TO_RENDER:
-        from . import render
-
-        return getattr(render, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
