@@ -270,7 +270,7 @@ def _blame(loc: Sequence, overrides: Sequence[str]) -> str | None:
     return None
 
 
-def _describe(err: dict) -> str:
+def _describe(err: Any) -> str:
     loc = ".".join(str(p) for p in err["loc"])
     if err["type"] == "extra_forbidden":
         return f"{loc}: unknown key"

@@ -27,6 +27,8 @@ class Diverged(RuntimeError):
 class Interrupted(RuntimeError):
     """Ctrl-C: a checkpoint was written; ``--resume`` continues (exit code 130)."""
 
+    signum: int | None = None  # the signal (SIGINT, SIGTERM): the CLI exits with 128 + it
+
 
 class ParityError(RuntimeError):
     """onnxruntime does not reproduce the torch model to ``export.parity_tol`` (exit 1)."""

@@ -213,6 +213,7 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     """The ``normalization`` metadata entry: the construction, or that there is none."""
     if not isinstance(model, NormalizedBRDF):
         return "none: f = raw network (normalization.enabled: false, an ablation)"
+    nodes = int(model.table.shape[0])  # type: ignore[index]  # a tensor buffer
     applied = (
         "A+ <= 1 at every node, so the division is the identity and the graph omits it"
         if model.identity
@@ -222,7 +223,7 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
         f"f = raw / max(1, A+(wi), A+(wo)) per channel ({applied}); "
         f"A+ = MIS quadrature albedo of "
         f"the raw network + {n.sigmas:g} standard errors, neighbour maximum, times "
-        f"(1 + {n.margin:g}); table of {model.table.shape[0]} nodes per axis, "
+        f"(1 + {n.margin:g}); table of {nodes} nodes per axis, "
         f"{n.samples} points per node"
     )
 
@@ -326,7 +327,7 @@ def _portable_node(n, shapes, consts, producer, const) -> list:
                 part = y
             acc = part
         if size == 1:
-            out.append(make("Identity", [acc], [n.output[0]], name=f"{name}/Identity"))
+            out.append(make("Identity", [str(acc)], [n.output[0]], name=f"{name}/Identity"))
         return out
     if n.op_type == "Where":
         inputs = list(n.input)
@@ -482,7 +483,7 @@ def to_onnx_bytes(model: torch.nn.Module, opset: int, *, portable: bool = True) 
         torch.onnx.export(
             model,
             example,
-            buf,
+            buf,  # type: ignore[arg-type]  # a file object is accepted
             dynamo=False,
             opset_version=opset,
             input_names=list(INPUTS),
