@@ -3,13 +3,14 @@
     python experiments/study.py                  # run (or resume) the sweeps, then analyse
     python experiments/study.py --analyse-only   # only rebuild docs/ from sweeps/*
     python experiments/study.py --executor ray   # the same trials on Ray
+    python experiments/study.py --tables         # the page's tables from docs/results/*.json
 
 Sweeps (configs/sweeps/): ``size`` (accuracy against parameter count), ``ablation``
 (symmetric vs raw encoding, albedo normalisation on vs off) and ``loss`` (log_l2,
 log_l1, nbrdf), each over gold, clay, phong and brushed_ggx, and ``furnace`` (the
 normalisation on two targets of albedo 1), all at 1500 steps.  Writes
-docs/results/<sweep>.json (one row per trial), docs/figures/<sweep>.png, and prints the
-Markdown tables of docs/experiments.md.
+docs/results/<sweep>.json (one row per trial), docs/figures/<sweep>.png and the tables of
+docs/experiments.md (between its ``<!-- table: NAME -->`` markers).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -30,6 +32,11 @@ from matplotlib.figure import Figure  # noqa: E402
 from neural_brdf import sweep  # noqa: E402
 
 SWEEPS = ("size", "ablation", "loss", "furnace")
+FIGURES = True  # False: the analyses return their tables and write no figure (--tables)
+PAGE = REPO / "docs" / "experiments.md"
+# a table of the page: between "<!-- table: NAME -->" and "<!-- /table -->", generated
+# from docs/results/NAME.json by the analysis of that name
+MARKED = re.compile(r"(<!-- table: (\w+) -->\n)(.*?)(<!-- /table -->)", re.S)
 PRESETS = ("gold", "clay", "phong", "brushed_ggx")
 DOCS = REPO / "docs"
 
@@ -71,6 +78,11 @@ def write_json(name: str, data: list[dict], settings: dict) -> None:
     os.replace(tmp, path)
 
 
+def _save(fig, name: str) -> None:
+    if FIGURES:
+        fig.savefig(DOCS / "figures" / f"{name}.png", dpi=120)
+
+
 def figure(ncols: int, width: float = 4.2, height: float = 3.4):
     fig = Figure(figsize=(width * ncols, height), layout="constrained")
     FigureCanvasAgg(fig)
@@ -105,7 +117,7 @@ def size(data: list[dict]) -> str:
         a.set_ylabel(label)
         a.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    fig.savefig(DOCS / "figures" / "size.png", dpi=120)
+    _save(fig, "size")
     widths = sorted({tuple(r["model.hidden"]) for r in data}, key=lambda w: (len(w), w))
     body = []
     for w in widths:
@@ -155,7 +167,7 @@ def ablation(data: list[dict]) -> str:
     axes[2].axhline(1.0, color="k", ls="--", lw=0.8)
     axes[2].set_ylim(0.4, None)
     axes[0].legend(fontsize=7)
-    fig.savefig(DOCS / "figures" / "ablation.png", dpi=120)
+    _save(fig, "ablation")
     body = []
     for p in PRESETS:
         for v in VARIANTS:
@@ -231,7 +243,7 @@ def loss(data: list[dict]) -> str:
         ax.set_yscale("log")
         ax.grid(axis="y", alpha=0.3, which="both")
     axes[0].legend(fontsize=8)
-    fig.savefig(DOCS / "figures" / "loss.png", dpi=120)
+    _save(fig, "loss")
     body = []
     for p in PRESETS:
         cells = []
@@ -279,7 +291,7 @@ def furnace(data: list[dict]) -> str:
     ax.set_ylim(0.98, 1.015)
     ax.set_ylabel("max directional albedo (validator)")
     ax.legend(fontsize=8)
-    fig.savefig(DOCS / "figures" / "furnace.png", dpi=120)
+    _save(fig, "furnace")
     body = []
     for r in sorted(
         data, key=lambda r: (_furnace_target(r), r["train.seed"], not r["normalization.enabled"])
@@ -310,6 +322,22 @@ def furnace(data: list[dict]) -> str:
     )
 
 
+def tables_page(text: str) -> str:
+    """docs/experiments.md with every marked table regenerated from docs/results/*.json."""
+    global FIGURES
+    analyses = {"size": size, "ablation": ablation, "loss": loss, "furnace": furnace}
+    FIGURES, saved = False, FIGURES
+    try:
+
+        def fill(m: re.Match) -> str:
+            data = json.loads((DOCS / "results" / f"{m.group(2)}.json").read_text())["trials"]
+            return f"{m.group(1)}{analyses[m.group(2)](data)}\n{m.group(4)}"
+
+        return MARKED.sub(fill, text)
+    finally:
+        FIGURES = saved
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--analyse-only", action="store_true")
@@ -318,7 +346,22 @@ def main() -> int:
     ap.add_argument(
         "--out", default=str(REPO / "runs" / "sweeps"), help="sweep folders (default runs/sweeps/)"
     )
+    ap.add_argument(
+        "--tables", action="store_true", help="only rewrite the page's tables from the JSON"
+    )
+    ap.add_argument("--check", action="store_true", help="exit 1 if the page's tables are stale")
     args = ap.parse_args()
+    if args.tables or args.check:
+        text = PAGE.read_text(encoding="utf-8")
+        page = tables_page(text)
+        if args.check:
+            if page != text:
+                print("docs/experiments.md: tables are stale: python experiments/study.py --tables")
+                return 1
+            return 0
+        PAGE.write_text(page, encoding="utf-8")
+        print(f"wrote {PAGE}")
+        return 0
     out = Path(args.out)
     (DOCS / "figures").mkdir(parents=True, exist_ok=True)
     for name in SWEEPS:
@@ -345,6 +388,7 @@ def main() -> int:
         data = rows(name, out)
         write_json(name, data, settings)
         print(f"\n### {name}\n\n{analyse(data)}")
+    PAGE.write_text(tables_page(PAGE.read_text(encoding="utf-8")), encoding="utf-8")
     return 0
 
 

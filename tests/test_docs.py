@@ -36,6 +36,24 @@ def test_results_page_is_generated_from_the_json():
     )
 
 
+def _study():
+    spec = importlib.util.spec_from_file_location("study", REPO / "experiments" / "study.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_experiment_tables_are_generated_from_their_json():
+    """docs/experiments.md's tables are what experiments/study.py makes of docs/results/."""
+    study = _study()
+    page = (REPO / "docs" / "experiments.md").read_text()
+    assert len(study.MARKED.findall(page)) == 4  # size, ablation, loss, furnace
+    assert study.tables_page(page) == page, "run python experiments/study.py --tables"
+    # and the check can fail: a changed figure in a trial changes its table
+    stale = page.replace("| 8x8 | 171 / 219 | 3.82 % |", "| 8x8 | 171 / 219 | 9.99 % |")
+    assert stale != page and study.tables_page(stale) == page
+
+
 def test_results_page_changes_with_the_json(tmp_path):
     """The check can fail: a changed figure in the JSON changes the page."""
     tool = _tool()
