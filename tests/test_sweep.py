@@ -29,7 +29,7 @@ from neural_brdf import cli, config, sweep, train
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = REPO / "configs"
-NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "nbrdf" / "merl_nbrdf_weights.npz"
+NPZ = Path(__file__).resolve().parent / "data" / "nbrdf" / "merl_nbrdf_weights.npz"  # tests/data
 
 TINY = {
     "train.steps": 60,
