@@ -1102,7 +1102,6 @@ def inverse_section(d: dict) -> list[str]:
     return out
 
 
-# ------------------------------------------------------------------ page
 def training_speed_section(d: dict) -> list[str]:
     load = d["load"]
     out = [
@@ -1207,6 +1206,7 @@ def training_speed_section(d: dict) -> list[str]:
     return out
 
 
+# ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
     (RESULTS / "neural_presets.json", neural_presets_section),
