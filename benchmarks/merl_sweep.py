@@ -22,8 +22,8 @@ Per material and recipe:
 
 Results: benchmarks/results/merl_sweep.json (written atomically after every material, so
 a stopped run keeps its finished materials); the figure docs/figures/merl_spheres.png (the
-reference, compact and default spheres of a few materials); docs/merl_sweep.md is generated
-from the JSON by tools/results_tables.py.
+reference, compact and default spheres of a few materials); its table in docs/results.md
+is generated from the JSON by tools/results_tables.py.
 """
 
 from __future__ import annotations
