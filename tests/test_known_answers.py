@@ -159,7 +159,8 @@ def test_conductor_presets_agree_with_mitsuba_rgb(data_dir, material):
     np.testing.assert_allclose(ours, ref, atol=5e-3)
 
 
-def test_seed004_exercises():
+def test_tutorial_exercises():
+    """The worked examples of the chapter-9 tutorial (docs/references.md): GGX D and Schlick."""
     d = Distribution("ggx", 0.3, 0.3)
     th = math.radians(30.0)
     h = torch.tensor([math.sin(th), 0.0, math.cos(th)], dtype=torch.float64)
