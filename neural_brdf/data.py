@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -47,6 +48,7 @@ class MeasuredTarget:
     quadratures that take a target's proposal (``extra=``) skip it."""
 
     anisotropic = False
+    brdf: Any  # merl.MerlBRDF here, rgl.RGLBRDF in RGLTarget
 
     def __init__(self, brdf: merl.MerlBRDF):
         self.brdf = brdf
@@ -301,6 +303,8 @@ def accuracy_pairs(target, n: int | None, seed: int):
     of them when ``n`` is None)."""
     if isinstance(target, MeasuredTarget):
         return target.grid_pairs(n, seed)
+    if n is None:
+        raise ValueError("n: an analytic target needs a number of pairs")
     return importance_pairs(target, n, seed)
 
 

@@ -127,7 +127,8 @@ def bin_centres() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def unravel(flat) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Flat bin index -> (i_h, i_d, i_p)."""
-    return np.unravel_index(np.asarray(flat), SHAPE)
+    i_h, i_d, i_p = np.unravel_index(np.asarray(flat), SHAPE)
+    return i_h, i_d, i_p
 
 
 @functools.lru_cache(maxsize=1)

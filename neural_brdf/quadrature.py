@@ -145,7 +145,7 @@ def albedo(
                 wos.append(wo)
             wo = torch.cat(wos, 1)  # (m, per, 3)
             wb = w.expand_as(wo)
-            p = sum(
+            p: torch.Tensor = sum(  # type: ignore[assignment]  # of tensors: a tensor
                 s * (extra.pdf_t(wb, wo) if k == "extra" else _pdf(k, a, wb, wo))
                 for (k, a, _), s in zip(props, shares)
             )

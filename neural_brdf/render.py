@@ -98,7 +98,7 @@ def preview_scene(
 def render_scene(bsdf: dict, *, resolution: int = 256, spp: int = 64, seed: int = 0) -> np.ndarray:
     """Render :func:`preview_scene` with ``bsdf``; linear RGB (H, W, 3) float32."""
     scene = mi.load_dict(preview_scene(bsdf, resolution=resolution, spp=spp, seed=seed))
-    img = mi.render(scene, spp=spp, seed=seed)
+    img = mi.render(scene, spp=spp, seed=seed)  # type: ignore[arg-type]  # int is a UInt32
     return np.asarray(img, dtype=np.float32)[..., :3]
 
 

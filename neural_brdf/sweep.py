@@ -133,7 +133,7 @@ def _is_config_key(key: str) -> bool:
     return not hasattr(node, "model_fields")
 
 
-def _error(source: str, err: dict) -> str:
+def _error(source: str, err: Any) -> str:
     loc = ".".join(str(p) for p in err["loc"])
     if err["type"] == "extra_forbidden":
         return f"{source}: {loc}: unknown key"
@@ -295,7 +295,7 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
         for key, value in {**TRIAL_DEFAULTS, **spec.set}.items():
             _override(raw, key, value)
         for key, value in point.items():
-            if key == "material":
+            if key == "material" and spec.materials is not None:  # a "materials" sweep
                 data = (out_dir / "data" / f"{value}.binary").resolve()
                 job["materialise"] = {
                     "npz": str((here / spec.materials.nbrdf).resolve()),
@@ -523,7 +523,9 @@ def _run_ray(jobs: list[dict], workers: int, address: str | None):
 
 
 def default_workers() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 # ------------------------------------------------------------------ the sweep
