@@ -10,7 +10,7 @@ metrics.json.  Exit codes: 0 ok, 1 a physics check failed, 2 bad input.
 
 import sys
 
-from neural_brdf.cli import main
+from neural_brdf.tooling.cli import main
 
 if __name__ == "__main__":
     sys.exit(main(["train", *sys.argv[1:]]))

@@ -31,7 +31,7 @@ DEFENSIVE = 1 / 8  # share of quadrature points drawn from the cosine hemisphere
 
 def sobol_points(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
     """n scrambled Sobol points in [0, 1)^2, deterministic per seed (shared by every
-    quadrature of the project, neural_brdf.quadrature included)."""
+    quadrature of the project, neural_brdf.physics.quadrature included)."""
     eng = torch.quasirandom.SobolEngine(2, scramble=True, seed=seed)
     return eng.draw(n, dtype=dtype).clamp(0.0, 1.0 - 1e-12)
 

@@ -68,7 +68,7 @@ import onnx  # noqa: E402
 from common import arith_ops, evals_per_second, write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
-import neural_brdf.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
+import neural_brdf.renderers.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
 from neural_brdf import graph  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "bsdf_bound.json"

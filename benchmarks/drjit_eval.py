@@ -30,7 +30,7 @@ import numpy as np
 if mi.variant() is None:
     mi.set_variant("llvm_ad_rgb")
 
-import neural_brdf.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
+import neural_brdf.renderers.mitsuba  # noqa: E402,F401  (registers neural_brdf and analytic_brdf)
 
 _PLUGINS: dict[str, object] = {}
 

@@ -4,9 +4,9 @@
     python benchmarks/inverse.py --steps 40 --out /tmp/inverse.json   # a quick look
 
 The material is not a preset: Mitsuba's ``roughconductor``, GGX alpha 0.2, copper
-(``neural_brdf.inverse_example.TRUTH``), on a unit sphere under a procedural environment
+(``neural_brdf.inverse.scene.TRUTH``), on a unit sphere under a procedural environment
 the project does not otherwise use (a sky gradient and four bright coloured blobs,
-written as EXR by :func:`neural_brdf.inverse_example.sky`).  Three views are rendered at
+written as EXR by :func:`neural_brdf.inverse.scene.sky`).  Three views are rendered at
 96 x 96 and 256 spp as the targets; a fourth direction is held out.
 
 Fits, all from the same three images, the same loss (relative MSE) and the same
@@ -28,7 +28,7 @@ exported model.onnx, through the ``neural_brdf`` plugin) against the true materi
 1024 spp, as linear PSNR over the sphere's pixels (peak: the reference's largest value
 there) and relative RMSE; the noise floor is the true material against itself with
 another seed.  The BRDF error is the relative RMSE of f cos(theta_o) over pairs with both
-cosines above 0.5 (``neural_brdf.inverse.brdf_pairs``: wi uniform on that cap, wo half
+cosines above 0.5 (``neural_brdf.inverse.fit.brdf_pairs``: wi uniform on that cap, wo half
 uniform on it, half from the true BRDF's sampler), against Mitsuba's own evaluation of
 the true roughconductor.  Times are wall-clock seconds with the machine's load average.
 Nothing here asserts anything; the JSON goes to benchmarks/results/inverse.json.
@@ -84,7 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
 
-    from neural_brdf import config, inverse, inverse_example, pipeline, runtime
+    from neural_brdf import config, pipeline, runtime
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import scene as inverse_example
 
     machine_before = {"loadavg": loadavg(), "cpus": os.cpu_count()}
     mi = inverse.use_variant("llvm_ad_rgb")
@@ -174,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             return None
         import torch
 
-        from neural_brdf.model import RawBRDF
+        from neural_brdf.train.model import RawBRDF
 
         state = torch.load(ckpt, weights_only=True)
         raw = RawBRDF.from_config(config.from_dict(state["config"]).model)

@@ -10,7 +10,7 @@ NBRDF networks (Sztrajman et al. 2021) fitted to all 100 of them (the authors' K
 weights as numpy arrays, layout in docs/merl.md), and ``merl_abc_low2012_params.csv``, the
 ABC fits (Low et al. 2012).  Each material is
 that network evaluated at every MERL bin centre (reciprocal average, as
-``neural_brdf.merl.nbrdf_fixture(..., reciprocal=True)``) and written as a ``.binary``
+``neural_brdf.measured.merl.nbrdf_fixture(..., reciprocal=True)``) and written as a ``.binary``
 file, which is then fitted with ``configs/merl.yaml`` exactly as a user would:
 ``neural-brdf train configs/merl.yaml --set target.data=material.binary``.
 
@@ -63,7 +63,7 @@ SIZES = {"default": [], "nbrdf": ["model.hidden=[20,20]"]}
 
 
 def material_file(name: str, folder: Path, data: Path) -> Path:
-    from neural_brdf import merl
+    from neural_brdf.measured import merl
 
     path = folder / f"{name}.binary"
     if not path.is_file():
@@ -74,7 +74,7 @@ def material_file(name: str, folder: Path, data: Path) -> Path:
 
 def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]) -> dict:
     from neural_brdf import config, pipeline
-    from neural_brdf.model import RawBRDF
+    from neural_brdf.train.model import RawBRDF
 
     cfg = config.load(
         REPO / "configs" / "merl.yaml",
@@ -104,7 +104,9 @@ def fit(path: Path, size: str, run_dir: Path, threads: int, overrides: list[str]
 
 
 def abc_errors(name: str, path: Path, folder: Path) -> dict:
-    from neural_brdf import data, merl, validate
+    from neural_brdf import validate
+    from neural_brdf.measured import merl
+    from neural_brdf.train import data
 
     fn = merl.abc_fixture(folder / "merl_abc_low2012_params.csv", name)
     acc = validate.accuracy(fn, data.MeasuredTarget.from_file(path), n=0, seed=0)

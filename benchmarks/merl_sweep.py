@@ -15,7 +15,7 @@ Per material and recipe:
 
 * BRDF space, on every measured bin centre (``validate.accuracy``): the relative RMSE of
   f cos(theta_o) and the NBRDF log error; the physics verdict of the export;
-* render space (``neural_brdf.spheres``): a sphere under a lat-long sky with a sun,
+* render space (``neural_brdf.renderers.spheres``): a sphere under a lat-long sky with a sun,
   rendered by quadrature (no noise) with the exported model through onnxruntime and with
   the reference network; PSNR of the display values and mean HDR-FLIP;
 * parameters, arithmetic operations per evaluation of the lowered graph, training seconds.
@@ -68,7 +68,7 @@ def _npz(data: Path) -> Path:
 
 def fit(path: Path, recipe: str, run_dir: Path, overrides: list[str]) -> dict:
     from neural_brdf import config, pipeline
-    from neural_brdf.model import RawBRDF
+    from neural_brdf.train.model import RawBRDF
 
     cfg = config.load(
         REPO / "configs" / RECIPES[recipe],
@@ -104,7 +104,9 @@ def material(name: str, work: Path, data: Path, overrides: list[str]) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    from neural_brdf import merl, runtime, spheres
+    from neural_brdf import runtime
+    from neural_brdf.measured import merl
+    from neural_brdf.renderers import spheres
 
     reference = merl.nbrdf_fixture(_npz(data), name, reciprocal=True)
     path = work / f"{name}.binary"
@@ -135,8 +137,8 @@ def figure(results: dict, work: Path, out: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from neural_brdf import spheres
     from neural_brdf.fileio import atomic_path
+    from neural_brdf.renderers import spheres
 
     rows = [
         m
@@ -189,7 +191,7 @@ def main(argv=None) -> int:
     if args.figure:
         figure(json.loads(args.out.read_text()), args.work, args.figure_out)
         return 0
-    from neural_brdf import merl
+    from neural_brdf.measured import merl
 
     if not _npz(args.data).is_file():
         p.error(f"--data: {_npz(args.data)} does not exist (see docs/merl.md)")
@@ -216,8 +218,8 @@ def main(argv=None) -> int:
             "recipes": {k: f"configs/{v}" for k, v in RECIPES.items()},
             "overrides": args.overrides,
             "workers": args.workers,
-            "render": "neural_brdf.spheres: 48 x 48 sphere, 32 x 64 lat-long sky with a sun, "
-            "quadrature; PSNR of sRGB display values, mean HDR-FLIP",
+            "render": "neural_brdf.renderers.spheres: 48 x 48 sphere, 32 x 64 lat-long sky "
+            "with a sun, quadrature; PSNR of sRGB display values, mean HDR-FLIP",
         }
     )
     todo = [n for n in names if n not in results["materials"]]

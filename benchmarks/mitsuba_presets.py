@@ -10,7 +10,7 @@ else its config is trained into a temporary directory with train.threads=1 (the
 machine is shared) and, with ``--steps N``, train.steps=N (recorded in the JSON: fewer
 steps than the preset's own mean a less accurate network, so a lower PSNR).
 
-Three renders of ``neural_brdf.render.preview_scene`` (llvm_ad_rgb, ``--spp``,
+Three renders of ``neural_brdf.renderers.render.preview_scene`` (llvm_ad_rgb, ``--spp``,
 ``--resolution``) per preset: the neural model and the analytic target
 (``analytic_brdf``) with seed 0, and the analytic target again with seed 1.  The JSON
 gives, in dB on sRGB display values:
@@ -52,8 +52,9 @@ mi.set_variant("llvm_ad_rgb")
 from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
-from neural_brdf import config, lobe, pipeline  # noqa: E402
-from neural_brdf import render as nbr  # noqa: E402
+from neural_brdf import config, pipeline  # noqa: E402
+from neural_brdf.physics import lobe  # noqa: E402
+from neural_brdf.renderers import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_presets.json"
 SKIP = {"defaults"}
@@ -171,7 +172,7 @@ def main() -> None:
             "variant": mi.variant(),
             "mitsuba": mi.__version__,
             "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
-            "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
+            "scene": "neural_brdf.renderers.render.preview_scene (path, max_depth 8)",
             "spp": args.spp,
             "resolution": args.resolution,
             "steps_override": args.steps,

@@ -3,7 +3,7 @@
     python benchmarks/mitsuba_render.py
     python benchmarks/mitsuba_render.py --model runs/quickstart/model.onnx --repeats 9
 
-The scene is the material preview of ``neural_brdf.render.preview_scene`` (two spheres
+The scene is the material preview of ``neural_brdf.renderers.render.preview_scene`` (two spheres
 with the BSDF on a diffuse checkerboard floor, a procedural sky and a directional key
 light; path tracer, max_depth 8).  Three BSDFs render it at the same resolution and spp:
 
@@ -59,8 +59,9 @@ mi.set_variant("llvm_ad_rgb")
 from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
-from neural_brdf import config, lobe, pipeline  # noqa: E402
-from neural_brdf import render as nbr  # noqa: E402
+from neural_brdf import config, pipeline  # noqa: E402
+from neural_brdf.physics import lobe  # noqa: E402
+from neural_brdf.renderers import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_render.json"
 QUICKSTART = REPO / "configs" / "quickstart.yaml"
@@ -200,7 +201,7 @@ def main() -> None:
             "cpu_count": os.cpu_count(),
             "load_average_1min_at_end": os.getloadavg()[0],
         },
-        "scene": "neural_brdf.render.preview_scene (path, max_depth 8)",
+        "scene": "neural_brdf.renderers.render.preview_scene (path, max_depth 8)",
         "resolution": args.resolution,
         "spp": args.spp,
         "repeats": args.repeats,

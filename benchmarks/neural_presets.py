@@ -8,7 +8,7 @@ Each preset is trained, exported and validated as ``python train.py configs/NAME
 does (progress bar off), with one change: the held-out error is logged every
 ``EVAL_EVERY`` steps instead of every 500.  That error (log.csv's ``val_rel_rmse``) is
 the relative RMSE of f cos(theta_o) of the raw network on 16384 held-out
-importance-sampled pairs (``neural_brdf.train``); it costs one forward pass and changes
+importance-sampled pairs (``neural_brdf.train.loop``); it costs one forward pass and changes
 nothing in the optimisation.  Per preset:
 
 * ``steps_to_target``, ``seconds_to_target``: the first logged step with

@@ -48,7 +48,7 @@ from common import evals_per_second, matmul_flops_per_s, write_json  # noqa: E40
 import neural_brdf  # noqa: E402
 from analytic import physics  # noqa: E402
 from neural_brdf import config, export  # noqa: E402
-from neural_brdf.model import NormalizedBRDF, RawBRDF  # noqa: E402
+from neural_brdf.train.model import NormalizedBRDF, RawBRDF  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "neural_throughput.json"
 ENCODINGS = ("isotropic", "anisotropic")

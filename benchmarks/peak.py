@@ -39,10 +39,11 @@ for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip instal
 import torch  # noqa: E402
 from common import write_json  # noqa: E402
 
-from neural_brdf import config, data, validate  # noqa: E402
-from neural_brdf import encoding as enc  # noqa: E402
+from neural_brdf import config, validate  # noqa: E402
 from neural_brdf import export as exp  # noqa: E402
-from neural_brdf import train as tr  # noqa: E402
+from neural_brdf.train import data  # noqa: E402
+from neural_brdf.train import encoding as enc  # noqa: E402
+from neural_brdf.train import loop as tr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "peak.json"
 CONFIGS = REPO / "configs"

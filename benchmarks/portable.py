@@ -14,7 +14,7 @@ Node, onnx2torch, onnx's ReferenceEvaluator), 20,000 pairs, against this interpr
 onnxruntime; the random graphs also as torch wrote them before the rewrite of
 neural_brdf.export.portable_graph ("before"), and converted to opsets 13 to 21
 (export.convert_opset).  Writes benchmarks/results/portable.json and the generated block
-of docs/portable.md.  Nothing here asserts anything; tests/test_portable.py does.
+of docs/portable.md.  Nothing here asserts anything; tests/fileformat/test_portable.py does.
 """
 
 from __future__ import annotations
@@ -52,9 +52,10 @@ LOADING = {  # how each consumer opens the file (the docs' table)
 
 def train_preset(name: str, steps: int, folder: Path) -> Path:
     """Train ``configs/NAME.yaml`` for ``steps`` steps and export it (no report)."""
-    from neural_brdf import config, data
+    from neural_brdf import config
     from neural_brdf import export as exp
-    from neural_brdf import train as tr
+    from neural_brdf.train import data
+    from neural_brdf.train import loop as tr
 
     cfg = config.load(
         REPO / "configs" / f"{name}.yaml",

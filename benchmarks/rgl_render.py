@@ -5,7 +5,7 @@ file, by Mitsuba's built-in ``measured`` plugin (llvm_ad_rgb): PSNR and time.
     python benchmarks/rgl_render.py --model runs/quickstart/model.onnx --spp 64 --ref-spp 1024
 
 The model (``--model``, default: configs/quickstart.yaml, GGX alpha 0.3 gold, trained
-for ``--steps`` steps into a temporary folder) is baked with ``neural_brdf.rgl.bake``
+for ``--steps`` steps into a temporary folder) is baked with ``neural_brdf.measured.rgl.bake``
 (default resolutions; bake time and file size recorded) and read back to measure the
 eval fidelity of the file against onnxruntime on uniform random pairs (relative RMSE of
 f cos).  The scene is the material preview of the render helpers (two spheres on a
@@ -48,12 +48,12 @@ FIDELITY_PAIRS = 50000
 
 def render_helpers():
     """The module with ``render_scene``, ``to_display`` and ``psnr``.  THE one place that
-    knows where the render helpers live (neural_brdf.render, formerly neural_brdf.mitsuba).
-    Importing neural_brdf.mitsuba also registers the ``neural_brdf`` plugin."""
-    import neural_brdf.mitsuba as plugins
+    knows where the render helpers live (neural_brdf.renderers.render).
+    Importing neural_brdf.renderers.mitsuba also registers the ``neural_brdf`` plugin."""
+    import neural_brdf.renderers.mitsuba as plugins
 
     try:
-        from neural_brdf import render
+        from neural_brdf.renderers import render
     except ImportError:
         return plugins
     return render if hasattr(render, "render_scene") else plugins
@@ -108,7 +108,7 @@ def main(argv=None) -> int:
 
     mi.set_variant("llvm_ad_rgb")
     import neural_brdf
-    from neural_brdf import rgl
+    from neural_brdf.measured import rgl
 
     r = render_helpers()
 

@@ -11,7 +11,7 @@ BSDF-bound render benchmark.  For each incident direction (theta 12.5 to 85 degr
 each at its own azimuth: between and beyond the directions the lobe is fitted at, so a
 per-incidence lobe is not scored on its own table nodes), ``--samples`` samples are drawn
 
-* from the model's stored sampling lobe (``neural_brdf.lobe``: a cosine hemisphere and
+* from the model's stored sampling lobe (``neural_brdf.physics.lobe``: a cosine hemisphere and
   a GGX visible-normal lobe, anisotropic, retro or per-incidence where the fit chose
   so: the sampler the Mitsuba plugin and the generated shaders use), with f the exported
   model evaluated by onnxruntime;
@@ -47,10 +47,10 @@ import analytic  # noqa: E402
 import neural_brdf  # noqa: E402
 from analytic import frame  # noqa: E402
 from analytic.microfacet import Distribution  # noqa: E402
-from neural_brdf import lobe as lobes  # noqa: E402
+from neural_brdf.physics import lobe as lobes  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "sampling_noise.json"
-# Incident directions between and beyond the lobe fit's (neural_brdf.lobe.THETA_DEG: 5 to
+# Incident directions between and beyond the lobe fit's (neural_brdf.physics.lobe.THETA_DEG: 5 to
 # 80 degrees), at other azimuths: a per-incidence lobe is scored off its table's nodes.
 THETA_DEG = (12.5, 27.5, 42.5, 57.5, 72.5, 85.0)
 PHI0 = 0.4
@@ -59,7 +59,7 @@ WORSE = 1.5  # issue 12: improve the proxy where the ratio exceeds this
 
 
 def lobe_sample(wi: torch.Tensor, u: torch.Tensor, lobe: dict):
-    """The stored lobe's sampler and density (float64): ``neural_brdf.lobe``'s mixture
+    """The stored lobe's sampler and density (float64): ``neural_brdf.physics.lobe``'s mixture
     (a retro lobe is the mirror lobe turned by pi about the normal)."""
     lobe = lobes.complete(lobe)
     # one incident direction per call: the per-incidence table's values at its cos theta

@@ -7,7 +7,7 @@ and the phases of ``neural-brdf train`` (start, train, export, validate, report)
 Loops, all on the same thread count (``train.threads`` of the preset), timed in one run,
 interleaved (project, model-only, plain MLP; again), the best of ``--repeats``:
 
-* ``project``: :func:`neural_brdf.train.train` for ``--steps`` steps: the pair pool and
+* ``project``: :func:`neural_brdf.train.loop.train` for ``--steps`` steps: the pair pool and
   its refresh from the analytic target, the loss, fused Adam, the CSV log, held-out
   errors and checkpoints as configured (``train.seconds`` of the run: its loop, not the
   process start or the target's first pool);
@@ -20,7 +20,7 @@ interleaved (project, model-only, plain MLP; again), the best of ``--repeats``:
 
 Many materials (``--many K``): K variants of configs/gold.yaml (conductor and roughness
 varied, seeds apart) trained for ``--steps`` steps one after the other with
-``train.train`` and together with ``neural_brdf.many.train_many``, interleaved, best of
+``train.train`` and together with ``neural_brdf.train.many.train_many``, interleaved, best of
 ``--repeats``; materials per minute of each and the held-out errors of both.
 
 Phases: ``neural-brdf train PRESET`` in a fresh process (``--phases`` times, the best
@@ -55,9 +55,11 @@ sys.path.insert(0, str(REPO))
 
 from common import write_json  # noqa: E402
 
-from neural_brdf import config, data, many, presets, train  # noqa: E402
-from neural_brdf import encoding as enc  # noqa: E402
-from neural_brdf.model import ACTIVATIONS, RawBRDF  # noqa: E402
+from neural_brdf import config, presets  # noqa: E402
+from neural_brdf.train import data, many  # noqa: E402
+from neural_brdf.train import encoding as enc  # noqa: E402
+from neural_brdf.train import loop as train  # noqa: E402
+from neural_brdf.train.model import ACTIVATIONS, RawBRDF  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "training_speed.json"
 PRESETS = ("quickstart", "gold", "mlp/gold")

@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO))
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from neural_brdf import sweep  # noqa: E402
+from neural_brdf.tooling import sweep  # noqa: E402
 
 SWEEPS = ("size", "ablation", "loss", "furnace")
 FIGURES = True  # False: the analyses return their tables and write no figure (--tables)

@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 import yaml  # noqa: E402
 
-from neural_brdf import sweep  # noqa: E402
+from neural_brdf.tooling import sweep  # noqa: E402
 
 SETUPS = {
     "local, 1 worker": ("local", 1),

@@ -19,10 +19,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from .version import __version__
+from neural_brdf.version import __version__
 
 if TYPE_CHECKING:
-    from .runtime import NeuralBRDF, load
+    from neural_brdf.runtime import NeuralBRDF, load
 
 __all__ = ["NeuralBRDF", "__version__", "load"]
 _LAZY = {"NeuralBRDF", "load"}
@@ -31,7 +31,7 @@ _LAZY = {"NeuralBRDF", "load"}
 def __getattr__(name: str) -> Any:
     # PEP 562: onnxruntime is imported when load/NeuralBRDF is first used, not by the CLI
     if name in _LAZY:
-        from . import runtime
+        from neural_brdf import runtime
 
         return getattr(runtime, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

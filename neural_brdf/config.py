@@ -26,10 +26,10 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 # The same classes as neural_brdf.errors (kept light for runtime and the CLI).
-from .errors import ConfigError, InputError  # noqa: F401  (re-exported: config.InputError)
+from neural_brdf.errors import ConfigError, InputError  # noqa: F401  (re-exported: config.InputError)
 
 # Of the resolved config, the checkpoint and the exported model: neural_brdf.fileformat.
-from .fileformat import FORMAT_VERSION  # noqa: F401,E402  (config.FORMAT_VERSION)
+from neural_brdf.fileformat import FORMAT_VERSION  # noqa: F401,E402  (config.FORMAT_VERSION)
 
 
 class _Section(BaseModel):

@@ -18,7 +18,8 @@ one paragraph: the target, the encoding and the input/output contract above.
     max_albedo, hemispherical_albedo, reciprocity_error, min_value,
     parity_rel_error, float32_rel_precision (JSON numbers and arrays),
     training_config (the resolved config, JSON),
-    sampling_lobe (JSON: the importance-sampling lobe fitted to the network, neural_brdf.lobe)
+    sampling_lobe (JSON: the importance-sampling lobe fitted to the network,
+    neural_brdf.physics.lobe)
 
 The graph torch writes is rewritten by :func:`portable_graph` so that onnxruntime from
 1.18 on, onnxruntime-web, onnx2torch, the ONNX reference evaluator and the version
@@ -50,12 +51,10 @@ import torch
 from onnx import numpy_helper
 
 from analytic import physics
-
-from . import config as cfgmod
-from . import data, lobe, validate
-from .encoding import is_anisotropic
-from .errors import ParityError
-from .fileformat import (
+from neural_brdf import config as cfgmod
+from neural_brdf import validate
+from neural_brdf.errors import ParityError
+from neural_brdf.fileformat import (
     FORMAT_VERSION,
     FRAME,
     INPUTS,
@@ -65,10 +64,13 @@ from .fileformat import (
     PRODUCER_NAME,
     UNITS,
 )
-from .fileio import atomic_write
-from .model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
-from .train import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
-from .version import __version__
+from neural_brdf.fileio import atomic_write
+from neural_brdf.physics import lobe
+from neural_brdf.train import data
+from neural_brdf.train.encoding import is_anisotropic
+from neural_brdf.train.loop import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
+from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
+from neural_brdf.version import __version__
 
 PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
 # Parity is relative to max(|f|, PARITY_FLOOR * mean |f|).  Below a tenth of the model's
@@ -78,7 +80,7 @@ PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
 # differs by 4.7e-5 relative without the floor and 5.9e-6 with it; torch vs
 # onnxruntime by 4.0e-5 and 7.7e-6.
 PARITY_FLOOR = 0.1
-ANALYTIC_OPSET = 17  # opset of analytic_onnx (as neural_brdf.mitsuba used)
+ANALYTIC_OPSET = 17  # opset of analytic_onnx (as neural_brdf.renderers.mitsuba used)
 
 
 def _json(value) -> str:
@@ -431,7 +433,7 @@ def convert_opset(model, opset: int) -> onnx.ModelProto:
     left to onnx's version converter, which converts upwards.  The result passes
     ``onnx.checker.check_model(full_check=True)``; ``onnx.checker.ValidationError`` or a
     ValueError when it cannot be converted."""
-    from . import graph as graphmod
+    from neural_brdf import graph as graphmod
 
     proto = copy.deepcopy(graphmod.load(model))
     current = next(o.version for o in proto.opset_import if o.domain in ("", "ai.onnx"))
@@ -544,7 +546,7 @@ def export(
 
     The graph written is ``TotalBRDF(model)``: it normalises its inputs and gives 0 for
     rows with a non-finite or zero-length direction, so no input row can crash a host or
-    change another row (see :class:`neural_brdf.model.TotalBRDF`).
+    change another row (see :class:`neural_brdf.train.model.TotalBRDF`).
     """
     graph = TotalBRDF(model)
     payload = to_onnx_bytes(graph, cfg.export.opset)

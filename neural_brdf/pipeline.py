@@ -12,7 +12,7 @@
 ``neural-brdf train`` calls :func:`run`.  Each stage module knows only the stages before
 it (train knows data and model; export knows the model; validate reads model.onnx), and
 this module is the only one that knows them all.  A run holds its folder's lock
-(:func:`neural_brdf.train.run_lock`) from start to end.
+(:func:`neural_brdf.train.loop.run_lock`) from start to end.
 """
 
 from __future__ import annotations
@@ -21,10 +21,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from . import config as cfgmod
-from . import data, validate
-from . import export as exp
-from . import train as trainmod
+from neural_brdf import config as cfgmod
+from neural_brdf import export as exp
+from neural_brdf import validate
+from neural_brdf.train import data
+from neural_brdf.train import loop as trainmod
 
 
 def run(
@@ -39,18 +40,18 @@ def run(
     ``metrics.json``.
 
     A fresh run (no ``resume``) into a folder that already holds a run raises
-    :class:`neural_brdf.train.RunExists` unless ``overwrite``
-    (:func:`neural_brdf.train.check_fresh_run_dir`).  Resuming a run that has finished at
+    :class:`neural_brdf.train.loop.RunExists` unless ``overwrite``
+    (:func:`neural_brdf.train.loop.check_fresh_run_dir`).  Resuming a run that has finished at
     ``train.steps`` writes nothing and returns its metrics.json with
     ``"already_finished"`` set to the step.  A config with ``target.images`` is fitted by
-    inverse rendering (:mod:`neural_brdf.inverse`, docs/inverse.md; ``inverse_settings``:
-    its :class:`neural_brdf.inverse.Settings`), then exported and validated without a
+    inverse rendering (:mod:`neural_brdf.inverse.fit`, docs/inverse.md; ``inverse_settings``:
+    its :class:`neural_brdf.inverse.fit.Settings`), then exported and validated without a
     reference and without a report.
     """
     run_dir = Path(run_dir) if run_dir is not None else trainmod.default_run_dir(cfg)
     with trainmod.run_lock(run_dir):
         if cfg.target.images is not None:
-            from . import inverse  # Mitsuba: only for an images fit
+            from neural_brdf.inverse import fit as inverse  # Mitsuba: only for an images fit
 
             raw, training, t0 = inverse.fit(
                 cfg, run_dir, resume=resume, overwrite=overwrite, settings=inverse_settings
@@ -66,12 +67,12 @@ def run_many(
     overwrite: bool = False,
     report: bool = False,
 ) -> list[dict[str, Any]]:
-    """Train every config in one batch (:func:`neural_brdf.many.train_many`) into
+    """Train every config in one batch (:func:`neural_brdf.train.many.train_many`) into
     ``out/NAME``, then export and validate each (and write its report with ``report``);
     returns the metrics.json of each, in order."""
     from contextlib import ExitStack
 
-    from . import many
+    from neural_brdf.train import many
 
     many.check_batchable(cfgs)
     names = [c.name for c in cfgs]
@@ -148,7 +149,7 @@ def finish(
     validate.write_json(metrics, run_dir / "metrics.json")
     if not report:
         return metrics
-    from .report import write_report  # matplotlib: only when a run has finished
+    from neural_brdf.viewer.report import write_report  # matplotlib: only when a run has finished
 
     write_report(run_dir)  # report.html / report.md from the files above
     metrics["seconds"]["report"] = time.perf_counter() - t3

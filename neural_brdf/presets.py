@@ -26,7 +26,7 @@ import re
 from importlib import resources
 from pathlib import Path
 
-from .errors import InputError
+from neural_brdf.errors import InputError
 
 PACKAGE = "neural_brdf.configs"  # the installed name of the top-level configs/
 DESCRIPTION_CHARS = 100  # a description is cut to this length

@@ -30,10 +30,10 @@ import onnxruntime as ort
 import yaml
 from numpy.typing import ArrayLike
 
-from .errors import InputError
+from neural_brdf.errors import InputError
 
 # the file's contract (names, versions, metadata keys): neural_brdf.fileformat
-from .fileformat import INPUTS, JSON_KEYS, METADATA_VERSION_KEY, OUTPUT  # noqa: F401
+from neural_brdf.fileformat import INPUTS, JSON_KEYS, METADATA_VERSION_KEY, OUTPUT  # noqa: F401
 
 CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
 

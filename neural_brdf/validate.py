@@ -6,7 +6,7 @@ Physics (all must pass; the CLI exits 1 otherwise):
   10% of them within 1 degree of grazing (``analytic.reciprocity_error``);
 * non-negativity: the smallest value over the same pairs (``analytic.min_value``; a
   NaN counts as -inf);
-* white furnace: rho(wi) = int f cos dwo by MIS quadrature (:mod:`neural_brdf.quadrature`)
+* white furnace: rho(wi) = int f cos dwo by MIS quadrature (:mod:`neural_brdf.physics.quadrature`)
   on a dense grid of incoming directions down to 0.01 degree above the horizon (91 polar
   angles; for an anisotropic model 46 polar angles x 16 azimuths); the maximum must be
   <= 1 + albedo_tol.
@@ -50,12 +50,12 @@ import numpy as np
 import torch
 
 import analytic
-
-from . import config as cfgmod
-from . import data, quadrature
-from .encoding import is_anisotropic
-from .fileio import atomic_write
-from .runtime import load
+from neural_brdf import config as cfgmod
+from neural_brdf.fileio import atomic_write
+from neural_brdf.physics import quadrature
+from neural_brdf.runtime import load
+from neural_brdf.train import data
+from neural_brdf.train.encoding import is_anisotropic
 
 # Directions of the furnace grid stop this far above the horizon (radians, 0.01 degree).
 HORIZON_GAP = math.radians(0.01)

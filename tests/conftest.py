@@ -36,7 +36,7 @@ def abc_csv(data_dir):
 def baked_materials(nbrdf_npz, tmp_path_factory):
     """name -> (NBRDF callable, path of its MERL file), written once per session
     (reciprocal NBRDF evaluation at every bin centre; about 10 s per material)."""
-    from neural_brdf import merl
+    from neural_brdf.measured import merl
 
     folder = tmp_path_factory.mktemp("nbrdf")
     out = {}

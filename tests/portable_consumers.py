@@ -14,7 +14,7 @@ portable.json: per consumer its version, the largest relative difference from th
 onnxruntime (neural_brdf.export.relative_difference), and whether the empty batch, the
 hostile rows and bit-exact reciprocity held.  A consumer that is not installed raises
 :class:`ConsumerMissing` with the command that installs it (bash .ci/run runs them all);
-nothing is skipped.  Used by tests/test_portable.py and benchmarks/portable.py.
+nothing is skipped.  Used by tests/fileformat/test_portable.py and benchmarks/portable.py.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def random_raw(kind: str):
     (a 9 x 9 feature grid and a 5 x 5 cosine grid before a 16-wide layer)."""
     import torch
 
-    from neural_brdf.model import RawBRDF
+    from neural_brdf.train.model import RawBRDF
 
     torch.manual_seed(3)
     if kind == "grids":
@@ -86,7 +86,7 @@ def random_raw(kind: str):
 def random_model(kind: str):
     """:func:`random_raw` normalised by its albedo table (active: some node exceeds 1) and
     made total: the graph ``neural_brdf.export`` writes."""
-    from neural_brdf.model import NormalizedBRDF, TotalBRDF, albedo_table
+    from neural_brdf.train.model import NormalizedBRDF, TotalBRDF, albedo_table
 
     raw = random_raw(kind)
     aniso = raw.anisotropic
@@ -282,7 +282,7 @@ def opset_figures(model: str | Path, opsets=(13, 14, 15, 18, 21), n: int = 4096)
 
 
 def read_metadata_js(*paths) -> list[dict]:
-    """[{"props", "decoded"}] of each file, read by neural_brdf/onnx_metadata.js in Node."""
+    """[{"props", "decoded"}] of each file, read by neural_brdf/fileformat/onnx_metadata.js in Node."""
     if shutil.which("node") is None:
         raise ConsumerMissing("node is not installed (apt-get install nodejs)")
     done = subprocess.run(

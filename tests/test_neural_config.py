@@ -11,7 +11,8 @@ import yaml
 
 import analytic
 from analytic import physics
-from neural_brdf import config, data
+from neural_brdf import config
+from neural_brdf.train import data
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 PRESETS = sorted(p for p in CONFIGS.glob("*.yaml"))
@@ -28,7 +29,7 @@ def test_defaults_file_lists_exactly_the_schema_defaults():
 @pytest.fixture(scope="module")
 def lambert_binary(tmp_path_factory):
     """A MERL file for the presets that fit measured data (their path is a placeholder)."""
-    from neural_brdf import merl
+    from neural_brdf.measured import merl
 
     path = tmp_path_factory.mktemp("merl") / "lambert.binary"
     merl.bake(analytic.create("lambertian"), path)
@@ -135,7 +136,8 @@ def test_every_name_list_of_the_schema_is_the_one_its_module_implements():
     # config.py stays free of torch, so it spells the names out; these tie them together
     from typing import get_args
 
-    from neural_brdf import encoding, model, train
+    from neural_brdf.train import encoding, model
+    from neural_brdf.train import loop as train
 
     fields = config.Model.model_fields
     assert get_args(fields["encoding"].annotation) == encoding.ENCODINGS

@@ -21,9 +21,9 @@ import pytest
 
 import neural_brdf
 from neural_brdf import export, presets
-from neural_brdf.cli import main
 from neural_brdf.errors import InputError
-from neural_brdf.model import RawBRDF
+from neural_brdf.tooling.cli import main
+from neural_brdf.train.model import RawBRDF
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("torch", "pydantic", "matplotlib", "scipy")
@@ -66,7 +66,7 @@ def test_help_version_and_presets_do_not_import_torch(tmp_path):
     proc = python(
         f"""
 import sys, json
-from neural_brdf.cli import main
+from neural_brdf.tooling.cli import main
 codes = []
 for argv in (["--help"], ["--version"], ["train", "--help"]):
     try:
@@ -86,7 +86,8 @@ print(json.dumps({{"codes": codes, "heavy": [m for m in {HEAVY!r} if m in sys.mo
 
 
 def test_input_error_is_one_class():
-    from neural_brdf import config, train
+    from neural_brdf import config
+    from neural_brdf.train import loop as train
 
     assert config.InputError is InputError and config.ConfigError.__mro__[1] is InputError
     assert issubclass(export.CheckpointError, InputError)
@@ -276,8 +277,9 @@ def test_public_api_is_annotated():
     import typing
 
     import analytic
-    from neural_brdf import config, pipeline, train, validate
+    from neural_brdf import config, pipeline, validate
     from neural_brdf.runtime import NeuralBRDF
+    from neural_brdf.train import loop as train
 
     public = [
         neural_brdf.load,
@@ -305,7 +307,7 @@ def test_public_api_is_annotated():
 def test_presets_into_a_closed_pipe_exit_quietly():
     # `neural-brdf presets | head -0`: the reader is gone before the first line is written
     with subprocess.Popen(
-        [sys.executable, "-m", "neural_brdf.cli", "presets"],
+        [sys.executable, "-m", "neural_brdf.tooling.cli", "presets"],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -318,54 +320,100 @@ def test_presets_into_a_closed_pipe_exit_quietly():
 
 
 # ------------------------------------------------------------------ the flow of a run
-# docs/architecture.md: a stage imports only the stages before it; pipeline.py runs them
-# all.  Each module here, and the later stages it must not import (top level or in a
-# function).
-LATER_STAGES = {
-    "data": {"train", "export", "validate", "report", "pipeline"},
-    "model": {"data", "train", "export", "validate", "report", "pipeline"},
-    "train": {"export", "validate", "report", "pipeline", "inverse"},
-    "export": {"report", "pipeline"},
-    "validate": {"export", "report", "pipeline", "train"},
-}
+# docs/architecture.md: the package's parts in the order data flows through them.  A part
+# (a subpackage, or a top-level module) imports only the parts before it, at the top of a
+# module or inside a function; pipeline runs the stages, tooling is the command line.
+LAYERS = [
+    "errors", "fileio", "version", "fileformat", "config", "presets", "runtime",
+    "physics", "measured", "train", "validate", "graph", "export", "backends",
+    "renderers", "inverse", "viewer", "pipeline", "tooling",
+]
+PACKAGE = ROOT / "neural_brdf"
 
 
-def _imported_modules(path: Path) -> set[str]:
+def _part(path: Path) -> str:
+    rel = path.relative_to(PACKAGE).parts
+    return rel[0] if len(rel) > 1 else path.stem
+
+
+def _imported_parts(path: Path, text: str | None = None) -> set[str]:
+    """The parts of neural_brdf a module imports (absolute or relative, anywhere in it)."""
     import ast
 
+    module = ".".join(("neural_brdf",) + path.relative_to(PACKAGE).with_suffix("").parts)
+    if path.name == "__init__.py":
+        module += ".__init__"  # its relative imports start at its own package
     names: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-        if isinstance(node, ast.ImportFrom) and node.level == 1:
-            if node.module:
-                names.add(node.module.split(".")[0])
-            else:  # from . import a, b
+    source = path.read_text(encoding="utf-8") if text is None else text
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolve against this module's package
+                pkg = module.split(".")[: -node.level]
+                base = ".".join(pkg + ([node.module] if node.module else []))
+            parts = base.split(".")
+            if parts[0] != "neural_brdf":
+                continue
+            if len(parts) > 1:
+                names.add(parts[1])
+            else:  # from neural_brdf import a, b
                 names.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("neural_brdf."):
-            names.add(node.module.split(".")[1])
+        elif isinstance(node, ast.Import):
+            names.update(
+                a.name.split(".")[1] for a in node.names if a.name.startswith("neural_brdf.")
+            )
     return names
 
 
-@pytest.mark.parametrize("module", sorted(LATER_STAGES))
-def test_a_stage_imports_no_later_stage(module):
-    imported = _imported_modules(ROOT / "neural_brdf" / f"{module}.py")
-    assert imported, module  # the parse sees its imports
-    assert not imported & LATER_STAGES[module], (
-        f"{module} imports {imported & LATER_STAGES[module]}"
+def _modules() -> list[Path]:
+    return sorted(
+        p for p in PACKAGE.rglob("*.py") if "configs" not in p.relative_to(PACKAGE).parts
     )
+
+
+def test_every_part_of_the_package_has_its_place_in_the_flow():
+    parts = {_part(p) for p in _modules()} - {"__init__", "__main__"}
+    assert parts == set(LAYERS), (parts - set(LAYERS), set(LAYERS) - parts)
+
+
+@pytest.mark.parametrize("path", _modules(), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_a_part_imports_only_the_parts_before_it(path):
+    part = _part(path)
+    if part in ("__init__", "__main__"):  # the package's front door: load, the CLI
+        return
+    later = set(LAYERS[LAYERS.index(part) + 1 :])
+    imported = _imported_parts(path)
+    assert not imported & later, f"{path.relative_to(ROOT)} imports {sorted(imported & later)}"
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "def f():\n    from ..viewer import report\n",
+        "from neural_brdf.viewer.report import write_report\n",
+        "from neural_brdf import pipeline\n",
+        "import neural_brdf.tooling.cli\n",
+    ],
+)
+def test_the_layer_test_sees_a_climb_back(text):
+    # a module of train/ that reaches a later part, in each way an import can be written
+    fake = PACKAGE / "train" / "x.py"
+    assert _imported_parts(fake, text) & set(LAYERS[LAYERS.index("train") + 1 :])
 
 
 def test_the_pipeline_runs_every_stage_and_the_cli_calls_it():
-    assert {"train", "export", "validate", "data"} <= _imported_modules(
-        ROOT / "neural_brdf" / "pipeline.py"
+    assert {"train", "export", "validate", "viewer", "inverse"} <= _imported_parts(
+        PACKAGE / "pipeline.py"
     )
-    assert "pipeline" in _imported_modules(ROOT / "neural_brdf" / "cli.py")
+    assert "pipeline" in _imported_parts(PACKAGE / "tooling" / "cli.py")
 
 
 def test_the_file_format_module_is_the_bottom_and_its_readers_import_it():
-    assert _imported_modules(ROOT / "neural_brdf" / "fileformat.py") == set()
-    for module in ("runtime", "export", "lobe", "config"):
-        assert "fileformat" in _imported_modules(ROOT / "neural_brdf" / f"{module}.py"), module
-    from neural_brdf import config, export, fileformat, lobe, runtime
+    assert _imported_parts(PACKAGE / "fileformat" / "__init__.py") == set()
+    for module in ("runtime.py", "export.py", "physics/lobe.py", "config.py"):
+        assert "fileformat" in _imported_parts(PACKAGE / module), module
+    from neural_brdf import config, export, fileformat, runtime
+    from neural_brdf.physics import lobe
 
     assert runtime.JSON_KEYS is fileformat.JSON_KEYS and runtime.OUTPUT == fileformat.OUTPUT
     assert config.FORMAT_VERSION == fileformat.FORMAT_VERSION == export.FORMAT_VERSION

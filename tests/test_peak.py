@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import analytic
-from neural_brdf import encoding as enc
 from neural_brdf import validate
+from neural_brdf.train import encoding as enc
 
 GOLD = dict(distribution="ggx", alpha=0.3, masking="smith_correlated", fresnel="conductor")
 
@@ -138,7 +138,8 @@ def test_a_nan_at_the_peak_fails_the_check():
 
 
 def test_peak_pairs_of_the_training_data_are_uniform_in_the_peak_coordinate():
-    from neural_brdf import config, data
+    from neural_brdf import config
+    from neural_brdf.train import data
 
     g = torch.Generator().manual_seed(3)
     wi = data.uniform_wi(20000, g)
@@ -166,8 +167,9 @@ def test_peak_pairs_of_the_training_data_are_uniform_in_the_peak_coordinate():
 def test_a_checkpoint_of_the_old_encoding_is_not_resumed(tmp_path):
     # format version 1 checkpoints hold weights for sqrt(theta_h): resuming them with u_h
     # would train on silently wrong features
-    from neural_brdf import config, train
+    from neural_brdf import config
     from neural_brdf.errors import ConfigError
+    from neural_brdf.train import loop as train
 
     cfg = config.from_dict(
         {

@@ -7,7 +7,7 @@
 * exact reciprocity survives, bit for bit.
 
 Checked on onnxruntime directly, through ``neural_brdf.load(...).eval`` and through the
-Mitsuba plugin's Dr.Jit evaluation of the same file; tests/test_portable.py checks the same
+Mitsuba plugin's Dr.Jit evaluation of the same file; tests/fileformat/test_portable.py checks the same
 rows (the batch of 0 rows included) in onnxruntime 1.18.1, onnxruntime-web, onnx2torch and
 the ONNX reference evaluator.  The models are networks with random
 weights (bright, so that the albedo table is active and its Gather runs): the graph's
@@ -24,7 +24,7 @@ import torch
 import neural_brdf
 from analytic import physics
 from neural_brdf import export
-from neural_brdf.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
+from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 
 ENCODINGS = ("isotropic", "anisotropic")
 HOSTILE = {
@@ -153,7 +153,7 @@ def test_drjit_plugin_evaluation_is_total_too(model_file, session):
     import mitsuba as mi
 
     mi.set_variant("llvm_ad_rgb")
-    from neural_brdf.mitsuba import read_model
+    from neural_brdf.renderers.mitsuba import read_model
 
     _, program, _ = read_model(model_file)
     wi, wo = _pairs(4096, seed=6)

@@ -9,7 +9,7 @@ multi-lobe analytic fit of Wyman, Sloan & Shirley 2013 ("Simple Analytic
 Approximations to the CIE XYZ Color Matching Functions", JCGT 2(2)), normalised by
 the integral of y-bar, and converted XYZ -> linear sRGB (IEC 61966-2-1 matrix).  This
 is our own conversion; Mitsuba's RGB values (the tests' reference data) are the independent
-reference the tests compare against (tests/test_known_answers.py).
+reference the tests compare against (tests/analytic/test_known_answers.py).
 """
 
 import json

@@ -1181,7 +1181,7 @@ def training_speed_section(d: dict) -> list[str]:
         out += [
             f"Many materials: {m['materials']} variants of the gold recipe (conductor and "
             f"roughness varied), {m['steps']} steps each, batches of {m['batch_size']}; "
-            "one after the other (`train.train`) and in one batch (`neural_brdf.many`, "
+            "one after the other (`train.train`) and in one batch (`neural_brdf.train.many`, "
             "`neural-brdf train-many`), interleaved, the best of the repeats:",
             "",
         ]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import importlib
 
-from ..errors import InputError
+from neural_brdf.errors import InputError
 
 # target -> (module, class)
 REGISTRY: dict[str, tuple[str, str]] = {

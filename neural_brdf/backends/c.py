@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import graph
-from .cstyle import PREFIX, CStyleRenderer
+from neural_brdf import graph
+from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer
 
 
 class CRenderer(CStyleRenderer):

@@ -25,10 +25,10 @@ import math
 
 import numpy as np
 
-from .. import graph
-from .. import lobe as lobes
-from ..errors import InputError
-from . import lobe as lobe_ir
+from neural_brdf import graph
+from neural_brdf.backends import lobe as lobe_ir
+from neural_brdf.errors import InputError
+from neural_brdf.physics import lobe as lobes
 
 PREFIX = "neural_brdf"
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .. import graph
+from neural_brdf import graph
 
 
 class _Types:

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import graph
-from .cstyle import PREFIX, CStyleRenderer
+from neural_brdf import graph
+from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer
 
 VEC = {1: "float", 2: "vec2", 3: "vec3", 4: "vec4"}
 

@@ -1,11 +1,11 @@
-"""The stored sampling lobe (:mod:`neural_brdf.lobe`) as lowered programs for the back ends.
+"""The stored sampling lobe (:mod:`neural_brdf.physics.lobe`) as lowered programs for the back ends.
 
     from neural_brdf.backends import lobe
     shape = {"alpha_x": 0.2, "alpha_y": 0.4, "weight": 0.6, "retro": False}
     pdf = lobe.pdf_program(**shape)      # inputs wi, wo -> output pdf
     smp = lobe.sample_program(**shape)   # inputs wi, u1, u2 -> wo, pdf
 
-The mixture of :mod:`neural_brdf.lobe`: a cosine-weighted hemisphere (share 1 - w) and
+The mixture of :mod:`neural_brdf.physics.lobe`: a cosine-weighted hemisphere (share 1 - w) and
 a GGX visible-normal lobe of roughness (ax, ay) reflected about the sampled normal (share
 w; a Beckmann lobe with ``distribution="beckmann"``), turned by pi about the normal for
 a retro lobe.  With a per-incidence ``table``, ax, ay and w are interpolated linearly in
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 
-from ..graph import Builder, Program
+from neural_brdf.graph import Builder, Program
 
 
 class V:
@@ -128,7 +128,7 @@ def _interp(c: V, xs: list[float], ys: list[float]):
 
 def _params(b: Builder, wi: list[V], ax, ay, weight, table) -> tuple:
     """(alpha_x, alpha_y, weight): the lobe's constants, or with a per-incidence table
-    expressions of cos theta_i (neural_brdf.lobe.at)."""
+    expressions of cos theta_i (neural_brdf.physics.lobe.at)."""
     if not table:
         return ax, ay, weight
     b.hint = "lobe_table"

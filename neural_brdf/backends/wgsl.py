@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import graph
-from .cstyle import PREFIX, CStyleRenderer
-from .glsl import erf_helper
+from neural_brdf import graph
+from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer
+from neural_brdf.backends.glsl import erf_helper
 
 VEC = {1: "f32", 2: "vec2<f32>", 3: "vec3<f32>", 4: "vec4<f32>"}
 

@@ -5,7 +5,7 @@
 // DIR/cases.json lists {"name", "n"}; DIR/NAME.wi.f32 and NAME.wo.f32 hold n x 3
 // little-endian float32.  Writes DIR/NAME.f.f32 (n x 3) for every case that ran, and
 // DIR/results.json: {"version", "cases": {NAME: {"dims"} or {"error"}}}.  A failing case
-// is recorded, not fatal, so the test sees each; a file that does not load fails every case.  Used by tests/test_portable.py
+// is recorded, not fatal, so the test sees each; a file that does not load fails every case.  Used by tests/fileformat/test_portable.py
 // (install: cd tests/js && ONNXRUNTIME_NODE_INSTALL=skip npm ci).
 import {readFileSync, writeFileSync} from "node:fs";
 import {join} from "node:path";

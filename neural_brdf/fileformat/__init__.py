@@ -1,0 +1,58 @@
+"""The exported file's contract, in one place (issue 22): the graph's input and output
+names, the format and metadata versions, and the metadata keys with their kinds.
+
+Every module that writes or reads a model imports these names from here: the exporter
+(:mod:`neural_brdf.export`), the runtime (:mod:`neural_brdf.runtime`), the sampling lobe
+(:mod:`neural_brdf.physics.lobe`), the config's checkpoint version (:mod:`neural_brdf.config`).
+The JavaScript reader (``onnx_metadata.js``) lists :data:`JSON_KEYS` again, in its own
+language; tests/fileformat/test_portable.py checks that the two lists agree.  docs/portable.md and
+docs/model.md describe the keys.
+
+This module imports nothing (not even numpy): it is the bottom of the package.
+"""
+
+from __future__ import annotations
+
+# The graph: inputs wi, wo float32 [N, 3] (unit vectors in the local shading frame),
+# output f float32 [N, 3] (1/sr, no cosine).
+INPUTS = ("wi", "wo")
+OUTPUT = "f"
+
+# Of the resolved config, the checkpoint and the exported model (its ONNX model_version).
+# 2: the encoding's peak coordinate u_h replaced sqrt(theta_h / (pi/2)) (issue 19), so a
+# version-1 checkpoint's weights mean something else: it is not resumed.
+FORMAT_VERSION = 2
+
+# metadata_props: the version of their schema (docs/portable.md, "Metadata").  1: the files
+# written before the key existed (target a description, training_config YAML); 2: every
+# value that carries structure is JSON.  neural_brdf.runtime reads both.
+METADATA_VERSION_KEY = "metadata_version"  # absent: version 1
+METADATA_VERSION = 2
+
+LOBE_KEY = "sampling_lobe"  # the importance-sampling lobe (neural_brdf.physics.lobe), JSON
+
+# metadata_props whose values are JSON (objects, arrays, numbers) in metadata_version 2;
+# the others (TEXT_KEYS) are text.
+JSON_KEYS = (
+    METADATA_VERSION_KEY,
+    "format_version",
+    "target",
+    "training_config",
+    "hemispherical_albedo",
+    LOBE_KEY,
+    "max_albedo",
+    "reciprocity_error",
+    "min_value",
+    "parity_rel_error",
+    "float32_rel_precision",
+)
+TEXT_KEYS = ("producer", "frame", "units", "encoding", "normalization")
+KEYS = JSON_KEYS + TEXT_KEYS  # every key an exported model carries
+
+PRODUCER_NAME = "neural-brdf"  # ONNX producer_name (producer_version: the package's)
+FRAME = (
+    "local shading frame: z = normal, x = tangent (anisotropy axis), y = z cross x; "
+    "wi and wo are unit vectors pointing away from the surface; f = 0 when "
+    "wi_z <= 0 or wo_z <= 0"
+)
+UNITS = "f: BRDF value in 1/sr per RGB channel, without the cosine factor"

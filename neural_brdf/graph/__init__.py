@@ -1,0 +1,178 @@
+"""An exported ONNX graph lowered once to a flat list of scalar-per-lane instructions.
+
+    from neural_brdf import graph
+    prog = graph.lower("model.onnx")           # a path, bytes or an onnx.ModelProto
+    prog.outputs                               # {"f": [id_r, id_g, id_b]}
+    for i, ins in enumerate(prog.instrs):      # SSA: ins.args are earlier indices
+        print(prog.names[i], ins.op, ins.dtype, ins.args, ins.attr)
+
+Every back end (:mod:`neural_brdf.backends`: Dr.Jit, C, GLSL, WGSL) evaluates THIS list,
+so they all evaluate the exported graph, never a retyped copy of the model.
+
+Layout: :mod:`.ir` holds the instruction set and the :class:`Builder`; :mod:`.lowering`
+the lanes of instruction ids an ONNX tensor becomes; :mod:`.ops` one kernel per ONNX op;
+this module loads and checks the graph and walks it (:func:`lower`).
+
+Lowering.  The graph is walked node by node once.  Constant sub-graphs (weights, shape
+arithmetic) are folded with numpy.  A tensor of shape [N, k...] that depends on the
+inputs is held as a numpy object array of shape (k...) whose elements are instruction
+ids, one per column (the batch N is implicit: every instruction is evaluated per lane).
+A Gemm or MatMul with constant weights becomes, per output column, DOT_CHAINS
+interleaved fused multiply-add chains with the weights as literal constants.  A Gather
+from a constant table at computed indices (the albedo-table look-up) becomes one
+``gather`` instruction per table column.  The instruction list is deduplicated (equal
+instructions share one id), folded (an instruction of constants is computed in float32
+numpy) and pruned to what the outputs need.
+
+Instruction set (``Instr.op``; dtypes "float" (float32), "int" (int32), "bool"):
+
+    input     attr (name, column)                     -> float
+    const     attr the value (a Python float/int/bool)
+    UNARY     neg abs sqrt exp log floor ceil sin cos atan asin acos tanh erf
+    BINARY    add sub mul div max min pow              (float, or int except div/pow)
+    COMPARE   eq lt le gt ge                           -> bool
+    LOGIC     and or xor (bool), not (bool)
+    isnan, isinf                                       float -> bool
+    fma       a * b + c
+    select    cond ? a : b
+    cast      attr the target dtype
+    gather    args (index,), attr the table number: tables[attr][clamp(index, 0, K - 1)]
+
+An op outside :data:`SUPPORTED_OPS`, or in a form the lowering lacks, raises
+:class:`UnsupportedOnnxOp` (an InputError) naming the node and the op.  This module
+imports numpy and onnx only.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+import onnx
+from onnx import numpy_helper
+
+from neural_brdf.errors import InputError
+from neural_brdf.graph.ir import (
+    BATCH,
+    BINARY,
+    COMPARE,
+    DOT_CHAINS,
+    LOGIC,
+    OPS,
+    UNARY,
+    Builder,
+    Instr,
+    Program,
+    UnsupportedOnnxOp,
+)
+from neural_brdf.graph.lowering import Lanes, Lowering, _obj
+from neural_brdf.graph.ops import _OPS, SUPPORTED_OPS
+
+__all__ = [
+    "BATCH",
+    "BINARY",
+    "COMPARE",
+    "DOT_CHAINS",
+    "LOGIC",
+    "OPS",
+    "UNARY",
+    "SUPPORTED_OPS",
+    "Builder",
+    "Instr",
+    "Program",
+    "UnsupportedOnnxOp",
+    "check",
+    "load",
+    "lower",
+]
+
+
+def load(model) -> onnx.ModelProto:
+    """A path, bytes or ModelProto -> ModelProto (a one-line InputError if unreadable)."""
+    if isinstance(model, onnx.ModelProto):
+        return model
+    try:
+        if isinstance(model, (bytes, bytearray)):
+            return onnx.load_from_string(bytes(model))
+        if isinstance(model, (str, os.PathLike)):
+            return onnx.load(str(model))
+    except Exception as e:  # onnx raises DecodeError, OSError and others on a bad file
+        raise InputError(
+            f"{model if not isinstance(model, bytes) else 'model bytes'}: not a "
+            f"loadable ONNX model ({type(e).__name__})"
+        ) from None
+    raise TypeError(f"expected a path, bytes or onnx.ModelProto, got {type(model).__name__}")
+
+
+def _hint(node) -> str:
+    """A readable name prefix for the instructions of a node: its op in snake case."""
+    special = {"Gemm": "dense", "MatMul": "dense", "IsNaN": "isnan", "IsInf": "isinf"}
+    if node.op_type in special:
+        return special[node.op_type]
+    return re.sub(r"(?<!^)(?=[A-Z])", "_", node.op_type).lower()
+
+
+def check(proto: onnx.ModelProto) -> list:
+    """The graph's nodes as (op, inputs, outputs, attrs, name); unknown ops raise."""
+    nodes = []
+    for n in proto.graph.node:
+        if n.domain not in ("", "ai.onnx"):
+            raise UnsupportedOnnxOp(
+                f"node {n.name!r}: op {n.domain}.{n.op_type} is not a standard ONNX op"
+            )
+        if n.op_type not in SUPPORTED_OPS:
+            raise UnsupportedOnnxOp(
+                f"node {n.name!r}: ONNX op {n.op_type!r} is not supported "
+                f"(supported: {', '.join(sorted(SUPPORTED_OPS))})"
+            )
+        attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
+        nodes.append((n.op_type, list(n.input), list(n.output), attrs, n))
+    return nodes
+
+
+def lower(model) -> Program:
+    """Load, check, fold and lower an ONNX model (inputs [N, k], outputs [N, k...])."""
+    proto = load(model)
+    nodes = check(proto)
+    g = proto.graph
+    b = Builder()
+    lo = Lowering(b)
+    env: dict[str, object] = {t.name: numpy_helper.to_array(t) for t in g.initializer}
+    inputs: dict[str, int] = {}
+    for i in g.input:
+        if i.name in env:
+            continue
+        dims = i.type.tensor_type.shape.dim
+        if len(dims) != 2 or not dims[1].HasField("dim_value"):
+            raise UnsupportedOnnxOp(f"input {i.name!r}: expected shape [N, k] with a fixed k")
+        width = int(dims[1].dim_value)
+        inputs[i.name] = width
+        b.hint = i.name
+        env[i.name] = Lanes(_obj([b.input(i.name, c) for c in range(width)], (width,)))
+    op_counts: dict[str, int] = {}
+    for op, ins, outs, attrs, node in nodes:
+        op_counts[op] = op_counts.get(op, 0) + 1
+        args = [env[i] if i else None for i in ins]
+        b.hint = _hint(node)
+        try:
+            res = _OPS[op](lo, args, attrs)
+        except UnsupportedOnnxOp as e:
+            raise UnsupportedOnnxOp(f"node {node.name!r} ({op}): {e}") from None
+        if not isinstance(res, tuple):
+            res = (res,)
+        for o, v in zip(outs, res, strict=False):
+            env[o] = v
+    outputs = {}
+    b.hint = "out"
+    for o in g.output:
+        v = env[o.name]
+        if isinstance(v, Lanes):
+            cols = [lo.to_float(x) for x in v.a.reshape(-1)]
+        else:
+            c = np.asarray(v)
+            c = c[0] if c.ndim >= 1 and c.shape[0] == 1 else c
+            cols = [b.const(float(x), "float") for x in c.reshape(-1)]
+        outputs[o.name] = cols
+    meta = {p.key: p.value for p in proto.metadata_props}
+    return b.finish(inputs, outputs, meta, op_counts)

@@ -1,0 +1,236 @@
+"""A differentiable neural BSDF for Mitsuba 3: the training-time path of inverse rendering.
+
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")                 # or cuda_ad_rgb
+    from neural_brdf import inverse_bsdf          # registers 'neural_brdf_ad'
+    bsdf = mi.load_dict({"type": "neural_brdf_ad", "model": inverse_bsdf.COMPACT})
+    params = mi.traverse(bsdf)                    # 'raw.mlp.head.weight', 'raw.grid.table', ...
+    with inverse_bsdf.evaluated_mode():           # dr.wrap needs evaluated loops and calls
+        img = mi.render(scene, params, spp=16)
+        dr.backward(loss(img))                    # gradients reach every weight
+
+Design.  The model is the very :class:`neural_brdf.train.model.RawBRDF` that ``neural-brdf
+train`` trains, evaluated by torch; :func:`drjit.wrap` stitches it into Mitsuba's
+Dr.Jit AD graph (Dr.Jit <-> torch interop).  Its trainable state (the MLP weights, the
+learned feature grids) lives in Dr.Jit tensors (``mi.TensorXf``) that ``traverse``
+exposes, so ``mi.traverse``, ``mi.ad`` optimisers and ``dr.backward`` work as with a
+built-in plugin: each evaluation hands those tensors to torch, which runs
+``torch.func.functional_call(raw, weights, (wi, wo))``, and reverse-mode AD runs
+torch's backward for that call.  No part of the model is retyped here: when the fit is
+done, :func:`state_dict` turns the tensors back into the RawBRDF's state and the usual
+export (:func:`neural_brdf.export.normalized_model`, ONNX) applies unchanged.  Renderers
+then use the exported graph (:mod:`neural_brdf.renderers.mitsuba`); this plugin is for fitting only.
+
+Reciprocity is exact, as in training: it is a property of the encoding (bit-identical
+features for (wi, wo) and (wo, wi)), which this plugin evaluates unchanged.  The albedo
+bound is not enforced here (raw network, no table): :mod:`neural_brdf.inverse.fit` penalises
+an albedo above 1 during the fit and the export bakes the exact normalisation.
+
+Constraints of :func:`drjit.wrap`.  Torch needs evaluated arrays, so a render must run
+with symbolic loops and symbolic virtual calls switched off (:func:`evaluated_mode`);
+``eval`` raises a one-line error otherwise.  Sampling is the mixture of
+:mod:`neural_brdf.physics.lobe` (cosine hemisphere + a GGX/Beckmann visible-normal lobe), with
+code shared with the ``neural_brdf`` plugin (:class:`neural_brdf.renderers.mitsuba._GraphBSDF`); the
+lobe is fitted to the current network by :meth:`NeuralBSDFAD.refit_lobe`.  The sample
+weight is eval / pdf, and the pdf does not depend on the weights (the lobe is fixed
+between refits), so at fixed samples every path's contribution is linear in f: the
+gradient of a render is that of its Monte Carlo estimate (tests/inverse/test_inverse.py checks
+it against finite differences).
+
+Importing this module needs an RGB JIT variant with AD (``llvm_ad_rgb``,
+``cuda_ad_rgb``); others raise :class:`neural_brdf.errors.InputError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import torch
+import yaml
+
+from neural_brdf import config as cfgmod
+from neural_brdf.errors import InputError
+from neural_brdf.physics import lobe as lobes
+
+if mi.variant() is None or not (mi.is_rgb and dr.is_diff_v(mi.Float) and dr.is_jit_v(mi.Float)):
+    raise InputError(
+        f"neural_brdf.inverse.bsdf: Mitsuba variant {mi.variant()!r} is not a JIT AD RGB "
+        "variant; set llvm_ad_rgb or cuda_ad_rgb first"
+    )
+
+from neural_brdf.renderers.mitsuba import _GraphBSDF  # noqa: E402  (needs the variant set, like this module)
+from neural_brdf.train.model import RawBRDF  # noqa: E402
+
+PLUGIN = "neural_brdf_ad"
+# The compact recipe (configs/gold.yaml): 32 x 32 x 4 grid + one ReLU layer of 32.
+COMPACT = "{hidden: [32], activation: relu, grid: {size: 32, channels: 4, lr_scale: 10.0}}"
+# A start for the sampling lobe before it is fitted to the network.
+DEFAULT_LOBE = {"kind": lobes.KIND, "alpha": 0.3, "weight": 0.5}
+
+__all__ = [
+    "COMPACT",
+    "PLUGIN",
+    "NeuralBSDFAD",
+    "evaluated_mode",
+    "model_section",
+]
+
+
+@contextlib.contextmanager
+def evaluated_mode():
+    """Evaluated (not symbolic) loops and virtual calls, as :func:`drjit.wrap` needs."""
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    old = [dr.flag(f) for f in flags]
+    for f in flags:
+        dr.set_flag(f, False)
+    try:
+        yield
+    finally:
+        for f, v in zip(flags, old):
+            dr.set_flag(f, v)
+
+
+def model_section(text_or_dict) -> cfgmod.Model:
+    """The ``model`` config section from YAML text or a dict (validated as in a config)."""
+    raw = yaml.safe_load(text_or_dict) if isinstance(text_or_dict, str) else text_or_dict
+    try:
+        return cfgmod.Model.model_validate(raw or {})
+    except Exception as e:  # pydantic's ValidationError: one line
+        first = str(e).splitlines()
+        raise InputError(f"{PLUGIN}: 'model': {first[-1] if first else e}") from None
+
+
+def _to_dr(t: torch.Tensor) -> mi.TensorXf:
+    return mi.TensorXf(np.ascontiguousarray(t.detach().cpu().float().numpy()))
+
+
+def _eval_torch(raw: RawBRDF):
+    """The torch side: (wi, wo components, weights) -> f cos(theta_o), RGB columns."""
+
+    @dr.wrap(source="drjit", target="torch")
+    def f_cos(wx, wy, wz, ox, oy, oz, weights):
+        wi = torch.stack([wx, wy, wz], -1)
+        wo = torch.stack([ox, oy, oz], -1)
+        f = torch.func.functional_call(raw, weights, (wi, wo))
+        fc = f * oz.clamp_min(0.0)[:, None]
+        return fc[:, 0], fc[:, 1], fc[:, 2]
+
+    return f_cos
+
+
+class NeuralBSDFAD(_GraphBSDF):
+    """``{'type': 'neural_brdf_ad', 'model': '<YAML of a model section>', 'seed': 0,
+    'init_value': 0.3}``: a trainable RawBRDF (see the module doc).
+
+    ``raw.<name>`` parameters (``mi.traverse``) are the torch ``state_dict`` entries as
+    ``mi.TensorXf`` of the same shapes, all differentiable.
+    """
+
+    def __init__(self, props):
+        mi.BSDF.__init__(self, props)
+        section = model_section(props["model"] if "model" in props else COMPACT)
+        seed = int(props["seed"]) if "seed" in props else 0
+        init_value = float(props["init_value"]) if "init_value" in props else 0.3
+        self.model = section
+        with torch.random.fork_rng():  # seeds the weights without touching torch's RNG
+            torch.manual_seed(seed)
+            self.raw = RawBRDF.from_config(section, init_value=init_value).eval()
+        self.weights = {k: _to_dr(v) for k, v in self.raw.state_dict().items()}
+        self._f_cos_torch = _eval_torch(self.raw)
+        self.label = "trainable RawBRDF"
+        self.lobe_source = "default"
+        self.set_lobe(DEFAULT_LOBE)
+        flags = (
+            mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+        )
+        self.m_components = [flags]
+        self.m_flags = flags
+
+    # -- state ------------------------------------------------------------------
+    def set_lobe(self, lobe: dict, source: str = "set") -> None:
+        """The sampling mixture (:mod:`neural_brdf.physics.lobe`); not differentiated."""
+        self.lobe = lobes.complete(dict(lobe))
+        self.lobe_table = self.lobe.get("table")
+        self.lobe_weight = (
+            max(self.lobe_table["weight"]) if self.lobe_table else float(self.lobe["weight"])
+        )
+        self.lobe_retro = self.lobe["retro"]
+        self.lobe_source = source
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The current weights as a RawBRDF ``state_dict`` (CPU float32 copies)."""
+        return {
+            k: torch.from_numpy(np.array(v.numpy(), dtype=np.float32, copy=True)).reshape(
+                tuple(v.shape)
+            )
+            for k, v in self.weights.items()
+        }
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Set the weights from a RawBRDF ``state_dict`` (shapes must match)."""
+        params = mi.traverse(self)  # assigns in place: scenes keep seeing these tensors
+        for k, v in state.items():
+            if k not in self.weights or tuple(self.weights[k].shape) != tuple(v.shape):
+                raise InputError(f"{PLUGIN}: weight {k!r} does not fit this model")
+            params["raw." + k] = _to_dr(v)
+        params.update()
+
+    def torch_model(self, state: dict[str, torch.Tensor] | None = None) -> RawBRDF:
+        """A RawBRDF holding the current weights, or ``state`` (a copy, for export or
+        checks)."""
+        raw = copy.deepcopy(self.raw)
+        raw.load_state_dict(self.state_dict() if state is None else state)
+        return raw.eval()
+
+    def refit_lobe(self, seed: int = 0, state: dict[str, torch.Tensor] | None = None) -> dict:
+        """Fit the sampling lobe to the network (its current weights, or ``state``) with
+        :func:`neural_brdf.physics.lobe.fit`, and use it."""
+        raw = self.torch_model(state)
+
+        def fn(wi, wo):
+            with torch.no_grad():
+                return raw(torch.as_tensor(wi).float(), torch.as_tensor(wo).float()).numpy()
+
+        fitted = lobes.fit(fn, seed=seed, anisotropic=raw.anisotropic)
+        self.set_lobe(fitted, "fitted to the current weights")
+        return fitted
+
+    # -- evaluation: torch through dr.wrap ------------------------------------------
+    def _graph_f_cos(self, wi, wo):
+        if dr.flag(dr.JitFlag.SymbolicLoops) or dr.flag(dr.JitFlag.SymbolicCalls):
+            raise InputError(
+                f"{PLUGIN}: render inside neural_brdf.inverse.bsdf.evaluated_mode() "
+                "(torch needs evaluated loops and calls)"
+            )
+        r, g, b = self._f_cos_torch(wi.x, wi.y, wi.z, wo.x, wo.y, wo.z, self.weights)
+        return mi.Color3f(r, g, b)
+
+    def _f_cos(self, si, wo, active):
+        wi = si.wi
+        valid = active & (mi.Frame3f.cos_theta(wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
+        if dr.width(valid) == 0 or not dr.any(valid, axis=None):
+            return mi.Color3f(0.0)
+        value = self._graph_f_cos(wi, wo)
+        return dr.select(valid, value, mi.Color3f(0.0))
+
+    def traverse(self, callback):
+        for k, v in self.weights.items():
+            callback.put(f"raw.{k}", v, mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys):
+        pass  # the tensors are read at every evaluation
+
+    def to_string(self):
+        sizes = sum(int(np.prod(v.shape)) for v in self.weights.values())
+        return (
+            f"NeuralBSDFAD[{self.model.hidden} {self.model.activation}, grid "
+            f"{self.model.grid.size}, {sizes} weights, lobe {self.lobe['distribution']} "
+            f"alpha={self.lobe['alpha']:.3g} ({self.lobe_source})]"
+        )
+
+
+mi.register_bsdf(PLUGIN, lambda props: NeuralBSDFAD(props))

@@ -1,0 +1,956 @@
+"""Neural BRDFs from images: inverse rendering with the physics kept (docs/inverse.md).
+
+    python -m neural_brdf.inverse.scene runs/images          # an example: 3 views
+    neural-brdf train runs/images/fit.yaml --out runs/images-fit
+
+A config whose target is ``images`` (a list of ``{scene: view.xml, image: view.exr}``,
+paths relative to the config file) is trained by differentiable rendering instead of
+from BRDF samples (:func:`fit`):
+
+1. each scene (a Mitsuba 3 XML file) is loaded with its ``<bsdf id="fit">`` replaced by
+   the trainable ``neural_brdf_ad`` plugin (:mod:`neural_brdf.inverse.bsdf`): the same
+   :class:`neural_brdf.train.model.RawBRDF` that ``neural-brdf train`` fits, evaluated by torch
+   inside Mitsuba's AD graph (``dr.wrap``), its weights Dr.Jit tensors;
+2. the start (``Settings.init = "ggx"``, the default): Mitsuba's ``roughconductor``
+   (GGX; alpha, RGB eta and k) is fitted to the images (:func:`fit_roughconductor`), and
+   the network is trained on BRDF samples of the matching analytic GGX
+   (:func:`ggx_initial_state`, the sample-based training of :mod:`neural_brdf.train.loop`);
+   the image fit then runs at ``init_lr_scale`` times the learning rate.  With
+   ``init=None`` the network starts as a dim constant;
+3. every step renders every view with the scene's own integrator (``prb`` runs as
+   ``prb_basic``: see :data:`INTEGRATORS`), ``primal_spp`` samples per pixel in the
+   primal pass and ``spp`` in the gradient pass (``mi.render`` draws them with
+   decorrelated seeds), compares each render with its target by the relative MSE of HDR
+   images, adds a penalty on a directional albedo above 1, back-propagates
+   (``dr.backward``) and takes an ``mi.ad.Adam`` step on the learning-rate schedule of
+   ``train`` (warm-up, cosine), the grids at their ``lr_scale``; the sampling lobe is
+   refitted to the network every ``lobe_every`` steps;
+4. the fitted network goes through the usual export (:func:`neural_brdf.export.
+   normalized_model`: the exact albedo normalisation is baked into the graph when the
+   raw albedo exceeds 1 anywhere) to ``model.onnx``, which is validated (reciprocity,
+   minimum, white furnace: :func:`neural_brdf.validate.report` without a reference);
+   ``metrics.json`` records it with the fit's figures.
+
+Checkpoints (``ckpt.pt``: weights, Adam's moments, step, sampling lobe), ``log.csv``,
+``--resume``, Ctrl-C and divergence behave as in :mod:`neural_brdf.train.loop`.  Bad input
+raises :class:`neural_brdf.errors.InputError` (exit code 2) with one line naming the
+file, before anything is written: a missing or unreadable image, an image that is not
+RGB, an image whose size is not the film's, a scene without ``<bsdf id="fit">`` (or
+with nothing using it), an integrator that cannot be differentiated here.  The Mitsuba
+variant (``target.variant``, else ``train.device``: ``llvm_ad_rgb`` on the CPU,
+``cuda_ad_rgb`` on CUDA) must be a JIT AD RGB one (config.py refuses others).
+
+Loss.  With x the render, y the target and y_bar the target's channel mean at a pixel,
+
+    L_img = mean over pixels and channels of (x - y)^2 / (y_bar^2 + REL_EPS)
+
+the relative MSE that Lehtinen et al. 2018 ("Noise2Noise: Learning Image Restoration
+without Clean Data", ICML) use for HDR Monte Carlo renders, with the denominator from the
+clean target rather than from the estimate, so that a dark rim counts as much as a
+highlight.  Energy: the fit adds
+
+    L_albedo = ALBEDO_WEIGHT * sum over K incidences and RGB of max(0, A(wi) - 1)^2,
+
+A(wi) = (pi / N) sum_j f(wi, wo_j), wo_j cosine-distributed (N = ``ALBEDO_SIDE``^2,
+fresh every step), so the fit is steered away from a network the normalisation would have
+to scale down; the exported bound itself comes from the normalisation, not the penalty.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import math
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from neural_brdf import config as cfgmod
+from neural_brdf.errors import Diverged, InputError, Interrupted
+from neural_brdf.fileio import atomic_write
+from neural_brdf.train.model import RawBRDF
+
+# Integrators a fit renders with, by the scene's <integrator type>: Mitsuba's C++ ones
+# are differentiated by recording their AD graph; "prb" is replaced by "prb_basic" with
+# the same properties, since Mitsuba 3.9's prb aborts in evaluated-loop mode (which
+# dr.wrap needs): "jit_assemble(): schedule contains variable ... incompatible size".
+INTEGRATORS = {
+    "path": "path",
+    "direct": "direct",
+    "prb": "prb_basic",
+    "prb_basic": "prb_basic",
+    "direct_projective": "direct_projective",
+}
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+REL_EPS = 1e-2  # the relative MSE's offset (Lehtinen et al. 2018 use 0.01)
+ALBEDO_WEIGHT = 1.0  # weight of the albedo penalty
+ALBEDO_THETAS_DEG = (0.0, 30.0, 50.0, 65.0, 75.0, 82.0, 87.0)  # its incidences
+ALBEDO_SIDE = 24  # ALBEDO_SIDE^2 stratified cosine-distributed wo per incidence and step
+TORCH_THREADS = 1  # see fit_neural
+# The network's start: a constant f = INIT_VALUE / ((cos_i + cos_o) / 2) (model.py), whose
+# albedo, 12.6 INIT_VALUE at grazing incidence, stays below 1 everywhere.
+INIT_VALUE = 0.05
+LOG_COLUMNS = ["step", "loss", "lr", "seconds", "val_rel_rmse"]  # as train.py's log.csv
+
+
+@dataclass
+class Settings:
+    """How a fit renders and steps; the config supplies the rest (``train``, ``model``)."""
+
+    spp: int = 8  # samples per pixel of every view and step in the gradient pass
+    primal_spp: int = 32  # ... in the primal pass, whose noise the loss's residual carries
+    lobe_every: int = 50  # steps between fits of the sampling lobe to the network
+    init: str | None = "ggx"  # "ggx": start from a fitted GGX (run); None: a constant
+    init_steps: int | None = None  # roughconductor steps of a "ggx" start (None: train.steps)
+    init_train_steps: int = 1500  # sample-based training steps on the fitted GGX
+    # After a "ggx" start the image fit runs at init_lr_scale x train.lr, its grids at
+    # init_grid_lr_scale x that (not model.grid.lr_scale): a noisy gradient makes the
+    # network drift from a good start, the more so the higher the rate (benchmark, 300
+    # steps from a start 0.5 % off: 7.3 % at 0.2 with the grids at 10, 5.3 % at 0.2 and
+    # 1, 5.0 % at 0.05 and 10, 3.8 % at 0.05 and 1)
+    init_lr_scale: float = 0.05
+    init_grid_lr_scale: float = 1.0
+
+
+@dataclass
+class View:
+    """One scene and its target image."""
+
+    scene_path: Path
+    image_path: Path
+    tree: ET.ElementTree
+    target: np.ndarray  # (H, W, 3) float32, linear RGB
+    integrator: str  # the integrator type the fit uses
+    scene: Any = None
+    params: Any = None
+    bsdf: Any = None
+    target_tensor: Any = None
+    weight_tensor: Any = None
+
+
+# ------------------------------------------------------------------ Mitsuba set-up
+def variant_name(cfg: cfgmod.Config) -> str:
+    """``target.variant``, else from ``train.device``: cuda_ad_rgb on CUDA, llvm_ad_rgb."""
+    if cfg.target.variant is not None:
+        return cfg.target.variant
+    device = cfg.train.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    return "cuda_ad_rgb" if device == "cuda" else "llvm_ad_rgb"
+
+
+def use_variant(name: str):
+    """Set Mitsuba's variant ``name`` (a JIT AD RGB one) and register ``neural_brdf_ad``;
+    returns the ``mitsuba`` module.  A variant this process cannot switch to raises
+    InputError naming it."""
+    if name not in VARIANTS:
+        raise InputError(
+            f"target.variant: {name}: fitting from images needs a JIT AD RGB variant "
+            f"({' or '.join(VARIANTS)})"
+        )
+    if name == "cuda_ad_rgb" and not torch.cuda.is_available():
+        raise InputError(
+            f"target.variant: {name}: the network runs in torch on the renderer's arrays, "
+            f"and this torch ({torch.__version__}) sees no CUDA GPU (use llvm_ad_rgb)"
+        )
+    try:
+        import mitsuba as mi
+    except ImportError:
+        raise InputError(
+            "target.images: needs Mitsuba 3 (pip install -e '.[mitsuba]' and libllvm19)"
+        ) from None
+    if mi.variant() != name:
+        import sys
+
+        loaded = sys.modules.get("neural_brdf.inverse.bsdf")
+        if loaded is not None:
+            raise InputError(
+                f"target.variant: {name}: this process already renders with {loaded.mi.variant()}"
+            )
+        try:
+            mi.set_variant(name)
+        except Exception as e:  # a missing LLVM or CUDA: Mitsuba raises several types
+            raise InputError(
+                f"target.variant: {name}: not usable here ({str(e).splitlines()[0]})"
+            ) from None
+    from neural_brdf.inverse import bsdf as inverse_bsdf  # noqa: F401  (registers neural_brdf_ad)
+
+    return mi
+
+
+# ------------------------------------------------------------------ inputs
+def read_image(path: Path, key: str) -> np.ndarray:
+    """A linear RGB EXR -> (H, W, 3) float32; InputError naming the file otherwise."""
+    import mitsuba as mi
+
+    if not path.is_file():
+        raise InputError(f"{key}: {path}: no such image file")
+    if path.suffix.lower() != ".exr":
+        raise InputError(f"{key}: {path}: expected a linear RGB OpenEXR image (.exr)")
+    try:
+        bmp = mi.Bitmap(str(path))
+    except Exception as e:  # Mitsuba raises RuntimeError on a bad or truncated file
+        raise InputError(
+            f"{key}: {path}: unreadable EXR ({str(e).strip().splitlines()[-1][:120]})"
+        ) from None
+    fmt = bmp.pixel_format()
+    if fmt not in (mi.Bitmap.PixelFormat.RGB, mi.Bitmap.PixelFormat.RGBA):
+        raise InputError(
+            f"{key}: {path}: a {fmt.name} image with {bmp.channel_count()} channel(s); "
+            "expected linear RGB"
+        )
+    img = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    arr = np.array(img, dtype=np.float32, copy=True).reshape(bmp.height(), bmp.width(), 3)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{key}: {path}: holds NaN or infinite pixels")
+    return arr
+
+
+def read_scene(path: Path, key: str) -> tuple[ET.ElementTree, str]:
+    """Parse a scene file and check it: (tree, integrator type the fit uses)."""
+    if not path.is_file():
+        raise InputError(f"{key}: {path}: no such scene file")
+    try:
+        tree = ET.parse(path)
+    except (ET.ParseError, OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{key}: {path}: not a readable XML scene ({e})") from None
+    root = tree.getroot()
+    if root.tag != "scene":
+        raise InputError(f"{key}: {path}: not a Mitsuba scene (root <{root.tag}>)")
+    fits = [e for e in root.iter("bsdf") if e.get("id") == "fit"]
+    if not fits:
+        raise InputError(f'{key}: {path}: no <bsdf id="fit"> (the BSDF to fit)')
+    if len(fits) > 1:
+        raise InputError(f'{key}: {path}: {len(fits)} elements <bsdf id="fit">; expected one')
+    integrators = root.findall("integrator")
+    kind = integrators[0].get("type", "") if integrators else "path"
+    if kind not in INTEGRATORS:
+        raise InputError(
+            f"{key}: {path}: integrator {kind!r}: a fit renders with {', '.join(INTEGRATORS)}"
+        )
+    return tree, INTEGRATORS[kind]
+
+
+def scene_text(tree: ET.ElementTree, bsdf: ET.Element, integrator: str | None = None) -> str:
+    """The scene with ``<bsdf id="fit">`` replaced by ``bsdf`` (and the top-level
+    integrator's type set to ``integrator``)."""
+    tree = copy.deepcopy(tree)
+    root = tree.getroot()
+    for parent in root.iter():
+        for i, child in enumerate(list(parent)):
+            if child.tag == "bsdf" and child.get("id") == "fit":
+                new = copy.deepcopy(bsdf)
+                new.set("id", "fit")
+                new.tail = child.tail
+                parent[i] = new
+    if integrator is not None:
+        found = root.findall("integrator")
+        if found:
+            found[0].set("type", integrator)
+        else:
+            root.insert(0, ET.Element("integrator", {"type": integrator}))
+    return ET.tostring(root, encoding="unicode")
+
+
+def bsdf_element(kind: str, **props) -> ET.Element:
+    """``<bsdf type=kind>`` with typed children: str -> string, float -> float, int ->
+    integer, a 3-sequence -> rgb."""
+    el = ET.Element("bsdf", {"type": kind})
+    for name, value in props.items():
+        if isinstance(value, bool):
+            ET.SubElement(el, "boolean", {"name": name, "value": str(value).lower()})
+        elif isinstance(value, int):
+            ET.SubElement(el, "integer", {"name": name, "value": str(value)})
+        elif isinstance(value, float):
+            ET.SubElement(el, "float", {"name": name, "value": repr(value)})
+        elif isinstance(value, str):
+            ET.SubElement(el, "string", {"name": name, "value": value})
+        else:
+            text = ", ".join(repr(float(v)) for v in value)
+            ET.SubElement(el, "rgb", {"name": name, "value": text})
+    return el
+
+
+def load_scene(path: Path, text: str):
+    """``mi.load_string`` with the scene's folder on Mitsuba's file resolver (relative
+    file names in the scene resolve as ``mi.load_file`` resolves them)."""
+    import mitsuba as mi
+
+    fr = mi.file_resolver()
+    saved = [fr[i] for i in range(len(fr))]
+    fr.prepend(str(path.resolve().parent))
+    try:
+        return mi.load_string(text)
+    except Exception as e:  # Mitsuba reports every load error as a multi-line RuntimeError
+        lines = [s.strip() for s in str(e).strip().splitlines() if s.strip()]
+        raise InputError(f"{path}: Mitsuba cannot load it: {lines[-1][:200]}") from None
+    finally:
+        fr.clear()
+        for entry in saved:
+            fr.append(entry)
+
+
+def film_size(scene) -> tuple[int, int]:
+    """(height, width) of the first sensor's film (its crop window)."""
+    w, h = scene.sensors()[0].film().crop_size()
+    return int(h), int(w)
+
+
+def read_views(cfg: cfgmod.Config) -> list[View]:
+    """Parse and check every ``target.images`` entry (scenes are loaded later)."""
+    views = []
+    for k, item in enumerate(cfg.target.images or []):
+        key = f"target.images[{k}]"
+        scene_path, image_path = Path(item.scene), Path(item.image)
+        tree, integrator = read_scene(scene_path, key + ".scene")
+        target = read_image(image_path, key + ".image")
+        views.append(View(scene_path, image_path, tree, target, integrator))
+    if not views:
+        raise InputError("target.images: empty; give at least one {scene, image} pair")
+    return views
+
+
+def check_films(views: list[View]) -> None:
+    """Load every scene as it is (its own fit BSDF) and check that something uses the
+    fit BSDF and that the target image has the film's size."""
+    for v in views:
+        scene = load_scene(v.scene_path, scene_text(v.tree, fit_element(v.tree)))
+        if fit_bsdf(scene) is None:
+            raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
+        check_size(v, scene)
+
+
+def check_size(view: View, scene) -> None:
+    h, w = film_size(scene)
+    if view.target.shape[:2] != (h, w):
+        th, tw = view.target.shape[:2]
+        raise InputError(
+            f"{view.image_path}: {tw}x{th} pixels, but the film of {view.scene_path} is {w}x{h}"
+        )
+
+
+# ------------------------------------------------------------------ losses
+def relative_mse(img, target, weight):
+    """The relative MSE of HDR images (module doc); ``weight`` = 1 / (y_bar^2 + eps)."""
+    import drjit as dr
+
+    d = img - target
+    return dr.mean(d * d * weight, axis=None)
+
+
+def rel_weight(target: np.ndarray) -> np.ndarray:
+    y = target.mean(-1, keepdims=True)
+    return np.broadcast_to(1.0 / (y * y + REL_EPS), target.shape).astype(np.float32)
+
+
+def albedo_directions(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """wi (K*N, 3) at ALBEDO_THETAS_DEG (a random azimuth each) and cosine-distributed
+    wo (K*N, 3), stratified, for the albedo penalty; fresh for every ``seed``."""
+    from analytic import frame
+
+    g = torch.Generator().manual_seed(seed)
+    k, side = len(ALBEDO_THETAS_DEG), ALBEDO_SIDE
+    n = side * side
+    theta = torch.tensor(ALBEDO_THETAS_DEG).deg2rad()
+    phi = 2 * math.pi * torch.rand(k, generator=g)
+    wi = torch.stack(
+        [theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()], -1
+    ).repeat_interleave(n, 0)
+    grid = torch.stack(
+        torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij"), -1
+    ).reshape(-1, 2)
+    u = (grid + torch.rand(k, n, 2, generator=g)) / side
+    wo = frame.square_to_cosine_hemisphere(u.reshape(-1, 2).float())
+    return wi.float(), wo.float()
+
+
+def albedo_penalty_fn(raw: RawBRDF):
+    """A dr.wrap'ed torch function: (weights, wi, wo) -> ALBEDO_WEIGHT * sum of
+    max(0, A - 1)^2 (module doc), and the largest A estimated."""
+    import drjit as dr
+
+    @dr.wrap(source="drjit", target="torch")
+    def penalty(weights, wi, wo):
+        f = torch.func.functional_call(raw, weights, (wi, wo))  # (K*N, 3)
+        a = math.pi * f.reshape(len(ALBEDO_THETAS_DEG), -1, 3).mean(1)  # (K, 3)
+        return ALBEDO_WEIGHT * torch.relu(a - 1.0).square().sum().reshape(1), a.max().reshape(1)
+
+    return penalty
+
+
+# ------------------------------------------------------------------ checkpoints
+def _adam_state(opt) -> dict:
+    """Adam's step counts and moments per weight, as CPU tensors (for ckpt.pt)."""
+    out = {}
+    for k, (_value, _promoted, _lr, extra) in opt.state.items():
+        t, m, v = extra[0], extra[1], extra[2]
+        out[k] = {
+            "t": int(np.asarray(t.numpy()).reshape(-1)[0]),
+            "m": torch.from_numpy(np.array(m.numpy(), dtype=np.float32, copy=True)),
+            "v": torch.from_numpy(np.array(v.numpy(), dtype=np.float32, copy=True)),
+        }
+    return out
+
+
+def _load_adam_state(opt, saved: dict) -> None:
+    """Restore :func:`_adam_state` into ``opt`` (weights it does not hold are skipped)."""
+    import drjit as dr
+
+    for k, s in saved.items():
+        if k not in opt.state:
+            continue
+        value, promoted, lr, extra = opt.state[k]
+        flat = type(extra[1])
+        t = dr.uint32_array_t(flat)(int(s["t"]))
+        opt.state[k] = (
+            value,
+            promoted,
+            lr,
+            (t, flat(s["m"].numpy()), flat(s["v"].numpy()), extra[3]),
+        )
+
+
+# ------------------------------------------------------------------ the fit
+def _rng_seed(seed: int, step: int, view: int) -> int:
+    return (seed * 1_000_003 + step * 101 + view) % (2**31 - 1)
+
+
+def fit_bsdf(scene):
+    """The scene's ``<bsdf id="fit">`` object, or None when nothing references it."""
+    import mitsuba as mi
+
+    nodes = mi.traverse(scene).hierarchy
+    return next((n for n in nodes if isinstance(n, mi.BSDF) and n.id() == "fit"), None)
+
+
+def prepare_views(views: list[View], bsdf: ET.Element) -> None:
+    """Load every view's scene with ``bsdf`` as ``<bsdf id="fit">`` and check its film
+    size; ``view.params`` are that BSDF's own parameters (``mi.traverse(bsdf)``)."""
+    import mitsuba as mi
+
+    for v in views:
+        v.scene = load_scene(v.scene_path, scene_text(v.tree, bsdf, v.integrator))
+        check_size(v, v.scene)
+        v.bsdf = fit_bsdf(v.scene)
+        if v.bsdf is None:
+            raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
+        v.params = mi.traverse(v.bsdf)
+        v.target_tensor = mi.TensorXf(v.target)
+        v.weight_tensor = mi.TensorXf(rel_weight(v.target))
+
+
+def fit_neural(
+    cfg: cfgmod.Config,
+    views: list[View],
+    run_dir: Path,
+    *,
+    settings: Settings,
+    resume: bool = False,
+    init_state: dict | None = None,
+    init_value: float = INIT_VALUE,
+    lr_factor: float = 1.0,
+    grid_lr_scale: float | None = None,
+    init_info: dict | None = None,
+) -> tuple[RawBRDF, dict[str, Any]]:
+    """Fit the RawBRDF of ``cfg.model`` to ``views``; writes ckpt.pt and log.csv."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from neural_brdf.inverse import bsdf as ib
+    from neural_brdf.train import loop as trainmod
+
+    t = cfg.train
+    # torch's ops here are small elementwise ones, called from inside the render: a
+    # multiply of 92k floats took 0.025 ms on one thread and 0.14 ms on two
+    # (OMP_WAIT_POLICY=PASSIVE, as the CLI sets; 7.8 ms without it) on the busy 2-core
+    # reference machine, so the fit runs torch on one thread (Dr.Jit has its own pool)
+    torch.set_num_threads(TORCH_THREADS)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path, log_path = run_dir / "ckpt.pt", run_dir / "log.csv"
+    ckpt = None
+    if resume:
+        ckpt = trainmod.load_checkpoint(ckpt_path)
+        if ckpt.get("format_version") != cfgmod.FORMAT_VERSION or ckpt.get("kind") != "images":
+            raise cfgmod.ConfigError(
+                f"{ckpt_path}: not a checkpoint of an images fit of format version "
+                f"{cfgmod.FORMAT_VERSION}; it cannot be resumed: train anew (--overwrite)"
+            )
+        trainmod.check_resumable(ckpt["config"], cfg)
+    atomic_write(run_dir / "config.yaml", cfg.to_yaml())
+
+    model_text = json.dumps(cfg.model.model_dump())
+    bsdf = bsdf_element(ib.PLUGIN, model=model_text, seed=int(t.seed), init_value=float(init_value))
+    prepare_views(views, bsdf)
+    lead = views[0].bsdf
+    if init_state is not None:
+        lead.load_state_dict(init_state)
+    if ckpt is not None:
+        lead.load_state_dict(ckpt["model"])
+    raw_template = lead.raw
+    names = list(lead.weights)
+    opt = mi.ad.Adam(lr=t.lr)
+    for n in names:
+        opt[n] = mi.TensorXf(lead.weights[n])
+    scales = {"grid.": cfg.model.grid.lr_scale, "cos_grid.": cfg.model.cosine_grid.lr_scale}
+    if grid_lr_scale is not None:
+        scales = dict.fromkeys(scales, grid_lr_scale)
+    lr_scale = {n: next((s for p, s in scales.items() if n.startswith(p)), 1.0) for n in names}
+    penalty = albedo_penalty_fn(raw_template)
+
+    step, seconds, render_seconds = 0, 0.0, 0.0
+    lobe = None
+    if ckpt is not None:
+        _load_adam_state(opt, ckpt["optimizer"])
+        step, seconds = int(ckpt["step"]), float(ckpt["train_seconds"])
+        lobe, init_info = ckpt.get("lobe"), ckpt.get("init")
+        render_seconds = float(ckpt.get("render_seconds", 0.0))
+
+    def weights_now() -> dict:
+        return {n: torch.from_numpy(np.array(opt[n].numpy(), copy=True)) for n in names}
+
+    def state():
+        return {
+            "format_version": cfgmod.FORMAT_VERSION,
+            "kind": "images",
+            "step": step,
+            "config": cfg.model_dump(),
+            "model": weights_now(),
+            "optimizer": _adam_state(opt),
+            "train_seconds": seconds,
+            "lobe": lobe,
+            "init": init_info,
+            "render_seconds": render_seconds,
+        }
+
+    def set_lobe(new):
+        for v in views:
+            v.bsdf.set_lobe(new, "fitted to the network")
+
+    if lobe is None:
+        lobe = lead.refit_lobe(seed=t.seed)
+    set_lobe(lobe)
+    if ckpt is None:
+        trainmod.save_checkpoint(ckpt_path, state())
+
+    rows = []
+    if resume and log_path.is_file():
+        with open(log_path, newline="") as fh:
+            rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
+    log_fh = open(log_path, "w", newline="")
+    log = csv.DictWriter(log_fh, LOG_COLUMNS)
+    log.writeheader()
+    log.writerows(rows)
+    bar = tqdm(
+        total=t.steps,
+        initial=min(step, t.steps),
+        desc=cfg.name,
+        disable=not t.progress,
+        dynamic_ncols=True,
+        mininterval=0.5,
+        leave=False,
+    )
+    last = {"loss": math.nan, "image": math.nan, "albedo": math.nan, "max_albedo": math.nan}
+    start = time.perf_counter() - seconds
+    try:
+        with trainmod.deferred_sigint() as sigint, ib.evaluated_mode():
+            while step < t.steps:
+                if sigint["set"]:
+                    seconds = time.perf_counter() - start
+                    trainmod.save_checkpoint(ckpt_path, state())
+                    raise Interrupted(
+                        f"interrupted at step {step}; checkpoint saved to "
+                        f"{ckpt_path}; continue with --resume"
+                    )
+                lr = trainmod.learning_rate(t, step) * lr_factor
+                opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
+                if step > 0 and step % settings.lobe_every == 0:
+                    lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
+                    set_lobe(lobe)
+                total = 0.0
+                t_render = time.perf_counter()
+                for i, v in enumerate(views):
+                    for n in names:
+                        v.params["raw." + n] = opt[n]
+                    v.params.update()
+                    img = mi.render(
+                        v.scene,
+                        v.params,
+                        spp=settings.primal_spp,
+                        spp_grad=settings.spp,
+                        seed=_rng_seed(t.seed, step, i),
+                    )
+                    loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
+                    dr.backward(loss)
+                    total += float(loss.array[0])
+                render_seconds += time.perf_counter() - t_render
+                wi, wo = albedo_directions(t.seed * 7919 + step)
+                pen, amax = penalty(
+                    {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
+                )
+                dr.backward(pen)
+                last = {
+                    "image": total,
+                    "albedo": float(pen.array[0]),
+                    "max_albedo": float(amax.array[0]),
+                }
+                last["loss"] = last["image"] + last["albedo"]
+                if not math.isfinite(last["loss"]):
+                    raise Diverged(
+                        f"loss is {last['loss']} at step {step}; the last good "
+                        f"checkpoint is kept in {ckpt_path} (try a lower train.lr)"
+                    )
+                opt.step()
+                step += 1
+                bar.update(1)
+                if step % t.log_every == 0 or step == t.steps:
+                    log.writerow(
+                        {
+                            "step": step,
+                            "loss": f"{last['loss']:.6g}",
+                            "lr": f"{lr:.4g}",
+                            "seconds": f"{time.perf_counter() - start:.2f}",
+                            "val_rel_rmse": "",
+                        }
+                    )
+                    log_fh.flush()
+                    bar.set_postfix(loss=f"{last['loss']:.4g}", albedo=f"{last['max_albedo']:.3f}")
+                if step % t.checkpoint_every == 0 or step == t.steps:
+                    if not all(np.all(np.isfinite(opt[n].numpy())) for n in names):
+                        raise Diverged(
+                            f"weights became non-finite by step {step}; the last "
+                            f"good checkpoint is kept in {ckpt_path}"
+                        )
+                    seconds = time.perf_counter() - start
+                    trainmod.save_checkpoint(ckpt_path, state())
+    finally:
+        bar.close()
+        log_fh.close()
+    seconds = time.perf_counter() - start
+    raw = copy.deepcopy(raw_template)
+    raw.load_state_dict(weights_now())
+    return raw.eval(), {
+        "steps": step,
+        "device": variant_of(),
+        "train_seconds": seconds,
+        "render_seconds": render_seconds,
+        "final_loss": last["loss"],
+        "final_image_loss": last["image"],
+        "final_albedo_penalty": last["albedo"],
+        "final_max_albedo_estimate": last["max_albedo"],
+        "spp_per_step": settings.spp,
+        "primal_spp_per_step": settings.primal_spp,
+        "lr_factor": lr_factor,
+        "grid_lr_scales": {p: s for p, s in scales.items()},
+        "views": len(views),
+        "sampling_lobe": lobe,
+        "init": init_info,
+        "target": describe(views),
+    }
+
+
+def variant_of() -> str:
+    import mitsuba as mi
+
+    return str(mi.variant())
+
+
+def describe(views: list[View]) -> str:
+    names = ", ".join(v.image_path.name for v in views)
+    return f"{len(views)} images ({names}) by inverse rendering"
+
+
+# ------------------------------------------------------------------ the run
+def fit(
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    settings: Settings | None = None,
+) -> tuple[RawBRDF, dict[str, Any], float]:
+    """The training stage of ``neural-brdf train`` for a config with ``target.images``:
+    check the folder and the images, fit (a GGX start first, by default); returns
+    (network, figures, the start time).  :func:`neural_brdf.pipeline.run` then exports
+    and validates it like any run (no reference: the physics checks only)."""
+    from neural_brdf.train import loop as trainmod
+
+    settings = settings or Settings()
+    trainmod.check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
+    t0 = time.perf_counter()
+    use_variant(variant_name(cfg))
+    views = read_views(cfg)
+    check_films(views)  # before anything is written
+    init_state, init_info = None, None
+    lr_factor, grid_lr_scale = 1.0, None
+    if settings.init == "ggx":
+        lr_factor, grid_lr_scale = settings.init_lr_scale, settings.init_grid_lr_scale
+        if not resume:
+            rough = fit_roughconductor(
+                views,
+                cfg.train,
+                spp=settings.spp,
+                primal_spp=settings.primal_spp,
+                steps=settings.init_steps,
+                label=f"{cfg.name}: GGX start, ",
+            )
+            init_state, init_info = ggx_initial_state(
+                cfg, rough, run_dir / "init", settings.init_train_steps
+            )
+            init_info["roughconductor"] = rough
+            init_info["seconds"] += rough["seconds"]
+    raw, training = fit_neural(
+        cfg,
+        views,
+        run_dir,
+        settings=settings,
+        resume=resume,
+        init_state=init_state,
+        lr_factor=lr_factor,
+        grid_lr_scale=grid_lr_scale,
+        init_info=init_info,
+    )
+    return raw, training, t0
+
+
+# ------------------------------------------------------------------ the analytic fit
+# Mitsuba's own roughconductor (GGX), fitted to the same images: the comparison of the
+# benchmark, and the first stage of the "ggx" initialisation.
+ROUGH_START = {"alpha": 0.3, "eta": (1.0, 1.0, 1.0), "k": (3.0, 3.0, 3.0)}
+ROUGH_BOUNDS = {"alpha.value": (0.01, 1.0), "eta.value": (0.02, 5.0), "k.value": (0.0, 10.0)}
+
+
+def fit_roughconductor(
+    views: list[View],
+    train: cfgmod.Train,
+    *,
+    spp: int,
+    primal_spp: int | None = None,
+    steps: int | None = None,
+    lr: float = 0.02,
+    label: str = "",
+) -> dict[str, Any]:
+    """Fit ``roughconductor`` (GGX; alpha, RGB eta and k) to ``views`` with the fit's loss,
+    mi.ad.Adam and ``train``'s schedule (warm-up, decay) at ``lr``; returns the fitted
+    parameters and the time.  No torch is involved, so Mitsuba's symbolic mode is used.
+    ``label``: a progress bar (when ``train.progress``) named after it."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from neural_brdf.train import loop as trainmod
+
+    steps = train.steps if steps is None else steps
+    sched = train.model_copy(update={"steps": steps, "lr": lr})
+    prepare_views(views, bsdf_element("roughconductor", distribution="ggx", **ROUGH_START))
+    opt = mi.ad.Adam(lr=lr)
+    for key in ROUGH_BOUNDS:
+        opt[key] = views[0].params[key]
+    start = time.perf_counter()
+    loss_value = math.nan
+    bar = tqdm(
+        total=steps,
+        desc=f"{label}roughconductor",
+        disable=not (train.progress and label),
+        dynamic_ncols=True,
+        mininterval=0.5,
+        leave=False,
+    )
+    for step in range(steps):
+        opt.set_learning_rate(trainmod.learning_rate(sched, step))
+        loss_value = 0.0
+        for i, v in enumerate(views):
+            v.params.update(opt)
+            img = mi.render(
+                v.scene,
+                v.params,
+                spp=primal_spp or spp,
+                spp_grad=spp,
+                seed=_rng_seed(train.seed, step, i),
+            )
+            loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
+            dr.backward(loss)
+            loss_value += float(loss.array[0])
+        opt.step()
+        for key, (lo, hi) in ROUGH_BOUNDS.items():
+            opt[key] = dr.clip(opt[key], lo, hi)
+        bar.update(1)
+    bar.close()
+    seconds = time.perf_counter() - start
+
+    def values(key):
+        return [float(x) for x in np.asarray(opt[key].numpy()).reshape(-1)]
+
+    return {
+        "alpha": values("alpha.value")[0],
+        "eta": values("eta.value"),
+        "k": values("k.value"),
+        "steps": steps,
+        "spp_per_step": spp,
+        "primal_spp_per_step": primal_spp or spp,
+        "final_image_loss": loss_value,
+        "seconds": seconds,
+    }
+
+
+def roughconductor_element(fit: dict) -> ET.Element:
+    """The ``<bsdf type="roughconductor">`` of :func:`fit_roughconductor`'s result."""
+    return bsdf_element(
+        "roughconductor",
+        distribution="ggx",
+        alpha=float(fit["alpha"]),
+        eta=tuple(fit["eta"]),
+        k=tuple(fit["k"]),
+    )
+
+
+def ggx_initial_state(
+    cfg: cfgmod.Config, rough: dict, run_dir: Path, steps: int
+) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """The "ggx" initialisation's second stage: the RawBRDF of ``cfg.model`` trained on
+    BRDF samples (:func:`neural_brdf.train.loop.train`, into ``run_dir``) of the analytic
+    microfacet model that matches Mitsuba's roughconductor: GGX, separable Smith
+    masking, conductor Fresnel with the fitted eta and k."""
+    from neural_brdf.train import loop as trainmod
+
+    d = cfg.model_dump()
+    d["target"] = {
+        "model": "microfacet",
+        "params": {
+            "distribution": "ggx",
+            "alpha": float(rough["alpha"]),
+            "masking": "smith_separable",
+            "fresnel": "conductor",
+            "eta": [float(x) for x in rough["eta"]],
+            "k": [float(x) for x in rough["k"]],
+        },
+    }
+    d["name"] = f"{cfg.name}: GGX start, network"
+    d["train"].update(steps=steps, threads=TORCH_THREADS, eval_every=0)
+    d["train"]["checkpoint_every"] = max(1, steps)
+    icfg = cfgmod.from_dict(d, source="ggx initialisation")
+    raw, info = trainmod.train(icfg, run_dir)
+    return raw.state_dict(), {
+        "target": info["target"],
+        "steps": steps,
+        "seconds": info["train_seconds"],
+        "raw_val_rel_rmse": info["raw_val_rel_rmse"],
+    }
+
+
+# ------------------------------------------------------------------ measurements
+def fit_element(tree: ET.ElementTree) -> ET.Element:
+    """The scene's own ``<bsdf id="fit">`` (e.g. the true material of a synthetic view)."""
+    return next(e for e in tree.getroot().iter("bsdf") if e.get("id") == "fit")
+
+
+def render_view(view: View, bsdf: ET.Element, *, spp: int, seed: int) -> np.ndarray:
+    """Render ``view``'s scene as it is, with ``bsdf`` as ``<bsdf id="fit">`` (its own
+    integrator, Mitsuba's symbolic mode): (H, W, 3) float32."""
+    import mitsuba as mi
+
+    scene = load_scene(view.scene_path, scene_text(view.tree, bsdf))
+    return np.asarray(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)[..., :3]
+
+
+def sphere_mask(view: View, erode: int = 2) -> np.ndarray:
+    """(H, W) bool: pixels whose centre ray hits a shape with ``<bsdf id="fit">``, and
+    whose neighbours within ``erode`` pixels do too (the film's filter reaches 2 pixels),
+    so that no background enters a pixel of the mask."""
+    import mitsuba as mi
+
+    scene = load_scene(view.scene_path, scene_text(view.tree, fit_element(view.tree)))
+    h, w = film_size(scene)
+    idx = np.arange(h * w)
+    pos = mi.Point2f(((idx % w) + 0.5) / w, ((idx // w) + 0.5) / h)
+    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    hit = si.is_valid() & (si.bsdf() == mi.BSDFPtr(fit_bsdf(scene)))
+    mask = np.asarray(hit.numpy(), dtype=bool).reshape(h, w)
+    out = mask.copy()
+    for dy in range(-erode, erode + 1):
+        for dx in range(-erode, erode + 1):
+            shifted = np.zeros_like(mask)
+            ys, xs = slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0))
+            yd, xd = slice(max(-dy, 0), h + min(-dy, 0)), slice(max(-dx, 0), w + min(-dx, 0))
+            shifted[yd, xd] = mask[ys, xs]
+            out &= shifted
+    return out
+
+
+def psnr_linear(reference: np.ndarray, image: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR (dB) of linear RGB over ``mask``'s pixels: 10 log10(peak^2 / MSE), peak the
+    reference's largest value there, MSE over the pixels and the 3 channels."""
+    ref, img = reference[mask].astype(np.float64), image[mask].astype(np.float64)
+    mse = float(np.mean((img - ref) ** 2))
+    return math.inf if mse == 0 else 10.0 * math.log10(float(ref.max()) ** 2 / mse)
+
+
+def image_rel_rmse(reference: np.ndarray, image: np.ndarray, mask: np.ndarray) -> float:
+    """sqrt(sum (image - reference)^2 / sum reference^2) over ``mask``'s pixels."""
+    ref, img = reference[mask].astype(np.float64), image[mask].astype(np.float64)
+    return float(np.sqrt(np.sum((img - ref) ** 2) / np.sum(ref**2)))
+
+
+def mitsuba_bsdf(bsdf: ET.Element):
+    """A standalone Mitsuba BSDF from its XML element."""
+    import mitsuba as mi
+
+    el = copy.deepcopy(bsdf)
+    el.attrib.pop("id", None)
+    return mi.load_string(
+        '<bsdf version="3.0.0"' + ET.tostring(el, encoding="unicode")[len("<bsdf") :]
+    )
+
+
+def mitsuba_f_cos(bsdf, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """f cos(theta_o) of a Mitsuba BSDF at local directions (N, 3) -> (N, 3)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.wi = mi.Vector3f(*(np.ascontiguousarray(wi[:, j], np.float32) for j in range(3)))
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    wo_ = mi.Vector3f(*(np.ascontiguousarray(wo[:, j], np.float32) for j in range(3)))
+    value = bsdf.eval(mi.BSDFContext(), si, wo_)
+    return np.stack([np.asarray(value[j].numpy(), np.float64) for j in range(3)], -1)
+
+
+def brdf_pairs(bsdf, n: int, seed: int, min_cos: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of the BRDF error: wi uniform (in solid angle) on the cap
+    cos(theta) > ``min_cos``; wo half uniform on the same cap, half drawn by ``bsdf``'s own
+    sampler (a Mitsuba BSDF, the true one) and kept where cos(theta_o) > ``min_cos``."""
+    import drjit as dr
+    import mitsuba as mi
+
+    rng = np.random.default_rng(seed)
+
+    def cap(m):
+        c = rng.uniform(min_cos, 1.0, m)
+        phi = rng.uniform(0.0, 2 * math.pi, m)
+        s = np.sqrt(1.0 - c * c)
+        return np.stack([s * np.cos(phi), s * np.sin(phi), c], -1)
+
+    half = n // 2
+    wi_u, wo_u = cap(half), cap(half)
+    wi_s = cap(4 * (n - half))
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi_s))
+    si.wi = mi.Vector3f(*(np.ascontiguousarray(wi_s[:, j], np.float32) for j in range(3)))
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    u = rng.random((len(wi_s), 3)).astype(np.float32)
+    bs, _ = bsdf.sample(mi.BSDFContext(), si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+    wo_s = np.stack([np.asarray(bs.wo[j].numpy(), np.float64) for j in range(3)], -1)
+    keep = np.flatnonzero(wo_s[:, 2] > min_cos)[: n - half]
+    wi = np.concatenate([wi_u, wi_s[keep]])
+    wo = np.concatenate([wo_u, wo_s[keep] / np.linalg.norm(wo_s[keep], axis=-1, keepdims=True)])
+    return wi, wo
+
+
+def brdf_rel_rmse(fc_fit: np.ndarray, fc_true: np.ndarray) -> float:
+    """sqrt(sum (f^ cos - f cos)^2 / sum (f cos)^2) over pairs and RGB."""
+    return float(np.sqrt(np.sum((fc_fit - fc_true) ** 2) / np.sum(fc_true**2)))

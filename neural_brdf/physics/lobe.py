@@ -1,0 +1,429 @@
+"""The analytic sampling lobe of a neural BRDF: fitted at export, stored in the ONNX file.
+
+A renderer cannot invert a network, so it importance-samples a mixture that is cheap to
+sample and whose density is known exactly:
+
+    pdf(wo) = (1 - w) cos(theta_o) / pi  [wo_z > 0]  +  w D_wi(m) / (4 |wo . m|),
+    m = normalize(wi + R wo),   R = identity (a mirror lobe) or R (x, y, z) = (-x, -y, z)
+    (a retro lobe),
+
+a cosine-weighted hemisphere plus a GGX or Beckmann (``distribution``) visible-normal
+lobe of roughness ``(alpha_x, alpha_y)`` (anisotropic when they differ; x is the
+tangent) reflected about the sampled normal m (D_wi is the distribution of visible
+normals, Heitz 2018; for Beckmann, Heitz & d'Eon 2014).  A
+retro lobe is the mirror lobe turned by pi about the normal, so it is centred on wi
+itself: R is an isometry, so its density is the mirror lobe's at R wo.  The lobe term is
+Mitsuba's ``MicrofacetDistribution(GGX or Beckmann, alpha_x, alpha_y,
+sample_visible=True)``, so the plugin in :mod:`neural_brdf.renderers.mitsuba` samples it with
+Mitsuba's own code.
+
+:func:`fit` minimises the relative second moment of the sample weight f cos / pdf
+(1 + the relative variance of a one-sample albedo estimate), averaged over incident
+directions.  Every candidate is scored on one pooled set of samples (a defensive mixture
+of the cosine lobe and isotropic mirror and retro lobes of every alpha of the grid), so
+the network is evaluated once per sample, not once per candidate:
+
+1. isotropic GGX and Beckmann, mirror and retro lobes over the alpha grid, every share w;
+2. if turning the best lobe anisotropic (alpha_x != alpha_y) lowers the score by more
+   than ``ANISO_GAIN``, a coordinate search over (alpha_x, alpha_y) on the same grid;
+3. if giving each incident direction its own roughness (same aspect) and share lowers
+   the score by more than ``PER_INCIDENCE_GAIN``, a per-incidence ``table`` of
+   (alpha_x, alpha_y, w) over cos theta_i at the fit's directions, interpolated linearly
+   and clamped at the ends (:func:`at`).
+
+It takes about a second.  :mod:`neural_brdf.export` stores the result in the metadata
+key ``sampling_lobe``:
+
+    {"kind": "cosine+ggx_vndf", "alpha": 0.26, "alpha_x": 0.26, "alpha_y": 0.26,
+     "retro": false, "distribution": "ggx", "weight": 0.9, "second_moment": 1.31,
+     "second_moment_cosine": 3.9}
+
+plus, for a per-incidence lobe, ``"table": {"cos_theta": [...], "alpha_x": [...],
+"alpha_y": [...], "weight": [...]}`` (the top-level values are then the single lobe's).
+
+``weight`` is the lobe's share w; ``alpha`` is sqrt(alpha_x alpha_y) (files written
+before these keys hold ``alpha`` only, read as a GGX mirror lobe with alpha_x = alpha_y
+= alpha; the kind keeps its historical name whatever the distribution);
+the two second moments (the fitted lobe's and cosine sampling's alone) say how much the
+lobe helps.  This module needs numpy, torch and onnxruntime only: no renderer.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from analytic import frame
+from analytic.microfacet import Distribution
+from neural_brdf.errors import InputError
+from neural_brdf.fileformat import LOBE_KEY as KEY  # the ONNX metadata key
+from neural_brdf.fileformat import OUTPUT
+
+KIND = "cosine+ggx_vndf"
+
+# The GGX alpha is never below this: Mitsuba's float32 GGX sampling loses accuracy for
+# much sharper lobes.  The cosine share is never below 1 - MAX_WEIGHT, which bounds the
+# sample weight where the network has a diffuse tail that the GGX lobe misses; the fit
+# takes a share that high only where its scored second moment says the lobe covers the
+# BRDF (a polished metal: with a cap of 0.9 its noise was 10x that of the target's own
+# sampler, 1.4x with 0.995).
+MIN_ALPHA = 0.01
+MAX_WEIGHT = 0.995
+
+# The grid, and the incident directions it is scored at: theta from near-normal to
+# near-grazing (degrees), each at its own azimuth so anisotropic models are probed
+# off-axis too.
+ALPHAS = np.geomspace(MIN_ALPHA, 1.0, 25)
+WEIGHTS = np.r_[np.arange(10) / 10.0, 0.95, 0.98, 0.99, MAX_WEIGHT]  # 0, 0.1, ..., 0.9, ...
+THETA_DEG = (5.0, 20.0, 35.0, 50.0, 65.0, 80.0)
+SAMPLES = 512  # per proposal of the pool (cosine, mirror and retro per alpha) per direction
+# An anisotropic lobe is kept only if it lowers the second moment by this share: an
+# isotropic model keeps alpha_x == alpha_y whatever the sampling noise.
+ANISO_GAIN = 0.03
+ANISO_ROUNDS = 3  # coordinate-search rounds (alpha_x, then alpha_y)
+# The microfacet distributions a lobe can sample: Mitsuba's MicrofacetType names.
+DISTRIBUTIONS = ("ggx", "beckmann")
+# A per-incidence table (roughness and share per incident direction) is kept only if it
+# lowers the mean second moment by this share.
+PER_INCIDENCE_GAIN = 0.05
+
+
+def fit(
+    fn,
+    *,
+    seed: int = 0,
+    anisotropic: bool = True,
+    retro: bool = True,
+    per_incidence: bool = True,
+    distributions: tuple[str, ...] = DISTRIBUTIONS,
+) -> dict:
+    """Fit the lobe to ``fn(wi, wo) -> f`` (numpy float32 (N, 3) in, (N, 3) out, 1/sr).
+
+    ``anisotropic`` / ``retro`` / ``per_incidence`` False restrict the search to
+    alpha_x == alpha_y / mirror lobes / one lobe for every incident direction, and
+    ``distributions`` to some of :data:`DISTRIBUTIONS`.  Returns the metadata dict (see
+    the module docstring), with JSON-ready floats."""
+    allow_retro = retro
+    rng = np.random.default_rng(seed)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # these small ops ran 5x slower on 2 threads than on 1
+    try:
+        pools = [_Pool(fn, _incident(t, 0.9 * k), rng) for k, t in enumerate(THETA_DEG)]
+        scores: dict[tuple, np.ndarray] = {}
+
+        def per_pool(ia: int, ib: int, retro: bool, dist: str) -> np.ndarray:  # (pools, W)
+            key = (ia, ib, retro, dist)
+            if key not in scores:
+                scores[key] = np.stack([p.second_moments(ia, ib, retro, dist) for p in pools])
+            return scores[key]
+
+        def best(keys) -> tuple[float, tuple, int]:
+            return min(
+                (float(per_pool(*k).mean(0).min()), k, int(np.argmin(per_pool(*k).mean(0))))
+                for k in keys
+            )
+
+        n = len(ALPHAS)
+        shapes = (False, True) if allow_retro else (False,)
+        m2, (ia, ib, retro, dist), j = best(
+            [(i, i, r, d) for d in distributions for r in shapes for i in range(n)]
+        )
+        cosine = float(per_pool(0, 0, False, "ggx").mean(0)[0])  # w = 0: the cosine lobe
+        if j > 0 and anisotropic:  # a GGX lobe is used: try it anisotropic
+            step = [
+                (ia + d, ib - d, retro, dist)
+                for d in (-2, 2)
+                if 0 <= ia + d < n and 0 <= ib - d < n
+            ]
+            if step and best(step)[0] < (1.0 - ANISO_GAIN) * m2:
+                for _ in range(ANISO_ROUNDS):
+                    last = (ia, ib)
+                    m2, (ia, ib, retro, dist), j = best([(i, ib, retro, dist) for i in range(n)])
+                    m2, (ia, ib, retro, dist), j = best([(ia, i, retro, dist) for i in range(n)])
+                    if (ia, ib) == last:
+                        break
+        if j == 0:  # the cosine lobe alone: no GGX or Beckmann part to describe
+            ia, ib, retro, dist = 0, 0, False, "ggx"
+        table = None
+        if per_incidence and j > 0:
+            # each incident direction's own roughness (same aspect) and share
+            line = [
+                (ia + t, ib + t, retro, dist)
+                for t in range(-n, n)
+                if 0 <= ia + t < n and 0 <= ib + t < n
+            ]
+            stack = np.stack([per_pool(*k) for k in line])  # (line, pools, WEIGHTS)
+            flat = stack.transpose(1, 0, 2).reshape(len(pools), -1)
+            pick = np.argmin(flat, axis=1)
+            m2_table = float(flat[np.arange(len(pools)), pick].mean())
+            if m2_table < (1.0 - PER_INCIDENCE_GAIN) * m2:
+                rows = [(line[c // len(WEIGHTS)], c % len(WEIGHTS)) for c in pick]
+                # where the cosine lobe alone is best (share 0) every roughness ties: keep
+                # the single lobe's, so interpolation towards a glossy node stays smooth
+                rows = [(k if j_k > 0 else (ia, ib, retro, dist), j_k) for k, j_k in rows]
+                order = np.argsort(np.cos(np.radians(THETA_DEG)))  # cos theta ascending
+                table = {
+                    "cos_theta": [float(np.cos(np.radians(THETA_DEG[k]))) for k in order],
+                    "alpha_x": [float(ALPHAS[rows[k][0][0]]) for k in order],
+                    "alpha_y": [float(ALPHAS[rows[k][0][1]]) for k in order],
+                    "weight": [float(WEIGHTS[rows[k][1]]) for k in order],
+                }
+                m2 = m2_table
+    finally:
+        torch.set_num_threads(threads)
+    ax, ay = float(ALPHAS[ia]), float(ALPHAS[ib])
+    out = {
+        "kind": KIND,
+        "alpha": math.sqrt(ax * ay) if ia != ib else ax,
+        "alpha_x": ax,
+        "alpha_y": ay,
+        "retro": bool(retro),
+        "distribution": dist,
+        "weight": float(WEIGHTS[j]),
+        "second_moment": m2,
+        "second_moment_cosine": cosine,
+    }
+    if table is not None:
+        out["table"] = table
+    return out
+
+
+def at(lobe: dict, cos_theta_i) -> tuple:
+    """(alpha_x, alpha_y, weight) of a lobe for incident cos(theta) (a float or an array):
+    the per-incidence table interpolated linearly in cos theta (clamped at its ends), or
+    the lobe's single values."""
+    t = lobe.get("table")
+    if not t:
+        return lobe["alpha_x"], lobe["alpha_y"], lobe["weight"]
+    c = np.asarray(cos_theta_i, dtype=np.float64)
+    return tuple(np.interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
+
+
+def _incident(theta_deg: float, phi: float) -> torch.Tensor:
+    t = math.radians(theta_deg)
+    return torch.tensor(
+        [math.sin(t) * math.cos(phi), math.sin(t) * math.sin(phi), math.cos(t)], dtype=torch.float64
+    )
+
+
+def _turn(w):
+    """R: a half turn about the normal, (x, y, z) -> (-x, -y, z)."""
+    return (
+        w * np.array([-1.0, -1.0, 1.0])
+        if isinstance(w, np.ndarray)
+        else w * torch.tensor([-1.0, -1.0, 1.0], dtype=w.dtype)
+    )
+
+
+def _ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
+    """Density of wo = reflect(wi, m), m a GGX(ax, ay) visible normal seen from wi
+    (Heitz 2018, eq. 1; GGX D and Smith G1 as in analytic.microfacet).  wi, wo: (N, 3);
+    ax, ay: floats or (C, 1) arrays, giving (N,) or (C, N)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    t = hx * hx / (ax * ax) + hy * hy / (ay * ay) + hz * hz
+    d = np.where(hz > 0, 1.0 / (math.pi * ax * ay * t * t), 0.0)
+    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
+    g1 = 2.0 * wz / (wz + np.sqrt(ax * ax * wx * wx + ay * ay * wy * wy + wz * wz))
+    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
+    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
+    return g1 * cos_ih * d / (wz * 4.0 * cos_oh)
+
+
+def _beckmann_pdf(wi: np.ndarray, wo: np.ndarray, ax: float, ay: float) -> np.ndarray:
+    """As :func:`_ggx_pdf` for the Beckmann distribution: D (Walter et al. 2007, eq. 25,
+    anisotropic slopes) and Smith Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
+    sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    hz_safe = np.maximum(hz, 1e-6)
+    e = (hx * hx / (ax * ax) + hy * hy / (ay * ay)) / (hz_safe * hz_safe)
+    d = np.where(hz > 1e-6, np.exp(-e) / (math.pi * ax * ay * hz_safe**4), 0.0)
+    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
+    a = 1.0 / np.sqrt(np.maximum((ax * ax * wx * wx + ay * ay * wy * wy) / (wz * wz), 1e-30))
+    erf = torch.special.erf(torch.from_numpy(np.ascontiguousarray(a))).numpy()
+    lam = 0.5 * (erf - 1.0) + np.exp(-a * a) / (2.0 * a * math.sqrt(math.pi))
+    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
+    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
+    return cos_ih * d / ((1.0 + lam) * wz * 4.0 * cos_oh)
+
+
+class _Pool:
+    """Samples at one incident direction, pooled over the cosine lobe and the isotropic
+    mirror and retro GGX lobes of every alpha of the grid (the defensive mixture q), with
+    what every candidate lobe's second moment needs: (f cos)^2 / q and p_cos."""
+
+    def __init__(self, fn, wi1: torch.Tensor, rng):
+        n, k = SAMPLES, len(ALPHAS)
+        u = torch.from_numpy(rng.random((2 * k + 1, n, 2)))
+        wi = wi1.expand(n, 3)
+        wos = [frame.square_to_cosine_hemisphere(u[0])]
+        for r, uu in enumerate(u[1:]):
+            d = Distribution("ggx", float(ALPHAS[r % k]), float(ALPHAS[r % k]))
+            wo = frame.reflect(wi, d.sample_visible(wi, uu))
+            wos.append(_turn(wo) if r >= k else wo)
+        wo = torch.cat(wos, 0).numpy()  # (P n, 3)
+        wi = np.broadcast_to(wi1.numpy(), wo.shape)
+        p_cos = np.where(wo[:, 2] > 0, np.clip(wo[:, 2], 0.0, None) / math.pi, 0.0)
+        a = ALPHAS[:, None]
+        p_iso = {False: _ggx_pdf(wi, wo, a, a), True: _ggx_pdf(wi, _turn(wo), a, a)}  # (A, N)
+        # The pooled samples' density over the whole sphere: a visible normal may reflect
+        # wi below the horizon; such samples count, with f cos = 0.
+        q = (p_cos + p_iso[False].sum(0) + p_iso[True].sum(0)) / (2 * k + 1)
+        f = np.asarray(fn(wi.astype(np.float32), wo.astype(np.float32)))
+        fc = f.astype(np.float64).mean(-1) * np.clip(wo[:, 2], 0.0, None)
+        live = (fc > 0) & (q > 0)
+        albedo = np.sum(fc[live] / q[live]) / len(wo)
+        self.black = not albedo > 0  # black at this angle: no preference
+        self.wi, self.wo = wi[live], wo[live]
+        self.p_iso = {r: p[:, live].astype(np.float32) for r, p in p_iso.items()}
+        # (f cos)^2 / q per sample, then / p for every candidate; float32 suffices to rank
+        self.c = (fc[live] ** 2 / q[live]).astype(np.float32)
+        self.p_cos = p_cos[live].astype(np.float32)
+        self.norm = len(wo) * albedo * albedo
+
+    def second_moments(self, ia: int, ib: int, retro: bool, dist: str = "ggx") -> np.ndarray:
+        """E_p[(f cos / p)^2] / A^2 for the lobe (ALPHAS[ia], ALPHAS[ib], retro, dist)
+        and every share w of WEIGHTS (A = the albedo, RGB mean)."""
+        if self.black:
+            return np.zeros(len(WEIGHTS))
+        if ia == ib and dist == "ggx":
+            p = self.p_iso[retro][ia]
+        else:
+            wo = _turn(self.wo) if retro else self.wo
+            pdf = _ggx_pdf if dist == "ggx" else _beckmann_pdf
+            p = pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib]).astype(np.float32)
+        m2 = np.empty(len(WEIGHTS))
+        with np.errstate(divide="ignore"):
+            for j, w in enumerate(WEIGHTS.astype(np.float32)):
+                m2[j] = np.sum(self.c / ((1 - w) * self.p_cos + w * p), dtype=np.float64)
+        return m2 / self.norm
+
+
+_FITTED: dict[tuple[str, int], dict] = {}  # fit_onnx's results by (SHA-256 of the file, seed)
+_FITTED_MAX = 16
+
+
+def fit_onnx(model, *, seed: int = 0) -> dict:
+    """:func:`fit` on an ONNX model (a path or the bytes of one), through onnxruntime.
+
+    The fit is deterministic, so its result is kept for the same bytes and seed: a
+    report that draws an analytic target in the viewer and renders it in Mitsuba fits
+    its lobe once (about a second each)."""
+    import hashlib
+
+    import onnxruntime as ort
+
+    data = Path(model).read_bytes() if isinstance(model, (str, os.PathLike)) else bytes(model)
+    key = (hashlib.sha256(data).hexdigest(), seed)
+    if key in _FITTED:
+        return copy.deepcopy(_FITTED[key])
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.log_severity_level = 3
+    session = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    lobe = fit(lambda wi, wo: session.run([OUTPUT], {"wi": wi, "wo": wo})[0], seed=seed)
+    if len(_FITTED) >= _FITTED_MAX:
+        _FITTED.pop(next(iter(_FITTED)))
+    _FITTED[key] = copy.deepcopy(lobe)
+    return lobe
+
+
+def to_json(lobe: dict) -> str:
+    return json.dumps(lobe, sort_keys=True)
+
+
+def parse(text: str) -> dict:
+    """The metadata value -> the lobe dict; a one-line InputError if it is malformed."""
+    try:
+        lobe = json.loads(text)
+        kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
+        ax, ay = float(lobe.get("alpha_x", alpha)), float(lobe.get("alpha_y", alpha))
+        retro = lobe.get("retro", False)
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
+        raise InputError(
+            f'metadata {KEY!r}: expected JSON {{"kind": "{KIND}", '
+            f'"alpha": a, "weight": w}}, got {text!r}'
+        ) from None
+    if kind != KIND:
+        raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
+    finite = all(math.isfinite(v) for v in (alpha, ax, ay))
+    if not (finite and alpha > 0 and ax > 0 and ay > 0 and 0.0 <= weight <= 1.0):
+        raise InputError(
+            f"metadata {KEY!r}: alpha, alpha_x and alpha_y must be finite and > 0 and weight "
+            f"in [0, 1], "
+            f"got {text!r}"
+        )
+    if not isinstance(retro, bool):
+        raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
+    dist = lobe.get("distribution", "ggx")
+    if dist not in DISTRIBUTIONS:
+        raise InputError(
+            f"metadata {KEY!r}: unknown distribution {dist!r} (known: {', '.join(DISTRIBUTIONS)})"
+        )
+    out = {
+        **lobe,
+        "alpha": max(alpha, MIN_ALPHA),
+        "alpha_x": max(ax, MIN_ALPHA),
+        "alpha_y": max(ay, MIN_ALPHA),
+        "retro": retro,
+        "distribution": dist,
+        "weight": weight,
+    }
+    if lobe.get("table") is not None:
+        out["table"] = _parse_table(lobe["table"], text)
+    return out
+
+
+def _parse_table(table, text: str) -> dict:
+    """The per-incidence table: equal-length lists (>= 2 nodes) of finite numbers,
+    cos_theta strictly ascending in [0, 1], alphas > 0 (raised to MIN_ALPHA), weights in
+    [0, 1]."""
+    keys = ("cos_theta", "alpha_x", "alpha_y", "weight")
+    try:
+        if not all(isinstance(table[k], list) for k in keys) or any(
+            isinstance(v, bool) for k in keys for v in table[k]
+        ):
+            raise TypeError
+        cols = {k: [float(v) for v in table[k]] for k in keys}
+    except (KeyError, TypeError, ValueError, OverflowError):
+        raise InputError(
+            f"metadata {KEY!r}: table must hold lists {', '.join(keys)}, got {text!r}"
+        ) from None
+    c = cols["cos_theta"]
+    if (
+        len({len(v) for v in cols.values()}) != 1
+        or len(c) < 2
+        or not all(math.isfinite(v) for col in cols.values() for v in col)
+        or not all(0.0 <= a < b <= 1.0 for a, b in zip(c, c[1:]))
+        or not all(a > 0 for k in ("alpha_x", "alpha_y") for a in cols[k])
+        or not all(0.0 <= w <= 1.0 for w in cols["weight"])
+    ):
+        raise InputError(
+            f"metadata {KEY!r}: table needs >= 2 nodes of equal length, cos_theta ascending "
+            f"in [0, 1], alphas > 0 and weights in [0, 1], got {text!r}"
+        )
+    for k in ("alpha_x", "alpha_y"):
+        cols[k] = [max(a, MIN_ALPHA) for a in cols[k]]
+    return cols
+
+
+def complete(lobe: dict) -> dict:
+    """A lobe dict, possibly partial ({"alpha": a, "weight": w}), checked and with every
+    key: kind, alpha, alpha_x, alpha_y, retro, distribution, weight (and its table, if it
+    has one)."""
+    return parse(to_json({"kind": KIND, **lobe}))
+
+
+def from_metadata(meta: dict) -> dict | None:
+    """The stored lobe of a model's metadata (a dict of strings), or None (older files)."""
+    text = meta.get(KEY)
+    return None if text is None else parse(text)

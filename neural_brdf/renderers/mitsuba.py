@@ -1,0 +1,370 @@
+"""Mitsuba 3 plugins for exported neural BRDFs and for the analytic models.
+
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")            # or cuda_ad_rgb
+    import neural_brdf.renderers.mitsuba               # registers the two plugins below
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": "runs/quickstart/model.onnx"})
+    ref = mi.load_dict({"type": "analytic_brdf", "model": "microfacet",
+                        "params": '{"alpha": 0.3, "fresnel": "conductor", "material": "Au"}'})
+
+The preview scene, PNG writing and PSNR are in :mod:`neural_brdf.renderers.render`.
+
+This module holds the renderer plugins; the other modules that import mitsuba use it
+(render.py: preview renders; inverse.py, inverse_bsdf.py, inverse_example.py: fitting
+from images; plots.py and cli.py: to check that it is installed and set a variant).  Importing this
+module needs a Mitsuba variant to be set already (``mi.set_variant``); the plugins are
+registered for that variant, which must be a JIT one (``llvm_*`` or ``cuda_*``; scalar
+variants are refused when a plugin loads).
+
+Evaluation.  The plugin never evaluates a retyped copy of the model.  The exported ONNX
+graph is lowered once by :mod:`neural_brdf.graph` (constants folded, dense layers as
+fused multiply-add chains with literal weights) and the instruction list is executed
+with Dr.Jit arrays by :mod:`neural_brdf.backends.drjit` (:class:`OnnxProgram`).  In JIT
+variants the whole graph is traced into the render's kernel, so rendering calls no
+Python per sample; it runs inside a conditional, skipped for SIMD packets in which no
+lane has both directions above the horizon.  An op the lowering lacks raises
+:class:`UnsupportedOnnxOp` naming it when the model loads.
+
+The ``analytic_brdf`` plugin exports the analytic model's own torch ``f(wi, wo)`` to
+ONNX with ``torch.onnx`` (in memory) and runs it through the same interpreter, so it is
+as fast as the neural plugin and never calls back into torch while rendering.
+
+Sampling (both plugins).  The mixture of :mod:`neural_brdf.physics.lobe`: cosine-weighted
+hemisphere sampling (share 1 - w) and GGX visible-normal sampling of a reflection lobe
+of roughness ``(alpha_x, alpha_y)`` (share w), turned by pi about the normal for a
+retro lobe; ``pdf`` is the mixture density of ``sample``.  The neural plugin reads the
+lobe from the ONNX metadata key ``sampling_lobe``, which the exporter writes; for files
+exported before it did, it fits them when the model loads (about a second), as the
+analytic plugin always does.  The sample weight is
+computed by the very same traced functions as ``eval`` and ``pdf`` (value / pdf), so it
+equals eval / pdf exactly.
+
+Conventions (Mitsuba's): ``eval`` returns f * cos(theta_o), 0 when wi or
+wo is at or below the horizon (one-sided, like Mitsuba's built-in BSDFs); ``pdf`` is 0
+below the horizon; a sample below it has weight 0.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import onnx
+
+from neural_brdf.backends.drjit import OnnxProgram
+from neural_brdf.config import InputError
+from neural_brdf.graph import SUPPORTED_OPS, UnsupportedOnnxOp
+from neural_brdf.physics import lobe as lobes
+from neural_brdf.runtime import INPUTS, OUTPUT
+
+if mi.variant() is None:
+    raise ImportError(
+        "neural_brdf.renderers.mitsuba: set a Mitsuba variant first, e.g. "
+        "mi.set_variant('llvm_ad_rgb'); the plugins register for that variant"
+    )
+if not mi.is_rgb:
+    # The graph returns RGB.  In a spectral or monochrome variant a scene would load and
+    # the render then die inside Mitsuba with a bare std::bad_cast, so refuse here.
+    raise ImportError(
+        f"neural_brdf.renderers.mitsuba: variant {mi.variant()!r} is not an RGB variant; "
+        "the neural BSDF returns RGB values: use llvm_ad_rgb or cuda_ad_rgb "
+        "(for spectral rendering, bake the model to an RGL .bsdf file for "
+        "Mitsuba's own 'measured' plugin)"
+    )
+
+__all__ = [
+    "SUPPORTED_OPS",
+    "AnalyticBSDF",
+    "NeuralBSDF",
+    "OnnxProgram",
+    "UnsupportedOnnxOp",
+    "analytic_onnx",
+    "read_model",
+]
+
+
+# ====================================================================== BSDF plugins
+def _black(wi, wo):
+    return mi.Color3f(0.0)
+
+
+def _interp(c, xs, ys):
+    """ys interpolated linearly at c over the ascending nodes xs, clamped at the ends."""
+    y = mi.Float(ys[0])
+    for k in range(1, len(xs)):
+        if ys[k] != ys[k - 1]:
+            t = dr.clip((c - xs[k - 1]) / (xs[k] - xs[k - 1]), 0.0, 1.0)
+            y = y + t * (ys[k] - ys[k - 1])
+    return y
+
+
+def _turn(w):
+    """A half turn about the normal, (x, y, z) -> (-x, -y, z): the retro lobe."""
+    return mi.Vector3f(-w.x, -w.y, w.z)
+
+
+class _GraphBSDF(mi.BSDF):
+    """A BSDF evaluated by an ONNX graph (f, no cosine) with the mixture sampler."""
+
+    def _setup(self, program: OnnxProgram, lobe: dict, label: str):
+        if not dr.is_jit_v(mi.Float):
+            raise InputError(
+                f"{label}: needs a JIT variant (llvm_ad_rgb, cuda_ad_rgb, ...); "
+                f"the interpreter traces Dr.Jit arrays, and {mi.variant()} has none"
+            )
+        if program.inputs != list(INPUTS) or program.outputs != [OUTPUT]:
+            raise InputError(
+                f"{label}: expected inputs {list(INPUTS)} and output {OUTPUT!r}, "
+                f"got {program.inputs} -> {program.outputs}"
+            )
+        self.program = program
+        self.lobe = lobes.complete(lobe)
+        self.label = label
+        self.lobe_table = self.lobe.get("table")
+        # the largest share decides whether the GGX branch exists at all
+        self.lobe_weight = (
+            max(self.lobe_table["weight"]) if self.lobe_table else float(self.lobe["weight"])
+        )
+        self.lobe_retro = self.lobe["retro"]
+        flags = (
+            mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+        )
+        self.m_components = [flags]
+        self.m_flags = flags
+
+    # -- the three traced pieces; sample() reuses them so that weight == eval / pdf
+    def _f_cos(self, si, wo, active):
+        cos_i, cos_o = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(wo)
+        valid = active & (cos_i > 0.0) & (cos_o > 0.0)
+        # The graph runs inside a conditional, which Dr.Jit skips for a SIMD packet
+        # (LLVM) or warp (CUDA) where no lane needs it: the unlit side of a light,
+        # light samples below the horizon, paths that left the surface.
+        return dr.if_stmt((si.wi, wo), valid, self._graph_f_cos, _black, label="graph")
+
+    def _graph_f_cos(self, wi, wo):
+        out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z])[OUTPUT]
+        return mi.Color3f(out[0], out[1], out[2]) * mi.Frame3f.cos_theta(wo)
+
+    def _pdf(self, si, wo, active):
+        wi = si.wi
+        cos_i, cos_o = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
+        valid = active & (cos_i > 0.0) & (cos_o > 0.0)
+        distr, w, ax, ay = self._lobe(wi)
+        p = (1.0 - w) * mi.warp.square_to_cosine_hemisphere_pdf(wo)
+        if self.lobe_weight > 0.0:  # a Python float: decided once, not per lane
+            v = _turn(wo) if self.lobe_retro else wo
+            m = dr.normalize(wi + v)
+            dot_om = dr.dot(v, m)
+            p_m = self._visible_pdf(distr, wi, m, ax, ay)
+            p_ggx = dr.select(dot_om > 0.0, p_m / (4.0 * dot_om), 0.0)
+            p = p + w * p_ggx
+        return dr.select(valid, p, 0.0)
+
+    def _lobe(self, wi):
+        """The GGX or Beckmann distribution and share of the lobe for wi: constants, or with a
+        per-incidence table interpolated linearly in cos theta_i (neural_brdf.physics.lobe.at)."""
+        lobe, t = self.lobe, self.lobe_table
+        kind = (
+            mi.MicrofacetType.Beckmann
+            if lobe["distribution"] == "beckmann"
+            else mi.MicrofacetType.GGX
+        )
+        if not t:
+            ax, ay, w = lobe["alpha_x"], lobe["alpha_y"], mi.Float(lobe["weight"])
+        else:
+            c = mi.Frame3f.cos_theta(wi)
+            ax, ay, w = (_interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
+        return mi.MicrofacetDistribution(kind, ax, ay, True), w, ax, ay
+
+    def _visible_pdf(self, distr, wi, m, ax, ay):
+        """The density of the visible normal m seen from wi.  For Beckmann, Mitsuba's
+        pdf uses a rational approximation of Smith's G1 (up to 0.3 % off the exact
+        density); here the exact Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
+        sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27), as in
+        neural_brdf.physics.lobe and the generated code."""
+        if self.lobe["distribution"] != "beckmann":
+            return distr.pdf(wi, m)
+        cos_i = mi.Frame3f.cos_theta(wi)
+        a2 = (ax * ax * wi.x * wi.x + ay * ay * wi.y * wi.y) / (cos_i * cos_i)
+        a = dr.rsqrt(dr.maximum(a2, 1e-30))
+        lam = 0.5 * (dr.erf(a) - 1.0) + dr.exp(-a * a) / (2.0 * math.sqrt(math.pi) * a)
+        return distr.eval(m) * dr.maximum(dr.dot(wi, m), 0.0) / ((1.0 + lam) * cos_i)
+
+    def _enabled(self, ctx) -> bool:
+        return ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0) or ctx.is_enabled(
+            mi.BSDFFlags.DiffuseReflection, 0
+        )
+
+    def eval(self, ctx, si, wo, active=True):
+        if not self._enabled(ctx):
+            return mi.Color3f(0.0)
+        return self._f_cos(si, wo, active)
+
+    def pdf(self, ctx, si, wo, active=True):
+        if not self._enabled(ctx):
+            return mi.Float(0.0)
+        return self._pdf(si, wo, active)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        if not self._enabled(ctx):
+            return mi.Color3f(0.0), mi.Float(0.0)
+        return self._f_cos(si, wo, active), self._pdf(si, wo, active)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        bs = dr.zeros(mi.BSDFSample3f)
+        if not self._enabled(ctx):
+            return bs, mi.Color3f(0.0)
+        wi = si.wi
+        wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        glossy = mi.Bool(False)
+        if self.lobe_weight > 0.0:
+            distr, w, _, _ = self._lobe(wi)
+            m, _ = distr.sample(wi, sample2)
+            glossy = sample1 < w
+            v = mi.reflect(wi, m)
+            wo = dr.select(glossy, _turn(v) if self.lobe_retro else v, wo)
+        active = active & (mi.Frame3f.cos_theta(wi) > 0.0)
+        pdf = self._pdf(si, wo, active)
+        value = self._f_cos(si, wo, active)
+        ok = active & (pdf > 0.0)
+        bs.wo = wo
+        bs.pdf = dr.select(ok, pdf, 0.0)
+        bs.eta = 1.0
+        # which lobe of the mixture drew the sample (integrators such as the path
+        # guiders and AOVs read it); both lobes are component 0 of the one BSDF
+        bs.sampled_type = dr.select(
+            glossy,
+            mi.UInt32(+mi.BSDFFlags.GlossyReflection),
+            mi.UInt32(+mi.BSDFFlags.DiffuseReflection),
+        )
+        bs.sampled_component = mi.UInt32(0)
+        return bs, dr.select(ok, value / pdf, 0.0)
+
+    def traverse(self, callback):
+        pass
+
+    def to_string(self):
+        return (
+            f"{type(self).__name__}[{self.label}, sampling lobe "
+            f"{self.lobe['distribution']} alpha="
+            f"({self.lobe['alpha_x']:.4g}, {self.lobe['alpha_y']:.4g}) "
+            f"{'retro ' if self.lobe_retro else ''}weight={self.lobe['weight']:.3g}"
+            f"{' per-incidence table' if self.lobe_table else ''} "
+            f"({self.lobe_source})]"
+        )
+
+
+def _resolve(filename: str) -> Path:
+    path = Path(filename)
+    if not path.is_absolute():
+        # Mitsuba's resolver holds the scene file's folder while an XML scene loads.
+        # mi.file_resolver() replaced Thread.file_resolver() (deprecated in 3.9, whose
+        # warning escapes from a plugin constructor as a SystemError).
+        resolver = (
+            mi.file_resolver()  # type: ignore[operator]
+            if hasattr(mi, "file_resolver")
+            else mi.Thread.thread().file_resolver()
+        )
+        resolved = Path(str(resolver.resolve(str(path))))
+        if resolved.is_file():
+            path = resolved
+    if not path.is_file():
+        raise InputError(f"neural_brdf: {filename}: no such model file")
+    return path
+
+
+def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
+    """Resolve, load and check an exported model: (path, program, stored lobe or None).
+
+    A missing or unusable file raises a one-line InputError.  :func:`render_preview`
+    calls this before it loads a scene, because Mitsuba reports an exception raised in a
+    plugin's constructor as a RuntimeError carrying the Python traceback."""
+    path = _resolve(str(filename))
+    try:
+        proto = onnx.load(str(path))
+    except Exception as e:  # onnx raises DecodeError and others on a bad file
+        raise InputError(
+            f"neural_brdf: {path}: not a loadable ONNX model ({type(e).__name__})"
+        ) from None
+    try:
+        stored = lobes.from_metadata({p.key: p.value for p in proto.metadata_props})
+    except InputError as e:
+        raise InputError(f"neural_brdf: {path}: {e}") from None
+    return path, OnnxProgram(proto), stored
+
+
+class NeuralBSDF(_GraphBSDF):
+    """``{'type': 'neural_brdf', 'filename': 'model.onnx'}``: an exported neural BRDF."""
+
+    def __init__(self, props):
+        mi.BSDF.__init__(self, props)
+        if "filename" not in props:
+            raise InputError("neural_brdf: the 'filename' property (an ONNX file) is required")
+        path, program, stored = read_model(props["filename"])
+        self.lobe_source = "metadata" if stored else "fitted at load"
+        self._setup(program, stored or lobes.fit_onnx(path), str(path))
+
+
+def analytic_onnx(model: str, params: dict | None = None) -> bytes:
+    """The analytic model's own torch ``f(wi, wo)`` as ONNX bytes:
+    :func:`neural_brdf.export.analytic_onnx` (one writer, so that the same model gives
+    the same bytes here and in the viewer, and its lobe is fitted once)."""
+    from neural_brdf.export import analytic_onnx as write
+
+    return write(model, params)
+
+
+def _analytic_params(props) -> tuple[str, dict]:
+    model = props["model"] if "model" in props else None
+    if not model:
+        raise InputError("analytic_brdf: the 'model' property is required")
+    params = {}
+    if "params" in props:
+        try:
+            params = json.loads(props["params"])
+        except json.JSONDecodeError as e:
+            raise InputError(f"analytic_brdf: 'params' is not valid JSON ({e})") from None
+        if not isinstance(params, dict):
+            raise InputError(f"analytic_brdf: 'params' must be a JSON object, got {params!r}")
+    for key in props.keys():
+        if key in ("model", "params", "type", "id", "lobe"):
+            continue
+        value = props[key]
+        if isinstance(value, (bool, int, float, str)):
+            params[key] = value
+        else:  # an RGB colour or a vector
+            params[key] = [float(v) for v in value]
+    return str(model), params
+
+
+class AnalyticBSDF(_GraphBSDF):
+    """``{'type': 'analytic_brdf', 'model': 'microfacet', 'params': '{...}'}``; parameters
+    may also be given as plugin properties (``'alpha': 0.3``).  ``'lobe'``: a sampling
+    lobe as JSON (the ``sampling_lobe`` metadata of a model of the same target, say),
+    used instead of fitting one at load (about a second)."""
+
+    def __init__(self, props):
+        mi.BSDF.__init__(self, props)
+        model, params = _analytic_params(props)
+        payload = analytic_onnx(model, params)
+        label = f"analytic {model} {json.dumps(params, sort_keys=True)}"
+        if "lobe" in props:
+            try:  # a whole stored lobe, or a partial one ({"alpha": a, "weight": w})
+                given = json.loads(str(props["lobe"]))
+                if not isinstance(given, dict):
+                    raise ValueError(f"expected a JSON object, got {given!r}")
+                lobe = lobes.complete(given)
+            except (ValueError, InputError) as e:
+                raise InputError(f"analytic_brdf: 'lobe': {e}") from None
+            self.lobe_source = "given"
+        else:
+            lobe = lobes.fit_onnx(payload)
+            self.lobe_source = "fitted at load"
+        self._setup(OnnxProgram(payload), lobe, label)
+
+
+mi.register_bsdf("neural_brdf", lambda props: NeuralBSDF(props))
+mi.register_bsdf("analytic_brdf", lambda props: AnalyticBSDF(props))

@@ -1,0 +1,551 @@
+"""``neural-brdf`` command line: argument parsing and error-to-exit-code mapping only.
+
+    neural-brdf train CONFIG|PRESET [--out RUN_DIR] [--set KEY=VALUE ...] [--resume|--overwrite]
+    neural-brdf presets
+    neural-brdf export RUN_DIR [-o model.onnx]
+    neural-brdf report RUN_DIR [-o OUT_DIR]
+    neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
+    neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf
+    neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
+    neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
+    neural-brdf view model.onnx [--compare OTHER.onnx|CONFIG] -o viewer.html
+
+Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
+graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
+message on stderr, never a traceback: a bad key, file or option, a folder in use, a
+full disk); 130 interrupted by Ctrl-C, 143 (128 + 15) by SIGTERM, as docker, systemd,
+Slurm and Ray send it (a checkpoint was written; ``--resume`` continues).
+
+Output files are replaced atomically (a temporary file, then a rename); a symbolic link
+is followed, and a device or FIFO (``-o /dev/null``) is written in place.  ``-o -``
+writes a text output (codegen, view, validate --json) to stdout; binary outputs refuse
+it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+# Idle OpenMP threads that spin made torch's elementwise ops 10-40x slower on a busy
+# 2-core machine (measured: 0.7 ms -> 30 ms); sleeping ones cost nothing measurable.
+# Only effective before torch is first imported, which this module does not do.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+EXIT_OK, EXIT_PHYSICS, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_TERMINATED = 128 + signal.SIGTERM  # 143: the shell's code for a process SIGTERM ended
+STDOUT = "-"  # -o -: the output on stdout (text formats only)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line instead of usage + message
+        raise _UsageError(f"{self.prog}: {message} (see --help)")
+
+
+class _UsageError(Exception):
+    pass
+
+
+def _parser() -> argparse.ArgumentParser:
+    from neural_brdf.version import __version__
+
+    p = _Parser(prog="neural-brdf", description="Physically plausible neural BRDFs.")
+    p.add_argument("--version", action="version", version=f"neural-brdf {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    t = sub.add_parser("train", help="train, export and validate a model from a YAML config")
+    t.add_argument("config", help="YAML config file, or a preset name (neural-brdf presets)")
+    t.add_argument("--out", help="run directory (default: runs/<name>/)")
+    t.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key, e.g. --set train.steps=500 (repeatable)",
+    )
+    again = t.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue from RUN_DIR/ckpt.pt")
+    again.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a run already in RUN_DIR (its results are deleted)",
+    )
+
+    tm = sub.add_parser(
+        "train-many",
+        help="train several materials in one batch (same network and optimisation)",
+    )
+    tm.add_argument("configs", nargs="+", help="YAML config files or preset names")
+    tm.add_argument("--out", required=True, help="folder: one run folder per config name")
+    tm.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key in every config (repeatable)",
+    )
+    tm.add_argument("--overwrite", action="store_true", help="replace runs already there")
+    tm.add_argument("--report", action="store_true", help="also write each run's report")
+
+    sub.add_parser("presets", help="list the shipped configs (neural-brdf train NAME)")
+
+    e = sub.add_parser("export", help="export a run's checkpoint to ONNX")
+    e.add_argument("run_dir")
+    e.add_argument("-o", "--out", help="output file (default: RUN_DIR/model.onnx)")
+
+    rp = sub.add_parser("report", help="write a run's report.html and report.md")
+    rp.add_argument("run_dir")
+    rp.add_argument("-o", "--out", help="output folder (default: RUN_DIR)")
+
+    v = sub.add_parser("validate", help="check physics (and accuracy) of an exported model")
+    v.add_argument("model")
+    v.add_argument(
+        "--reference",
+        help="ground truth: a config (its target), a MERL "
+        ".binary or an RGL .bsdf file (measured data)",
+    )
+    v.add_argument("--json", help="write the report as JSON to this file")
+
+    b = sub.add_parser(
+        "bake",
+        help="tabulate a model (.onnx) or a config's analytic target: "
+        "MERL .binary or RGL .bsdf (by the output extension)",
+    )
+    b.add_argument("source", help="model.onnx, or a YAML config whose target is baked")
+    b.add_argument("-o", "--out", required=True, help="output file: .binary (MERL) or .bsdf (RGL)")
+
+    r = sub.add_parser(
+        "render",
+        help="render a material preview in Mitsuba 3 (needs the mitsuba extra and libllvm19)",
+    )
+    r.add_argument("model", help="model.onnx")
+    r.add_argument(
+        "--reference",
+        help="config whose analytic target is rendered beside it, with an error map and PSNR",
+    )
+    r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
+    r.add_argument("-o", "--out", required=True, help="output .png")
+
+    g = sub.add_parser(
+        "codegen",
+        help="generate C / GLSL / WGSL source that evaluates and "
+        "samples the model (docs/codegen.md)",
+    )
+    g.add_argument("model", help="model.onnx")
+    from neural_brdf.backends import TARGETS
+
+    g.add_argument(
+        "--target",
+        required=True,
+        choices=list(TARGETS),
+        help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)",
+    )
+    g.add_argument("-o", "--out", required=True, help="output file")
+    vw = sub.add_parser(
+        "view",
+        help="write an interactive WebGL2 viewer (one HTML file) "
+        "drawn with the model's generated GLSL",
+    )
+    vw.add_argument("model", help="model.onnx")
+    vw.add_argument(
+        "--compare",
+        help="a second model (.onnx), or a config whose analytic "
+        "target is shown beside it with a difference view",
+    )
+    vw.add_argument("-o", "--out", required=True, help="output .html")
+
+    w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
+    w.add_argument("sweep", help="sweep file, or a preset sweep name (neural-brdf presets)")
+    w.add_argument(
+        "--executor",
+        choices=["local", "ray"],
+        default="local",
+        help="local process pool (default) or Ray tasks",
+    )
+    w.add_argument("--workers", type=int, help="parallel trials (default: the CPU cores)")
+    w.add_argument("--ray-address", help="Ray cluster to join (default: a local instance)")
+    w.add_argument("--out", help="sweep folder (default: runs/sweeps/<name>/)")
+    return p
+
+
+def _warn(message: str) -> None:
+    print(f"warning: {message}", file=sys.stderr)
+
+
+def _output_file(out: str, what: str, flag: str = "-o") -> None:
+    """Refuse ``-o -`` for a binary output and ``-o FOLDER`` (InputError, exit 2)."""
+    from neural_brdf.errors import InputError
+
+    if out == STDOUT:
+        raise InputError(
+            f"{flag} -: {what} is binary, not for stdout; give a file name "
+            "(-o - is for text: codegen, view, validate --json)"
+        )
+    if Path(out).is_dir():
+        raise InputError(f"{flag} {out}: is a folder; give a file name ({what})")
+
+
+def _write_text(out: str, text: str) -> None:
+    """``text`` to the file ``out`` (atomic; see fileio) or, for ``-``, to stdout."""
+    from neural_brdf.errors import InputError
+    from neural_brdf.fileio import atomic_write
+
+    if out != STDOUT:
+        try:
+            atomic_write(out, text)
+        except OSError as e:
+            raise InputError(f"{out}: cannot write ({e.strerror})") from None
+        return
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        raise
+    except OSError as e:  # e.g. > /dev/full: no second try at exit
+        _stdout_to_devnull()
+        raise InputError(f"stdout: cannot write ({e.strerror})") from None
+
+
+def _stdout_to_devnull() -> None:
+    """Point fd 1 at /dev/null, so that the interpreter's last flush cannot fail."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+def _train(args) -> int:
+    from neural_brdf import presets
+
+    if args.out == STDOUT:
+        from neural_brdf.errors import InputError
+
+        raise InputError("--out -: a run is a folder, not stdout")
+    path = presets.resolve(args.config)  # an unknown name fails before torch loads
+    from neural_brdf import config
+
+    # a bad config fails before torch loads
+    cfg = config.load(path, args.overrides, warn=_warn)
+    from neural_brdf import pipeline, validate
+    from neural_brdf.train import loop as train
+
+    run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
+    report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
+    if report.get("already_finished") is not None:
+        print(
+            f"{run_dir}: already finished at step {report['already_finished']}; nothing "
+            "to do (raise train.steps to train on, or --overwrite to start again)"
+        )
+        return EXIT_OK
+    print(validate.format_table(report))
+    s = report["seconds"]
+    print(
+        f"run: {run_dir}  (train {s['train']:.1f} s, export {s['export']:.1f} s, "
+        f"validate {s['validate']:.1f} s, report {s['report']:.1f} s: report.html)"
+    )
+    return EXIT_OK if report["passed"] else EXIT_PHYSICS
+
+
+def _train_many(args) -> int:
+    from neural_brdf import presets
+
+    paths = [presets.resolve(c) for c in args.configs]  # unknown names fail before torch
+    from neural_brdf import config
+
+    cfgs = [config.load(path, args.overrides, warn=_warn) for path in paths]
+    from neural_brdf import pipeline, validate
+
+    reports = pipeline.run_many(cfgs, Path(args.out), overwrite=args.overwrite, report=args.report)
+    for cfg, report in zip(cfgs, reports):
+        acc = report.get("accuracy") or {}
+        err = f"rel_rmse {100 * acc['rel_rmse']:.2f} %" if "rel_rmse" in acc else ""
+        verdict = "ok" if report["passed"] else "FAILED"
+        print(f"{cfg.name}: physics {verdict}  {err}  -> {Path(args.out) / cfg.name}")
+    s = reports[0]["seconds"]
+    print(
+        f"{len(cfgs)} materials in one batch: train {s['train']:.1f} s for all of them; "
+        f"{sum(r['passed'] for r in reports)} of {len(cfgs)} passed"
+    )
+    if any(not r["passed"] for r in reports):
+        print(validate.format_table(next(r for r in reports if not r["passed"])))
+    return EXIT_OK if all(r["passed"] for r in reports) else EXIT_PHYSICS
+
+
+def _presets(args) -> int:
+    from neural_brdf import presets
+
+    rows = presets.listing()
+    width = max(len(name) for name, _ in rows)
+    for name, text in rows:
+        print(f"{name:<{width}}  {text}")
+    print(
+        f"\n{len(rows)} presets in {presets.directory()}; train one with: "
+        "neural-brdf train NAME [--out RUN_DIR] [--set KEY=VALUE]"
+    )
+    sweeps = presets.listing(folder="sweeps")
+    print("\nsweeps (neural-brdf sweep NAME [--executor ray]):")
+    for name, text in sweeps:
+        print(f"  {name:<{width - 2}}  {text}")
+    return EXIT_OK
+
+
+def _export(args) -> int:
+    if args.out is not None:
+        _output_file(args.out, "an ONNX model")
+    from neural_brdf import export
+
+    info = export.export_run(args.run_dir, args.out)
+    c = info["physics"]["checks"]
+    print(
+        f"wrote {info['path']}: parity {info['parity_rel_error']:.2g}, max albedo "
+        f"{c['max_albedo']['value']:.6f}, reciprocity {c['reciprocity']['value']:.2g}"
+    )
+    return EXIT_OK if all(x["passed"] for x in c.values()) else EXIT_PHYSICS
+
+
+def _report(args) -> int:
+    if args.out == STDOUT:
+        from neural_brdf.errors import InputError
+
+        raise InputError("-o -: the report is a folder of files, not for stdout")
+    from neural_brdf.viewer.report import write_report
+
+    paths = write_report(args.run_dir, args.out)
+    print(f"wrote {paths['html']} and {paths['md']}")
+    return EXIT_OK
+
+
+def _validate(args) -> int:
+    import json
+
+    from neural_brdf import config, validate
+
+    if args.json and args.json != STDOUT and Path(args.json).is_dir():
+        raise config.InputError(f"--json {args.json}: is a folder; give a file name")
+    reference = validate.reference_from(args.reference) if args.reference else None
+    report = validate.report(args.model, reference=reference)
+    # with --json -, stdout carries the JSON alone and the table goes to stderr
+    table_to = sys.stderr if args.json == STDOUT else sys.stdout
+    print(validate.format_table(report), file=table_to)
+    if args.json == STDOUT:
+        # as validate.write_json writes it (NaN and infinities as strings)
+        _write_text(STDOUT, json.dumps(validate._finite(report), indent=2, allow_nan=False) + "\n")
+    elif args.json:
+        try:
+            validate.write_json(report, args.json)
+        except OSError as e:
+            raise config.InputError(f"{args.json}: cannot write ({e.strerror})") from None
+    return EXIT_OK if report["passed"] else EXIT_PHYSICS
+
+
+def _analytic_target(config_path: str):
+    """The analytic model of a config's target (measured-data targets are refused)."""
+    import analytic
+    from neural_brdf import config
+
+    cfg = config.load(config_path)
+    if cfg.target.data is not None:
+        raise config.InputError(f"{config_path}: target.data: only analytic targets here")
+    return (
+        cfg.target.model,
+        dict(cfg.target.params),
+        analytic.create(cfg.target.model, **cfg.target.params),
+    )
+
+
+# Output formats of ``bake``: suffix -> (name, module with ``bake(fn, path)``).  A third
+# format is one entry here.
+BAKE_FORMATS = {".binary": ("MERL", "merl"), ".bsdf": ("RGL", "rgl")}
+
+
+def _bake(args) -> int:
+    import importlib
+
+    from neural_brdf import config
+
+    _output_file(args.out, "a tabulated BRDF (.binary, .bsdf)")
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in BAKE_FORMATS:
+        known = ", ".join(f"{s} ({n})" for s, (n, _) in BAKE_FORMATS.items())
+        raise config.InputError(
+            f"{args.out}: unknown output extension {suffix or '(none)'!r}; known: {known}"
+        )
+    writer = importlib.import_module(f"neural_brdf.measured.{BAKE_FORMATS[suffix][1]}")
+    if str(args.source).endswith(".onnx"):
+        from neural_brdf.runtime import load
+
+        fn = load(args.source).eval
+    else:
+        fn = _analytic_target(args.source)[2].eval
+    try:
+        writer.bake(fn, args.out)
+    except OSError as e:
+        raise config.InputError(f"{args.out}: cannot write ({e.strerror})") from None
+    print(f"wrote {args.out} ({BAKE_FORMATS[suffix][0]})")
+    return EXIT_OK
+
+
+def _render(args) -> int:
+    from neural_brdf.config import InputError
+    from neural_brdf.runtime import load
+
+    if args.spp < 1 or args.resolution < 8:
+        raise InputError("render: --spp must be >= 1 and --resolution >= 8")
+    _output_file(args.out, "a PNG image")
+    load(args.model)  # an empty, foreign or broken file: one line naming it, exit 2
+    try:
+        import mitsuba as mi
+    except ImportError:
+        raise InputError(
+            "render: needs Mitsuba 3: pip install -e '.[mitsuba]' and apt-get install libllvm19"
+        ) from None
+    reference = None
+    if args.reference:
+        name, params, _ = _analytic_target(args.reference)
+        reference = {"model": name, "params": params}
+    if mi.variant() is None:
+        mi.set_variant("llvm_ad_rgb")
+    from neural_brdf.renderers import render as nbr
+
+    info = nbr.render_comparison(
+        args.model, args.out, reference=reference, spp=args.spp, resolution=args.resolution
+    )
+    if info["psnr"] is None:
+        print(f"wrote {args.out}")
+    else:
+        print(
+            f"wrote {args.out}  (PSNR {info['psnr']:.2f} dB vs reference; panels: neural, "
+            f"target, |difference| x {info['gain']:g})"
+        )
+    return EXIT_OK
+
+
+def _view(args) -> int:
+    from neural_brdf.viewer import page as viewer
+
+    if args.out == STDOUT:
+        models = viewer.models_for(args.model, args.compare)
+        title = f"neural-brdf viewer: {Path(args.model).name}"  # as write_viewer's
+        _write_text(STDOUT, viewer.page(models, title=title))
+        return EXIT_OK
+    print(f"wrote {viewer.write_viewer(args.model, args.out, compare=args.compare)}")
+    return EXIT_OK
+
+
+def _sweep(args) -> int:
+    from neural_brdf import presets
+
+    path = presets.resolve(args.sweep, folder="sweeps")
+    from neural_brdf.tooling import sweep
+
+    results = sweep.run_sweep(
+        path,
+        executor=args.executor,
+        workers=args.workers,
+        ray_address=args.ray_address,
+        out=args.out,
+        progress=sweep.print_progress,
+    )
+    print(sweep.summary_line(results))
+    return EXIT_OK if all(r["status"] == "ok" for r in results["trials"]) else EXIT_PHYSICS
+
+
+def _codegen(args) -> int:
+    from neural_brdf import backends
+    from neural_brdf.config import InputError
+
+    if not Path(args.model).is_file():
+        raise InputError(f"{args.model}: no such model file")
+    if args.out != STDOUT and Path(args.out).is_dir():
+        raise InputError(f"-o {args.out}: is a folder; give a file name")
+    text = backends.generate(args.model, args.target)
+    _write_text(args.out, text)
+    # with -o -, stdout carries the code alone
+    print(
+        f"wrote {'stdout' if args.out == STDOUT else args.out} "
+        f"({args.target}, {text.count(chr(10))} lines)",
+        file=sys.stderr if args.out == STDOUT else sys.stdout,
+    )
+    return EXIT_OK
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is, as Ctrl-C raises KeyboardInterrupt: the
+    same clean-ups run (no temporary file is left) and the exit code is 143."""
+
+    signum = signal.SIGTERM
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated("terminated (SIGTERM)")
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt(command: str):
+    """SIGTERM behaves as Ctrl-C while ``command`` runs (training checkpoints between
+    steps: train.deferred_interrupt), except for ``sweep``: its workers stop on the
+    terminal's Ctrl-C, which reaches the whole process group."""
+    if command == "sweep" or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def _exit_code(e: BaseException) -> int:
+    """128 + the signal that interrupted the program: 130 (Ctrl-C), 143 (SIGTERM)."""
+    return 128 + int(getattr(e, "signum", None) or signal.SIGINT)
+
+
+def main(argv: list[str] | None = None) -> int:
+    # errors, not config/export/train: --help, --version and presets stay free of torch
+    from neural_brdf.errors import Diverged, InputError, Interrupted, ParityError
+
+    try:
+        args = _parser().parse_args(argv)
+        commands = {
+            "train": _train,
+            "train-many": _train_many,
+            "presets": _presets,
+            "export": _export,
+            "validate": _validate,
+            "bake": _bake,
+            "render": _render,
+            "report": _report,
+            "sweep": _sweep,
+            "codegen": _codegen,
+            "view": _view,
+        }
+        with _sigterm_as_interrupt(args.command):
+            return commands[args.command](args)
+    except (_UsageError, InputError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_INPUT
+    except Diverged as e:
+        print(f"error: training diverged: {e}", file=sys.stderr)
+        return EXIT_PHYSICS
+    except ParityError as e:
+        print(f"error: export: {e}", file=sys.stderr)
+        return EXIT_PHYSICS
+    except (Interrupted, KeyboardInterrupt) as e:
+        print(f"neural-brdf: {e or 'interrupted'}", file=sys.stderr)
+        return _exit_code(e)
+    except BrokenPipeError:  # `neural-brdf presets | head`: the reader left; no traceback
+        _stdout_to_devnull()
+        return 0
+    except OSError as e:  # the file system: a full disk, a read-only folder, ...
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

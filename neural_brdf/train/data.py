@@ -1,0 +1,320 @@
+"""Training pairs (wi, wo, f) drawn on the fly from a target: an analytic model, or
+measured data (a MERL ``.binary`` or an RGL ``.bsdf`` file, ``target: {data: path}``).
+
+Analytic targets.  wi is uniform on the upper hemisphere.  wo is a mixture, by configured shares, of
+uniform-hemisphere, cosine-weighted and the target's own importance sampling (so that
+specular peaks are seen often), and of ``peak`` pairs: wo is wi reflected about a half
+vector whose peak coordinate u_h (:func:`neural_brdf.train.encoding.peak_coordinate`) is
+uniform in [0, 1], so that the region about the mirror direction, which the encoding
+stretches over half of u_h, is trained for any target.  Without them a diffuse target
+(Oren-Nayar) left the grid rows near u_h = 0 under-trained: compact clay read 8 % off
+its target within a degree of the mirror direction at 70 degrees.  A sampled wo below
+the horizon (possible with visible-normal or Phong lobes) is replaced by a
+cosine-distributed one, since the network is 0 there by construction and the pair would
+teach nothing.
+
+Evaluating an analytic target costs more than a training step of the small MLP, so
+pairs live in a ring-buffer pool: each step replaces ``batch_size / reuse`` of the
+oldest pairs with fresh ones and draws the batch from the whole pool.  With
+``reuse = 1`` every pair is fresh.  All randomness comes from one seeded
+``torch.Generator`` whose state is checkpointed with the pool, so a resumed run
+continues exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import analytic
+from analytic import frame
+from neural_brdf import config as cfgmod
+from neural_brdf.measured import merl, rgl
+from neural_brdf.train import encoding as enc
+
+# Measured-data files a target (and ``validate --reference``) reads, by suffix.
+MEASURED_SUFFIXES = {".binary": "MERL", ".bsdf": "RGL"}
+
+
+class MeasuredTarget:
+    """Measured data as a training target: ``f`` (torch) and ``eval`` (numpy) look the
+    grid up (trilinear, reciprocal by the phi_d fold), ``draw`` gives training pairs on
+    the measured support, ``grid_pairs`` the measured bin centres.  No sampler: the
+    quadratures that take a target's proposal (``extra=``) skip it."""
+
+    anisotropic = False
+    brdf: Any  # merl.MerlBRDF here, rgl.RGLBRDF in RGLTarget
+
+    def __init__(self, brdf: merl.MerlBRDF):
+        self.brdf = brdf
+        self.source = brdf.source
+        self._bins = np.flatnonzero(brdf.valid.reshape(-1) & merl.grid_above_horizon().reshape(-1))
+
+    @classmethod
+    def from_file(cls, path, *, key: str = "target.data") -> MeasuredTarget:
+        """A MERL ``.binary`` or an RGL ``.bsdf`` file (by its suffix) as a target."""
+        p = Path(path)
+        if p.suffix.lower() == ".bsdf":
+            return RGLTarget.from_file(p, key=key)
+        if p.suffix.lower() != ".binary":
+            raise cfgmod.ConfigError(f"{key}: {p}: expected a MERL .binary or an RGL .bsdf file")
+        try:
+            brdf = merl.read_merl(p)
+        except merl.MerlFormatError as e:
+            raise cfgmod.ConfigError(f"{key}: {e}") from None
+        target = cls(brdf)
+        if len(target._bins) == 0:
+            raise cfgmod.ConfigError(f"{key}: {p}: no measured bins above the horizon")
+        return target
+
+    def describe(self) -> str:
+        return f"MERL {self.source} ({len(self._bins)} measured bins)"
+
+    def eval(self, wi, wo) -> np.ndarray:
+        return self.brdf.eval(wi, wo)
+
+    def f(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        out = self.brdf.eval(wi.detach().cpu().double().numpy(), wo.detach().cpu().double().numpy())
+        return torch.from_numpy(out).to(wi.dtype)
+
+    def draw(self, n: int, gen: torch.Generator):
+        """``n`` training pairs (float32) on the measured support; seeded by ``gen``."""
+        seed = int(torch.randint(0, 2**62, (1,), generator=gen))
+        wi, wo, f = self.brdf.sample_pairs(n, rng=seed)
+        return tuple(torch.from_numpy(x).float() for x in (wi, wo, f))
+
+    def grid_pairs(self, n: int | None = None, seed: int = 0):
+        """(wi, wo, f) float64 tensors at measured bin centres: all of them, or ``n``
+        drawn without replacement.  phi_h is random (an isotropic grid does not depend on
+        it; an anisotropic network is then tested at every azimuth)."""
+        rng = np.random.default_rng(seed)
+        bins = self._bins
+        if n is not None and n < len(bins):
+            bins = np.sort(rng.choice(bins, size=n, replace=False))
+        th, td, pd = (c[i] for c, i in zip(merl.bin_centres(), merl.unravel(bins)))
+        wi, wo = merl.directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
+        f = self.brdf.values.reshape(-1, 3)[bins]
+        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
+
+
+class RGLTarget(MeasuredTarget):
+    """An RGL ``.bsdf`` file (:mod:`neural_brdf.measured.rgl`, evaluated as Mitsuba's ``measured``
+    does) as a training target.  ``draw``: wi uniform, wo from the file's own sampler
+    or cosine-distributed; ``grid_pairs``: the file's value nodes (where it is exact)."""
+
+    def __init__(self, brdf: rgl.RGLBRDF):
+        self.brdf = brdf
+        self.source = brdf.source
+
+    @classmethod
+    def from_file(cls, path, *, key: str = "target.data") -> RGLTarget:
+        try:
+            return cls(rgl.read_rgl(path))
+        except rgl.RGLFormatError as e:
+            raise cfgmod.ConfigError(f"{key}: {e}") from None
+
+    def describe(self) -> str:
+        return f"RGL {self.source} ({self.brdf.description})"
+
+    def grid_pairs(self, n: int | None = None, seed: int = 0):
+        """(wi, wo, f) float64 tensors at the value nodes above the horizon: all of them,
+        or ``n`` drawn without replacement; phi_i is random (isotropic files)."""
+        wi, wo = self.brdf.node_pairs(seed=seed)
+        if n is not None and n < len(wi):
+            pick = np.sort(np.random.default_rng(seed).choice(len(wi), size=n, replace=False))
+            wi, wo = wi[pick], wo[pick]
+        f = self.brdf.eval(wi, wo)
+        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
+
+
+def build_target(target: cfgmod.Target):
+    """The model of ``target``: an analytic BRDF, or a :class:`MeasuredTarget` for
+    ``target.data``; bad names, parameters or files raise ConfigError."""
+    if target.data is not None:
+        return MeasuredTarget.from_file(target.data)
+    if target.model not in analytic.available():
+        raise cfgmod.ConfigError(
+            f"target.model: unknown model {target.model!r}; available: {analytic.available()}"
+        )
+    try:
+        analytic.model_class(target.model)
+    except ImportError:
+        raise cfgmod.ConfigError(
+            f"target.model: {target.model!r} is registered but its module "
+            "is not importable in this installation"
+        ) from None
+    try:
+        return analytic.create(target.model, **target.params)
+    except (analytic.ParameterError, TypeError) as e:
+        raise cfgmod.ConfigError(f"target.params: {e}") from None
+
+
+def uniform_wi(n: int, gen: torch.Generator) -> torch.Tensor:
+    return frame.square_to_uniform_hemisphere(torch.rand(n, 2, generator=gen))
+
+
+def about_mirror(wi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """wi reflected about a half vector h with u_h(h) = u[:, 0] (the encoding's peak
+    coordinate, so uniform u gives pairs uniform in u_h) and azimuth 2 pi u[:, 1]."""
+    t2 = enc.PEAK_EPS * torch.expm1(u[:, 0] / enc.PEAK_LOG_SCALE)  # tan^2(theta_h / 2)
+    cos_h = (1.0 - t2) / (1.0 + t2)
+    sin_h = 2.0 * torch.sqrt(t2) / (1.0 + t2)
+    phi = 2.0 * math.pi * u[:, 1]
+    h = torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], -1)
+    return 2.0 * (wi * h).sum(-1, keepdim=True) * h - wi
+
+
+class PairSource:
+    """Fresh (wi, wo, f) batches from a target, float32."""
+
+    def __init__(self, target: analytic.BRDF, data: cfgmod.Data, gen: torch.Generator):
+        self.target, self.gen = target, gen
+        total = data.uniform + data.cosine + data.importance + data.peak
+        self.shares = tuple(
+            x / total for x in (data.uniform, data.cosine, data.importance, data.peak)
+        )
+
+    @torch.no_grad()
+    def draw(self, n: int):
+        g = self.gen
+        n_uni = int(round(n * self.shares[0]))
+        n_imp = int(round(n * self.shares[2]))
+        n_peak = int(round(n * self.shares[3]))
+        n_cos = n - n_uni - n_imp - n_peak
+        wi = uniform_wi(n, g)
+        wo_uni = frame.square_to_uniform_hemisphere(torch.rand(n_uni, 2, generator=g))
+        wo_cos = frame.square_to_cosine_hemisphere(torch.rand(n_cos, 2, generator=g))
+        k = n_uni + n_cos
+        wo_imp = self.target.sample_dir_t(wi[k : k + n_imp], torch.rand(n_imp, 2, generator=g))
+        wo_peak = about_mirror(wi[k + n_imp :], torch.rand(n_peak, 2, generator=g))
+        wo = torch.cat([wo_uni, wo_cos, wo_imp.float(), wo_peak], 0)
+        backup = frame.square_to_cosine_hemisphere(torch.rand(n, 2, generator=g))
+        wo = torch.where(wo[:, 2:3] > 0, wo, backup)
+        wo = frame.normalize(wo)
+        f = self.target.f(wi, wo).float()
+        return wi, wo, f
+
+
+class MeasuredPairSource:
+    """Fresh (wi, wo, f) batches from measured data (the shares do not apply)."""
+
+    def __init__(self, target: MeasuredTarget, gen: torch.Generator):
+        self.target, self.gen = target, gen
+
+    def draw(self, n: int):
+        return self.target.draw(n, self.gen)
+
+
+def pair_source(target, data: cfgmod.Data, gen: torch.Generator):
+    if isinstance(target, MeasuredTarget):
+        return MeasuredPairSource(target, gen)
+    return PairSource(target, data, gen)
+
+
+class Pool:
+    """Ring buffer of pairs, refreshed by ``batch_size / reuse`` pairs per batch.
+
+    The pairs live in one (size, 9) tensor, rows (wi, wo, f), so that a batch is one
+    gather.  Fresh pairs are drawn ``FRESH_CHUNK`` at a time (a whole number of
+    refreshes) and handed out a refresh per batch: evaluating the target 1,024 pairs at
+    a time cost 2.2 us a pair, 16,384 at a time 0.44 us (issue 21).  With ``device`` a
+    GPU, the pool lives there and the batch indices are drawn there (their generator
+    seeded from ``source.gen``), so a step copies nothing from the host; fresh chunks
+    are drawn on the host and copied once per chunk.
+    """
+
+    FRESH_CHUNK = 16384
+
+    def __init__(self, source, data: cfgmod.Data, device: torch.device | str = "cpu"):
+        self.source, self.gen = source, source.gen
+        self.device = torch.device(device)
+        self.batch_size = data.batch_size
+        self.refresh = max(1, int(math.ceil(data.batch_size / data.reuse)))
+        self.chunk = self.refresh * max(1, self.FRESH_CHUNK // self.refresh)
+        self.pairs = torch.cat(source.draw(data.pool_size), -1).to(self.device)
+        self.head = 0
+        self.fresh = self.pairs[:0]  # drawn, not yet in the pool
+        self.fresh_head = 0
+        if self.device.type == "cpu":
+            self.pick_gen = self.gen
+        else:  # one seed from the host's stream: the picks then stay on the device
+            seed = int(torch.randint(0, 2**62, (1,), generator=self.gen))
+            self.pick_gen = torch.Generator(self.device).manual_seed(seed)
+
+    @property
+    def f(self) -> torch.Tensor:
+        return self.pairs[:, 6:9]
+
+    def _next_fresh(self) -> torch.Tensor:
+        if self.fresh_head >= len(self.fresh):
+            self.fresh = torch.cat(self.source.draw(self.chunk), -1).to(self.device)
+            self.fresh_head = 0
+        out = self.fresh[self.fresh_head : self.fresh_head + self.refresh]
+        self.fresh_head += self.refresh
+        return out
+
+    def batch(self):
+        size = len(self.pairs)
+        fresh = self._next_fresh()
+        if self.head + self.refresh <= size:
+            self.pairs[self.head : self.head + self.refresh] = fresh
+        else:
+            idx = (self.head + torch.arange(self.refresh, device=self.device)) % size
+            self.pairs[idx] = fresh
+        self.head = int((self.head + self.refresh) % size)
+        pick = torch.randint(
+            0, size, (self.batch_size,), generator=self.pick_gen, device=self.device
+        )
+        b = self.pairs[pick]
+        return b[:, 0:3], b[:, 3:6], b[:, 6:9]
+
+    def state_dict(self) -> dict:
+        state = {
+            "pairs": self.pairs.cpu(),
+            "head": self.head,
+            "fresh": self.fresh[self.fresh_head :].cpu(),
+            "rng": self.gen.get_state(),
+        }
+        if self.pick_gen is not self.gen:
+            state["pick_rng"] = self.pick_gen.get_state()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        if "pairs" in state:
+            self.pairs = state["pairs"].to(self.device)
+        else:  # the first layout: wi, wo, f apart
+            self.pairs = torch.cat([state["wi"], state["wo"], state["f"]], -1).to(self.device)
+        self.head = int(state["head"])
+        self.fresh = state.get("fresh", self.pairs[:0]).to(self.device)
+        self.fresh_head = 0
+        self.gen.set_state(state["rng"])
+        if "pick_rng" in state and self.pick_gen is not self.gen:
+            self.pick_gen.set_state(state["pick_rng"])
+
+
+def accuracy_pairs(target, n: int | None, seed: int):
+    """Pairs (float64) on which a model is compared with ``target``: importance-sampled
+    for an analytic target (``n`` of them), measured bin centres for measured data (all
+    of them when ``n`` is None)."""
+    if isinstance(target, MeasuredTarget):
+        return target.grid_pairs(n, seed)
+    if n is None:
+        raise ValueError("n: an analytic target needs a number of pairs")
+    return importance_pairs(target, n, seed)
+
+
+@torch.no_grad()
+def importance_pairs(target: analytic.BRDF, n: int, seed: int):
+    """Pairs for the accuracy metric: wi uniform, wo from the target's sampler (float64).
+
+    Pairs whose wo falls below the horizon are kept: f = 0 there for both models.
+    """
+    g = torch.Generator().manual_seed(seed)
+    wi = frame.square_to_uniform_hemisphere(torch.rand(n, 2, generator=g, dtype=torch.float64))
+    wo = target.sample_dir_t(wi, torch.rand(n, 2, generator=g, dtype=torch.float64))
+    wo = frame.normalize(wo)
+    return wi, wo, target.f(wi, wo)

@@ -1,0 +1,458 @@
+// neural-brdf viewer: draws generated GLSL (neural_brdf_eval) in WebGL2.  Inlined into
+// one HTML file by neural_brdf/viewer.py together with the JSON in #nb-data.
+"use strict";
+const DATA = JSON.parse(document.getElementById("nb-data").textContent);
+const S = DATA.sphere;                     // sphere view size in pixels
+const NM = DATA.models.length;
+const PI = Math.PI;
+const LUMA = [0.2126, 0.7152, 0.0722];     // Rec. 709 luminance weights
+const SLICE_N = 181;                       // theta_o samples of a slice, 1 degree apart
+const status = document.getElementById("nb-status");
+// a failure anywhere (no WebGL2, a shader the driver refuses) is shown on the page
+window.addEventListener("error", (e) => { status.textContent = "error: " + e.message; });
+const $ = (id) => document.getElementById(id);
+
+// ---------------------------------------------------------------- metadata
+// A model read from an ONNX file carries the file itself (base64, DATA.models[k].onnx);
+// its metadata_props are read from those bytes by readOnnxMetadata and decodeMetadata
+// (neural_brdf/fileformat/onnx_metadata.js, inlined before this script).  Shown before WebGL starts,
+// so they are there even where WebGL2 is not.
+function b64ToBytes(s) {
+  const bin = atob(s), u = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) u[i] = bin.charCodeAt(i);
+  return u;
+}
+const METADATA = DATA.models.map((m) =>
+  m.onnx ? decodeMetadata(readOnnxMetadata(b64ToBytes(m.onnx))) : null);
+function metadataLine(name, meta) {
+  if (!meta) return name + ": no ONNX metadata (an analytic target)";
+  const t = meta.target;
+  const target = t && typeof t === "object" ? (t.kind === "analytic" ?
+    t.model + " " + JSON.stringify(t.params) : t.description || t.kind) : String(t || "?");
+  const num = (k) => typeof meta[k] === "number" ? meta[k].toPrecision(4) : String(meta[k] ?? "?");
+  const sl = meta.sampling_lobe;
+  const lobe = sl && typeof sl === "object" ? `, sampling lobe ${sl.distribution || "ggx"} ` +
+    `α ${Number(sl.alpha).toPrecision(3)}, share ${Number(sl.weight).toPrecision(3)}` : "";
+  return `${name}: fitted to ${target}; encoding ${meta.encoding || "?"}, max albedo ` +
+    `${num("max_albedo")}, reciprocity error ${num("reciprocity_error")}${lobe} ` +
+    `(metadata version ${meta.metadata_version}, ${meta.producer || "?"})`;
+}
+$("nb-meta").textContent = DATA.models.map((m, k) => metadataLine(m.name, METADATA[k])).join("\n");
+
+const canvas = $("nb-gl");
+canvas.width = S * (NM > 1 ? 3 : 1);
+canvas.height = S;
+const gl = canvas.getContext("webgl2", {antialias: false, preserveDrawingBuffer: true});
+if (!gl) throw new Error("this viewer needs WebGL2");
+if (!gl.getExtension("EXT_color_buffer_float"))
+  throw new Error("this viewer needs EXT_color_buffer_float (float render targets)");
+
+const HEADER = "#version 300 es\nprecision highp float;\nprecision highp int;\n";
+const VERT = "#version 300 es\nvoid main() {\n" +
+  "  vec2 p = vec2(float((gl_VertexID & 1) << 2), float((gl_VertexID & 2) << 1)) - 1.0;\n" +
+  "  gl_Position = vec4(p, 0.0, 1.0);\n}\n";
+// Sphere: orthographic view along -z, unit sphere filling the square; at each pixel the
+// local frame is z = n, x = t = normalize((n.z, 0, -n.x)) (tangent along the equator's
+// direction), y = n x t.  Directional light of irradiance pi at normal incidence, so a
+// white Lambertian surface facing the light has radiance 1.  neural_brdf/viewer.py
+// (sphere_directions) repeats this geometry for the tests.
+const SPHERE_MAIN = `
+uniform vec3 uLight;
+uniform float uSize;
+out vec4 nb_out;
+void main() {
+  vec2 p = gl_FragCoord.xy / uSize * 2.0 - 1.0;
+  float r2 = dot(p, p);
+  if (r2 >= 1.0) { nb_out = vec4(0.0); return; }
+  vec3 n = vec3(p, sqrt(1.0 - r2));
+  vec3 t = vec3(n.z, 0.0, -n.x);
+  float tl = length(t);
+  t = tl > 1e-6 ? t / tl : vec3(1.0, 0.0, 0.0);
+  vec3 b = cross(n, t);
+  vec3 wi = vec3(dot(uLight, t), dot(uLight, b), dot(uLight, n));
+  vec3 wo = vec3(t.z, b.z, n.z);
+  nb_out = vec4(neural_brdf_eval(wi, wo) * max(wi.z, 0.0) * 3.14159265358979, 1.0);
+}`;
+const PAIRS_MAIN = `
+uniform highp sampler2D uWi;
+uniform highp sampler2D uWo;
+out vec4 nb_out;
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy);
+  nb_out = vec4(neural_brdf_eval(texelFetch(uWi, p, 0).xyz, texelFetch(uWo, p, 0).xyz), 1.0);
+}`;
+// Display: radiance x 2^EV, clamped, sRGB-encoded; or the relative difference of two
+// radiance images, max over RGB of |A - B| / max(A, B, floor), as a false colour on a
+// log scale from 1e-3 (dark blue) to 1 (yellow).
+const DISPLAY = HEADER + `
+uniform highp sampler2D uA;
+uniform highp sampler2D uB;
+uniform int uMode;
+uniform float uGain;
+uniform float uFloor;
+uniform vec2 uOrigin;
+out vec4 nb_out;
+vec3 srgb(vec3 c) {
+  c = clamp(c, 0.0, 1.0);
+  return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c));
+}
+vec3 ramp(float x) {
+  x = clamp(x, 0.0, 1.0);
+  return vec3(smoothstep(0.3, 0.9, x), smoothstep(0.0, 0.6, x) * (1.0 - 0.2 * x),
+              0.35 + 0.6 * sin(3.14159 * min(x * 1.2, 1.0)) * (1.0 - x));
+}
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy - uOrigin);
+  vec4 a = texelFetch(uA, p, 0);
+  if (a.a == 0.0) { nb_out = vec4(0.13, 0.13, 0.15, 1.0); return; }
+  if (uMode == 0) { nb_out = vec4(srgb(a.rgb * uGain), 1.0); return; }
+  vec3 b = texelFetch(uB, p, 0).rgb;
+  vec3 d = abs(a.rgb - b) / max(max(a.rgb, b), vec3(uFloor));
+  float e = max(d.r, max(d.g, d.b));
+  nb_out = vec4(ramp((log(max(e, 1e-3)) / log(10.0) + 3.0) / 3.0), 1.0);
+}`;
+
+function compile(type, src, what) {
+  const s = gl.createShader(type);
+  gl.shaderSource(s, src);
+  gl.compileShader(s);
+  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS))
+    throw new Error(what + ": shader compile: " +
+                    gl.getShaderInfoLog(s).trim().split("\n").slice(0, 3).join(" | "));
+  return s;
+}
+function program(fsrc, what) {
+  const p = gl.createProgram();
+  gl.attachShader(p, compile(gl.VERTEX_SHADER, VERT, what));
+  gl.attachShader(p, compile(gl.FRAGMENT_SHADER, fsrc, what));
+  gl.linkProgram(p);
+  if (!gl.getProgramParameter(p, gl.LINK_STATUS))
+    throw new Error(what + ": link: " + gl.getProgramInfoLog(p));
+  return p;
+}
+function floatTarget(w, h) {
+  const tex = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, w, h);
+  for (const k of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+    gl.texParameteri(gl.TEXTURE_2D, k, gl.NEAREST);
+  const fb = gl.createFramebuffer();
+  gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+  gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+  if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE)
+    throw new Error("RGBA32F framebuffer incomplete");
+  return {tex, fb, w, h};
+}
+function floatInput(data, w, h) {          // data: Float32Array w*h*4
+  const tex = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  for (const k of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+    gl.texParameteri(gl.TEXTURE_2D, k, gl.NEAREST);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT, data);
+  return tex;
+}
+
+const models = DATA.models.map((m, k) => {
+  const body = m.glsl.replace(/^\s*#version[^\n]*\n/, "");
+  const what = `model ${k} (${m.name})`;
+  return {name: m.name, albedo: m.albedo,
+          sphere: program(HEADER + body + SPHERE_MAIN, what),
+          pairs: program(HEADER + body + PAIRS_MAIN, what),
+          target: floatTarget(S, S)};
+});
+const display = program(DISPLAY, "display");
+
+// ---------------------------------------------------------------- evaluation
+function renderSphere(k, light) {
+  const m = models[k];
+  gl.bindFramebuffer(gl.FRAMEBUFFER, m.target.fb);
+  gl.viewport(0, 0, S, S);
+  gl.useProgram(m.sphere);
+  gl.uniform3fv(gl.getUniformLocation(m.sphere, "uLight"), light);
+  gl.uniform1f(gl.getUniformLocation(m.sphere, "uSize"), S);
+  gl.drawArrays(gl.TRIANGLES, 0, 3);
+}
+function readTarget(t) {
+  gl.bindFramebuffer(gl.FRAMEBUFFER, t.fb);
+  const px = new Float32Array(t.w * t.h * 4);
+  gl.readPixels(0, 0, t.w, t.h, gl.RGBA, gl.FLOAT, px);
+  return px;
+}
+const PAIR_WIDTH = 1024;
+function evalPairs(k, wi, wo, n) {          // Float32Array n*3 each -> Float32Array n*3
+  const w = Math.min(n, PAIR_WIDTH), h = Math.ceil(n / PAIR_WIDTH);
+  const pad = (a) => {
+    const out = new Float32Array(w * h * 4);
+    for (let i = 0; i < n; i++) out.set(a.subarray(3 * i, 3 * i + 3), 4 * i);
+    return out;
+  };
+  const m = models[k];
+  const t = floatTarget(w, h);
+  gl.useProgram(m.pairs);
+  const inputs = [floatInput(pad(wi), w, h), floatInput(pad(wo), w, h)];
+  inputs.forEach((tex, unit) => {
+    gl.activeTexture(gl.TEXTURE0 + unit);
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+  });
+  gl.uniform1i(gl.getUniformLocation(m.pairs, "uWi"), 0);
+  gl.uniform1i(gl.getUniformLocation(m.pairs, "uWo"), 1);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, t.fb);
+  gl.viewport(0, 0, w, h);
+  gl.drawArrays(gl.TRIANGLES, 0, 3);
+  const px = readTarget(t);
+  inputs.forEach((tex) => gl.deleteTexture(tex));
+  gl.deleteTexture(t.tex);
+  gl.deleteFramebuffer(t.fb);
+  gl.activeTexture(gl.TEXTURE0);
+  const out = new Float32Array(n * 3);
+  for (let i = 0; i < n; i++) out.set(px.subarray(4 * i, 4 * i + 3), 3 * i);
+  return out;
+}
+
+// ---------------------------------------------------------------- state and drawing
+const state = {thetaL: 35, phiL: 30, ev: 0, thetaI: 45, log: false};
+function lightDir() {
+  const t = state.thetaL * PI / 180, p = state.phiL * PI / 180;
+  return [Math.sin(t) * Math.cos(p), Math.sin(t) * Math.sin(p), Math.cos(t)];
+}
+function drawSpheres() {
+  const L = lightDir();
+  for (let k = 0; k < NM; k++) renderSphere(k, L);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  gl.useProgram(display);
+  const loc = (n) => gl.getUniformLocation(display, n);
+  gl.uniform1i(loc("uA"), 0);
+  gl.uniform1i(loc("uB"), 1);
+  gl.uniform1f(loc("uGain"), Math.pow(2, state.ev));
+  gl.uniform1f(loc("uFloor"), 1e-3 * Math.pow(2, -state.ev));
+  const panels = NM > 1 ? [[0, 0, 0], [1, 1, 0], [2, 0, 1]] : [[0, 0, 0]];
+  for (const [slot, a, mode] of panels) {
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D, models[a].target.tex);
+    gl.activeTexture(gl.TEXTURE1);
+    gl.bindTexture(gl.TEXTURE_2D, models[NM > 1 ? 1 : 0].target.tex);
+    gl.uniform1i(loc("uMode"), mode);
+    gl.uniform2f(loc("uOrigin"), slot * S, 0);
+    gl.viewport(slot * S, 0, S, S);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+  }
+  gl.activeTexture(gl.TEXTURE0);
+  if (NM > 1) {
+    const a = readTarget(models[0].target), b = readTarget(models[1].target);
+    let num = 0, den = 0, worst = 0;
+    for (let i = 0; i < a.length; i += 4) {
+      if (a[i + 3] === 0) continue;
+      for (let c = 0; c < 3; c++) {
+        const d = Math.abs(a[i + c] - b[i + c]);
+        num += d * d; den += b[i + c] * b[i + c]; worst = Math.max(worst, d);
+      }
+    }
+    let peak = 0;
+    for (let i = 0; i < b.length; i += 4) peak = Math.max(peak, b[i], b[i + 1], b[i + 2]);
+    $("nb-diff").textContent = `sphere: relative RMS difference ${(Math.sqrt(num / Math.max(den, 1e-30)) * 100).toFixed(2)} %, ` +
+      `max |A − B| ${(100 * worst / Math.max(peak, 1e-30)).toFixed(2)} % of the peak radiance`;
+  }
+}
+
+function slices() {                        // [model] -> {theta: deg[], fc: [n][3]}
+  const ti = state.thetaI * PI / 180;
+  const wi = new Float32Array(SLICE_N * 3), wo = new Float32Array(SLICE_N * 3), th = [];
+  for (let j = 0; j < SLICE_N; j++) {
+    const to = (-90 + 180 * j / (SLICE_N - 1)) * PI / 180;
+    th.push(to * 180 / PI);
+    wi.set([-Math.sin(ti), 0, Math.cos(ti)], 3 * j);
+    wo.set([Math.sin(to), 0, Math.cos(to)], 3 * j);
+  }
+  return models.map((m, k) => {
+    const f = evalPairs(k, wi, wo, SLICE_N);
+    const fc = [];
+    for (let j = 0; j < SLICE_N; j++) {
+      const c = Math.max(wo[3 * j + 2], 0);
+      fc.push([f[3 * j] * c, f[3 * j + 1] * c, f[3 * j + 2] * c]);
+    }
+    return {theta: th, fc};
+  });
+}
+
+const CH = ["#d62728", "#2ca02c", "#1f77b4"];
+const DASH = [[], [6, 4]];
+function axes(ctx, W, H, box, xr, yr, opts) {
+  ctx.clearRect(0, 0, W, H);
+  ctx.fillStyle = "#fff"; ctx.fillRect(0, 0, W, H);
+  ctx.strokeStyle = "#999"; ctx.lineWidth = 1; ctx.setLineDash([]);
+  ctx.strokeRect(box.x, box.y, box.w, box.h);
+  ctx.fillStyle = "#333"; ctx.font = "11px sans-serif"; ctx.textAlign = "center";
+  for (const x of opts.xticks) {
+    const px = box.x + (x - xr[0]) / (xr[1] - xr[0]) * box.w;
+    ctx.fillText(String(x), px, box.y + box.h + 13);
+    ctx.strokeStyle = "#eee"; ctx.beginPath(); ctx.moveTo(px, box.y); ctx.lineTo(px, box.y + box.h); ctx.stroke();
+  }
+  ctx.textAlign = "right";
+  for (const y of opts.yticks) {
+    const py = box.y + box.h - (y - yr[0]) / (yr[1] - yr[0]) * box.h;
+    ctx.fillText(opts.ylabelOf(y), box.x - 4, py + 4);
+    ctx.strokeStyle = "#eee"; ctx.beginPath(); ctx.moveTo(box.x, py); ctx.lineTo(box.x + box.w, py); ctx.stroke();
+  }
+  ctx.textAlign = "center"; ctx.font = "12px sans-serif";
+  ctx.fillText(opts.title, box.x + box.w / 2, 14);
+  ctx.fillText(opts.xlabel, box.x + box.w / 2, H - 4);
+}
+function line(ctx, box, xr, yr, xs, ys, colour, dash) {
+  ctx.strokeStyle = colour; ctx.setLineDash(dash); ctx.lineWidth = dash.length ? 1.2 : 2;
+  ctx.beginPath();
+  let pen = false;
+  xs.forEach((x, i) => {
+    const y = ys[i];
+    if (!isFinite(y)) { pen = false; return; }
+    const px = box.x + (x - xr[0]) / (xr[1] - xr[0]) * box.w;
+    const py = box.y + box.h - (Math.min(Math.max(y, yr[0]), yr[1]) - yr[0]) / (yr[1] - yr[0]) * box.h;
+    if (pen) ctx.lineTo(px, py); else ctx.moveTo(px, py);
+    pen = true;
+  });
+  ctx.stroke();
+  ctx.setLineDash([]);
+}
+function drawSlices(sl) {
+  const cv = $("nb-slice"), ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
+  const box = {x: 52, y: 22, w: W - 64, h: H - 58};
+  let hi = 0;
+  for (const s of sl) for (const v of s.fc) hi = Math.max(hi, v[0], v[1], v[2]);
+  hi = hi > 0 ? hi : 1;
+  const tr = state.log ? (v) => Math.log10(Math.max(v, 1e-30)) : (v) => v;
+  const yr = state.log ? [Math.log10(hi) - 4, Math.log10(hi) + 0.2] : [0, hi * 1.05];
+  const yt = [];
+  for (let i = 0; i <= 4; i++) yt.push(yr[0] + (yr[1] - yr[0]) * i / 4);
+  axes(ctx, W, H, box, [-90, 90], yr, {
+    xticks: [-90, -60, -30, 0, 30, 60, 90], yticks: yt, xlabel: "θo [deg] (mirror at +θi)",
+    title: `f cos θo in the incidence plane, θi = ${state.thetaI}°` + (state.log ? " (log10)" : ""),
+    ylabelOf: (y) => state.log ? y.toFixed(1) : y.toPrecision(2)});
+  sl.forEach((s, k) => {
+    for (let c = 0; c < 3; c++)
+      line(ctx, box, [-90, 90], yr, s.theta, s.fc.map((v) => tr(v[c])), CH[c], DASH[k]);
+  });
+}
+function drawPolar(sl) {
+  const cv = $("nb-polar"), ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
+  ctx.fillStyle = "#fff"; ctx.fillRect(0, 0, W, H);
+  const cx = W / 2, cy = H - 24, R = Math.min(W / 2 - 16, H - 48);
+  const lum = sl.map((s) => s.fc.map((v) => LUMA[0] * v[0] + LUMA[1] * v[1] + LUMA[2] * v[2]));
+  let hi = 0;
+  for (const l of lum) for (const v of l) hi = Math.max(hi, v);
+  hi = hi > 0 ? hi : 1;
+  ctx.strokeStyle = "#ddd"; ctx.lineWidth = 1;
+  for (const f of [0.25, 0.5, 0.75, 1]) {
+    ctx.beginPath(); ctx.arc(cx, cy, R * f, PI, 2 * PI); ctx.stroke();
+  }
+  for (const a of [-60, -30, 0, 30, 60]) {
+    const t = a * PI / 180;
+    ctx.beginPath(); ctx.moveTo(cx, cy); ctx.lineTo(cx + R * Math.sin(t), cy - R * Math.cos(t)); ctx.stroke();
+  }
+  ctx.strokeStyle = "#888"; ctx.beginPath(); ctx.moveTo(cx - R - 8, cy); ctx.lineTo(cx + R + 8, cy); ctx.stroke();
+  const ti = state.thetaI * PI / 180;                // the incident direction, at -theta_i
+  ctx.strokeStyle = "#e08000"; ctx.lineWidth = 2; ctx.beginPath(); ctx.moveTo(cx, cy);
+  ctx.lineTo(cx - R * Math.sin(ti), cy - R * Math.cos(ti)); ctx.stroke();
+  const colours = ["#222", "#c2185b"];
+  lum.forEach((l, k) => {
+    ctx.strokeStyle = colours[k]; ctx.setLineDash(DASH[k]); ctx.lineWidth = 2;
+    ctx.beginPath();
+    sl[k].theta.forEach((deg, j) => {
+      const t = deg * PI / 180, r = R * l[j] / hi;
+      const x = cx + r * Math.sin(t), y = cy - r * Math.cos(t);
+      if (j) ctx.lineTo(x, y); else ctx.moveTo(x, y);
+    });
+    ctx.stroke(); ctx.setLineDash([]);
+  });
+  ctx.fillStyle = "#333"; ctx.font = "12px sans-serif"; ctx.textAlign = "center";
+  ctx.fillText(`lobe: luminance of f cos θo, θi = ${state.thetaI}° (orange: light)`, W / 2, 14);
+}
+function drawAlbedo() {
+  const cv = $("nb-albedo"), ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
+  const box = {x: 44, y: 22, w: W - 56, h: H - 58};
+  let hi = 1.05;
+  for (const m of models) for (const v of m.albedo.rho) hi = Math.max(hi, v[0] * 1.05, v[1] * 1.05, v[2] * 1.05);
+  const yr = [0, hi];
+  axes(ctx, W, H, box, [0, 90], yr, {
+    xticks: [0, 15, 30, 45, 60, 75, 90], yticks: [0, 0.25, 0.5, 0.75, 1.0].filter((y) => y <= hi),
+    xlabel: "θi [deg]", title: "directional albedo ρ(θi) (precomputed)",
+    ylabelOf: (y) => y.toFixed(2)});
+  models.forEach((m, k) => {
+    for (let c = 0; c < 3; c++)
+      line(ctx, box, [0, 90], yr, m.albedo.theta, m.albedo.rho.map((v) => v[c]), CH[c], DASH[k]);
+  });
+  const px = box.x + state.thetaI / 90 * box.w;
+  ctx.strokeStyle = "#e08000"; ctx.beginPath(); ctx.moveTo(px, box.y); ctx.lineTo(px, box.y + box.h); ctx.stroke();
+  const py = box.y + box.h - 1 / hi * box.h;
+  ctx.strokeStyle = "#000"; ctx.setLineDash([2, 3]); ctx.beginPath(); ctx.moveTo(box.x, py);
+  ctx.lineTo(box.x + box.w, py); ctx.stroke(); ctx.setLineDash([]);
+}
+
+function redraw(what) {
+  try {
+    if (what !== "plots") drawSpheres();
+    if (what !== "spheres") { const sl = slices(); drawSlices(sl); drawPolar(sl); drawAlbedo(); }
+    for (const [id, v] of [["nb-thetaL", state.thetaL], ["nb-phiL", state.phiL], ["nb-ev", state.ev],
+                           ["nb-thetaI", state.thetaI]]) {
+      $(id).value = v;
+      $(id + "-v").textContent = String(v);
+    }
+    $("nb-log").checked = state.log;
+  } catch (e) {
+    status.textContent = String(e);
+    throw e;
+  }
+}
+let pending = null;
+function schedule(what) {
+  const w = pending && pending !== what ? "all" : what;
+  if (pending === null) requestAnimationFrame(() => { const x = pending; pending = null; redraw(x); });
+  pending = w;
+}
+for (const [id, key, what] of [["nb-thetaL", "thetaL", "spheres"], ["nb-phiL", "phiL", "spheres"],
+                               ["nb-ev", "ev", "spheres"], ["nb-thetaI", "thetaI", "plots"]]) {
+  const el = $(id);
+  el.value = state[key];
+  el.addEventListener("input", () => { state[key] = Number(el.value); schedule(what); });
+}
+$("nb-log").addEventListener("change", (e) => { state.log = e.target.checked; schedule("plots"); });
+// drag on a sphere: the light comes from the direction of the point under the pointer
+function dragLight(ev) {
+  if (!(ev.buttons & 1)) return;
+  const r = canvas.getBoundingClientRect();
+  const scale = canvas.width / r.width;
+  const px = ((ev.clientX - r.left) * scale) % S, py = (ev.clientY - r.top) * scale;
+  let x = px / S * 2 - 1, y = 1 - py / S * 2;
+  const r2 = x * x + y * y;
+  if (r2 > 1) { x /= Math.sqrt(r2); y /= Math.sqrt(r2); }
+  const z = Math.sqrt(Math.max(0, 1 - x * x - y * y));
+  state.thetaL = Math.round(Math.acos(z) * 180 / PI);
+  state.phiL = Math.round((Math.atan2(y, x) * 180 / PI + 360) % 360);
+  $("nb-thetaL").value = state.thetaL; $("nb-phiL").value = state.phiL;
+  schedule("spheres");
+}
+canvas.addEventListener("pointerdown", dragLight);
+canvas.addEventListener("pointermove", dragLight);
+
+// ---------------------------------------------------------------- test mode
+function b64ToF32(s) {
+  const bin = atob(s), u = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) u[i] = bin.charCodeAt(i);
+  return new Float32Array(u.buffer);
+}
+function f32ToB64(f) {
+  const u = new Uint8Array(f.buffer, f.byteOffset, f.byteLength);
+  let s = "";
+  for (let i = 0; i < u.length; i += 0x8000) s += String.fromCharCode.apply(null, u.subarray(i, i + 0x8000));
+  return btoa(s);
+}
+window.nbViewer = {
+  size: S, models: models.map((m) => m.name),
+  // f of model k at n (wi, wo) pairs (base64 float32 (n, 3) each) -> base64 float32 (n, 3)
+  evalPairs: (k, wi, wo, n) => f32ToB64(evalPairs(k, b64ToF32(wi), b64ToF32(wo), n)),
+  // the float radiance image (S, S, 4), rows bottom-up, of model k lit from light (vec3)
+  sphereRadiance: (k, light) => { renderSphere(k, light); return f32ToB64(readTarget(models[k].target)); },
+  setState: (s) => { Object.assign(state, s); redraw("all"); return state; },
+  // model k's metadata, read from its ONNX bytes (null for an analytic target)
+  metadata: (k) => METADATA[k],
+};
+redraw("all");
+status.textContent = "ready";

@@ -1,0 +1,681 @@
+"""A run's visual report: ``report.html`` (self-contained) and ``report.md`` (+ PNGs).
+
+    neural-brdf report runs/quickstart                        # into the run directory
+    neural-brdf report runs/quickstart -o docs/sample_report  # elsewhere
+
+Training writes it at the end of every run (:func:`neural_brdf.pipeline.run`).  It reads
+the run directory (``config.yaml``, ``metrics.json``, ``log.csv``, ``model.onnx``) and
+holds: a summary, the physics checks with their verdicts and the furnace (albedo)
+curve, the accuracy against the target with the BRDF Explorer style figures of
+:mod:`neural_brdf.viewer.plots`, Mitsuba renders when Mitsuba is installed, the training
+curve and times, and the resolved config.
+
+The reference is the config's target (``data.build_target``).  When a measured-data
+target cannot be built here, the report says so and plots the model alone.
+
+``report.html`` embeds every image as a base64 PNG data URI and needs no script, so
+the one file can be mailed or archived; ``report.md`` links the same PNGs, written
+beside it as ``report-*.png``.  Both come from one list of blocks, so they always hold
+the same content.  When the GLSL code generator translates the model, the interactive
+viewer (:mod:`neural_brdf.viewer.page`, a page with script) is written beside them as
+``viewer.html`` and carried inside report.html as a download link (a data URI), so the
+report itself stays script-free.  Every file is written atomically (temp file + rename).
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import json
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from neural_brdf import config as cfgmod
+from neural_brdf.config import InputError
+from neural_brdf.fileio import atomic_write
+from neural_brdf.runtime import load
+from neural_brdf.train import data
+from neural_brdf.viewer import plots
+
+RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
+RENDER_SPP = 16  # Mitsuba preview: enough to judge the material, seconds to render
+RENDER_RESOLUTION = 128
+VIEWER_FILE = "viewer.html"  # the interactive viewer, beside the report
+
+
+# ------------------------------------------------------------------ document blocks
+@dataclass
+class Verdict:
+    passed: bool
+
+
+@dataclass
+class Heading:
+    text: str
+    level: int = 2
+
+
+@dataclass
+class Text:
+    text: str
+    note: bool = False  # highlighted (a missing reference, no Mitsuba, ...)
+
+
+@dataclass
+class Table:
+    header: list[str]
+    rows: list[list]  # cells: str or Verdict
+
+
+@dataclass
+class Image:
+    key: str  # file name report-<key>.png
+    title: str
+    caption: str
+    png: bytes
+    zoom: int = 1  # shown this many times its size in HTML (small renders)
+
+    @property
+    def width(self) -> int:
+        return struct.unpack(">I", self.png[16:20])[0]  # PNG IHDR width
+
+
+@dataclass
+class Code:
+    text: str
+    lang: str = ""
+
+
+@dataclass
+class Attachment:
+    """A file carried by the report: written beside it, and inside report.html as a
+    download link (a data URI, so the page stays one file without script)."""
+
+    name: str
+    text: str  # the link text
+    data: bytes
+    mime: str = "text/html"
+
+
+# ------------------------------------------------------------------ reading a run
+@dataclass
+class Run:
+    dir: Path
+    config: cfgmod.Config
+    config_text: str
+    metrics: dict
+    log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays
+    model: object  # runtime.NeuralBRDF
+
+
+def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
+    """The number at ``a.b.c`` (``a.0`` indexes a list) of a metrics dict; InputError
+    naming the file and the key."""
+    x = d
+    for part in dotted.split("."):
+        if isinstance(x, list) and part.isdigit() and int(part) < len(x):
+            x = x[int(part)]
+        elif isinstance(x, dict) and part in x:
+            x = x[part]
+        elif optional:
+            return None
+        else:
+            raise InputError(f"{path}: {dotted}: missing")
+    return _as_number(x, dotted, path)
+
+
+def _as_number(x, key: str, path: Path) -> float:
+    try:
+        if isinstance(x, bool):
+            raise TypeError
+        return float(x)  # write_json stores inf / nan as strings
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {key}: not a number ({x!r})") from None
+
+
+def _read_metrics(path: Path) -> dict:
+    try:
+        metrics = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read ({e})") from None
+    checks = metrics.get("checks") if isinstance(metrics, dict) else None
+    if not isinstance(checks, dict) or not checks:
+        raise InputError(f"{path}: checks: missing (not a metrics.json of a run?)")
+    for name, c in checks.items():
+        if not isinstance(c, dict) or not isinstance(c.get("passed"), bool):
+            raise InputError(f"{path}: checks.{name}.passed: missing or not true/false")
+        _number(metrics, f"checks.{name}.value", path)
+        _number(metrics, f"checks.{name}.limit", path)
+    return metrics
+
+
+def _read_log(path: Path) -> dict:
+    step, loss, val_step, val = [], [], [], []
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            if not reader.fieldnames or not {"step", "loss"} <= set(reader.fieldnames):
+                raise InputError(f"{path}: expected a CSV with columns step, loss, ...")
+            for line, row in enumerate(reader, start=2):
+                try:
+                    step.append(float(row["step"]))
+                    loss.append(float(row["loss"]))
+                    if row.get("val_rel_rmse"):
+                        val.append(float(row["val_rel_rmse"]))
+                        val_step.append(step[-1])
+                except (TypeError, ValueError):
+                    raise InputError(f"{path}: line {line}: not a number") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise InputError(f"{path}: cannot read ({e})") from None
+    return {
+        k: np.asarray(v, dtype=np.float64)
+        for k, v in (("step", step), ("loss", loss), ("val_step", val_step), ("val_rel_rmse", val))
+    }
+
+
+def load_run(run_dir) -> Run:
+    """Read a run directory; a missing or garbled file raises InputError naming it."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: no such run directory")
+    for name in RUN_FILES:
+        if not (run_dir / name).is_file():
+            raise InputError(
+                f"{run_dir / name}: missing (a run directory holds {', '.join(RUN_FILES)})"
+            )
+    cfg = cfgmod.load(run_dir / "config.yaml")
+    return Run(
+        dir=run_dir,
+        config=cfg,
+        config_text=(run_dir / "config.yaml").read_text(),
+        metrics=_read_metrics(run_dir / "metrics.json"),
+        log=_read_log(run_dir / "log.csv"),
+        model=load(run_dir / "model.onnx"),
+    )
+
+
+def reference_of(cfg: cfgmod.Config):
+    """(the target model, None), or (None, why not) for a data target not buildable here."""
+    try:
+        return data.build_target(cfg.target), None
+    except InputError as e:
+        if cfg.target.data is None:
+            raise
+        return (
+            None,
+            f"No reference: the measured target {cfg.target.data} could not be "
+            f"loaded here ({e}); the figures show the neural model alone.",
+        )
+
+
+# ------------------------------------------------------------------ content
+def _fmt(x, spec: str = ".4g") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _summary(run: Run) -> list:
+    m, path, cfg = run.metrics, run.dir / "metrics.json", run.config
+    rel = _number(m, "accuracy.rel_rmse", path, optional=True)
+    rows = [
+        ["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
+        ["target", cfg.target.data or f"{cfg.target.model} {json.dumps(cfg.target.params)}"],
+        [
+            "model",
+            f"{cfg.model.encoding} encoding, hidden {cfg.model.hidden}, {cfg.model.activation}",
+        ],
+        ["rel. RMSE of f cos θo", "-" if rel is None else f"{100 * rel:.3f} %"],
+        [
+            "max directional albedo",
+            _fmt(_number(m, "checks.max_albedo.value", path, optional=True), ".6f"),
+        ],
+        ["training steps", _fmt(_number(m, "training.steps", path, optional=True), ".0f")],
+        ["training time", _fmt(_number(m, "seconds.train", path, optional=True), ".1f") + " s"],
+    ]
+    return [Heading(f"neural-brdf report: {cfg.name}", 1), Table(["", ""], rows)]
+
+
+def _physics(run: Run, albedo_png: bytes) -> list:
+    m, path = run.metrics, run.dir / "metrics.json"
+    rows = []
+    for name, c in m["checks"].items():
+        value, limit = (_number(m, f"checks.{name}.{k}", path) for k in ("value", "limit"))
+        op = ">=" if name == "min_value" else "<="
+        shown = f"{value:.6f}" if name == "max_albedo" else f"{value:.3g}"
+        theta = _number(m, f"checks.{name}.at_theta_deg", path, optional=True)
+        stderr = _number(m, f"checks.{name}.quadrature_stderr", path, optional=True)
+        if theta is not None:
+            shown += f" at θi = {theta:.2f}°"
+        if stderr is not None:
+            shown += f" (± {stderr:.1g})"
+        rows.append([name, shown, f"{op} {limit:.6g}", Verdict(c["passed"])])
+    parity = _number(m, "export.parity_rel_error", path, optional=True)
+    if parity is not None:
+        tol = run.config.export.parity_tol
+        rows.append(
+            ["torch vs onnxruntime parity", f"{parity:.2g}", f"<= {tol:g}", Verdict(parity <= tol)]
+        )
+    blocks = [
+        Heading("Physics checks"),
+        Text(
+            "Reciprocity and non-negativity over random pairs (10 % within 1° of "
+            "grazing); the white furnace: the directional albedo ρ(θi) = ∫ f cos θo "
+            "dωo by quadrature, whose maximum must stay below 1 + tolerance."
+        ),
+        Table(["check", "value", "limit", "result"], rows),
+    ]
+    hemi = m.get("hemispherical_albedo")
+    if isinstance(hemi, list) and hemi:
+        values = (_number(m, f"hemispherical_albedo.{i}", path) for i in range(len(hemi)))
+        blocks.append(
+            Text("Hemispherical albedo (R, G, B): " + ", ".join(f"{v:.4f}" for v in values))
+        )
+    raw_max = _number(m, "export.normalization.raw_max_albedo", path, optional=True)
+    if raw_max is not None:
+        n = m["export"]["normalization"]
+        blocks.append(
+            Text(
+                f"Albedo normalisation: the raw network's max albedo was "
+                f"{raw_max:.4f}; {n.get('nodes_above_1', '?')} of "
+                f"{n.get('nodes', '?')} table nodes needed scaling"
+                + (
+                    " (none: the division is the identity and the graph omits it)."
+                    if n.get("in_graph") is False
+                    else "."
+                )
+            )
+        )
+    blocks.append(
+        Image(
+            "albedo",
+            "Directional albedo (white furnace)",
+            "ρ(θi) per channel: the neural curve as the validator measured it (averaged "
+            "over azimuth for an anisotropic model), the reference's in the incidence "
+            "plane; the dotted line is the furnace limit 1, the cross the validator's "
+            "measured maximum.",
+            albedo_png,
+        )
+    )
+    return blocks
+
+
+def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
+    m, path = run.metrics, run.dir / "metrics.json"
+    blocks = [Heading("Accuracy")]
+    if note:
+        blocks.append(Text(note, note=True))
+    if isinstance(m.get("accuracy"), dict):
+        rows = [
+            [
+                "rel. RMSE of f cos θo (all pairs)",
+                f"{100 * _number(m, 'accuracy.rel_rmse', path):.3f} %",
+            ]
+        ]
+        bands = m["accuracy"].get("rel_rmse_by_incidence")
+        for band, v in bands.items() if isinstance(bands, dict) else ():
+            v = None if v is None else _as_number(v, f"accuracy.rel_rmse_by_incidence.{band}", path)
+            rows.append([f"rel. RMSE, {band}", "-" if v is None else f"{100 * v:.3f} %"])
+        rows.append(["NBRDF log error", f"{_number(m, 'accuracy.nbrdf_log_error', path):.3g}"])
+        pairs = _number(m, "accuracy.pairs", path, optional=True)
+        blocks += [
+            Text(
+                f"Against the target on {_fmt(pairs, '.0f')} held-out pairs "
+                "(neural_brdf/validate.py): the relative RMSE of f cos θo, overall "
+                "and by bands of cos θi, and the NBRDF log error, the mean of "
+                "|log(1 + f̂ cos θo) − log(1 + f cos θo)|."
+            ),
+            Table(["metric", "value"], rows),
+        ]
+    if isinstance(m.get("peak"), dict):
+        blocks += _peak(m["peak"], path)
+    return blocks + images
+
+
+def _peak(peak: dict, path: Path) -> list:
+    """The validator's peak check: model / target at and near the mirror direction."""
+    value = _as_number(peak.get("value"), "peak.value", path)
+    limit = _as_number(peak.get("limit"), "peak.limit", path)
+    pairs = peak.get("pairs") if isinstance(peak.get("pairs"), list) else []
+    offsets = sorted({p["offset_deg"] for p in pairs if isinstance(p, dict)})
+    rows = []
+    keys = sorted({(p["phi_deg"], p["theta_deg"], p["way"]) for p in pairs if p["offset_deg"]})
+    for phi, theta, way in keys:
+        # the pair at the mirror direction itself (offset 0) heads every row
+        errors = {
+            p["offset_deg"]: p["error"]
+            for p in pairs
+            if (p["phi_deg"], p["theta_deg"]) == (phi, theta)
+            and (p["way"] == way or p["offset_deg"] == 0.0)
+        }
+        rows.append(
+            [f"{theta:g}°", f"{phi:g}°", way]
+            + [f"{100 * errors[o]:.2f} %" if o in errors else "-" for o in offsets]
+        )
+    verdict = "passed" if peak.get("passed") else "FAILED"
+    return [
+        Text(
+            f"At the highlight's peak: {100 * value:.2f} % (limit {100 * limit:g} %, {verdict}). "
+            "The largest |f̂ / f − 1| over RGB with wo at the exact mirror direction of wi and "
+            "0.01 to 1 degree off it, towards the normal, towards the horizon and across the "
+            "plane of incidence (both tangent planes for an anisotropic model). A defect "
+            "there, such as a notch a fraction of a degree wide, is the visible highlight of "
+            "a smooth material, yet it hardly moves the mean error above."
+        ),
+        Table(
+            ["θi", "φi", "towards"] + [f"{o:g}°" for o in offsets],
+            rows,
+        ),
+    ]
+
+
+def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
+    blocks = [Heading("Rendering")]
+    why = (
+        "rendering was switched off for this report" if not render else plots.mitsuba_unavailable()
+    )
+    if why:
+        return blocks + [Text(f"No render: {why}.", note=True)]
+    cfg = run.config
+    ref = None
+    if reference is not None and cfg.target.data is None:
+        ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}
+    with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
+        png_path = Path(tmp) / "render.png"
+        try:
+            psnr = plots.spheres(
+                run.dir / "model.onnx",
+                png_path,
+                reference=ref,
+                spp=RENDER_SPP,
+                resolution=RENDER_RESOLUTION,
+            )
+        except InputError as e:  # e.g. an ONNX op the Mitsuba plugin lacks
+            return blocks + [Text(f"No render: {e}.", note=True)]
+        png = png_path.read_bytes()
+    from neural_brdf.renderers.render import ERROR_GAIN
+
+    caption = f"Mitsuba 3 preview, {RENDER_SPP} spp: neural"
+    if ref is not None:
+        caption += (
+            f" | reference | {ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB of "
+            "neural against the reference, Monte Carlo noise included)"
+        )
+    return blocks + [Image("render", "Rendered spheres", caption, png, zoom=2)]
+
+
+def _stored_lobe(path: Path) -> dict | None:
+    """The sampling lobe in a model file's metadata, or None (older files, bad ones)."""
+    from neural_brdf.physics import lobe
+
+    try:
+        import onnx
+
+        model = onnx.load(str(path), load_external_data=False)
+        return lobe.from_metadata({p.key: p.value for p in model.metadata_props})
+    except Exception:  # the viewer then fits one, as for any file
+        return None
+
+
+def _viewer(run: Run, reference, curves: dict | None = None) -> list:
+    """The interactive WebGL2 viewer (neural_brdf.viewer.page) of the model, beside its analytic
+    target when it has one; a note when the GLSL code generator cannot translate it.
+    ``curves``: the albedo curves of the report's plot (plots.albedo_curve's ``values``),
+    shown by the page too."""
+    from neural_brdf.viewer import page as viewer
+
+    blocks = [Heading("Interactive viewer")]
+    cfg = run.config
+    curves = curves or {}
+
+    def page_curve(key: str) -> dict | None:
+        theta = curves.get(f"{key}_theta", curves.get("theta"))
+        return viewer.curve(theta, curves[key]) if key in curves else None
+
+    try:
+        models = [viewer.onnx_model(run.dir / "model.onnx", "neural", albedo=page_curve("neural"))]
+        if reference is not None and cfg.target.data is None:
+            models.append(
+                viewer.analytic_model(
+                    cfg.target.model,
+                    dict(cfg.target.params),
+                    f"target: {cfg.target.model}",
+                    albedo=page_curve("reference"),
+                    lobe=_stored_lobe(run.dir / "model.onnx"),  # unused by the page
+                )
+            )
+    except InputError as e:  # no code generator, or an op it does not know
+        return blocks + [Text(f"No viewer: {e}.", note=True)]
+    page = viewer.page(models, title=f"neural-brdf viewer: {cfg.name}")
+    vs = " (beside its target, with a difference view)" if len(models) > 1 else ""
+    return blocks + [
+        Text(
+            f"{VIEWER_FILE} draws the model{vs} in WebGL2 with the GLSL generated from its "
+            "ONNX graph: a lit sphere with a draggable light, incidence-plane slices, the "
+            "polar lobe and the albedo curve.  It is written beside this report and "
+            "carried inside it (the link saves it); open it in a browser."
+        ),
+        Attachment(
+            VIEWER_FILE,
+            f"Save {VIEWER_FILE} (interactive viewer, {len(page) // 1024} KiB)",
+            page.encode("utf-8"),
+        ),
+    ]
+
+
+def _training(run: Run) -> list:
+    m, path, log = run.metrics, run.dir / "metrics.json", run.log
+    rows = [
+        [k, f"{_number(m, f'seconds.{k}', path):.1f} s"]
+        for k in ("train", "export", "validate", "report", "total")
+        if _number(m, f"seconds.{k}", path, optional=True) is not None
+    ]
+    blocks = [Heading("Training")]
+    if rows:
+        blocks.append(Table(["stage", "time"], rows))
+    if len(log["step"]):
+        blocks.append(
+            Image(
+                "loss",
+                "Training curve",
+                "Loss per logged step (log scale) and the held-out relative RMSE "
+                "of f cos θo of the raw network (before normalisation).",
+                plots.png_bytes(
+                    plots.loss_curve(log["step"], log["loss"], log["val_step"], log["val_rel_rmse"])
+                ),
+            )
+        )
+    else:
+        blocks.append(Text("No training steps were logged.", note=True))
+    return blocks
+
+
+def _blocks(run: Run, out_dir: Path, render: bool) -> list:
+    reference, note = reference_of(run.config)
+    neural = run.model.eval
+    ref = reference.eval if reference is not None else None
+    sampler = reference if hasattr(reference, "sample_t") else None
+    m, path = run.metrics, run.dir / "metrics.json"
+    theta = _number(m, "checks.max_albedo.at_theta_deg", path, optional=True)
+    validated = None if theta is None else (theta, _number(m, "checks.max_albedo.value", path))
+    samples = run.config.validation.furnace_samples  # as many as the validator's
+    curves: dict = {}  # the albedo curves, computed once for the plot and the viewer
+    curve = m.get("furnace", {}).get("curve") if isinstance(m.get("furnace"), dict) else None
+    measured = None
+    if isinstance(curve, dict) and curve.get("theta_deg") and curve.get("rho"):
+        measured = (curve["theta_deg"], curve["rho"])  # the validator's: no second quadrature
+    albedo = plots.png_bytes(
+        plots.albedo_curve(
+            neural,
+            ref,
+            samples=samples,
+            sampler=sampler,
+            validated_max=validated,
+            values=curves,
+            measured=measured,
+        )
+    )
+    vs = "neural (solid) against the reference (dashed)" if ref is not None else "neural"
+    figures = [
+        Image(
+            "slices",
+            "Incidence-plane slices",
+            f"f cos θo in the incidence plane (x-z) at θi = 0, 30, 60, 80°, log scale, "
+            f"{vs}, per RGB channel.",
+            plots.png_bytes(plots.incidence_slices(neural, ref)),
+        ),
+        Image(
+            "lobes",
+            "Polar lobes",
+            f"The same slices as lobes (luminance), {vs}.",
+            plots.png_bytes(plots.polar_lobes(neural, ref)),
+        ),
+        Image(
+            "rusinkiewicz",
+            "(θh, θd) slice",
+            "log10 luminance of f over the half and difference angles at φd = 90°"
+            + (", and the relative error of the neural model." if ref is not None else "."),
+            plots.png_bytes(plots.rusinkiewicz_images(neural, ref)),
+        ),
+    ]
+    return (
+        _summary(run)
+        + _physics(run, albedo)
+        + _accuracy(run, note, figures)
+        + _rendering(run, render, out_dir, reference)
+        + _viewer(run, reference, curves)
+        + _training(run)
+        + [
+            Heading("Config"),
+            Text("The resolved config.yaml of the run."),
+            Code(run.config_text, "yaml"),
+        ]
+    )
+
+
+# ------------------------------------------------------------------ HTML and Markdown
+CSS = """
+body { font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; margin: 0; }
+main { max-width: 1100px; margin: 0 auto; padding: 24px; }
+h1 { font-size: 26px; margin: 0 0 16px; } h2 { margin-top: 36px; border-bottom: 1px solid #ddd; }
+table { border-collapse: collapse; margin: 12px 0; }
+td, th { border: 1px solid #ddd; padding: 4px 10px; text-align: left; }
+th { background: #f3f3f3; }
+.ok { color: #fff; background: #2e7d32; padding: 1px 8px; border-radius: 3px; }
+.fail { color: #fff; background: #c62828; padding: 1px 8px; border-radius: 3px; }
+.note { background: #fff6d6; border-left: 4px solid #e0b000; padding: 8px 12px; }
+figure { margin: 20px 0; } figcaption { color: #555; font-size: 14px; }
+img { max-width: 100%; height: auto; display: block; }
+pre { background: #f6f6f6; padding: 12px; overflow-x: auto; font-size: 13px; }
+"""
+
+
+def _cell_html(c) -> str:
+    if isinstance(c, Verdict):
+        return '<span class="ok">ok</span>' if c.passed else '<span class="fail">FAIL</span>'
+    return html.escape(str(c))
+
+
+def to_html(blocks: list) -> str:
+    title = next((b.text for b in blocks if isinstance(b, Heading)), "neural-brdf report")
+    out = [
+        "<!doctype html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><main>",
+    ]
+    for b in blocks:
+        if isinstance(b, Heading):
+            out.append(f"<h{b.level}>{html.escape(b.text)}</h{b.level}>")
+        elif isinstance(b, Text):
+            cls = ' class="note"' if b.note else ""
+            out.append(f"<p{cls}>{html.escape(b.text)}</p>")
+        elif isinstance(b, Table):
+            head = "".join(f"<th>{html.escape(h)}</th>" for h in b.header)
+            out.append(f"<table><tr>{head}</tr>" if any(b.header) else "<table>")
+            out += [
+                "<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in r) + "</tr>" for r in b.rows
+            ]
+            out.append("</table>")
+        elif isinstance(b, Image):
+            data_uri = "data:image/png;base64," + base64.b64encode(b.png).decode("ascii")
+            out.append(
+                f'<figure><img src="{data_uri}" alt="{html.escape(b.title)}" '
+                f'width="{b.zoom * b.width}">'
+                f"<figcaption><b>{html.escape(b.title)}.</b> "
+                f"{html.escape(b.caption)}</figcaption></figure>"
+            )
+        elif isinstance(b, Code):
+            out.append(f"<pre><code>{html.escape(b.text)}</code></pre>")
+        elif isinstance(b, Attachment):
+            uri = f"data:{b.mime};base64," + base64.b64encode(b.data).decode("ascii")
+            out.append(
+                f'<p><a download="{html.escape(b.name)}" href="{uri}">{html.escape(b.text)}</a></p>'
+            )
+    out.append("</main></body></html>")
+    return "\n".join(out) + "\n"
+
+
+def _cell_md(c) -> str:
+    if isinstance(c, Verdict):
+        return "**ok**" if c.passed else "**FAIL**"
+    return str(c).replace("|", "\\|")
+
+
+def image_name(key: str) -> str:
+    return f"report-{key}.png"
+
+
+def to_markdown(blocks: list) -> str:
+    out = []
+    for b in blocks:
+        if isinstance(b, Heading):
+            out.append("#" * b.level + " " + b.text)
+        elif isinstance(b, Text):
+            out.append(f"> **Note:** {b.text}" if b.note else b.text)
+        elif isinstance(b, Table):
+            width = len(b.header)
+            out.append("| " + " | ".join(b.header) + " |")
+            out.append("|" + "---|" * width)
+            out += ["| " + " | ".join(_cell_md(c) for c in r) + " |" for r in b.rows]
+        elif isinstance(b, Image):
+            out.append(f"![{b.title}]({image_name(b.key)})\n\n*{b.title}.* {b.caption}")
+        elif isinstance(b, Code):
+            out.append(f"```{b.lang}\n{b.text.rstrip()}\n```")
+        elif isinstance(b, Attachment):
+            out.append(f"[{b.text}]({b.name})")
+        out.append("")
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------ writing
+
+
+def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Path]:
+    """Write report.html, report.md and its PNGs for ``run_dir`` into ``out_dir`` (default:
+    the run directory).  Returns {"html": path, "md": path, <figure key>: png path}.
+    ``render=False`` skips the Mitsuba render (the report says so)."""
+    run = load_run(run_dir)
+    out_dir = Path(out_dir) if out_dir is not None else run.dir
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"{out_dir}: cannot create the output directory ({e.strerror})") from None
+    blocks = _blocks(run, out_dir, render)
+    paths = {}
+    for b in blocks:
+        if isinstance(b, Image):
+            paths[b.key] = out_dir / image_name(b.key)
+            atomic_write(paths[b.key], b.png)
+        elif isinstance(b, Attachment):
+            paths[b.name] = out_dir / b.name
+            atomic_write(paths[b.name], b.data)
+    paths["md"] = out_dir / "report.md"
+    atomic_write(paths["md"], to_markdown(blocks).encode("utf-8"))
+    paths["html"] = out_dir / "report.html"
+    atomic_write(paths["html"], to_html(blocks).encode("utf-8"))
+    return paths

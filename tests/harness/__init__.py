@@ -1,0 +1,1 @@
+"""Test harness: a headless Chromium for screenshots and for running shaders."""

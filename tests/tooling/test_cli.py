@@ -1,0 +1,409 @@
+"""The command line: exit codes 0 / 1 / 2, one-line errors, the train.py shim."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from neural_brdf import config, export
+from neural_brdf.tooling.cli import main
+from neural_brdf.train import loop as train
+from test_fileio import devices  # noqa: F401  (a fixture)
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = [
+    "train.steps=10",
+    "train.progress=false",
+    "model.hidden=[16,16]",
+    "data.batch_size=256",
+    "data.pool_size=2048",
+    "normalization.table_size=17",
+    "normalization.samples=2048",
+    "validation.furnace_dirs=6",
+    "validation.furnace_samples=4096",
+    "validation.pairs=2000",
+    "validation.accuracy_samples=2048",
+    "export.parity_pairs=512",
+]
+SETS = [a for kv in TINY for a in ("--set", kv)]
+
+
+def run(*args, cwd=ROOT):
+    """A real subprocess: checks that no traceback escapes and the exit status is real."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run(
+        [sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+def cli(capsys, *args):
+    """In-process ``neural-brdf ARGS`` (fast): (exit code, stdout, stderr)."""
+    code = main(list(args))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def assert_one_line_error(code, err, *needles):
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def test_train_py_config_error_is_one_line_and_exit_2(tmp_path):
+    proc = run(
+        "train.py",
+        str(ROOT / "configs" / "lambert.yaml"),
+        "--out",
+        str(tmp_path / "r"),
+        "--set",
+        "train.stepz=3",
+    )
+    assert_one_line_error(proc.returncode, proc.stderr, "train.stepz")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    "args, key",
+    [
+        (["--set", "train.steps=many"], "train.steps"),
+        (["--set", "model.encoding=spherical"], "model.encoding"),
+        (["--set", "target.model=velvet"], "target.model"),
+        (["--set", "target.params.albedo=7"], "albedo"),
+        (["--set", "oops"], "oops"),
+    ],
+)
+def test_config_errors_exit_2_naming_the_key(capsys, tmp_path, args, key):
+    code, _, err = cli(
+        capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out", str(tmp_path / "r"), *args
+    )
+    assert_one_line_error(code, err, key)
+    assert not (tmp_path / "r" / "ckpt.pt").exists()
+
+
+def test_bad_arguments_and_files_exit_2(capsys, tmp_path):
+    assert_one_line_error(*cli(capsys, "train")[::2], "config")
+    assert_one_line_error(*cli(capsys, "frobnicate")[::2], "frobnicate")
+    assert_one_line_error(*cli(capsys, "train", str(tmp_path / "none.yaml"))[::2], "none.yaml")
+    assert_one_line_error(*cli(capsys, "validate", str(tmp_path / "none.onnx"))[::2], "none.onnx")
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    assert_one_line_error(*cli(capsys, "validate", str(junk))[::2], "junk.onnx")
+    assert_one_line_error(*cli(capsys, "export", str(tmp_path))[::2], str(tmp_path))
+    assert_one_line_error(
+        *cli(
+            capsys,
+            "train",
+            str(ROOT / "configs" / "lambert.yaml"),
+            "--out",
+            str(tmp_path / "fresh"),
+            "--resume",
+        )[::2],
+        "ckpt.pt",
+    )
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "lambert"
+    proc = run("train.py", str(ROOT / "configs" / "lambert.yaml"), "--out", str(out), *SETS)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "physics PASSED" in proc.stdout
+    return out
+
+
+def test_train_shim_writes_the_run(run_dir):
+    for name in ["config.yaml", "model.onnx", "metrics.json", "ckpt.pt", "log.csv"]:
+        assert (run_dir / name).is_file()
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["passed"] is True
+    assert metrics["training"]["steps"] == 10
+    assert "rel_rmse" in metrics["accuracy"]
+
+
+def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
+    out = tmp_path / "report.json"
+    code, stdout, err = cli(
+        capsys,
+        "validate",
+        str(run_dir / "model.onnx"),
+        "--reference",
+        str(ROOT / "configs" / "lambert.yaml"),
+        "--json",
+        str(out),
+    )
+    assert code == 0, err
+    report = json.loads(out.read_text())
+    assert report["passed"] is True
+    assert report["checks"]["reciprocity"]["value"] <= 1e-6
+    assert report["accuracy"]["rel_rmse"] >= 0.0
+    assert "max_albedo" in stdout
+
+
+def test_validate_exit_1_on_a_physics_failure(tmp_path):
+    raw = train.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()  # albedo ~150
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(export.to_onnx_bytes(raw, 17))
+    proc = run("-m", "neural_brdf", "validate", str(bad), "--json", str(tmp_path / "bad.json"))
+    assert proc.returncode == 1, proc.stderr
+    assert "FAIL" in proc.stdout and "Traceback" not in proc.stderr
+    assert json.loads((tmp_path / "bad.json").read_text())["passed"] is False
+
+
+def test_export_subcommand(capsys, run_dir, tmp_path):
+    out = tmp_path / "exported.onnx"
+    code, _, err = cli(capsys, "export", str(run_dir), "-o", str(out))
+    assert code == 0, err
+    assert out.is_file()
+
+
+def test_neural_brdf_and_train_py_agree(capsys, run_dir, tmp_path):
+    """`neural-brdf train` and `python train.py` are the same command."""
+    out = tmp_path / "again"
+    code, _, err = cli(
+        capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--out", str(out), *SETS
+    )
+    assert code == 0, err
+    a = torch.load(run_dir / "ckpt.pt", weights_only=True)["model"]
+    b = torch.load(out / "ckpt.pt", weights_only=True)["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        (bytes(range(256)) * 4, "not a YAML text file"),  # binary garbage
+        (b"\xff\xfetarget: {}\n", "not UTF-8"),  # UTF-16 BOM, not UTF-8
+        (b"- a\n- b\n", "mapping"),  # a list
+        (b"just a string\n", "mapping"),  # a scalar
+        (b"target: [\n", "invalid YAML"),
+        (b"train:\x00 {}\n", "invalid YAML"),  # a NUL in UTF-8 text
+    ],
+)
+def test_unreadable_or_non_mapping_config_exits_2_naming_the_file(tmp_path, content, needle):
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(content)
+    proc = run("-m", "neural_brdf", "train", str(bad), "--out", str(tmp_path / "r"))
+    assert_one_line_error(proc.returncode, proc.stderr, str(bad), needle)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_finished_run_is_not_replaced_without_overwrite(capsys, run_dir, tmp_path):
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = (done / "metrics.json").read_bytes()
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS)
+    assert_one_line_error(code, err, str(done), "finished", "--resume", "--overwrite")
+    assert (done / "metrics.json").read_bytes() == before
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(done), "--resume", "--overwrite")
+    assert_one_line_error(code, err, "--overwrite")
+    # --overwrite replaces it: a 5-step run's metrics, and no stale report or model left over
+    code, _, err = cli(
+        capsys,
+        "train",
+        "lambert",
+        "--out",
+        str(done),
+        *SETS,
+        "--set",
+        "train.steps=5",
+        "--overwrite",
+    )
+    assert code == 0, err
+    assert json.loads((done / "metrics.json").read_text())["training"]["steps"] == 5
+
+
+def test_an_unfinished_run_needs_resume_or_overwrite(capsys, tmp_path):
+    half = tmp_path / "half"
+    cfg = config.load(ROOT / "configs" / "lambert.yaml", TINY + ["train.steps=4"])
+    train.train(cfg, half)  # ckpt.pt, no model.onnx: unfinished
+    (half / "keep.txt").write_text("mine")
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(half), *SETS)
+    assert_one_line_error(code, err, str(half), "unfinished", "--resume", "--overwrite")
+    assert torch.load(half / "ckpt.pt", weights_only=True)["step"] == 4
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(half), *SETS, "--resume")
+    assert code == 0, err
+    assert json.loads((half / "metrics.json").read_text())["training"]["steps"] == 10
+    assert (half / "keep.txt").read_text() == "mine"
+
+
+# ------------------------------------------------- issue 19: safe wherever it writes
+def snapshot(folder: Path) -> dict:
+    """name -> (bytes, mtime_ns) of every file in ``folder``."""
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(folder.iterdir())}
+
+
+def test_a_run_leaves_no_lock_file(run_dir):
+    assert not (run_dir / train.LOCK_FILE).exists()
+
+
+def test_resume_of_a_finished_run_touches_nothing(capsys, run_dir, tmp_path):
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = snapshot(done)
+    code, out, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS, "--resume")
+    assert code == 0, err
+    assert f"{done}: already finished at step 10" in out
+    assert snapshot(done) == before  # metrics.json (final_loss) and config.yaml included
+
+
+def test_resume_refuses_fewer_steps_than_the_checkpoint(capsys, run_dir, tmp_path):
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = snapshot(done)
+    code, _, err = cli(
+        capsys, "train", "lambert", "--out", str(done), *SETS, "--set", "train.steps=5", "--resume"
+    )
+    assert_one_line_error(code, err, "train.steps", "10")
+    assert snapshot(done) == before
+
+
+def test_a_bad_override_names_the_set_not_the_file(capsys, tmp_path):
+    code, _, err = cli(
+        capsys, "train", str(ROOT / "configs" / "lambert.yaml"), "--set", "train.stepz=5"
+    )
+    assert_one_line_error(code, err, "--set train.stepz=5:", "train.stepz", "unknown key")
+    assert "lambert.yaml" not in err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train: {stepz: 5}\n")
+    code, _, err = cli(capsys, "train", str(bad), "--set", "train.steps=5")
+    assert_one_line_error(code, err, str(bad), "train.stepz")
+    assert "--set" not in err
+
+
+@pytest.mark.parametrize("text", ["train: {steps: 0}\n", ""], ids=["file", "set"])
+def test_zero_steps_are_refused(capsys, tmp_path, text):
+    cfg = tmp_path / "zero.yaml"
+    cfg.write_text("target: {model: lambertian}\n" + text)
+    sets = [] if text else ["--set", "train.steps=0"]
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"), *sets)
+    assert_one_line_error(code, err, "train.steps", "--set" if sets else str(cfg))
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("text, what", [("", "empty config"), ("train: {lr: 0.01}\n", "target")])
+def test_a_config_without_target_warns(capsys, tmp_path, text, what):
+    """One warning line (it trains the default target); here the run then stops at once
+    on a second mistake, an --out that is a file."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(a_file))
+    warning, error = err.strip().splitlines()
+    assert warning.startswith(f"warning: {cfg}: ") and what in warning
+    assert "lambertian" in warning
+    assert_one_line_error(code, error, str(a_file), "not a run folder")
+    assert a_file.read_text() == "mine"
+
+
+def test_an_out_that_cannot_be_a_folder_is_one_line(capsys, tmp_path):
+    code, _, err = cli(capsys, "train", "lambert", "--out", "/proc/neural-brdf-test", *SETS)
+    assert_one_line_error(code, err, "/proc/neural-brdf-test")
+
+
+@pytest.mark.usefixtures("devices")
+@pytest.mark.parametrize(
+    "name, extra",
+    [("config.yaml", []), ("ckpt.pt", ["--overwrite"]), ("log.csv", [])],
+)
+def test_a_full_disk_during_training_is_one_line(capsys, tmp_path, name, extra):
+    """A file of the run on a full device: /dev/full behind a link in the run folder."""
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / name).symlink_to("/dev/full")
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(out), *SETS, *extra)
+    assert_one_line_error(code, err, str(out / name), "No space left on device")
+    assert stat.S_ISCHR(os.lstat("/dev/full").st_mode)
+    assert (out / name).is_symlink()
+
+
+def test_a_locked_run_folder_is_refused_naming_the_holder(capsys, tmp_path):
+    out = tmp_path / "busy"
+    with train.run_lock(out):
+        assert (out / train.LOCK_FILE).read_text().strip() == str(os.getpid())
+        code, _, err = cli(capsys, "train", "lambert", "--out", str(out), *SETS)
+        assert_one_line_error(code, err, str(out), f"pid {os.getpid()}")
+        assert sorted(p.name for p in out.iterdir()) == [train.LOCK_FILE]  # nothing written
+    assert not out.exists()  # the folder the lock created, empty again, is removed
+
+
+SIGTERM_AT_STEP_4 = """
+import os, signal, sys
+from neural_brdf import cli, data
+real, calls = data.Pool.batch, [0]
+def batch(self):
+    calls[0] += 1
+    if calls[0] == 4:  # SIGTERM arrives in the middle of step 4
+        os.kill(os.getpid(), signal.SIGTERM)
+    return real(self)
+data.Pool.batch = batch
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_checkpoints_the_current_step_and_exits_143(capsys, tmp_path):
+    out = tmp_path / "t"
+    proc = run("-c", SIGTERM_AT_STEP_4, "train", "lambert", "--out", str(out), *SETS)
+    assert proc.returncode == 143, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "interrupted at step 4 (SIGTERM)" in lines[0] and "--resume" in lines[0]
+    assert torch.load(out / "ckpt.pt", weights_only=True)["step"] == 4
+    assert not (out / "model.onnx").exists() and not (out / train.LOCK_FILE).exists()
+    cfg = config.load(ROOT / "configs" / "lambert.yaml", TINY)
+    train.train(cfg, out, resume=True)
+    assert f"resuming {out / 'ckpt.pt'} at step 4 of 10" in capsys.readouterr().err
+    assert torch.load(out / "ckpt.pt", weights_only=True)["step"] == 10
+
+
+def test_a_second_train_into_a_running_folder_and_sigterm(tmp_path):
+    """Two real processes: the second stops naming the first's pid; the first, sent
+    SIGTERM as docker or systemd would, checkpoints and exits with 143."""
+    out = tmp_path / "long"
+    endless = ["--set", "train.steps=1000000", "--set", "train.log_every=1"]
+    first = subprocess.Popen(
+        [sys.executable, "-m", "neural_brdf", "train", "lambert", "--out", str(out)]
+        + SETS
+        + endless,
+        cwd=ROOT,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 300
+        while first.poll() is None and time.monotonic() < deadline:
+            log = out / "log.csv"
+            if log.is_file() and len(log.read_text().splitlines()) > 3:
+                break
+            time.sleep(0.05)
+        assert first.poll() is None, first.communicate()
+        second = run("-m", "neural_brdf", "train", "lambert", "--out", str(out), *SETS)
+        assert_one_line_error(second.returncode, second.stderr, str(out), f"pid {first.pid}")
+        first.send_signal(signal.SIGTERM)
+        _, err = first.communicate(timeout=300)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert first.returncode == 143, err
+    step = torch.load(out / "ckpt.pt", weights_only=True)["step"]
+    assert step >= 3
+    assert err.strip() == (
+        f"neural-brdf: interrupted at step {step} (SIGTERM); checkpoint saved to "
+        f"{out / 'ckpt.pt'}; continue with --resume"
+    )
+    assert not (out / train.LOCK_FILE).exists()

@@ -1,0 +1,330 @@
+"""Run reports: the figures' data, the files, and the page as headless Chromium shows it.
+
+The page checks use Debian's chromium (CI installs it); they never skip.  The report
+under test is the one training writes at the end of a tiny run, Mitsuba render included
+where Mitsuba is installed (CI installs it too).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import re
+import shutil
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+import analytic
+from harness import browser
+from neural_brdf.tooling.cli import main
+from neural_brdf.viewer import plots, report
+from test_cli import ROOT, SETS, assert_one_line_error
+
+GOLD = ROOT / "configs" / "gold.yaml"
+FIGURES = {"albedo", "slices", "lobes", "rusinkiewicz", "loss"}  # always drawn
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("report") / "gold"
+    code = main(
+        [
+            "train",
+            str(GOLD),
+            "--out",
+            str(run_dir),
+            *SETS,
+            "--set",
+            "train.steps=60",
+            "--set",
+            "train.log_every=10",
+            "--set",
+            "train.eval_every=30",
+            "--set",
+            "train.threads=1",
+        ]
+    )
+    assert code == 0
+    return run_dir
+
+
+def expected_figures() -> set[str]:
+    return FIGURES | ({"render"} if plots.mitsuba_unavailable() is None else set())
+
+
+class _Images(HTMLParser):
+    def __init__(self, page: str):
+        super().__init__()
+        self.images, self.tags = [], set()
+        self.feed(page)
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.add(tag)
+        if tag == "img":
+            self.images.append(dict(attrs))
+
+
+def decode(png: bytes) -> np.ndarray:
+    with Image.open(io.BytesIO(png)) as im:
+        assert im.format == "PNG"
+        return np.asarray(im.convert("RGB"), dtype=np.float64)
+
+
+def assert_not_blank(pixels: np.ndarray, what: str, *, min_colours: int = 16) -> None:
+    assert pixels.size > 0, what
+    assert pixels.std() > 10.0, f"{what}: nearly uniform (std {pixels.std():.1f})"
+    colours = len(np.unique(pixels.reshape(-1, 3), axis=0))
+    assert colours >= min_colours, f"{what}: only {colours} distinct colours"
+
+
+def data_uri_pngs(page: str) -> dict[str, bytes]:
+    out = {}
+    for img in _Images(page).images:
+        src = img["src"]
+        assert src.startswith("data:image/png;base64,"), src[:60]
+        out[img["alt"]] = base64.b64decode(src.split(",", 1)[1], validate=True)
+    return out
+
+
+# ------------------------------------------------------------------ the report of a run
+def test_training_writes_the_report(tiny_run):
+    assert (tiny_run / "report.html").is_file() and (tiny_run / "report.md").is_file()
+    seconds = json.loads((tiny_run / "metrics.json").read_text())["seconds"]
+    assert seconds["report"] > 0
+    parts = seconds["train"] + seconds["export"] + seconds["validate"] + seconds["report"]
+    assert seconds["total"] >= parts
+
+
+def test_html_is_self_contained_and_every_image_is_a_drawn_png(tiny_run):
+    page = (tiny_run / "report.html").read_text()
+    parsed = _Images(page)
+    assert not parsed.tags & {"script", "link", "iframe", "object"}
+    assert not re.search(r'(src|href)="(?!data:)', page)  # no external asset
+    images = data_uri_pngs(page)
+    assert len(images) == len(parsed.images) == len(expected_figures())
+    for alt, png in images.items():
+        assert_not_blank(decode(png), alt)
+    for text in (
+        "Physics checks",
+        "reciprocity",
+        "max_albedo",
+        "rel. RMSE",
+        "Config",
+        "name: gold",
+    ):
+        assert text in page
+    metrics = json.loads((tiny_run / "metrics.json").read_text())
+    for band, v in metrics["accuracy"]["rel_rmse_by_incidence"].items():
+        shown = "-" if v is None else f"{100 * v:.3f} %"
+        assert f"<td>rel. RMSE, {band}</td><td>{shown}</td>" in page
+    if plots.mitsuba_unavailable() is not None:
+        assert "No render: Mitsuba 3 is not available" in page
+
+
+def test_markdown_links_the_same_pngs_as_the_html(tiny_run):
+    md = (tiny_run / "report.md").read_text()
+    links = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    assert sorted(links) == sorted(report.image_name(k) for k in expected_figures())
+    files = {(tiny_run / name).read_bytes() for name in links}
+    assert files == set(data_uri_pngs((tiny_run / "report.html").read_text()).values())
+    assert "| reciprocity |" in md and "**ok**" in md
+
+
+def test_the_page_in_headless_chromium(tiny_run, tmp_path):
+    shot = tmp_path / "screenshot.png"
+    seen = browser.screenshot(tiny_run / "report.html", shot)
+    page_pngs = data_uri_pngs((tiny_run / "report.html").read_text())
+    # every image decoded by the browser, at the size of the PNG we wrote
+    assert len(seen["images"]) == len(page_pngs)
+    for img in seen["images"]:
+        assert img["complete"] and img["width"] > 0 and img["height"] > 0, img
+        assert img["width"] == decode(page_pngs[img["alt"]]).shape[1], img
+    assert seen["text"] > 2000  # tables and the config are there
+    assert 3000 < seen["height"] < browser.MAX_HEIGHT  # figures stack up, nothing collapsed
+    pixels = decode(shot.read_bytes())
+    assert pixels.shape[:2] == (seen["height"], browser.WIDTH)
+    assert_not_blank(pixels, "screenshot", min_colours=500)
+    assert (pixels.min(-1) < 200).mean() > 0.05  # ink, not a white page
+
+
+def test_the_browser_probe_catches_a_broken_image(tiny_run, tmp_path):
+    page = (tiny_run / "report.html").read_text()
+    start = page.index("data:image/png;base64,") + len("data:image/png;base64,")
+    broken = tmp_path / "broken.html"
+    broken.write_text(page[:start] + "iVBORw0KGgoAAAAgarbage" + page[start + 4000 :])
+    widths = [img["width"] for img in browser.inspect(broken)["images"]]
+    assert widths[0] == 0 and all(w > 0 for w in widths[1:])
+
+
+def test_report_cli_writes_elsewhere_and_says_when_it_cannot_render(
+    tiny_run, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.setattr(plots, "mitsuba_unavailable", lambda: "Mitsuba 3 is switched off")
+    out = tmp_path / "elsewhere"
+    assert main(["report", str(tiny_run), "-o", str(out)]) == 0
+    assert str(out / "report.html") in capsys.readouterr().out
+    page = (out / "report.html").read_text()
+    assert "No render: Mitsuba 3 is switched off" in page
+    assert set(data_uri_pngs(page)) == {
+        "Directional albedo (white furnace)",
+        "Incidence-plane slices",
+        "Polar lobes",
+        "(θh, θd) slice",
+        "Training curve",
+    }
+    assert not list(out.glob(".*"))  # no temp file left behind
+
+
+def test_a_target_without_reference_gets_a_note(tiny_run, tmp_path):
+    run_dir = copy_run(tiny_run, tmp_path)
+    cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    cfg["target"] = {"data": str(tmp_path / "missing.binary")}
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg))
+    paths = report.write_report(run_dir, render=False)
+    page = paths["html"].read_text()
+    assert "No reference: the measured target" in page and "missing.binary" in page
+    assert "reference (dashed)" not in page
+    assert set(FIGURES) <= set(paths)
+
+
+def copy_run(run_dir, tmp_path):
+    dst = tmp_path / "copy"
+    dst.mkdir()
+    for name in report.RUN_FILES:
+        shutil.copy(run_dir / name, dst / name)
+    return dst
+
+
+@pytest.mark.parametrize(
+    "name, damage, needle",
+    [
+        (None, None, "no such run directory"),
+        ("metrics.json", "{", "not valid JSON"),
+        ("metrics.json", '{"checks": {}}', "checks: missing"),
+        (
+            "metrics.json",
+            '{"checks": {"reciprocity": {"value": "x", "limit": 0, "passed": true}}}',
+            "checks.reciprocity.value: not a number",
+        ),
+        (
+            "metrics.json",
+            '{"checks": {"reciprocity": {"value": 0, "limit": 0, "passed": true}}, '
+            '"hemispherical_albedo": [0.5, "x", 0.5]}',
+            "hemispherical_albedo.1: not a number",
+        ),
+        ("log.csv", "step,loss\n10,abc\n", "line 2: not a number"),
+        ("log.csv", "a,b\n1,2\n", "expected a CSV"),
+        ("config.yaml", "train: {stepz: 3}\n", "train.stepz"),
+        ("model.onnx", b"\x00garbage", "not a loadable ONNX model"),
+        ("model.onnx", None, "missing"),
+    ],
+)
+def test_bad_run_dir_is_one_line_and_exit_2(tiny_run, tmp_path, capsys, name, damage, needle):
+    run_dir = copy_run(tiny_run, tmp_path)
+    if name is None:
+        run_dir = tmp_path / "nope"
+    elif damage is None:
+        (run_dir / name).unlink()
+    elif isinstance(damage, bytes):
+        (run_dir / name).write_bytes(damage)
+    else:
+        (run_dir / name).write_text(damage)
+    code = main(["report", str(run_dir)])
+    err = capsys.readouterr().err
+    assert_one_line_error(code, err, needle, name or "nope")
+    assert not (run_dir / "report.html").exists()
+
+
+# ------------------------------------------------------------------ the plots' data
+GGX = analytic.create(
+    "microfacet", distribution="ggx", alpha=0.25, fresnel="conductor", material="Au"
+)
+GGX_REF = analytic.create(
+    "microfacet", distribution="ggx", alpha=0.3, fresnel="conductor", material="Au"
+)
+LAMBERT = analytic.create("lambertian", albedo=[0.8, 0.6, 0.4])
+
+
+def lines(fig, prefix: str) -> list:
+    return [ln for ax in fig.axes for ln in ax.lines if ln.get_label().startswith(prefix)]
+
+
+@pytest.mark.parametrize(
+    "draw",
+    [
+        lambda: plots.incidence_slices(GGX.eval, GGX_REF.eval),
+        lambda: plots.polar_lobes(GGX.eval, GGX_REF.eval),
+        lambda: plots.rusinkiewicz_images(GGX.eval, GGX_REF.eval, n=48),
+        lambda: plots.albedo_curve(GGX.eval, GGX_REF.eval, n_theta=10, samples=1024),
+        lambda: plots.incidence_slices(GGX.eval),
+        lambda: plots.rusinkiewicz_images(GGX.eval, n=48),
+        lambda: plots.loss_curve(
+            np.arange(1, 11), np.geomspace(1, 1e-3, 10), np.array([5, 10]), np.array([0.03, 0.01])
+        ),
+    ],
+    ids=["slices", "lobes", "rusinkiewicz", "albedo", "slices-alone", "rusinkiewicz-alone", "loss"],
+)
+def test_each_plot_draws_something(draw):
+    fig = draw()
+    data = [ln.get_ydata() for ax in fig.axes for ln in ax.lines] + [
+        np.ma.filled(im.get_array(), np.nan) for ax in fig.axes for im in ax.images
+    ]
+    assert any(np.isfinite(np.asarray(d, dtype=float)).sum() > 5 for d in data)
+    assert_not_blank(decode(plots.png_bytes(fig)), "figure")
+
+
+def test_albedo_curve_plots_the_known_albedo():
+    fig = plots.albedo_curve(
+        LAMBERT.eval, analytic.create("lambertian", albedo=0.5).eval, n_theta=8, samples=16384
+    )
+    # quadrature noise at 16384 points: 4e-4 measured
+    for ln, expected in zip(lines(fig, "neural"), (0.8, 0.6, 0.4)):
+        np.testing.assert_allclose(ln.get_ydata(), expected, atol=1.5e-3)
+    for ln in lines(fig, "reference"):
+        np.testing.assert_allclose(ln.get_ydata(), 0.5, atol=1.5e-3)
+    assert len(lines(fig, "neural")) == len(lines(fig, "reference")) == 3
+    (furnace,) = lines(fig, "furnace")
+    assert np.all(np.asarray(furnace.get_ydata()) == 1.0)
+
+
+def test_albedo_curve_shows_a_model_above_the_furnace_limit():
+    bright = analytic.create("lambertian", albedo=1.0)
+    fig = plots.albedo_curve(lambda a, b: 1.25 * bright.eval(a, b), n_theta=6, samples=16384)
+    for ln in lines(fig, "neural"):
+        np.testing.assert_allclose(ln.get_ydata(), 1.25, atol=2e-3)
+    assert fig.axes[0].get_ylim()[1] > 1.25  # drawn, not cut off
+
+
+def test_slices_plot_f_cos_in_the_incidence_plane():
+    fig = plots.incidence_slices(LAMBERT.eval, theta_i_deg=(0.0, 60.0))
+    neural = lines(fig, "neural")
+    assert len(neural) == 6  # 3 channels x 2 panels
+    for ln, albedo in zip(neural, [0.8, 0.6, 0.4] * 2):
+        x, y = np.asarray(ln.get_xdata()), np.asarray(ln.get_ydata())
+        np.testing.assert_allclose(y, albedo / math.pi * np.cos(np.radians(x)), rtol=1e-6)
+
+
+def test_rusinkiewicz_images_show_the_relative_error():
+    fig = plots.rusinkiewicz_images(lambda a, b: 1.1 * LAMBERT.eval(a, b), LAMBERT.eval, n=32)
+    neural, reference, error = (ax.images[0].get_array() for ax in fig.axes if ax.images)
+    np.testing.assert_allclose(error, 0.1, rtol=1e-6)
+    luminance = 0.2126 * 0.8 + 0.7152 * 0.6 + 0.0722 * 0.4  # Rec. 709
+    np.testing.assert_allclose(reference, math.log10(luminance / math.pi), rtol=1e-6)
+    np.testing.assert_allclose(neural - reference, math.log10(1.1), rtol=1e-6)
+
+
+def test_rusinkiewicz_grid_round_trips_through_the_angles():
+    import torch
+
+    wi, wo = plots.rusinkiewicz_grid(16)
+    th, _, td, pd = analytic.frame.rusinkiewicz(torch.from_numpy(wi), torch.from_numpy(wo))
+    a = (np.arange(16) + 0.5) * (0.5 * math.pi / 16)
+    np.testing.assert_allclose(th.numpy(), np.broadcast_to(a, (16, 16)), atol=1e-9)
+    np.testing.assert_allclose(td.numpy(), np.broadcast_to(a[:, None], (16, 16)), atol=1e-9)
+    np.testing.assert_allclose(pd.numpy(), math.pi / 2, atol=1e-9)
