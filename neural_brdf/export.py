@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import copy
 import io
-import json
 import warnings
 from pathlib import Path
 from typing import Any
@@ -59,11 +58,11 @@ from neural_brdf.fileformat import (
     FRAME,
     INPUTS,
     METADATA_VERSION,
-    METADATA_VERSION_KEY,
     OUTPUT,
     PRODUCER_NAME,
     UNITS,
 )
+from neural_brdf.fileformat.metadata import Metadata, plain
 from neural_brdf.fileio import atomic_write
 from neural_brdf.physics import lobe
 from neural_brdf.train import data
@@ -81,42 +80,6 @@ PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
 # onnxruntime by 4.0e-5 and 7.7e-6.
 PARITY_FLOOR = 0.1
 ANALYTIC_OPSET = 17  # opset of analytic_onnx (as neural_brdf.renderers.mitsuba used)
-
-
-def _json(value) -> str:
-    """A metadata value as strict JSON: a non-finite number in an object or array becomes
-    null (JSON has no NaN or Infinity, and JSON.parse refuses them); a non-finite number
-    alone is written as Python writes it ("inf", "nan"), as files of version 1 did."""
-    value = _plain(value)
-    if isinstance(value, float) and not np.isfinite(value):
-        return repr(value)
-    return json.dumps(_finite(value), sort_keys=True, allow_nan=False)
-
-
-def _plain(value):
-    """``value`` with numpy scalars and arrays, tuples and paths as JSON types."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, np.generic):
-        return _plain(value.item())
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def _finite(value):
-    """JSON-ready ``value`` (see :func:`_plain`) with non-finite floats as None."""
-    if isinstance(value, float):
-        return value if np.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value
 
 
 def target_json(cfg: cfgmod.Config, description: str, target: Any = None) -> dict[str, Any]:
@@ -140,8 +103,8 @@ def target_json(cfg: cfgmod.Config, description: str, target: Any = None) -> dic
         return {
             "kind": "analytic",
             "model": target.name,
-            "params": _plain(given),
-            "resolved": _plain(target.params),
+            "params": plain(given),
+            "resolved": plain(target.params),
             "description": description,
         }
     if target is not None and t.data is not None:
@@ -575,24 +538,24 @@ def export(
 
     phys = validate.physics(fn, anisotropic=model.anisotropic, settings=cfg.validation, extra=extra)
     checks = phys["checks"]
-    meta = {
-        METADATA_VERSION_KEY: str(METADATA_VERSION),
-        "format_version": str(FORMAT_VERSION),
-        "producer": PRODUCER,
-        "frame": FRAME,
-        "units": UNITS,
-        "encoding": cfg.model.encoding,
-        "normalization": normalization_note(model, cfg.normalization),
-        "target": _json(target_json(cfg, target_desc, extra)),
-        "max_albedo": _json(checks["max_albedo"]["value"]),
-        "hemispherical_albedo": _json(phys["hemispherical_albedo"]),
-        "reciprocity_error": _json(checks["reciprocity"]["value"]),
-        "min_value": _json(checks["min_value"]["value"]),
-        "parity_rel_error": _json(parity),
-        "float32_rel_precision": _json(precision),
-        "training_config": _json(cfg.model_dump(mode="json")),
-        lobe.KEY: lobe.to_json(lobe.fit(fn)),  # renderers' importance sampling
-    }
+    meta = Metadata(
+        metadata_version=METADATA_VERSION,
+        format_version=FORMAT_VERSION,
+        producer=PRODUCER,
+        frame=FRAME,
+        units=UNITS,
+        encoding=cfg.model.encoding,
+        normalization=normalization_note(model, cfg.normalization),
+        target=target_json(cfg, target_desc, extra),
+        max_albedo=checks["max_albedo"]["value"],
+        hemispherical_albedo=plain(phys["hemispherical_albedo"]),
+        reciprocity_error=checks["reciprocity"]["value"],
+        min_value=checks["min_value"]["value"],
+        parity_rel_error=parity,
+        float32_rel_precision=precision,
+        training_config=cfg.model_dump(mode="json"),
+        sampling_lobe=lobe.fit(fn),  # renderers' importance sampling
+    ).to_props()
     proto = onnx.load_from_string(payload)
     onnx.helper.set_model_props(proto, meta)
     proto.producer_name = PRODUCER_NAME

@@ -5,6 +5,7 @@
     f = brdf.eval(wi, wo)          # numpy (..., 3) in, (..., 3) float32 out, 1/sr, no cosine
     brdf.metadata["max_albedo"]    # every metadata_props entry, as strings
     brdf.meta["max_albedo"]        # the same, decoded: JSON values parsed (read_metadata)
+    brdf.info.max_albedo           # the same, typed (neural_brdf.fileformat.metadata.Metadata)
     brdf.config                    # the training config (dict)
     brdf.target                    # what it was fitted to (dict: kind, model, params, ...)
 
@@ -19,83 +20,20 @@ This module needs numpy, onnxruntime and yaml only; it never imports torch or py
 
 from __future__ import annotations
 
-import ast
-import json
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import onnxruntime as ort
-import yaml
 from numpy.typing import ArrayLike
 
 from neural_brdf.errors import InputError
 
-# the file's contract (names, versions, metadata keys): neural_brdf.fileformat
+# the file's contract (names, versions, metadata keys, their decoding): neural_brdf.fileformat
 from neural_brdf.fileformat import INPUTS, JSON_KEYS, METADATA_VERSION_KEY, OUTPUT  # noqa: F401
+from neural_brdf.fileformat.metadata import Metadata, parse_target, read_metadata  # noqa: F401
 
 CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
-
-
-def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
-    """metadata_props (strings) -> values, for files of every metadata_version.
-
-    JSON values are parsed; ``target`` is always an object (:func:`parse_target` for
-    version 1's description) and ``training_config`` a dict (version 1's YAML is read);
-    ``metadata_version`` is an int, 1 when absent.  Other keys stay text, and so does a
-    number a version-1 file wrote as ``inf`` or ``nan``."""
-    out: dict[str, Any] = dict(props)
-    for key in JSON_KEYS:
-        if key in props:
-            try:
-                out[key] = json.loads(props[key])
-            except ValueError:
-                pass  # version 1 text (the target, the YAML config) or "inf"/"nan"
-    out[METADATA_VERSION_KEY] = int(out.get(METADATA_VERSION_KEY, 1))
-    if "target" in props and not isinstance(out["target"], dict):
-        out["target"] = parse_target(props["target"])
-    if "training_config" in props and not isinstance(out["training_config"], dict):
-        out["training_config"] = yaml.safe_load(props["training_config"]) or {}
-    return out
-
-
-def parse_target(text: str) -> dict[str, Any]:
-    """A version-1 ``target`` description as the version-2 object.
-
-    ``analytic.create('NAME', k=v, ...)`` (an analytic target's repr) gives
-    ``{"kind": "analytic", "model": NAME, "resolved": {k: v}, "description": text}``; it
-    is read with :mod:`ast` (literals only, nothing is evaluated).  Version 1 did not keep
-    the parameters as given, so there is no ``params``: ``resolved`` holds every value,
-    derived ones included.  ``MERL ...`` and ``RGL ...`` give kind ``measured``; anything
-    else kind ``unspecified``."""
-    try:
-        call = ast.parse(text.strip(), mode="eval").body
-        if not (
-            isinstance(call, ast.Call)
-            and ast.unparse(call.func) == "analytic.create"
-            and len(call.args) == 1
-        ):
-            raise ValueError
-        name = ast.literal_eval(call.args[0])
-        params = {k.arg: _lists(ast.literal_eval(k.value)) for k in call.keywords if k.arg}
-        if not isinstance(name, str):
-            raise ValueError
-        return {"kind": "analytic", "model": name, "resolved": params, "description": text}
-    except (SyntaxError, ValueError, TypeError, RecursionError):
-        pass
-    if text.startswith(("MERL ", "RGL ")):
-        return {"kind": "measured", "description": text}
-    return {"kind": "unspecified", "description": text}
-
-
-def _lists(value):
-    """Tuples as lists, as JSON gives them (eta=(0.1, 0.2, 0.3) in a repr)."""
-    if isinstance(value, (tuple, list)):
-        return [_lists(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _lists(v) for k, v in value.items()}
-    return value
 
 
 class NeuralBRDF:
@@ -123,6 +61,7 @@ class NeuralBRDF:
         self.path = path
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         self.meta: dict[str, Any] = read_metadata(self.metadata)
+        self.info: Metadata = Metadata.from_props(self.metadata)  # the same, typed
 
     @property
     def metadata_version(self) -> int:

@@ -282,7 +282,8 @@ def opset_figures(model: str | Path, opsets=(13, 14, 15, 18, 21), n: int = 4096)
 
 
 def read_metadata_js(*paths) -> list[dict]:
-    """[{"props", "decoded"}] of each file, read by neural_brdf/fileformat/onnx_metadata.js in Node."""
+    """[{"props", "decoded"}] of each file, read in Node by
+    neural_brdf/fileformat/onnx_metadata.js."""
     if shutil.which("node") is None:
         raise ConsumerMissing("node is not installed (apt-get install nodejs)")
     done = subprocess.run(

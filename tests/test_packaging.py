@@ -324,9 +324,25 @@ def test_presets_into_a_closed_pipe_exit_quietly():
 # (a subpackage, or a top-level module) imports only the parts before it, at the top of a
 # module or inside a function; pipeline runs the stages, tooling is the command line.
 LAYERS = [
-    "errors", "fileio", "version", "fileformat", "config", "presets", "runtime",
-    "physics", "measured", "train", "validate", "graph", "export", "backends",
-    "renderers", "inverse", "viewer", "pipeline", "tooling",
+    "errors",
+    "fileio",
+    "version",
+    "fileformat",
+    "config",
+    "presets",
+    "runtime",
+    "physics",
+    "measured",
+    "train",
+    "validate",
+    "graph",
+    "export",
+    "backends",
+    "renderers",
+    "inverse",
+    "viewer",
+    "pipeline",
+    "tooling",
 ]
 PACKAGE = ROOT / "neural_brdf"
 
@@ -366,9 +382,7 @@ def _imported_parts(path: Path, text: str | None = None) -> set[str]:
 
 
 def _modules() -> list[Path]:
-    return sorted(
-        p for p in PACKAGE.rglob("*.py") if "configs" not in p.relative_to(PACKAGE).parts
-    )
+    return sorted(p for p in PACKAGE.rglob("*.py") if "configs" not in p.relative_to(PACKAGE).parts)
 
 
 def test_every_part_of_the_package_has_its_place_in_the_flow():

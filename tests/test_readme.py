@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from test_cli import ROOT, SETS
+from cli_helpers import ROOT, SETS
 
 pytestmark = [pytest.mark.slow, pytest.mark.mitsuba]
 

@@ -7,9 +7,9 @@
 * exact reciprocity survives, bit for bit.
 
 Checked on onnxruntime directly, through ``neural_brdf.load(...).eval`` and through the
-Mitsuba plugin's Dr.Jit evaluation of the same file; tests/fileformat/test_portable.py checks the same
-rows (the batch of 0 rows included) in onnxruntime 1.18.1, onnxruntime-web, onnx2torch and
-the ONNX reference evaluator.  The models are networks with random
+Mitsuba plugin's Dr.Jit evaluation of the same file; tests/fileformat/test_portable.py
+checks the same rows (the batch of 0 rows included) in onnxruntime 1.18.1,
+onnxruntime-web, onnx2torch and the ONNX reference evaluator.  The models are networks with random
 weights (bright, so that the albedo table is active and its Gather runs): the graph's
 plumbing is under test, not a fit.
 """

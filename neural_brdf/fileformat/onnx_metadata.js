@@ -9,8 +9,9 @@
 // type: ModelProto field 14 is metadata_props (repeated StringStringEntryProto), whose
 // field 1 is the key and field 2 the value (both UTF-8 strings).  It reads nothing else,
 // so it needs no schema, and the graph (a large field 7) is skipped in one step.
-// neural_brdf/viewer.py inlines this file into the viewer page; tests/fileformat/test_portable.py
-// runs it under Node (tests/js/read_metadata.mjs) against Python's onnx.
+// neural_brdf/viewer/page.py inlines this file into the viewer page;
+// tests/fileformat/test_portable.py runs it under Node (tests/js/read_metadata.mjs)
+// against Python's onnx.
 "use strict";
 
 // Wire types of the protobuf encoding: 0 varint, 1 fixed64, 2 length-delimited,

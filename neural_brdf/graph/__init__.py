@@ -45,14 +45,13 @@ imports numpy and onnx only.
 
 from __future__ import annotations
 
-import os
 import re
 
 import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from neural_brdf.errors import InputError
+from neural_brdf.fileformat.reader import load  # the one ONNX loader (graph.load)
 from neural_brdf.graph.ir import (
     BATCH,
     BINARY,
@@ -86,23 +85,6 @@ __all__ = [
     "load",
     "lower",
 ]
-
-
-def load(model) -> onnx.ModelProto:
-    """A path, bytes or ModelProto -> ModelProto (a one-line InputError if unreadable)."""
-    if isinstance(model, onnx.ModelProto):
-        return model
-    try:
-        if isinstance(model, (bytes, bytearray)):
-            return onnx.load_from_string(bytes(model))
-        if isinstance(model, (str, os.PathLike)):
-            return onnx.load(str(model))
-    except Exception as e:  # onnx raises DecodeError, OSError and others on a bad file
-        raise InputError(
-            f"{model if not isinstance(model, bytes) else 'model bytes'}: not a "
-            f"loadable ONNX model ({type(e).__name__})"
-        ) from None
-    raise TypeError(f"expected a path, bytes or onnx.ModelProto, got {type(model).__name__}")
 
 
 def _hint(node) -> str:

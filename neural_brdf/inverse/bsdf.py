@@ -54,6 +54,7 @@ import yaml
 
 from neural_brdf import config as cfgmod
 from neural_brdf.errors import InputError
+from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.physics import lobe as lobes
 
 if mi.variant() is None or not (mi.is_rgb and dr.is_diff_v(mi.Float) and dr.is_jit_v(mi.Float)):
@@ -69,7 +70,7 @@ PLUGIN = "neural_brdf_ad"
 # The compact recipe (configs/gold.yaml): 32 x 32 x 4 grid + one ReLU layer of 32.
 COMPACT = "{hidden: [32], activation: relu, grid: {size: 32, channels: 4, lr_scale: 10.0}}"
 # A start for the sampling lobe before it is fitted to the network.
-DEFAULT_LOBE = {"kind": lobes.KIND, "alpha": 0.3, "weight": 0.5}
+DEFAULT_LOBE = {"kind": lobe_format.KIND, "alpha": 0.3, "weight": 0.5}
 
 __all__ = [
     "COMPACT",
@@ -153,7 +154,7 @@ class NeuralBSDFAD(_GraphBSDF):
     # -- state ------------------------------------------------------------------
     def set_lobe(self, lobe: dict, source: str = "set") -> None:
         """The sampling mixture (:mod:`neural_brdf.physics.lobe`); not differentiated."""
-        self.lobe = lobes.complete(dict(lobe))
+        self.lobe = lobe_format.complete(dict(lobe))
         self.lobe_table = self.lobe.get("table")
         self.lobe_weight = (
             max(self.lobe_table["weight"]) if self.lobe_table else float(self.lobe["weight"])

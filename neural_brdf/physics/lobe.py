@@ -51,7 +51,6 @@ lobe helps.  This module needs numpy, torch and onnxruntime only: no renderer.
 from __future__ import annotations
 
 import copy
-import json
 import math
 import os
 from pathlib import Path
@@ -61,20 +60,24 @@ import torch
 
 from analytic import frame
 from analytic.microfacet import Distribution
-from neural_brdf.errors import InputError
-from neural_brdf.fileformat import LOBE_KEY as KEY  # the ONNX metadata key
 from neural_brdf.fileformat import OUTPUT
 
-KIND = "cosine+ggx_vndf"
-
-# The GGX alpha is never below this: Mitsuba's float32 GGX sampling loses accuracy for
-# much sharper lobes.  The cosine share is never below 1 - MAX_WEIGHT, which bounds the
-# sample weight where the network has a diffuse tail that the GGX lobe misses; the fit
-# takes a share that high only where its scored second moment says the lobe covers the
-# BRDF (a polished metal: with a cap of 0.9 its noise was 10x that of the target's own
-# sampler, 1.4x with 0.995).
-MIN_ALPHA = 0.01
-MAX_WEIGHT = 0.995
+# The lobe's schema, its density and its metadata key belong to the file format; they are
+# named here too because the fit writes what the schema reads.
+from neural_brdf.fileformat.lobe import (  # noqa: F401  (lobe.KEY, lobe.parse, ...)
+    DISTRIBUTIONS,
+    KEY,
+    KIND,
+    MAX_WEIGHT,
+    MIN_ALPHA,
+    at,
+    beckmann_pdf,
+    complete,
+    from_metadata,
+    ggx_pdf,
+    parse,
+    to_json,
+)
 
 # The grid, and the incident directions it is scored at: theta from near-normal to
 # near-grazing (degrees), each at its own azimuth so anisotropic models are probed
@@ -87,8 +90,6 @@ SAMPLES = 512  # per proposal of the pool (cosine, mirror and retro per alpha) p
 # isotropic model keeps alpha_x == alpha_y whatever the sampling noise.
 ANISO_GAIN = 0.03
 ANISO_ROUNDS = 3  # coordinate-search rounds (alpha_x, then alpha_y)
-# The microfacet distributions a lobe can sample: Mitsuba's MicrofacetType names.
-DISTRIBUTIONS = ("ggx", "beckmann")
 # A per-incidence table (roughness and share per incident direction) is kept only if it
 # lowers the mean second moment by this share.
 PER_INCIDENCE_GAIN = 0.05
@@ -194,17 +195,6 @@ def fit(
     return out
 
 
-def at(lobe: dict, cos_theta_i) -> tuple:
-    """(alpha_x, alpha_y, weight) of a lobe for incident cos(theta) (a float or an array):
-    the per-incidence table interpolated linearly in cos theta (clamped at its ends), or
-    the lobe's single values."""
-    t = lobe.get("table")
-    if not t:
-        return lobe["alpha_x"], lobe["alpha_y"], lobe["weight"]
-    c = np.asarray(cos_theta_i, dtype=np.float64)
-    return tuple(np.interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
-
-
 def _incident(theta_deg: float, phi: float) -> torch.Tensor:
     t = math.radians(theta_deg)
     return torch.tensor(
@@ -221,39 +211,11 @@ def _turn(w):
     )
 
 
-def _ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
-    """Density of wo = reflect(wi, m), m a GGX(ax, ay) visible normal seen from wi
-    (Heitz 2018, eq. 1; GGX D and Smith G1 as in analytic.microfacet).  wi, wo: (N, 3);
-    ax, ay: floats or (C, 1) arrays, giving (N,) or (C, N)."""
-    h = wi + wo
-    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
-    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
-    t = hx * hx / (ax * ax) + hy * hy / (ay * ay) + hz * hz
-    d = np.where(hz > 0, 1.0 / (math.pi * ax * ay * t * t), 0.0)
-    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
-    g1 = 2.0 * wz / (wz + np.sqrt(ax * ax * wx * wx + ay * ay * wy * wy + wz * wz))
-    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
-    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
-    return g1 * cos_ih * d / (wz * 4.0 * cos_oh)
-
-
-def _beckmann_pdf(wi: np.ndarray, wo: np.ndarray, ax: float, ay: float) -> np.ndarray:
-    """As :func:`_ggx_pdf` for the Beckmann distribution: D (Walter et al. 2007, eq. 25,
-    anisotropic slopes) and Smith Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
-    sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27)."""
-    h = wi + wo
-    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
-    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
-    hz_safe = np.maximum(hz, 1e-6)
-    e = (hx * hx / (ax * ax) + hy * hy / (ay * ay)) / (hz_safe * hz_safe)
-    d = np.where(hz > 1e-6, np.exp(-e) / (math.pi * ax * ay * hz_safe**4), 0.0)
-    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
-    a = 1.0 / np.sqrt(np.maximum((ax * ax * wx * wx + ay * ay * wy * wy) / (wz * wz), 1e-30))
-    erf = torch.special.erf(torch.from_numpy(np.ascontiguousarray(a))).numpy()
-    lam = 0.5 * (erf - 1.0) + np.exp(-a * a) / (2.0 * a * math.sqrt(math.pi))
-    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
-    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
-    return cos_ih * d / ((1.0 + lam) * wz * 4.0 * cos_oh)
+def _torch_erf(a: np.ndarray) -> np.ndarray:
+    """erf through torch: the values the fit has always scored with (math.erf differs from
+    it in the last bit for a few per cent of arguments, which would change the stored
+    second moments)."""
+    return torch.special.erf(torch.from_numpy(np.ascontiguousarray(a))).numpy()
 
 
 class _Pool:
@@ -274,7 +236,7 @@ class _Pool:
         wi = np.broadcast_to(wi1.numpy(), wo.shape)
         p_cos = np.where(wo[:, 2] > 0, np.clip(wo[:, 2], 0.0, None) / math.pi, 0.0)
         a = ALPHAS[:, None]
-        p_iso = {False: _ggx_pdf(wi, wo, a, a), True: _ggx_pdf(wi, _turn(wo), a, a)}  # (A, N)
+        p_iso = {False: ggx_pdf(wi, wo, a, a), True: ggx_pdf(wi, _turn(wo), a, a)}  # (A, N)
         # The pooled samples' density over the whole sphere: a visible normal may reflect
         # wi below the horizon; such samples count, with f cos = 0.
         q = (p_cos + p_iso[False].sum(0) + p_iso[True].sum(0)) / (2 * k + 1)
@@ -299,8 +261,11 @@ class _Pool:
             p = self.p_iso[retro][ia]
         else:
             wo = _turn(self.wo) if retro else self.wo
-            pdf = _ggx_pdf if dist == "ggx" else _beckmann_pdf
-            p = pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib]).astype(np.float32)
+            if dist == "ggx":
+                p = ggx_pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib])
+            else:
+                p = beckmann_pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib], erf=_torch_erf)
+            p = p.astype(np.float32)
         m2 = np.empty(len(WEIGHTS))
         with np.errstate(divide="ignore"):
             for j, w in enumerate(WEIGHTS.astype(np.float32)):
@@ -335,95 +300,3 @@ def fit_onnx(model, *, seed: int = 0) -> dict:
         _FITTED.pop(next(iter(_FITTED)))
     _FITTED[key] = copy.deepcopy(lobe)
     return lobe
-
-
-def to_json(lobe: dict) -> str:
-    return json.dumps(lobe, sort_keys=True)
-
-
-def parse(text: str) -> dict:
-    """The metadata value -> the lobe dict; a one-line InputError if it is malformed."""
-    try:
-        lobe = json.loads(text)
-        kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
-        ax, ay = float(lobe.get("alpha_x", alpha)), float(lobe.get("alpha_y", alpha))
-        retro = lobe.get("retro", False)
-    except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
-        raise InputError(
-            f'metadata {KEY!r}: expected JSON {{"kind": "{KIND}", '
-            f'"alpha": a, "weight": w}}, got {text!r}'
-        ) from None
-    if kind != KIND:
-        raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
-    finite = all(math.isfinite(v) for v in (alpha, ax, ay))
-    if not (finite and alpha > 0 and ax > 0 and ay > 0 and 0.0 <= weight <= 1.0):
-        raise InputError(
-            f"metadata {KEY!r}: alpha, alpha_x and alpha_y must be finite and > 0 and weight "
-            f"in [0, 1], "
-            f"got {text!r}"
-        )
-    if not isinstance(retro, bool):
-        raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
-    dist = lobe.get("distribution", "ggx")
-    if dist not in DISTRIBUTIONS:
-        raise InputError(
-            f"metadata {KEY!r}: unknown distribution {dist!r} (known: {', '.join(DISTRIBUTIONS)})"
-        )
-    out = {
-        **lobe,
-        "alpha": max(alpha, MIN_ALPHA),
-        "alpha_x": max(ax, MIN_ALPHA),
-        "alpha_y": max(ay, MIN_ALPHA),
-        "retro": retro,
-        "distribution": dist,
-        "weight": weight,
-    }
-    if lobe.get("table") is not None:
-        out["table"] = _parse_table(lobe["table"], text)
-    return out
-
-
-def _parse_table(table, text: str) -> dict:
-    """The per-incidence table: equal-length lists (>= 2 nodes) of finite numbers,
-    cos_theta strictly ascending in [0, 1], alphas > 0 (raised to MIN_ALPHA), weights in
-    [0, 1]."""
-    keys = ("cos_theta", "alpha_x", "alpha_y", "weight")
-    try:
-        if not all(isinstance(table[k], list) for k in keys) or any(
-            isinstance(v, bool) for k in keys for v in table[k]
-        ):
-            raise TypeError
-        cols = {k: [float(v) for v in table[k]] for k in keys}
-    except (KeyError, TypeError, ValueError, OverflowError):
-        raise InputError(
-            f"metadata {KEY!r}: table must hold lists {', '.join(keys)}, got {text!r}"
-        ) from None
-    c = cols["cos_theta"]
-    if (
-        len({len(v) for v in cols.values()}) != 1
-        or len(c) < 2
-        or not all(math.isfinite(v) for col in cols.values() for v in col)
-        or not all(0.0 <= a < b <= 1.0 for a, b in zip(c, c[1:]))
-        or not all(a > 0 for k in ("alpha_x", "alpha_y") for a in cols[k])
-        or not all(0.0 <= w <= 1.0 for w in cols["weight"])
-    ):
-        raise InputError(
-            f"metadata {KEY!r}: table needs >= 2 nodes of equal length, cos_theta ascending "
-            f"in [0, 1], alphas > 0 and weights in [0, 1], got {text!r}"
-        )
-    for k in ("alpha_x", "alpha_y"):
-        cols[k] = [max(a, MIN_ALPHA) for a in cols[k]]
-    return cols
-
-
-def complete(lobe: dict) -> dict:
-    """A lobe dict, possibly partial ({"alpha": a, "weight": w}), checked and with every
-    key: kind, alpha, alpha_x, alpha_y, retro, distribution, weight (and its table, if it
-    has one)."""
-    return parse(to_json({"kind": KIND, **lobe}))
-
-
-def from_metadata(meta: dict) -> dict | None:
-    """The stored lobe of a model's metadata (a dict of strings), or None (older files)."""
-    text = meta.get(KEY)
-    return None if text is None else parse(text)

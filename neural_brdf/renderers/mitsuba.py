@@ -52,13 +52,13 @@ from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
-import onnx
 
 from neural_brdf.backends.drjit import OnnxProgram
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
+from neural_brdf.fileformat import INPUTS, OUTPUT, reader
+from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.graph import SUPPORTED_OPS, UnsupportedOnnxOp
 from neural_brdf.physics import lobe as lobes
-from neural_brdf.runtime import INPUTS, OUTPUT
 
 if mi.variant() is None:
     raise ImportError(
@@ -121,7 +121,7 @@ class _GraphBSDF(mi.BSDF):
                 f"got {program.inputs} -> {program.outputs}"
             )
         self.program = program
-        self.lobe = lobes.complete(lobe)
+        self.lobe = lobe_format.complete(lobe)
         self.label = label
         self.lobe_table = self.lobe.get("table")
         # the largest share decides whether the GGX branch exists at all
@@ -284,13 +284,11 @@ def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
     plugin's constructor as a RuntimeError carrying the Python traceback."""
     path = _resolve(str(filename))
     try:
-        proto = onnx.load(str(path))
-    except Exception as e:  # onnx raises DecodeError and others on a bad file
-        raise InputError(
-            f"neural_brdf: {path}: not a loadable ONNX model ({type(e).__name__})"
-        ) from None
+        proto = reader.load(path)
+    except InputError as e:
+        raise InputError(f"neural_brdf: {e}") from None
     try:
-        stored = lobes.from_metadata({p.key: p.value for p in proto.metadata_props})
+        stored = lobe_format.from_metadata(reader.props(proto))
     except InputError as e:
         raise InputError(f"neural_brdf: {path}: {e}") from None
     return path, OnnxProgram(proto), stored
@@ -356,7 +354,7 @@ class AnalyticBSDF(_GraphBSDF):
                 given = json.loads(str(props["lobe"]))
                 if not isinstance(given, dict):
                     raise ValueError(f"expected a JSON object, got {given!r}")
-                lobe = lobes.complete(given)
+                lobe = lobe_format.complete(given)
             except (ValueError, InputError) as e:
                 raise InputError(f"analytic_brdf: 'lobe': {e}") from None
             self.lobe_source = "given"

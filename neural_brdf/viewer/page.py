@@ -49,7 +49,8 @@ SPHERE = 256  # sphere view size in pixels
 ALBEDO_THETA = np.linspace(0.0, 89.0, 30)  # theta_i of the precomputed albedo curve, deg
 ALBEDO_SAMPLES = 2048  # quadrature samples per theta_i
 SCRIPT = Path(__file__).with_name("page.js")
-METADATA_SCRIPT = Path(__file__).parents[1] / "fileformat" / "onnx_metadata.js"  # inlined before SCRIPT
+# the file format's metadata reader, inlined before SCRIPT
+METADATA_SCRIPT = Path(__file__).parents[1] / "fileformat" / "onnx_metadata.js"
 TANGENT_EPS = 1e-6  # |(n.z, 0, -n.x)| below this: the tangent falls back to +x
 
 CSS = """

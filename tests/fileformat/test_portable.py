@@ -37,9 +37,12 @@ import torch
 import analytic
 import neural_brdf
 import portable_consumers as pc
-from neural_brdf import config, export, graph, runtime
+from cli_helpers import ROOT
+from neural_brdf import config, export, fileformat, graph, runtime
+from neural_brdf.errors import InputError
+from neural_brdf.fileformat import reader
+from neural_brdf.fileformat.metadata import Metadata
 from neural_brdf.viewer import page as viewer
-from test_cli import ROOT
 
 # Measured (benchmarks/results/portable.json): 1.9e-6 (onnxruntime 1.18), 1.9e-6 (-web),
 # 2.5e-6 (onnx2torch), 1.3e-6 (reference) against onnxruntime 1.32.  The contract: 1e-5,
@@ -239,6 +242,43 @@ def test_version_1_metadata_still_reads(exported):
     assert runtime.read_metadata({"max_albedo": "inf"})["max_albedo"] == "inf"
 
 
+def test_the_typed_metadata_writes_what_the_file_holds(exported):
+    # Metadata is how the exporter writes: read back and written again, the strings and
+    # their order are the file's, bit for bit
+    cfg, target, path, v1 = exported
+    props = reader.props(reader.load(path))
+    info = Metadata.from_props(props)
+    assert info.to_props() == props and list(info.to_props()) == list(props)
+    assert neural_brdf.load(path).info == info
+    assert info.metadata_version == 2 and info.format_version == fileformat.FORMAT_VERSION
+    assert info.target == json.loads(props["target"])
+    assert info.max_albedo == float(props["max_albedo"]) and info.max_albedo > 0
+    assert info.sampling_lobe == json.loads(props["sampling_lobe"])
+    assert config.from_dict(info.training_config) == cfg
+    # one JSON object: strict JSON, every key of the file's schema
+    assert set(json.loads(json.dumps(info.to_json(), allow_nan=False))) == set(props)
+    # a version-1 file reads into the same object, but for the parameters as given
+    old = Metadata.from_props(reader.props(reader.load(v1)))
+    assert old.metadata_version == 1 and old.max_albedo == info.max_albedo
+    assert old.target == {k: v for k, v in info.target.items() if k != "params"}
+    assert old.sampling_lobe == info.sampling_lobe
+    # unknown keys are kept as text; a non-finite figure is null in JSON
+    odd = Metadata.from_props({"max_albedo": "inf", "x-other": "1"})
+    assert odd.max_albedo == float("inf") and odd.other == {"x-other": "1"}
+    assert odd.to_json() == {"metadata_version": 1, "max_albedo": None, "x-other": "1"}
+    assert odd.to_props()["max_albedo"] == "inf"  # as the exporter writes a lone inf
+
+
+def test_the_one_loader_names_a_file_that_is_not_onnx(tmp_path):
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"\x08\xff\xff not onnx")
+    with pytest.raises(InputError, match=r"bad\.onnx: not a loadable ONNX model"):
+        reader.load(bad)
+    with pytest.raises(InputError, match="model bytes: not a loadable ONNX model"):
+        reader.load(b"\x08\xff\xff")
+    assert graph.load is reader.load  # the graph lowering reads through it
+
+
 def test_javascript_reader_reads_what_python_onnx_reads(exported, tmp_path):
     _, _, path, v1 = exported
     # a file with long, non-ASCII values (multi-byte lengths) and none at all
@@ -266,6 +306,8 @@ def test_javascript_reader_reads_what_python_onnx_reads(exported, tmp_path):
                 if not (key in ("target", "training_config") and py["metadata_version"] == 1):
                     assert r["decoded"][key] == py[key], (f, key)
         assert r["decoded"]["metadata_version"] == py["metadata_version"]
+        if f != v1:  # JavaScript decodes into the typed object's JSON (version 2, none)
+            assert r["decoded"] == Metadata.from_props(props).to_json(), f
     assert got[1]["decoded"]["target"] == got[1]["props"]["target"]  # v1: text stays text
     # the two lists of JSON keys are one list
     js = (ROOT / "neural_brdf" / "fileformat" / "onnx_metadata.js").read_text()

@@ -15,51 +15,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from cli_helpers import ROOT, SETS, TINY, assert_one_line_error, cli, run  # noqa: F401
 from neural_brdf import config, export
-from neural_brdf.tooling.cli import main
 from neural_brdf.train import loop as train
 from test_fileio import devices  # noqa: F401  (a fixture)
-
-ROOT = Path(__file__).resolve().parents[2]
-TINY = [
-    "train.steps=10",
-    "train.progress=false",
-    "model.hidden=[16,16]",
-    "data.batch_size=256",
-    "data.pool_size=2048",
-    "normalization.table_size=17",
-    "normalization.samples=2048",
-    "validation.furnace_dirs=6",
-    "validation.furnace_samples=4096",
-    "validation.pairs=2000",
-    "validation.accuracy_samples=2048",
-    "export.parity_pairs=512",
-]
-SETS = [a for kv in TINY for a in ("--set", kv)]
-
-
-def run(*args, cwd=ROOT):
-    """A real subprocess: checks that no traceback escapes and the exit status is real."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.run(
-        [sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
-    )
-
-
-def cli(capsys, *args):
-    """In-process ``neural-brdf ARGS`` (fast): (exit code, stdout, stderr)."""
-    code = main(list(args))
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def assert_one_line_error(code, err, *needles):
-    assert code == 2, err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    for n in needles:
-        assert n in lines[0], lines[0]
 
 
 def test_train_py_config_error_is_one_line_and_exit_2(tmp_path):

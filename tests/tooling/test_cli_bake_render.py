@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import analytic
+from cli_helpers import ROOT, SETS, assert_one_line_error, run
 from neural_brdf.measured import merl
 from neural_brdf.tooling.cli import main
-from test_cli import ROOT, SETS, assert_one_line_error, run
 
 LAMBERT = ROOT / "configs" / "lambert.yaml"
 

@@ -31,7 +31,7 @@ from neural_brdf.train import loop as train
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIGS = REPO / "configs"
-NPZ = Path(__file__).resolve().parents[1] / "data" / "nbrdf" / "merl_nbrdf_weights.npz"  # tests/data
+NPZ = REPO / "tests" / "data" / "nbrdf" / "merl_nbrdf_weights.npz"
 
 TINY = {
     "train.steps": 60,

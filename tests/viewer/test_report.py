@@ -21,10 +21,10 @@ import yaml
 from PIL import Image
 
 import analytic
+from cli_helpers import ROOT, SETS, assert_one_line_error
 from harness import browser
 from neural_brdf.tooling.cli import main
 from neural_brdf.viewer import plots, report
-from test_cli import ROOT, SETS, assert_one_line_error
 
 GOLD = ROOT / "configs" / "gold.yaml"
 FIGURES = {"albedo", "slices", "lobes", "rusinkiewicz", "loss"}  # always drawn

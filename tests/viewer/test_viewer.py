@@ -28,13 +28,13 @@ from onnx import numpy_helper
 from PIL import Image
 
 import analytic
+from cli_helpers import ROOT, assert_one_line_error, cli
 from harness import gpu_browser
 from neural_brdf import backends, config
 from neural_brdf.export import relative_difference
 from neural_brdf.runtime import load
 from neural_brdf.tooling.cli import main
 from neural_brdf.viewer import page as viewer
-from test_cli import ROOT, assert_one_line_error, cli
 
 TINY_RUN = [
     "train.steps=60",

@@ -12,14 +12,6 @@ import numpy as np
 import onnx
 import pytest
 import torch
-
-from analytic import physics
-from neural_brdf import backends, config, pipeline
-from neural_brdf.export import relative_difference, to_onnx_bytes
-from neural_brdf.physics.quadrature import albedo, from_numpy
-from neural_brdf.train import encoding as enc
-from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
-from test_cli import assert_one_line_error, cli
 from test_codegen import (
     C_TOL,
     EVERY_OP_LOBE,
@@ -31,6 +23,14 @@ from test_codegen import (
     pairs,
     wgsl_eval,
 )
+
+from analytic import physics
+from cli_helpers import assert_one_line_error, cli
+from neural_brdf import backends, config, pipeline
+from neural_brdf.export import relative_difference, to_onnx_bytes
+from neural_brdf.physics.quadrature import albedo, from_numpy
+from neural_brdf.train import encoding as enc
+from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 
 GRID = 8
 CHANNELS = 3

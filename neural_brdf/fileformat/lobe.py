@@ -1,0 +1,224 @@
+"""The sampling lobe's schema and density: what the ``sampling_lobe`` metadata entry
+holds, how a reader checks it, and the pdf every importance sampler of it must have.
+
+The lobe is a mixture, cheap to sample, whose density is known exactly:
+
+    pdf(wo) = (1 - w) cos(theta_o) / pi  [wo_z > 0]  +  w D_wi(m) / (4 |wo . m|),
+    m = normalize(wi + R wo),   R = identity (a mirror lobe) or R (x, y, z) = (-x, -y, z)
+    (a retro lobe),
+
+a cosine-weighted hemisphere plus a GGX or Beckmann visible-normal lobe of roughness
+(alpha_x, alpha_y) (x is the tangent) reflected about the sampled normal m; D_wi is the
+distribution of visible normals (Heitz 2018, eq. 1; for Beckmann, Heitz & d'Eon 2014).
+A per-incidence ``table`` gives (alpha_x, alpha_y, w) at nodes of cos theta_i,
+interpolated linearly and clamped at its ends (:func:`at`).
+
+The JSON form (docs/model.md, "Sampling lobe"):
+
+    {"kind": "cosine+ggx_vndf", "alpha": 0.26, "alpha_x": 0.26, "alpha_y": 0.26,
+     "retro": false, "distribution": "ggx", "weight": 0.9, "second_moment": 1.31,
+     "second_moment_cosine": 3.9, "table": {...}}   (table optional)
+
+Who implements it: :mod:`neural_brdf.physics.lobe` fits it; the Mitsuba plugin
+(:mod:`neural_brdf.renderers.mitsuba`) samples it with Mitsuba's own
+``MicrofacetDistribution``; the code generators (:mod:`neural_brdf.backends.lobe`) emit
+its pdf and sampler; each is tested against :func:`pdf`.  This module needs numpy only.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from neural_brdf.errors import InputError
+from neural_brdf.fileformat import LOBE_KEY as KEY  # the ONNX metadata key
+
+KIND = "cosine+ggx_vndf"
+
+# The GGX alpha is never below this: Mitsuba's float32 GGX sampling loses accuracy for
+# much sharper lobes.  The cosine share is never below 1 - MAX_WEIGHT, which bounds the
+# sample weight where the network has a diffuse tail that the GGX lobe misses; the fit
+# takes a share that high only where its scored second moment says the lobe covers the
+# BRDF (a polished metal: with a cap of 0.9 its noise was 10x that of the target's own
+# sampler, 1.4x with 0.995).
+MIN_ALPHA = 0.01
+MAX_WEIGHT = 0.995
+# The microfacet distributions a lobe can sample: Mitsuba's MicrofacetType names.
+DISTRIBUTIONS = ("ggx", "beckmann")
+
+
+def at(lobe: dict, cos_theta_i) -> tuple:
+    """(alpha_x, alpha_y, weight) of a lobe for incident cos(theta) (a float or an array):
+    the per-incidence table interpolated linearly in cos theta (clamped at its ends), or
+    the lobe's single values."""
+    t = lobe.get("table")
+    if not t:
+        return lobe["alpha_x"], lobe["alpha_y"], lobe["weight"]
+    c = np.asarray(cos_theta_i, dtype=np.float64)
+    return tuple(np.interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
+
+
+def ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
+    """Density of wo = reflect(wi, m), m a GGX(ax, ay) visible normal seen from wi
+    (Heitz 2018, eq. 1; GGX D and Smith G1 as in analytic.microfacet).  wi, wo: (N, 3);
+    ax, ay: floats or (C, 1) arrays, giving (N,) or (C, N)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    t = hx * hx / (ax * ax) + hy * hy / (ay * ay) + hz * hz
+    d = np.where(hz > 0, 1.0 / (math.pi * ax * ay * t * t), 0.0)
+    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
+    g1 = 2.0 * wz / (wz + np.sqrt(ax * ax * wx * wx + ay * ay * wy * wy + wz * wz))
+    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
+    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
+    return g1 * cos_ih * d / (wz * 4.0 * cos_oh)
+
+
+def beckmann_pdf(
+    wi: np.ndarray,
+    wo: np.ndarray,
+    ax: float,
+    ay: float,
+    *,
+    erf: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """As :func:`ggx_pdf` for the Beckmann distribution: D (Walter et al. 2007, eq. 25,
+    anisotropic slopes) and Smith Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
+    sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27).  ``erf``: a
+    vectorised erf (default :func:`math.erf` per element)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    hz_safe = np.maximum(hz, 1e-6)
+    e = (hx * hx / (ax * ax) + hy * hy / (ay * ay)) / (hz_safe * hz_safe)
+    d = np.where(hz > 1e-6, np.exp(-e) / (math.pi * ax * ay * hz_safe**4), 0.0)
+    wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
+    a = 1.0 / np.sqrt(np.maximum((ax * ax * wx * wx + ay * ay * wy * wy) / (wz * wz), 1e-30))
+    erf_a = (erf or _erf)(a)
+    lam = 0.5 * (erf_a - 1.0) + np.exp(-a * a) / (2.0 * a * math.sqrt(math.pi))
+    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
+    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
+    return cos_ih * d / ((1.0 + lam) * wz * 4.0 * cos_oh)
+
+
+def _erf(a: np.ndarray) -> np.ndarray:
+    return np.frompyfunc(math.erf, 1, 1)(np.asarray(a, dtype=np.float64)).astype(np.float64)
+
+
+def turn(w: np.ndarray) -> np.ndarray:
+    """R: a half turn about the normal, (x, y, z) -> (-x, -y, z) (a retro lobe's)."""
+    return w * np.array([-1.0, -1.0, 1.0])
+
+
+def pdf(lobe: dict, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """The density (1/sr) with which a renderer samples ``wo`` given ``wi`` from the lobe:
+    (N, 3) unit vectors -> (N,) float64.  ``lobe`` as :func:`complete` returns it.  It
+    is 0 where wi or wo is below the horizon, as in the Mitsuba plugin and the generated
+    code (a visible normal may reflect wi below the horizon: such a sample is refused, so
+    the density integrates to 1 minus that mass over the hemisphere)."""
+    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    ax, ay, w = (np.asarray(v, dtype=np.float64) for v in at(lobe, wi[:, 2]))
+    p_cos = np.clip(wo[:, 2], 0.0, None) / math.pi
+    m = turn(wo) if lobe.get("retro") else wo
+    dist = beckmann_pdf if lobe.get("distribution", "ggx") == "beckmann" else ggx_pdf
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_lobe = dist(np.where(up[:, None], wi, [0.0, 0.0, 1.0]), m, ax, ay)
+    out = (1.0 - w) * p_cos + w * np.nan_to_num(p_lobe, nan=0.0, posinf=0.0)
+    return np.where(up, out, 0.0)
+
+
+def to_json(lobe: dict) -> str:
+    return json.dumps(lobe, sort_keys=True)
+
+
+def parse(text: str) -> dict:
+    """The metadata value -> the lobe dict; a one-line InputError if it is malformed."""
+    try:
+        lobe = json.loads(text)
+        kind, alpha, weight = lobe["kind"], float(lobe["alpha"]), float(lobe["weight"])
+        ax, ay = float(lobe.get("alpha_x", alpha)), float(lobe.get("alpha_y", alpha))
+        retro = lobe.get("retro", False)
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
+        raise InputError(
+            f'metadata {KEY!r}: expected JSON {{"kind": "{KIND}", '
+            f'"alpha": a, "weight": w}}, got {text!r}'
+        ) from None
+    if kind != KIND:
+        raise InputError(f"metadata {KEY!r}: unknown lobe kind {kind!r} (known: {KIND!r})")
+    finite = all(math.isfinite(v) for v in (alpha, ax, ay))
+    if not (finite and alpha > 0 and ax > 0 and ay > 0 and 0.0 <= weight <= 1.0):
+        raise InputError(
+            f"metadata {KEY!r}: alpha, alpha_x and alpha_y must be finite and > 0 and weight "
+            f"in [0, 1], "
+            f"got {text!r}"
+        )
+    if not isinstance(retro, bool):
+        raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
+    dist = lobe.get("distribution", "ggx")
+    if dist not in DISTRIBUTIONS:
+        raise InputError(
+            f"metadata {KEY!r}: unknown distribution {dist!r} (known: {', '.join(DISTRIBUTIONS)})"
+        )
+    out = {
+        **lobe,
+        "alpha": max(alpha, MIN_ALPHA),
+        "alpha_x": max(ax, MIN_ALPHA),
+        "alpha_y": max(ay, MIN_ALPHA),
+        "retro": retro,
+        "distribution": dist,
+        "weight": weight,
+    }
+    if lobe.get("table") is not None:
+        out["table"] = _parse_table(lobe["table"], text)
+    return out
+
+
+def _parse_table(table, text: str) -> dict:
+    """The per-incidence table: equal-length lists (>= 2 nodes) of finite numbers,
+    cos_theta strictly ascending in [0, 1], alphas > 0 (raised to MIN_ALPHA), weights in
+    [0, 1]."""
+    keys = ("cos_theta", "alpha_x", "alpha_y", "weight")
+    try:
+        if not all(isinstance(table[k], list) for k in keys) or any(
+            isinstance(v, bool) for k in keys for v in table[k]
+        ):
+            raise TypeError
+        cols = {k: [float(v) for v in table[k]] for k in keys}
+    except (KeyError, TypeError, ValueError, OverflowError):
+        raise InputError(
+            f"metadata {KEY!r}: table must hold lists {', '.join(keys)}, got {text!r}"
+        ) from None
+    c = cols["cos_theta"]
+    if (
+        len({len(v) for v in cols.values()}) != 1
+        or len(c) < 2
+        or not all(math.isfinite(v) for col in cols.values() for v in col)
+        or not all(0.0 <= a < b <= 1.0 for a, b in zip(c, c[1:]))
+        or not all(a > 0 for k in ("alpha_x", "alpha_y") for a in cols[k])
+        or not all(0.0 <= w <= 1.0 for w in cols["weight"])
+    ):
+        raise InputError(
+            f"metadata {KEY!r}: table needs >= 2 nodes of equal length, cos_theta ascending "
+            f"in [0, 1], alphas > 0 and weights in [0, 1], got {text!r}"
+        )
+    for k in ("alpha_x", "alpha_y"):
+        cols[k] = [max(a, MIN_ALPHA) for a in cols[k]]
+    return cols
+
+
+def complete(lobe: dict) -> dict:
+    """A lobe dict, possibly partial ({"alpha": a, "weight": w}), checked and with every
+    key: kind, alpha, alpha_x, alpha_y, retro, distribution, weight (and its table, if it
+    has one)."""
+    return parse(to_json({"kind": KIND, **lobe}))
+
+
+def from_metadata(meta: dict) -> dict | None:
+    """The stored lobe of a model's metadata (a dict of strings), or None (older files)."""
+    text = meta.get(KEY)
+    return None if text is None else parse(text)
