@@ -2,7 +2,7 @@
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")                 # or cuda_ad_rgb
-    from neural_brdf import inverse_bsdf          # registers 'neural_brdf_ad'
+    from neural_brdf.inverse import bsdf as inverse_bsdf  # registers 'neural_brdf_ad'
     bsdf = mi.load_dict({"type": "neural_brdf_ad", "model": inverse_bsdf.COMPACT})
     params = mi.traverse(bsdf)                    # 'raw.mlp.head.weight', 'raw.grid.table', ...
     with inverse_bsdf.evaluated_mode():           # dr.wrap needs evaluated loops and calls

@@ -1,6 +1,6 @@
 """RGL ``.bsdf`` material files (Dupuy & Jakob 2018): read, evaluate, bake.
 
-    from neural_brdf import rgl
+    from neural_brdf.measured import rgl
     fields = rgl.read_tensor_file("material.bsdf")     # name -> numpy array
     m = rgl.read_rgl("material.bsdf")                  # RGLFormatError on a bad file
     f = m.eval(wi, wo)                                 # (..., 3) in 1/sr, no cosine

@@ -1,6 +1,6 @@
 """Render-space metrics: a noise-free sphere under an environment, by quadrature.
 
-    from neural_brdf import spheres
+    from neural_brdf.renderers import spheres
     ref = spheres.render(reference_fn)          # (R, R, 3) linear RGB
     fit = spheres.render(neural_brdf.load("model.onnx").eval)
     spheres.metrics(ref, fit)                   # {"psnr_db": ..., "flip": ...}

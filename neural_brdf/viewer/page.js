@@ -1,5 +1,5 @@
 // neural-brdf viewer: draws generated GLSL (neural_brdf_eval) in WebGL2.  Inlined into
-// one HTML file by neural_brdf/viewer.py together with the JSON in #nb-data.
+// one HTML file by neural_brdf/viewer/page.py together with the JSON in #nb-data.
 "use strict";
 const DATA = JSON.parse(document.getElementById("nb-data").textContent);
 const S = DATA.sphere;                     // sphere view size in pixels
@@ -54,7 +54,7 @@ const VERT = "#version 300 es\nvoid main() {\n" +
 // Sphere: orthographic view along -z, unit sphere filling the square; at each pixel the
 // local frame is z = n, x = t = normalize((n.z, 0, -n.x)) (tangent along the equator's
 // direction), y = n x t.  Directional light of irradiance pi at normal incidence, so a
-// white Lambertian surface facing the light has radiance 1.  neural_brdf/viewer.py
+// white Lambertian surface facing the light has radiance 1.  neural_brdf/viewer/page.py
 // (sphere_directions) repeats this geometry for the tests.
 const SPHERE_MAIN = `
 uniform vec3 uLight;

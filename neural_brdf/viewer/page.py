@@ -4,7 +4,7 @@
     neural-brdf view runs/a/model.onnx --compare runs/b/model.onnx -o ab.html
     neural-brdf view runs/quickstart/model.onnx --compare configs/gold.yaml -o vs_target.html
 
-    from neural_brdf import viewer
+    from neural_brdf.viewer import page as viewer
     viewer.write_viewer("model.onnx", "viewer.html", compare="other.onnx")
     page = viewer.page([viewer.Model("mine", glsl_source, albedo)])   # any GLSL
 

@@ -1,6 +1,7 @@
 """The figures of a run report, in the habits of BRDF Explorer: arrays in, figures out.
 
-    from neural_brdf import plots, load
+    from neural_brdf import load
+    from neural_brdf.viewer import plots
     fig = plots.incidence_slices(load("model.onnx").eval, reference.eval)
     png = plots.png_bytes(fig)
 

@@ -1,6 +1,6 @@
 """Run generated shaders on the GPU of headless Chromium: GLSL in WebGL2, WGSL in WebGPU.
 
-    from neural_brdf import gpu_browser
+    from harness import gpu_browser
     f = gpu_browser.eval_glsl(glsl_source, wi, wo)     # (N, 3) float32, like runtime.eval
     f = gpu_browser.eval_wgsl(wgsl_source, wi, wo)
     with gpu_browser.Session() as s:                   # one browser for several calls

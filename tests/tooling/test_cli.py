@@ -301,7 +301,8 @@ def test_a_locked_run_folder_is_refused_naming_the_holder(capsys, tmp_path):
 
 SIGTERM_AT_STEP_4 = """
 import os, signal, sys
-from neural_brdf import cli, data
+from neural_brdf.tooling import cli
+from neural_brdf.train import data
 real, calls = data.Pool.batch, [0]
 def batch(self):
     calls[0] += 1

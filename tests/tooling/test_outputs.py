@@ -151,7 +151,8 @@ def test_sigterm_outside_training_exits_143_without_a_traceback(model, tmp_path)
     """SIGTERM as Ctrl-C: here it arrives while code is generated (no training loop)."""
     script = (
         "import os, signal, sys\n"
-        "from neural_brdf import backends, cli\n"
+        "from neural_brdf import backends\n"
+        "from neural_brdf.tooling import cli\n"
         "real = backends.generate\n"
         "def generate(*a, **k):\n"
         "    os.kill(os.getpid(), signal.SIGTERM)\n"
