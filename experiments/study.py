@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import re
 import sys
 from pathlib import Path
@@ -29,6 +28,7 @@ sys.path.insert(0, str(REPO))
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from neural_brdf.fileio import atomic_write  # noqa: E402
 from neural_brdf.tooling import sweep  # noqa: E402
 
 SWEEPS = ("size", "ablation", "loss", "furnace")
@@ -69,13 +69,10 @@ def rows(name: str, out: Path) -> list[dict]:
 
 def write_json(name: str, data: list[dict], settings: dict) -> None:
     path = DOCS / "results" / f"{name}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(
-        json.dumps({"sweep": f"configs/sweeps/{name}.yaml", **settings, "trials": data}, indent=2)
-        + "\n"
+    text = json.dumps(
+        {"sweep": f"configs/sweeps/{name}.yaml", **settings, "trials": data}, indent=2
     )
-    os.replace(tmp, path)
+    atomic_write(path, text + "\n", parents=True)
 
 
 def _save(fig, name: str) -> None:

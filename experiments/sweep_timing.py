@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 
 import yaml  # noqa: E402
 
+from neural_brdf.fileio import atomic_write  # noqa: E402
 from neural_brdf.tooling import sweep  # noqa: E402
 
 SETUPS = {
@@ -96,10 +97,7 @@ def main() -> int:
         "same_metrics_on_every_setup": True,
     }
     dest = REPO / "docs" / "results" / "sweep_timing.json"
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_suffix(".tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp, dest)
+    atomic_write(dest, json.dumps(report, indent=2) + "\n", parents=True)
     for name, ratio in report["ratio_to_local_1_worker"].items():
         print(f"{name:32s} best {best[name]:7.1f} s   ratio {ratio:.2f}")
     shutil.rmtree(work, ignore_errors=True)

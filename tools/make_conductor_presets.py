@@ -13,12 +13,13 @@ reference the tests compare against (tests/analytic/test_known_answers.py).
 """
 
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout
+from neural_brdf.fileio import atomic_write  # noqa: E402
 
 MATERIALS = ("Au", "Ag", "Cu", "Al")
 LAMBDA = np.linspace(360.0, 830.0, 4701)  # nm, 0.1 nm steps
@@ -73,11 +74,7 @@ def main(src: str) -> None:
             entry[part] = [round(float(v), 6) for v in spectrum_to_rgb(wl, val)]
         out[m] = entry
     dest = Path(__file__).resolve().parents[1] / "analytic" / "data" / "conductors.json"
-    fd, tmp = tempfile.mkstemp(dir=dest.parent)
-    with os.fdopen(fd, "w") as fh:
-        json.dump(out, fh, indent=1)
-        fh.write("\n")
-    os.replace(tmp, dest)
+    atomic_write(dest, json.dumps(out, indent=1) + "\n")
     print(f"wrote {dest}")
 
 

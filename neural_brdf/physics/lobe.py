@@ -1,21 +1,11 @@
-"""The analytic sampling lobe of a neural BRDF: fitted at export, stored in the ONNX file.
+"""Fitting the sampling lobe of a neural BRDF: done at export, stored in the ONNX file.
 
 A renderer cannot invert a network, so it importance-samples a mixture that is cheap to
-sample and whose density is known exactly:
-
-    pdf(wo) = (1 - w) cos(theta_o) / pi  [wo_z > 0]  +  w D_wi(m) / (4 |wo . m|),
-    m = normalize(wi + R wo),   R = identity (a mirror lobe) or R (x, y, z) = (-x, -y, z)
-    (a retro lobe),
-
-a cosine-weighted hemisphere plus a GGX or Beckmann (``distribution``) visible-normal
-lobe of roughness ``(alpha_x, alpha_y)`` (anisotropic when they differ; x is the
-tangent) reflected about the sampled normal m (D_wi is the distribution of visible
-normals, Heitz 2018; for Beckmann, Heitz & d'Eon 2014).  A
-retro lobe is the mirror lobe turned by pi about the normal, so it is centred on wi
-itself: R is an isometry, so its density is the mirror lobe's at R wo.  The lobe term is
-Mitsuba's ``MicrofacetDistribution(GGX or Beckmann, alpha_x, alpha_y,
-sample_visible=True)``, so the plugin in :mod:`neural_brdf.renderers.mitsuba` samples it with
-Mitsuba's own code.
+sample and whose density is known exactly: a cosine-weighted hemisphere plus a GGX or
+Beckmann visible-normal lobe, mirror or retro, isotropic or not, possibly with a
+roughness and share per incident direction.  The mixture, its JSON form in the file and
+its pdf are the file format's: :mod:`neural_brdf.fileformat.lobe`.  This module chooses
+the mixture for a given BRDF.
 
 :func:`fit` minimises the relative second moment of the sample weight f cos / pdf
 (1 + the relative variance of a one-sample albedo estimate), averaged over incident
@@ -29,23 +19,12 @@ the network is evaluated once per sample, not once per candidate:
 3. if giving each incident direction its own roughness (same aspect) and share lowers
    the score by more than ``PER_INCIDENCE_GAIN``, a per-incidence ``table`` of
    (alpha_x, alpha_y, w) over cos theta_i at the fit's directions, interpolated linearly
-   and clamped at the ends (:func:`at`).
+   and clamped at the ends (:func:`neural_brdf.fileformat.lobe.at`).
 
 It takes about a second.  :mod:`neural_brdf.export` stores the result in the metadata
-key ``sampling_lobe``:
-
-    {"kind": "cosine+ggx_vndf", "alpha": 0.26, "alpha_x": 0.26, "alpha_y": 0.26,
-     "retro": false, "distribution": "ggx", "weight": 0.9, "second_moment": 1.31,
-     "second_moment_cosine": 3.9}
-
-plus, for a per-incidence lobe, ``"table": {"cos_theta": [...], "alpha_x": [...],
-"alpha_y": [...], "weight": [...]}`` (the top-level values are then the single lobe's).
-
-``weight`` is the lobe's share w; ``alpha`` is sqrt(alpha_x alpha_y) (files written
-before these keys hold ``alpha`` only, read as a GGX mirror lobe with alpha_x = alpha_y
-= alpha; the kind keeps its historical name whatever the distribution);
-the two second moments (the fitted lobe's and cosine sampling's alone) say how much the
-lobe helps.  This module needs numpy, torch and onnxruntime only: no renderer.
+key ``sampling_lobe``; ``second_moment`` and ``second_moment_cosine`` (the fitted lobe's
+and cosine sampling's alone) say how much the lobe helps.  This module needs numpy, torch
+and onnxruntime only: no renderer.
 """
 
 from __future__ import annotations
