@@ -1,5 +1,6 @@
-"""The sampling lobe's schema and density: what the ``sampling_lobe`` metadata entry
-holds, how a reader checks it, and the pdf every importance sampler of it must have.
+"""The sampling lobe's schema, density and sampler: what the ``sampling_lobe`` metadata
+entry holds, how a reader checks it, the pdf every importance sampler of it must have,
+and a reference sampler in numpy.
 
 The lobe is a mixture, cheap to sample, whose density is known exactly:
 
@@ -22,7 +23,8 @@ The JSON form (docs/model.md, "Sampling lobe"):
 Who implements it: :mod:`neural_brdf.physics.lobe` fits it; the Mitsuba plugin
 (:mod:`neural_brdf.renderers.mitsuba`) samples it with Mitsuba's own
 ``MicrofacetDistribution``; the code generators (:mod:`neural_brdf.backends.lobe`) emit
-its pdf and sampler; each is tested against :func:`pdf`.  This module needs numpy only.
+its pdf and sampler; each is tested against :func:`pdf`, and so is :func:`sample` here
+(chi-square, tests/fileformat/test_lobe.py).  This module needs numpy only.
 """
 
 from __future__ import annotations
@@ -113,15 +115,18 @@ def turn(w: np.ndarray) -> np.ndarray:
     return w * np.array([-1.0, -1.0, 1.0])
 
 
-def pdf(lobe: dict, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-    """The density (1/sr) with which a renderer samples ``wo`` given ``wi`` from the lobe:
+def pdf(lobe: dict, wi: np.ndarray, wo: np.ndarray, *, sphere: bool = False) -> np.ndarray:
+    """The density (1/sr) with which the lobe samples ``wo`` given ``wi`` (:func:`sample`):
     (N, 3) unit vectors -> (N,) float64.  ``lobe`` as :func:`complete` returns it.  It
     is 0 where wi or wo is below the horizon, as in the Mitsuba plugin and the generated
     code (a visible normal may reflect wi below the horizon: such a sample is refused, so
-    the density integrates to 1 minus that mass over the hemisphere)."""
+    the density integrates to 1 minus that mass over the hemisphere).  ``sphere=True``
+    keeps the lobe's density below the horizon too: the sampler's density over the whole
+    sphere, which integrates to 1."""
     wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
     wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
-    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    up = wi[:, 2] > 0
+    keep = up if sphere else up & (wo[:, 2] > 0)
     ax, ay, w = (np.asarray(v, dtype=np.float64) for v in at(lobe, wi[:, 2]))
     p_cos = np.clip(wo[:, 2], 0.0, None) / math.pi
     m = turn(wo) if lobe.get("retro") else wo
@@ -129,7 +134,98 @@ def pdf(lobe: dict, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         p_lobe = dist(np.where(up[:, None], wi, [0.0, 0.0, 1.0]), m, ax, ay)
     out = (1.0 - w) * p_cos + w * np.nan_to_num(p_lobe, nan=0.0, posinf=0.0)
-    return np.where(up, out, 0.0)
+    return np.where(keep, out, 0.0)
+
+
+def sample(
+    lobe: dict, wi: np.ndarray, u1: np.ndarray, u2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Draw wo from the lobe: (N, 3) wi above the horizon, u1 (N,) and u2 (N, 2) uniform in
+    [0, 1) -> (wo (N, 3), pdf(wo) (N,)).  The lobe branch when u1 < w: a visible normal m
+    from u2 (GGX: Heitz 2018, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4),
+    listing 1; Beckmann: Heitz & d'Eon 2014, its slopes inverted by bisection), wo the
+    reflection of wi about m, turned for a retro lobe; the cosine branch otherwise
+    (r = sqrt(u2.x), phi = 2 pi u2.y).  The same algorithm as the generated code's sampler
+    (:mod:`neural_brdf.backends.lobe`), in float64.  A lobe sample may fall below the
+    horizon; its pdf is then 0 (a renderer refuses it)."""
+    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    u1 = np.asarray(u1, dtype=np.float64).reshape(-1)
+    u2 = np.asarray(u2, dtype=np.float64).reshape(-1, 2)
+    n = len(wi)
+    r, phi = np.sqrt(u2[:, 0]), 2.0 * math.pi * u2[:, 1]
+    wo = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.clip(1.0 - u2[:, 0], 0, None))], -1)
+    ax, ay, w = (np.broadcast_to(np.asarray(v, np.float64), (n,)) for v in at(lobe, wi[:, 2]))
+    pick = u1 < w
+    if pick.any():
+        vndf = _beckmann_vndf if lobe.get("distribution") == "beckmann" else _ggx_vndf
+        m = vndf(wi[pick], u2[pick], ax[pick], ay[pick])
+        v = 2.0 * np.sum(wi[pick] * m, -1, keepdims=True) * m - wi[pick]
+        wo[pick] = turn(v) if lobe.get("retro") else v
+    return wo, pdf(lobe, wi, wo)
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _ggx_vndf(wi: np.ndarray, u: np.ndarray, ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
+    """A visible normal of GGX(ax, ay) seen from wi (Heitz 2018, JCGT 7(4), listing 1)."""
+    vh = _normalize(np.stack([ax * wi[:, 0], ay * wi[:, 1], wi[:, 2]], -1))
+    lensq = vh[:, 0] ** 2 + vh[:, 1] ** 2
+    inv = 1.0 / np.sqrt(np.maximum(lensq, 1e-300))
+    has_xy = lensq > 0
+    t1 = np.stack([np.where(has_xy, -vh[:, 1] * inv, 1.0), np.where(has_xy, vh[:, 0] * inv, 0.0)])
+    t2 = np.stack([-vh[:, 2] * t1[1], vh[:, 2] * t1[0], vh[:, 0] * t1[1] - vh[:, 1] * t1[0]])
+    r, phi = np.sqrt(u[:, 0]), 2.0 * math.pi * u[:, 1]
+    p1, p2 = r * np.cos(phi), r * np.sin(phi)
+    s = 0.5 * (1.0 + vh[:, 2])
+    p2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - p1 * p1, 0.0)) + s * p2
+    pz = np.sqrt(np.maximum(1.0 - p1 * p1 - p2 * p2, 0.0))
+    nh = np.stack(
+        [
+            p1 * t1[0] + p2 * t2[0] + pz * vh[:, 0],
+            p1 * t1[1] + p2 * t2[1] + pz * vh[:, 1],
+            p2 * t2[2] + pz * vh[:, 2],
+        ],
+        -1,
+    )
+    return _normalize(np.stack([ax * nh[:, 0], ay * nh[:, 1], np.maximum(nh[:, 2], 0.0)], -1))
+
+
+def _bisect(fn: Callable[[np.ndarray], np.ndarray], target, lo, hi, steps: int = 60):
+    """x in [lo, hi] with fn(x) = target for an increasing fn (float64 bisection)."""
+    lo, hi = np.array(lo, dtype=np.float64), np.array(hi, dtype=np.float64)
+    lo, hi = np.broadcast_arrays(lo, hi)
+    lo, hi = lo.copy(), hi.copy()
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        below = fn(mid) < target
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def _beckmann_vndf(wi: np.ndarray, u: np.ndarray, ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
+    """A visible normal of Beckmann(ax, ay) seen from wi (Heitz & d'Eon 2014): wi stretched
+    to unit roughness at polar angle t has visible slopes of density (cos t - x sin t)
+    exp(-x^2 - y^2) / pi on x < cot t, so y ~ N(0, 1/2) and x has the CDF
+    C(x) = cos t (1 + erf x) / 2 + sin t exp(-x^2) / (2 sqrt(pi)); both are inverted by
+    bisection on [-6, 6], then turned to wi's azimuth and unstretched."""
+    ws = _normalize(np.stack([ax * wi[:, 0], ay * wi[:, 1], wi[:, 2]], -1))
+    ct = ws[:, 2]
+    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+    hi = np.minimum(ct / np.maximum(st, 1e-300), 6.0)
+
+    def cdf(x: np.ndarray) -> np.ndarray:
+        return ct * 0.5 * (1.0 + _erf(x)) + st * np.exp(-x * x) * (0.5 / math.sqrt(math.pi))
+
+    x = _bisect(cdf, u[:, 0] * cdf(hi), -6.0, hi)
+    y = _bisect(_erf, 2.0 * u[:, 1] - 1.0, np.full(len(u), -6.0), 6.0)
+    r2 = ws[:, 0] ** 2 + ws[:, 1] ** 2
+    inv = 1.0 / np.sqrt(np.maximum(r2, 1e-300))
+    cp = np.where(r2 > 0, ws[:, 0] * inv, 1.0)
+    sp = np.where(r2 > 0, ws[:, 1] * inv, 0.0)
+    sx, sy = cp * x - sp * y, sp * x + cp * y
+    return _normalize(np.stack([-(ax * sx), -(ay * sy), np.ones_like(sx)], -1))
 
 
 def to_json(lobe: dict) -> str:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+import chi2
 import lobe_reference as ref
 from analytic import frame
 from analytic.microfacet import Distribution
@@ -77,3 +78,50 @@ def test_hostile_rows_give_zero_never_nan():
     got = lobe.pdf(stored, wi, wo)
     assert np.all(np.isfinite(got)) and np.all(got >= 0)
     assert list(got[:4]) == [0.0, 0.0, 0.0, 0.0]
+
+
+@pytest.mark.parametrize("name", sorted(LOBES))
+@pytest.mark.parametrize("theta_deg", [30.0, 75.0])
+def test_the_reference_sampler_follows_the_pdf(name, theta_deg):
+    # chi-square on the whole sphere (tests/chi2.py): the sampler's directions against the
+    # pdf it claims, below-horizon lobe samples included (sphere=True)
+    stored = lobe.complete(LOBES[name])
+    t = math.radians(theta_deg)
+    wi1 = np.array([math.sin(t) * 0.8, -math.sin(t) * 0.6, math.cos(t)])
+    beckmann = stored["distribution"] == "beckmann"
+    n = 100_000 if beckmann else 400_000  # math.erf per element: the Beckmann path is slow
+
+    def sample_fn(u):
+        u1 = np.random.default_rng(7).random(len(u))
+        wo, p = lobe.sample(stored, np.broadcast_to(wi1, (len(u), 3)), u1, u)
+        below = wo[:, 2] <= 0
+        assert np.all(p[below] == 0) and np.all(p[~below] > 0)  # the pdf it returns
+        return wo
+
+    def pdf_fn(wo):
+        return lobe.pdf(stored, np.broadcast_to(wi1, wo.shape), wo, sphere=True)
+
+    result = chi2.chi2_test(
+        sample_fn,
+        pdf_fn,
+        name=f"lobe-{name}-{theta_deg}",
+        n_samples=n,
+        test_count=2 * len(LOBES),
+    )
+    assert result.passed, result.summary()
+
+
+def test_the_sampler_test_sees_a_wrong_roughness():
+    # the same test fails for a sampler of another roughness than the pdf's
+    stored = lobe.complete(LOBES["ggx"])
+    other = lobe.complete({**LOBES["ggx"], "alpha": 0.4})
+    wi1 = np.array([0.3, 0.0, math.sqrt(1 - 0.09)])
+
+    def sample_fn(u):
+        u1 = np.random.default_rng(7).random(len(u))
+        return lobe.sample(other, np.broadcast_to(wi1, (len(u), 3)), u1, u)[0]
+
+    def pdf_fn(wo):
+        return lobe.pdf(stored, np.broadcast_to(wi1, wo.shape), wo, sphere=True)
+
+    assert not chi2.chi2_test(sample_fn, pdf_fn, name="lobe-wrong", n_samples=200_000).passed
