@@ -162,7 +162,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     vw.add_argument("-o", "--out", required=True, help="output .html")
 
-    w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (neural_brdf/sweep.py)")
+    w = sub.add_parser("sweep", help="run (or resume) a sweep of trainings (docs/sweeps.md)")
     w.add_argument("sweep", help="sweep file, or a preset sweep name (neural-brdf presets)")
     w.add_argument(
         "--executor",

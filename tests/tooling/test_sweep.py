@@ -27,6 +27,7 @@ import yaml
 import neural_brdf
 from neural_brdf import config
 from neural_brdf.tooling import cli, sweep
+from neural_brdf.tooling.sweep import run as sweep_run
 from neural_brdf.train import loop as train
 
 REPO = Path(__file__).resolve().parents[2]
@@ -366,7 +367,7 @@ def test_a_trial_interrupted_in_its_worker_interrupts_the_sweep(tmp_path, monkey
                 record = {**record, "status": "interrupted", "error": "Interrupted: step 5"}
             yield record
 
-    monkeypatch.setattr(sweep, "_run_local", worker_saw_ctrl_c)
+    monkeypatch.setattr(sweep_run, "_run_local", worker_saw_ctrl_c)  # where run_sweep finds it
     with pytest.raises(train.Interrupted, match="run the same command again"):
         sweep.run_sweep(path, workers=1, out=out)
     rows = {r["trial"]: r["status"] for r in read(out / "results.json")["trials"]}
