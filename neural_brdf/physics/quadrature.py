@@ -158,3 +158,12 @@ def albedo(
         replicas.append(torch.cat(out, 0))
     m = torch.stack(replicas, 0)
     return m.mean(0), m.std(0, unbiased=True) / math.sqrt(REPLICAS)
+
+
+def albedo_at(fn: Callable, theta_deg, n: int = 8192, *, seed: int = 0, extra=None) -> np.ndarray:
+    """rho(theta_i) (M, C) of a numpy ``fn(wi, wo)`` at incidences ``theta_deg`` (M,) in
+    the xz plane, by :func:`albedo`: the albedo curve of the report and the viewer."""
+    t = np.radians(np.asarray(theta_deg, dtype=np.float64))
+    wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
+    rho, _ = albedo(from_numpy(fn), wi, n, seed=seed, extra=extra)
+    return rho.numpy()

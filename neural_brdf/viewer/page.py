@@ -81,15 +81,10 @@ class Model:
 
 
 def albedo_curve(fn, theta_deg=ALBEDO_THETA, *, samples: int = ALBEDO_SAMPLES) -> dict:
-    """rho(theta_i) per channel of a numpy ``fn(wi, wo)`` by :func:`quadrature.albedo`."""
-    import torch
-
+    """rho(theta_i) per channel of a numpy ``fn(wi, wo)`` (:func:`quadrature.albedo_at`)."""
     from neural_brdf.physics import quadrature
 
-    t = np.radians(np.asarray(theta_deg, dtype=np.float64))
-    wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
-    rho, _ = quadrature.albedo(quadrature.from_numpy(fn), wi, samples)
-    return curve(theta_deg, rho.numpy())
+    return curve(theta_deg, quadrature.albedo_at(fn, theta_deg, samples))
 
 
 def sphere_directions(size: int, light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

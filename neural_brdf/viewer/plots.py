@@ -33,7 +33,6 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-import torch
 from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
@@ -279,10 +278,7 @@ def albedo_values(
 ) -> np.ndarray:
     """rho(theta_i) (len, 3) by the MIS quadrature of :mod:`neural_brdf.physics.quadrature`;
     ``sampler`` (an analytic model) adds its importance sampler to the proposals."""
-    t = np.radians(np.asarray(theta_i_deg, dtype=np.float64))
-    wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
-    rho, _ = quadrature.albedo(quadrature.from_numpy(fn), wi, samples, seed=seed, extra=sampler)
-    return rho.numpy()
+    return quadrature.albedo_at(fn, theta_i_deg, samples, seed=seed, extra=sampler)
 
 
 def albedo_theta(n_theta: int = 46) -> np.ndarray:
