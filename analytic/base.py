@@ -22,6 +22,7 @@ approximate their albedo ("mixtures choose lobes by albedo weight").
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -48,7 +49,7 @@ def rgb(name: str, value, *, lo: float = 0.0, hi: float = 1.0) -> tuple[float, f
         raise ParameterError(f"{name}: must be finite, got {value!r}")
     if np.any(arr < lo) or np.any(arr > hi):
         raise ParameterError(f"{name}: must lie in [{lo}, {hi}], got {value!r}")
-    return tuple(float(a) for a in arr)
+    return float(arr[0]), float(arr[1]), float(arr[2])
 
 
 def scalar(
@@ -184,7 +185,7 @@ class BRDF:
     def pdf_t(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         wi, wo = torch.broadcast_tensors(wi, wo)
         lobes = self._lobes(wi)
-        total = sum(l.weight for l in lobes)
+        total = functools.reduce(torch.add, [l.weight for l in lobes])  # as sum(), typed
         p = sum(l.weight * l.pdf(wo) for l in lobes) / total.clamp_min(1e-30)
         ok = (wi[..., 2] > 0) & (total > 0)
         return torch.where(ok, p, torch.zeros_like(p)).nan_to_num(0.0)

@@ -364,7 +364,7 @@ class Microfacet(BRDF):
         f_avg = (2.0 * self.fresnel(mu) * mu[:, None]).mean(0)
         e_avg = self._ms.e_avg
         f_add = f_avg * f_avg * e_avg / (1.0 - f_avg * (1.0 - e_avg))
-        return tuple(float(v) for v in f_add)
+        return float(f_add[0]), float(f_add[1]), float(f_add[2])
 
 
 class _EnergyTable:

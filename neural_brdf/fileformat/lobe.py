@@ -63,7 +63,9 @@ def at(lobe: dict, cos_theta_i) -> tuple:
     return tuple(np.interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
 
 
-def ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
+def ggx_pdf(
+    wi: np.ndarray, wo: np.ndarray, ax: float | np.ndarray, ay: float | np.ndarray
+) -> np.ndarray:
     """Density of wo = reflect(wi, m), m a GGX(ax, ay) visible normal seen from wi
     (Heitz 2018, eq. 1; GGX D and Smith G1 as in analytic.microfacet).  wi, wo: (N, 3);
     ax, ay: floats or (C, 1) arrays, giving (N,) or (C, N)."""
@@ -82,8 +84,8 @@ def ggx_pdf(wi: np.ndarray, wo: np.ndarray, ax, ay) -> np.ndarray:
 def beckmann_pdf(
     wi: np.ndarray,
     wo: np.ndarray,
-    ax: float,
-    ay: float,
+    ax: float | np.ndarray,
+    ay: float | np.ndarray,
     *,
     erf: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
@@ -107,7 +109,8 @@ def beckmann_pdf(
 
 
 def _erf(a: np.ndarray) -> np.ndarray:
-    return np.frompyfunc(math.erf, 1, 1)(np.asarray(a, dtype=np.float64)).astype(np.float64)
+    out = np.frompyfunc(math.erf, 1, 1)(np.asarray(a, dtype=np.float64))
+    return np.asarray(out, dtype=np.float64)
 
 
 def turn(w: np.ndarray) -> np.ndarray:

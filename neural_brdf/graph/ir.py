@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -58,7 +59,7 @@ class Instr:
     op: str
     dtype: str  # "float" | "int" | "bool"
     args: tuple[int, ...] = ()
-    attr: object = None
+    attr: Any = None  # by op: (name, column), a constant, a dtype, a table number
 
 
 @dataclass
@@ -101,7 +102,7 @@ def _fold(op: str, dtype: str, vals: list, attr):
         if op in UNARY:
             if op == "erf":
                 return None  # numpy lacks erf: keep it an instruction
-            fn = {
+            fn: Any = {  # numpy ufuncs, one and two operands
                 "neg": np.negative,
                 "abs": np.abs,
                 "sqrt": np.sqrt,
@@ -286,7 +287,8 @@ class Builder:
             Instr(ins.op, ins.dtype, ins.args, tmap[ins.attr]) if ins.op == "gather" else ins
             for ins in instrs
         ]
-        names, counters = [], {}
+        names: list[str] = []
+        counters: dict[str, int] = {}
         for i, ins in zip(order, instrs, strict=True):
             if ins.op == "input":
                 name, col = ins.attr

@@ -268,7 +268,7 @@ class Lowering:
         """sum_i xs[i] * ws[i] (+ bias) as DOT_CHAINS interleaved FMA chains, summed
         pairwise."""
         b = self.b
-        chains = []
+        chains: list[int] = []
         for c in range(min(DOT_CHAINS, len(xs))):
             acc = b.scalar(bias) if (c == 0 and bias is not None) else None
             for x, w in zip(xs[c::DOT_CHAINS], ws[c::DOT_CHAINS], strict=True):
@@ -277,6 +277,7 @@ class Lowering:
                     if acc is None
                     else b.emit("fma", x, b.scalar(w), acc)
                 )
+            assert acc is not None  # each chain has at least one term: c < len(xs)
             chains.append(acc)
         while len(chains) > 1:
             chains = [

@@ -56,6 +56,7 @@ from neural_brdf.fileformat.lobe import (  # noqa: F401  (lobe.KEY, lobe.parse, 
     ggx_pdf,
     parse,
     to_json,
+    turn,
 )
 
 # The grid, and the incident directions it is scored at: theta from near-normal to
@@ -181,13 +182,9 @@ def _incident(theta_deg: float, phi: float) -> torch.Tensor:
     )
 
 
-def _turn(w):
-    """R: a half turn about the normal, (x, y, z) -> (-x, -y, z)."""
-    return (
-        w * np.array([-1.0, -1.0, 1.0])
-        if isinstance(w, np.ndarray)
-        else w * torch.tensor([-1.0, -1.0, 1.0], dtype=w.dtype)
-    )
+def _turn(w: torch.Tensor) -> torch.Tensor:
+    """R: a half turn about the normal, (x, y, z) -> (-x, -y, z) (numpy: ``turn``)."""
+    return w * torch.tensor([-1.0, -1.0, 1.0], dtype=w.dtype)
 
 
 def _torch_erf(a: np.ndarray) -> np.ndarray:
@@ -205,17 +202,17 @@ class _Pool:
     def __init__(self, fn, wi1: torch.Tensor, rng):
         n, k = SAMPLES, len(ALPHAS)
         u = torch.from_numpy(rng.random((2 * k + 1, n, 2)))
-        wi = wi1.expand(n, 3)
+        wi_t = wi1.expand(n, 3)
         wos = [frame.square_to_cosine_hemisphere(u[0])]
         for r, uu in enumerate(u[1:]):
             d = Distribution("ggx", float(ALPHAS[r % k]), float(ALPHAS[r % k]))
-            wo = frame.reflect(wi, d.sample_visible(wi, uu))
-            wos.append(_turn(wo) if r >= k else wo)
+            wo_t = frame.reflect(wi_t, d.sample_visible(wi_t, uu))
+            wos.append(_turn(wo_t) if r >= k else wo_t)
         wo = torch.cat(wos, 0).numpy()  # (P n, 3)
         wi = np.broadcast_to(wi1.numpy(), wo.shape)
         p_cos = np.where(wo[:, 2] > 0, np.clip(wo[:, 2], 0.0, None) / math.pi, 0.0)
         a = ALPHAS[:, None]
-        p_iso = {False: ggx_pdf(wi, wo, a, a), True: ggx_pdf(wi, _turn(wo), a, a)}  # (A, N)
+        p_iso = {False: ggx_pdf(wi, wo, a, a), True: ggx_pdf(wi, turn(wo), a, a)}  # (A, N)
         # The pooled samples' density over the whole sphere: a visible normal may reflect
         # wi below the horizon; such samples count, with f cos = 0.
         q = (p_cos + p_iso[False].sum(0) + p_iso[True].sum(0)) / (2 * k + 1)
@@ -239,7 +236,7 @@ class _Pool:
         if ia == ib and dist == "ggx":
             p = self.p_iso[retro][ia]
         else:
-            wo = _turn(self.wo) if retro else self.wo
+            wo = turn(self.wo) if retro else self.wo
             if dist == "ggx":
                 p = ggx_pdf(self.wi, wo, ALPHAS[ia], ALPHAS[ib])
             else:
