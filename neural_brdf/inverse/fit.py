@@ -125,7 +125,7 @@ class View:
 
     scene_path: Path
     image_path: Path
-    tree: ET.ElementTree
+    tree: ET.ElementTree[ET.Element]
     target: np.ndarray  # (H, W, 3) float32, linear RGB
     integrator: str  # the integrator type the fit uses
     scene: Any = None
@@ -213,7 +213,7 @@ def read_image(path: Path, key: str) -> np.ndarray:
     return arr
 
 
-def read_scene(path: Path, key: str) -> tuple[ET.ElementTree, str]:
+def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
     """Parse a scene file and check it: (tree, integrator type the fit uses)."""
     if not path.is_file():
         raise InputError(f"{key}: {path}: no such scene file")
@@ -238,7 +238,9 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree, str]:
     return tree, INTEGRATORS[kind]
 
 
-def scene_text(tree: ET.ElementTree, bsdf: ET.Element, integrator: str | None = None) -> str:
+def scene_text(
+    tree: ET.ElementTree[ET.Element], bsdf: ET.Element, integrator: str | None = None
+) -> str:
     """The scene with ``<bsdf id="fit">`` replaced by ``bsdf`` (and the top-level
     integrator's type set to ``integrator``)."""
     tree = copy.deepcopy(tree)
@@ -283,7 +285,7 @@ def load_scene(path: Path, text: str):
     file names in the scene resolve as ``mi.load_file`` resolves them)."""
     import mitsuba as mi
 
-    fr = mi.file_resolver()
+    fr = mi.file_resolver()  # type: ignore[operator]  # the stub types it as an object
     saved = [fr[i] for i in range(len(fr))]
     fr.prepend(str(path.resolve().parent))
     try:
@@ -584,7 +586,7 @@ def fit_neural(
                         v.params,
                         spp=settings.primal_spp,
                         spp_grad=settings.spp,
-                        seed=_rng_seed(t.seed, step, i),
+                        seed=_rng_seed(t.seed, step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
                     )
                     loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
                     dr.backward(loss)
@@ -771,7 +773,7 @@ def fit_roughconductor(
                 v.params,
                 spp=primal_spp or spp,
                 spp_grad=spp,
-                seed=_rng_seed(train.seed, step, i),
+                seed=_rng_seed(train.seed, step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
             )
             loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
             dr.backward(loss)
@@ -844,7 +846,7 @@ def ggx_initial_state(
 
 
 # ------------------------------------------------------------------ measurements
-def fit_element(tree: ET.ElementTree) -> ET.Element:
+def fit_element(tree: ET.ElementTree[ET.Element]) -> ET.Element:
     """The scene's own ``<bsdf id="fit">`` (e.g. the true material of a synthetic view)."""
     return next(e for e in tree.getroot().iter("bsdf") if e.get("id") == "fit")
 
@@ -855,7 +857,8 @@ def render_view(view: View, bsdf: ET.Element, *, spp: int, seed: int) -> np.ndar
     import mitsuba as mi
 
     scene = load_scene(view.scene_path, scene_text(view.tree, bsdf))
-    return np.asarray(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)[..., :3]
+    img = mi.render(scene, spp=spp, seed=seed)  # type: ignore[arg-type]  # stub: mi.UInt32
+    return np.asarray(img, dtype=np.float32)[..., :3]
 
 
 def sphere_mask(view: View, erode: int = 2) -> np.ndarray:

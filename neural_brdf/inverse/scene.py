@@ -147,7 +147,7 @@ def render_file(scene_path: Path, spp: int, seed: int = 0) -> np.ndarray:
     import mitsuba as mi
 
     scene = mi.load_file(str(scene_path))
-    img = mi.render(scene, spp=spp, seed=seed)
+    img = mi.render(scene, spp=spp, seed=seed)  # type: ignore[arg-type]  # stub: mi.UInt32
     return np.asarray(img, dtype=np.float32)[..., :3]
 
 

@@ -80,8 +80,9 @@ from __future__ import annotations
 import math
 import os
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -197,7 +198,7 @@ def parse_tensor_file(buf: bytes, *, source: str = "<bytes>") -> dict[str, np.nd
     return out
 
 
-def tensor_file_bytes(fields: dict[str, object]) -> bytes:
+def tensor_file_bytes(fields: Mapping[str, object]) -> bytes:
     """The TensorFile encoding of ``fields`` (name -> array, or str stored as uint8)."""
     arrays = {}
     for name, v in fields.items():
@@ -225,7 +226,7 @@ def tensor_file_bytes(fields: dict[str, object]) -> bytes:
     return bytes(header) + bytes(body)
 
 
-def write_tensor_file(path, fields: dict[str, object]) -> None:
+def write_tensor_file(path, fields: Mapping[str, object]) -> None:
     """Write ``fields`` as a TensorFile, atomically."""
     atomic_write(path, tensor_file_bytes(fields))
 
@@ -692,8 +693,9 @@ def rgb_to_spectra(rgb, wavelengths=WAVELENGTHS) -> np.ndarray:
     try:
         import mitsuba
 
-        fetch = mitsuba.scalar_spectral.srgb_model_fetch
-        color = mitsuba.scalar_spectral.ScalarColor3f
+        variant: Any = mitsuba.scalar_spectral  # a variant module: untyped attributes
+        fetch = variant.srgb_model_fetch
+        color = variant.ScalarColor3f
     except (ImportError, AttributeError):
         raise InputError(
             "a spectral .bsdf needs Mitsuba 3 (its Jakob-Hanika RGB-to-spectrum "
@@ -731,7 +733,7 @@ def bake_fields(
     spectral: bool = False,
     cosine: str = "outgoing",
     description: str = "neural-brdf bake",
-) -> dict[str, np.ndarray]:
+) -> dict[str, Any]:
     """The fields of an isotropic RGL file for ``fn(wi, wo)`` ((N, 3) numpy in, (N, 3)
     out, 1/sr).  ``theta_i`` slices, ``sample`` x ``sample`` value nodes, ``vndf`` x
     ``vndf`` VNDF nodes, ``ndf`` nodes along theta of the NDF and sigma tables.

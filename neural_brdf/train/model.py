@@ -328,6 +328,8 @@ class NormalizedBRDF(nn.Module):
     kernel) carries no table and no divide; the bound it would enforce holds already.
     """
 
+    table: torch.Tensor  # a buffer (register_buffer)
+
     def __init__(self, raw: RawBRDF, table: torch.Tensor):
         super().__init__()
         self.raw = raw
@@ -400,6 +402,8 @@ class TotalBRDF(nn.Module):
     any other row.  Both directions go through the same :func:`unit_or_invalid`, so a
     bit-exactly symmetric ``model`` stays bit-exactly symmetric.
     """
+
+    up: torch.Tensor  # a buffer (register_buffer)
 
     def __init__(self, model: nn.Module):
         super().__init__()

@@ -38,7 +38,7 @@ import numpy as np
 from neural_brdf import config as cfgmod
 from neural_brdf.config import InputError
 from neural_brdf.fileio import atomic_write
-from neural_brdf.runtime import load
+from neural_brdf.runtime import NeuralBRDF, load
 from neural_brdf.train import data
 from neural_brdf.viewer import plots
 
@@ -110,7 +110,7 @@ class Run:
     config_text: str
     metrics: dict
     log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays
-    model: object  # runtime.NeuralBRDF
+    model: NeuralBRDF
 
 
 def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
@@ -215,6 +215,9 @@ def reference_of(cfg: cfgmod.Config):
         )
 
 
+Block = Verdict | Heading | Text | Table | Image | Code | Attachment  # a report's parts
+
+
 # ------------------------------------------------------------------ content
 def _fmt(x, spec: str = ".4g") -> str:
     return "-" if x is None else format(x, spec)
@@ -223,7 +226,7 @@ def _fmt(x, spec: str = ".4g") -> str:
 def _summary(run: Run) -> list:
     m, path, cfg = run.metrics, run.dir / "metrics.json", run.config
     rel = _number(m, "accuracy.rel_rmse", path, optional=True)
-    rows = [
+    rows: list[list] = [
         ["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
         ["target", cfg.target.data or f"{cfg.target.model} {json.dumps(cfg.target.params)}"],
         [
@@ -307,7 +310,7 @@ def _physics(run: Run, albedo_png: bytes) -> list:
 
 def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
     m, path = run.metrics, run.dir / "metrics.json"
-    blocks = [Heading("Accuracy")]
+    blocks: list[Block] = [Heading("Accuracy")]
     if note:
         blocks.append(Text(note, note=True))
     if isinstance(m.get("accuracy"), dict):
@@ -341,7 +344,8 @@ def _peak(peak: dict, path: Path) -> list:
     """The validator's peak check: model / target at and near the mirror direction."""
     value = _as_number(peak.get("value"), "peak.value", path)
     limit = _as_number(peak.get("limit"), "peak.limit", path)
-    pairs = peak.get("pairs") if isinstance(peak.get("pairs"), list) else []
+    given = peak.get("pairs")
+    pairs: list = given if isinstance(given, list) else []
     offsets = sorted({p["offset_deg"] for p in pairs if isinstance(p, dict)})
     rows = []
     keys = sorted({(p["phi_deg"], p["theta_deg"], p["way"]) for p in pairs if p["offset_deg"]})
@@ -475,7 +479,7 @@ def _training(run: Run) -> list:
         for k in ("train", "export", "validate", "report", "total")
         if _number(m, f"seconds.{k}", path, optional=True) is not None
     ]
-    blocks = [Heading("Training")]
+    blocks: list[Block] = [Heading("Training")]
     if rows:
         blocks.append(Table(["stage", "time"], rows))
     if len(log["step"]):
