@@ -1,221 +1,33 @@
-"""A run's visual report: ``report.html`` (self-contained) and ``report.md`` (+ PNGs).
-
-    neural-brdf report runs/quickstart                        # into the run directory
-    neural-brdf report runs/quickstart -o docs/sample_report  # elsewhere
-
-Training writes it at the end of every run (:func:`neural_brdf.pipeline.run`).  It reads
-the run directory (``config.yaml``, ``metrics.json``, ``log.csv``, ``model.onnx``) and
-holds: a summary, the physics checks with their verdicts and the furnace (albedo)
-curve, the accuracy against the target with the BRDF Explorer style figures of
-:mod:`neural_brdf.viewer.plots`, Mitsuba renders when Mitsuba is installed, the training
-curve and times, and the resolved config.
-
-The reference is the config's target (``data.build_target``).  When a measured-data
-target cannot be built here, the report says so and plots the model alone.
-
-``report.html`` embeds every image as a base64 PNG data URI and needs no script, so
-the one file can be mailed or archived; ``report.md`` links the same PNGs, written
-beside it as ``report-*.png``.  Both come from one list of blocks, so they always hold
-the same content.  When the GLSL code generator translates the model, the interactive
-viewer (:mod:`neural_brdf.viewer.page`, a page with script) is written beside them as
-``viewer.html`` and carried inside report.html as a download link (a data URI), so the
-report itself stays script-free.  Every file is written atomically (temp file + rename).
-"""
+"""The report's sections: summary, physics, accuracy and peak, renders, viewer,
+training; each a list of blocks."""
 
 from __future__ import annotations
 
-import base64
-import csv
-import html
 import json
-import struct
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from neural_brdf import config as cfgmod
 from neural_brdf.config import InputError
-from neural_brdf.fileio import atomic_write
-from neural_brdf.runtime import NeuralBRDF, load
-from neural_brdf.train import data
 from neural_brdf.viewer import plots
-
-RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
-RENDER_SPP = 16  # Mitsuba preview: enough to judge the material, seconds to render
-RENDER_RESOLUTION = 128
-VIEWER_FILE = "viewer.html"  # the interactive viewer, beside the report
-
-
-# ------------------------------------------------------------------ document blocks
-@dataclass
-class Verdict:
-    passed: bool
-
-
-@dataclass
-class Heading:
-    text: str
-    level: int = 2
-
-
-@dataclass
-class Text:
-    text: str
-    note: bool = False  # highlighted (a missing reference, no Mitsuba, ...)
-
-
-@dataclass
-class Table:
-    header: list[str]
-    rows: list[list]  # cells: str or Verdict
-
-
-@dataclass
-class Image:
-    key: str  # file name report-<key>.png
-    title: str
-    caption: str
-    png: bytes
-    zoom: int = 1  # shown this many times its size in HTML (small renders)
-
-    @property
-    def width(self) -> int:
-        return struct.unpack(">I", self.png[16:20])[0]  # PNG IHDR width
-
-
-@dataclass
-class Code:
-    text: str
-    lang: str = ""
-
-
-@dataclass
-class Attachment:
-    """A file carried by the report: written beside it, and inside report.html as a
-    download link (a data URI, so the page stays one file without script)."""
-
-    name: str
-    text: str  # the link text
-    data: bytes
-    mime: str = "text/html"
-
-
-# ------------------------------------------------------------------ reading a run
-@dataclass
-class Run:
-    dir: Path
-    config: cfgmod.Config
-    config_text: str
-    metrics: dict
-    log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays
-    model: NeuralBRDF
-
-
-def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
-    """The number at ``a.b.c`` (``a.0`` indexes a list) of a metrics dict; InputError
-    naming the file and the key."""
-    x = d
-    for part in dotted.split("."):
-        if isinstance(x, list) and part.isdigit() and int(part) < len(x):
-            x = x[int(part)]
-        elif isinstance(x, dict) and part in x:
-            x = x[part]
-        elif optional:
-            return None
-        else:
-            raise InputError(f"{path}: {dotted}: missing")
-    return _as_number(x, dotted, path)
-
-
-def _as_number(x, key: str, path: Path) -> float:
-    try:
-        if isinstance(x, bool):
-            raise TypeError
-        return float(x)  # write_json stores inf / nan as strings
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: {key}: not a number ({x!r})") from None
-
-
-def _read_metrics(path: Path) -> dict:
-    try:
-        metrics = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read ({e})") from None
-    checks = metrics.get("checks") if isinstance(metrics, dict) else None
-    if not isinstance(checks, dict) or not checks:
-        raise InputError(f"{path}: checks: missing (not a metrics.json of a run?)")
-    for name, c in checks.items():
-        if not isinstance(c, dict) or not isinstance(c.get("passed"), bool):
-            raise InputError(f"{path}: checks.{name}.passed: missing or not true/false")
-        _number(metrics, f"checks.{name}.value", path)
-        _number(metrics, f"checks.{name}.limit", path)
-    return metrics
-
-
-def _read_log(path: Path) -> dict:
-    step, loss, val_step, val = [], [], [], []
-    try:
-        with open(path, newline="") as fh:
-            reader = csv.DictReader(fh)
-            if not reader.fieldnames or not {"step", "loss"} <= set(reader.fieldnames):
-                raise InputError(f"{path}: expected a CSV with columns step, loss, ...")
-            for line, row in enumerate(reader, start=2):
-                try:
-                    step.append(float(row["step"]))
-                    loss.append(float(row["loss"]))
-                    if row.get("val_rel_rmse"):
-                        val.append(float(row["val_rel_rmse"]))
-                        val_step.append(step[-1])
-                except (TypeError, ValueError):
-                    raise InputError(f"{path}: line {line}: not a number") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as e:
-        raise InputError(f"{path}: cannot read ({e})") from None
-    return {
-        k: np.asarray(v, dtype=np.float64)
-        for k, v in (("step", step), ("loss", loss), ("val_step", val_step), ("val_rel_rmse", val))
-    }
-
-
-def load_run(run_dir) -> Run:
-    """Read a run directory; a missing or garbled file raises InputError naming it."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir}: no such run directory")
-    for name in RUN_FILES:
-        if not (run_dir / name).is_file():
-            raise InputError(
-                f"{run_dir / name}: missing (a run directory holds {', '.join(RUN_FILES)})"
-            )
-    cfg = cfgmod.load(run_dir / "config.yaml")
-    return Run(
-        dir=run_dir,
-        config=cfg,
-        config_text=(run_dir / "config.yaml").read_text(),
-        metrics=_read_metrics(run_dir / "metrics.json"),
-        log=_read_log(run_dir / "log.csv"),
-        model=load(run_dir / "model.onnx"),
-    )
-
-
-def reference_of(cfg: cfgmod.Config):
-    """(the target model, None), or (None, why not) for a data target not buildable here."""
-    try:
-        return data.build_target(cfg.target), None
-    except InputError as e:
-        if cfg.target.data is None:
-            raise
-        return (
-            None,
-            f"No reference: the measured target {cfg.target.data} could not be "
-            f"loaded here ({e}); the figures show the neural model alone.",
-        )
-
-
-Block = Verdict | Heading | Text | Table | Image | Code | Attachment  # a report's parts
+from neural_brdf.viewer.report.blocks import (
+    Attachment,
+    Block,
+    Code,
+    Heading,
+    Image,
+    Table,
+    Text,
+    Verdict,
+)
+from neural_brdf.viewer.report.run import (
+    RENDER_RESOLUTION,
+    RENDER_SPP,
+    VIEWER_FILE,
+    Run,
+    _as_number,
+    _number,
+    reference_of,
+)
 
 
 # ------------------------------------------------------------------ content
@@ -560,126 +372,3 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
             Code(run.config_text, "yaml"),
         ]
     )
-
-
-# ------------------------------------------------------------------ HTML and Markdown
-CSS = """
-body { font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; margin: 0; }
-main { max-width: 1100px; margin: 0 auto; padding: 24px; }
-h1 { font-size: 26px; margin: 0 0 16px; } h2 { margin-top: 36px; border-bottom: 1px solid #ddd; }
-table { border-collapse: collapse; margin: 12px 0; }
-td, th { border: 1px solid #ddd; padding: 4px 10px; text-align: left; }
-th { background: #f3f3f3; }
-.ok { color: #fff; background: #2e7d32; padding: 1px 8px; border-radius: 3px; }
-.fail { color: #fff; background: #c62828; padding: 1px 8px; border-radius: 3px; }
-.note { background: #fff6d6; border-left: 4px solid #e0b000; padding: 8px 12px; }
-figure { margin: 20px 0; } figcaption { color: #555; font-size: 14px; }
-img { max-width: 100%; height: auto; display: block; }
-pre { background: #f6f6f6; padding: 12px; overflow-x: auto; font-size: 13px; }
-"""
-
-
-def _cell_html(c) -> str:
-    if isinstance(c, Verdict):
-        return '<span class="ok">ok</span>' if c.passed else '<span class="fail">FAIL</span>'
-    return html.escape(str(c))
-
-
-def to_html(blocks: list) -> str:
-    title = next((b.text for b in blocks if isinstance(b, Heading)), "neural-brdf report")
-    out = [
-        "<!doctype html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><main>",
-    ]
-    for b in blocks:
-        if isinstance(b, Heading):
-            out.append(f"<h{b.level}>{html.escape(b.text)}</h{b.level}>")
-        elif isinstance(b, Text):
-            cls = ' class="note"' if b.note else ""
-            out.append(f"<p{cls}>{html.escape(b.text)}</p>")
-        elif isinstance(b, Table):
-            head = "".join(f"<th>{html.escape(h)}</th>" for h in b.header)
-            out.append(f"<table><tr>{head}</tr>" if any(b.header) else "<table>")
-            out += [
-                "<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in r) + "</tr>" for r in b.rows
-            ]
-            out.append("</table>")
-        elif isinstance(b, Image):
-            data_uri = "data:image/png;base64," + base64.b64encode(b.png).decode("ascii")
-            out.append(
-                f'<figure><img src="{data_uri}" alt="{html.escape(b.title)}" '
-                f'width="{b.zoom * b.width}">'
-                f"<figcaption><b>{html.escape(b.title)}.</b> "
-                f"{html.escape(b.caption)}</figcaption></figure>"
-            )
-        elif isinstance(b, Code):
-            out.append(f"<pre><code>{html.escape(b.text)}</code></pre>")
-        elif isinstance(b, Attachment):
-            uri = f"data:{b.mime};base64," + base64.b64encode(b.data).decode("ascii")
-            out.append(
-                f'<p><a download="{html.escape(b.name)}" href="{uri}">{html.escape(b.text)}</a></p>'
-            )
-    out.append("</main></body></html>")
-    return "\n".join(out) + "\n"
-
-
-def _cell_md(c) -> str:
-    if isinstance(c, Verdict):
-        return "**ok**" if c.passed else "**FAIL**"
-    return str(c).replace("|", "\\|")
-
-
-def image_name(key: str) -> str:
-    return f"report-{key}.png"
-
-
-def to_markdown(blocks: list) -> str:
-    out = []
-    for b in blocks:
-        if isinstance(b, Heading):
-            out.append("#" * b.level + " " + b.text)
-        elif isinstance(b, Text):
-            out.append(f"> **Note:** {b.text}" if b.note else b.text)
-        elif isinstance(b, Table):
-            width = len(b.header)
-            out.append("| " + " | ".join(b.header) + " |")
-            out.append("|" + "---|" * width)
-            out += ["| " + " | ".join(_cell_md(c) for c in r) + " |" for r in b.rows]
-        elif isinstance(b, Image):
-            out.append(f"![{b.title}]({image_name(b.key)})\n\n*{b.title}.* {b.caption}")
-        elif isinstance(b, Code):
-            out.append(f"```{b.lang}\n{b.text.rstrip()}\n```")
-        elif isinstance(b, Attachment):
-            out.append(f"[{b.text}]({b.name})")
-        out.append("")
-    return "\n".join(out)
-
-
-# ------------------------------------------------------------------ writing
-
-
-def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Path]:
-    """Write report.html, report.md and its PNGs for ``run_dir`` into ``out_dir`` (default:
-    the run directory).  Returns {"html": path, "md": path, <figure key>: png path}.
-    ``render=False`` skips the Mitsuba render (the report says so)."""
-    run = load_run(run_dir)
-    out_dir = Path(out_dir) if out_dir is not None else run.dir
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"{out_dir}: cannot create the output directory ({e.strerror})") from None
-    blocks = _blocks(run, out_dir, render)
-    paths = {}
-    for b in blocks:
-        if isinstance(b, Image):
-            paths[b.key] = out_dir / image_name(b.key)
-            atomic_write(paths[b.key], b.png)
-        elif isinstance(b, Attachment):
-            paths[b.name] = out_dir / b.name
-            atomic_write(paths[b.name], b.data)
-    paths["md"] = out_dir / "report.md"
-    atomic_write(paths["md"], to_markdown(blocks).encode("utf-8"))
-    paths["html"] = out_dir / "report.html"
-    atomic_write(paths["html"], to_html(blocks).encode("utf-8"))
-    return paths

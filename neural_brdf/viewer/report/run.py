@@ -1,0 +1,134 @@
+"""Reading a finished run folder: config, metrics, log and model, with one-line
+errors that name the file and key; the reference the report compares against."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from neural_brdf import config as cfgmod
+from neural_brdf.config import InputError
+from neural_brdf.runtime import NeuralBRDF, load
+from neural_brdf.train import data
+
+RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
+RENDER_SPP = 16  # Mitsuba preview: enough to judge the material, seconds to render
+RENDER_RESOLUTION = 128
+VIEWER_FILE = "viewer.html"  # the interactive viewer, beside the report
+
+
+# ------------------------------------------------------------------ reading a run
+@dataclass
+class Run:
+    dir: Path
+    config: cfgmod.Config
+    config_text: str
+    metrics: dict
+    log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays
+    model: NeuralBRDF
+
+
+def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
+    """The number at ``a.b.c`` (``a.0`` indexes a list) of a metrics dict; InputError
+    naming the file and the key."""
+    x = d
+    for part in dotted.split("."):
+        if isinstance(x, list) and part.isdigit() and int(part) < len(x):
+            x = x[int(part)]
+        elif isinstance(x, dict) and part in x:
+            x = x[part]
+        elif optional:
+            return None
+        else:
+            raise InputError(f"{path}: {dotted}: missing")
+    return _as_number(x, dotted, path)
+
+
+def _as_number(x, key: str, path: Path) -> float:
+    try:
+        if isinstance(x, bool):
+            raise TypeError
+        return float(x)  # write_json stores inf / nan as strings
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {key}: not a number ({x!r})") from None
+
+
+def _read_metrics(path: Path) -> dict:
+    try:
+        metrics = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read ({e})") from None
+    checks = metrics.get("checks") if isinstance(metrics, dict) else None
+    if not isinstance(checks, dict) or not checks:
+        raise InputError(f"{path}: checks: missing (not a metrics.json of a run?)")
+    for name, c in checks.items():
+        if not isinstance(c, dict) or not isinstance(c.get("passed"), bool):
+            raise InputError(f"{path}: checks.{name}.passed: missing or not true/false")
+        _number(metrics, f"checks.{name}.value", path)
+        _number(metrics, f"checks.{name}.limit", path)
+    return metrics
+
+
+def _read_log(path: Path) -> dict:
+    step, loss, val_step, val = [], [], [], []
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            if not reader.fieldnames or not {"step", "loss"} <= set(reader.fieldnames):
+                raise InputError(f"{path}: expected a CSV with columns step, loss, ...")
+            for line, row in enumerate(reader, start=2):
+                try:
+                    step.append(float(row["step"]))
+                    loss.append(float(row["loss"]))
+                    if row.get("val_rel_rmse"):
+                        val.append(float(row["val_rel_rmse"]))
+                        val_step.append(step[-1])
+                except (TypeError, ValueError):
+                    raise InputError(f"{path}: line {line}: not a number") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise InputError(f"{path}: cannot read ({e})") from None
+    return {
+        k: np.asarray(v, dtype=np.float64)
+        for k, v in (("step", step), ("loss", loss), ("val_step", val_step), ("val_rel_rmse", val))
+    }
+
+
+def load_run(run_dir) -> Run:
+    """Read a run directory; a missing or garbled file raises InputError naming it."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: no such run directory")
+    for name in RUN_FILES:
+        if not (run_dir / name).is_file():
+            raise InputError(
+                f"{run_dir / name}: missing (a run directory holds {', '.join(RUN_FILES)})"
+            )
+    cfg = cfgmod.load(run_dir / "config.yaml")
+    return Run(
+        dir=run_dir,
+        config=cfg,
+        config_text=(run_dir / "config.yaml").read_text(),
+        metrics=_read_metrics(run_dir / "metrics.json"),
+        log=_read_log(run_dir / "log.csv"),
+        model=load(run_dir / "model.onnx"),
+    )
+
+
+def reference_of(cfg: cfgmod.Config):
+    """(the target model, None), or (None, why not) for a data target not buildable here."""
+    try:
+        return data.build_target(cfg.target), None
+    except InputError as e:
+        if cfg.target.data is None:
+            raise
+        return (
+            None,
+            f"No reference: the measured target {cfg.target.data} could not be "
+            f"loaded here ({e}); the figures show the neural model alone.",
+        )
