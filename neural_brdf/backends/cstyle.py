@@ -28,7 +28,7 @@ import numpy as np
 from neural_brdf import graph
 from neural_brdf.backends import lobe as lobe_ir
 from neural_brdf.errors import InputError
-from neural_brdf.physics import lobe as lobes
+from neural_brdf.fileformat import lobe as lobes  # the stored lobe: its schema
 
 PREFIX = "neural_brdf"
 

@@ -1,11 +1,12 @@
-"""The stored sampling lobe (:mod:`neural_brdf.physics.lobe`) as lowered programs for the back ends.
+"""The stored sampling lobe (:mod:`neural_brdf.fileformat.lobe`) as lowered programs for the
+back ends.
 
     from neural_brdf.backends import lobe
     shape = {"alpha_x": 0.2, "alpha_y": 0.4, "weight": 0.6, "retro": False}
     pdf = lobe.pdf_program(**shape)      # inputs wi, wo -> output pdf
     smp = lobe.sample_program(**shape)   # inputs wi, u1, u2 -> wo, pdf
 
-The mixture of :mod:`neural_brdf.physics.lobe`: a cosine-weighted hemisphere (share 1 - w) and
+The mixture of :mod:`neural_brdf.fileformat.lobe`: a cosine-weighted hemisphere (share 1 - w) and
 a GGX visible-normal lobe of roughness (ax, ay) reflected about the sampled normal (share
 w; a Beckmann lobe with ``distribution="beckmann"``), turned by pi about the normal for
 a retro lobe.  With a per-incidence ``table``, ax, ay and w are interpolated linearly in
@@ -128,7 +129,7 @@ def _interp(c: V, xs: list[float], ys: list[float]):
 
 def _params(b: Builder, wi: list[V], ax, ay, weight, table) -> tuple:
     """(alpha_x, alpha_y, weight): the lobe's constants, or with a per-incidence table
-    expressions of cos theta_i (neural_brdf.physics.lobe.at)."""
+    expressions of cos theta_i (neural_brdf.fileformat.lobe.at)."""
     if not table:
         return ax, ay, weight
     b.hint = "lobe_table"

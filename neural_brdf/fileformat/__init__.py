@@ -1,14 +1,20 @@
-"""The exported file's contract, in one place (issue 22): the graph's input and output
-names, the format and metadata versions, and the metadata keys with their kinds.
+"""The exported file's contract, in one place: the bottom of the package.
 
-Every module that writes or reads a model imports these names from here: the exporter
-(:mod:`neural_brdf.export`), the runtime (:mod:`neural_brdf.runtime`), the sampling lobe
-(:mod:`neural_brdf.physics.lobe`), the config's checkpoint version (:mod:`neural_brdf.config`).
-The JavaScript reader (``onnx_metadata.js``) lists :data:`JSON_KEYS` again, in its own
-language; tests/fileformat/test_portable.py checks that the two lists agree.  docs/portable.md and
-docs/model.md describe the keys.
+This module holds the graph's input and output names, the format and metadata versions,
+the metadata keys with their kinds and the fixed texts; it imports nothing (not even
+numpy).  Its modules hold the rest of what a reader of model.onnx needs:
 
-This module imports nothing (not even numpy): it is the bottom of the package.
+* :mod:`.metadata`: the values' encoding, their decoding for every metadata version and
+  the typed :class:`~neural_brdf.fileformat.metadata.Metadata` the exporter writes;
+* :mod:`.lobe`: the sampling lobe's schema, pdf and reference sampler;
+* :mod:`.reader`: the one ONNX loader (one-line errors);
+* ``onnx_metadata.js``: the metadata read in a browser or in Node.  It lists
+  :data:`JSON_KEYS` again, in its own language; tests/fileformat/test_portable.py checks
+  that the two lists agree.
+
+The exporter, the runtime, the config, the graph lowering, the Mitsuba plugin and the
+code generators import these names.  docs/portable.md and docs/model.md describe the
+keys; docs/architecture.md the package's layering.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ FORMAT_VERSION = 2
 METADATA_VERSION_KEY = "metadata_version"  # absent: version 1
 METADATA_VERSION = 2
 
-LOBE_KEY = "sampling_lobe"  # the importance-sampling lobe (neural_brdf.physics.lobe), JSON
+LOBE_KEY = "sampling_lobe"  # the importance-sampling lobe (fileformat/lobe.py), JSON
 
 # metadata_props whose values are JSON (objects, arrays, numbers) in metadata_version 2;
 # the others (TEXT_KEYS) are text.

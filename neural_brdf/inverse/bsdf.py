@@ -153,7 +153,7 @@ class NeuralBSDFAD(_GraphBSDF):
 
     # -- state ------------------------------------------------------------------
     def set_lobe(self, lobe: dict, source: str = "set") -> None:
-        """The sampling mixture (:mod:`neural_brdf.physics.lobe`); not differentiated."""
+        """The sampling mixture (:mod:`neural_brdf.fileformat.lobe`); not differentiated."""
         self.lobe = lobe_format.complete(dict(lobe))
         self.lobe_table = self.lobe.get("table")
         self.lobe_weight = (

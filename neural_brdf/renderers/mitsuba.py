@@ -29,7 +29,7 @@ The ``analytic_brdf`` plugin exports the analytic model's own torch ``f(wi, wo)`
 ONNX with ``torch.onnx`` (in memory) and runs it through the same interpreter, so it is
 as fast as the neural plugin and never calls back into torch while rendering.
 
-Sampling (both plugins).  The mixture of :mod:`neural_brdf.physics.lobe`: cosine-weighted
+Sampling (both plugins).  The mixture of :mod:`neural_brdf.fileformat.lobe`: cosine-weighted
 hemisphere sampling (share 1 - w) and GGX visible-normal sampling of a reflection lobe
 of roughness ``(alpha_x, alpha_y)`` (share w), turned by pi about the normal for a
 retro lobe; ``pdf`` is the mixture density of ``sample``.  The neural plugin reads the
@@ -165,7 +165,8 @@ class _GraphBSDF(mi.BSDF):
 
     def _lobe(self, wi):
         """The GGX or Beckmann distribution and share of the lobe for wi: constants, or with a
-        per-incidence table interpolated linearly in cos theta_i (neural_brdf.physics.lobe.at)."""
+        per-incidence table interpolated linearly in cos theta_i
+        (neural_brdf.fileformat.lobe.at)."""
         lobe, t = self.lobe, self.lobe_table
         kind = (
             mi.MicrofacetType.Beckmann

@@ -227,14 +227,11 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
 
 def _stored_lobe(path: Path) -> dict | None:
     """The sampling lobe in a model file's metadata, or None (older files, bad ones)."""
-    from neural_brdf.physics import lobe
+    from neural_brdf.fileformat import lobe, reader
 
     try:
-        import onnx
-
-        model = onnx.load(str(path), load_external_data=False)
-        return lobe.from_metadata({p.key: p.value for p in model.metadata_props})
-    except Exception:  # the viewer then fits one, as for any file
+        return lobe.from_metadata(reader.props(reader.load(path, external_data=False)))
+    except InputError:  # unreadable, or a malformed lobe: the viewer then fits one
         return None
 
 
