@@ -265,7 +265,7 @@ def _resolve(filename: str) -> Path:
         # mi.file_resolver() replaced Thread.file_resolver() (deprecated in 3.9, whose
         # warning escapes from a plugin constructor as a SystemError).
         resolver = (
-            mi.file_resolver()  # type: ignore[operator]
+            mi.file_resolver()  # type: ignore[operator]  # the stub types it as an object
             if hasattr(mi, "file_resolver")
             else mi.Thread.thread().file_resolver()
         )
