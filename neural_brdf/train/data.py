@@ -1,5 +1,6 @@
 """Training pairs (wi, wo, f) drawn on the fly from a target: an analytic model, or
-measured data (a MERL ``.binary`` or an RGL ``.bsdf`` file, ``target: {data: path}``).
+measured data (``target: {data: path}``: a MERL ``.binary``, an RGL ``.bsdf``, any format
+of :mod:`neural_brdf.measured.formats`, by the file's suffix).
 
 Analytic targets.  wi is uniform on the upper hemisphere.  wo is a mixture, by configured shares, of
 uniform-hemisphere, cosine-weighted and the target's own importance sampling (so that
@@ -24,8 +25,6 @@ continues exactly where it stopped.
 from __future__ import annotations
 
 import math
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -33,46 +32,36 @@ import torch
 import analytic
 from analytic import frame
 from neural_brdf import config as cfgmod
-from neural_brdf.measured import merl, rgl
+from neural_brdf.errors import InputError
+from neural_brdf.measured import formats
+from neural_brdf.measured.base import MeasuredBRDF
 from neural_brdf.train import encoding as enc
-
-# Measured-data files a target (and ``validate --reference``) reads, by suffix.
-MEASURED_SUFFIXES = {".binary": "MERL", ".bsdf": "RGL"}
 
 
 class MeasuredTarget:
-    """Measured data as a training target: ``f`` (torch) and ``eval`` (numpy) look the
-    grid up (trilinear, reciprocal by the phi_d fold), ``draw`` gives training pairs on
-    the measured support, ``grid_pairs`` the measured bin centres.  No sampler: the
-    quadratures that take a target's proposal (``extra=``) skip it."""
+    """Measured data as a training target: a file of any format of
+    :mod:`neural_brdf.measured.formats` (by its suffix), wrapped.  ``f`` (torch) and
+    ``eval`` (numpy) are the format's lookup, ``draw`` gives training pairs on the
+    measured support, ``grid_pairs`` the pairs where the file is exact (MERL: measured
+    bin centres; RGL: value nodes).  No sampler: the quadratures that take a target's
+    proposal (``target=``) skip it."""
 
-    anisotropic = False
-    brdf: Any  # merl.MerlBRDF here, rgl.RGLBRDF in RGLTarget
-
-    def __init__(self, brdf: merl.MerlBRDF):
+    def __init__(self, brdf: MeasuredBRDF):
         self.brdf = brdf
         self.source = brdf.source
-        self._bins = np.flatnonzero(brdf.valid.reshape(-1) & merl.grid_above_horizon().reshape(-1))
+        self.anisotropic = bool(brdf.anisotropic)
 
     @classmethod
     def from_file(cls, path, *, key: str = "target.data") -> MeasuredTarget:
-        """A MERL ``.binary`` or an RGL ``.bsdf`` file (by its suffix) as a target."""
-        p = Path(path)
-        if p.suffix.lower() == ".bsdf":
-            return RGLTarget.from_file(p, key=key)
-        if p.suffix.lower() != ".binary":
-            raise cfgmod.ConfigError(f"{key}: {p}: expected a MERL .binary or an RGL .bsdf file")
+        """A measured file (its format by its suffix, :func:`formats.read`) as a target;
+        an unknown suffix or a bad file raises a one-line ConfigError naming ``key``."""
         try:
-            brdf = merl.read_merl(p)
-        except merl.MerlFormatError as e:
+            return cls(formats.read(path))
+        except InputError as e:
             raise cfgmod.ConfigError(f"{key}: {e}") from None
-        target = cls(brdf)
-        if len(target._bins) == 0:
-            raise cfgmod.ConfigError(f"{key}: {p}: no measured bins above the horizon")
-        return target
 
     def describe(self) -> str:
-        return f"MERL {self.source} ({len(self._bins)} measured bins)"
+        return self.brdf.describe()
 
     def eval(self, wi, wo) -> np.ndarray:
         return self.brdf.eval(wi, wo)
@@ -88,54 +77,22 @@ class MeasuredTarget:
         return tuple(torch.from_numpy(x).float() for x in (wi, wo, f))
 
     def grid_pairs(self, n: int | None = None, seed: int = 0):
-        """(wi, wo, f) float64 tensors at measured bin centres: all of them, or ``n``
-        drawn without replacement.  phi_h is random (an isotropic grid does not depend on
-        it; an anisotropic network is then tested at every azimuth)."""
-        rng = np.random.default_rng(seed)
-        bins = self._bins
-        if n is not None and n < len(bins):
-            bins = np.sort(rng.choice(bins, size=n, replace=False))
-        th, td, pd = (c[i] for c, i in zip(merl.bin_centres(), merl.unravel(bins)))
-        wi, wo = merl.directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
-        f = self.brdf.values.reshape(-1, 3)[bins]
-        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
-
-
-class RGLTarget(MeasuredTarget):
-    """An RGL ``.bsdf`` file (:mod:`neural_brdf.measured.rgl`, evaluated as Mitsuba's ``measured``
-    does) as a training target.  ``draw``: wi uniform, wo from the file's own sampler
-    or cosine-distributed; ``grid_pairs``: the file's value nodes (where it is exact)."""
-
-    def __init__(self, brdf: rgl.RGLBRDF):
-        self.brdf = brdf
-        self.source = brdf.source
-
-    @classmethod
-    def from_file(cls, path, *, key: str = "target.data") -> RGLTarget:
-        try:
-            return cls(rgl.read_rgl(path))
-        except rgl.RGLFormatError as e:
-            raise cfgmod.ConfigError(f"{key}: {e}") from None
-
-    def describe(self) -> str:
-        return f"RGL {self.source} ({self.brdf.description})"
-
-    def grid_pairs(self, n: int | None = None, seed: int = 0):
-        """(wi, wo, f) float64 tensors at the value nodes above the horizon: all of them,
-        or ``n`` drawn without replacement; phi_i is random (isotropic files)."""
-        wi, wo = self.brdf.node_pairs(seed=seed)
-        if n is not None and n < len(wi):
-            pick = np.sort(np.random.default_rng(seed).choice(len(wi), size=n, replace=False))
-            wi, wo = wi[pick], wo[pick]
-        f = self.brdf.eval(wi, wo)
-        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in (wi, wo, f))
+        """(wi, wo, f) float64 tensors where the file is exact (``brdf.grid_pairs``): all
+        of them, or ``n`` drawn without replacement."""
+        pairs = self.brdf.grid_pairs(n, seed)
+        return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in pairs)
 
 
 def build_target(target: cfgmod.Target):
-    """The model of ``target``: an analytic BRDF, or a :class:`MeasuredTarget` for
-    ``target.data``; bad names, parameters or files raise ConfigError."""
+    """The model of ``target``: an analytic BRDF, a :class:`MeasuredTarget` for
+    ``target.data``, or a :class:`neural_brdf.measured.mitsuba.MitsubaTarget` for
+    ``target.mitsuba``; bad names, parameters or files raise ConfigError (InputError)."""
     if target.data is not None:
         return MeasuredTarget.from_file(target.data)
+    if target.mitsuba is not None:  # Mitsuba is imported by this target only
+        from neural_brdf.measured.mitsuba import MitsubaTarget
+
+        return MitsubaTarget(target.mitsuba, variant=target.variant)
     if target.model not in analytic.available():
         raise cfgmod.ConfigError(
             f"target.model: unknown model {target.model!r}; available: {analytic.available()}"

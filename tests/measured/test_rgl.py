@@ -315,7 +315,8 @@ def test_train_on_a_bsdf_file_and_compare_with_the_analytic_model(baked, tmp_pat
     brdf, path, _ = baked["ggx-gold-0.3"]
     cfg = config.load(CONFIGS / "merl.yaml", [f"target.data={path}"] + SHORT)
     target = data.build_target(cfg.target)
-    assert isinstance(target, data.RGLTarget) and "RGL" in target.describe()
+    assert isinstance(target, data.MeasuredTarget) and isinstance(target.brdf, rgl.RGLBRDF)
+    assert target.describe().startswith(f"RGL {path} (")
     report = pipeline.run(cfg, tmp_path / "run")
     assert report["passed"]
     model = tmp_path / "run" / "model.onnx"

@@ -3,6 +3,7 @@ I/O (:func:`read_merl`, :func:`write_merl`)."""
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from neural_brdf.fileio import atomic_write
+from neural_brdf.measured.base import Pairs, eval_pairs
 from neural_brdf.measured.merl.format import (
     CHUNK,
     FILE_BYTES,
@@ -30,6 +32,7 @@ from neural_brdf.measured.merl.format import (
     _snap,
     bin_centres,
     directions,
+    grid_above_horizon,
     phi_d_index,
     theta_d_index,
     theta_h_index,
@@ -43,8 +46,11 @@ class MerlBRDF:
 
     ``raw`` (3, 90, 90, 180) float64 is the file's content (channel-major, unscaled,
     negative = unmeasured); ``values`` (90, 90, 180, 3) is the BRDF in 1/sr (``raw * SCALE``,
-    0 where not ``valid``); ``valid`` (90, 90, 180) marks measured bins.
+    0 where not ``valid``); ``valid`` (90, 90, 180) marks measured bins.  A
+    :class:`neural_brdf.measured.base.MeasuredBRDF`.
     """
+
+    anisotropic = False  # a MERL grid has no phi_h
 
     def __init__(self, raw, *, source: str = "<memory>"):
         raw = np.array(raw, dtype=np.float64)  # a private copy
@@ -98,35 +104,43 @@ class MerlBRDF:
     def write(self, path) -> None:
         write_merl(path, self)
 
+    @functools.cached_property
+    def support(self) -> np.ndarray:
+        """Flat indices of the measured bins whose centre lies above the horizon."""
+        out = np.flatnonzero(self._valid_flat & grid_above_horizon().reshape(-1))
+        out.flags.writeable = False
+        return out
+
+    def describe(self) -> str:
+        return f"MERL {self.source} ({len(self.support)} measured bins)"
+
+    def grid_pairs(self, n: int | None = None, seed: int = 0) -> Pairs:
+        """(wi, wo, f) float64 at the measured bin centres above the horizon, f the stored
+        value (uninterpolated): all of them, or ``n`` drawn without replacement.  phi_h is
+        random (an isotropic grid does not depend on it; an anisotropic network is then
+        tested at every azimuth)."""
+        rng = np.random.default_rng(seed)
+        bins = self.support
+        if n is not None and n < len(bins):
+            bins = np.sort(rng.choice(bins, size=n, replace=False))
+        th, td, pd = (c[i] for c, i in zip(bin_centres(), unravel(bins)))
+        wi, wo = directions(th, rng.random(len(bins)) * (2 * math.pi), td, pd)
+        return wi, wo, self._table[bins]
+
     # -- lookups
     def eval(self, wi, wo, *, interpolation: str = "trilinear") -> np.ndarray:
         """f(wi, wo) in 1/sr, shape (..., 3); numpy in, numpy out (float64).
 
         Directions are normalised; a pair with either z <= 0 (or a non-finite entry)
-        gives 0.
+        gives 0 (:func:`neural_brdf.measured.base.eval_pairs`, the edges every format
+        shares).
         """
         _choice("interpolation", interpolation, INTERPOLATIONS)
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
-        if wi.shape[-1:] != (3,) or wo.shape[-1:] != (3,):
-            raise ValueError(f"wi, wo: expected (..., 3) arrays, got {wi.shape} and {wo.shape}")
-        wi, wo = np.broadcast_arrays(wi, wo)
-        batch = wi.shape[:-1]
-        wi, wo = wi.reshape(-1, 3), wo.reshape(-1, 3)
-        out = np.zeros((len(wi), 3))
-        ok = (
-            np.all(np.isfinite(wi), -1)
-            & np.all(np.isfinite(wo), -1)
-            & (wi[:, 2] > 0)
-            & (wo[:, 2] > 0)
-        )
-        rows = np.flatnonzero(ok)
-        for s in range(0, len(rows), CHUNK):
-            r = rows[s : s + CHUNK]
-            a = wi[r] / np.linalg.norm(wi[r], axis=-1, keepdims=True)
-            b = wo[r] / np.linalg.norm(wo[r], axis=-1, keepdims=True)
-            out[r] = self.lookup(*_angles(a, b), interpolation=interpolation)
-        return out.reshape(batch + (3,))
+
+        def at(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return self.lookup(*_angles(a, b), interpolation=interpolation)
+
+        return eval_pairs(wi, wo, at, chunk=CHUNK)
 
     def lookup(self, theta_h, theta_d, phi_d, *, interpolation: str = "trilinear") -> np.ndarray:
         """f at Rusinkiewicz angles (broadcast together) -> (..., 3).  phi_d is folded."""

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from analytic import frame
+from neural_brdf.measured.base import FormatError
 
 # ----------------------------------------------------------------------- the format
 RES_THETA_H = 90
@@ -37,8 +38,9 @@ INTERPOLATIONS = ("trilinear", "nearest")
 SAMPLE_SPACES = ("index", "angle")
 
 
-class MerlFormatError(ValueError):
-    """A MERL file that cannot be read.  The one-line message names the file."""
+class MerlFormatError(FormatError):
+    """A MERL file that cannot be read.  The one-line message names the file.  An
+    InputError (exit code 2 on the command line), and so a ValueError."""
 
 
 # ------------------------------------------------------------------ grid geometry

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+from neural_brdf.measured.base import Pairs, eval_pairs
 from neural_brdf.measured.rgl.layout import (
     CHUNK,
     REQUIRED,
@@ -24,7 +25,10 @@ from neural_brdf.measured.rgl.tensor import RGLFormatError, read_tensor_file
 # ------------------------------------------------------------------- the reader
 class RGLBRDF:
     """An RGL material in memory; ``eval`` follows Mitsuba's ``measured`` (isotropic RGB
-    files).  ``fields`` is the tensor file's content."""
+    files).  ``fields`` is the tensor file's content.  A
+    :class:`neural_brdf.measured.base.MeasuredBRDF`."""
+
+    anisotropic = False  # anisotropic files are refused
 
     def __init__(self, fields: dict[str, np.ndarray], *, source: str = "<memory>"):
         self.source = str(source)
@@ -105,30 +109,20 @@ class RGLBRDF:
             f"{self.description!r})"
         )
 
+    def describe(self) -> str:
+        return f"RGL {self.source} ({self.description})"
+
     def _params(self, wi):
         return np.arctan2(wi[:, 1], wi[:, 0]), elevation(wi)
 
     def eval(self, wi, wo) -> np.ndarray:
-        """f(wi, wo) in 1/sr (no cosine), (..., 3) float64; 0 below the horizon."""
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
-        wi, wo = np.broadcast_arrays(wi, wo)
-        batch = wi.shape[:-1]
-        wi, wo = wi.reshape(-1, 3), wo.reshape(-1, 3)
-        out = np.zeros((len(wi), 3))
-        ok = (
-            np.all(np.isfinite(wi), -1)
-            & np.all(np.isfinite(wo), -1)
-            & (wi[:, 2] > 0)
-            & (wo[:, 2] > 0)
-        )
-        rows = np.flatnonzero(ok)
-        for s in range(0, len(rows), CHUNK):
-            r = rows[s : s + CHUNK]
-            a = wi[r] / np.linalg.norm(wi[r], axis=-1, keepdims=True)
-            b = wo[r] / np.linalg.norm(wo[r], axis=-1, keepdims=True)
-            out[r] = self._f_cos(a, b) / b[:, 2:3]
-        return out.reshape(batch + (3,))
+        """f(wi, wo) in 1/sr (no cosine), (..., 3) float64; 0 below the horizon (the edges
+        of :func:`neural_brdf.measured.base.eval_pairs`, which every format shares)."""
+
+        def at(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return self._f_cos(a, b) / b[:, 2:3]
+
+        return eval_pairs(wi, wo, at, chunk=CHUNK)
 
     def _f_cos(self, wi, wo) -> np.ndarray:
         """Mitsuba's ``measured`` eval (f cos theta_o) for unit directions above the horizon."""
@@ -184,7 +178,17 @@ class RGLBRDF:
             wos.append(wo[keep] / np.linalg.norm(wo[keep], axis=-1, keepdims=True))
         return np.concatenate(wis), np.concatenate(wos)
 
-    def sample_pairs(self, n: int, rng=None):
+    def grid_pairs(self, n: int | None = None, seed: int = 0) -> Pairs:
+        """(wi, wo, f) float64 at the value nodes above the horizon (:meth:`node_pairs`,
+        where the file is exact): all of them, or ``n`` drawn without replacement; phi_i
+        is random (isotropic files)."""
+        wi, wo = self.node_pairs(seed=seed)
+        if n is not None and n < len(wi):
+            pick = np.sort(np.random.default_rng(seed).choice(len(wi), size=n, replace=False))
+            wi, wo = wi[pick], wo[pick]
+        return wi, wo, self.eval(wi, wo)
+
+    def sample_pairs(self, n: int, rng=None) -> Pairs:
         """``n`` training pairs (wi, wo, f) (n, 3) each: wi uniform on the hemisphere, wo
         from the material's own sampler for half the pairs and cosine-distributed for the
         rest; pairs below the horizon are redrawn."""

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_write
+from neural_brdf.measured.base import FormatError
 
 # ------------------------------------------------------------------ tensor file
 MAGIC = b"tensor_file\0"
@@ -33,7 +33,7 @@ DTYPE_CODES = {np.dtype(v): k for k, v in DTYPES.items()}
 MAX_NDIM = 16  # a sanity bound on a field's rank (RGL files use <= 5)
 
 
-class RGLFormatError(InputError):
+class RGLFormatError(FormatError):
     """An RGL / tensor file that cannot be read.  The one-line message names the file."""
 
 

@@ -9,6 +9,7 @@ import re
 from pathlib import Path
 
 from neural_brdf import config as cfgmod
+from neural_brdf.measured import formats
 from neural_brdf.tooling.sweep.spec import (
     MAX_SLUG,
     TRIAL_DEFAULTS,
@@ -103,7 +104,8 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
             _override(raw, key, value)
         for key, value in point.items():
             if key == "material" and spec.materials is not None:  # a "materials" sweep
-                data = (out_dir / "data" / f"{value}.binary").resolve()
+                # the NBRDF network baked to a MERL file (trial._materialise)
+                data = (out_dir / "data" / f"{value}{formats.MERL.suffix}").resolve()
                 job["materialise"] = {
                     "npz": str((here / spec.materials.nbrdf).resolve()),
                     "name": value,
