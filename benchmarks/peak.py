@@ -41,33 +41,10 @@ from common import write_json  # noqa: E402
 
 from neural_brdf import config, validate  # noqa: E402
 from neural_brdf import export as exp  # noqa: E402
-from neural_brdf.train import data  # noqa: E402
-from neural_brdf.train import encoding as enc  # noqa: E402
-from neural_brdf.train import loop as tr  # noqa: E402
+from neural_brdf.train import data, loop  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "peak.json"
 CONFIGS = REPO / "configs"
-
-
-def legacy_features(new_features):
-    """The encoding with the pre-issue-19 peak coordinate q = sqrt(theta_h / (pi/2))."""
-
-    def features(wi: torch.Tensor, wo: torch.Tensor, encoding: str) -> torch.Tensor:
-        x = new_features(wi, wo, encoding)
-        if encoding == "raw":
-            return x
-        s = wi + wo
-        norm_s = torch.sqrt((s * s).sum(-1)).clamp_min(enc.EPS_NORM)
-        r_s = torch.sqrt(s[..., 0] * s[..., 0] + s[..., 1] * s[..., 1])
-        q = torch.sqrt(enc.half_angle(r_s, norm_s + s[..., 2]) / enc.HALF_PI)
-        cols = [q, *x[..., 1:8].unbind(-1)]
-        if encoding == "anisotropic":
-            hx, hy = s[..., 0] / norm_s, s[..., 1] / norm_s
-            r = torch.sqrt(hx * hx + hy * hy).clamp_min(enc.EPS_NORM)
-            cols += [q * hx / r, q * hy / r, *x[..., 10:].unbind(-1)]
-        return torch.stack(cols, -1)
-
-    return features
 
 
 def run_one(cfg: config.Config, run_dir: Path) -> dict:
@@ -75,14 +52,10 @@ def run_one(cfg: config.Config, run_dir: Path) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     target = data.build_target(cfg.target)
-    raw, training = tr.train(cfg, run_dir, resume=False, target=target)
+    raw, training = loop.train(cfg, run_dir, resume=False, target=target)
     model, _ = exp.normalized_model(raw, cfg, target)
-    info = exp.export(
-        model, cfg, run_dir / "model.onnx", target_desc=target.describe(), extra=target
-    )
-    report = validate.report(
-        run_dir / "model.onnx", reference=target, physics_report=info["physics"]
-    )
+    info = exp.export(model, cfg, run_dir / "model.onnx", measure=validate.physics, target=target)
+    report = validate.report(run_dir / "model.onnx", target=target, physics_report=info["physics"])
     report["training"] = training
     report["seconds"] = {"total": time.perf_counter() - t0}
     validate.write_json(report, run_dir / "metrics.json")
@@ -132,8 +105,6 @@ def main() -> None:
     unknown = sorted(set(names) - set(known))
     if unknown:
         raise SystemExit(f"peak: no analytic preset {unknown[0]!r}; known: {known}")
-    if args.legacy:
-        enc.features = legacy_features(enc.features)
     torch.set_num_threads(2)
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
     result.update(
@@ -162,7 +133,9 @@ def main() -> None:
                 m = json.loads(metrics.read_text())
             else:
                 print(f"{label}:", flush=True)
-                m = run_one(config.load(cfg_path, ["train.progress=false"]), run_dir)
+                # legacy: the pre-issue-19 peak coordinate sqrt(theta_h / (pi/2))
+                sets = ["train.progress=false"] + ["model.peak_coordinate=sqrt"] * args.legacy
+                m = run_one(config.load(cfg_path, sets), run_dir)
             models[label] = {
                 "preset": name,
                 "recipe": recipe,

@@ -23,10 +23,10 @@ import torch
 
 import neural_brdf
 from analytic import physics
-from neural_brdf import export
+from neural_brdf import encodings, export
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
 
-ENCODINGS = ("isotropic", "anisotropic")
+ENCODINGS = encodings.names(reciprocal=True)
 HOSTILE = {
     "nan": [np.nan, 0.2, 0.9],
     "inf": [np.inf, 0.0, 1.0],
@@ -45,7 +45,7 @@ def _model(encoding: str) -> TotalBRDF:
     with torch.no_grad():
         for p in raw.mlp.body.parameters():
             p.mul_(3.0)
-    aniso = encoding != "isotropic"
+    aniso = encodings.get(encoding).anisotropic
     table, _, _ = albedo_table(
         raw,
         size=9 if aniso else 16,

@@ -40,6 +40,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from neural_brdf import encodings
 from neural_brdf.physics import quadrature
 from neural_brdf.train import encoding as enc
 
@@ -181,26 +182,25 @@ class RawBRDF(nn.Module):
     ):
         super().__init__()
         self.encoding = encoding
+        self.spec = spec = encodings.get(encoding)  # its width, grid axes and features
         self.peak_coordinate = peak_coordinate
-        self.anisotropic = enc.is_anisotropic(encoding)  # as NormalizedBRDF.anisotropic
+        self.anisotropic = spec.anisotropic  # as NormalizedBRDF.anisotropic
         self.grazing_power = float(grazing_power)
         if grazing_cos not in ("mean", "max"):
             raise ValueError(f"grazing_cos: mean or max, got {grazing_cos!r}")
         self.grazing_cos = grazing_cos
-        if grid_size and encoding == "raw":
-            raise ValueError("grid: needs the isotropic or anisotropic encoding")
-        if grid_size and grid_coords == "half_disc" and encoding != "anisotropic":
-            raise ValueError("grid: half_disc coordinates need the anisotropic encoding")
-        # the encoding's features the grid is indexed by (encoding.features): 0, 1 are
-        # u_h (the peak coordinate) and theta_d / (pi/2); 8, 9 are the half vector's polar
-        # map sqrt(u_h) (cos phi_h, sin phi_h), in the unit disc
+        if grid_size and grid_coords not in spec.grid_axes:
+            raise ValueError(f"grid: {grid_coords} coordinates: the {encoding} encoding has none")
+        # the encoding's two features the grid is indexed by (Encoding.grid_axes): theta,
+        # (u_h, theta_d / (pi/2)) in [0, 1]^2; half_disc, the half vector's polar map
+        # sqrt(u_h) (cos phi_h, sin phi_h), in the unit disc
         self.grid_coords = grid_coords
-        self.grid_features = (8, 9) if grid_coords == "half_disc" else (0, 1)
+        self.grid_features = tuple(spec.grid_axes.get(grid_coords, ()))
         self.grid = (
             FeatureGrid(grid_size, grid_channels, init_std=grid_init_std) if grid_size else None
         )
-        if cosine_grid_size and encoding == "raw":
-            raise ValueError("cosine_grid: needs the isotropic or anisotropic encoding")
+        if cosine_grid_size and not spec.reciprocal:
+            raise ValueError(f"cosine_grid: needs a reciprocal encoding, not {encoding}")
         # a second grid over ((cos_i + cos_o) / 2, |cos_i - cos_o| / (cos_i + cos_o)): both
         # bit-exactly symmetric in (wi, wo), so reciprocity stays exact
         self.cos_grid = (
@@ -209,7 +209,7 @@ class RawBRDF(nn.Module):
             else None
         )
         n_in = (
-            enc.num_features(encoding)
+            spec.width
             + (grid_channels if grid_size else 0)
             + (cosine_grid_channels if cosine_grid_size else 0)
         )
@@ -242,7 +242,7 @@ class RawBRDF(nn.Module):
         )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
-        x = enc.features(wi, wo, self.encoding, self.peak_coordinate)
+        x = self.spec.features(wi, wo, self.peak_coordinate)
         if self.grid is not None:
             i, j = self.grid_features
             u, v = x[..., i], x[..., j]
@@ -303,12 +303,12 @@ def albedo_table(
     seed: int,
     sigmas: float,
     margin: float,
-    extra=None,
+    target=None,
 ):
     """A+ at the nodes: (K, 3) or (K, K, 3), plus the raw estimate and its error."""
     dirs = node_directions(size, anisotropic)
     with torch.no_grad():
-        a, err = quadrature.albedo(raw, dirs, samples, seed=seed, extra=extra)
+        a, err = quadrature.albedo(raw, dirs, samples, seed=seed, target=target)
     upper = a + sigmas * err
     if anisotropic:
         upper = upper.reshape(size, size, 3).permute(2, 0, 1)[None]  # (1, 3, K, K)

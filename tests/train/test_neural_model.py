@@ -11,11 +11,13 @@ import torch
 
 import analytic
 from analytic import frame, physics
+from neural_brdf import encodings
 from neural_brdf.physics import quadrature
 from neural_brdf.train import encoding
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, albedo_table, node_directions
 
-ENCODINGS = ["isotropic", "anisotropic"]
+# every registered encoding that is reciprocal by construction (all but the raw ablation)
+ENCODINGS = encodings.names(reciprocal=True)
 
 
 def _pairs(n, seed):
@@ -94,7 +96,7 @@ def test_normalisation_fixes_a_bad_network(enc, kind):
         if kind == "wild"
         else _bad_raw(enc, scale=0.01, bias=1000.0, grazing_power=0.0)
     )
-    aniso = enc == "anisotropic"
+    aniso = encodings.get(enc).anisotropic
     table, a, _ = albedo_table(
         raw,
         size=17 if aniso else 33,
@@ -203,14 +205,14 @@ def test_output_scale_multiplies_the_softplus_and_keeps_the_initial_value():
         torch.testing.assert_close(scaled(wi, wo), 30.0 * plain(wi, wo))
 
 
-@pytest.mark.parametrize("enc", ["isotropic", "anisotropic"])
+@pytest.mark.parametrize("enc", ENCODINGS)
 def test_a_table_at_most_1_is_elided_exactly_and_one_above_1_is_kept(enc, tmp_path):
     import onnx
 
     from neural_brdf import export
     from neural_brdf.train.model import TotalBRDF
 
-    dim = 2 if enc == "anisotropic" else 1
+    dim = 2 if encodings.get(enc).anisotropic else 1
     raw = _bad_raw(enc, scale=0.3, bias=-3.0)  # dim: softplus(-3) ~ 0.05/sr
     k = 9
     dark = torch.rand((k,) * dim + (3,), generator=torch.Generator().manual_seed(2))
