@@ -12,9 +12,10 @@ and compact/gold (a grid model), each trained for ``--steps`` steps and exported
 tests/portable_consumers.py (onnxruntime 1.18.1 in .venv-ort-old, onnxruntime-web under
 Node, onnx2torch, onnx's ReferenceEvaluator), 20,000 pairs, against this interpreter's
 onnxruntime; the random graphs also as torch wrote them before the rewrite of
-neural_brdf.export.portable_graph ("before"), and converted to opsets 13 to 21
-(export.convert_opset).  Writes benchmarks/results/portable.json and the generated block
-of docs/portable.md.  Nothing here asserts anything; tests/fileformat/test_portable.py does.
+neural_brdf.fileformat.portable.portable_graph ("before"), and converted to opsets 13 to
+21 (fileformat.portable.convert_opset).  Writes benchmarks/results/portable.json and the
+generated block of docs/portable.md.  Nothing here asserts anything;
+tests/fileformat/test_portable.py does.
 """
 
 from __future__ import annotations
@@ -52,10 +53,9 @@ LOADING = {  # how each consumer opens the file (the docs' table)
 
 def train_preset(name: str, steps: int, folder: Path) -> Path:
     """Train ``configs/NAME.yaml`` for ``steps`` steps and export it (no report)."""
-    from neural_brdf import config
+    from neural_brdf import config, validate
     from neural_brdf import export as exp
-    from neural_brdf.train import data
-    from neural_brdf.train import loop as tr
+    from neural_brdf.train import data, loop
 
     cfg = config.load(
         REPO / "configs" / f"{name}.yaml",
@@ -64,9 +64,9 @@ def train_preset(name: str, steps: int, folder: Path) -> Path:
     run_dir = folder / name.replace("/", "-")
     run_dir.mkdir(parents=True, exist_ok=True)
     target = data.build_target(cfg.target)
-    raw, _ = tr.train(cfg, run_dir, resume=False, target=target)
+    raw, _ = loop.train(cfg, run_dir, resume=False, target=target)
     model, _ = exp.normalized_model(raw, cfg, target)
-    exp.export(model, cfg, run_dir / "model.onnx", target_desc=target.describe(), extra=target)
+    exp.export(model, cfg, run_dir / "model.onnx", measure=validate.physics, target=target)
     return run_dir / "model.onnx"
 
 
@@ -183,8 +183,8 @@ def render(data: dict) -> str:
         lines.append(f"| {c} | " + " | ".join(row) + " |")
     lines += [
         "",
-        "`export.convert_opset` of the random isotropic graph (opset 17) to each opset: "
-        "max relative difference from the opset-17 file in onnxruntime "
+        "`fileformat.portable.convert_opset` of the random isotropic graph (opset 17) to each "
+        "opset: max relative difference from the opset-17 file in onnxruntime "
         f"({data['reference'].split()[-1]}) and in 1.18.1; every converted file passes "
         "`onnx.checker.check_model(full_check=True)` and runs a batch of 0 rows in both.",
         "",

@@ -1,5 +1,15 @@
 """Export a trained run to one self-contained ONNX file (the contract other tools use).
 
+    built = export.build(model, cfg)                 # the graph, checked against torch
+    phys = validate.physics(built.eval, anisotropic=built.anisotropic,
+                            settings=cfg.validation, target=target)   # validate measures
+    export.write(built, cfg, "model.onnx", physics=phys, target=target)  # export writes
+
+or in one call, ``export.export(model, cfg, "model.onnx", measure=validate.physics,
+target=target)``.  Export writes and checks parity; the physics figures the file
+records are measured by :mod:`neural_brdf.validate` on the very graph written, and the
+verdict on them is validate's too.
+
     inputs   wi, wo   float32 [N, 3]   unit vectors in the local frame (analytic.frame)
     output   f        float32 [N, 3]   BRDF in 1/sr, RGB, without the cosine
     N is dynamic.  Encoding, horizon test and albedo normalisation are in the graph.
@@ -21,9 +31,10 @@ one paragraph: the target, the encoding and the input/output contract above.
     sampling_lobe (JSON: the importance-sampling lobe fitted to the network,
     neural_brdf.physics.lobe)
 
-The graph torch writes is rewritten by :func:`portable_graph` so that onnxruntime from
-1.18 on, onnxruntime-web, onnx2torch, the ONNX reference evaluator and the version
-converter all read it (docs/portable.md); :func:`convert_opset` gives it at opsets 13 up.
+The graph torch writes is rewritten by :func:`neural_brdf.fileformat.portable.portable_graph`
+so that onnxruntime from 1.18 on, onnxruntime-web, onnx2torch, the ONNX reference
+evaluator and the version converter all read it (docs/portable.md);
+:func:`neural_brdf.fileformat.portable.convert_opset` gives it at opsets 13 up.
 
 The physics values are measured on the exported graph itself, through onnxruntime.
 Torch and onnxruntime are checked to agree to ``export.parity_tol`` (1e-5) relative,
@@ -31,8 +42,9 @@ with values below a tenth of the mean compared in absolute terms (see PARITY_FLO
 A network can be worse conditioned than that: its own float32 evaluation then differs
 from the same weights in float64 by more than 1e-5 (seen at 1e-5 to 2e-5 on sharp
 lobes).  Two float32 evaluations cannot be expected to agree better than twice that
-precision, so the check allows max(parity_tol, 2 x precision), and both figures go to
-the metadata (``parity_rel_error``, ``float32_rel_precision``).
+precision, so the check allows max(parity_tol, 2 x precision) (:func:`parity_allowed`,
+which the report's parity row uses too), and both figures go to the metadata
+(``parity_rel_error``, ``float32_rel_precision``).
 """
 
 from __future__ import annotations
@@ -40,18 +52,18 @@ from __future__ import annotations
 import copy
 import io
 import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
-from onnx import numpy_helper
 
 from analytic import physics
 from neural_brdf import config as cfgmod
-from neural_brdf import validate
 from neural_brdf.errors import ParityError
 from neural_brdf.fileformat import (
     FORMAT_VERSION,
@@ -63,8 +75,10 @@ from neural_brdf.fileformat import (
     UNITS,
 )
 from neural_brdf.fileformat.metadata import Metadata, plain
+from neural_brdf.fileformat.portable import portable_graph
 from neural_brdf.fileio import atomic_write
 from neural_brdf.physics import lobe
+from neural_brdf.target import Described
 from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.loop import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
@@ -82,7 +96,9 @@ PARITY_FLOOR = 0.1
 ANALYTIC_OPSET = 17  # opset of analytic_onnx (as neural_brdf.renderers.mitsuba used)
 
 
-def target_json(cfg: cfgmod.Config, description: str, target: Any = None) -> dict[str, Any]:
+def target_json(
+    cfg: cfgmod.Config, description: str, target: Described | None = None
+) -> dict[str, Any]:
     """The ``target`` metadata entry: what the model was fitted to, as an object.
 
     ``{"kind": "analytic", "model": NAME, "params": {...}, "resolved": {...},
@@ -90,7 +106,10 @@ def target_json(cfg: cfgmod.Config, description: str, target: Any = None) -> dic
     (``analytic.create(NAME, **params)`` builds the target again), ``resolved`` every
     parameter's value, defaults and derived values included (a conductor's material and
     its eta and k: not arguments for create); ``{"kind": "measured", "data": PATH,
-    "description": TEXT}`` for measured data; ``{"kind": "images", "views": N,
+    "description": TEXT}`` for measured data; ``{"kind": "mitsuba", "file": XML, "variant":
+    NAME, "excess": {...} or null, "description": TEXT}`` for a Mitsuba BSDF as the teacher
+    (``excess``: where and by how much its albedo exceeded 1, before it was bounded);
+    ``{"kind": "images", "views": N,
     "description": TEXT}`` for an inverse-rendering fit; ``{"kind": "unspecified",
     "description": TEXT}`` when the exporter was given a description only.  ``description``
     is the text files of metadata_version 1 held (for an analytic target, the
@@ -109,6 +128,14 @@ def target_json(cfg: cfgmod.Config, description: str, target: Any = None) -> dic
         }
     if target is not None and t.data is not None:
         return {"kind": "measured", "data": t.data, "description": description}
+    if target is not None and t.mitsuba is not None:
+        return {
+            "kind": "mitsuba",
+            "file": t.mitsuba,
+            "variant": getattr(target, "variant", t.variant),
+            "excess": plain(getattr(target, "excess", None)),  # where the albedo passed 1
+            "description": description,
+        }
     if t.images is not None:
         return {"kind": "images", "views": len(t.images), "description": description}
     return {"kind": "unspecified", "description": description}
@@ -141,9 +168,10 @@ def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:
 
 
 def normalized_model(
-    raw: RawBRDF, cfg: cfgmod.Config, target: Any = None
+    raw: RawBRDF, cfg: cfgmod.Config, target: Described | None = None
 ) -> tuple[NormalizedBRDF | RawBRDF, dict[str, Any]]:
-    """Tabulate A+ for ``raw`` and wrap it; returns (model, table info).
+    """Tabulate A+ for ``raw`` and wrap it; returns (model, table info).  ``target``'s
+    own sampler, if it has one, helps the quadrature.
 
     With ``normalization.enabled: false`` (ablations) no table is built and the raw
     network itself is the model: nothing then bounds its albedo.
@@ -160,7 +188,7 @@ def normalized_model(
         seed=cfg.train.seed + 17,
         sigmas=n.sigmas,
         margin=n.margin,
-        extra=target,
+        target=target,
     )
     info = {
         "enabled": True,
@@ -193,248 +221,6 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     )
 
 
-# ------------------------------------------------------------------ a portable graph
-# The graph torch writes is rewritten so that every consumer reads it: onnxruntime from the
-# oldest release pyproject allows (1.18) to the newest, onnxruntime-web, onnx2torch, the
-# ONNX reference evaluator, onnx's version converter (opset 13 and up) and
-# neural_brdf.graph (the C/GLSL/WGSL and Dr.Jit back ends).  docs/portable.md lists what
-# each rewrite fixed; every one computes the same float32 operations as before.
-PORTABLE_PREFIX = "portable/"  # names of the nodes and constants the rewrites add
-REDUCE_UNROLL = 8  # ReduceSum over a static axis of at most this many entries is unrolled
-
-
-def portable_graph(proto: onnx.ModelProto) -> onnx.ModelProto:
-    """Rewrite ``proto`` (in place, and returned) into the portable form:
-
-    * ``ReduceSum`` over a short static axis becomes the sum of its entries, left to
-      right (Gather + Add): onnxruntime before 1.32 returns a [0, 3] tensor for the sum
-      over the last axis of a [0, 3] one, and the next Div then fails on a batch of 0
-      rows.  neural_brdf.graph lowers ReduceSum to the same left-to-right sum, so
-      generated code does not change.
-    * ``Clip`` with an omitted bound (torch's clamp_min / clamp_max write the empty
-      input name "") becomes ``Max(x, min)`` / ``Min(x, max)``: onnx2torch takes a
-      Clip's bounds as constants and refuses the empty name.
-    * ``ConstantOfShape(Shape(x))`` (torch's zeros_like / ones_like) feeding a ``Where``
-      that also takes ``x`` becomes a scalar constant, which Where broadcasts to the same
-      shape: onnx's version converter has no adapter for Shape below opset 15.
-
-    Nodes and initializers that nothing uses any more are dropped.  The graph's inputs,
-    outputs and metadata are untouched."""
-    g = proto.graph
-    inferred = onnx.shape_inference.infer_shapes(proto)
-    shapes = {
-        v.name: [
-            d.dim_value if d.HasField("dim_value") else None for d in v.type.tensor_type.shape.dim
-        ]
-        for v in list(inferred.graph.value_info) + list(inferred.graph.input)
-        if v.type.tensor_type.HasField("shape")
-    }
-    consts = {t.name: numpy_helper.to_array(t) for t in g.initializer}
-    for n in g.node:
-        if n.op_type == "Constant" and n.attribute and n.attribute[0].name == "value":
-            consts[n.output[0]] = numpy_helper.to_array(n.attribute[0].t)
-    producer = {o: n for n in g.node for o in n.output}
-    added: list[onnx.TensorProto] = []
-
-    def const(value, dtype) -> str:
-        name = f"{PORTABLE_PREFIX}c{len(added)}"
-        added.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-        return name
-
-    nodes = []
-    for n in g.node:
-        nodes.extend(_portable_node(n, shapes, consts, producer, const))
-    del g.node[:]
-    g.node.extend(nodes)
-    g.initializer.extend(added)
-    _drop_unused(g)
-    return proto
-
-
-def _portable_node(n, shapes, consts, producer, const) -> list:
-    """The node(s) that replace ``n`` in :func:`portable_graph` (``[n]`` when none do)."""
-    make = onnx.helper.make_node
-    name = n.name or n.output[0]
-    if n.op_type == "Clip" and not n.attribute and (len(n.input) < 3 or not all(n.input[1:3])):
-        bounds = [(op, n.input[i]) for op, i in (("Max", 1), ("Min", 2)) if len(n.input) > i]
-        bounds = [(op, b) for op, b in bounds if b]
-        if not bounds:
-            return [make("Identity", [n.input[0]], list(n.output), name=name)]
-        out, x = [], n.input[0]
-        for k, (op, b) in enumerate(bounds):
-            y = n.output[0] if k == len(bounds) - 1 else f"{PORTABLE_PREFIX}{name}/{op}"
-            out.append(make(op, [x, b], [y], name=f"{name}/{op}"))
-            x = y
-        return out
-    if n.op_type == "ReduceSum":
-        attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
-        axes = consts.get(n.input[1]) if len(n.input) > 1 and n.input[1] else None
-        if axes is None and attrs.get("axes") is not None:  # opset < 13: an attribute
-            axes = np.asarray(attrs["axes"])
-        shape = shapes.get(n.input[0])
-        if axes is None or axes.size != 1 or shape is None or attrs.get("noop_with_empty_axes"):
-            return [n]
-        axis = int(axes.reshape(-1)[0]) % len(shape)
-        size = shape[axis]
-        if size is None or not 1 <= size <= REDUCE_UNROLL:
-            return [n]
-        keep = bool(attrs.get("keepdims", 1))
-        out, acc = [], None
-        for k in range(size):
-            idx = const([k] if keep else k, np.int64)
-            part = f"{PORTABLE_PREFIX}{name}/{k}"
-            out.append(
-                make("Gather", [n.input[0], idx], [part], name=f"{name}/Gather{k}", axis=axis)
-            )
-            if acc is not None:
-                y = n.output[0] if k == size - 1 else f"{PORTABLE_PREFIX}{name}/sum{k}"
-                out.append(make("Add", [acc, part], [y], name=f"{name}/Add{k}"))
-                part = y
-            acc = part
-        if size == 1:
-            out.append(make("Identity", [str(acc)], [n.output[0]], name=f"{name}/Identity"))
-        return out
-    if n.op_type == "Where":
-        inputs = list(n.input)
-        changed = False
-        for i in (1, 2):
-            src = producer.get(inputs[i])
-            if src is None or src.op_type != "ConstantOfShape":
-                continue
-            shape_node = producer.get(src.input[0])
-            if shape_node is None or shape_node.op_type != "Shape" or shape_node.attribute:
-                continue
-            if shape_node.input[0] != inputs[3 - i]:  # where(c, x, zeros_like(x)) only
-                continue
-            fill = next((a.t for a in src.attribute if a.name == "value"), None)
-            value = numpy_helper.to_array(fill).reshape(-1)[0] if fill is not None else 0.0
-            dtype = numpy_helper.to_array(fill).dtype if fill is not None else np.float32
-            inputs[i] = const(value, dtype)
-            changed = True
-        if changed:
-            return [make("Where", inputs, list(n.output), name=name)]
-    return [n]
-
-
-def _drop_unused(g) -> None:
-    """Remove nodes none of whose outputs is used, and unused initializers (not in a graph
-    with subgraphs, whose uses this does not see)."""
-    if any(
-        a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS)
-        for n in g.node
-        for a in n.attribute
-    ):
-        return
-    while True:
-        used = {i for n in g.node for i in n.input} | {o.name for o in g.output}
-        keep = [n for n in g.node if any(o in used for o in n.output)]
-        if len(keep) == len(g.node):
-            break
-        del g.node[:]
-        g.node.extend(keep)
-    inits = [t for t in g.initializer if t.name in used]
-    del g.initializer[:]
-    g.initializer.extend(inits)
-
-
-# Opset conversion (docs/portable.md, "Opsets").  onnx's version converter has no adapter
-# down from opset 14 for even Add, Sub, Mul and Div (14 only admitted more types), so it
-# cannot take any graph with arithmetic below 14.  Every op these graphs hold kept its
-# meaning for float32 from opset 13 to the newest: the schema versions below only widened
-# the types (bfloat16, float8, integers, optional and sequence types) or added an
-# attribute whose default keeps the old behaviour (Reshape allowzero, Shape start/end,
-# Cast saturate, which acts on float8 only).  Between two opsets that only such versions
-# separate, conversion is a relabelling of the opset, checked by onnx's full check.
-MIN_OPSET = 13  # below it ReduceSum, Unsqueeze, Squeeze, Split, Clip changed form
-TYPES_ONLY_VERSIONS = {
-    *{(op, 14) for op in ("Add", "Sub", "Mul", "Div", "Relu", "Identity", "Reshape")},
-    *{(op, 15) for op in ("Pow", "Shape")},
-    *{(op, 16) for op in ("Where", "Identity", "LessOrEqual", "GreaterOrEqual")},
-    *{(op, 19) for op in ("Cast", "Constant", "Equal", "Identity", "Reshape", "Shape")},
-    *{(op, 20) for op in ("IsNaN", "IsInf", "ConstantOfShape")},
-    *{
-        (op, v)
-        for v in (21, 23, 24)
-        for op in (
-            "Cast",
-            "Constant",
-            "ConstantOfShape",
-            "Identity",
-            "Reshape",
-            "Shape",
-            "Squeeze",
-            "Transpose",
-            "Unsqueeze",
-        )
-    },
-    *{
-        (op, 22)
-        for op in ("Softplus", "Atan", "Asin", "Acos", "Cos", "Sin", "Tan", "Softsign", "Elu")
-    },
-}
-
-
-def _version_steps(op: str, lo: int, hi: int) -> list[int]:
-    """The schema versions of ``op`` that took effect in the opsets (lo, hi]."""
-    steps = []
-    for v in range(lo + 1, hi + 1):
-        try:
-            since = onnx.defs.get_schema(op, v).since_version
-        except onnx.defs.SchemaError:
-            return [-1]  # the op does not exist at one end
-        if since > lo and since not in steps:
-            steps.append(since)
-    return steps
-
-
-def convert_opset(model, opset: int) -> onnx.ModelProto:
-    """An exported model (a path, bytes or ModelProto) at ONNX opset ``opset``.
-
-    Between opset 13 and the newest that onnx knows, a graph whose ops changed only in
-    their types in between (:data:`TYPES_ONLY_VERSIONS`; an attribute that would change
-    the meaning, such as Reshape's allowzero = 1, disqualifies) is relabelled; any other is
-    left to onnx's version converter, which converts upwards.  The result passes
-    ``onnx.checker.check_model(full_check=True)``; ``onnx.checker.ValidationError`` or a
-    ValueError when it cannot be converted."""
-    from neural_brdf import graph as graphmod
-
-    proto = copy.deepcopy(graphmod.load(model))
-    current = next(o.version for o in proto.opset_import if o.domain in ("", "ai.onnx"))
-    newest = onnx.defs.onnx_opset_version()
-    if not MIN_OPSET <= opset <= newest:
-        raise ValueError(f"opset {opset}: supported are {MIN_OPSET} to {newest}")
-    lo, hi = sorted((current, opset))
-    blocking = set()
-    for n in proto.graph.node:
-        attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
-        changed = [(n.op_type, v) for v in _version_steps(n.op_type, lo, hi)]
-        if any(c not in TYPES_ONLY_VERSIONS for c in changed) or (
-            changed
-            and (
-                attrs.get("allowzero", 0)
-                or "start" in attrs
-                or "end" in attrs
-                or "saturate" in attrs
-            )
-        ):
-            blocking.add(n.op_type)
-    if not blocking:
-        for o in proto.opset_import:
-            if o.domain in ("", "ai.onnx"):
-                o.version = opset
-        need = onnx.helper.find_min_ir_version_for(list(proto.opset_import))
-        proto.ir_version = max(proto.ir_version, need)
-    elif opset > current:
-        proto = onnx.version_converter.convert_version(proto, opset)
-    else:
-        raise ValueError(
-            f"opset {current} -> {opset}: ops {sorted(blocking)} changed meaning in between; "
-            f"export at opset {opset} instead (export.opset)"
-        )
-    onnx.checker.check_model(proto, full_check=True)
-    return proto
-
-
 def to_onnx_bytes(model: torch.nn.Module, opset: int, *, portable: bool = True) -> bytes:
     """``model`` (forward(wi, wo) -> f) as ONNX bytes: torch's legacy exporter, then
     :func:`portable_graph` (``portable=False``: torch's graph as it is, for comparison)."""
@@ -453,7 +239,7 @@ def to_onnx_bytes(model: torch.nn.Module, opset: int, *, portable: bool = True) 
             opset_version=opset,
             input_names=list(INPUTS),
             output_names=[OUTPUT],
-            dynamic_axes={"wi": {0: "N"}, "wo": {0: "N"}, "f": {0: "N"}},
+            dynamic_axes={name: {0: "N"} for name in (*INPUTS, OUTPUT)},
         )
     if not portable:
         return buf.getvalue()
@@ -482,7 +268,8 @@ def parity_error(
     with torch.no_grad():
         ref = model(wi, wo).numpy().astype(np.float64)
         exact = copy.deepcopy(model).double()(wi.double(), wo.double()).numpy()
-    got = session.run([OUTPUT], {"wi": wi.numpy(), "wo": wo.numpy()})[0].astype(np.float64)
+    feeds = dict(zip(INPUTS, (wi.numpy(), wo.numpy())))
+    got = session.run([OUTPUT], feeds)[0].astype(np.float64)
     return (
         relative_difference(got, ref),
         relative_difference(ref, exact),
@@ -497,19 +284,54 @@ def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)))
 
 
-def export(
-    model: NormalizedBRDF | RawBRDF,
-    cfg: cfgmod.Config,
-    out: str | Path,
-    *,
-    target_desc: str,
-    extra: Any = None,
-) -> dict[str, Any]:
-    """Write ``model`` to ``out`` with metadata; returns the measured figures.
+def parity_allowed(parity_tol: float, precision: float) -> float:
+    """The largest torch-vs-onnxruntime difference an export accepts: ``parity_tol``
+    (``export.parity_tol``), or twice the network's own float32 ``precision`` where that
+    is larger (module doc).  The report's parity row judges by it too."""
+    return max(parity_tol, 2.0 * precision)
 
-    The graph written is ``TotalBRDF(model)``: it normalises its inputs and gives 0 for
-    rows with a non-finite or zero-length direction, so no input row can crash a host or
-    change another row (see :class:`neural_brdf.train.model.TotalBRDF`).
+
+@dataclass(frozen=True)
+class Built:
+    """A model's graph as :func:`write` writes it (the ONNX bytes, no metadata yet), an
+    onnxruntime session of it, and how closely it agrees with torch (:func:`build`)."""
+
+    model: NormalizedBRDF | RawBRDF
+    payload: bytes
+    session: ort.InferenceSession
+    parity_rel_error: float
+    float32_rel_precision: float
+
+    @property
+    def anisotropic(self) -> bool:
+        return bool(self.model.anisotropic)
+
+    def eval(self, wi: Any, wo: Any) -> np.ndarray:
+        """f of the graph through onnxruntime: (N, 3) arrays in, (N, 3) float32 out."""
+        feeds = {name: np.asarray(x, np.float32) for name, x in zip(INPUTS, (wi, wo))}
+        return self.session.run([OUTPUT], feeds)[0]
+
+
+class Measure(Protocol):
+    """What measures a graph's physics for its metadata: :func:`neural_brdf.validate.physics`."""
+
+    def __call__(
+        self,
+        fn: Callable[[Any, Any], np.ndarray],
+        *,
+        anisotropic: bool,
+        settings: cfgmod.Validation,
+        target: Described | None = None,
+    ) -> dict[str, Any]: ...
+
+
+def build(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config) -> Built:
+    """``TotalBRDF(model)`` as ONNX, checked against torch (ParityError when they differ
+    by more than :func:`parity_allowed`; nothing is written).
+
+    The graph normalises its inputs and gives 0 for rows with a non-finite or zero-length
+    direction, so no input row can crash a host or change another row (see
+    :class:`neural_brdf.train.model.TotalBRDF`).
     """
     graph = TotalBRDF(model)
     payload = to_onnx_bytes(graph, cfg.export.opset)
@@ -519,7 +341,7 @@ def export(
     parity, precision, ort_exact = parity_error(
         graph, session, cfg.export.parity_pairs, cfg.train.seed + 29
     )
-    allowed = max(cfg.export.parity_tol, 2.0 * precision)
+    allowed = parity_allowed(cfg.export.parity_tol, precision)
     # torch and onnxruntime each round in float32, in their own order: where both errors
     # are near torch's largest (a grazing pair on a steep grid cell) their difference can
     # reach twice it, so onnxruntime also passes when it is as close to the exact float64
@@ -530,14 +352,30 @@ def export(
             f"{allowed:.3g}: export.parity_tol, or twice the float32 precision "
             f"of the network, {precision:.3g}); nothing written"
         )
+    return Built(model, payload, session, parity, precision)
 
-    def fn(a, b):
-        return session.run(
-            [OUTPUT], {"wi": np.asarray(a, np.float32), "wo": np.asarray(b, np.float32)}
-        )[0]
 
-    phys = validate.physics(fn, anisotropic=model.anisotropic, settings=cfg.validation, extra=extra)
-    checks = phys["checks"]
+def write(
+    built: Built,
+    cfg: cfgmod.Config,
+    out: str | Path,
+    *,
+    physics: dict[str, Any],
+    target: Described | None = None,
+    target_desc: str | None = None,
+) -> dict[str, Any]:
+    """Write ``built`` to ``out`` with its metadata; returns the parity figures and the
+    path.
+
+    ``physics``: :func:`neural_brdf.validate.physics` of ``built.eval`` (the file records
+    its figures); ``target``: what the model was fitted to, described by ``target_desc``
+    (default ``target.describe()``; an images fit has no target, only a description).
+    """
+    if target_desc is None:
+        if target is None:
+            raise TypeError("write: give target or target_desc (what the model was fitted to)")
+        target_desc = target.describe()
+    checks = physics["checks"]
     meta = Metadata(
         metadata_version=METADATA_VERSION,
         format_version=FORMAT_VERSION,
@@ -545,30 +383,58 @@ def export(
         frame=FRAME,
         units=UNITS,
         encoding=cfg.model.encoding,
-        normalization=normalization_note(model, cfg.normalization),
-        target=target_json(cfg, target_desc, extra),
+        normalization=normalization_note(built.model, cfg.normalization),
+        target=target_json(cfg, target_desc, target),
         max_albedo=checks["max_albedo"]["value"],
-        hemispherical_albedo=plain(phys["hemispherical_albedo"]),
+        hemispherical_albedo=plain(physics["hemispherical_albedo"]),
         reciprocity_error=checks["reciprocity"]["value"],
         min_value=checks["min_value"]["value"],
-        parity_rel_error=parity,
-        float32_rel_precision=precision,
+        parity_rel_error=built.parity_rel_error,
+        float32_rel_precision=built.float32_rel_precision,
         training_config=cfg.model_dump(mode="json"),
-        sampling_lobe=lobe.fit(fn),  # renderers' importance sampling
+        sampling_lobe=lobe.fit(built.eval),  # renderers' importance sampling
     ).to_props()
-    proto = onnx.load_from_string(payload)
+    proto = onnx.load_from_string(built.payload)
     onnx.helper.set_model_props(proto, meta)
     proto.producer_name = PRODUCER_NAME
     proto.producer_version = __version__
     proto.model_version = FORMAT_VERSION  # the file format, an integer
-    proto.doc_string = doc_string(cfg, target_desc, isinstance(model, NormalizedBRDF))
+    proto.doc_string = doc_string(cfg, target_desc, isinstance(built.model, NormalizedBRDF))
     onnx.checker.check_model(proto)
     atomic_write(Path(out), proto.SerializeToString(), parents=True)
-    return {"parity_rel_error": parity, "float32_rel_precision": precision, "physics": phys}
+    return {
+        "parity_rel_error": built.parity_rel_error,
+        "float32_rel_precision": built.float32_rel_precision,
+        "path": str(out),
+    }
 
 
-def export_run(run_dir: str | Path, out: str | Path | None = None) -> dict[str, Any]:
-    """``neural-brdf export RUN_DIR [-o OUT]``: checkpoint -> normalised model -> ONNX."""
+def export(
+    model: NormalizedBRDF | RawBRDF,
+    cfg: cfgmod.Config,
+    out: str | Path,
+    *,
+    measure: Measure,
+    target: Described | None = None,
+    target_desc: str | None = None,
+) -> dict[str, Any]:
+    """:func:`build`, ``measure`` the graph (pass :func:`neural_brdf.validate.physics`),
+    :func:`write`: ``model`` to ``out``.  Returns the parity figures, the path and
+    ``physics``, what ``measure`` returned (its verdict is validate's:
+    ``validate.physics_passed``)."""
+    built = build(model, cfg)
+    phys = measure(
+        built.eval, anisotropic=built.anisotropic, settings=cfg.validation, target=target
+    )
+    info = write(built, cfg, out, physics=phys, target=target, target_desc=target_desc)
+    return {**info, "physics": phys}
+
+
+def export_run(
+    run_dir: str | Path, out: str | Path | None = None, *, measure: Measure
+) -> dict[str, Any]:
+    """``neural-brdf export RUN_DIR [-o OUT]``: checkpoint -> normalised model -> ONNX
+    (:func:`export`, ``measure``: :func:`neural_brdf.validate.physics`)."""
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
@@ -579,9 +445,8 @@ def export_run(run_dir: str | Path, out: str | Path | None = None) -> dict[str, 
     raw = raw_from_checkpoint(ckpt, cfg)
     model, table_info = normalized_model(raw, cfg, target)
     out = Path(out) if out is not None else run_dir / "model.onnx"
-    info = export(model, cfg, out, target_desc=target.describe(), extra=target)
+    info = export(model, cfg, out, measure=measure, target=target)
     info["normalization"] = table_info
-    info["path"] = str(out)
     return info
 
 

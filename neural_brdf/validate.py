@@ -1,6 +1,7 @@
 """Physics and accuracy checks of an exported model (or of any BRDF-like callable).
 
-Physics (all must pass; the CLI exits 1 otherwise):
+Physics (all must pass: ``report["passed"]``, :func:`physics_passed`; training and
+``neural-brdf export`` exit 1 otherwise):
 
 * reciprocity: max |f(a,b) - f(b,a)| / max(|f(a,b)|, |f(b,a)|) over random pairs,
   10% of them within 1 degree of grazing (``analytic.reciprocity_error``);
@@ -36,11 +37,17 @@ incidence phi = 0 and phi = 90 degrees (both tangent axes).  The error at a pair
 largest over RGB of |f^ / f - 1|, with f floored at 1e-3 of the largest target value
 of the probe (so a channel with next to nothing in it cannot dominate).  The check passes
 when the largest error is <= ``validation.peak_tol`` (3 %).
+
+``neural-brdf validate`` exits 1 when any check of its report fails, the peak included
+(:func:`passed`); training's verdict is the physics alone.
+
+The model is compared with a ``target`` (:mod:`neural_brdf.target`): an analytic model
+or measured data; an images fit has none (physics only).  ``export`` writes into the file
+the figures :func:`physics` measured on its graph; they are this module's.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -51,9 +58,10 @@ import torch
 
 import analytic
 from neural_brdf import config as cfgmod
-from neural_brdf.fileio import atomic_write
+from neural_brdf.fileio import atomic_write, json_text
 from neural_brdf.physics import quadrature
 from neural_brdf.runtime import load
+from neural_brdf.target import Described, Target, kind_of
 from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 
@@ -91,16 +99,22 @@ def furnace_directions(n_theta: int, anisotropic: bool, seed: int) -> torch.Tens
 
 
 def physics(
-    fn: Callable, *, anisotropic: bool, settings: cfgmod.Validation, extra: Any = None
+    fn: Callable,
+    *,
+    anisotropic: bool,
+    settings: cfgmod.Validation,
+    target: Described | None = None,
 ) -> dict[str, Any]:
-    """Physics checks of ``fn(wi, wo)`` on numpy (N, 3) arrays -> a report dict."""
+    """Physics checks of ``fn(wi, wo)`` on numpy (N, 3) arrays -> a report dict
+    (``checks``, ``hemispherical_albedo``, ``furnace``).  ``target``: the model's target,
+    whose own sampler (if it has one) helps the furnace quadrature."""
     s = settings
     recip = analytic.reciprocity_error(fn, n=s.pairs, seed=s.seed)
     min_val = analytic.min_value(fn, n=s.pairs, seed=s.seed + 1)
     dirs = furnace_directions(s.furnace_dirs, anisotropic, s.seed + 2)
 
     rho, err = quadrature.albedo(
-        quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, extra=extra
+        quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, target=target
     )
     rho, err = rho.numpy(), err.numpy()
     # hemispherical albedo: 2 int_0^1 rho(mu) mu dmu, rows averaged over azimuth
@@ -144,12 +158,24 @@ def physics(
     }
 
 
-def accuracy(fn: Callable, reference: Any, *, n: int, seed: int) -> dict[str, Any]:
-    """Error of ``fn`` (numpy in/out) against ``reference`` (an analytic BRDF or a
-    :class:`data.MeasuredTarget`) on :func:`data.accuracy_pairs`; ``n`` applies to
-    analytic references (a measured one is compared on all its bins)."""
-    measured = isinstance(reference, data.MeasuredTarget)
-    wi, wo, ref = data.accuracy_pairs(reference, None if measured else n, seed)
+def physics_passed(report: dict[str, Any]) -> bool:
+    """Every physics check of ``report`` (of :func:`physics` or :func:`report`) passed:
+    training's and ``neural-brdf export``'s verdict."""
+    return all(c["passed"] for c in report["checks"].values())
+
+
+def passed(report: dict[str, Any]) -> bool:
+    """Every check of ``report`` (:func:`report`) passed: the physics and, with an
+    analytic target, the peak.  ``neural-brdf validate``'s verdict."""
+    return physics_passed(report) and bool(report.get("peak", {}).get("passed", True))
+
+
+def accuracy(fn: Callable, target: Target, *, n: int, seed: int) -> dict[str, Any]:
+    """Error of ``fn`` (numpy in/out) against ``target`` (an analytic BRDF or measured
+    data) on :func:`data.accuracy_pairs`; ``n`` applies to analytic targets (measured
+    data are compared on all their bins)."""
+    measured = kind_of(target) == "measured"
+    wi, wo, ref = data.accuracy_pairs(target, None if measured else n, seed)
     n = len(wi)
     wi, wo, ref = wi.numpy(), wo.numpy(), ref.numpy()
     pred = np.asarray(fn(wi, wo), dtype=np.float64)
@@ -217,11 +243,11 @@ def peak_pairs(anisotropic: bool) -> tuple[np.ndarray, np.ndarray, list[dict[str
     return np.array(wis), np.array(wos), labels
 
 
-def peak(fn: Callable, reference: Any, *, anisotropic: bool, tol: float) -> dict[str, Any]:
+def peak(fn: Callable, target: Target, *, anisotropic: bool, tol: float) -> dict[str, Any]:
     """Model / target at and around the mirror direction (module doc) -> a report dict:
     the largest error, where it is, pass/fail against ``tol``, and every probed pair."""
     wi, wo, labels = peak_pairs(anisotropic)
-    ref = np.asarray(reference.eval(wi, wo), dtype=np.float64)
+    ref = np.asarray(target.eval(wi, wo), dtype=np.float64)
     pred = np.asarray(fn(wi, wo), dtype=np.float64)
     floor = PEAK_FLOOR * max(float(np.max(ref)), 1e-300)
     ratio = pred / np.maximum(ref, floor)
@@ -242,9 +268,11 @@ def peak(fn: Callable, reference: Any, *, anisotropic: bool, tol: float) -> dict
 
 
 def reference_from(path: str | Path) -> Any:
-    """``--reference``: a YAML config (its target), a MERL ``.binary`` or an RGL ``.bsdf``
-    file."""
-    if Path(path).suffix.lower() in data.MEASURED_SUFFIXES:
+    """``--reference``: a measured file (a MERL ``.binary``, an RGL ``.bsdf``: any suffix
+    of :mod:`neural_brdf.measured.formats`), or else a YAML config (its target)."""
+    from neural_brdf.measured import formats
+
+    if formats.find(path) is not None:
         return data.MeasuredTarget.from_file(path, key="--reference")
     return data.build_target(cfgmod.load(path).target)
 
@@ -252,16 +280,18 @@ def reference_from(path: str | Path) -> Any:
 def report(
     model_path: str | Path,
     *,
-    reference: Any = None,
+    target: cfgmod.Config | Target | None = None,
     settings: cfgmod.Validation | None = None,
     physics_report: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Full report of an exported model; ``["passed"]`` is the physics verdict.
+    """Full report of an exported model; ``["passed"]`` is the physics verdict
+    (:func:`passed` adds the peak).
 
-    ``reference``: a :class:`Config` (its target is built), or a target already built
-    (an analytic BRDF, a :class:`data.MeasuredTarget`), or None (physics only).
-    ``settings`` default to the ``validation`` section of the model's embedded config.
-    ``physics_report`` reuses checks already measured on this very file (by the export).
+    ``target``: a :class:`Config` (its target is built), or a target already built (an
+    analytic BRDF, measured data), or None (physics only).  ``settings`` default to the
+    ``validation`` section of the model's embedded config.  ``physics_report``:
+    :func:`physics` of this very file, when it was measured already (the pipeline
+    measures the graph before writing it, for its metadata).
     """
     model = load(model_path)
     if settings is None:
@@ -269,9 +299,7 @@ def report(
             settings = cfgmod.from_dict(model.config).validation
         except cfgmod.ConfigError:
             settings = cfgmod.Validation()
-    target = (
-        data.build_target(reference.target) if isinstance(reference, cfgmod.Config) else reference
-    )
+    built = data.build_target(target.target) if isinstance(target, cfgmod.Config) else target
     out = {
         "model": str(model_path),
         "encoding": model.encoding,
@@ -279,22 +307,22 @@ def report(
     }
     if physics_report is None:
         physics_report = physics(
-            model.eval, anisotropic=is_anisotropic(model.encoding), settings=settings, extra=target
+            model.eval, anisotropic=is_anisotropic(model.encoding), settings=settings, target=built
         )
     out.update(physics_report)
-    if target is not None:
-        out["reference"] = target.describe()
+    if built is not None:
+        out["reference"] = built.describe()
         out["accuracy"] = accuracy(
-            model.eval, target, n=settings.accuracy_samples, seed=settings.seed + 4
+            model.eval, built, n=settings.accuracy_samples, seed=settings.seed + 4
         )
-        if not isinstance(target, data.MeasuredTarget):
+        if kind_of(built) != "measured":
             out["peak"] = peak(
                 model.eval,
-                target,
-                anisotropic=is_anisotropic(model.encoding) or bool(target.anisotropic),
+                built,
+                anisotropic=is_anisotropic(model.encoding) or bool(built.anisotropic),
                 tol=settings.peak_tol,
             )
-    out["passed"] = all(c["passed"] for c in out["checks"].values())
+    out["passed"] = physics_passed(out)
     return out
 
 
@@ -331,19 +359,7 @@ def format_table(report: dict[str, Any]) -> str:
     return "\n".join([f"{report['model']}: physics {verdict}"] + lines)
 
 
-def _finite(x):
-    """Strict JSON has no NaN or Infinity: write those as strings."""
-    if isinstance(x, float) and not math.isfinite(x):
-        return str(x)
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_finite(v) for v in x]
-    return x
-
-
 def write_json(report: dict[str, Any], path: str | Path) -> None:
-    """Write ``report`` as strict JSON, atomically (a temporary file, then a rename)."""
-    path = Path(path)
-    text = json.dumps(_finite(report), indent=2, allow_nan=False) + "\n"
-    atomic_write(path, text)
+    """Write ``report`` as strict JSON (fileio.json_text: a NaN or an infinity as the
+    string "nan", "inf"), atomically (a temporary file, then a rename)."""
+    atomic_write(Path(path), json_text(report))

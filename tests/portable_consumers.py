@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from neural_brdf import export
+from neural_brdf.fileformat import portable
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL = REPO / "tests" / "portable_eval.py"
@@ -255,8 +256,8 @@ def measure(model: str | Path, consumers=CONSUMERS, n: int = 20_000) -> dict:
 
 def opset_figures(model: str | Path, opsets=(13, 14, 15, 18, 21), n: int = 4096) -> dict:
     """{opset: {"check_model": True, "onnxruntime": max rel diff, "onnxruntime-1.18": ...}}
-    of :func:`neural_brdf.export.convert_opset` of ``model`` to each opset (1.18 runs
-    opsets up to 21)."""
+    of :func:`neural_brdf.fileformat.portable.convert_opset` of ``model`` to each opset
+    (1.18 runs opsets up to 21)."""
     import onnx
 
     inputs = {k: v for k, v in cases(n).items() if k in ("random", "empty")}
@@ -265,7 +266,7 @@ def opset_figures(model: str | Path, opsets=(13, 14, 15, 18, 21), n: int = 4096)
     with tempfile.TemporaryDirectory(prefix="nbrdf-opset-") as tmp:
         for opset in opsets:
             path = Path(tmp) / f"opset{opset}.onnx"
-            onnx.save(export.convert_opset(model, opset), path)
+            onnx.save(portable.convert_opset(model, opset), path)
             row: dict = {"check_model": True}
             for consumer in ("onnxruntime", "onnxruntime-1.18"):
                 if consumer == "onnxruntime-1.18" and opset > 21:

@@ -28,6 +28,7 @@ import numpy as np
 from neural_brdf import graph
 from neural_brdf.backends import lobe as lobe_ir
 from neural_brdf.errors import InputError
+from neural_brdf.fileformat import INPUTS, OUTPUT
 from neural_brdf.fileformat import lobe as lobes  # the stored lobe: its schema
 
 PREFIX = "neural_brdf"
@@ -262,16 +263,16 @@ class CStyleRenderer:
         """The file's text for an ONNX model (path, bytes or ModelProto)."""
         proto = graph.load(model)
         prog = graph.lower(proto)
+        # the file's contract (fileformat): inputs wi, wo [N, 3], output f [N, 3]
         if (
-            list(prog.inputs) != ["wi", "wo"]
-            or list(prog.outputs) != ["f"]
-            or prog.inputs["wi"] != 3
-            or prog.inputs["wo"] != 3
-            or len(prog.outputs["f"]) != 3
+            tuple(prog.inputs) != INPUTS
+            or list(prog.outputs) != [OUTPUT]
+            or any(prog.inputs[name] != 3 for name in INPUTS)
+            or len(prog.outputs[OUTPUT]) != 3
         ):
             raise InputError(
-                f"codegen: expected inputs wi, wo [N, 3] and output f [N, 3], got "
-                f"{prog.inputs} -> { {k: len(v) for k, v in prog.outputs.items()} }"
+                f"codegen: expected inputs {', '.join(INPUTS)} [N, 3] and output {OUTPUT} "
+                f"[N, 3], got {prog.inputs} -> { {k: len(v) for k, v in prog.outputs.items()} }"
             )
         if lobe is None:
             lobe = lobes.from_metadata(prog.metadata)

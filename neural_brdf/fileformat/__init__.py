@@ -7,7 +7,8 @@ numpy).  Its modules hold the rest of what a reader of model.onnx needs:
 * :mod:`.metadata`: the values' encoding, their decoding for every metadata version and
   the typed :class:`~neural_brdf.fileformat.metadata.Metadata` the exporter writes;
 * :mod:`.lobe`: the sampling lobe's schema, pdf and reference sampler;
-* :mod:`.reader`: the one ONNX loader (one-line errors);
+* :mod:`.reader`: the one ONNX loader (one-line errors) and the graph's signature;
+* :mod:`.portable`: the rewrite that makes torch's graph portable, and opset conversion;
 * ``onnx_metadata.js``: the metadata read in a browser or in Node.  It lists
   :data:`JSON_KEYS` again, in its own language; tests/fileformat/test_portable.py checks
   that the two lists agree.
@@ -23,6 +24,16 @@ from __future__ import annotations
 # output f float32 [N, 3] (1/sr, no cosine).
 INPUTS = ("wi", "wo")
 OUTPUT = "f"
+# An optional third input, for a material that varies over the surface (a textured
+# material): uv float32 [N, 2], the surface point's texture coordinates (u, v) as the
+# host's mesh gives them (docs/model.md, "The ONNX contract").
+# No file is exported with it yet; a reader accepts a graph whose inputs are one of
+# SIGNATURES, in that order (reader.signature), and a consumer that gives no uv may
+# evaluate only a graph without it.
+UV = "uv"
+OPTIONAL_INPUTS = (UV,)
+SIGNATURES = (INPUTS, INPUTS + OPTIONAL_INPUTS)
+INPUT_WIDTHS = {INPUTS[0]: 3, INPUTS[1]: 3, UV: 2}  # each input is float32 [N, width]
 
 # Of the resolved config, the checkpoint and the exported model (its ONNX model_version).
 # 2: the encoding's peak coordinate u_h replaced sqrt(theta_h / (pi/2)) (issue 19), so a

@@ -39,7 +39,7 @@ import torch
 
 from analytic import frame
 from analytic.microfacet import Distribution
-from neural_brdf.fileformat import OUTPUT
+from neural_brdf.fileformat import INPUTS, OUTPUT
 
 # The lobe's schema, its density and its metadata key belong to the file format; they are
 # named here too because the fit writes what the schema reads.
@@ -271,7 +271,7 @@ def fit_onnx(model, *, seed: int = 0) -> dict:
     opts.intra_op_num_threads = 1
     opts.log_severity_level = 3
     session = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
-    lobe = fit(lambda wi, wo: session.run([OUTPUT], {"wi": wi, "wo": wo})[0], seed=seed)
+    lobe = fit(lambda wi, wo: session.run([OUTPUT], dict(zip(INPUTS, (wi, wo))))[0], seed=seed)
     if len(_FITTED) >= _FITTED_MAX:
         _FITTED.pop(next(iter(_FITTED)))
     _FITTED[key] = copy.deepcopy(lobe)

@@ -14,7 +14,8 @@ have, and combines them with the balance heuristic (Veach 1997, ch. 9):
   wi: mirror-like lobes of any sharpness down to alpha ~ 0.005 (MERL's chrome: the
   narrowest proposal cut the standard error of its albedo ninefold);
 * GGX-distributed half vectors around wi: retro-reflective lobes (wo near wi);
-* optionally the sampler of a reference model (``extra=brdf``), e.g. the training target.
+* optionally the target's own sampler (``target=``, a :class:`neural_brdf.target.Sampled`:
+  an analytic model), e.g. the training target.
 
 The half-vector proposals have density p(wo) = D_a(h) (h . axis) / (4 wo . h) with
 h = (wi + wo) / |wi + wo| (Walter et al. 2007, eq. 14).  Points are scrambled Sobol,
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from analytic import frame, physics
+from neural_brdf.target import Described, sampler
 
 REPLICAS = physics.REPLICAS  # independently scrambled replicas for the standard error
 
@@ -44,7 +46,7 @@ PROPOSALS = (
     ("normal", 0.3, 0.1875),
     ("retro", 0.15, 0.125),
 )
-EXTRA_SHARE = 0.25  # share given to the reference model's sampler, when present
+TARGET_SHARE = 0.25  # share given to the target's own sampler, when it has one
 
 
 def _ggx_sample(u: torch.Tensor, alpha: float) -> torch.Tensor:
@@ -105,23 +107,21 @@ def albedo(
     n: int = 8192,
     *,
     seed: int = 0,
-    extra=None,
+    target: Described | None = None,
     chunk: int = 1 << 19,
 ):
     """rho(wi) for each row of ``wi`` (M, 3) -> (rho (M, C), stderr (M, C)), float64.
 
-    ``fn(wi, wo)`` takes float32 tensors (K, 3) and returns (K, C).  ``extra`` is an
-    optional model with ``sample_t`` / ``pdf_t`` (an :mod:`analytic` BRDF); a target
-    without a sampler (measured data, :class:`neural_brdf.train.data.MeasuredTarget`) adds
-    no proposal.
+    ``fn(wi, wo)`` takes float32 tensors (K, 3) and returns (K, C).  ``target``: the
+    target, whose own sampler (``sample_dir_t`` / ``pdf_t``: an :mod:`analytic` BRDF)
+    becomes one more proposal; a target without a sampler (measured data) adds none.
     """
     wi = torch.as_tensor(wi, dtype=torch.float64).reshape(-1, 3)
-    if not hasattr(extra, "pdf_t"):
-        extra = None
+    own = sampler(target)
     props = list(PROPOSALS)
-    if extra is not None:
-        props = [(k, a, s * (1.0 - EXTRA_SHARE)) for k, a, s in props] + [
-            ("extra", 0.0, EXTRA_SHARE)
+    if own is not None:
+        props = [(k, a, s * (1.0 - TARGET_SHARE)) for k, a, s in props] + [
+            ("target", 0.0, TARGET_SHARE)
         ]
     per = max(n // REPLICAS, len(props))
     counts = [max(1, int(round(s * per))) for _, _, s in props]
@@ -138,15 +138,15 @@ def albedo(
             wos = []
             for (kind, alpha, _), u in zip(props, us):
                 wb = w.expand(-1, len(u), 3)
-                if kind == "extra":
-                    wo = extra.sample_dir_t(wb, u.expand(len(w), -1, 2))
+                if own is not None and kind == "target":
+                    wo = own.sample_dir_t(wb, u.expand(len(w), -1, 2))
                 else:
                     wo = _draw(kind, alpha, wb, u)
                 wos.append(wo)
             wo = torch.cat(wos, 1)  # (m, per, 3)
             wb = w.expand_as(wo)
             p: torch.Tensor = sum(  # type: ignore[assignment]  # of tensors: a tensor
-                s * (extra.pdf_t(wb, wo) if k == "extra" else _pdf(k, a, wb, wo))
+                s * (own.pdf_t(wb, wo) if own is not None and k == "target" else _pdf(k, a, wb, wo))
                 for (k, a, _), s in zip(props, shares)
             )
             ok = (wo[..., 2] > 0) & (p > 0)
@@ -160,10 +160,18 @@ def albedo(
     return m.mean(0), m.std(0, unbiased=True) / math.sqrt(REPLICAS)
 
 
-def albedo_at(fn: Callable, theta_deg, n: int = 8192, *, seed: int = 0, extra=None) -> np.ndarray:
+def albedo_at(
+    fn: Callable,
+    theta_deg,
+    n: int = 8192,
+    *,
+    seed: int = 0,
+    target: Described | None = None,
+) -> np.ndarray:
     """rho(theta_i) (M, C) of a numpy ``fn(wi, wo)`` at incidences ``theta_deg`` (M,) in
-    the xz plane, by :func:`albedo`: the albedo curve of the report and the viewer."""
+    the xz plane, by :func:`albedo` (``target`` as there): the albedo curve of
+    the report and the viewer."""
     t = np.radians(np.asarray(theta_deg, dtype=np.float64))
     wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
-    rho, _ = albedo(from_numpy(fn), wi, n, seed=seed, extra=extra)
+    rho, _ = albedo(from_numpy(fn), wi, n, seed=seed, target=target)
     return rho.numpy()

@@ -278,7 +278,7 @@ def albedo_values(
 ) -> np.ndarray:
     """rho(theta_i) (len, 3) by the MIS quadrature of :mod:`neural_brdf.physics.quadrature`;
     ``sampler`` (an analytic model) adds its importance sampler to the proposals."""
-    return quadrature.albedo_at(fn, theta_i_deg, samples, seed=seed, extra=sampler)
+    return quadrature.albedo_at(fn, theta_i_deg, samples, seed=seed, target=sampler)
 
 
 def albedo_theta(n_theta: int = 46) -> np.ndarray:

@@ -9,8 +9,8 @@
   onnxruntime < 1.32 mis-shapes on 0 rows) and no Shape (which onnx's converter cannot
   take below opset 15), only ops that neural_brdf.graph lowers, and it passes onnx's full
   check; the rewrite that makes it so changes no output bit;
-* :func:`neural_brdf.export.convert_opset` gives the file at opsets 13 to 21, bit-identical
-  in onnxruntime and running in 1.18;
+* :func:`neural_brdf.fileformat.portable.convert_opset` gives the file at opsets 13 to 21,
+  bit-identical in onnxruntime and running in 1.18;
 * the metadata: version 2 is JSON where it has structure (the target an object, the
   training config JSON), files of version 1 still read, and the JavaScript reader of the
   viewer (neural_brdf/fileformat/onnx_metadata.js, run in Node) reads what Python's onnx reads, the
@@ -38,9 +38,9 @@ import analytic
 import neural_brdf
 import portable_consumers as pc
 from cli_helpers import ROOT
-from neural_brdf import config, export, fileformat, graph, runtime
+from neural_brdf import config, export, fileformat, graph, runtime, validate
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import reader
+from neural_brdf.fileformat import portable, reader
 from neural_brdf.fileformat.metadata import Metadata
 from neural_brdf.viewer import page as viewer
 
@@ -153,7 +153,7 @@ def test_convert_opset_13_to_21(model_file):
         assert row["onnxruntime-1.18"] <= PORTABLE_TOL, (opset, row)
         assert row["onnxruntime empty batch"] and row["onnxruntime-1.18 empty batch"], row
     with pytest.raises(ValueError, match="supported are 13"):
-        export.convert_opset(model_file, 12)
+        portable.convert_opset(model_file, 12)
 
 
 def test_onnx_version_converter_cannot_go_below_14():
@@ -169,7 +169,7 @@ def test_onnx_version_converter_cannot_go_below_14():
     m = h.make_model(g, opset_imports=[h.make_opsetid("", 17)])
     with pytest.raises(Exception, match="No Adapter From Version \\$?14 for Add"):
         onnx.version_converter.convert_version(m, 13)
-    assert export.convert_opset(m, 13).opset_import[0].version == 13
+    assert portable.convert_opset(m, 13).opset_import[0].version == 13
 
 
 # ------------------------------------------------------------------ metadata
@@ -183,7 +183,7 @@ def exported(tmp_path_factory):
     model, _ = export.normalized_model(raw, cfg)
     folder = tmp_path_factory.mktemp("exported")
     path = folder / "model.onnx"
-    export.export(model, cfg, path, target_desc=target.describe(), extra=target)
+    export.export(model, cfg, path, measure=validate.physics, target=target)
     old = onnx.load(str(path))  # as the code before metadata_version wrote it
     meta = {p.key: p.value for p in old.metadata_props}
     meta.pop("metadata_version")

@@ -1,0 +1,110 @@
+"""The graph's signature and the names only fileformat spells (issue 28).
+
+* a reader accepts a graph with inputs (wi, wo) or (wi, wo, uv), in that order, each
+  float32 [N, width], and the one output f [N, 3]; it refuses any other with one line;
+* the portable rewrite and the opset conversion live beside the file format and need
+  onnx and numpy only;
+* the ``sampling_lobe`` key is spelled in fileformat/ alone.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import onnx
+import pytest
+from onnx import TensorProto, helper
+
+import neural_brdf
+from neural_brdf import export, fileformat
+from neural_brdf.errors import InputError
+from neural_brdf.fileformat import portable, reader
+from neural_brdf.train.model import RawBRDF
+
+PACKAGE = Path(neural_brdf.__file__).parent
+
+
+def _graph(inputs: list[tuple[str, list]], outputs=(("f", ["N", 3]),), dtype=TensorProto.FLOAT):
+    """A graph whose output is the first input's first three columns (or the first input)."""
+    ins = [helper.make_tensor_value_info(n, dtype, shape) for n, shape in inputs]
+    outs = [helper.make_tensor_value_info(n, dtype, shape) for n, shape in outputs]
+    nodes = [helper.make_node("Identity", [inputs[0][0]], [outputs[0][0]])]
+    return helper.make_model(helper.make_graph(nodes, "g", ins, outs))
+
+
+def test_an_exported_graph_has_the_two_inputs():
+    raw = RawBRDF("isotropic", [8], "silu", init_value=0.2).eval()
+    proto = onnx.load_from_string(export.to_onnx_bytes(raw, 17))
+    assert reader.signature(proto) == fileformat.INPUTS == ("wi", "wo")
+
+
+def test_the_optional_third_input_is_uv():
+    assert fileformat.UV == "uv" and fileformat.OPTIONAL_INPUTS == ("uv",)
+    assert fileformat.SIGNATURES == (("wi", "wo"), ("wi", "wo", "uv"))
+    proto = _graph([("wi", ["N", 3]), ("wo", ["N", 3]), ("uv", ["N", 2])])
+    assert reader.signature(proto) == ("wi", "wo", "uv")
+    no_shape = _graph([("wi", None), ("wo", None), ("uv", None)], outputs=(("f", None),))
+    assert reader.signature(no_shape) == ("wi", "wo", "uv")
+
+
+@pytest.mark.parametrize(
+    "inputs, outputs, needle",
+    [
+        ([("wi", ["N", 3])], (("f", ["N", 3]),), "expected inputs"),
+        ([("wo", ["N", 3]), ("wi", ["N", 3])], (("f", ["N", 3]),), "expected inputs"),
+        ([("wi", ["N", 3]), ("wo", ["N", 3]), ("st", ["N", 2])], (("f", ["N", 3]),), "got"),
+        ([("wi", ["N", 3]), ("wo", ["N", 3])], (("rgb", ["N", 3]),), "output 'f'"),
+        ([("wi", ["N", 3]), ("wo", ["N", 3]), ("uv", ["N", 3])], (("f", ["N", 3]),), "'uv'"),
+        ([("wi", ["N", 4]), ("wo", ["N", 3])], (("f", ["N", 3]),), "'wi': expected float32"),
+        ([("wi", [3]), ("wo", ["N", 3])], (("f", ["N", 3]),), "[N, 3]"),
+    ],
+)
+def test_any_other_signature_is_one_line(inputs, outputs, needle):
+    with pytest.raises(InputError) as e:
+        reader.signature(_graph(inputs, outputs), source="x.onnx")
+    assert str(e.value).startswith("x.onnx: ") and needle in str(e.value)
+    assert "\n" not in str(e.value) and len(str(e.value)) < 300
+
+
+def test_a_double_input_is_refused():
+    proto = _graph([("wi", ["N", 3]), ("wo", ["N", 3])], dtype=TensorProto.DOUBLE)
+    with pytest.raises(InputError, match="float32"):
+        reader.signature(proto)
+
+
+def test_long_names_are_cut_in_the_message():
+    proto = _graph([("w" * 5000, ["N", 3])])
+    with pytest.raises(InputError) as e:
+        reader.signature(proto)
+    assert len(str(e.value)) < 300
+
+
+def _imports(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module)
+        elif isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+    return names
+
+
+def test_the_portable_rewrite_is_pure_onnx_beside_the_file_format():
+    imported = _imports(Path(portable.__file__))
+    outside = {m.split(".")[0] for m in imported} - {"__future__", "copy", "numpy", "onnx"}
+    assert outside <= {"neural_brdf"}, outside
+    assert {m for m in imported if m.startswith("neural_brdf")} <= {"neural_brdf.fileformat"}
+    assert export.portable_graph is portable.portable_graph  # what export runs
+    assert not hasattr(export, "convert_opset")  # one home
+
+
+def test_the_lobe_key_is_spelled_in_fileformat_only():
+    spelled = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if "fileformat" in path.relative_to(PACKAGE).parts:
+            continue
+        for n in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(n, ast.Constant) and n.value == fileformat.LOBE_KEY:
+                spelled.append(f"{path.relative_to(PACKAGE)}:{n.lineno}")
+    assert spelled == []

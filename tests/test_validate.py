@@ -1,0 +1,70 @@
+"""The validator's verdicts and its seam with export (issue 28).
+
+* ``neural-brdf validate`` exits 1 when any check of its report fails, the peak included
+  (docs/cli.md); ``report["passed"]`` stays the physics verdict, training's;
+* the physics measured on the graph before it is written (the pipeline's one
+  measurement, for the metadata and metrics.json) is what validate measures on the file;
+* the target is passed as ``target``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from cli_helpers import ROOT, TINY, cli
+from neural_brdf import config, export, validate
+from neural_brdf.train.model import RawBRDF
+
+LAMBERT = ROOT / "configs" / "lambert.yaml"
+GOLD = ROOT / "configs" / "quickstart.yaml"  # GGX gold: a highlight a dim network lacks
+
+
+@pytest.fixture(scope="module")
+def dim_model(tmp_path_factory):
+    """A dim, nearly constant network (about 0.05/sr: reciprocal, positive, albedo about
+    0.16), exported with the physics validate measured on its graph: every physics check
+    passes, and against a gold target the peak fails."""
+    cfg = config.load(LAMBERT, TINY)
+    raw = RawBRDF("isotropic", [16, 16], "silu", init_value=0.05, grazing_power=0.0).eval()
+    built = export.build(raw, cfg)
+    phys = validate.physics(built.eval, anisotropic=built.anisotropic, settings=cfg.validation)
+    path = tmp_path_factory.mktemp("dim") / "model.onnx"
+    export.write(built, cfg, path, physics=phys, target_desc="a dim test network")
+    return path, phys
+
+
+@pytest.fixture(scope="module")
+def against_gold(dim_model):
+    return validate.report(dim_model[0], target=config.load(GOLD))
+
+
+def test_validate_exits_1_when_only_the_peak_fails(capsys, dim_model, tmp_path):
+    out = tmp_path / "report.json"
+    code, stdout, err = cli(
+        capsys, "validate", str(dim_model[0]), "--reference", str(GOLD), "--json", str(out)
+    )
+    report = json.loads(out.read_text())
+    assert report["passed"] is True  # the physics
+    assert report["peak"]["passed"] is False and "FAIL" in stdout
+    assert code == 1, err
+
+
+def test_passed_adds_the_peak_to_the_physics(dim_model, against_gold):
+    assert validate.physics_passed(against_gold) and against_gold["passed"] is True
+    assert against_gold["peak"]["passed"] is False
+    assert validate.passed(against_gold) is False
+    alone = validate.report(dim_model[0])  # no target: physics only, no peak
+    assert "peak" not in alone and validate.passed(alone) is True
+    failed = {**alone, "checks": {**alone["checks"], "min_value": {"passed": False}}}
+    assert not validate.physics_passed(failed) and not validate.passed(failed)
+
+
+def test_physics_measured_before_writing_is_what_the_file_gives(dim_model):
+    """The pipeline measures the graph once, before writing it (its metadata needs the
+    figures), and hands that to the report: the file itself gives the same."""
+    path, phys = dim_model
+    again = validate.report(path)
+    for key in ("checks", "hemispherical_albedo", "furnace"):
+        assert again[key] == phys[key], key
