@@ -56,9 +56,12 @@ sys.path.insert(0, str(REPO))
 from common import write_json  # noqa: E402
 
 from neural_brdf import config, presets  # noqa: E402
-from neural_brdf.train import data, many  # noqa: E402
+from neural_brdf.train import (  # noqa: E402
+    data,
+    loop,  # noqa: E402
+    many,
+)
 from neural_brdf.train import encoding as enc  # noqa: E402
-from neural_brdf.train import loop as train  # noqa: E402
 from neural_brdf.train.model import ACTIVATIONS, RawBRDF  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "training_speed.json"
@@ -69,7 +72,7 @@ def project_loop(cfg: config.Config, folder: Path) -> float:
     """Seconds per step of train.train (its own clock: the loop, not the first pool)."""
     run_dir = folder / "project"
     shutil.rmtree(run_dir, ignore_errors=True)
-    _, fig = train.train(cfg, run_dir)
+    _, fig = loop.train(cfg, run_dir)
     return fig["train_seconds"] / fig["steps"]
 
 
@@ -100,7 +103,7 @@ def model_only_loop(cfg: config.Config, steps: int) -> float:
         idx = order[k : k + d.batch_size]
         state["k"] = k + d.batch_size
         a, b, y = wi[idx], wo[idx], f[idx]
-        loss = train.loss_fn(t.loss, raw(a, b), y, b[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)
+        loss = loop.loss_fn(t.loss, raw(a, b), y, b[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -224,7 +227,7 @@ def measure_many(k: int, steps: int, repeats: int) -> dict:
         folder = Path(tmp)
         for r in range(repeats):
             t0 = time.perf_counter()
-            alone = [train.train(c, folder / f"s{r}" / c.name)[1] for c in cfgs]
+            alone = [loop.train(c, folder / f"s{r}" / c.name)[1] for c in cfgs]
             best["sequential"] = min(best["sequential"], time.perf_counter() - t0)
             t0 = time.perf_counter()
             together = many.train_many(cfgs, [folder / f"b{r}" / c.name for c in cfgs])

@@ -11,8 +11,9 @@
 
 ``neural-brdf train`` calls :func:`run`.  Each stage module knows only the stages before
 it (train knows data and model; export knows the model; validate reads model.onnx), and
-this module is the only one that knows them all.  A run holds its folder's lock
-(:func:`neural_brdf.train.loop.run_lock`) from start to end.
+this module is the only one that knows them all.  A run holds its folder
+(:func:`neural_brdf.runfolder.hold`: the lock, and the rules of which folders a run may
+write into) from start to end.
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ from typing import Any
 
 from neural_brdf import config as cfgmod
 from neural_brdf import export as exp
-from neural_brdf import validate
-from neural_brdf.train import data
-from neural_brdf.train import loop as trainmod
+from neural_brdf import runfolder, validate
+from neural_brdf.errors import InputError
+from neural_brdf.target import Target
+from neural_brdf.train import data, loop
 
 
 def run(
@@ -39,25 +41,31 @@ def run(
     """Train, export ``model.onnx``, validate it, write the report; returns (and writes)
     ``metrics.json``.
 
-    A fresh run (no ``resume``) into a folder that already holds a run raises
-    :class:`neural_brdf.train.loop.RunExists` unless ``overwrite``
-    (:func:`neural_brdf.train.loop.check_fresh_run_dir`).  Resuming a run that has finished at
-    ``train.steps`` writes nothing and returns its metrics.json with
-    ``"already_finished"`` set to the step.  A config with ``target.images`` is fitted by
-    inverse rendering (:mod:`neural_brdf.inverse.fit`, docs/inverse.md; ``inverse_settings``:
-    its :class:`neural_brdf.inverse.fit.Settings`), then exported and validated without a
-    reference and without a report.
+    A folder that is neither new, empty nor a run raises
+    :class:`neural_brdf.runfolder.NotARunFolder`; a fresh run (no ``resume``) into a
+    folder that already holds a run raises :class:`neural_brdf.runfolder.RunExists`
+    unless ``overwrite`` (:func:`neural_brdf.runfolder.check_fresh_run_dir`).  Resuming
+    a run that has finished at ``train.steps`` writes nothing and returns its
+    metrics.json with ``"already_finished"`` set to the step.  A config with
+    ``target.images`` is fitted by inverse rendering (:mod:`neural_brdf.inverse.fit`,
+    docs/inverse.md; ``inverse_settings``: its :class:`neural_brdf.inverse.fit.Settings`),
+    then exported and validated without a reference and without a report.
     """
-    run_dir = Path(run_dir) if run_dir is not None else trainmod.default_run_dir(cfg)
-    with trainmod.run_lock(run_dir):
+    run_dir = Path(run_dir) if run_dir is not None else runfolder.default_run_dir(cfg)
+    with runfolder.hold(run_dir, resume=resume, overwrite=overwrite) as folder:
         if cfg.target.images is not None:
             from neural_brdf.inverse import fit as inverse  # Mitsuba: only for an images fit
 
             raw, training, t0 = inverse.fit(
-                cfg, run_dir, resume=resume, overwrite=overwrite, settings=inverse_settings
+                cfg,
+                run_dir,
+                resume=resume,
+                overwrite=overwrite,
+                settings=inverse_settings,
+                folder=folder,
             )
             return finish(cfg, run_dir, raw, training, t0=t0, report=False)
-        return _run(cfg, run_dir, resume=resume, overwrite=overwrite)
+        return _run(cfg, folder, resume=resume)
 
 
 def run_many(
@@ -66,46 +74,62 @@ def run_many(
     *,
     overwrite: bool = False,
     report: bool = False,
+    sources: list[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Train every config in one batch (:func:`neural_brdf.train.many.train_many`) into
     ``out/NAME``, then export and validate each (and write its report with ``report``);
-    returns the metrics.json of each, in order."""
+    returns the metrics.json of each, in order.  ``sources`` (the config files, one per
+    config) name the file in an error about one config.  Every folder is checked before any is
+    written; an old run in one (``overwrite``) is replaced only when the batch has
+    trained."""
     from contextlib import ExitStack
 
     from neural_brdf.train import many
 
-    many.check_batchable(cfgs)
+    label = sources if sources is not None else [f"config {c.name}" for c in cfgs]
+    many.check_batchable(cfgs, label)
     names = [c.name for c in cfgs]
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
+        both = [src for src, n in zip(label, names) if n == twice[0]]
         raise cfgmod.ConfigError(
-            f"name: {twice[0]!r} is given to two materials of the batch (give each its "
-            "own name, in its config file)"
+            f"name: {twice[0]!r} is given to two materials of the batch ({both[0]} and "
+            f"{both[1]}; give each its own name, in its config file)"
         )
+    t0 = time.perf_counter()
+    targets = []  # built before any folder is made: a bad target changes nothing
+    for src, c in zip(label, cfgs):
+        try:
+            targets.append(data.build_target(c.target))
+        except InputError as e:  # say which file of the batch holds the bad target
+            raise cfgmod.ConfigError(f"{src}: {e}") from None
     run_dirs = [Path(out) / n for n in names]
+    for run_dir in run_dirs:  # a folder of the user's: refused before any lock file
+        runfolder.check_writable(run_dir)
     with ExitStack() as stack:
-        for run_dir in run_dirs:
-            stack.enter_context(trainmod.run_lock(run_dir))
-            trainmod.check_fresh_run_dir(run_dir, resume=False, overwrite=overwrite)
-        t0 = time.perf_counter()
-        targets = [data.build_target(c.target) for c in cfgs]
-        trained = many.train_many(cfgs, run_dirs, targets=targets)
+        folders = [
+            stack.enter_context(runfolder.hold(d, resume=False, overwrite=overwrite))
+            for d in run_dirs
+        ]
+        trained = many.train_many(cfgs, run_dirs, targets=targets, folders=folders)
         return [
             finish(cfg, run_dir, raw, training, t0=t0, target=target, report=report)
             for cfg, run_dir, target, (raw, training) in zip(cfgs, run_dirs, targets, trained)
         ]
 
 
-def _run(cfg: cfgmod.Config, run_dir: Path, *, resume: bool, overwrite: bool) -> dict[str, Any]:
-    trainmod.check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
-    ckpt = trainmod.load_resumable(cfg, run_dir / "ckpt.pt") if resume else None
+def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[str, Any]:
+    run_dir = folder.path
+    ckpt = loop.load_resumable(cfg, folder.ckpt) if resume else None
     if ckpt is not None and int(ckpt["step"]) == cfg.train.steps:
-        done = trainmod.finished_report(run_dir, cfg.train.steps)
+        done = loop.finished_report(run_dir, cfg.train.steps)
         if done is not None:
             return {**done, "already_finished": cfg.train.steps}
     t0 = time.perf_counter()
     target = data.build_target(cfg.target)
-    raw, training = trainmod.train(cfg, run_dir, resume=resume, target=target, checkpoint=ckpt)
+    raw, training = loop.train(
+        cfg, run_dir, resume=resume, target=target, checkpoint=ckpt, folder=folder
+    )
     return finish(cfg, run_dir, raw, training, t0=t0, target=target)
 
 
@@ -116,26 +140,29 @@ def finish(
     training: dict[str, Any],
     *,
     t0: float,
-    target: Any = None,
+    target: Target | None = None,
     report: bool = True,
 ) -> dict[str, Any]:
-    """The stages after training: export ``raw`` (normalised) to ``model.onnx``, validate
-    it (against ``target`` when there is one), write ``metrics.json`` and, with
-    ``report``, report.html / report.md.  ``t0``: when the run started
-    (``time.perf_counter()``), for the total."""
+    """The stages after training: export ``raw`` (normalised) to ``model.onnx`` with the
+    physics validate measured on its graph, validate it (against ``target`` when there is
+    one: an images fit has none), write ``metrics.json`` and, with ``report``,
+    report.html / report.md.  ``t0``: when the run started (``time.perf_counter()``), for
+    the total."""
     t1 = time.perf_counter()
     model, table = exp.normalized_model(raw, cfg, target)
     desc = target.describe() if target is not None else training["target"]
-    info = exp.export(model, cfg, run_dir / "model.onnx", target_desc=desc, extra=target)
-    t2 = time.perf_counter()
-    metrics = validate.report(
-        run_dir / "model.onnx", reference=target, physics_report=info["physics"]
+    built = exp.build(model, cfg)  # the graph, checked against torch
+    phys = validate.physics(
+        built.eval, anisotropic=built.anisotropic, settings=cfg.validation, target=target
     )
+    exp.write(built, cfg, run_dir / "model.onnx", physics=phys, target=target, target_desc=desc)
+    t2 = time.perf_counter()
+    metrics = validate.report(run_dir / "model.onnx", target=target, physics_report=phys)
     t3 = time.perf_counter()
     metrics["training"] = training
     metrics["export"] = {
-        "parity_rel_error": info["parity_rel_error"],
-        "float32_rel_precision": info["float32_rel_precision"],
+        "parity_rel_error": built.parity_rel_error,
+        "float32_rel_precision": built.float32_rel_precision,
         "normalization": table,
         "seconds": t2 - t1,
     }

@@ -15,16 +15,19 @@ batched kernels (tests/train/test_many.py compares them).
 
 The configs must share the network (``model``), the batch shape (``data.batch_size``,
 ``pool_size``, ``reuse``) and the optimisation (``train`` but for ``seed``); targets,
-data shares and seeds may differ.  A batched run writes each material's config.yaml,
-log.csv (the final row) and a checkpoint that can be exported (``neural-brdf export``)
-but not resumed: Ctrl-C stops the batch and nothing is kept.
+data shares and seeds may differ.  The batch runs in one
+:class:`neural_brdf.train.session.Session` (progress, Ctrl-C and SIGTERM, divergence) with
+one :class:`~neural_brdf.train.session.RunFiles` per material, written when the batch has
+trained: each material's folder then becomes the new run at once (its marker, config.yaml,
+a checkpoint that can be exported, ``neural-brdf export``, but not resumed, and log.csv's
+final row; an old run there removed first), and until then an old run in it stays whole.
+Ctrl-C stops the batch and nothing is kept.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-import time
 from pathlib import Path
 from typing import Any
 
@@ -32,10 +35,10 @@ import torch
 from torch.func import functional_call, stack_module_state, vmap
 
 from neural_brdf import config as cfgmod
-from neural_brdf.fileio import atomic_write
-from neural_brdf.train import data
-from neural_brdf.train import loop as trainmod
+from neural_brdf import runfolder
+from neural_brdf.train import data, loop
 from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.session import RunFiles, Session
 
 # train settings that may differ between the batched materials (the rest must match)
 FREE_TRAIN = ("seed", "progress")
@@ -61,39 +64,55 @@ def _shared(key: str) -> bool:
     return section == "train" and rest not in FREE_TRAIN
 
 
-def check_batchable(cfgs: list[cfgmod.Config]) -> None:
+def check_batchable(cfgs: list[cfgmod.Config], sources: list[str] | None = None) -> None:
     """One-line ConfigError naming the first setting that stops ``cfgs`` training as one
-    batch (it must be the same for all of them)."""
+    batch (it must be the same for all of them), and the files (``sources``, one per
+    config; else the configs' names) that disagree."""
     if not cfgs:
         raise cfgmod.ConfigError("train-many: no configs")
-    if any(c.target.images is not None for c in cfgs):
-        raise cfgmod.ConfigError("target.images: an images fit cannot be trained in a batch")
+    label = sources if sources is not None else [c.name for c in cfgs]
+    for src, c in zip(label, cfgs):
+        if c.target.images is not None:
+            raise cfgmod.ConfigError(
+                f"{src}: target.images: an images fit cannot be trained in a batch"
+            )
     first = _flat(cfgs[0].model_dump())
-    for cfg in cfgs[1:]:
+    for src, cfg in zip(label[1:], cfgs[1:]):
         now = _flat(cfg.model_dump())
         for key in (k for k in first if _shared(k)):
             if first[key] != now.get(key):
                 raise cfgmod.ConfigError(
-                    f"{key}: differs between {cfgs[0].name} and {cfg.name} ({first[key]!r} "
-                    f"and {now.get(key)!r}); materials trained together share the network, "
+                    f"{src}: {key}: differs from {label[0]} ({now.get(key)!r} here, "
+                    f"{first[key]!r} there); materials trained together share the network, "
                     "the batch and the optimisation"
                 )
 
 
 def train_many(
-    cfgs: list[cfgmod.Config], run_dirs: list[Path], *, targets: list | None = None
+    cfgs: list[cfgmod.Config],
+    run_dirs: list[Path],
+    *,
+    targets: list | None = None,
+    folders: list[runfolder.Folder] | None = None,
 ) -> list[tuple[RawBRDF, dict[str, Any]]]:
     """Train one model per config, all in one loop; returns [(network, figures)] as
-    :func:`neural_brdf.train.loop.train` does for one."""
+    :func:`neural_brdf.train.loop.train` does for one.  ``folders``: ``run_dirs`` as the
+    caller opened them (:func:`neural_brdf.runfolder.hold`); else each is opened here as
+    :func:`neural_brdf.train.loop.train` opens its own (a run in it is replaced)."""
     check_batchable(cfgs)
     t = cfgs[0].train
     torch.set_num_threads(t.threads)
-    device = trainmod.resolve_device(t.device)
+    device = loop.resolve_device(t.device)
     targets = targets or [data.build_target(c.target) for c in cfgs]
+    if folders is None:
+        folders = [runfolder.Folder.open(d, resume=False, overwrite=True) for d in run_dirs]
+    sess = Session(
+        [RunFiles(c, f) for c, f in zip(cfgs, folders)],
+        checkpoints=False,
+        desc=f"{len(cfgs)} materials",
+    )
     pools, raws, evals = [], [], []
-    for cfg, target, run_dir in zip(cfgs, targets, run_dirs):
-        run_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write(run_dir / "config.yaml", cfg.to_yaml())
+    for cfg, target in zip(cfgs, targets):
         # the order of train.train: its generator, the global seed, the pool, the weights
         gen = torch.Generator().manual_seed(cfg.train.seed)
         torch.manual_seed(cfg.train.seed)
@@ -104,7 +123,7 @@ def train_many(
         evals.append(
             tuple(
                 x.float().to(device)
-                for x in data.accuracy_pairs(target, trainmod.EVAL_PAIRS, cfg.train.seed + 101)
+                for x in data.accuracy_pairs(target, loop.EVAL_PAIRS, cfg.train.seed + 101)
             )
         )
     params, buffers = stack_module_state(raws)
@@ -114,7 +133,7 @@ def train_many(
         return functional_call(base, (p, b), (wi, wo))
 
     def loss_one(pred, f, cos):
-        return trainmod.loss_fn(t.loss, pred, f, cos, t.loss_eps, t.peak_weight, t.peak_cap)
+        return loop.loss_fn(t.loss, pred, f, cos, t.loss_eps, t.peak_weight, t.peak_cap)
 
     batched, batched_loss = vmap(forward), vmap(loss_one)
     m = cfgs[0].model
@@ -128,15 +147,10 @@ def train_many(
         fused=True,
     )
     loss_sum = torch.zeros((), device=device)
-    start = time.perf_counter()
-    with trainmod.deferred_interrupt() as sigint:
-        for step in range(t.steps):
-            if sigint["set"]:
-                raise trainmod.Interrupted(
-                    f"interrupted at step {step} ({trainmod.signal_name(sigint['signum'])}); "
-                    "a batched run keeps no checkpoint: run it again"
-                )
-            lr = trainmod.learning_rate(t, step)
+    with sess.run() as s:
+        while s.step < t.steps:
+            s.stop_if_interrupted()
+            lr = loop.learning_rate(t, s.step)
             for group in opt.param_groups:
                 group["lr"] = lr * group["lr_scale"]
             wi, wo, f = (torch.stack(x) for x in zip(*(p.batch() for p in pools)))
@@ -146,37 +160,30 @@ def train_many(
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            if (step + 1) % t.log_every == 0 and not math.isfinite(float(loss_sum)):
-                raise trainmod.Diverged(
-                    f"loss is {float(loss_sum)} by step {step + 1} in a batch of "
-                    f"{len(cfgs)} materials (try a lower train.lr)"
-                )
-    seconds = time.perf_counter() - start
+            s.advance()
+            if s.step % t.log_every == 0 and not math.isfinite(float(loss_sum)):
+                raise s.diverged(float(loss_sum), s.step, exact=False)
+    seconds = sess.seconds
     final = losses.detach().cpu().tolist()
+    last_lr = loop.learning_rate(t, t.steps - 1)
     out = []
-    for k, (cfg, raw, target, run_dir) in enumerate(zip(cfgs, raws, targets, run_dirs)):
+    for k, (files, raw, target) in enumerate(zip(sess.runs, raws, targets)):
         weights = {n: p[k].detach() for n, p in params.items()}
         raw.load_state_dict(weights | {n: b[k] for n, b in buffers.items()})
         raw.eval()
         eval_wi, eval_wo, eval_f = evals[k]
         with torch.no_grad():
-            err = trainmod.rel_rmse(raw(eval_wi, eval_wo), eval_f, eval_wo[:, 2:3])
+            err = loop.rel_rmse(raw(eval_wi, eval_wo), eval_f, eval_wo[:, 2:3])
         state = {
-            "format_version": cfgmod.FORMAT_VERSION,
-            "step": t.steps,
-            "config": cfg.model_dump(),
             "model": {n: v.cpu() for n, v in raw.state_dict().items()},
-            "train_seconds": seconds,
             "loss": final[k],
             "batched": len(cfgs),  # not resumable: no optimizer or pool state
         }
-        trainmod.save_checkpoint(run_dir / "ckpt.pt", state)
-        atomic_write(
-            run_dir / "log.csv",
-            ",".join(trainmod.LOG_COLUMNS)
-            + f"\n{t.steps},{final[k]:.6g},{trainmod.learning_rate(t, t.steps - 1):.4g},"
-            + f"{seconds:.2f},{err:.5g}\n",
-        )
+        row = {"step": t.steps, "loss": final[k], "lr": last_lr, "seconds": seconds}
+        with runfolder.held_signals():  # the folder is the old run or the whole new one
+            files.begin()
+            files.save(files.state(t.steps, seconds, state))
+            files.write_log([files.format_row(row | {"val_rel_rmse": err})])
         out.append(
             (
                 raw.cpu(),

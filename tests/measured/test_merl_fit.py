@@ -17,8 +17,7 @@ import conftest
 from neural_brdf import config, pipeline, validate
 from neural_brdf.measured import merl
 from neural_brdf.tooling import cli
-from neural_brdf.train import data
-from neural_brdf.train import loop as train
+from neural_brdf.train import data, loop
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -105,9 +104,9 @@ def test_resume_on_measured_data_continues_exactly(ggx_binary, tmp_path):
         "data.pool_size=2048",
         "model.hidden=[8,8]",
     ]
-    train.train(merl_config(path, *extra), tmp_path / "straight")
-    train.train(merl_config(path, *extra, "train.steps=5"), tmp_path / "split")
-    train.train(merl_config(path, *extra), tmp_path / "split", resume=True)
+    loop.train(merl_config(path, *extra), tmp_path / "straight")
+    loop.train(merl_config(path, *extra, "train.steps=5"), tmp_path / "split")
+    loop.train(merl_config(path, *extra), tmp_path / "split", resume=True)
     a = torch.load(tmp_path / "straight" / "ckpt.pt", weights_only=True)["model"]
     b = torch.load(tmp_path / "split" / "ckpt.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)

@@ -28,7 +28,7 @@ import neural_brdf
 from neural_brdf import config
 from neural_brdf.tooling import cli, sweep
 from neural_brdf.tooling.sweep import run as sweep_run
-from neural_brdf.train import loop as train
+from neural_brdf.train import loop
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIGS = REPO / "configs"
@@ -265,7 +265,7 @@ def test_a_diverging_trial_is_recorded_as_failed(tmp_path, monkeypatch):
     def nan_loss(*args, **kwargs):
         return torch.tensor(math.nan, requires_grad=True)
 
-    monkeypatch.setattr(train, "loss_fn", nan_loss)
+    monkeypatch.setattr(loop, "loss_fn", nan_loss)
     spec = sweep.load_sweep(write_sweep(tmp_path, list=[{"train.seed": 0}]))
     (job,) = sweep.plan(spec, tmp_path / "sweep.yaml", tmp_path / "out")
     record = sweep.run_trial(job)
@@ -368,7 +368,7 @@ def test_a_trial_interrupted_in_its_worker_interrupts_the_sweep(tmp_path, monkey
             yield record
 
     monkeypatch.setattr(sweep_run, "_run_local", worker_saw_ctrl_c)  # where run_sweep finds it
-    with pytest.raises(train.Interrupted, match="run the same command again"):
+    with pytest.raises(loop.Interrupted, match="run the same command again"):
         sweep.run_sweep(path, workers=1, out=out)
     rows = {r["trial"]: r["status"] for r in read(out / "results.json")["trials"]}
     assert rows["seed-0"] == "ok" and rows["seed-1"] not in ("ok", "failed")

@@ -12,8 +12,7 @@ import torch
 
 from neural_brdf import config, pipeline
 from neural_brdf.tooling import cli
-from neural_brdf.train import loop as train
-from neural_brdf.train import many
+from neural_brdf.train import loop, many
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 TINY = [
@@ -46,7 +45,7 @@ def test_each_material_trains_as_its_own_run_would(tmp_path):
     cfgs = metals()
     batched = many.train_many(cfgs, [tmp_path / "b" / c.name for c in cfgs])
     for cfg, (raw, fig) in zip(cfgs, batched):
-        alone, fig_alone = train.train(cfg, tmp_path / "s" / cfg.name)
+        alone, fig_alone = loop.train(cfg, tmp_path / "s" / cfg.name)
         # the same seeds, pools and initial weights; vmap's kernels may round otherwise
         for name, w in alone.state_dict().items():
             torch.testing.assert_close(raw.state_dict()[name], w, rtol=1e-3, atol=1e-4)
@@ -69,8 +68,11 @@ def test_each_material_trains_as_its_own_run_would(tmp_path):
 def test_a_setting_the_batch_must_share_is_named(override, key):
     cfgs = metals()
     cfgs[2] = config.load(CONFIGS / "gold.yaml", TINY + ["name=odd", override])
-    with pytest.raises(config.ConfigError, match=rf"^{key}: differs between Au and odd"):
+    with pytest.raises(config.ConfigError, match=rf"^odd: {key}: differs from Au"):
         many.check_batchable(cfgs)
+    files = [f"m{i}.yaml" for i in range(len(cfgs))]  # the files, when the caller has them
+    with pytest.raises(config.ConfigError, match=rf"^m2.yaml: {key}: differs from m0.yaml"):
+        many.check_batchable(cfgs, files)
 
 
 def test_seeds_targets_and_data_shares_may_differ():

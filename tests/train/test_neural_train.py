@@ -18,9 +18,8 @@ import torch
 
 import neural_brdf
 from analytic import physics
-from neural_brdf import config, export, pipeline, validate
-from neural_brdf.train import data
-from neural_brdf.train import loop as train
+from neural_brdf import config, export, fileformat, pipeline, validate
+from neural_brdf.train import data, loop
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -59,9 +58,9 @@ def same(a: dict, b: dict) -> bool:
 
 
 def test_training_is_deterministic_per_seed(tmp_path):
-    train.train(tiny(), tmp_path / "a")
-    train.train(tiny(), tmp_path / "b")
-    train.train(tiny("train.seed=1"), tmp_path / "c")
+    loop.train(tiny(), tmp_path / "a")
+    loop.train(tiny(), tmp_path / "b")
+    loop.train(tiny("train.seed=1"), tmp_path / "c")
     assert same(weights(tmp_path / "a"), weights(tmp_path / "b"))
     assert not same(weights(tmp_path / "a"), weights(tmp_path / "c"))
 
@@ -69,10 +68,10 @@ def test_training_is_deterministic_per_seed(tmp_path):
 def test_resume_continues_exactly(tmp_path):
     # a constant schedule, so that stopping at step 5 changes nothing but the stop
     const = "train.schedule=constant"
-    train.train(tiny(const), tmp_path / "straight")
-    train.train(tiny(const, "train.steps=5"), tmp_path / "split")
+    loop.train(tiny(const), tmp_path / "straight")
+    loop.train(tiny(const, "train.steps=5"), tmp_path / "split")
     assert torch.load(tmp_path / "split" / "ckpt.pt", weights_only=True)["step"] == 5
-    train.train(tiny(const), tmp_path / "split", resume=True)
+    loop.train(tiny(const), tmp_path / "split", resume=True)
     assert same(weights(tmp_path / "straight"), weights(tmp_path / "split"))
     with open(tmp_path / "split" / "log.csv") as fh:
         steps = [int(r["step"]) for r in csv.DictReader(fh)]
@@ -81,8 +80,8 @@ def test_resume_continues_exactly(tmp_path):
 
 def test_device_auto_and_cpu_give_the_same_weights_and_record_the_device(tmp_path):
     # auto is cuda where torch sees a GPU, else cpu: on a CPU machine it must be the cpu run
-    _, fig_cpu = train.train(tiny("train.device=cpu"), tmp_path / "cpu")
-    _, fig_auto = train.train(tiny("train.device=auto"), tmp_path / "auto")
+    _, fig_cpu = loop.train(tiny("train.device=cpu"), tmp_path / "cpu")
+    _, fig_auto = loop.train(tiny("train.device=auto"), tmp_path / "auto")
     expected = "cuda" if torch.cuda.is_available() else "cpu"
     assert fig_cpu["device"] == "cpu" and fig_auto["device"].startswith(expected)
     if expected == "cpu":
@@ -94,11 +93,11 @@ def test_device_auto_and_cpu_give_the_same_weights_and_record_the_device(tmp_pat
 def test_device_cuda_trains_on_a_gpu_or_is_refused_by_name(tmp_path):
     cfg = tiny("train.device=cuda")
     if torch.cuda.is_available():
-        raw, fig = train.train(cfg, tmp_path / "gpu")
+        raw, fig = loop.train(cfg, tmp_path / "gpu")
         assert fig["device"].startswith("cuda") and next(raw.parameters()).device.type == "cpu"
     else:
         with pytest.raises(config.ConfigError, match=r"^train\.device: cuda"):
-            train.train(cfg, tmp_path / "gpu")
+            loop.train(cfg, tmp_path / "gpu")
         assert not (tmp_path / "gpu" / "ckpt.pt").exists()
 
 
@@ -108,9 +107,9 @@ def test_device_must_be_cpu_cuda_or_auto():
 
 
 def test_resume_refuses_a_different_model(tmp_path):
-    train.train(tiny("train.steps=3"), tmp_path / "r")
+    loop.train(tiny("train.steps=3"), tmp_path / "r")
     with pytest.raises(config.ConfigError, match="model"):
-        train.train(tiny("model.hidden=[8]"), tmp_path / "r", resume=True)
+        loop.train(tiny("model.hidden=[8]"), tmp_path / "r", resume=True)
 
 
 def test_ctrl_c_leaves_a_resumable_checkpoint(tmp_path, monkeypatch):
@@ -124,18 +123,18 @@ def test_ctrl_c_leaves_a_resumable_checkpoint(tmp_path, monkeypatch):
         return real_batch(self)
 
     monkeypatch.setattr(data.Pool, "batch", batch)
-    with pytest.raises(train.Interrupted, match="--resume"):
-        train.train(tiny(), tmp_path / "i")
+    with pytest.raises(loop.Interrupted, match="--resume"):
+        loop.train(tiny(), tmp_path / "i")
     ckpt = torch.load(tmp_path / "i" / "ckpt.pt", weights_only=True)
     assert ckpt["step"] == 4  # the step in flight was completed, then saved
     monkeypatch.setattr(data.Pool, "batch", real_batch)
-    train.train(tiny(), tmp_path / "i", resume=True)
-    train.train(tiny(), tmp_path / "ref")
+    loop.train(tiny(), tmp_path / "i", resume=True)
+    loop.train(tiny(), tmp_path / "ref")
     assert same(weights(tmp_path / "i"), weights(tmp_path / "ref"))
 
 
 def test_divergence_stops_and_keeps_a_good_checkpoint(tmp_path, monkeypatch):
-    real_loss = train.loss_fn
+    real_loss = loop.loss_fn
     calls = {"n": 0}
 
     def loss_fn(*args, **kwargs):
@@ -143,9 +142,9 @@ def test_divergence_stops_and_keeps_a_good_checkpoint(tmp_path, monkeypatch):
         loss = real_loss(*args, **kwargs)
         return loss * float("nan") if calls["n"] == 8 else loss  # step index 7
 
-    monkeypatch.setattr(train, "loss_fn", loss_fn)
-    with pytest.raises(train.Diverged, match="checkpoint"):
-        train.train(tiny("train.checkpoint_every=3"), tmp_path / "d")
+    monkeypatch.setattr(loop, "loss_fn", loss_fn)
+    with pytest.raises(loop.Diverged, match="checkpoint"):
+        loop.train(tiny("train.checkpoint_every=3"), tmp_path / "d")
     ckpt = torch.load(tmp_path / "d" / "ckpt.pt", weights_only=True)
     assert ckpt["step"] == 6  # the last checkpoint before the NaN
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values())
@@ -219,7 +218,7 @@ def test_torch_and_onnxruntime_agree(gold_run, tmp_path):
 
 def test_export_cli_function_rebuilds_the_same_model(gold_run, tmp_path):
     run_dir, _, _ = gold_run
-    info = export.export_run(run_dir, tmp_path / "again.onnx")
+    info = export.export_run(run_dir, tmp_path / "again.onnx", measure=validate.physics)
     a = neural_brdf.load(run_dir / "model.onnx")
     b = neural_brdf.load(tmp_path / "again.onnx")
     wi, wo = physics.random_directions(500, 3), physics.random_directions(500, 4)
@@ -229,7 +228,7 @@ def test_export_cli_function_rebuilds_the_same_model(gold_run, tmp_path):
 
 def test_validation_flags_a_non_physical_model(tmp_path):
     """An exported raw network (no normalisation) with huge outputs fails the furnace."""
-    raw = train.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()
+    raw = loop.RawBRDF("isotropic", [8], "silu", init_value=50.0).eval()
     path = tmp_path / "raw.onnx"
     path.write_bytes(export.to_onnx_bytes(raw, 17))
     settings = config.Validation(furnace_dirs=4, furnace_samples=1024, pairs=1000)
@@ -272,7 +271,7 @@ def test_onnx_file_describes_itself(gold_run):
     assert proto.producer_version == neural_brdf.__version__
     assert (
         proto.model_version
-        == config.FORMAT_VERSION
+        == fileformat.FORMAT_VERSION
         == int(neural_brdf.load(run_dir / "model.onnx").metadata["format_version"])
     )
     doc = proto.doc_string

@@ -1,0 +1,91 @@
+"""The training session (neural_brdf.train.session, issue 28): the frame that train/loop.py,
+train/many.py and inverse/fit.py share.  What the next issues add to it (an images fit's
+log columns, another kind of checkpoint) are additions; a direct call of the loop writes
+into no folder of the user's."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import pytest
+
+from neural_brdf import config
+from neural_brdf.train import loop
+from neural_brdf.train.session import LOG_COLUMNS, RunFiles, Session
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+TINY = ["train.steps=6", "train.log_every=2", "train.checkpoint_every=3", "train.progress=false"]
+
+
+def cfg(*extra: str) -> config.Config:
+    return config.load(CONFIGS / "lambert.yaml", TINY + list(extra))
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def fake_loop(sess: Session, *, stop: int | None = None) -> None:
+    """A loop in the session's frame: no model, a 'loss' and an extra 'image' column."""
+    steps = sess.train.steps if stop is None else stop
+    with sess.run(lambda: {"model": {}, "loss": 0.5}) as s:
+        while s.step < steps:
+            s.stop_if_interrupted()
+            s.advance()
+            if s.due(s.train.log_every):
+                s.log(loss=1.0 / s.step, lr=0.01, image=2.0 * s.step)
+            if s.due(s.train.checkpoint_every):
+                s.checkpoint()
+
+
+def test_extra_log_columns_are_written_and_kept_on_resume(tmp_path):
+    columns = (*LOG_COLUMNS, "image")
+    c = cfg()
+    first = Session.one(c, tmp_path / "r", columns=columns)
+    first.begin()
+    fake_loop(first, stop=3)  # stopped after step 3 (its checkpoint); logged at step 2
+    assert [r["step"] for r in rows(tmp_path / "r" / "log.csv")] == ["2"]
+    again = Session.one(c, tmp_path / "r", resume=True, columns=columns)
+    ckpt = again.resumed()
+    assert ckpt is not None and ckpt["step"] == 3 and ckpt["loss"] == 0.5
+    again.begin()
+    again.restore(ckpt)
+    fake_loop(again)
+    got = rows(tmp_path / "r" / "log.csv")
+    assert list(got[0]) == list(columns)
+    assert [(r["step"], r["image"]) for r in got] == [("2", "4"), ("4", "8"), ("6", "12")]
+    assert got[0]["val_rel_rmse"] == "" and got[0]["loss"] == "0.5"
+
+
+def test_a_checkpoint_of_another_kind_is_not_resumed(tmp_path):
+    c = cfg()
+    files = RunFiles(c, Session.one(c, tmp_path / "r").files.folder, kind="images")
+    files.begin()
+    files.save(files.state(2, 0.0, {"model": {}}))
+    with pytest.raises(config.ConfigError, match="an images fit.*training from BRDF samples"):
+        Session.one(c, tmp_path / "r", resume=True).resumed()
+    again = Session.one(c, tmp_path / "r", resume=True, kind="images").resumed()
+    assert again is not None and again["kind"] == "images" and again["step"] == 2
+
+
+def test_the_loop_called_directly_refuses_a_folder_of_the_users(tmp_path):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "config.yaml").write_text("mine: true\n")
+    with pytest.raises(loop.NotARunFolder, match="config.yaml"):
+        loop.train(cfg(), mine)
+    assert os.listdir(mine) == ["config.yaml"]
+    assert (mine / "config.yaml").read_text() == "mine: true\n"
+
+
+def test_the_loop_called_directly_replaces_its_own_run(tmp_path):
+    run_dir = tmp_path / "r"
+    loop.train(cfg(), run_dir)
+    (run_dir / "model.onnx").write_bytes(b"an old export")
+    (run_dir / "viewer.html").write_text("an old viewer")
+    loop.train(cfg("train.steps=4"), run_dir)
+    assert not (run_dir / "model.onnx").exists() and not (run_dir / "viewer.html").exists()
+    assert [r["step"] for r in rows(run_dir / "log.csv")] == ["2", "4"]
