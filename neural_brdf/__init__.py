@@ -8,8 +8,11 @@
     brdf = neural_brdf.load("runs/quickstart/model.onnx")   # onnxruntime only
     f = brdf.eval(wi, wo)                                    # (..., 3) -> (..., 3), 1/sr
 
-Modules, in the order data flows: config, encoding, model, quadrature, data, train,
-export, validate, runtime (the consumer side), cli.
+The package's parts, in the order data flows (docs/architecture.md; each imports only
+the parts before it, tests/test_packaging.py): errors, limits, fileio, version,
+fileformat/ (the file's contract), config, presets, runtime (the consumer side),
+physics/, measured/, train/, validate, graph/, export, backends/, renderers/, inverse/,
+viewer/, pipeline, tooling/ (the command line).
 
 ``import neural_brdf`` is light: ``load`` and ``NeuralBRDF`` are imported on first use
 (numpy and onnxruntime only), and neither torch nor pydantic is loaded by them.

@@ -23,13 +23,15 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import PydanticCustomError
+
+from neural_brdf import encodings, limits
 
 # The same classes as neural_brdf.errors (kept light for runtime and the CLI).
-from neural_brdf.errors import ConfigError, InputError  # noqa: F401  (re-exported: config.InputError)
+from neural_brdf.errors import ConfigError
 
 # Of the resolved config, the checkpoint and the exported model: neural_brdf.fileformat.
-from neural_brdf.fileformat import FORMAT_VERSION  # noqa: F401,E402  (config.FORMAT_VERSION)
 
 
 class _Section(BaseModel):
@@ -47,7 +49,12 @@ class Target(_Section):
     params: dict[str, Any] = Field(default_factory=dict)  # passed to analytic.create
     data: str | None = None  # or: measured data, MERL .binary / RGL .bsdf
     images: list[ImageView] | None = None  # or: images, fitted by inverse rendering
-    variant: str | None = None  # Mitsuba variant of an images fit (null: from train.device)
+    # or: a Mitsuba 3 XML file holding one <bsdf>, the teacher (measured/mitsuba.py);
+    # relative to the config file
+    mitsuba: str | None = None
+    # Mitsuba variant of an images fit (null: from train.device) or of a mitsuba teacher
+    # (null: llvm_ad_rgb)
+    variant: str | None = None
 
     @model_validator(mode="after")
     def _images(self):
@@ -57,8 +64,8 @@ class Target(_Section):
             if self.data is not None or self.params or self.model != "lambertian":
                 raise ValueError("images: give target.images alone, not with data/model/params")
         if self.variant is not None:
-            if self.images is None:
-                raise ValueError("variant: only for target.images")
+            if self.images is None and self.mitsuba is None:
+                raise ValueError("variant: only for target.images or target.mitsuba")
             if self.variant not in ("llvm_ad_rgb", "cuda_ad_rgb"):
                 raise ValueError(
                     f"variant: {self.variant!r} is not a JIT AD RGB variant "
@@ -68,6 +75,18 @@ class Target(_Section):
 
     @model_validator(mode="after")
     def _one_kind(self):
+        if self.mitsuba is not None:
+            if not self.mitsuba.strip():
+                raise ValueError("mitsuba: empty path")
+            if (
+                self.data is not None
+                or self.images is not None
+                or self.params
+                or self.model != Target.model_fields["model"].default
+            ):
+                raise ValueError(
+                    "mitsuba: give target.mitsuba alone, not with data/model/params/images"
+                )
         if self.data is not None:
             if not self.data.strip():
                 raise ValueError("data: empty path")
@@ -105,8 +124,9 @@ class Grid(CosineGrid):
 
 
 class Model(_Section):
-    # see encoding.py; "raw" feeds (wi, wo) as they are: NOT reciprocal, for ablations only
-    encoding: Literal["isotropic", "anisotropic", "raw"] = "isotropic"
+    # a name in neural_brdf/encodings/ (isotropic, anisotropic; "raw" feeds (wi, wo) as
+    # they are: NOT reciprocal, for ablations only); checked by _encoding below
+    encoding: str = "isotropic"
     peak_coordinate: Literal["u_h", "sqrt"] = "u_h"  # theta_h feature: u_h | sqrt (old, MERL)
     # The defaults are the compact recipe (issues 12 and 21): a 32 x 32 x 4 learned grid
     # and one ReLU layer of 32; the 3 x 64 SiLU networks are the configs/mlp/ presets.
@@ -120,18 +140,33 @@ class Model(_Section):
     grid: Grid = Field(default_factory=Grid)  # learned feature grid (on by default)
     cosine_grid: CosineGrid = Field(default_factory=CosineGrid)  # a second one (off)
 
+    @field_validator("encoding")
+    @classmethod
+    def _encoding(cls, name: str) -> str:
+        # the registry, not a Literal: an encoding registered at run time is accepted too;
+        # worded as pydantic words a Literal ("Input should be 'a', 'b' or 'c'")
+        if name not in encodings.names():
+            *first, last = [repr(n) for n in encodings.names()]
+            expected = f"{', '.join(first)} or {last}" if first else last
+            raise PydanticCustomError(
+                "literal_error", "Input should be {expected}", {"expected": expected}
+            )
+        return name
+
     @model_validator(mode="after")
     def _widths(self):
         if not self.hidden or any(w < 1 for w in self.hidden):
             raise ValueError("hidden: needs at least one layer, each of width >= 1")
-        if self.encoding == "raw" and "grid" not in self.model_fields_set:
+        spec = encodings.get(self.encoding)  # its grid axes (Encoding.grid_axes)
+        if self.grid.coords not in spec.grid_axes and "grid" not in self.model_fields_set:
             self.grid.size = 0  # the default grid needs the encoding's angles: off for raw
-        if self.grid.size and self.encoding == "raw":
-            raise ValueError("grid: needs the isotropic or anisotropic encoding, not raw")
-        if self.grid.size and self.grid.coords == "half_disc" and self.encoding != "anisotropic":
-            raise ValueError("grid.coords: half_disc needs the anisotropic encoding")
-        if self.cosine_grid.size and self.encoding == "raw":
-            raise ValueError("cosine_grid: needs the isotropic or anisotropic encoding, not raw")
+        if self.grid.size and self.grid.coords not in spec.grid_axes:
+            having = " or ".join(encodings.names(grid=self.grid.coords))
+            key = f"grid.coords: {self.grid.coords}" if spec.grid_axes else "grid:"  # raw: none
+            raise ValueError(f"{key} needs the {having} encoding, not {self.encoding}")
+        if self.cosine_grid.size and not spec.reciprocal:
+            having = " or ".join(encodings.names(reciprocal=True))
+            raise ValueError(f"cosine_grid: needs the {having} encoding, not {self.encoding}")
         return self
 
 
@@ -198,8 +233,38 @@ class Export(_Section):
     parity_tol: float = Field(1e-5, gt=0.0)  # max relative difference
 
 
+# A run's name is one plain folder name: never a path (``../..``, ``/etc``), never empty,
+# hidden or an option (``.x``, ``-x``), no control characters (issue 28).
+MAX_NAME = 128
+_NAME_FORBIDDEN = re.compile(r"[/\\\x00-\x1f\x7f]")
+
+
+def check_name(name: str) -> str:
+    """``name`` if it is a plain folder name (see above), else ValueError("name: ...")."""
+    why = None
+    if not name.strip():
+        why = "empty"
+    elif name != name.strip():
+        why = "starts or ends with a space"
+    elif name in (".", ".."):
+        why = "a path, not a name"
+    elif _NAME_FORBIDDEN.search(name):
+        why = "holds a path separator or a control character"
+    elif name[0] in ".-":
+        why = "starts with '.' or '-'"
+    elif len(name) > MAX_NAME:
+        why = f"longer than {MAX_NAME} characters"
+    if why is not None:
+        shown = repr(name) if len(name) <= 60 else repr(name[:60]) + "..."
+        raise ValueError(
+            f"name: {shown}: {why}; a run's name is one plain folder name "
+            "(letters, digits, '_', '-', '.'), e.g. gold_v2"
+        )
+    return name
+
+
 class Config(_Section):
-    name: str = "run"  # default run directory: runs/<name>/
+    name: str = "run"  # default run directory: runs/<name>/ (a plain name: check_name)
     target: Target = Field(default_factory=Target)
     model: Model = Field(default_factory=Model)
     normalization: Normalization = Field(default_factory=Normalization)
@@ -208,8 +273,52 @@ class Config(_Section):
     validation: Validation = Field(default_factory=Validation)
     export: Export = Field(default_factory=Export)
 
+    @model_validator(mode="after")
+    def _plain_name(self):
+        check_name(self.name)
+        return self
+
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(), sort_keys=False)
+
+
+# --------------------------------------------------------------------- sizes
+# Bytes a setting makes the program hold at once, estimated from above so that the
+# check (limits.check_bytes) fires before the allocation does.  Each is one tensor or a
+# few of the same size: a pool pair is 9 float32 plus the target's work on it (~16 x).
+PAIR_BYTES = 9 * 4 * 16
+EVAL_CHUNK = 1 << 18  # pairs evaluated at once by validation and the runtime (runtime.CHUNK)
+
+
+def sizes(cfg: Config) -> list[tuple[str, float]]:
+    """(key, bytes) of every setting whose size the memory budget bounds."""
+    m, d, v, n = cfg.model, cfg.data, cfg.validation, cfg.normalization
+    widths = [*m.hidden, 3]
+    # weights (an encoding's width is far below 64), with their gradients and Adam's two
+    # moments; activations of a validation / runtime chunk (those of a training batch,
+    # kept for the backward pass, count under data.batch_size)
+    weights = 4.0 * (64 * widths[0] + sum(a * b for a, b in zip(widths, widths[1:])))
+    out: list[tuple[str, float]] = [
+        ("model.hidden", 4 * weights + 3.0 * 4 * EVAL_CHUNK * max(widths)),
+        ("data.batch_size", float(d.batch_size) * (PAIR_BYTES + 3 * 4 * sum(widths))),
+        ("data.pool_size", float(d.pool_size) * PAIR_BYTES),
+        ("validation.accuracy_samples", float(v.accuracy_samples) * PAIR_BYTES),
+        ("validation.pairs", float(v.pairs) * PAIR_BYTES),
+        ("validation.furnace_samples", float(v.furnace_samples) * v.furnace_dirs * PAIR_BYTES),
+        ("normalization.samples", float(n.samples) * max(n.table_size, n.grid_size**2) * 12),
+        ("export.parity_pairs", float(cfg.export.parity_pairs) * PAIR_BYTES),
+    ]
+    for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
+        out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))
+    return out
+
+
+def check_sizes(cfg: Config, *, source: str = "config", overrides: Sequence[str] = ()) -> None:
+    """limits.TooLarge naming the key whose size exceeds the budget, and where it was
+    given (``source``, or the ``--set`` of ``overrides`` that set it)."""
+    for key, nbytes in sizes(cfg):
+        where = _blame(key.split("."), overrides) or source
+        limits.check_bytes(f"{where}: {key}", nbytes, hint="give a smaller value")
 
 
 # --------------------------------------------------------------------- YAML
@@ -232,14 +341,24 @@ _Loader.add_implicit_resolver(
 
 
 def parse_yaml(text: str, *, source: str) -> Any:
-    """YAML text -> Python data; ConfigError (with line and column) on a syntax error."""
+    """YAML text -> Python data; ConfigError (with line and column) on a syntax error,
+    and on a text that expands to more than limits.MAX_CONFIG_NODES nodes (an alias
+    bomb: a few hundred bytes that reference each other into billions of values)."""
     try:
-        return yaml.load(text, Loader=_Loader)
+        data = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ConfigError(f"{source}: invalid YAML{where}: {problem}") from None
+        raise ConfigError(limits.bounded(f"{source}: invalid YAML{where}: {problem}")) from None
+    except RecursionError:
+        raise ConfigError(f"{source}: YAML nested too deeply") from None
+    if limits.count_nodes(data) > limits.MAX_CONFIG_NODES:
+        raise ConfigError(
+            f"{source}: expands to more than {limits.MAX_CONFIG_NODES:,} YAML values "
+            "(aliases counted each time they are used): refused"
+        )
+    return data
 
 
 def apply_override(raw: dict, item: str) -> None:
@@ -279,7 +398,7 @@ def _describe(err: Any) -> str:
         msg = err["msg"].removeprefix("Value error, ")
         return f"{loc}.{msg}" if loc else msg
     got = err.get("input")
-    shown = "" if isinstance(got, (dict, list)) else f" (got {got!r})"
+    shown = "" if isinstance(got, (dict, list)) else f" (got {limits.bounded(repr(got), 80)})"
     return f"{loc}: {err['msg']}{shown}"
 
 
@@ -291,17 +410,27 @@ def from_dict(raw: Any, *, source: str = "config", overrides: Sequence[str] = ()
     if not isinstance(raw, dict):
         raise ConfigError(f"{source}: expected a mapping of keys at the top level")
     try:
-        return Config.model_validate(raw)
+        cfg = Config.model_validate(raw)
     except ValidationError as e:
         errs = e.errors()
         more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
         where = _blame(errs[0]["loc"], overrides) or source
-        raise ConfigError(f"{where}: {_describe(errs[0])}{more}") from None
+        raise ConfigError(limits.bounded(f"{where}: {_describe(errs[0])}{more}")) from None
+    except RecursionError:
+        raise ConfigError(f"{source}: nested too deeply") from None
+    check_sizes(cfg, source=source, overrides=overrides)
+    return cfg
 
 
 def read_text(path: Path) -> str:
     """A config file's text; ConfigError naming the file if it is unreadable or not UTF-8."""
     try:
+        size = path.stat().st_size
+        if size > limits.MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"{path}: {limits.human(size)}, more than a config may be "
+                f"({limits.human(limits.MAX_CONFIG_BYTES)}); is it a config file?"
+            )
         data = path.read_bytes()
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
@@ -312,8 +441,13 @@ def read_text(path: Path) -> str:
 
 
 def _images_relative_to(raw: dict, folder: Path) -> None:
-    """target.images paths in a config file are relative to its folder: made absolute."""
+    """target.images and target.mitsuba paths in a config file are relative to its
+    folder: made absolute."""
     target = raw.get("target")
+    if isinstance(target, dict):
+        teacher = target.get("mitsuba")
+        if isinstance(teacher, str) and teacher.strip() and not Path(teacher).is_absolute():
+            target["mitsuba"] = os.path.abspath(folder / teacher)
     images = target.get("images") if isinstance(target, dict) else None
     for item in images if isinstance(images, list) else ():
         for key in ("scene", "image") if isinstance(item, dict) else ():

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
+import math
 import os
 import stat
 import tempfile
@@ -57,16 +59,6 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
-
-
-def is_special(path: str | os.PathLike) -> bool:
-    """True when ``path`` (links followed) exists and is neither a regular file nor a
-    folder: a device, a FIFO or a socket, which a write must not replace."""
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return False
-    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
 def _destination(path: Path) -> tuple[Path, os.stat_result | None, bool]:
@@ -154,3 +146,30 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, *, parents: bool = 
     payload = data.encode("utf-8") if isinstance(data, str) else data
     with atomic_path(path, parents=parents) as name:
         _write_all(name, payload)
+
+
+# ------------------------------------------------------------------ JSON reports
+def jsonable(value: object) -> object:
+    """``value`` as JSON types: numpy scalars and arrays, tuples and paths converted, and
+    a float that is not finite as the text Python writes for it ("nan", "inf", "-inf"),
+    at any depth.  Strict JSON has no NaN or Infinity; a string keeps what a null would
+    lose (which one it was).  The reports (metrics.json, ``validate --json``, a sweep's
+    results) go through here; model.onnx's metadata keeps its own documented rule
+    (fileformat.metadata.encode: null inside objects, docs/portable.md)."""
+    if isinstance(value, float):
+        return float(value) if math.isfinite(value) else repr(float(value))
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    tolist = getattr(value, "tolist", None)  # numpy arrays and scalars, torch tensors
+    if callable(tolist):
+        return jsonable(tolist())
+    return value
+
+
+def json_text(value: object, *, indent: int | None = 2) -> str:
+    """Strict JSON text of ``value`` (:func:`jsonable`), with a final newline."""
+    return json.dumps(jsonable(value), indent=indent, allow_nan=False) + "\n"

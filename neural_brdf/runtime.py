@@ -43,6 +43,10 @@ class NeuralBRDF:
         path = Path(path)
         if not path.is_file():
             raise InputError(f"{path}: no such model file")
+        # the file's declared sizes, checked before onnxruntime allocates from them
+        from neural_brdf.fileformat import reader
+
+        reader.load(path, external_data=False)
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads  # 1 thread was fastest here (docs/results.md)
         opts.inter_op_num_threads = 1
@@ -93,9 +97,13 @@ class NeuralBRDF:
         b = np.ascontiguousarray(wo.reshape(-1, 3))
         out = np.empty((len(a), 3), dtype=np.float32)
         for s in range(0, len(a), CHUNK):
-            out[s : s + CHUNK] = self.session.run(
-                [OUTPUT], {"wi": a[s : s + CHUNK], "wo": b[s : s + CHUNK]}
-            )[0]
+            try:
+                out[s : s + CHUNK] = self.session.run(
+                    [OUTPUT], dict(zip(INPUTS, (a[s : s + CHUNK], b[s : s + CHUNK])))
+                )[0]
+            except Exception as e:  # onnxruntime raises its own untyped errors (Fail, ...)
+                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise InputError(f"{self.path}: onnxruntime failed ({first[:200]})") from None
         return out.reshape(batch + (3,))
 
     __call__ = eval

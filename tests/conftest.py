@@ -56,3 +56,19 @@ def wgpu_device():
     adapter = wgpu.gpu.request_adapter_sync(power_preference="high-performance")
     assert adapter is not None, "no WebGPU adapter (install mesa-vulkan-drivers: lavapipe)"
     return adapter.request_device_sync()
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """One finished run of the tiny config (cli_helpers.TINY, the Lambertian preset),
+    trained once per session with ``neural-brdf train``: its folder holds every file a
+    run writes (report and viewer included).  Tests that read a run share it; a test
+    that changes it works on a copy (``shutil.copytree``)."""
+    from cli_helpers import SETS
+    from neural_brdf.tooling.cli import main
+
+    folder = tmp_path_factory.mktemp("tiny") / "run"
+    code = main(["train", "lambert", "--out", str(folder), *SETS])
+    assert code in (0, 1), f"the shared tiny run failed (exit {code})"  # 1: a check failed
+    assert (folder / "model.onnx").is_file() and (folder / "report.html").is_file()
+    return folder

@@ -149,3 +149,58 @@ def test_every_test_file_and_benchmark_script_is_listed():
     assert len(files) > 30
     missing = [p.name for p in files if p.name not in listed and "node_modules" not in p.parts]
     assert not missing, f"not listed in docs/testing.md or docs/benchmarks.md: {missing}"
+
+
+# ------------------------------------------------------------------ README's layout
+def _readme_layout() -> dict[str, list[str]]:
+    """README's "Layout" block: top-level folder -> the names listed under it.  A line
+    ``  name name/ ...   text`` (two spaces in, names separated by one space, then at
+    least two spaces) lists parts of the folder above it."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    block = text.split("## Layout", 1)[1].split("```", 2)[1]
+    out: dict[str, list[str]] = {}
+    folder = None
+    for line in block.splitlines():
+        if re.match(r"^[a-z_.]+/?\s", line + " "):
+            folder = line.split()[0]
+            out[folder] = []
+        elif line.startswith("  ") and not line.startswith("   ") and folder:
+            names = re.split(r"\s{2,}", line.strip(), maxsplit=1)[0]
+            out[folder] += names.split(" ")
+    return out
+
+
+def _package_parts() -> set[str]:
+    """neural_brdf's parts: its subpackages (``name/``) and top-level modules (``name``)."""
+    pkg = REPO / "neural_brdf"
+    parts = {p.name + "/" for p in pkg.iterdir() if (p / "__init__.py").is_file()}
+    parts |= {p.stem for p in pkg.glob("*.py") if p.stem not in ("__init__", "__main__")}
+    return parts
+
+
+def test_readme_layout_lists_every_part_of_the_package():
+    layout = _readme_layout()
+    assert "neural_brdf/" in layout, sorted(layout)
+    listed = set(layout["neural_brdf/"])
+    assert listed == _package_parts(), (
+        f"README's Layout lists {sorted(listed - _package_parts())} that the package "
+        f"lacks and lacks {sorted(_package_parts() - listed)}"
+    )
+
+
+def test_readme_layout_lists_the_top_level_folders():
+    layout = _readme_layout()
+    for folder in layout:
+        name = folder.rstrip("/")
+        assert (REPO / name).exists(), f"README's Layout names {folder}, which is not here"
+    untracked = ("runs", "build", "data", "__pycache__")  # .gitignore's folders
+    folders = {
+        p.name
+        for p in REPO.iterdir()
+        if p.is_dir()
+        and not p.name.startswith(".")
+        and p.name not in untracked
+        and not p.name.endswith(".egg-info")
+    }
+    listed = {f.rstrip("/") for f in layout}
+    assert folders <= listed, f"README's Layout lacks {sorted(folders - listed)}"

@@ -2,6 +2,7 @@
 with a path that is a FIFO, a device, a symbolic link or a folder."""
 
 import errno
+import math
 import os
 import stat
 import threading
@@ -158,3 +159,40 @@ def test_a_folder_is_refused_and_a_replaced_file_keeps_its_mode(tmp_path):
     os.chmod(path, 0o600)
     atomic_write(path, "[]")
     assert path.read_text() == "[]" and os.stat(path).st_mode & 0o777 == 0o600
+
+
+# ------------------------------------------------------------------ JSON reports
+def test_json_text_writes_every_non_finite_number_one_way():
+    """One rule for the reports (metrics.json, validate --json, a sweep's results): a
+    NaN or an infinity, at any depth and of any float type, is the string Python writes."""
+    import json
+
+    import numpy as np
+
+    from neural_brdf.fileio import json_text
+
+    value = {
+        "a": [float("nan"), {"b": np.float64("inf"), "c": (np.float32(1.5), -math.inf)}],
+        "d": np.array([1.0, np.nan]),
+        "e": Path("x/y"),
+    }
+    back = json.loads(json_text(value))
+    assert back == {"a": ["nan", {"b": "inf", "c": [1.5, "-inf"]}], "d": [1.0, "nan"], "e": "x/y"}
+
+
+def test_the_report_writers_share_the_json_rule(tmp_path):
+    """validate.write_json and a sweep's trial file write nested non-finite numbers as
+    strings (the sweep's writer raised on one inside a list before)."""
+    import json
+
+    from neural_brdf import validate
+    from neural_brdf.tooling.sweep import trial
+
+    report = {"checks": {"x": {"value": math.inf}}, "rows": [[math.nan]]}
+    validate.write_json(report, tmp_path / "m.json")
+    trial._write_json(tmp_path / "t.json", report)
+    for name in ("m.json", "t.json"):
+        assert json.loads((tmp_path / name).read_text()) == {
+            "checks": {"x": {"value": "inf"}},
+            "rows": [["nan"]],
+        }

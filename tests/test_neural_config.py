@@ -133,17 +133,23 @@ def test_resolved_config_round_trips():
 
 
 def test_every_name_list_of_the_schema_is_the_one_its_module_implements():
-    # config.py stays free of torch, so it spells the names out; these tie them together
+    # config.py stays free of torch, so it spells these names out (the encodings' it takes
+    # from their torch-free registry); these tie them together
     from typing import get_args
 
-    from neural_brdf.train import encoding, model
-    from neural_brdf.train import loop as train
+    from neural_brdf import encodings
+    from neural_brdf.train import encoding, loop, model
 
     fields = config.Model.model_fields
-    assert get_args(fields["encoding"].annotation) == encoding.ENCODINGS
     assert set(get_args(fields["activation"].annotation)) == set(model.ACTIVATIONS)
-    assert get_args(config.Train.model_fields["loss"].annotation) == train.LOSSES
-    for name in encoding.ENCODINGS:  # each has its feature count
-        assert encoding.num_features(name) > 0
+    assert get_args(config.Train.model_fields["loss"].annotation) == loop.LOSSES
+    # model.encoding is checked against the registry (no torch): every registered name
+    # is accepted and computes its declared width; any other name is refused
+    for name in encodings.names():
+        assert config.load(None, [f"model.encoding={name}"]).model.encoding == name
+        wi = wo = torch.tensor([[0.0, 0.0, 1.0]])
+        assert encoding.features(wi, wo, name).shape == (1, encoding.num_features(name))
+    with pytest.raises(config.ConfigError, match="model.encoding"):
+        config.load(None, ["model.encoding=" + "_".join(encodings.names())])
     with pytest.raises(ValueError, match="train.loss"):
-        train.loss_fn("l2", *(torch.ones(2, 3),) * 3, 1e-3)
+        loop.loss_fn("l2", *(torch.ones(2, 3),) * 3, 1e-3)

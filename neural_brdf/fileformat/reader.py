@@ -5,6 +5,7 @@ error for a file that is not ONNX, and the file's metadata as strings or typed.
     proto = reader.load("model.onnx")        # InputError: "model.onnx: not a loadable ..."
     reader.props(proto)                      # {"max_albedo": "0.94", ...}
     reader.metadata(proto).max_albedo        # typed (fileformat.metadata.Metadata)
+    reader.signature(proto)                  # ("wi", "wo") or ("wi", "wo", "uv")
 
 The graph lowering (:mod:`neural_brdf.graph`), the Mitsuba plugin and the report read
 models through it; the runtime opens files with onnxruntime itself and decodes their
@@ -18,6 +19,7 @@ import os
 import onnx
 
 from neural_brdf.errors import InputError
+from neural_brdf.fileformat import INPUT_WIDTHS, OUTPUT, SIGNATURES, sizes
 from neural_brdf.fileformat.metadata import Metadata
 
 
@@ -27,17 +29,22 @@ def load(model, *, external_data: bool = True) -> onnx.ModelProto:
     and the graph's structure only)."""
     if isinstance(model, onnx.ModelProto):
         return model
+    source = str(model) if not isinstance(model, (bytes, bytearray)) else "model bytes"
     try:
         if isinstance(model, (bytes, bytearray)):
-            return onnx.load_from_string(bytes(model))
-        if isinstance(model, (str, os.PathLike)):
-            return onnx.load(str(model), load_external_data=external_data)
+            proto = onnx.load_from_string(bytes(model))
+        elif isinstance(model, (str, os.PathLike)):
+            proto = onnx.load(str(model), load_external_data=external_data)
+        else:
+            raise TypeError(
+                f"expected a path, bytes or onnx.ModelProto, got {type(model).__name__}"
+            )
+    except TypeError:
+        raise
     except Exception as e:  # onnx raises DecodeError, OSError and others on a bad file
-        raise InputError(
-            f"{model if not isinstance(model, bytes) else 'model bytes'}: not a "
-            f"loadable ONNX model ({type(e).__name__})"
-        ) from None
-    raise TypeError(f"expected a path, bytes or onnx.ModelProto, got {type(model).__name__}")
+        raise InputError(f"{source}: not a loadable ONNX model ({type(e).__name__})") from None
+    sizes.check(proto, source=source)  # declared sizes, before anything is allocated
+    return proto
 
 
 def props(proto: onnx.ModelProto) -> dict[str, str]:
@@ -48,3 +55,36 @@ def props(proto: onnx.ModelProto) -> dict[str, str]:
 def metadata(proto: onnx.ModelProto) -> Metadata:
     """The metadata_props decoded and typed."""
     return Metadata.from_props(props(proto))
+
+
+def signature(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ...]:
+    """The graph's input names, checked against the contract: one of
+    :data:`~neural_brdf.fileformat.SIGNATURES` ((wi, wo), or (wi, wo, uv) for a material
+    that varies over the surface), in that order, each float32 [N, width] where its shape
+    is declared, and the one output ``f`` [N, 3].  A one-line InputError naming ``source``
+    otherwise."""
+    g = proto.graph
+    inits = {t.name for t in g.initializer}  # IR < 4 lists initializers among the inputs
+    values = [v for v in g.input if v.name not in inits]
+    names = tuple(v.name for v in values)
+    outs = tuple(v.name for v in g.output)
+    if names not in SIGNATURES or outs != (OUTPUT,):
+        expected = " or ".join(str(s) for s in SIGNATURES)
+        raise InputError(
+            f"{source}: expected inputs {expected} and output {OUTPUT!r}, got "
+            f"{_names(names)} -> {_names(outs)}"
+        )
+    for v, width in [(v, INPUT_WIDTHS[v.name]) for v in values] + [(g.output[0], 3)]:
+        t = v.type.tensor_type
+        dims = [d.dim_value if d.HasField("dim_value") else None for d in t.shape.dim]
+        if t.elem_type != onnx.TensorProto.FLOAT or (
+            t.HasField("shape") and (len(dims) != 2 or dims[1] not in (None, width))
+        ):
+            raise InputError(f"{source}: {v.name!r}: expected float32 [N, {width}]")
+    return names
+
+
+def _names(names: tuple[str, ...]) -> str:
+    """``names`` for an error text: at most 4, each at most 40 characters."""
+    shown = [n if len(n) <= 40 else n[:37] + "..." for n in names[:4]]
+    return "(" + ", ".join(repr(n) for n in shown) + (", ..." if len(names) > 4 else "") + ")"

@@ -32,7 +32,8 @@ from BRDF samples (:func:`fit`):
    ``metrics.json`` records it with the fit's figures.
 
 Checkpoints (``ckpt.pt``: weights, Adam's moments, step, sampling lobe), ``log.csv``,
-``--resume``, Ctrl-C and divergence behave as in :mod:`neural_brdf.train.loop`.  Bad input
+``--resume``, Ctrl-C and divergence behave as in :mod:`neural_brdf.train.loop`: the fit
+runs in the same :class:`neural_brdf.train.session.Session`.  Bad input
 raises :class:`neural_brdf.errors.InputError` (exit code 2) with one line naming the
 file, before anything is written: a missing or unreadable image, an image that is not
 RGB, an image whose size is not the film's, a scene without ``<bsdf id="fit">`` (or
@@ -59,7 +60,6 @@ to scale down; the exported bound itself comes from the normalisation, not the p
 from __future__ import annotations
 
 import copy
-import csv
 import json
 import math
 import time
@@ -73,9 +73,11 @@ import torch
 from tqdm import tqdm
 
 from neural_brdf import config as cfgmod
-from neural_brdf.errors import Diverged, InputError, Interrupted
-from neural_brdf.fileio import atomic_write
+from neural_brdf import runfolder
+from neural_brdf.errors import InputError
+from neural_brdf.fileformat import LOBE_KEY
 from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.session import Session
 
 # Integrators a fit renders with, by the scene's <integrator type>: Mitsuba's C++ ones
 # are differentiated by recording their AD graph; "prb" is replaced by "prb_basic" with
@@ -97,7 +99,7 @@ TORCH_THREADS = 1  # see fit_neural
 # The network's start: a constant f = INIT_VALUE / ((cos_i + cos_o) / 2) (model.py), whose
 # albedo, 12.6 INIT_VALUE at grazing incidence, stays below 1 everywhere.
 INIT_VALUE = 0.05
-LOG_COLUMNS = ["step", "loss", "lr", "seconds", "val_rel_rmse"]  # as train.py's log.csv
+KIND = "images"  # the checkpoint's kind (neural_brdf.train.session)
 
 
 @dataclass
@@ -460,13 +462,16 @@ def fit_neural(
     lr_factor: float = 1.0,
     grid_lr_scale: float | None = None,
     init_info: dict | None = None,
+    session: Session | None = None,
 ) -> tuple[RawBRDF, dict[str, Any]]:
-    """Fit the RawBRDF of ``cfg.model`` to ``views``; writes ckpt.pt and log.csv."""
+    """Fit the RawBRDF of ``cfg.model`` to ``views``; writes ckpt.pt and log.csv.
+    ``session``: the run's session when :func:`fit` has begun it (else one is opened
+    here, :meth:`neural_brdf.train.session.Session.one`)."""
     import drjit as dr
     import mitsuba as mi
 
     from neural_brdf.inverse import bsdf as ib
-    from neural_brdf.train import loop as trainmod
+    from neural_brdf.train import loop
 
     t = cfg.train
     # torch's ops here are small elementwise ones, called from inside the render: a
@@ -474,18 +479,9 @@ def fit_neural(
     # (OMP_WAIT_POLICY=PASSIVE, as the CLI sets; 7.8 ms without it) on the busy 2-core
     # reference machine, so the fit runs torch on one thread (Dr.Jit has its own pool)
     torch.set_num_threads(TORCH_THREADS)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ckpt_path, log_path = run_dir / "ckpt.pt", run_dir / "log.csv"
-    ckpt = None
-    if resume:
-        ckpt = trainmod.load_checkpoint(ckpt_path)
-        if ckpt.get("format_version") != cfgmod.FORMAT_VERSION or ckpt.get("kind") != "images":
-            raise cfgmod.ConfigError(
-                f"{ckpt_path}: not a checkpoint of an images fit of format version "
-                f"{cfgmod.FORMAT_VERSION}; it cannot be resumed: train anew (--overwrite)"
-            )
-        trainmod.check_resumable(ckpt["config"], cfg)
-    atomic_write(run_dir / "config.yaml", cfg.to_yaml())
+    sess = session or Session.one(cfg, run_dir, resume=resume, kind=KIND)
+    ckpt = sess.resumed()
+    sess.begin()
 
     model_text = json.dumps(cfg.model.model_dump())
     bsdf = bsdf_element(ib.PLUGIN, model=model_text, seed=int(t.seed), init_value=float(init_value))
@@ -506,26 +502,21 @@ def fit_neural(
     lr_scale = {n: next((s for p, s in scales.items() if n.startswith(p)), 1.0) for n in names}
     penalty = albedo_penalty_fn(raw_template)
 
-    step, seconds, render_seconds = 0, 0.0, 0.0
+    render_seconds = 0.0
     lobe = None
     if ckpt is not None:
         _load_adam_state(opt, ckpt["optimizer"])
-        step, seconds = int(ckpt["step"]), float(ckpt["train_seconds"])
+        sess.restore(ckpt)
         lobe, init_info = ckpt.get("lobe"), ckpt.get("init")
         render_seconds = float(ckpt.get("render_seconds", 0.0))
 
     def weights_now() -> dict:
         return {n: torch.from_numpy(np.array(opt[n].numpy(), copy=True)) for n in names}
 
-    def state():
+    def state() -> dict[str, Any]:
         return {
-            "format_version": cfgmod.FORMAT_VERSION,
-            "kind": "images",
-            "step": step,
-            "config": cfg.model_dump(),
             "model": weights_now(),
             "optimizer": _adam_state(opt),
-            "train_seconds": seconds,
             "lobe": lobe,
             "init": init_info,
             "render_seconds": render_seconds,
@@ -538,109 +529,60 @@ def fit_neural(
     if lobe is None:
         lobe = lead.refit_lobe(seed=t.seed)
     set_lobe(lobe)
-    if ckpt is None:
-        trainmod.save_checkpoint(ckpt_path, state())
-
-    rows = []
-    if resume and log_path.is_file():
-        with open(log_path, newline="") as fh:
-            rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
-    log_fh = open(log_path, "w", newline="")
-    log = csv.DictWriter(log_fh, LOG_COLUMNS)
-    log.writeheader()
-    log.writerows(rows)
-    bar = tqdm(
-        total=t.steps,
-        initial=min(step, t.steps),
-        desc=cfg.name,
-        disable=not t.progress,
-        dynamic_ncols=True,
-        mininterval=0.5,
-        leave=False,
-    )
     last = {"loss": math.nan, "image": math.nan, "albedo": math.nan, "max_albedo": math.nan}
-    start = time.perf_counter() - seconds
-    try:
-        with trainmod.deferred_sigint() as sigint, ib.evaluated_mode():
-            while step < t.steps:
-                if sigint["set"]:
-                    seconds = time.perf_counter() - start
-                    trainmod.save_checkpoint(ckpt_path, state())
-                    raise Interrupted(
-                        f"interrupted at step {step}; checkpoint saved to "
-                        f"{ckpt_path}; continue with --resume"
-                    )
-                lr = trainmod.learning_rate(t, step) * lr_factor
-                opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
-                if step > 0 and step % settings.lobe_every == 0:
-                    lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
-                    set_lobe(lobe)
-                total = 0.0
-                t_render = time.perf_counter()
-                for i, v in enumerate(views):
-                    for n in names:
-                        v.params["raw." + n] = opt[n]
-                    v.params.update()
-                    img = mi.render(
-                        v.scene,
-                        v.params,
-                        spp=settings.primal_spp,
-                        spp_grad=settings.spp,
-                        seed=_rng_seed(t.seed, step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
-                    )
-                    loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
-                    dr.backward(loss)
-                    total += float(loss.array[0])
-                render_seconds += time.perf_counter() - t_render
-                wi, wo = albedo_directions(t.seed * 7919 + step)
-                pen, amax = penalty(
-                    {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
+    with sess.run(state) as s, ib.evaluated_mode():
+        while s.step < t.steps:
+            s.stop_if_interrupted()
+            step = s.step
+            lr = loop.learning_rate(t, step) * lr_factor
+            opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
+            if step > 0 and step % settings.lobe_every == 0:
+                lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
+                set_lobe(lobe)
+            total = 0.0
+            t_render = time.perf_counter()
+            for i, v in enumerate(views):
+                for n in names:
+                    v.params["raw." + n] = opt[n]
+                v.params.update()
+                img = mi.render(
+                    v.scene,
+                    v.params,
+                    spp=settings.primal_spp,
+                    spp_grad=settings.spp,
+                    seed=_rng_seed(t.seed, step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
                 )
-                dr.backward(pen)
-                last = {
-                    "image": total,
-                    "albedo": float(pen.array[0]),
-                    "max_albedo": float(amax.array[0]),
-                }
-                last["loss"] = last["image"] + last["albedo"]
-                if not math.isfinite(last["loss"]):
-                    raise Diverged(
-                        f"loss is {last['loss']} at step {step}; the last good "
-                        f"checkpoint is kept in {ckpt_path} (try a lower train.lr)"
-                    )
-                opt.step()
-                step += 1
-                bar.update(1)
-                if step % t.log_every == 0 or step == t.steps:
-                    log.writerow(
-                        {
-                            "step": step,
-                            "loss": f"{last['loss']:.6g}",
-                            "lr": f"{lr:.4g}",
-                            "seconds": f"{time.perf_counter() - start:.2f}",
-                            "val_rel_rmse": "",
-                        }
-                    )
-                    log_fh.flush()
-                    bar.set_postfix(loss=f"{last['loss']:.4g}", albedo=f"{last['max_albedo']:.3f}")
-                if step % t.checkpoint_every == 0 or step == t.steps:
-                    if not all(np.all(np.isfinite(opt[n].numpy())) for n in names):
-                        raise Diverged(
-                            f"weights became non-finite by step {step}; the last "
-                            f"good checkpoint is kept in {ckpt_path}"
-                        )
-                    seconds = time.perf_counter() - start
-                    trainmod.save_checkpoint(ckpt_path, state())
-    finally:
-        bar.close()
-        log_fh.close()
-    seconds = time.perf_counter() - start
+                loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
+                dr.backward(loss)
+                total += float(loss.array[0])
+            render_seconds += time.perf_counter() - t_render
+            wi, wo = albedo_directions(t.seed * 7919 + step)
+            pen, amax = penalty(
+                {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
+            )
+            dr.backward(pen)
+            last = {
+                "image": total,
+                "albedo": float(pen.array[0]),
+                "max_albedo": float(amax.array[0]),
+            }
+            last["loss"] = last["image"] + last["albedo"]
+            if not math.isfinite(last["loss"]):
+                raise s.diverged(last["loss"], step)
+            opt.step()
+            s.advance()
+            if s.due(t.log_every):
+                s.log(loss=last["loss"], lr=lr)
+                s.postfix(loss=f"{last['loss']:.4g}", albedo=f"{last['max_albedo']:.3f}")
+            if s.due(t.checkpoint_every):
+                s.check_weights(all(np.all(np.isfinite(opt[n].numpy())) for n in names))
+                s.checkpoint()
     raw = copy.deepcopy(raw_template)
     raw.load_state_dict(weights_now())
     return raw.eval(), {
-        "steps": step,
+        "steps": sess.step,
         "device": variant_of(),
-        "train_seconds": seconds,
+        "train_seconds": sess.seconds,
         "render_seconds": render_seconds,
         "final_loss": last["loss"],
         "final_image_loss": last["image"],
@@ -651,7 +593,7 @@ def fit_neural(
         "lr_factor": lr_factor,
         "grid_lr_scales": {p: s for p, s in scales.items()},
         "views": len(views),
-        "sampling_lobe": lobe,
+        LOBE_KEY: lobe,
         "init": init_info,
         "target": describe(views),
     }
@@ -676,19 +618,23 @@ def fit(
     resume: bool = False,
     overwrite: bool = False,
     settings: Settings | None = None,
+    folder: runfolder.Folder | None = None,
 ) -> tuple[RawBRDF, dict[str, Any], float]:
     """The training stage of ``neural-brdf train`` for a config with ``target.images``:
     check the folder and the images, fit (a GGX start first, by default); returns
     (network, figures, the start time).  :func:`neural_brdf.pipeline.run` then exports
-    and validates it like any run (no reference: the physics checks only)."""
-    from neural_brdf.train import loop as trainmod
-
+    and validates it like any run (no reference: the physics checks only).  ``folder``:
+    ``run_dir`` as the caller opened it (:func:`neural_brdf.runfolder.hold`)."""
     settings = settings or Settings()
-    trainmod.check_fresh_run_dir(run_dir, resume=resume, overwrite=overwrite)
+    if folder is None:
+        folder = runfolder.Folder.open(run_dir, resume=resume, overwrite=overwrite)
     t0 = time.perf_counter()
     use_variant(variant_name(cfg))
     views = read_views(cfg)
     check_films(views)  # before anything is written
+    sess = Session.one(cfg, folder, resume=resume, kind=KIND)
+    sess.resumed()  # a checkpoint that cannot be resumed: refused before any write
+    sess.begin()  # the marker and config.yaml (an overwritten run removed), then init/
     init_state, init_info = None, None
     lr_factor, grid_lr_scale = 1.0, None
     if settings.init == "ggx":
@@ -703,7 +649,7 @@ def fit(
                 label=f"{cfg.name}: GGX start, ",
             )
             init_state, init_info = ggx_initial_state(
-                cfg, rough, run_dir / "init", settings.init_train_steps
+                cfg, rough, folder.init, settings.init_train_steps
             )
             init_info["roughconductor"] = rough
             init_info["seconds"] += rough["seconds"]
@@ -717,6 +663,7 @@ def fit(
         lr_factor=lr_factor,
         grid_lr_scale=grid_lr_scale,
         init_info=init_info,
+        session=sess,
     )
     return raw, training, t0
 
@@ -745,7 +692,7 @@ def fit_roughconductor(
     import drjit as dr
     import mitsuba as mi
 
-    from neural_brdf.train import loop as trainmod
+    from neural_brdf.train import loop
 
     steps = train.steps if steps is None else steps
     sched = train.model_copy(update={"steps": steps, "lr": lr})
@@ -764,7 +711,7 @@ def fit_roughconductor(
         leave=False,
     )
     for step in range(steps):
-        opt.set_learning_rate(trainmod.learning_rate(sched, step))
+        opt.set_learning_rate(loop.learning_rate(sched, step))
         loss_value = 0.0
         for i, v in enumerate(views):
             v.params.update(opt)
@@ -818,7 +765,7 @@ def ggx_initial_state(
     BRDF samples (:func:`neural_brdf.train.loop.train`, into ``run_dir``) of the analytic
     microfacet model that matches Mitsuba's roughconductor: GGX, separable Smith
     masking, conductor Fresnel with the fitted eta and k."""
-    from neural_brdf.train import loop as trainmod
+    from neural_brdf.train import loop
 
     d = cfg.model_dump()
     d["target"] = {
@@ -836,7 +783,7 @@ def ggx_initial_state(
     d["train"].update(steps=steps, threads=TORCH_THREADS, eval_every=0)
     d["train"]["checkpoint_every"] = max(1, steps)
     icfg = cfgmod.from_dict(d, source="ggx initialisation")
-    raw, info = trainmod.train(icfg, run_dir)
+    raw, info = loop.train(icfg, run_dir)
     return raw.state_dict(), {
         "target": info["target"],
         "steps": steps,

@@ -10,8 +10,10 @@
 The preview scene, PNG writing and PSNR are in :mod:`neural_brdf.renderers.render`.
 
 This module holds the renderer plugins; the other modules that import mitsuba use it
-(render.py: preview renders; inverse.py, inverse_bsdf.py, inverse_example.py: fitting
-from images; plots.py and cli.py: to check that it is installed and set a variant).  Importing this
+(renderers/render.py: preview renders; inverse/fit.py, inverse/bsdf.py, inverse/scene.py:
+fitting from images; viewer/plots.py and tooling/cli.py: to check that it is installed
+and set a variant; measured/rgl/bake.py uses Mitsuba's own spectral tables, not these
+plugins).  Importing this
 module needs a Mitsuba variant to be set already (``mi.set_variant``); the plugins are
 registered for that variant, which must be a JIT one (``llvm_*`` or ``cuda_*``; scalar
 variants are refused when a plugin loads).

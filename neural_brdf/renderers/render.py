@@ -23,11 +23,12 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import mitsuba as mi
 import numpy as np
 
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_path
 from neural_brdf.renderers.mitsuba import read_model
 
@@ -121,11 +122,33 @@ ERROR_GAIN = 10.0
 GAIN_PERCENTILE = 99.0  # an adaptive gain maps this percentile of the difference to 1
 
 
+# Image files a render writes, by the output's extension: suffix -> matplotlib format.
+IMAGE_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg"}
+
+
+def image_format(path: str | Path) -> str:
+    """The format of an output image by its extension (InputError for any other)."""
+    fmt = IMAGE_FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        known = ", ".join(IMAGE_FORMATS)
+        raise InputError(
+            f"{path}: unknown image extension {Path(path).suffix or '(none)'!r}; known: {known}"
+        )
+    return fmt
+
+
 def write_png(path: Path, img: np.ndarray) -> None:
+    """Write ``img`` (display values in [0, 1]) atomically, as PNG or JPEG by the
+    extension of ``path`` (:data:`IMAGE_FORMATS`; JPEG at quality 95, no alpha)."""
     import matplotlib.image
 
-    with atomic_path(path, suffix=".png", parents=True) as tmp:
-        matplotlib.image.imsave(tmp, np.clip(img, 0.0, 1.0))
+    fmt = image_format(path)
+    rgb = np.clip(img, 0.0, 1.0)
+    pil: dict[str, Any] | None = {"quality": 95} if fmt == "jpeg" else None
+    if fmt == "jpeg" and rgb.ndim == 3 and rgb.shape[2] == 4:
+        rgb = rgb[..., :3]
+    with atomic_path(path, suffix=Path(path).suffix.lower(), parents=True) as tmp:
+        matplotlib.image.imsave(tmp, rgb, format=fmt, pil_kwargs=pil)
 
 
 def analytic_bsdf(reference: dict, *, lobe: dict | None = None) -> dict:

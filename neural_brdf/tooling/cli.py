@@ -37,8 +37,9 @@ from pathlib import Path
 # Only effective before torch is first imported, which this module does not do.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-EXIT_OK, EXIT_PHYSICS, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
-EXIT_TERMINATED = 128 + signal.SIGTERM  # 143: the shell's code for a process SIGTERM ended
+from neural_brdf.errors import InputError  # noqa: E402  (light: no torch, no pydantic)
+
+EXIT_OK, EXIT_PHYSICS, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130  # SIGTERM: 128 + 15
 STDOUT = "-"  # -o -: the output on stdout (text formats only)
 
 
@@ -132,7 +133,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
-    r.add_argument("-o", "--out", required=True, help="output .png")
+    r.add_argument("-o", "--out", required=True, help="output image: .png, or .jpg/.jpeg (JPEG)")
 
     g = sub.add_parser(
         "codegen",
@@ -182,8 +183,6 @@ def _warn(message: str) -> None:
 
 def _output_file(out: str, what: str, flag: str = "-o") -> None:
     """Refuse ``-o -`` for a binary output and ``-o FOLDER`` (InputError, exit 2)."""
-    from neural_brdf.errors import InputError
-
     if out == STDOUT:
         raise InputError(
             f"{flag} -: {what} is binary, not for stdout; give a file name "
@@ -193,9 +192,39 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
         raise InputError(f"{flag} {out}: is a folder; give a file name ({what})")
 
 
+# A run folder's own files (neural_brdf.runfolder owns the list): no command's output may
+# replace one of them, except the file that command exists to write there.
+def _not_an_input(
+    out: str | None, inputs: dict[str, str | None], *, flag: str, may: str = ""
+) -> None:
+    """Refuse an output (``flag out``) that is one of the command's ``inputs`` (name ->
+    path) or one of a run folder's own files (other than ``may``): writing it would
+    destroy what the command was given (InputError, exit 2; nothing is written)."""
+    if out is None or out == STDOUT:
+        return
+    target = Path(os.path.realpath(out))
+    for what, path in inputs.items():
+        if path is None or path == STDOUT:
+            continue
+        same = target == Path(os.path.realpath(path))
+        if not same:
+            with contextlib.suppress(OSError):
+                same = os.path.samefile(out, path)
+        if same:
+            raise InputError(
+                f"{flag} {out}: is the {what} this command reads; give another output file"
+            )
+    from neural_brdf import runfolder
+
+    if target.name != may and runfolder.is_own_file(target):
+        raise InputError(
+            f"{flag} {out}: is a file of the run in {target.parent}; give a file outside "
+            "the run folder (or another name)"
+        )
+
+
 def _write_text(out: str, text: str) -> None:
     """``text`` to the file ``out`` (atomic; see fileio) or, for ``-``, to stdout."""
-    from neural_brdf.errors import InputError
     from neural_brdf.fileio import atomic_write
 
     if out != STDOUT:
@@ -223,8 +252,6 @@ def _train(args) -> int:
     from neural_brdf import presets
 
     if args.out == STDOUT:
-        from neural_brdf.errors import InputError
-
         raise InputError("--out -: a run is a folder, not stdout")
     path = presets.resolve(args.config)  # an unknown name fails before torch loads
     from neural_brdf import config
@@ -232,9 +259,9 @@ def _train(args) -> int:
     # a bad config fails before torch loads
     cfg = config.load(path, args.overrides, warn=_warn)
     from neural_brdf import pipeline, validate
-    from neural_brdf.train import loop as train
+    from neural_brdf.train import loop
 
-    run_dir = Path(args.out) if args.out else train.default_run_dir(cfg)
+    run_dir = Path(args.out) if args.out else loop.default_run_dir(cfg)
     report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     if report.get("already_finished") is not None:
         print(
@@ -260,16 +287,34 @@ def _train_many(args) -> int:
     cfgs = [config.load(path, args.overrides, warn=_warn) for path in paths]
     from neural_brdf import pipeline, validate
 
-    reports = pipeline.run_many(cfgs, Path(args.out), overwrite=args.overwrite, report=args.report)
+    reports = pipeline.run_many(
+        cfgs,
+        Path(args.out),
+        overwrite=args.overwrite,
+        report=args.report,
+        sources=[str(p) for p in paths],
+    )
+    errors = {}
     for cfg, report in zip(cfgs, reports):
         acc = report.get("accuracy") or {}
-        err = f"rel_rmse {100 * acc['rel_rmse']:.2f} %" if "rel_rmse" in acc else ""
+        err = ""
+        if "rel_rmse" in acc:
+            errors[cfg.name] = acc["rel_rmse"]
+            err = f"rel_rmse (f cos) {100 * acc['rel_rmse']:.2f} %"
         verdict = "ok" if report["passed"] else "FAILED"
         print(f"{cfg.name}: physics {verdict}  {err}  -> {Path(args.out) / cfg.name}")
     s = reports[0]["seconds"]
+    worst = max(errors, key=errors.__getitem__) if errors else None
+    accuracy = (
+        f"; accuracy, which is reported and not judged: worst rel_rmse "
+        f"{100 * errors[worst]:.2f} % ({worst})"
+        if worst is not None
+        else ""
+    )
     print(
         f"{len(cfgs)} materials in one batch: train {s['train']:.1f} s for all of them; "
-        f"{sum(r['passed'] for r in reports)} of {len(cfgs)} passed"
+        f"{sum(r['passed'] for r in reports)} of {len(cfgs)} passed the physics checks"
+        f"{accuracy}"
     )
     if any(not r["passed"] for r in reports):
         print(validate.format_table(next(r for r in reports if not r["passed"])))
@@ -297,21 +342,21 @@ def _presets(args) -> int:
 def _export(args) -> int:
     if args.out is not None:
         _output_file(args.out, "an ONNX model")
-    from neural_brdf import export
+        _not_an_input(args.out, {"run folder": args.run_dir}, flag="-o", may="model.onnx")
+    from neural_brdf import export, validate
 
-    info = export.export_run(args.run_dir, args.out)
+    # export writes (and checks parity); validate measures the graph and gives the verdict
+    info = export.export_run(args.run_dir, args.out, measure=validate.physics)
     c = info["physics"]["checks"]
     print(
         f"wrote {info['path']}: parity {info['parity_rel_error']:.2g}, max albedo "
         f"{c['max_albedo']['value']:.6f}, reciprocity {c['reciprocity']['value']:.2g}"
     )
-    return EXIT_OK if all(x["passed"] for x in c.values()) else EXIT_PHYSICS
+    return EXIT_OK if validate.physics_passed(info["physics"]) else EXIT_PHYSICS
 
 
 def _report(args) -> int:
     if args.out == STDOUT:
-        from neural_brdf.errors import InputError
-
         raise InputError("-o -: the report is a folder of files, not for stdout")
     from neural_brdf.viewer.report import write_report
 
@@ -321,26 +366,28 @@ def _report(args) -> int:
 
 
 def _validate(args) -> int:
-    import json
 
-    from neural_brdf import config, validate
+    from neural_brdf import validate
 
     if args.json and args.json != STDOUT and Path(args.json).is_dir():
-        raise config.InputError(f"--json {args.json}: is a folder; give a file name")
+        raise InputError(f"--json {args.json}: is a folder; give a file name")
+    _not_an_input(args.json, {"model": args.model, "reference": args.reference}, flag="--json")
     reference = validate.reference_from(args.reference) if args.reference else None
-    report = validate.report(args.model, reference=reference)
+    report = validate.report(args.model, target=reference)
     # with --json -, stdout carries the JSON alone and the table goes to stderr
     table_to = sys.stderr if args.json == STDOUT else sys.stdout
     print(validate.format_table(report), file=table_to)
     if args.json == STDOUT:
         # as validate.write_json writes it (NaN and infinities as strings)
-        _write_text(STDOUT, json.dumps(validate._finite(report), indent=2, allow_nan=False) + "\n")
+        from neural_brdf.fileio import json_text
+
+        _write_text(STDOUT, json_text(report))
     elif args.json:
         try:
             validate.write_json(report, args.json)
         except OSError as e:
-            raise config.InputError(f"{args.json}: cannot write ({e.strerror})") from None
-    return EXIT_OK if report["passed"] else EXIT_PHYSICS
+            raise InputError(f"{args.json}: cannot write ({e.strerror})") from None
+    return EXIT_OK if validate.passed(report) else EXIT_PHYSICS  # the peak too
 
 
 def _analytic_target(config_path: str):
@@ -349,8 +396,9 @@ def _analytic_target(config_path: str):
     from neural_brdf import config
 
     cfg = config.load(config_path)
-    if cfg.target.data is not None:
-        raise config.InputError(f"{config_path}: target.data: only analytic targets here")
+    for key in ("data", "mitsuba"):
+        if getattr(cfg.target, key) is not None:
+            raise InputError(f"{config_path}: target.{key}: only analytic targets here")
     return (
         cfg.target.model,
         dict(cfg.target.params),
@@ -358,46 +406,48 @@ def _analytic_target(config_path: str):
     )
 
 
-# Output formats of ``bake``: suffix -> (name, module with ``bake(fn, path)``).  A third
-# format is one entry here.
-BAKE_FORMATS = {".binary": ("MERL", "merl"), ".bsdf": ("RGL", "rgl")}
-
-
 def _bake(args) -> int:
-    import importlib
+    """The output format by its suffix: :mod:`neural_brdf.measured.formats`."""
+    from neural_brdf.measured import formats
 
-    from neural_brdf import config
-
-    _output_file(args.out, "a tabulated BRDF (.binary, .bsdf)")
-    suffix = Path(args.out).suffix.lower()
-    if suffix not in BAKE_FORMATS:
-        known = ", ".join(f"{s} ({n})" for s, (n, _) in BAKE_FORMATS.items())
-        raise config.InputError(
-            f"{args.out}: unknown output extension {suffix or '(none)'!r}; known: {known}"
-        )
-    writer = importlib.import_module(f"neural_brdf.measured.{BAKE_FORMATS[suffix][1]}")
+    suffixes = ", ".join(f.suffix for f in formats.all_formats())
+    _output_file(args.out, f"a tabulated BRDF ({suffixes})")
+    _not_an_input(args.out, {"source": args.source}, flag="-o")
+    fmt = formats.format_of(args.out)  # an unknown suffix: InputError naming the known ones
     if str(args.source).endswith(".onnx"):
         from neural_brdf.runtime import load
 
-        fn = load(args.source).eval
+        model = load(args.source)
+        _project_model(model, args.source)
+        fn = model.eval
     else:
         fn = _analytic_target(args.source)[2].eval
     try:
-        writer.bake(fn, args.out)
+        fmt.bake(fn, args.out)
     except OSError as e:
-        raise config.InputError(f"{args.out}: cannot write ({e.strerror})") from None
-    print(f"wrote {args.out} ({BAKE_FORMATS[suffix][0]})")
+        raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
+    print(f"wrote {args.out} ({fmt.name})")
     return EXIT_OK
 
 
+def _project_model(model, path: str) -> None:
+    """Refuse an ONNX file that was not written by neural-brdf (no format version in its
+    metadata): its graph may take (wi, wo) and mean anything else (exit 2)."""
+    if "format_version" not in model.metadata:
+        raise InputError(
+            f"{path}: an ONNX model without neural-brdf's metadata (no format_version): "
+            "not a neural BRDF this command can trust; export one with neural-brdf"
+        )
+
+
 def _render(args) -> int:
-    from neural_brdf.config import InputError
     from neural_brdf.runtime import load
 
     if args.spp < 1 or args.resolution < 8:
         raise InputError("render: --spp must be >= 1 and --resolution >= 8")
-    _output_file(args.out, "a PNG image")
-    load(args.model)  # an empty, foreign or broken file: one line naming it, exit 2
+    _output_file(args.out, "a PNG or JPEG image")
+    _not_an_input(args.out, {"model": args.model, "reference": args.reference}, flag="-o")
+    _project_model(load(args.model), args.model)  # an empty, foreign or broken file: exit 2
     try:
         import mitsuba as mi
     except ImportError:
@@ -412,6 +462,7 @@ def _render(args) -> int:
         mi.set_variant("llvm_ad_rgb")
     from neural_brdf.renderers import render as nbr
 
+    nbr.image_format(args.out)  # .png, .jpg or .jpeg: refused before the render
     info = nbr.render_comparison(
         args.model, args.out, reference=reference, spp=args.spp, resolution=args.resolution
     )
@@ -427,6 +478,13 @@ def _render(args) -> int:
 
 def _view(args) -> int:
     from neural_brdf.viewer import page as viewer
+
+    _not_an_input(
+        args.out,
+        {"model": args.model, "compared model": args.compare},
+        flag="-o",
+        may="viewer.html",
+    )
 
     if args.out == STDOUT:
         models = viewer.models_for(args.model, args.compare)
@@ -457,12 +515,12 @@ def _sweep(args) -> int:
 
 def _codegen(args) -> int:
     from neural_brdf import backends
-    from neural_brdf.config import InputError
 
     if not Path(args.model).is_file():
         raise InputError(f"{args.model}: no such model file")
     if args.out != STDOUT and Path(args.out).is_dir():
         raise InputError(f"-o {args.out}: is a folder; give a file name")
+    _not_an_input(args.out, {"model": args.model}, flag="-o")
     text = backends.generate(args.model, args.target)
     _write_text(args.out, text)
     # with -o -, stdout carries the code alone
@@ -500,6 +558,13 @@ def _sigterm_as_interrupt(command: str):
         signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
+def _error(message: str) -> None:
+    """One line on stderr, at most limits.MAX_MESSAGE characters."""
+    from neural_brdf.limits import bounded
+
+    print(bounded(message), file=sys.stderr)
+
+
 def _exit_code(e: BaseException) -> int:
     """128 + the signal that interrupted the program: 130 (Ctrl-C), 143 (SIGTERM)."""
     return 128 + int(getattr(e, "signum", None) or signal.SIGINT)
@@ -527,23 +592,31 @@ def main(argv: list[str] | None = None) -> int:
         with _sigterm_as_interrupt(args.command):
             return commands[args.command](args)
     except (_UsageError, InputError) as e:
-        print(f"error: {e}", file=sys.stderr)
+        _error(f"error: {e}")
         return EXIT_INPUT
     except Diverged as e:
-        print(f"error: training diverged: {e}", file=sys.stderr)
+        _error(f"error: training diverged: {e}")
         return EXIT_PHYSICS
     except ParityError as e:
-        print(f"error: export: {e}", file=sys.stderr)
+        _error(f"error: export: {e}")
         return EXIT_PHYSICS
     except (Interrupted, KeyboardInterrupt) as e:
-        print(f"neural-brdf: {e or 'interrupted'}", file=sys.stderr)
+        signum = getattr(e, "signum", None)
+        what = "terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted (Ctrl-C)"
+        _error(f"neural-brdf: {str(e).strip() or what}")
         return _exit_code(e)
     except BrokenPipeError:  # `neural-brdf presets | head`: the reader left; no traceback
         _stdout_to_devnull()
         return 0
     except OSError as e:  # the file system: a full disk, a read-only folder, ...
         where = f"{e.filename}: " if e.filename else ""
-        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+        _error(f"error: {where}{e.strerror or e}")
+        return EXIT_INPUT
+    except MemoryError:  # a size no check foresaw: still one line, never a traceback
+        _error(
+            "error: out of memory; a size in the config or the file is too large "
+            "(docs/cli.md, Limits)"
+        )
         return EXIT_INPUT
 
 

@@ -37,7 +37,7 @@ from onnx import TensorProto, helper
 
 from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mixture_pdf
 from neural_brdf import backends, config, graph, pipeline
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
 from neural_brdf.export import relative_difference
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"

@@ -23,7 +23,7 @@ import pytest
 import torch
 
 import analytic
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
 from neural_brdf.physics import lobe
 
 

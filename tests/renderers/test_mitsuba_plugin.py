@@ -34,7 +34,7 @@ import pytest
 import neural_brdf
 from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mixture_pdf
 from neural_brdf import config, pipeline
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
 from neural_brdf.export import relative_difference
 from neural_brdf.physics import lobe
 

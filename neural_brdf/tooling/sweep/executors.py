@@ -8,7 +8,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from neural_brdf import config as cfgmod
+from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_write
 from neural_brdf.tooling.sweep.spec import MARKER
 from neural_brdf.tooling.sweep.trial import _failed, _one_line, _read_marker, run_trial
@@ -66,9 +66,7 @@ def _run_ray(jobs: list[dict], workers: int, address: str | None):
     try:
         import ray
     except ImportError:
-        raise cfgmod.InputError(
-            "--executor ray: Ray is not installed: pip install -e '.[ray]'"
-        ) from None
+        raise InputError("--executor ray: Ray is not installed: pip install -e '.[ray]'") from None
     ours = not ray.is_initialized()
     if ours:
         if address is None:

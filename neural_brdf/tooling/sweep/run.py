@@ -6,7 +6,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-from neural_brdf import config as cfgmod
+from neural_brdf.errors import InputError
 from neural_brdf.tooling.sweep.executors import _run_local, _run_ray, default_workers
 from neural_brdf.tooling.sweep.plan import plan
 from neural_brdf.tooling.sweep.results import write_results
@@ -27,10 +27,10 @@ def run_sweep(
     """Run (or resume) a sweep; returns the results (also written to ``out``)."""
     spec = load_sweep(path)
     if executor not in ("local", "ray"):
-        raise cfgmod.InputError(f"--executor: expected local or ray, got {executor!r}")
+        raise InputError(f"--executor: expected local or ray, got {executor!r}")
     workers = workers or default_workers()
     if workers < 1:
-        raise cfgmod.InputError(f"--workers: must be >= 1, got {workers}")
+        raise InputError(f"--workers: must be >= 1, got {workers}")
     name = spec.name or Path(path).stem
     out_dir = Path(out) if out is not None else Path("runs", "sweeps", name)
     jobs = plan(spec, Path(path), out_dir)

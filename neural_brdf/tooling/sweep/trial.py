@@ -4,7 +4,6 @@ metrics; a finished trial is recognised and not run again."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import socket
 import time
@@ -12,7 +11,7 @@ import traceback
 from pathlib import Path
 
 from neural_brdf import config as cfgmod
-from neural_brdf.fileio import atomic_write
+from neural_brdf.fileio import atomic_write, json_text
 from neural_brdf.tooling.sweep.spec import MARKER
 
 
@@ -22,11 +21,7 @@ def _now() -> str:
 
 
 def _write_json(path: Path, obj) -> None:
-    atomic_write(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
-
-
-def _finite(x):
-    return x if not isinstance(x, float) or math.isfinite(x) else str(x)
+    atomic_write(path, json_text(obj))  # a NaN or an infinity as "nan", "inf"
 
 
 def _metrics(report: dict, cfg: cfgmod.Config) -> dict:
@@ -45,7 +40,7 @@ def _metrics(report: dict, cfg: cfgmod.Config) -> dict:
         "train_seconds": report["seconds"]["train"],
         "total_seconds": report["seconds"]["total"],
     }
-    return {k: _finite(v) for k, v in values.items()}
+    return values
 
 
 def _materialise(m: dict) -> None:
@@ -60,7 +55,7 @@ def _materialise(m: dict) -> None:
 def run_trial(job: dict) -> dict:
     """Train one trial in ``job["run_dir"]``; never raises: returns its record."""
     from neural_brdf import pipeline
-    from neural_brdf.train import loop as train
+    from neural_brdf.train import loop
 
     run_dir = Path(job["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -82,7 +77,7 @@ def run_trial(job: dict) -> dict:
         cfg = cfgmod.from_dict(job["config"], source=f"trial {job['name']}")
         record["metrics"] = _metrics(pipeline.run(cfg, run_dir, overwrite=True), cfg)
         record["status"] = "ok"
-    except train.Interrupted as e:  # Ctrl-C reached this worker: the sweep stops (run_sweep)
+    except loop.Interrupted as e:  # Ctrl-C reached this worker: the sweep stops (run_sweep)
         record["status"] = "interrupted"
         record["error"] = _one_line(e)
     except Exception as e:  # noqa: BLE001 -- recorded, then the next trial

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from neural_brdf import config as cfgmod
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
 from neural_brdf.runtime import NeuralBRDF, load
 from neural_brdf.train import data
 

@@ -7,7 +7,8 @@ import json
 import tempfile
 from pathlib import Path
 
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
+from neural_brdf.export import parity_allowed
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.report.blocks import (
     Attachment,
@@ -40,7 +41,13 @@ def _summary(run: Run) -> list:
     rel = _number(m, "accuracy.rel_rmse", path, optional=True)
     rows: list[list] = [
         ["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
-        ["target", cfg.target.data or f"{cfg.target.model} {json.dumps(cfg.target.params)}"],
+        [
+            "target",
+            cfg.target.data
+            # a Mitsuba teacher: its description (plugin, file, any excess of albedo over 1)
+            or (cfg.target.mitsuba and str(m.get("reference") or cfg.target.mitsuba))
+            or f"{cfg.target.model} {json.dumps(cfg.target.params)}",
+        ],
         [
             "model",
             f"{cfg.model.encoding} encoding, hidden {cfg.model.hidden}, {cfg.model.activation}",
@@ -72,10 +79,11 @@ def _physics(run: Run, albedo_png: bytes) -> list:
         rows.append([name, shown, f"{op} {limit:.6g}", Verdict(c["passed"])])
     parity = _number(m, "export.parity_rel_error", path, optional=True)
     if parity is not None:
-        tol = run.config.export.parity_tol
-        rows.append(
-            ["torch vs onnxruntime parity", f"{parity:.2g}", f"<= {tol:g}", Verdict(parity <= tol)]
-        )
+        # export's own limit: parity_tol, or twice the network's float32 precision
+        precision = _number(m, "export.float32_rel_precision", path, optional=True)
+        tol = parity_allowed(run.config.export.parity_tol, precision or 0.0)
+        verdict = Verdict(parity <= tol)
+        rows.append(["torch vs onnxruntime parity", f"{parity:.2g}", f"<= {tol:.3g}", verdict])
     blocks = [
         Heading("Physics checks"),
         Text(
@@ -199,8 +207,8 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
         return blocks + [Text(f"No render: {why}.", note=True)]
     cfg = run.config
     ref = None
-    if reference is not None and cfg.target.data is None:
-        ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}
+    if reference is not None and cfg.target.data is None and cfg.target.mitsuba is None:
+        ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}  # analytic
     with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         png_path = Path(tmp) / "render.png"
         try:
@@ -252,7 +260,7 @@ def _viewer(run: Run, reference, curves: dict | None = None) -> list:
 
     try:
         models = [viewer.onnx_model(run.dir / "model.onnx", "neural", albedo=page_curve("neural"))]
-        if reference is not None and cfg.target.data is None:
+        if reference is not None and cfg.target.data is None and cfg.target.mitsuba is None:
             models.append(
                 viewer.analytic_model(
                     cfg.target.model,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from neural_brdf.config import InputError
+from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_write
 from neural_brdf.viewer.report.blocks import Attachment, Image, image_name, to_html, to_markdown
 from neural_brdf.viewer.report.run import load_run
