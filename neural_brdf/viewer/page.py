@@ -249,10 +249,11 @@ def models_for(model, compare=None) -> list[Model]:
             out.append(onnx_model(compare, _label(compare)))
         elif compare.suffix in (".yaml", ".yml"):
             cfg = config.load(compare)
-            if cfg.target.data is not None:
+            if cfg.target.data is not None or cfg.target.mitsuba is not None:
                 raise InputError(
-                    f"{compare}: target.data: the viewer compares analytic "
-                    "targets only (measured data has no ONNX graph)"
+                    f"{compare}: target.{'data' if cfg.target.data else 'mitsuba'}: "
+                    "the viewer compares analytic targets only (measured data and "
+                    "Mitsuba teachers have no ONNX graph)"
                 )
             out.append(
                 analytic_model(

@@ -1,0 +1,489 @@
+"""A teacher that Mitsuba 3 evaluates: ``target: {mitsuba: FILE.xml}`` (issue 30, item 1).
+
+    from neural_brdf.measured.mitsuba import MitsubaTarget
+    teacher = MitsubaTarget("roughplastic.xml")     # InputError naming the file if unusable
+    teacher.eval(wi, wo)                            # f (N, 3), 1/sr, no cosine (numpy)
+    teacher.sample_dir_t(wi, u), teacher.pdf_t(wi, wo)   # Mitsuba's own sampler (torch)
+
+The file holds one ``<bsdf>`` (at its root, or the only top-level ``<bsdf>`` of a
+``<scene>``), any plugin of an RGB variant; Mitsuba resolves its relative file names
+(bitmaps, ``measured`` tables) against the XML's folder.  A ``twosided`` wrapper is
+unwrapped to its front BSDF (a BRDF has one side).  The teacher is evaluated by
+Mitsuba's own ``BSDF.eval`` in an RGB JIT variant (``llvm_ad_rgb`` unless the config's
+``target.variant`` says ``cuda_ad_rgb``), in batches of :data:`CHUNK` pairs, at a
+surface interaction in the local frame (fileformat.FRAME: the tangent is ``dp_du``,
+x), and divided by cos(theta_o): Mitsuba's ``eval`` returns f cos(theta_o), this
+module returns f, as every target does.  Its importance sampler is ``BSDF.sample`` and
+``BSDF.pdf``, so the ``importance`` share of the training pairs, the accuracy pairs and
+the quadratures' own proposal are the teacher's.
+
+Refused, with one line naming the file (exit 2): a file Mitsuba cannot load (a spectral
+table in an RGB variant included), a BSDF that transmits (dielectrics, masks, the
+principled's ``spec_trans``), one with a delta (perfectly smooth) lobe, alone or beside
+rough ones (a network of finite values cannot hold it, and Mitsuba's ``eval`` leaves
+it out, so the file would silently lose it), and one whose value depends on the position
+on the surface (a texture, a normal or bump map): "spatially varying teachers: not
+yet".  Spatial variation is probed, not guessed from the plugin: the BSDF is evaluated
+at :data:`PROBE_UV` random texture coordinates (and positions) on the same pairs, and a
+bitmap texture with more than one distinct texel counts too.  Anisotropy is probed the
+same way (the same pairs turned about the normal): ``anisotropic`` is True when the
+value depends on the azimuth.
+
+Energy.  A teacher whose directional albedo A(w) = int f cos dwo exceeds 1 (Mitsuba's
+``principled`` does, 1.04 to 1.19 at base colour 1, roughness 0.5) is learned as its
+energy-bounded version, per RGB channel::
+
+    f_b(wi, wo) = f(wi, wo) / max(1, A+(wi), A+(wo))
+
+with A+ an upper bound of A over the polar angle (:meth:`MitsubaTarget.bound`).  Why
+this form:
+
+* reciprocal: the divisor is symmetric in (wi, wo) bit for bit (``max`` commutes, and
+  A+ is a function of one direction), so f_b is exactly as reciprocal as f.  Dividing
+  by max(1, A(wi)) alone, the per-incidence normalisation, is not;
+* bounded: A_b(wi) = int f cos / max(1, A+(wi), A+(wo)) <= A(wi) / max(1, A+(wi)) <= 1
+  wherever A+ >= A.  The geometric mean sqrt(A(wi) A(wo)), reciprocal as well, is not
+  a bound: where A(wi) > 1 but the lobe points to directions with A(wo) < 1 the
+  divisor falls back towards 1;
+* minimal: where neither direction exceeds 1 the teacher is untouched, whereas the
+  global max(1, max A) darkens every direction by the worst one's excess.
+
+A+ is tabulated at :data:`THETA_NODES` polar angles by :func:`physics.quadrature.albedo`
+(the teacher's own sampler among the proposals), plus :data:`SIGMAS` standard errors,
+maximised over :data:`AZIMUTHS` azimuths for an anisotropic teacher, and read between
+nodes as the larger of the two neighbours (an upper envelope where A is monotone
+between nodes).  A teacher whose albedo stays within :data:`EXCESS_TOL` of 1 is left
+as it is.  Where and by how much it exceeded 1 is in :attr:`MitsubaTarget.excess` and
+in :meth:`~MitsubaTarget.describe` (the metadata's target description and the report).
+
+Mitsuba is imported here, on first use, and only here: nothing else loads it for a
+teacher.  Mitsuba computes in float32; f comes back as float64.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from neural_brdf.errors import InputError
+from neural_brdf.limits import bounded
+from neural_brdf.measured.base import eval_pairs
+from neural_brdf.physics import quadrature
+
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")  # RGB JIT variants (target.variant's values)
+DEFAULT_VARIANT = "llvm_ad_rgb"
+CHUNK = 1 << 16  # pairs per Mitsuba call
+# The probes at load: pairs, texture coordinates, and the tolerances of "varies"
+PROBE_PAIRS = 256
+PROBE_UV = 64
+SPATIAL_TOL = 1e-6  # relative RMS change over uv; a uniform BSDF gives exactly 0
+ANISO_TOL = 1e-3  # relative RMS change under a turn about the normal (float32 noise ~1e-6)
+# The energy bound's table (module doc)
+THETA_NODES = 46  # polar angles, 2 degrees apart, the last (90) moved to LAST_THETA_DEG
+LAST_THETA_DEG = 89.9
+AZIMUTHS = 8  # per polar angle, for an anisotropic teacher
+ALBEDO_SAMPLES = 8192  # quadrature points per direction (half that when anisotropic)
+SIGMAS = 3.0  # standard errors added to the tabulated albedo
+EXCESS_TOL = 1e-3  # an albedo up to 1 + this is not an excess (validation.albedo_tol)
+CHANNELS = ("R", "G", "B")
+
+# Mitsuba's BSDFFlags bits (mi.BSDFFlags; fixed by its C++ enum)
+_TRANSMISSION = 1 | 4 | 16 | 64 | 256  # Null, Diffuse/Glossy/Delta(1D) transmission
+_DELTA_REFLECTION = 32 | 128  # DeltaReflection, Delta1DReflection
+_SMOOTH_REFLECTION = 2 | 8  # DiffuseReflection, GlossyReflection
+
+
+def _mitsuba(variant: str, key: str) -> Any:
+    """The mitsuba module with ``variant`` set (set here if no other variant is set yet;
+    else each call switches to it for its duration: see :meth:`MitsubaTarget._scope`)."""
+    if variant not in VARIANTS:
+        raise InputError(
+            f"target.variant: {variant!r}: a Mitsuba teacher needs an RGB JIT variant "
+            f"({' or '.join(VARIANTS)})"
+        )
+    try:
+        import mitsuba as mi
+    except ImportError:
+        raise InputError(
+            f"{key}: needs Mitsuba 3 (pip install -e '.[mitsuba]' and libllvm19)"
+        ) from None
+    if variant not in mi.variants():
+        raise InputError(f"target.variant: {variant}: not a variant of this Mitsuba build")
+    if mi.variant() is None:
+        try:
+            mi.set_variant(variant)
+        except Exception as e:  # a missing LLVM or CUDA: Mitsuba raises several types
+            raise InputError(f"target.variant: {variant}: not usable here ({_first(e)})") from None
+    return mi
+
+
+def _first(e: BaseException) -> str:
+    """Mitsuba's message on one line, without its ``[parser.cpp:123]`` prefix."""
+    text = " ".join(str(e).split())
+    if text.startswith("[") and "] " in text:
+        text = text.split("] ", 1)[1]
+    return bounded(text, 240)
+
+
+def _children(mi: Any, obj: Any) -> list[tuple[str, Any]]:
+    """(name, object) of the objects ``obj`` holds (Mitsuba's traversal)."""
+
+    class Collect(mi.TraversalCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.found: list[tuple[str, Any]] = []
+
+        def put(self, name: str, value: Any, flags: Any, *rest: Any) -> None:
+            if isinstance(value, mi.Object):
+                self.found.append((name, value))
+
+    cb = Collect()
+    obj.traverse(cb)
+    return cb.found
+
+
+def _tensor(mi: Any, x: np.ndarray) -> Any:
+    """(N, 3) float64 numpy -> mi.Vector3f."""
+    return mi.Vector3f(np.ascontiguousarray(x.T, dtype=np.float32))
+
+
+def _np(x: Any) -> np.ndarray:
+    """A Mitsuba array of (3, N) or (N,) -> (N, 3) / (N,) float64 numpy."""
+    return np.array(x, dtype=np.float64).T
+
+
+class MitsubaTarget:
+    """One BSDF of a Mitsuba XML file as a homogeneous training target (module doc): a
+    :class:`neural_brdf.target.Sampled` of kind ``"mitsuba"``."""
+
+    kind = "mitsuba"
+
+    def __init__(
+        self, path: str | Path, *, variant: str | None = None, key: str = "target.mitsuba"
+    ):
+        self.path = Path(path)
+        self.source = str(path)
+        self.variant = variant or DEFAULT_VARIANT
+        where = f"{key}: {self.source}"
+        if not self.path.is_file():
+            raise InputError(f"{where}: no such file")
+        mi = self._mi = _mitsuba(self.variant, key)
+        with self._scope():
+            try:
+                obj = mi.load_file(str(self.path))
+            except Exception as e:  # Mitsuba's parser and plugins raise RuntimeError & co.
+                raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
+            self.bsdf, self.plugin = self._the_bsdf(obj, where)
+            self._check_flags(where)
+            self.anisotropic = False  # probed below (the sampler needs none of it)
+            self.scale_table: np.ndarray | None = None
+            self.excess: dict[str, Any] | None = None
+            self._probe(where)
+            self.albedo_table = self._bound()
+
+    # ------------------------------------------------------------------ loading
+    @contextlib.contextmanager
+    def _scope(self) -> Iterator[None]:
+        """Mitsuba's variant is the teacher's inside (a no-op when it is already: a
+        switch costs ~0.15 s, so a process that uses another variant pays it per call)."""
+        mi = self._mi
+        before = mi.variant()
+        if before == self.variant:
+            yield
+            return
+        mi.set_variant(self.variant)
+        try:
+            yield
+        finally:
+            if before is not None:
+                mi.set_variant(before)
+
+    def _the_bsdf(self, obj: Any, where: str) -> tuple[Any, str]:
+        mi = self._mi
+        if isinstance(obj, mi.Scene):
+            found = [o for _, o in _children(mi, obj) if isinstance(o, mi.BSDF)]
+            if len(found) != 1:
+                raise InputError(
+                    f"{where}: a scene with {len(found)} top-level <bsdf> elements; "
+                    "give a file holding one"
+                )
+            obj = found[0]
+        if not isinstance(obj, mi.BSDF):
+            raise InputError(
+                f"{where}: holds a {obj.class_name()}, not a <bsdf> (give a file holding one)"
+            )
+        names = []
+        while obj.class_name() == "TwoSidedBRDF":  # unwrapped to its front side
+            names.append("twosided")
+            front = dict(_children(mi, obj)).get("brdf_0")
+            if front is None:
+                raise InputError(f"{where}: a twosided BSDF without a nested BSDF")
+            obj = front
+        names.append(obj.class_name())
+        return obj, " > ".join(names)
+
+    def _check_flags(self, where: str) -> None:
+        flags = int(self.bsdf.flags())
+        if flags & _TRANSMISSION:
+            raise InputError(
+                f"{where}: {self.plugin} transmits light (or passes it through): a "
+                "neural BRDF holds reflection only"
+            )
+        if flags & _DELTA_REFLECTION:
+            what = "is delta-only" if not flags & _SMOOTH_REFLECTION else "has a delta lobe"
+            raise InputError(
+                f"{where}: {self.plugin} {what} (a perfectly smooth reflection, which a "
+                "BRDF of finite values cannot hold): use a rough variant (e.g. "
+                "roughconductor, roughplastic)"
+            )
+        if not flags & _SMOOTH_REFLECTION:
+            raise InputError(f"{where}: {self.plugin} reflects nothing")
+
+    # ------------------------------------------------------------------ Mitsuba calls
+    def _interaction(self, wi: np.ndarray, uv: np.ndarray | None = None) -> Any:
+        import drjit as dr
+
+        mi = self._mi
+        si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+        si.wi = _tensor(mi, wi)
+        x, y, z = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
+        si.sh_frame = mi.Frame3f(x, y, z)  # the local frame itself: tangent x = dp_du
+        si.n = z
+        si.dp_du, si.dp_dv = x, y
+        if uv is None:
+            uv = np.full((len(wi), 2), 0.5)
+        si.uv = mi.Point2f(np.ascontiguousarray(uv.T, dtype=np.float32))
+        si.p = mi.Point3f(np.ascontiguousarray(np.c_[uv, np.zeros(len(uv))].T, dtype=np.float32))
+        return si
+
+    def _eval_cos(self, wi: np.ndarray, wo: np.ndarray, uv: np.ndarray | None = None) -> np.ndarray:
+        """Mitsuba's eval (f cos theta_o), (K, 3) float64, for unit (K, 3) pairs."""
+        mi = self._mi
+        with self._scope():
+            out = self.bsdf.eval(mi.BSDFContext(), self._interaction(wi, uv), _tensor(mi, wo))
+            return _np(out)
+
+    def _raw(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """The teacher's f (unbounded) for unit pairs strictly above the horizon."""
+        return self._eval_cos(wi, wo) / wo[:, 2:3]
+
+    def teacher(self, wi, wo) -> np.ndarray:
+        """Mitsuba's f = eval / cos(theta_o), before the energy bound, with the edges of
+        :func:`~neural_brdf.measured.base.eval_pairs` (0 below the horizon)."""
+        return eval_pairs(wi, wo, self._raw, chunk=CHUNK)
+
+    def _sample(self, wi: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """wo (K, 3) from Mitsuba's sampler, (0, 0, -1) where it fails.  Its lobe choice
+        (``sample1``) is a uniform number drawn from a hash of ``u``: independent of u,
+        the same for the same u (a resumed run draws the same pairs)."""
+        mi = self._mi
+        seed = int.from_bytes(hashlib.blake2b(u.tobytes(), digest_size=8).digest(), "little")
+        s1 = np.random.default_rng(seed).random(len(u))
+        with self._scope():
+            bs, _ = self.bsdf.sample(
+                mi.BSDFContext(),
+                self._interaction(wi),
+                mi.Float(s1.astype(np.float32)),
+                mi.Point2f(np.ascontiguousarray(u.T, dtype=np.float32)),
+            )
+            wo, pdf = _np(bs.wo), _np(bs.pdf)
+        bad = ~((pdf > 0) & np.isfinite(pdf) & (wo[:, 2] > 0) & np.all(np.isfinite(wo), -1))
+        wo[bad] = (0.0, 0.0, -1.0)
+        return wo
+
+    def _pdf(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        mi = self._mi
+        with self._scope():
+            return _np(self.bsdf.pdf(mi.BSDFContext(), self._interaction(wi), _tensor(mi, wo)))
+
+    # ------------------------------------------------------------------ probes
+    def _probe_pairs(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs for the probes: wi uniform (above 3 degrees), wo half uniform, half from
+        the teacher's sampler (so that a narrow lobe is seen)."""
+        rng = np.random.default_rng(seed)
+        n = PROBE_PAIRS
+        wi = _hemisphere(rng.random((n, 2)), z_min=math.sin(math.radians(3.0)))
+        wo = _hemisphere(rng.random((n, 2)), z_min=math.sin(math.radians(3.0)))
+        half = n // 2
+        drawn = self._sample(wi[:half], rng.random((half, 2)))
+        ok = drawn[:, 2] > 1e-3
+        wo[:half][ok] = drawn[ok]
+        return wi, wo
+
+    def _probe(self, where: str) -> None:
+        wi, wo = self._probe_pairs(7)
+        try:
+            base = self._eval_cos(wi, wo)
+        except Exception as e:  # a plugin that needs what a bare interaction lacks
+            raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
+        if not np.all(np.isfinite(base)) or base.min() < 0:
+            raise InputError(f"{where}: {self.plugin} gives negative or non-finite values")
+        scale = max(float(np.sqrt(np.mean(base**2))), 1e-30)
+        # spatial variation: the same pairs at PROBE_UV random (uv, position)s
+        rng = np.random.default_rng(8)
+        uv = rng.random((PROBE_UV, 2))
+        try:
+            at = self._eval_cos(
+                np.tile(wi, (PROBE_UV, 1)), np.tile(wo, (PROBE_UV, 1)), np.repeat(uv, len(wi), 0)
+            )
+        except Exception as e:
+            raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
+        change = float(np.sqrt(np.mean((at - np.tile(base, (PROBE_UV, 1))) ** 2))) / scale
+        if change > SPATIAL_TOL or self._varying_bitmap():
+            raise InputError(
+                f"{where}: {self.plugin} varies over the surface (a texture, normal or "
+                "bump map): spatially varying teachers: not yet"
+            )
+        # anisotropy: the same pairs turned about the normal by a few azimuths
+        turned = []
+        for phi in (0.7, 1.9, 2.6):
+            c, s = math.cos(phi), math.sin(phi)
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            turned.append(self._eval_cos(wi @ rot.T, wo @ rot.T))
+        diff = max(float(np.sqrt(np.mean((t - base) ** 2))) for t in turned)
+        self.anisotropic = diff / scale > ANISO_TOL
+
+    def _varying_bitmap(self) -> bool:
+        """A bitmap texture (a tensor parameter) with more than one distinct texel."""
+        mi = self._mi
+        params = mi.traverse(self.bsdf)
+        for k in params.keys():
+            value = params[k]
+            if isinstance(value, mi.TensorXf) and k.endswith(".data"):
+                arr = np.asarray(value.numpy(), dtype=np.float64)
+                flat = arr.reshape(-1, arr.shape[-1]) if arr.ndim > 1 else arr.reshape(-1, 1)
+                if len(flat) > 1 and np.ptp(flat, axis=0).max() > 0:
+                    return True
+        return False
+
+    # ------------------------------------------------------------------ the bound
+    def _bound(self) -> dict[str, Any]:
+        """Tabulate A+ and, if the teacher exceeds 1, set the divisor's table (module
+        doc).  Returns the table as measured (theta, A, stderr), for the report."""
+        step = 90.0 / (THETA_NODES - 1)
+        theta = np.radians(np.r_[np.arange(THETA_NODES - 1) * step, LAST_THETA_DEG])
+        phis = np.linspace(0.0, math.pi, AZIMUTHS, endpoint=False) if self.anisotropic else [0.0]
+        t, p = np.meshgrid(theta, phis, indexing="ij")
+        st = np.sin(t)
+        dirs = torch.from_numpy(
+            np.stack([st * np.cos(p), st * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+        )
+        n = ALBEDO_SAMPLES // 2 if self.anisotropic else ALBEDO_SAMPLES  # 8 x the directions
+        rho, err = quadrature.albedo(
+            quadrature.from_numpy(self.teacher), dirs, n, seed=11, target=self
+        )
+        a = rho.numpy().reshape(len(theta), len(phis), 3)
+        e = err.numpy().reshape(len(theta), len(phis), 3)
+        upper = (a + SIGMAS * e).max(1)  # (T, 3): over the azimuths
+        worst = np.unravel_index(np.argmax(a), a.shape)
+        above = np.flatnonzero(a.max((1, 2)) > 1.0 + EXCESS_TOL)
+        table = {
+            "theta_deg": np.degrees(theta).tolist(),
+            "albedo": a.max(1).tolist(),
+            "max_albedo": float(a.max()),
+        }
+        if len(above):
+            self.scale_table = np.maximum(upper, 1.0)
+            self._theta = theta
+            self.excess = {
+                "max_albedo": float(a[worst]),
+                "at_theta_deg": round(float(np.degrees(theta[worst[0]])), 2),
+                "channel": CHANNELS[worst[2]],
+                "above_1_theta_deg": [
+                    round(float(np.degrees(theta[above[0]])), 2),
+                    round(float(np.degrees(theta[above[-1]])), 2),
+                ],
+            }
+        return table
+
+    def bound(self, wi, wo) -> np.ndarray:
+        """The energy bound's divisor max(1, A+(wi), A+(wo)) (..., 3), per channel:
+        symmetric in (wi, wo) bit for bit; 1 everywhere for a teacher within 1."""
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        shape = np.broadcast_shapes(wi.shape, wo.shape)[:-1] + (3,)
+        if self.scale_table is None:
+            return np.ones(shape)
+        return np.maximum(self._envelope(wi), self._envelope(wo)).reshape(shape)
+
+    def _envelope(self, w: np.ndarray) -> np.ndarray:
+        """A+ (>= 1) at the polar angle of each direction: the larger neighbour node."""
+        assert self.scale_table is not None
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = w[..., 2] / np.linalg.norm(w, axis=-1)
+        theta = np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0))
+        k = np.clip(np.searchsorted(self._theta, theta, side="right") - 1, 0, len(self._theta) - 2)
+        return np.maximum(self.scale_table[k], self.scale_table[k + 1])
+
+    # ------------------------------------------------------------------ the Target API
+    def _bounded(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        f = self._raw(wi, wo)
+        if self.scale_table is None:
+            return f
+        return f / np.maximum(self._envelope(wi), self._envelope(wo))
+
+    def eval(self, wi, wo) -> np.ndarray:
+        """f (..., 3) float64, 1/sr, no cosine: the teacher, energy-bounded if it
+        exceeds 1 (module doc); 0 below the horizon."""
+        return eval_pairs(wi, wo, self._bounded, chunk=CHUNK)
+
+    def f(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        out = self.eval(wi.detach().cpu().double().numpy(), wo.detach().cpu().double().numpy())
+        return torch.from_numpy(out).to(device=wi.device, dtype=wi.dtype)
+
+    def sample_dir_t(self, wi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """wo for ``wi`` (..., 3) from ``u`` (..., 2) by Mitsuba's sampler; a failed
+        sample, or wi at or below the horizon, gives (0, 0, -1) (below the horizon)."""
+        batch = torch.broadcast_shapes(wi.shape[:-1], u.shape[:-1])
+        shape = batch + (3,)
+        a = wi.detach().cpu().double().expand(shape).reshape(-1, 3).numpy()
+        uu = u.detach().cpu().double().expand(batch + (2,)).reshape(-1, 2).numpy()
+        out = np.tile([0.0, 0.0, -1.0], (len(a), 1))
+        ok = np.flatnonzero(np.all(np.isfinite(a), -1) & (a[:, 2] > 0))
+        for s in range(0, len(ok), CHUNK):
+            r = ok[s : s + CHUNK]
+            w = a[r] / np.linalg.norm(a[r], axis=-1, keepdims=True)
+            out[r] = self._sample(w, np.ascontiguousarray(uu[r]))
+        return torch.from_numpy(out.reshape(shape)).to(device=wi.device, dtype=wi.dtype)
+
+    def pdf_t(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        """The density of :meth:`sample_dir_t`'s wo per solid angle (Mitsuba's pdf);
+        0 below the horizon."""
+        wi_b, wo_b = torch.broadcast_tensors(wi, wo)
+        a = wi_b.detach().cpu().double().reshape(-1, 3).numpy()
+        b = wo_b.detach().cpu().double().reshape(-1, 3).numpy()
+
+        def lookup(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+            return np.repeat(self._pdf(x, y)[:, None], 3, 1)
+
+        pdf = eval_pairs(a, b, lookup, chunk=CHUNK)[:, 0]
+        return torch.from_numpy(pdf.reshape(wi_b.shape[:-1])).to(device=wi.device, dtype=wi.dtype)
+
+    def describe(self) -> str:
+        text = f"Mitsuba {self.plugin} ({self.source}, {self.variant})"
+        if self.anisotropic:
+            text += ", anisotropic"
+        x = self.excess
+        if x is not None:
+            lo, hi = x["above_1_theta_deg"]
+            text += (
+                f"; its albedo exceeds 1 (max {x['max_albedo']:.4f} in {x['channel']} at "
+                f"theta_i {x['at_theta_deg']:g} deg; above 1 from {lo:g} to {hi:g} deg): "
+                "learned energy-bounded, f / max(1, A(wi), A(wo))"
+            )
+        return text
+
+
+def _hemisphere(u: np.ndarray, *, z_min: float = 0.0) -> np.ndarray:
+    """Uniform directions on the hemisphere z >= z_min from u (N, 2) in [0, 1)^2."""
+    z = z_min + (1.0 - z_min) * u[:, 0]
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    phi = 2.0 * math.pi * u[:, 1]
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
