@@ -3,4 +3,5 @@
 * :mod:`.bsdf`: a differentiable Mitsuba BSDF that evaluates the network (``RawBRDF``).
 * :mod:`.fit`: the training stage: read the scene and images, fit, checkpoint.
 * :mod:`.scene`: the example scene and its reference images.
+* :mod:`.coverage`: the part of the (wi, wo) domain the views observe, before fitting.
 """

@@ -10,6 +10,11 @@ directions), their target images ``view1.exr`` .. ``view3.exr`` rendered by Mits
 ``view4.exr``, a fourth direction the fit does not see.  The shipped example
 ``configs/images/`` was written by this command with its defaults.
 
+``--capture`` picks the lighting (docs/inverse.md, "What the images determine"):
+``environment`` (the default: the sky above, the same in every view), ``lights`` (a
+multi-light capture: no environment, each view lit by its own point or area light,
+:data:`LIGHTS`) or ``flash`` (a co-located flash: a point light at each camera).
+
 The environment (:func:`sky`) is not the one the material preview uses
 (:func:`neural_brdf.renderers.render.sky_bitmap`): a sky gradient over a dark ground plus a few
 bright, coloured, soft blobs, so that the highlight's shape and colour are seen at
@@ -40,6 +45,21 @@ BLOBS = (
     (60.0, 250.0, 5.0, (40.0, 18.0, 10.0)),
     (5.0, 290.0, 12.0, (8.0, 12.0, 6.0)),
 )
+# The multi-light capture (--capture lights): per view, its lights as (kind, azimuth,
+# elevation): a point light at LIGHT_DISTANCE, or a square area light of side
+# 2 AREA_HALF_SIZE facing the sphere there.  The angles between camera and light, about
+# 34, 62 and 105 degrees, set each view's theta_d (half that angle, for a distant light).
+LIGHTS = (
+    (("point", 30.0, 35.0),),
+    (("area", 200.0, 30.0),),
+    (("point", 340.0, 30.0),),
+)
+LIGHT_DISTANCE = 6.0
+AREA_HALF_SIZE = 0.75
+POINT_INTENSITY = 30.0  # W/sr: about 1 W/m^2 at the sphere from LIGHT_DISTANCE
+AREA_RADIANCE = 12.0  # W/(m^2 sr) of the area light: about as bright at the sphere
+FLASH_INTENSITY = 15.0  # W/sr of the co-located flash (DISTANCE - 1 from the surface)
+CAPTURES = ("environment", "lights", "flash")
 FIT_CONFIG = """\
 # Fit a compact neural BRDF to three images of a copper sphere (docs/inverse.md).
 # Written by: python -m neural_brdf.inverse.scene {folder}
@@ -86,6 +106,62 @@ def sky(height: int = 128) -> np.ndarray:
     return np.ascontiguousarray(img, dtype=np.float32)
 
 
+def direction(azimuth: float, elevation: float) -> list[float]:
+    """The unit vector at ``azimuth``, ``elevation`` (degrees; +y up, azimuth 0 along +z,
+    90 along +x): how the cameras and lights are placed."""
+    a, e = math.radians(azimuth), math.radians(elevation)
+    return [math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)]
+
+
+def camera_origin(azimuth: float, elevation: float) -> list[float]:
+    """Where :func:`scene_xml` puts the camera of a view (it looks at the origin)."""
+    return [DISTANCE * c for c in direction(azimuth, elevation)]
+
+
+def point_light(position: list[float] | tuple[float, ...], intensity: float) -> str:
+    """A Mitsuba ``point`` emitter at ``position`` (white, ``intensity`` W/sr)."""
+    p = ", ".join(f"{c:.6f}" for c in position)
+    return f"""<emitter type="point">
+        <point name="position" value="{p}"/>
+        <rgb name="intensity" value="{intensity:g}"/>
+    </emitter>"""
+
+
+def area_light(position: list[float] | tuple[float, ...], half_size: float, radiance: float) -> str:
+    """A square ``rectangle`` of side 2 ``half_size`` at ``position``, facing the origin,
+    with an ``area`` emitter of ``radiance`` (white)."""
+    p = ", ".join(f"{c:.6f}" for c in position)
+    up = "0, 0, 1" if abs(position[1]) > 0.99 * math.dist(position, (0, 0, 0)) else "0, 1, 0"
+    return f"""<shape type="rectangle">
+        <transform name="to_world">
+            <scale value="{half_size:g}"/>
+            <lookat origin="{p}" target="0, 0, 0" up="{up}"/>
+        </transform>
+        <emitter type="area">
+            <rgb name="radiance" value="{radiance:g}"/>
+        </emitter>
+    </shape>"""
+
+
+def capture_emitters(capture: str, view: int) -> str | None:
+    """The emitters of view ``view`` (0-based) of a ``capture`` (:data:`CAPTURES`) as
+    XML, or None for ``environment`` (the sky of :func:`scene_xml`)."""
+    if capture == "environment":
+        return None
+    if capture == "flash":
+        return point_light(camera_origin(*VIEWS[view]), FLASH_INTENSITY)
+    if capture != "lights":
+        raise ValueError(f"capture {capture!r}: expected one of {', '.join(CAPTURES)}")
+    parts = []
+    for kind, az, el in LIGHTS[view % len(LIGHTS)]:
+        pos = [LIGHT_DISTANCE * c for c in direction(az, el)]
+        if kind == "point":
+            parts.append(point_light(pos, POINT_INTENSITY))
+        else:
+            parts.append(area_light(pos, AREA_HALF_SIZE, AREA_RADIANCE))
+    return "\n    ".join(parts)
+
+
 def scene_xml(
     azimuth: float,
     elevation: float,
@@ -94,16 +170,21 @@ def scene_xml(
     envmap: str = "sky.exr",
     bsdf: dict | None = None,
     max_depth: int = 3,
+    emitters: str | None = None,
 ) -> str:
     """A Mitsuba 3 scene: the unit sphere with ``<bsdf id="fit">`` (``bsdf``: the
-    roughconductor parameters, :data:`TRUTH` by default) under ``envmap``."""
-    a, e = math.radians(azimuth), math.radians(elevation)
-    o = [
-        DISTANCE * math.cos(e) * math.sin(a),
-        DISTANCE * math.sin(e),
-        DISTANCE * math.cos(e) * math.cos(a),
-    ]
+    roughconductor parameters, :data:`TRUTH` by default) under ``envmap``, or, when
+    ``emitters`` (XML: :func:`point_light`, :func:`area_light`) is given, lit by those
+    instead of an environment."""
+    o = camera_origin(azimuth, elevation)
     p = bsdf or TRUTH
+    light = (
+        f"""<emitter type="envmap">
+        <string name="filename" value="{envmap}"/>
+    </emitter>"""
+        if emitters is None
+        else emitters
+    )
     return f"""<scene version="3.0.0">
     <integrator type="path">
         <integer name="max_depth" value="{max_depth}"/>
@@ -118,9 +199,7 @@ def scene_xml(
             <integer name="height" value="{resolution}"/>
         </film>
     </sensor>
-    <emitter type="envmap">
-        <string name="filename" value="{envmap}"/>
-    </emitter>
+    {light}
     <bsdf type="roughconductor" id="fit">
         <string name="distribution" value="{p["distribution"]}"/>
         <float name="alpha" value="{p["alpha"]:g}"/>
@@ -159,18 +238,26 @@ def write(
     heldout: bool = False,
     steps: int = 150,
     seed: int = 0,
+    capture: str = "environment",
 ) -> list[Path]:
     """Write the example into ``folder`` (see the module doc); returns the files written.
+    ``capture``: the lighting, one of :data:`CAPTURES` (:func:`capture_emitters`); only
+    ``environment`` writes ``sky.exr``.
 
     Needs a Mitsuba variant set (any RGB one renders the targets)."""
+    if capture not in CAPTURES:
+        raise ValueError(f"capture {capture!r}: expected one of {', '.join(CAPTURES)}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    written = [folder / "sky.exr"]
-    write_exr(written[0], sky())
+    written = []
+    if capture == "environment":
+        written.append(folder / "sky.exr")
+        write_exr(written[0], sky())
     views = VIEWS if heldout else VIEWS[:3]
     for k, (az, el) in enumerate(views, start=1):
         xml, exr = folder / f"view{k}.xml", folder / f"view{k}.exr"
-        atomic_write(xml, scene_xml(az, el, resolution=resolution))
+        emitters = capture_emitters(capture, k - 1)
+        atomic_write(xml, scene_xml(az, el, resolution=resolution, emitters=emitters))
         write_exr(exr, render_file(xml, spp, seed=seed + k))
         written += [xml, exr]
     cfg = folder / "fit.yaml"
@@ -185,12 +272,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=64, help="samples per pixel of the targets")
     ap.add_argument("--heldout", action="store_true", help="also write view4, held out")
     ap.add_argument("--steps", type=int, default=150, help="train.steps of fit.yaml")
+    ap.add_argument(
+        "--capture",
+        choices=CAPTURES,
+        default="environment",
+        help="the lighting: the sky (default), a light per view, or a flash at each camera",
+    )
     args = ap.parse_args(argv)
     import mitsuba as mi
 
     mi.set_variant("llvm_ad_rgb")
     files = write(
-        args.out, resolution=args.resolution, spp=args.spp, heldout=args.heldout, steps=args.steps
+        args.out,
+        resolution=args.resolution,
+        spp=args.spp,
+        heldout=args.heldout,
+        steps=args.steps,
+        capture=args.capture,
     )
     print(f"wrote {len(files)} files to {args.out}; fit with: neural-brdf train {files[-1]}")
     return 0
