@@ -53,7 +53,8 @@ from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
 from neural_brdf import config, pipeline  # noqa: E402
-from neural_brdf.physics import lobe  # noqa: E402
+from neural_brdf.fileformat import lobe as lobe_format  # noqa: E402
+from neural_brdf.physics import lobe_fit  # noqa: E402
 from neural_brdf.renderers import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_presets.json"
@@ -99,9 +100,9 @@ def model_for(
 def sampling_lobe(model: Path, metadata: dict) -> dict:
     """The lobe the plugin samples: stored by the exporter, or fitted at load (files
     exported before the exporter stored it) as the plugin does."""
-    stored = lobe.from_metadata(metadata)
+    stored = lobe_format.from_metadata(metadata)
     return {
-        "sampling_lobe": stored or lobe.fit_onnx(model),
+        "sampling_lobe": stored or lobe_fit.fit_onnx(model),
         "lobe_source": "metadata" if stored else "fitted at load",
     }
 

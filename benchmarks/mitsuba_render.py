@@ -60,7 +60,7 @@ from common import write_json  # noqa: E402
 
 import neural_brdf  # noqa: E402
 from neural_brdf import config, pipeline  # noqa: E402
-from neural_brdf.physics import lobe  # noqa: E402
+from neural_brdf.fileformat import lobe as lobe_format  # noqa: E402
 from neural_brdf.renderers import render as nbr  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "mitsuba_render.json"
@@ -174,7 +174,7 @@ def main() -> None:
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model or quickstart_model(Path(tmp))
-        stored = lobe.from_metadata(neural_brdf.load(model).metadata)
+        stored = lobe_format.from_metadata(neural_brdf.load(model).metadata)
         bsdfs = bsdfs_for(model)
         scenes, load_s = {}, {}
         for n, b in bsdfs.items():

@@ -11,7 +11,7 @@ BSDF-bound render benchmark.  For each incident direction (theta 12.5 to 85 degr
 each at its own azimuth: between and beyond the directions the lobe is fitted at, so a
 per-incidence lobe is not scored on its own table nodes), ``--samples`` samples are drawn
 
-* from the model's stored sampling lobe (``neural_brdf.physics.lobe``: a cosine hemisphere and
+* from the model's stored sampling lobe (``neural_brdf.physics.lobe_fit``: a cosine hemisphere and
   a GGX visible-normal lobe, anisotropic, retro or per-incidence where the fit chose
   so: the sampler the Mitsuba plugin and the generated shaders use), with f the exported
   model evaluated by onnxruntime;
@@ -47,11 +47,13 @@ import analytic  # noqa: E402
 import neural_brdf  # noqa: E402
 from analytic import frame  # noqa: E402
 from analytic.microfacet import Distribution  # noqa: E402
-from neural_brdf.physics import lobe as lobes  # noqa: E402
+from neural_brdf.fileformat import lobe as lobe_format  # noqa: E402
+from neural_brdf.physics import lobe_fit  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "sampling_noise.json"
-# Incident directions between and beyond the lobe fit's (neural_brdf.physics.lobe.THETA_DEG: 5 to
-# 80 degrees), at other azimuths: a per-incidence lobe is scored off its table's nodes.
+# Incident directions between and beyond the lobe fit's
+# (neural_brdf.physics.lobe_fit.THETA_DEG: 5 to 80 degrees), at other azimuths: a
+# per-incidence lobe is scored off its table's nodes.
 THETA_DEG = (12.5, 27.5, 42.5, 57.5, 72.5, 85.0)
 PHI0 = 0.4
 EXACT = 1e-8  # a relative variance below this: the sampler is exact for this target
@@ -59,11 +61,11 @@ WORSE = 1.5  # issue 12: improve the proxy where the ratio exceeds this
 
 
 def lobe_sample(wi: torch.Tensor, u: torch.Tensor, lobe: dict):
-    """The stored lobe's sampler and density (float64): ``neural_brdf.physics.lobe``'s mixture
+    """The stored lobe's sampler and density (float64): ``neural_brdf.physics.lobe_fit``'s mixture
     (a retro lobe is the mirror lobe turned by pi about the normal)."""
-    lobe = lobes.complete(lobe)
+    lobe = lobe_format.complete(lobe)
     # one incident direction per call: the per-incidence table's values at its cos theta
-    ax, ay, weight = (float(v) for v in lobes.at(lobe, float(wi[0, 2])))
+    ax, ay, weight = (float(v) for v in lobe_format.at(lobe, float(wi[0, 2])))
     dist = Distribution(lobe["distribution"], ax, ay)
     turn = torch.tensor([-1.0, -1.0, 1.0], dtype=wi.dtype) if lobe["retro"] else 1.0
     pick_ggx = u[:, 0] < weight
@@ -97,7 +99,7 @@ def incident(theta_deg: float, phi: float) -> torch.Tensor:
 
 def measure(path: Path, samples: int, seed: int) -> dict:
     rt = neural_brdf.load(path)
-    lobe = lobes.from_metadata(rt.metadata) or lobes.fit_onnx(path)
+    lobe = lobe_format.from_metadata(rt.metadata) or lobe_fit.fit_onnx(path)
     target_cfg = (rt.config or {}).get("target") or {}
     target = analytic.create(target_cfg["model"], **(target_cfg.get("params") or {}))
     rng = np.random.default_rng(seed)
@@ -131,7 +133,7 @@ def measure(path: Path, samples: int, seed: int) -> dict:
         "target": target_cfg,
         "lobe": {
             k: v
-            for k, v in lobes.complete(lobe).items()
+            for k, v in lobe_format.complete(lobe).items()
             if k in ("alpha_x", "alpha_y", "retro", "distribution", "weight", "table")
         },
         "samples": samples,

@@ -29,7 +29,7 @@ one paragraph: the target, the encoding and the input/output contract above.
     parity_rel_error, float32_rel_precision (JSON numbers and arrays),
     training_config (the resolved config, JSON),
     sampling_lobe (JSON: the importance-sampling lobe fitted to the network,
-    neural_brdf.physics.lobe)
+    neural_brdf.physics.lobe_fit)
 
 The graph torch writes is rewritten by :func:`neural_brdf.fileformat.portable.portable_graph`
 so that onnxruntime from 1.18 on, onnxruntime-web, onnx2torch, the ONNX reference
@@ -77,7 +77,7 @@ from neural_brdf.fileformat import (
 from neural_brdf.fileformat.metadata import Metadata, plain
 from neural_brdf.fileformat.portable import portable_graph
 from neural_brdf.fileio import atomic_write
-from neural_brdf.physics import lobe
+from neural_brdf.physics import lobe_fit
 from neural_brdf.target import Described
 from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
@@ -392,7 +392,7 @@ def write(
         parity_rel_error=built.parity_rel_error,
         float32_rel_precision=built.float32_rel_precision,
         training_config=cfg.model_dump(mode="json"),
-        sampling_lobe=lobe.fit(built.eval),  # renderers' importance sampling
+        sampling_lobe=lobe_fit.fit(built.eval),  # renderers' importance sampling
     ).to_props()
     proto = onnx.load_from_string(built.payload)
     onnx.helper.set_model_props(proto, meta)

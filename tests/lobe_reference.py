@@ -1,7 +1,8 @@
-"""An independent reference for the sampling lobe (neural_brdf.physics.lobe), shared by the tests
-of the generated code (test_codegen.py) and of the Mitsuba plugin (test_mitsuba_plugin.py):
-the mixture's density from analytic's GGX and Beckmann visible-normal pdfs and np.interp,
-not from the code under test, and the lobes those tests write into files."""
+"""An independent reference for the sampling lobe (neural_brdf.physics.lobe_fit), shared by
+the tests of the generated code (test_codegen.py) and of the Mitsuba plugin
+(test_mitsuba_plugin.py): the mixture's density from analytic's GGX and Beckmann
+visible-normal pdfs and np.interp, not from the code under test, and the lobes those
+tests write into files."""
 
 from __future__ import annotations
 

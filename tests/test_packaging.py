@@ -430,11 +430,11 @@ def test_the_pipeline_runs_every_stage_and_the_cli_calls_it():
 
 def test_the_file_format_module_is_the_bottom_and_its_readers_import_it():
     assert _imported_parts(PACKAGE / "fileformat" / "__init__.py") == set()
-    for module in ("runtime.py", "export.py", "physics/lobe.py", "train/session.py"):
+    for module in ("runtime.py", "export.py", "physics/lobe_fit.py", "train/session.py"):
         assert "fileformat" in _imported_parts(PACKAGE / module), module
     from neural_brdf import export, fileformat, runtime
-    from neural_brdf.physics import lobe
+    from neural_brdf.fileformat import lobe as lobe_format
 
     assert runtime.JSON_KEYS is fileformat.JSON_KEYS and runtime.OUTPUT == fileformat.OUTPUT
     assert fileformat.FORMAT_VERSION == export.FORMAT_VERSION
-    assert lobe.KEY == fileformat.LOBE_KEY and lobe.KEY in fileformat.JSON_KEYS
+    assert lobe_format.KEY == fileformat.LOBE_KEY and lobe_format.KEY in fileformat.JSON_KEYS

@@ -12,7 +12,7 @@ Adding a language (HLSL, Metal, ...) is one file with such a subclass and one li
 :data:`neural_brdf.backends.REGISTRY`.
 
 Every generated file holds three functions built from the model (its graph, and its
-stored sampling lobe, :mod:`neural_brdf.backends.lobe`):
+stored sampling lobe, :mod:`neural_brdf.backends.lobe_ir`):
 
     neural_brdf_eval(wi, wo) -> f (RGB, 1/sr, no cosine)
     neural_brdf_pdf(wi, wo) -> the lobe's solid-angle density of wo
@@ -26,10 +26,10 @@ import math
 import numpy as np
 
 from neural_brdf import graph
-from neural_brdf.backends import lobe as lobe_ir
+from neural_brdf.backends import lobe_ir
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import INPUTS, OUTPUT
-from neural_brdf.fileformat import lobe as lobes  # the stored lobe: its schema
+from neural_brdf.fileformat import lobe as lobe_format  # the stored lobe: its schema
 
 PREFIX = "neural_brdf"
 
@@ -233,7 +233,7 @@ class CStyleRenderer:
                 value = " ".join(str(meta[key]).split())  # one line
                 lines.append(f"{c} {key}: {value[:200]}")
         lines.append(
-            f"{c} sampling lobe: {lobes.KIND}, {lobe['distribution']}, "
+            f"{c} sampling lobe: {lobe_format.KIND}, {lobe['distribution']}, "
             f"alpha_x={lobe['alpha_x']:.6g}, "
             f"alpha_y={lobe['alpha_y']:.6g}, weight={lobe['weight']:.6g}"
             + (", retro (turned by pi about the normal)" if lobe["retro"] else "")
@@ -275,13 +275,13 @@ class CStyleRenderer:
                 f"[N, 3], got {prog.inputs} -> { {k: len(v) for k, v in prog.outputs.items()} }"
             )
         if lobe is None:
-            lobe = lobes.from_metadata(prog.metadata)
+            lobe = lobe_format.from_metadata(prog.metadata)
             if lobe is None:
                 raise InputError(
                     "codegen: the model has no stored sampling lobe (metadata "
-                    f"{lobes.KEY!r}); re-export it with this version"
+                    f"{lobe_format.KEY!r}); re-export it with this version"
                 )
-        lobe = lobes.complete(lobe)
+        lobe = lobe_format.complete(lobe)
         shape = {k: lobe[k] for k in ("alpha_x", "alpha_y", "weight", "retro")}
         shape["table"] = lobe.get("table")
         shape["distribution"] = lobe["distribution"]

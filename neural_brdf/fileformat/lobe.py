@@ -20,9 +20,9 @@ The JSON form (docs/model.md, "Sampling lobe"):
      "retro": false, "distribution": "ggx", "weight": 0.9, "second_moment": 1.31,
      "second_moment_cosine": 3.9, "table": {...}}   (table optional)
 
-Who implements it: :mod:`neural_brdf.physics.lobe` fits it; the Mitsuba plugin
+Who implements it: :mod:`neural_brdf.physics.lobe_fit` fits it; the Mitsuba plugin
 (:mod:`neural_brdf.renderers.mitsuba`) samples it with Mitsuba's own
-``MicrofacetDistribution``; the code generators (:mod:`neural_brdf.backends.lobe`) emit
+``MicrofacetDistribution``; the code generators (:mod:`neural_brdf.backends.lobe_ir`) emit
 its pdf and sampler; each is tested against :func:`pdf`, and so is :func:`sample` here
 (chi-square, tests/fileformat/test_lobe.py).  This module needs numpy only.
 """
@@ -149,7 +149,7 @@ def sample(
     listing 1; Beckmann: Heitz & d'Eon 2014, its slopes inverted by bisection), wo the
     reflection of wi about m, turned for a retro lobe; the cosine branch otherwise
     (r = sqrt(u2.x), phi = 2 pi u2.y).  The same algorithm as the generated code's sampler
-    (:mod:`neural_brdf.backends.lobe`), in float64.  A lobe sample may fall below the
+    (:mod:`neural_brdf.backends.lobe_ir`), in float64.  A lobe sample may fall below the
     horizon; its pdf is then 0 (a renderer refuses it)."""
     wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
     u1 = np.asarray(u1, dtype=np.float64).reshape(-1)

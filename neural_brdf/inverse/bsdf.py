@@ -29,7 +29,7 @@ an albedo above 1 during the fit and the export bakes the exact normalisation.
 Constraints of :func:`drjit.wrap`.  Torch needs evaluated arrays, so a render must run
 with symbolic loops and symbolic virtual calls switched off (:func:`evaluated_mode`);
 ``eval`` raises a one-line error otherwise.  Sampling is the mixture of
-:mod:`neural_brdf.physics.lobe` (cosine hemisphere + a GGX/Beckmann visible-normal lobe), with
+:mod:`neural_brdf.physics.lobe_fit` (cosine hemisphere + a GGX/Beckmann visible-normal lobe), with
 code shared with the ``neural_brdf`` plugin (:class:`neural_brdf.renderers.mitsuba._GraphBSDF`); the
 lobe is fitted to the current network by :meth:`NeuralBSDFAD.refit_lobe`.  The sample
 weight is eval / pdf, and the pdf does not depend on the weights (the lobe is fixed
@@ -55,7 +55,7 @@ import yaml
 from neural_brdf import config as cfgmod
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import lobe as lobe_format
-from neural_brdf.physics import lobe as lobes
+from neural_brdf.physics import lobe_fit
 
 if mi.variant() is None or not (mi.is_rgb and dr.is_diff_v(mi.Float) and dr.is_jit_v(mi.Float)):
     raise InputError(
@@ -189,14 +189,14 @@ class NeuralBSDFAD(_GraphBSDF):
 
     def refit_lobe(self, seed: int = 0, state: dict[str, torch.Tensor] | None = None) -> dict:
         """Fit the sampling lobe to the network (its current weights, or ``state``) with
-        :func:`neural_brdf.physics.lobe.fit`, and use it."""
+        :func:`neural_brdf.physics.lobe_fit.fit`, and use it."""
         raw = self.torch_model(state)
 
         def fn(wi, wo):
             with torch.no_grad():
                 return raw(torch.as_tensor(wi).float(), torch.as_tensor(wo).float()).numpy()
 
-        fitted = lobes.fit(fn, seed=seed, anisotropic=raw.anisotropic)
+        fitted = lobe_fit.fit(fn, seed=seed, anisotropic=raw.anisotropic)
         self.set_lobe(fitted, "fitted to the current weights")
         return fitted
 

@@ -60,7 +60,7 @@ from neural_brdf.errors import InputError
 from neural_brdf.fileformat import INPUTS, OUTPUT, reader
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.graph import SUPPORTED_OPS, UnsupportedOnnxOp
-from neural_brdf.physics import lobe as lobes
+from neural_brdf.physics import lobe_fit
 
 if mi.variant() is None:
     raise ImportError(
@@ -187,7 +187,7 @@ class _GraphBSDF(mi.BSDF):
         pdf uses a rational approximation of Smith's G1 (up to 0.3 % off the exact
         density); here the exact Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
         sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27), as in
-        neural_brdf.physics.lobe and the generated code."""
+        neural_brdf.physics.lobe_fit and the generated code."""
         if self.lobe["distribution"] != "beckmann":
             return distr.pdf(wi, m)
         cos_i = mi.Frame3f.cos_theta(wi)
@@ -306,7 +306,7 @@ class NeuralBSDF(_GraphBSDF):
             raise InputError("neural_brdf: the 'filename' property (an ONNX file) is required")
         path, program, stored = read_model(props["filename"])
         self.lobe_source = "metadata" if stored else "fitted at load"
-        self._setup(program, stored or lobes.fit_onnx(path), str(path))
+        self._setup(program, stored or lobe_fit.fit_onnx(path), str(path))
 
 
 def analytic_onnx(model: str, params: dict | None = None) -> bytes:
@@ -362,7 +362,7 @@ class AnalyticBSDF(_GraphBSDF):
                 raise InputError(f"analytic_brdf: 'lobe': {e}") from None
             self.lobe_source = "given"
         else:
-            lobe = lobes.fit_onnx(payload)
+            lobe = lobe_fit.fit_onnx(payload)
             self.lobe_source = "fitted at load"
         self._setup(OnnxProgram(payload), lobe, label)
 

@@ -212,11 +212,11 @@ def analytic_model(
 ) -> Model:
     """An analytic model (a config's target), exported to ONNX and generated like a
     trained one; its sampling lobe (unused by the page) is fitted as for the plugin
-    (:func:`neural_brdf.physics.lobe.fit_onnx` keeps it for the plugin's next load) unless
+    (:func:`neural_brdf.physics.lobe_fit.fit_onnx` keeps it for the plugin's next load) unless
     ``lobe`` is given.  ``albedo``: a precomputed curve (:func:`curve`), else one by
     quadrature."""
     from neural_brdf.export import analytic_onnx
-    from neural_brdf.physics import lobe as lobes
+    from neural_brdf.physics import lobe_fit
 
     given = lobe
     from neural_brdf.runtime import load
@@ -225,7 +225,7 @@ def analytic_model(
     with tempfile.TemporaryDirectory(prefix="nbrdf-view-") as tmp:
         onnx_path = Path(tmp) / "reference.onnx"
         onnx_path.write_bytes(payload)
-        glsl = glsl_of(onnx_path, lobe=given if given is not None else lobes.fit_onnx(payload))
+        glsl = glsl_of(onnx_path, lobe=given if given is not None else lobe_fit.fit_onnx(payload))
         if albedo is None:
             albedo = albedo_curve(load(onnx_path).eval)
     return Model(label, glsl, albedo)

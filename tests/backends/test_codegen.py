@@ -302,9 +302,9 @@ def test_c_is_total(models, c_programs, enc):
 
 
 def stored_lobe(model):
-    from neural_brdf.physics import lobe
+    from neural_brdf.fileformat import lobe as lobe_format
 
-    return lobe.from_metadata({p.key: p.value for p in onnx.load(str(model)).metadata_props})
+    return lobe_format.from_metadata({p.key: p.value for p in onnx.load(str(model)).metadata_props})
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,4 @@
-"""neural_brdf.physics.lobe: the sampling-lobe fit (no renderer needed) and its metadata format.
+"""neural_brdf.physics.lobe_fit: the sampling-lobe fit (no renderer needed) and its metadata format.
 
 * On analytic models with a known best proposal: a Lambertian is sampled exactly by the
   cosine lobe (weight 0, relative second moment 1), and a GGX reflector with F = 1 by
@@ -24,16 +24,17 @@ import torch
 
 import analytic
 from neural_brdf.errors import InputError
-from neural_brdf.physics import lobe
+from neural_brdf.fileformat import lobe as lobe_format
+from neural_brdf.physics import lobe_fit
 
 
 def fitted(name, **params):
-    return lobe.fit(analytic.create(name, **params).eval)
+    return lobe_fit.fit(analytic.create(name, **params).eval)
 
 
 def test_lambertian_is_sampled_by_the_cosine_lobe_alone():
     got = fitted("lambertian", albedo=0.7)
-    assert got["kind"] == lobe.KIND
+    assert got["kind"] == lobe_format.KIND
     assert got["weight"] == 0.0, got
     # f cos / p_cos is the albedo itself: no variance, up to the estimate of the albedo
     assert abs(got["second_moment"] - 1.0) < 0.02, got
@@ -96,8 +97,8 @@ def fresh_second_moment(brdf, got: dict, n: int = 1 << 15, seed: int = 7) -> flo
 @pytest.mark.parametrize("ax, ay", [(0.15, 0.45), (0.45, 0.15)])
 def test_anisotropic_target_gets_an_anisotropic_lobe(ax, ay):
     brdf = analytic.create("microfacet", alpha_x=ax, alpha_y=ay, fresnel="conductor", material="Al")
-    got = lobe.fit(brdf.eval)
-    iso = lobe.fit(brdf.eval, anisotropic=False)
+    got = lobe_fit.fit(brdf.eval)
+    iso = lobe_fit.fit(brdf.eval, anisotropic=False)
     assert iso["alpha_x"] == iso["alpha_y"] and not got["retro"], (got, iso)
     # stretched along the target's long axis, by at least half the target's aspect
     aspect = got["alpha_y"] / got["alpha_x"]
@@ -108,8 +109,8 @@ def test_anisotropic_target_gets_an_anisotropic_lobe(ax, ay):
 
 def test_retroreflector_gets_a_retro_lobe():
     brdf = analytic.create("retroreflective", kd=[0.3, 0.3, 0.05], kr=0.5, exponent=30.0)
-    got = lobe.fit(brdf.eval)
-    mirror = lobe.fit(brdf.eval, retro=False)
+    got = lobe_fit.fit(brdf.eval)
+    mirror = lobe_fit.fit(brdf.eval, retro=False)
     assert got["retro"] and got["weight"] > 0 and not mirror["retro"], (got, mirror)
     assert fresh_second_moment(brdf, got) < 0.5 * fresh_second_moment(brdf, mirror)
 
@@ -125,10 +126,10 @@ def test_fresnel_and_phong_targets_get_a_per_incidence_lobe(name, params):
     """Plastic's specular share grows towards grazing (Fresnel) and a Phong lobe widens
     in half-vector space: one lobe for every incident direction fits neither."""
     brdf = analytic.create(name, **params)
-    got = lobe.fit(brdf.eval)
-    single = lobe.fit(brdf.eval, per_incidence=False)
+    got = lobe_fit.fit(brdf.eval)
+    single = lobe_fit.fit(brdf.eval, per_incidence=False)
     t = got["table"]
-    assert "table" not in single and len(t["cos_theta"]) == len(lobe.THETA_DEG), got
+    assert "table" not in single and len(t["cos_theta"]) == len(lobe_fit.THETA_DEG), got
     assert len(set(t["weight"])) > 1 or len(set(t["alpha_x"])) > 1, t
     # scored off the table's nodes, so the interpolation is tested too
     assert fresh_second_moment(brdf, got) < 0.9 * fresh_second_moment(brdf, single)
@@ -141,8 +142,8 @@ def test_beckmann_target_gets_a_beckmann_lobe(alpha, material):
     brdf = analytic.create(
         "microfacet", distribution="beckmann", alpha=alpha, fresnel="conductor", material=material
     )
-    got = lobe.fit(brdf.eval)
-    ggx = lobe.fit(brdf.eval, distributions=("ggx",))
+    got = lobe_fit.fit(brdf.eval)
+    ggx = lobe_fit.fit(brdf.eval, distributions=("ggx",))
     assert got["distribution"] == "beckmann" and ggx["distribution"] == "ggx", (got, ggx)
     # relative variances (second moment - 1): the Beckmann lobe's is at most half
     assert fresh_second_moment(brdf, got) - 1 < 0.5 * (fresh_second_moment(brdf, ggx) - 1)
@@ -150,23 +151,23 @@ def test_beckmann_target_gets_a_beckmann_lobe(alpha, material):
 
 def test_fit_is_deterministic():
     brdf = analytic.create("phong")
-    assert lobe.fit(brdf.eval) == lobe.fit(brdf.eval)
+    assert lobe_fit.fit(brdf.eval) == lobe_fit.fit(brdf.eval)
 
 
 def test_metadata_round_trip():
     got = fitted("blinn_phong")
-    assert lobe.from_metadata({lobe.KEY: lobe.to_json(got)}) == got
-    assert lobe.from_metadata({"other": "1"}) is None
+    assert lobe_format.from_metadata({lobe_format.KEY: lobe_format.to_json(got)}) == got
+    assert lobe_format.from_metadata({"other": "1"}) is None
     # a stored alpha below the floor is raised to it
-    sharp = lobe.parse(lobe.to_json({**got, "alpha": 1e-4, "alpha_x": 1e-4}))
-    assert sharp["alpha"] == sharp["alpha_x"] == lobe.MIN_ALPHA
+    sharp = lobe_format.parse(lobe_format.to_json({**got, "alpha": 1e-4, "alpha_x": 1e-4}))
+    assert sharp["alpha"] == sharp["alpha_x"] == lobe_format.MIN_ALPHA
 
 
 def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
-    old = lobe.parse('{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5}')
+    old = lobe_format.parse('{"kind": "cosine+ggx_vndf", "alpha": 0.3, "weight": 0.5}')
     assert (old["alpha_x"], old["alpha_y"], old["retro"]) == (0.3, 0.3, False)
     assert old["distribution"] == "ggx"
-    assert lobe.complete({"alpha": 0.3, "weight": 0.5}) == old
+    assert lobe_format.complete({"alpha": 0.3, "weight": 0.5}) == old
 
 
 @pytest.mark.parametrize(
@@ -225,6 +226,6 @@ def test_a_lobe_stored_before_anisotropy_reads_as_isotropic_mirror():
 )
 def test_bad_metadata_is_a_one_line_input_error(text, words):
     with pytest.raises(InputError) as e:
-        lobe.from_metadata({lobe.KEY: text})
+        lobe_format.from_metadata({lobe_format.KEY: text})
     msg = str(e.value)
-    assert lobe.KEY in msg and words in msg and "\n" not in msg
+    assert lobe_format.KEY in msg and words in msg and "\n" not in msg

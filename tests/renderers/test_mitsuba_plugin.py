@@ -36,7 +36,8 @@ from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mi
 from neural_brdf import config, pipeline
 from neural_brdf.errors import InputError
 from neural_brdf.export import relative_difference
-from neural_brdf.physics import lobe
+from neural_brdf.fileformat import lobe as lobe_format
+from neural_brdf.physics import lobe_fit
 
 pytestmark = pytest.mark.mitsuba
 
@@ -118,7 +119,9 @@ def with_metadata(src, dst, key, value=None):
 @pytest.fixture(scope="module")
 def legacy_model(tiny_model, tmp_path_factory):
     """The tiny model as exported before the lobe was stored: no ``sampling_lobe``."""
-    return with_metadata(tiny_model, tmp_path_factory.mktemp("legacy") / "model.onnx", lobe.KEY)
+    return with_metadata(
+        tiny_model, tmp_path_factory.mktemp("legacy") / "model.onnx", lobe_format.KEY
+    )
 
 
 # ------------------------------------------------------------------ helpers
@@ -269,10 +272,10 @@ def test_unsupported_op_is_named(mi, plugin):
 # ------------------------------------------------------------------ sampling
 def test_export_stores_the_lobe_and_the_plugin_reads_it(mi, tiny_model):
     meta = neural_brdf.load(tiny_model).metadata
-    stored = lobe.from_metadata(meta)
+    stored = lobe_format.from_metadata(meta)
     assert stored is not None, sorted(meta)
     # the fit is deterministic: fitting the exported file again gives the stored lobe
-    assert stored == lobe.fit_onnx(tiny_model)
+    assert stored == lobe_fit.fit_onnx(tiny_model)
     # GGX alpha = 0.3 gold: a glossy lobe of about that roughness
     assert 0.15 <= stored["alpha"] <= 0.5 and stored["weight"] >= 0.5, stored
     bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(tiny_model)})
@@ -281,11 +284,11 @@ def test_export_stores_the_lobe_and_the_plugin_reads_it(mi, tiny_model):
 
 
 def test_a_file_without_the_lobe_is_fitted_at_load(mi, tiny_model, legacy_model):
-    assert lobe.KEY not in neural_brdf.load(legacy_model).metadata
+    assert lobe_format.KEY not in neural_brdf.load(legacy_model).metadata
     bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(legacy_model)})
     assert bsdf.lobe_source == "fitted at load"
     # the same network, so the same fit as the exporter's
-    assert bsdf.lobe == lobe.from_metadata(neural_brdf.load(tiny_model).metadata)
+    assert bsdf.lobe == lobe_format.from_metadata(neural_brdf.load(tiny_model).metadata)
 
 
 @pytest.mark.parametrize(
@@ -302,8 +305,8 @@ def test_a_file_without_the_lobe_is_fitted_at_load(mi, tiny_model, legacy_model)
 def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, stored):
     """A lobe unlike the fitted one is written into the file: the plugin's pdf must be
     that mixture (so the metadata, not a fit, drives sampling)."""
-    text = lobe.to_json({"kind": lobe.KIND, **stored})
-    path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, text)
+    text = lobe_format.to_json({"kind": lobe_format.KIND, **stored})
+    path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe_format.KEY, text)
     bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(path)})
     assert all(bsdf.lobe[k] == v for k, v in stored.items())
     wi, _ = pairs(4, 6000)
@@ -320,10 +323,10 @@ def test_pdf_is_the_stored_mixture(mi, tiny_model, tmp_path, stored):
 
 
 def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp_path):
-    path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, '{"kind": "gauss"}')
+    path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe_format.KEY, '{"kind": "gauss"}')
     with pytest.raises(InputError) as e:
         plugin.read_model(path)
-    assert "model.onnx" in str(e.value) and lobe.KEY in str(e.value)
+    assert "model.onnx" in str(e.value) and lobe_format.KEY in str(e.value)
     assert "\n" not in str(e.value)
 
 
@@ -337,8 +340,8 @@ def test_chi2(mi, tiny_model, theta, stored, tmp_path, monkeypatch):
 
     path = tiny_model
     if stored is not None:  # the anisotropic retro lobe is sampled as its pdf says
-        text = lobe.to_json({"kind": lobe.KIND, **stored})
-        path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe.KEY, text)
+        text = lobe_format.to_json({"kind": lobe_format.KIND, **stored})
+        path = with_metadata(tiny_model, tmp_path / "model.onnx", lobe_format.KEY, text)
     props = {"type": "neural_brdf", "filename": str(path)}
     sample_fn, pdf_fn = BSDFAdapter("neural_brdf", props, wi=incident(theta))
     test = ChiSquareTest(

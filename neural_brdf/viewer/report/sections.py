@@ -235,10 +235,11 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
 
 def _stored_lobe(path: Path) -> dict | None:
     """The sampling lobe in a model file's metadata, or None (older files, bad ones)."""
-    from neural_brdf.fileformat import lobe, reader
+    from neural_brdf.fileformat import lobe as lobe_format
+    from neural_brdf.fileformat import reader
 
     try:
-        return lobe.from_metadata(reader.props(reader.load(path, external_data=False)))
+        return lobe_format.from_metadata(reader.props(reader.load(path, external_data=False)))
     except InputError:  # unreadable, or a malformed lobe: the viewer then fits one
         return None
 

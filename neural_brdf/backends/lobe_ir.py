@@ -1,7 +1,7 @@
 """The stored sampling lobe (:mod:`neural_brdf.fileformat.lobe`) as lowered programs for the
 back ends.
 
-    from neural_brdf.backends import lobe
+    from neural_brdf.backends import lobe_ir
     shape = {"alpha_x": 0.2, "alpha_y": 0.4, "weight": 0.6, "retro": False}
     pdf = lobe.pdf_program(**shape)      # inputs wi, wo -> output pdf
     smp = lobe.sample_program(**shape)   # inputs wi, u1, u2 -> wo, pdf

@@ -41,21 +41,15 @@ from analytic import frame
 from analytic.microfacet import Distribution
 from neural_brdf.fileformat import INPUTS, OUTPUT
 
-# The lobe's schema, its density and its metadata key belong to the file format; they are
-# named here too because the fit writes what the schema reads.
-from neural_brdf.fileformat.lobe import (  # noqa: F401  (lobe.KEY, lobe.parse, ...)
+# The lobe's schema, its density and its metadata key belong to the file format
+# (neural_brdf.fileformat.lobe); the fit uses these of them.
+from neural_brdf.fileformat.lobe import (
     DISTRIBUTIONS,
-    KEY,
     KIND,
     MAX_WEIGHT,
     MIN_ALPHA,
-    at,
     beckmann_pdf,
-    complete,
-    from_metadata,
     ggx_pdf,
-    parse,
-    to_json,
     turn,
 )
 
