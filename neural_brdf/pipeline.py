@@ -3,9 +3,10 @@
     from neural_brdf import config, pipeline
     metrics = pipeline.run(config.load("configs/gold.yaml"), "runs/gold")
 
-    target (analytic / measured data)  --train.train-->  RawBRDF + log.csv + ckpt.pt
-        (or images  --inverse.fit-->  RawBRDF)
-    RawBRDF  --export.normalized_model, export.export-->  model.onnx
+    target (analytic, measured data, a Mitsuba BSDF)  --train.loop.train-->  RawBRDF
+        + log.csv + ckpt.pt (or images  --inverse.fit-->  RawBRDF)
+    RawBRDF  --export.normalized_model, export.build-->  the graph (parity checked)
+    the graph  --validate.physics-->  its figures  --export.write-->  model.onnx
     model.onnx  --validate.report-->  metrics.json
     run folder  --report.write_report-->  report.html, report.md
 

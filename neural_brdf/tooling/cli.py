@@ -1,11 +1,13 @@
 """``neural-brdf`` command line: argument parsing and error-to-exit-code mapping only.
 
     neural-brdf train CONFIG|PRESET [--out RUN_DIR] [--set KEY=VALUE ...] [--resume|--overwrite]
+    neural-brdf train-many CONFIG|PRESET ... --out FOLDER [--set KEY=VALUE ...] [--overwrite]
     neural-brdf presets
     neural-brdf export RUN_DIR [-o model.onnx]
     neural-brdf report RUN_DIR [-o OUT_DIR]
     neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
-    neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf
+    neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf  (measured.formats: by suffix)
+    neural-brdf render model.onnx [--reference CONFIG] [--spp N] -o out.png|out.jpg
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
     neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
     neural-brdf view model.onnx [--compare OTHER.onnx|CONFIG] -o viewer.html

@@ -178,6 +178,7 @@ def fitted(mi, example, tmp_path_factory):
     return code, run_dir
 
 
+@pytest.mark.slow
 def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     from neural_brdf.inverse import bsdf as ib
     from neural_brdf.inverse import fit as inverse
@@ -211,6 +212,7 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert err < FIT_IMAGE_ERROR < start, (err, start)
 
 
+@pytest.mark.slow
 def test_fitted_export_is_reciprocal_and_passes_the_furnace(fitted):
     import neural_brdf
     from analytic import physics

@@ -153,6 +153,7 @@ def fits(baked_materials, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", conftest.MATERIALS)
 def test_real_material_fit_is_physical_and_beats_the_abc_fit(fits, baked_materials, abc_csv, name):
     run, report = fits[name]

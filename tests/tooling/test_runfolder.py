@@ -204,6 +204,7 @@ def batch(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_sigterm_while_train_many_overwrites_keeps_the_old_runs_whole(batch, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(batch, out)
@@ -221,6 +222,7 @@ def test_sigterm_while_train_many_overwrites_keeps_the_old_runs_whole(batch, tmp
     assert exported.returncode == 0, exported.stderr  # the old weights, with the old config
 
 
+@pytest.mark.slow
 def test_sigterm_after_train_many_trained_leaves_the_new_runs(batch, tmp_path):
     """Stopped as the first export starts: every folder is consistently the new run (its
     config, checkpoint and log), with nothing of the old one beside it."""
@@ -242,6 +244,7 @@ def test_sigterm_after_train_many_trained_leaves_the_new_runs(batch, tmp_path):
     assert exported.returncode == 0, exported.stderr  # the new weights, with the new config
 
 
+@pytest.mark.slow
 def test_sigterm_while_train_overwrites_leaves_no_old_viewer(finished, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(finished, run_dir)

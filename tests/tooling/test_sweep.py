@@ -137,6 +137,7 @@ def test_local_sweep_table_matches_each_trials_own_metrics(local):
     assert by_name["seed-0"]["rel_rmse"] != by_name["seed-1"]["rel_rmse"]
 
 
+@pytest.mark.slow
 def test_ray_executor_gives_the_same_table(local, tmp_path):
     path, out_local = local
     out = tmp_path / "ray"
@@ -198,6 +199,7 @@ def test_resume_runs_only_unfinished_trials(local, tmp_path):
     assert stable(results) == stable(read(out_local / "results.json"))
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
     path = write_sweep(tmp_path, list=TRIALS[:2])
     out = tmp_path / "out"

@@ -320,6 +320,7 @@ def logged_steps(run_dir: Path) -> int:
     return max((int(r.split(",")[0]) for r in rows if r.count(",") >= 4), default=0)
 
 
+@pytest.mark.slow
 def test_sigkill_mid_run_then_resume_matches_an_uninterrupted_run(tmp_path):
     killed, straight = tmp_path / "killed", tmp_path / "straight"
     proc = train_cli(killed)

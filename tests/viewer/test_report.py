@@ -136,6 +136,7 @@ def test_markdown_links_the_same_pngs_as_the_html(tiny_run):
     assert "| reciprocity |" in md and "**ok**" in md
 
 
+@pytest.mark.slow
 def test_the_page_in_headless_chromium(tiny_run, tmp_path):
     shot = tmp_path / "screenshot.png"
     seen = browser.screenshot(tiny_run / "report.html", shot)
