@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import copy
 import io
+import json
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -434,20 +435,42 @@ def export_run(
     run_dir: str | Path, out: str | Path | None = None, *, measure: Measure
 ) -> dict[str, Any]:
     """``neural-brdf export RUN_DIR [-o OUT]``: checkpoint -> normalised model -> ONNX
-    (:func:`export`, ``measure``: :func:`neural_brdf.validate.physics`)."""
+    (:func:`export`, ``measure``: :func:`neural_brdf.validate.physics`).  Returns
+    :func:`export`'s figures, ``normalization`` and ``target`` (the metadata's entry:
+    ``kind`` "images" and ``views`` for an images fit, which has no reference)."""
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
         raise CheckpointError(f"{run_dir}: not a run directory (no config.yaml)")
     cfg = cfgmod.load(cfg_path)
     ckpt = load_checkpoint(run_dir / "ckpt.pt")
-    target = data.build_target(cfg.target)
+    # an images fit has no target to build (not the default target.model, a Lambertian):
+    # the metadata says {"kind": "images", "views": N} and physics is measured alone
+    images = cfg.target.images is not None
+    target = None if images else data.build_target(cfg.target)
     raw = raw_from_checkpoint(ckpt, cfg)
     model, table_info = normalized_model(raw, cfg, target)
     out = Path(out) if out is not None else run_dir / "model.onnx"
-    info = export(model, cfg, out, measure=measure, target=target)
+    desc = _images_description(cfg, run_dir) if images else None
+    info = export(model, cfg, out, measure=measure, target=target, target_desc=desc)
     info["normalization"] = table_info
+    said = desc if target is None else target.describe()
+    info["target"] = target_json(cfg, said or "", target)
     return info
+
+
+def _images_description(cfg: cfgmod.Config, run_dir: Path) -> str:
+    """What an images fit was fitted to: the run's own words (metrics.json's
+    ``training.target``, as the fit wrote them) or, without them, the views' images."""
+    try:
+        said = json.loads((run_dir / "metrics.json").read_text())["training"]["target"]
+    except (OSError, ValueError, KeyError, TypeError):
+        said = None
+    if isinstance(said, str) and said:
+        return said
+    views = cfg.target.images or []
+    names = ", ".join(Path(v.image).name for v in views)
+    return f"{len(views)} images ({names}) by inverse rendering"
 
 
 def analytic_onnx(model: str, params: dict | None = None) -> bytes:

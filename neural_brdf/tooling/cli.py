@@ -273,9 +273,13 @@ def _train(args) -> int:
         return EXIT_OK
     print(validate.format_table(report))
     s = report["seconds"]
+    # seconds.report is there only when the report was written (pipeline.finish)
+    written = "report" in s and (run_dir / "report.html").is_file()
+    stages = f"train {s['train']:.1f} s, export {s['export']:.1f} s, validate {s['validate']:.1f} s"
     print(
-        f"run: {run_dir}  (train {s['train']:.1f} s, export {s['export']:.1f} s, "
-        f"validate {s['validate']:.1f} s, report {s['report']:.1f} s: report.html)"
+        f"run: {run_dir}  ({stages}, report {s['report']:.1f} s: report.html)"
+        if written
+        else f"run: {run_dir}  ({stages}; no report written)"
     )
     return EXIT_OK if report["passed"] else EXIT_PHYSICS
 
@@ -350,8 +354,10 @@ def _export(args) -> int:
     # export writes (and checks parity); validate measures the graph and gives the verdict
     info = export.export_run(args.run_dir, args.out, measure=validate.physics)
     c = info["physics"]["checks"]
+    t = info.get("target") or {}
+    fitted = f" (an images fit of {t['views']} views)" if t.get("kind") == "images" else ""
     print(
-        f"wrote {info['path']}: parity {info['parity_rel_error']:.2g}, max albedo "
+        f"wrote {info['path']}{fitted}: parity {info['parity_rel_error']:.2g}, max albedo "
         f"{c['max_albedo']['value']:.6f}, reciprocity {c['reciprocity']['value']:.2g}"
     )
     return EXIT_OK if validate.physics_passed(info["physics"]) else EXIT_PHYSICS

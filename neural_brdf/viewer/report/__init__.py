@@ -11,7 +11,10 @@ curve, the accuracy against the target with the BRDF Explorer style figures of
 curve and times, and the resolved config.
 
 The reference is the config's target (``data.build_target``).  When a measured-data
-target cannot be built here, the report says so and plots the model alone.
+target cannot be built here, the report says so and plots the model alone.  An images
+fit (``target.images``) has no reference: its report holds the "Images fit" section of
+:mod:`neural_brdf.viewer.report.images` (the views, the fit's losses, the coverage and
+``coverage.png``) in place of the accuracy, and plots the model alone.
 
 ``report.html`` embeds every image as a base64 PNG data URI and needs no script, so
 the one file can be mailed or archived; ``report.md`` links the same PNGs, written

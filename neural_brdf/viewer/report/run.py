@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from neural_brdf import config as cfgmod
 from neural_brdf.errors import InputError
 from neural_brdf.runtime import NeuralBRDF, load
 from neural_brdf.train import data
+from neural_brdf.train.session import LOG_COLUMNS
 
 RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
 RENDER_SPP = 16  # Mitsuba preview: enough to judge the material, seconds to render
@@ -28,8 +30,13 @@ class Run:
     config: cfgmod.Config
     config_text: str
     metrics: dict
-    log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays
+    log: dict  # step, loss, val_step, val_rel_rmse: numpy arrays; columns: {name: array}
     model: NeuralBRDF
+
+    @property
+    def images(self) -> bool:
+        """A fit to images by inverse rendering (``target.images``): no reference BRDF."""
+        return self.config.target.images is not None
 
 
 def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
@@ -75,13 +82,25 @@ def _read_metrics(path: Path) -> dict:
     return metrics
 
 
+def _float_or_nan(text: str | None) -> float:
+    try:
+        return float(text) if text else math.nan
+    except ValueError:
+        return math.nan
+
+
 def _read_log(path: Path) -> dict:
+    """log.csv's step, loss and held-out error, and ``columns``: every further column a
+    loop wrote (an images fit's losses, ...), name -> values per row (NaN where empty)."""
     step, loss, val_step, val = [], [], [], []
+    extra: dict[str, list[float]] = {}
     try:
         with open(path, newline="") as fh:
             reader = csv.DictReader(fh)
             if not reader.fieldnames or not {"step", "loss"} <= set(reader.fieldnames):
                 raise InputError(f"{path}: expected a CSV with columns step, loss, ...")
+            names = [n for n in reader.fieldnames if n not in LOG_COLUMNS]
+            extra = {n: [] for n in names}
             for line, row in enumerate(reader, start=2):
                 try:
                     step.append(float(row["step"]))
@@ -89,14 +108,18 @@ def _read_log(path: Path) -> dict:
                     if row.get("val_rel_rmse"):
                         val.append(float(row["val_rel_rmse"]))
                         val_step.append(step[-1])
+                    for n in names:  # a loop's own column: a number, or NaN
+                        extra[n].append(_float_or_nan(row.get(n)))
                 except (TypeError, ValueError):
                     raise InputError(f"{path}: line {line}: not a number") from None
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(f"{path}: cannot read ({e})") from None
-    return {
+    out: dict = {
         k: np.asarray(v, dtype=np.float64)
         for k, v in (("step", step), ("loss", loss), ("val_step", val_step), ("val_rel_rmse", val))
     }
+    out["columns"] = {n: np.asarray(v, dtype=np.float64) for n, v in extra.items()}
+    return out
 
 
 def load_run(run_dir) -> Run:
@@ -121,7 +144,16 @@ def load_run(run_dir) -> Run:
 
 
 def reference_of(cfg: cfgmod.Config):
-    """(the target model, None), or (None, why not) for a data target not buildable here."""
+    """(the target model, None), or (None, why not): a data target not buildable here, or
+    an images fit (``target.images``), which has no reference BRDF at all."""
+    if cfg.target.images is not None:  # not the default target.model (a Lambertian)
+        n = len(cfg.target.images)
+        return (
+            None,
+            f"No reference: an images fit ({n} view{'s' if n != 1 else ''}, fitted by "
+            "inverse rendering) has no target BRDF to compare with; the figures show the "
+            "neural model alone.",
+        )
     try:
         return data.build_target(cfg.target), None
     except InputError as e:

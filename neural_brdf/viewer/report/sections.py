@@ -1,5 +1,6 @@
-"""The report's sections: summary, physics, accuracy and peak, renders, viewer,
-training; each a list of blocks."""
+"""The report's sections: summary, physics, accuracy and peak (an images fit: its own
+section, :mod:`neural_brdf.viewer.report.images`), renders, viewer, training; each a
+list of blocks."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
 from neural_brdf.viewer import plots
+from neural_brdf.viewer.report import images
 from neural_brdf.viewer.report.blocks import (
     Attachment,
     Block,
@@ -43,7 +45,8 @@ def _summary(run: Run) -> list:
         ["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
         [
             "target",
-            cfg.target.data
+            (run.images and images.target_text(run))
+            or cfg.target.data
             # a Mitsuba teacher: its description (plugin, file, any excess of albedo over 1)
             or (cfg.target.mitsuba and str(m.get("reference") or cfg.target.mitsuba))
             or f"{cfg.target.model} {json.dumps(cfg.target.params)}",
@@ -52,7 +55,14 @@ def _summary(run: Run) -> list:
             "model",
             f"{cfg.model.encoding} encoding, hidden {cfg.model.hidden}, {cfg.model.activation}",
         ],
-        ["rel. RMSE of f cos θo", "-" if rel is None else f"{100 * rel:.3f} %"],
+    ]
+    if run.images:  # no reference: what the images observe instead of an error
+        figure = images.coverage_figure(run)
+        if figure is not None:
+            rows.append(["coverage of the (wi, wo) domain", f"{100 * figure:.1f} %"])
+    else:
+        rows.append(["rel. RMSE of f cos θo", "-" if rel is None else f"{100 * rel:.3f} %"])
+    rows += [
         [
             "max directional albedo",
             _fmt(_number(m, "checks.max_albedo.value", path, optional=True), ".6f"),
@@ -63,7 +73,7 @@ def _summary(run: Run) -> list:
     return [Heading(f"neural-brdf report: {cfg.name}", 1), Table(["", ""], rows)]
 
 
-def _physics(run: Run, albedo_png: bytes) -> list:
+def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
     m, path = run.metrics, run.dir / "metrics.json"
     rows = []
     for name, c in m["checks"].items():
@@ -119,8 +129,9 @@ def _physics(run: Run, albedo_png: bytes) -> list:
             "albedo",
             "Directional albedo (white furnace)",
             "ρ(θi) per channel: the neural curve as the validator measured it (averaged "
-            "over azimuth for an anisotropic model), the reference's in the incidence "
-            "plane; the dotted line is the furnace limit 1, the cross the validator's "
+            "over azimuth for an anisotropic model)"
+            + (", the reference's in the incidence plane" if reference else "")
+            + "; the dotted line is the furnace limit 1, the cross the validator's "
             "measured maximum.",
             albedo_png,
         )
@@ -300,6 +311,8 @@ def _training(run: Run) -> list:
     blocks: list[Block] = [Heading("Training")]
     if rows:
         blocks.append(Table(["stage", "time"], rows))
+    if run.images:  # the fit's losses are drawn in its own section
+        return blocks
     if len(log["step"]):
         blocks.append(
             Image(
@@ -365,10 +378,16 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
             plots.png_bytes(plots.rusinkiewicz_images(neural, ref)),
         ),
     ]
+    if run.images:  # no target: the fit's own section, and the model's figures alone
+        middle = images.section(run) + [Heading("The fitted BRDF")]
+        middle += [Text(note, note=True)] if note else []
+        middle += figures
+    else:
+        middle = _accuracy(run, note, figures)
     return (
         _summary(run)
-        + _physics(run, albedo)
-        + _accuracy(run, note, figures)
+        + _physics(run, albedo, ref is not None)
+        + middle
         + _rendering(run, render, out_dir, reference)
         + _viewer(run, reference, curves)
         + _training(run)

@@ -1,0 +1,360 @@
+"""The report of an images fit (``target.images``, docs/inverse.md): the views, the
+fit's losses over its steps and what the images determine (the coverage figure, its
+warning and its map), in place of the accuracy against a target, which such a fit has
+not got.  Everything comes from the run folder: ``config.yaml`` (the views),
+``metrics.json`` (``training``, ``training.coverage``: neural_brdf.inverse.coverage's
+``summary``), ``log.csv`` and ``coverage.png``; nothing here needs Mitsuba."""
+
+from __future__ import annotations
+
+import math
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from neural_brdf.viewer import plots
+from neural_brdf.viewer.report.blocks import Block, Heading, Image, Table, Text
+from neural_brdf.viewer.report.run import Run
+
+COVERAGE_PICTURE = "coverage.png"  # the map a fit writes beside metrics.json
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+EXR_HEADER_BYTES = 1 << 16  # a header's attributes, read no further
+# figures of metrics.json's ``training`` shown in the fit's table: key -> (label, format)
+FIT_FIGURES = {
+    "steps": ("steps of the image fit", ".0f"),
+    "final_loss": ("last loss (image + albedo penalty)", ".4g"),
+    "final_image_loss": ("last image loss (relative MSE)", ".4g"),
+    "final_albedo_penalty": ("last albedo penalty", ".3g"),
+    "final_max_albedo_estimate": ("last max albedo estimate (raw network)", ".4f"),
+    "spp_per_step": ("samples per pixel per step (gradient pass)", ".0f"),
+    "primal_spp_per_step": ("samples per pixel per step (primal pass)", ".0f"),
+    "render_seconds": ("render time", ".1f"),
+}
+
+
+# log.csv's columns of an images fit beyond the common ones, said in the loss caption
+COLUMN_TEXT = {
+    "heldout_loss": "the same relative MSE over the validation split's held-out pixels",
+}
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def _finite(x: Any) -> float | None:
+    """A JSON number as a float, else None (write_json stores inf / nan as strings)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, str)):
+        return None
+    try:
+        v = float(x)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) else None
+
+
+def exr_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an OpenEXR file's data window, read from its header alone;
+    None for a missing or foreign file.  The fit checks that each image has its scene's
+    film size, so this is the view's film size."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(EXR_HEADER_BYTES)
+    except OSError:
+        return None
+    if head[:4] != EXR_MAGIC:
+        return None
+    pos = 8  # magic, version
+    while pos < len(head) and head[pos] != 0:
+        end = head.find(b"\0", pos)
+        kind_end = head.find(b"\0", end + 1)
+        if end < 0 or kind_end < 0 or kind_end + 5 > len(head):
+            return None
+        name, kind = head[pos:end], head[end + 1 : kind_end]
+        (size,) = struct.unpack("<i", head[kind_end + 1 : kind_end + 5])
+        value = head[kind_end + 5 : kind_end + 5 + size]
+        if name == b"dataWindow" and kind == b"box2i" and len(value) == 16:
+            x0, y0, x1, y1 = struct.unpack("<4i", value)
+            return (x1 - x0 + 1, y1 - y0 + 1) if x1 >= x0 and y1 >= y0 else None
+        pos = kind_end + 5 + max(size, 0)
+    return None
+
+
+def _film(entry: Any, image: Path) -> str:
+    """A view's film size: from metrics.json's ``training.views[k]`` when it holds one
+    (``width`` and ``height``, or ``film``: [width, height]), else from the image."""
+    if isinstance(entry, dict):
+        w, h = _finite(entry.get("width")), _finite(entry.get("height"))
+        film = entry.get("film")
+        if (w is None or h is None) and isinstance(film, list) and len(film) == 2:
+            w, h = _finite(film[0]), _finite(film[1])
+        if w is not None and h is not None:
+            return f"{w:.0f} × {h:.0f}"
+    size = exr_size(image)
+    return "-" if size is None else f"{size[0]} × {size[1]}"
+
+
+def _coverage_dict(run: Run) -> dict | None:
+    training = run.metrics.get("training")
+    cov = training.get("coverage") if isinstance(training, dict) else None
+    return cov if isinstance(cov, dict) else None
+
+
+def coverage_figure(run: Run) -> float | None:
+    """metrics.json's ``training.coverage.figure`` (a share of the domain), or None."""
+    cov = _coverage_dict(run)
+    return None if cov is None else _finite(cov.get("figure"))
+
+
+def _per_view(cov: dict | None, scene: str) -> dict:
+    """The coverage summary's entry of the view whose scene is ``scene`` (a fit assesses
+    its fitted views only: a held-out view has none), or {}."""
+    views = cov.get("per_view") if cov else None
+    entries = [v for v in views if isinstance(v, dict)] if isinstance(views, list) else []
+    for same in (lambda a: a == scene, lambda a: Path(a).name == Path(scene).name):
+        found = [v for v in entries if same(str(v.get("scene")))]
+        if len(found) == 1:
+            return found[0]
+    return {}
+
+
+def _pct(x: Any, digits: int = 1) -> str:
+    v = _finite(x)
+    return "-" if v is None else f"{100 * v:.{digits}f} %"
+
+
+def _views(run: Run) -> list[Block]:
+    views = run.config.target.images or []
+    training = run.metrics.get("training")
+    given = training.get("views") if isinstance(training, dict) else None
+    cov = _coverage_dict(run)
+    held = _held_out(run)
+    rows = []
+    for k, view in enumerate(views):
+        scene, image = Path(view.scene), Path(view.image)
+        entry = given[k] if isinstance(given, list) and k < len(given) else None
+        row = [str(k + 1), scene.name, image.name, _film(entry, image)]
+        if held:
+            row.append("held out" if image.name in held else "fitted")
+        if cov is not None:
+            pv = _per_view(cov, view.scene)
+            lit = _finite(pv.get("pixels_lit"))
+            row += [_pct(pv.get("figure")), "-" if lit is None else f"{lit:.0f}"]
+        rows.append(row)
+    header = ["view", "scene", "image", "film (W × H)"] + (["role"] if held else [])
+    if cov is not None:
+        header += ["coverage alone", "lit pixels"]
+    return [
+        Text(
+            f"Fitted to {_plural(len(views), 'view')} by differentiable rendering in "
+            "Mitsuba 3 (docs/inverse.md): each scene rendered with the network as its "
+            '<bsdf id="fit">, compared with its image.  There is no reference BRDF: the '
+            "report shows the physics checks and the fit's own figures, and no accuracy "
+            "against a target."
+        ),
+        Table(header, rows),
+    ]
+
+
+def _held_out(run: Run) -> set[str]:
+    """The image names of the views a validation split holds out (metrics.json's
+    ``training.validation.views``)."""
+    training = run.metrics.get("training")
+    val = training.get("validation") if isinstance(training, dict) else None
+    names = val.get("views") if isinstance(val, dict) else None
+    return {str(n) for n in names} if isinstance(names, list) else set()
+
+
+def _validation_rows(val: Any) -> list[list[str]]:
+    """The validation split's figures (``training.validation``), when the fit had one."""
+    if not isinstance(val, dict):
+        return []
+    rows = []
+    for key, label in (
+        ("start_loss", "held-out loss of the start"),
+        ("best_loss", "best held-out loss"),
+        ("last_loss", "last held-out loss"),
+    ):
+        v = _finite(val.get(key))
+        step = _finite(val.get(key.replace("_loss", "_step")))
+        if v is not None:
+            rows.append([label, f"{v:.4g}" + ("" if step is None else f" (step {step:.0f})")])
+    if isinstance(val.get("kept"), str):
+        rows.append(["weights kept", val["kept"]])
+    return rows
+
+
+def _fit_figures(run: Run) -> list[Block]:
+    training = run.metrics.get("training")
+    if not isinstance(training, dict):
+        return []
+    rows = []
+    for key, (label, spec) in FIT_FIGURES.items():
+        v = _finite(training.get(key))
+        if v is not None:
+            rows.append([label, format(v, spec) + (" s" if key.endswith("seconds") else "")])
+    init = training.get("init")
+    if isinstance(init, dict) and isinstance(init.get("target"), str):
+        rows.append(["start", init["target"]])
+    elif "init" in training and init is None:
+        rows.append(["start", "a constant (no fitted start)"])
+    rows += _validation_rows(training.get("validation"))
+    return [Table(["figure", "value"], rows)] if rows else []
+
+
+def loss_series(log: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The fit's losses in log.csv: ``loss`` (the step's image loss + albedo penalty) and
+    every column the loop added; name -> (steps, values), finite values only."""
+    step = np.asarray(log["step"], dtype=np.float64)
+    series = {"loss": np.asarray(log["loss"], dtype=np.float64)}
+    series.update(log.get("columns") or {})
+    out = {}
+    for name, values in series.items():
+        values = np.asarray(values, dtype=np.float64)
+        keep = np.isfinite(values)
+        if values.shape == step.shape and keep.any():
+            out[name] = (step[keep], values[keep])
+    return out
+
+
+def loss_figure(series: dict[str, tuple[np.ndarray, np.ndarray]]) -> Figure:
+    """The losses over the steps, log scale where every value is positive."""
+    fig = Figure(figsize=(7, 4), layout="constrained")
+    ax = fig.subplots()
+    positive = all(np.all(v > 0) for _, v in series.values())
+    for name, (s, v) in series.items():
+        sparse = len(v) < 20
+        ax.plot(s, v, "o-" if sparse else "-", lw=1.4, ms=4, label=name)
+    if positive:
+        ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, loc="upper right", frameon=False)
+    ax.set_title("image fit: log.csv", fontsize=10)
+    return fig
+
+
+def _losses(run: Run) -> list[Block]:
+    series = loss_series(run.log)
+    if not series:
+        return [Text("No steps of the image fit were logged (log.csv).", note=True)]
+    others = [n for n in series if n != "loss"]
+    said = "".join(f"; {n}: {COLUMN_TEXT.get(n, 'a column the fit logged')}" for n in others)
+    return [
+        Image(
+            "images-loss",
+            "The fit's losses",
+            f"log.csv per logged step: loss, the step's image loss (the relative MSE of "
+            f"the renders against the images, averaged over the views) plus the albedo "
+            f"penalty{said}.",
+            plots.png_bytes(loss_figure(series)),
+        )
+    ]
+
+
+def coverage_warning(cov: dict) -> str | None:
+    """The warning of a coverage summary: its own (``warning``) when it holds one, else
+    the text of neural_brdf.inverse.coverage.warning when the figure is below
+    ``warn_below``."""
+    if isinstance(cov.get("warning"), str):
+        return cov["warning"] or None
+    figure, below = _finite(cov.get("figure")), _finite(cov.get("warn_below"))
+    if figure is None or below is None or figure >= below:
+        return None
+    min_cos = _finite(cov.get("min_cos"))
+    given = cov.get("per_view")
+    views = given if isinstance(given, list) else []
+    unlit = [
+        str(v.get("scene"))
+        for v in views
+        if isinstance(v, dict) and _finite(v.get("pixels_lit")) == 0
+    ]
+    lines = f"; no lit pixel of the fit BSDF in {', '.join(unlit)}" if unlit else ""
+    return (
+        f"coverage: the images observe {100 * figure:.1f} % of the (wi, wo) domain "
+        f"with both cosines > {min_cos if min_cos is not None else 0.1:g} (below "
+        f"{100 * below:.0f} %){lines}: the rest of the BRDF comes from the start and the "
+        "network's prior, not the images; add views or lights at other angles to the "
+        "camera (docs/inverse.md)"
+    )
+
+
+def _coverage(run: Run) -> list[Block]:
+    blocks: list[Block] = [Heading("What the images determine", 3)]
+    cov = _coverage_dict(run)
+    if cov is None:
+        return blocks + [
+            Text(
+                "No coverage figure in metrics.json (training.coverage): `python -m "
+                "neural_brdf.inverse.coverage config.yaml -o coverage.png` computes it "
+                "from the scenes.",
+                note=True,
+            )
+        ]
+    rows = [["coverage", _pct(cov.get("figure"))]]
+    band = cov.get("theta_d_observed_deg")
+    if isinstance(band, list) and len(band) == 2 and all(_finite(x) is not None for x in band):
+        n_rows = _finite(cov.get("theta_d_rows_observed"))
+        of = cov.get("bins")
+        total = f" of {of[1]}" if isinstance(of, list) and len(of) == 2 else ""
+        rows.append(
+            [
+                "θd observed",
+                f"{float(band[0]):.1f}° to {float(band[1]):.1f}°"
+                + ("" if n_rows is None else f" ({n_rows:.0f}{total} rows)"),
+            ]
+        )
+    mixed = _finite(cov.get("bins_mixed_per_pixel"))
+    if mixed is not None:
+        rows.append(["bins mixed per pixel", f"{mixed:.3g}"])
+    definition = cov.get("definition")
+    blocks += [
+        Text(
+            "The part of the (wi, wo) domain the views observe, from the cameras, the "
+            "shapes and the emitters alone (neural_brdf/inverse/coverage.py): "
+            + (f"the {definition}." if isinstance(definition, str) else "see docs/inverse.md.")
+            + "  Elsewhere the fitted BRDF is its start's and the network's prior, not "
+            "the images'."
+        ),
+        Table(["", ""], rows),
+    ]
+    warning = coverage_warning(cov)
+    if warning:
+        blocks.append(Text(f"Warning: {warning}", note=True))
+    name = Path(str(cov.get("picture") or COVERAGE_PICTURE)).name  # in the run folder only
+    path = run.dir / name
+    try:
+        png = path.read_bytes() if path.is_file() else None
+    except OSError:
+        png = None
+    if png is not None and png.startswith(PNG_SIGNATURE) and len(png) > 24:
+        blocks.append(
+            Image(
+                "coverage",
+                "Coverage of the (θh, θd) domain",
+                f"{name}: the observed density ρ over the half and difference angles in "
+                "colour where a bin is observed, grey where it is not, white beyond the "
+                "dashed line (a cosine below the domain's).",
+                png,
+            )
+        )
+    else:
+        blocks.append(Text(f"No coverage map: {name} is not a PNG in the run folder.", note=True))
+    return blocks
+
+
+def section(run: Run) -> list[Block]:
+    """The "Images fit" section: the views, the fit's figures and losses, the coverage."""
+    return [Heading("Images fit")] + _views(run) + _fit_figures(run) + _losses(run) + _coverage(run)
+
+
+def target_text(run: Run) -> str:
+    """The summary's target line: the views, by their image file names."""
+    views = run.config.target.images or []
+    names = ", ".join(Path(v.image).name for v in views)
+    return f"images: {_plural(len(views), 'view')} ({names}), fitted by inverse rendering"
