@@ -15,12 +15,16 @@ every view with ``--primal-spp`` samples per pixel in the primal pass and ``--sp
 gradient pass:
 
 * ``neural``: the compact recipe (32 x 32 x 4 grid + 1 x 32 ReLU MLP) from its constant
-  start (``Settings.init = None``), through neural_brdf.pipeline.run on the generated
+  start (``images.start=constant``), through neural_brdf.pipeline.run on the generated
   ``fit.yaml`` (what ``neural-brdf train`` runs), which exports and validates model.onnx;
-* ``neural_ggx_init``: the same with the default ``"ggx"`` start: a roughconductor fit
+* ``neural_ggx_init``: the same with the default ``ggx`` start: a roughconductor fit
   (as many steps), the network trained on BRDF samples of that GGX (its BRDF error is
-  recorded as ``start_brdf_rel_rmse``), then the image fit at ``init_lr_scale`` times the
-  learning rate, the grids at ``init_grid_lr_scale`` times that;
+  recorded as ``start_brdf_rel_rmse``), then the image fit at ``images.start_lr_scale``
+  times the learning rate, the grids at ``images.start_grid_lr_scale`` times that.
+
+Every setting of the neural fits is a config key (``images.*``, docs/config.md), given
+here as overrides of ``fit.yaml``; ``--set KEY=VALUE`` adds more (a validation split:
+``--set images.validation_pixels=0.1``; its figures are in each fit's ``validation``).
 * ``roughconductor``: Mitsuba's roughconductor parameters (alpha, RGB eta and k).
 
 Measured for each: the held-out view rendered at 1024 spp (the neural fits from their
@@ -75,6 +79,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--primal-spp", type=int, default=32, help="primal-pass spp per view and step")
     ap.add_argument("--init-train-steps", type=int, default=1500, help="GGX pre-training steps")
     ap.add_argument("--skip-init", action="store_true", help="no neural_ggx_init fit")
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override of the neural fits, e.g. images.validation_pixels=0.1",
+    )
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "nbrdf-inverse")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument(
@@ -123,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         "fit_spp_per_step": args.spp,
         "fit_primal_spp_per_step": args.primal_spp,
         "steps": args.steps,
+        "overrides": args.overrides,
         "sphere_pixels": int(mask.sum()),
         "psnr_definition": "10 log10(peak^2 / MSE) of linear RGB over the sphere's pixels "
         "(centre ray on the sphere, 2-pixel erosion); peak = the reference's max there",
@@ -163,12 +176,17 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps(result["fits"]["roughconductor"], indent=1), flush=True)
 
-    # -- the neural fits
-    common = {"spp": args.spp, "primal_spp": args.primal_spp}
-    runs = [("neural", inverse.Settings(init=None, **common))]
+    # -- the neural fits: the config's images section, set by overrides
+    common = [
+        "train.progress=false",
+        f"images.spp={args.spp}",
+        f"images.primal_spp={args.primal_spp}",
+        *args.overrides,
+    ]
+    runs = [("neural", config.load(scenes / "fit.yaml", [*common, "images.start=constant"]))]
     if not args.skip_init:
-        ggx = inverse.Settings(init="ggx", init_train_steps=args.init_train_steps, **common)
-        runs.append(("neural_ggx_init", ggx))
+        ggx = [*common, "images.start=ggx", f"images.start_train_steps={args.init_train_steps}"]
+        runs.append(("neural_ggx_init", config.load(scenes / "fit.yaml", ggx)))
 
     def start_error(ckpt: Path) -> float | None:
         """The BRDF error of the network the GGX start hands to the image fit."""
@@ -185,15 +203,13 @@ def main(argv: list[str] | None = None) -> int:
             f = raw.eval()(torch.from_numpy(wi).float(), torch.from_numpy(wo).float())
         return inverse.brdf_rel_rmse(f.double().numpy() * wo[:, 2:3], fc_true)
 
-    for label, settings in runs:
+    for label, run_cfg in runs:
         run_dir = args.work / label
         if args.resume and (run_dir / "metrics.json").is_file():
             metrics = json.loads((run_dir / "metrics.json").read_text())
         else:
             resume = args.resume and (run_dir / "ckpt.pt").is_file()
-            metrics = pipeline.run(
-                cfg, run_dir, resume=resume, overwrite=not resume, inverse_settings=settings
-            )
+            metrics = pipeline.run(run_cfg, run_dir, resume=resume, overwrite=not resume)
         onnx = run_dir / "model.onnx"
         model = runtime.load(onnx)
         fc = np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3]
@@ -203,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
             "recipe": "compact: 32x32x4 grid + 1x32 ReLU",
             "fit_seconds": tr["train_seconds"],
             "init": tr.get("init"),
+            "validation": tr.get("validation"),
+            "coverage": tr.get("coverage", {}).get("figure"),
             "lr_factor": tr["lr_factor"],
             "grid_lr_scales": tr["grid_lr_scales"],
             "start_brdf_rel_rmse": start_error(run_dir / "init" / "ckpt.pt"),

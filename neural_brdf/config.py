@@ -233,6 +233,30 @@ class Export(_Section):
     parity_tol: float = Field(1e-5, gt=0.0)  # max relative difference
 
 
+class Images(_Section):
+    # an images fit (target.images; docs/inverse.md): its start, its renders and its
+    # validation split; read by no other target
+    start: Literal["ggx", "constant"] = "ggx"  # ggx: a fitted GGX, distilled; constant: a dim f
+    start_steps: int | None = Field(None, ge=1)  # roughconductor steps (null: train.steps)
+    start_train_steps: int = Field(1500, ge=1)  # sample-based training steps on the fitted GGX
+    start_lr_scale: float = Field(0.05, gt=0.0)  # after a ggx start: image stage lr / train.lr
+    start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
+    spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
+    primal_spp: int = Field(32, ge=1)  # ... the primal pass (its noise is in every gradient)
+    lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network
+    # the validation split, held out of the fit (the start's too) and scored every
+    # validation_every steps; the best-scoring weights are kept (the start's if none beat it)
+    validation_pixels: float = Field(0.0, ge=0.0, lt=1.0)  # share of a fitted view's pixels
+    validation_views: list[int] = Field(default_factory=list)  # target.images indices, whole
+    validation_every: int = Field(10, ge=1)  # steps between held-out losses
+    validation_spp: int = Field(64, ge=1)  # samples per pixel of the held-out renders
+
+    @property
+    def split(self) -> bool:
+        """Is a validation split on?"""
+        return self.validation_pixels > 0 or bool(self.validation_views)
+
+
 # A run's name is one plain folder name: never a path (``../..``, ``/etc``), never empty,
 # hidden or an option (``.x``, ``-x``), no control characters (issue 28).
 MAX_NAME = 128
@@ -272,10 +296,31 @@ class Config(_Section):
     train: Train = Field(default_factory=Train)
     validation: Validation = Field(default_factory=Validation)
     export: Export = Field(default_factory=Export)
+    images: Images = Field(default_factory=Images)  # an images fit's settings
 
     @model_validator(mode="after")
     def _plain_name(self):
         check_name(self.name)
+        return self
+
+    @model_validator(mode="after")
+    def _held_out_views(self):
+        held = self.images.validation_views
+        if not held:
+            return self
+        key = "images.validation_views"
+        if self.target.images is None:
+            raise ValueError(f"{key}: only for target.images (an images fit)")
+        n = len(self.target.images)
+        bad = [k for k in held if not 0 <= k < n]
+        if bad:
+            raise ValueError(
+                f"{key}: {bad[0]} is not an index of target.images (0 to {n - 1}: {n} views)"
+            )
+        if len(set(held)) != len(held):
+            raise ValueError(f"{key}: {held} names a view twice")
+        if len(held) >= n:
+            raise ValueError(f"{key}: holds out all {n} views; at least one must be fitted")
         return self
 
     def to_yaml(self) -> str:
@@ -389,6 +434,12 @@ def _blame(loc: Sequence, overrides: Sequence[str]) -> str | None:
     return None
 
 
+def _key_of(err: Any) -> tuple[str, ...]:
+    """The key a top-level validator's message names first (``images.x: ...``), as a loc."""
+    m = re.match(r"(?:Value error, )?([A-Za-z_][\w.]*):", str(err.get("msg", "")))
+    return tuple(m.group(1).split(".")) if m else ()
+
+
 def _describe(err: Any) -> str:
     loc = ".".join(str(p) for p in err["loc"])
     if err["type"] == "extra_forbidden":
@@ -414,7 +465,8 @@ def from_dict(raw: Any, *, source: str = "config", overrides: Sequence[str] = ()
     except ValidationError as e:
         errs = e.errors()
         more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
-        where = _blame(errs[0]["loc"], overrides) or source
+        loc = errs[0]["loc"] or _key_of(errs[0])
+        where = _blame(loc, overrides) or source
         raise ConfigError(limits.bounded(f"{where}: {_describe(errs[0])}{more}")) from None
     except RecursionError:
         raise ConfigError(f"{source}: nested too deeply") from None

@@ -37,7 +37,6 @@ def run(
     *,
     resume: bool = False,
     overwrite: bool = False,
-    inverse_settings: Any = None,
 ) -> dict[str, Any]:
     """Train, export ``model.onnx``, validate it, write the report; returns (and writes)
     ``metrics.json``.
@@ -49,8 +48,8 @@ def run(
     a run that has finished at ``train.steps`` writes nothing and returns its
     metrics.json with ``"already_finished"`` set to the step.  A config with
     ``target.images`` is fitted by inverse rendering (:mod:`neural_brdf.inverse.fit`,
-    docs/inverse.md; ``inverse_settings``: its :class:`neural_brdf.inverse.fit.Settings`),
-    then exported and validated without a reference and without a report.
+    docs/inverse.md; its settings are the config's ``images`` section), then exported
+    and validated without a reference.
     """
     run_dir = Path(run_dir) if run_dir is not None else runfolder.default_run_dir(cfg)
     with runfolder.hold(run_dir, resume=resume, overwrite=overwrite) as folder:
@@ -58,14 +57,9 @@ def run(
             from neural_brdf.inverse import fit as inverse  # Mitsuba: only for an images fit
 
             raw, training, t0 = inverse.fit(
-                cfg,
-                run_dir,
-                resume=resume,
-                overwrite=overwrite,
-                settings=inverse_settings,
-                folder=folder,
+                cfg, run_dir, resume=resume, overwrite=overwrite, folder=folder
             )
-            return finish(cfg, run_dir, raw, training, t0=t0, report=False)
+            return finish(cfg, run_dir, raw, training, t0=t0, report=True)
         return _run(cfg, folder, resume=resume)
 
 
@@ -147,8 +141,9 @@ def finish(
     """The stages after training: export ``raw`` (normalised) to ``model.onnx`` with the
     physics validate measured on its graph, validate it (against ``target`` when there is
     one: an images fit has none), write ``metrics.json`` and, with ``report``,
-    report.html / report.md.  ``t0``: when the run started (``time.perf_counter()``), for
-    the total."""
+    report.html / report.md (an images fit's describes the views and the coverage).
+    ``seconds.report`` is in the metrics only when the report was written.  ``t0``: when
+    the run started (``time.perf_counter()``), for the total."""
     t1 = time.perf_counter()
     model, table = exp.normalized_model(raw, cfg, target)
     desc = target.describe() if target is not None else training["target"]
@@ -171,7 +166,6 @@ def finish(
         "train": training["train_seconds"],
         "export": t2 - t1,
         "validate": t3 - t2,
-        **({} if report else {"report": 0.0}),
         "total": t3 - t0,
     }
     validate.write_json(metrics, run_dir / "metrics.json")

@@ -5,8 +5,8 @@
         ... write folder.ckpt, folder.log, folder.model, ...
 
 Every name a run writes is here (``CONFIG``, ``CKPT``, ``LOG``, ``MODEL``, ``METRICS``,
-``REPORT_HTML``, ``REPORT_MD``, ``report-*.png``, ``VIEWER``, the images fit's ``INIT``
-folder, ``LOCK`` and ``MARKER``); :func:`own_files` lists those a folder holds.
+``REPORT_HTML``, ``REPORT_MD``, ``report-*.png``, ``VIEWER``, an images fit's ``COVERAGE``
+and ``INIT`` folder, ``LOCK`` and ``MARKER``); :func:`own_files` lists those a folder holds.
 
 Which folders a run writes into.  A run writes only into a folder that is new, empty,
 or recognised as a run, and never over a file it did not write:
@@ -63,6 +63,7 @@ CKPT = "ckpt.pt"  # the checkpoint
 LOG = "log.csv"  # the training log
 MODEL = "model.onnx"  # the exported model
 METRICS = "metrics.json"  # the validation report
+COVERAGE = "coverage.png"  # an images fit's map of the observed (wi, wo) domain
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
 REPORT_PNG = "report-*.png"  # the markdown report's images (a glob)
@@ -72,7 +73,7 @@ LOCK = ".lock"  # while a run holds the folder: its pid
 
 # the files of a run (INIT aside), the order in which --overwrite removes them: the
 # checkpoint first, the marker last
-FILES = (CKPT, MODEL, METRICS, LOG, REPORT_HTML, REPORT_MD, VIEWER, CONFIG, MARKER)
+FILES = (CKPT, MODEL, METRICS, LOG, COVERAGE, REPORT_HTML, REPORT_MD, VIEWER, CONFIG, MARKER)
 FINISHED = (MODEL, METRICS)  # a run that has written these has finished
 # Present in a folder without making it someone else's: the lock, and a sweep's record
 # of its trial (tooling/sweep/spec.py's MARKER), written before its run starts.  A run

@@ -153,3 +153,79 @@ def test_every_name_list_of_the_schema_is_the_one_its_module_implements():
         config.load(None, ["model.encoding=" + "_".join(encodings.names())])
     with pytest.raises(ValueError, match="train.loss"):
         loop.loss_fn("l2", *(torch.ones(2, 3),) * 3, 1e-3)
+
+
+# ------------------------------------------------------------------ images: an images fit
+IMAGES_CONFIG = """\
+target:
+  images:
+    - {scene: view1.xml, image: view1.exr}
+    - {scene: view2.xml, image: view2.exr}
+    - {scene: view3.xml, image: view3.exr}
+"""
+
+
+@pytest.fixture
+def images_config(tmp_path):
+    path = tmp_path / "fit.yaml"
+    path.write_text(IMAGES_CONFIG)  # the files need not exist: the schema does not read them
+    return path
+
+
+def test_the_images_section_keeps_the_fit_as_it_was():
+    # the defaults of the settings inverse.fit held in Python before (its Settings)
+    images = config.Config().images
+    assert images.model_dump() == {
+        "start": "ggx",
+        "start_steps": None,
+        "start_train_steps": 1500,
+        "start_lr_scale": 0.05,
+        "start_grid_lr_scale": 1.0,
+        "spp": 8,
+        "primal_spp": 32,
+        "lobe_every": 50,
+        "validation_pixels": 0.0,
+        "validation_views": [],
+        "validation_every": 10,
+        "validation_spp": 64,
+    }
+    assert not images.split
+
+
+@pytest.mark.parametrize(
+    "override, key, words",
+    [
+        ("images.start=mixture", "images.start", "'ggx' or 'constant'"),
+        ("images.spp=0", "images.spp", "greater than or equal to 1"),
+        ("images.primal_spp=2.5", "images.primal_spp", "integer"),
+        ("images.start_steps=0", "images.start_steps", "greater than or equal to 1"),
+        ("images.start_lr_scale=0", "images.start_lr_scale", "greater than 0"),
+        ("images.validation_pixels=1", "images.validation_pixels", "less than 1"),
+        ("images.validation_pixels=-0.1", "images.validation_pixels", "greater than or equal"),
+        ("images.validation_every=0", "images.validation_every", "greater than or equal to 1"),
+        ("images.validation_views=[3]", "images.validation_views", "3 is not an index"),
+        ("images.validation_views=[-1]", "images.validation_views", "-1 is not an index"),
+        ("images.validation_views=[1, 1]", "images.validation_views", "names a view twice"),
+        ("images.validation_views=[0, 1, 2]", "images.validation_views", "at least one"),
+        ("images.validation_view=[0]", "images.validation_view", "unknown key"),
+    ],
+)
+def test_bad_images_keys_name_the_key_and_the_override(images_config, override, key, words):
+    with pytest.raises(config.ConfigError) as err:
+        config.load(images_config, [override])
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"--set {override}: {key}:"), msg
+    assert words in msg, msg
+
+
+def test_held_out_views_need_an_images_target(images_config):
+    with pytest.raises(config.ConfigError, match=r"images\.validation_views: only for target"):
+        config.load(CONFIGS / "lambert.yaml", ["images.validation_views=[0]"])
+    cfg = config.load(images_config, ["images.validation_views=[2]"])
+    assert cfg.images.split and cfg.images.validation_views == [2]
+    assert config.load(images_config, ["images.validation_pixels=0.1"]).images.split
+    bad = images_config.with_name("bad.yaml")
+    bad.write_text(IMAGES_CONFIG + "images: {validation_views: [5]}\n")
+    with pytest.raises(config.ConfigError, match=r"^.*bad\.yaml: images\.validation_views: 5"):
+        config.load(bad)

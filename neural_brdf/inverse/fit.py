@@ -11,20 +11,25 @@ from BRDF samples (:func:`fit`):
    the trainable ``neural_brdf_ad`` plugin (:mod:`neural_brdf.inverse.bsdf`): the same
    :class:`neural_brdf.train.model.RawBRDF` that ``neural-brdf train`` fits, evaluated by torch
    inside Mitsuba's AD graph (``dr.wrap``), its weights Dr.Jit tensors;
-2. the start (``Settings.init = "ggx"``, the default): Mitsuba's ``roughconductor``
+2. the start (``images.start: ggx``, the default): Mitsuba's ``roughconductor``
    (GGX; alpha, RGB eta and k) is fitted to the images (:func:`fit_roughconductor`), and
    the network is trained on BRDF samples of the matching analytic GGX
    (:func:`ggx_initial_state`, the sample-based training of :mod:`neural_brdf.train.loop`);
-   the image fit then runs at ``init_lr_scale`` times the learning rate.  With
-   ``init=None`` the network starts as a dim constant;
-3. every step renders every view with the scene's own integrator (``prb`` runs as
-   ``prb_basic``: see :data:`INTEGRATORS`), ``primal_spp`` samples per pixel in the
-   primal pass and ``spp`` in the gradient pass (``mi.render`` draws them with
+   the image fit then runs at ``images.start_lr_scale`` times the learning rate.  With
+   ``images.start: constant`` the network starts as a dim constant;
+3. every step renders every fitted view with the scene's own integrator (``prb`` runs as
+   ``prb_basic``: see :data:`INTEGRATORS`), ``images.primal_spp`` samples per pixel in
+   the primal pass and ``images.spp`` in the gradient pass (``mi.render`` draws them with
    decorrelated seeds), compares each render with its target by the relative MSE of HDR
    images, adds a penalty on a directional albedo above 1, back-propagates
    (``dr.backward``) and takes an ``mi.ad.Adam`` step on the learning-rate schedule of
    ``train`` (warm-up, cosine), the grids at their ``lr_scale``; the sampling lobe is
-   refitted to the network every ``lobe_every`` steps;
+   refitted to the network every ``images.lobe_every`` steps;
+   with a validation split (``images.validation_pixels``, ``images.validation_views``:
+   :func:`split_views`), the held-out pixels and views take no part in the fit, the
+   start's included; their loss (:func:`heldout_loss`) is scored before the first step
+   and every ``images.validation_every`` steps, and the fit returns the weights of the
+   best score, the start's when no step beats it;
 4. the fitted network goes through the usual export (:func:`neural_brdf.export.
    normalized_model`: the exact albedo normalisation is baked into the graph when the
    raw albedo exceeds 1 anywhere) to ``model.onnx``, which is validated (reciprocity,
@@ -33,11 +38,16 @@ from BRDF samples (:func:`fit`):
 
 Checkpoints (``ckpt.pt``: weights, Adam's moments, step, sampling lobe), ``log.csv``,
 ``--resume``, Ctrl-C and divergence behave as in :mod:`neural_brdf.train.loop`: the fit
-runs in the same :class:`neural_brdf.train.session.Session`.  Bad input
-raises :class:`neural_brdf.errors.InputError` (exit code 2) with one line naming the
-file, before anything is written: a missing or unreadable image, an image that is not
-RGB, an image whose size is not the film's, a scene without ``<bsdf id="fit">`` (or
-with nothing using it), an integrator that cannot be differentiated here.  The Mitsuba
+runs in the same :class:`neural_brdf.train.session.Session`.  Before the start, the
+part of the (wi, wo) domain the fitted views observe is computed
+(:func:`neural_brdf.inverse.coverage.assess`): ``coverage.png`` in the run folder, the
+figures in metrics.json's ``training.coverage``, and a warning on stderr when it is
+thin.  Bad input raises :class:`neural_brdf.errors.InputError` (exit code 2) with one
+line naming the file, before anything is written: a missing or unreadable image, an
+image that is not RGB, an image whose size is not the film's, a scene without
+``<bsdf id="fit">`` or with no ``<shape>`` that uses it (``<ref id="fit"/>``, or the
+BSDF nested in the shape), an integrator that cannot be differentiated here, samples
+per pixel (``images.*spp``) beyond the memory budget.  The Mitsuba
 variant (``target.variant``, else ``train.device``: ``llvm_ad_rgb`` on the CPU,
 ``cuda_ad_rgb`` on CUDA) must be a JIT AD RGB one (config.py refuses others).
 
@@ -62,6 +72,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import sys
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -73,11 +84,11 @@ import torch
 from tqdm import tqdm
 
 from neural_brdf import config as cfgmod
-from neural_brdf import runfolder
+from neural_brdf import limits, runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import LOBE_KEY
 from neural_brdf.train.model import RawBRDF
-from neural_brdf.train.session import Session
+from neural_brdf.train.session import LOG_COLUMNS, MUST_MATCH, Session
 
 # Integrators a fit renders with, by the scene's <integrator type>: Mitsuba's C++ ones
 # are differentiated by recording their AD graph; "prb" is replaced by "prb_basic" with
@@ -100,25 +111,25 @@ TORCH_THREADS = 1  # see fit_neural
 # albedo, 12.6 INIT_VALUE at grazing incidence, stays below 1 everywhere.
 INIT_VALUE = 0.05
 KIND = "images"  # the checkpoint's kind (neural_brdf.train.session)
-
-
-@dataclass
-class Settings:
-    """How a fit renders and steps; the config supplies the rest (``train``, ``model``)."""
-
-    spp: int = 8  # samples per pixel of every view and step in the gradient pass
-    primal_spp: int = 32  # ... in the primal pass, whose noise the loss's residual carries
-    lobe_every: int = 50  # steps between fits of the sampling lobe to the network
-    init: str | None = "ggx"  # "ggx": start from a fitted GGX (run); None: a constant
-    init_steps: int | None = None  # roughconductor steps of a "ggx" start (None: train.steps)
-    init_train_steps: int = 1500  # sample-based training steps on the fitted GGX
-    # After a "ggx" start the image fit runs at init_lr_scale x train.lr, its grids at
-    # init_grid_lr_scale x that (not model.grid.lr_scale): a noisy gradient makes the
-    # network drift from a good start, the more so the higher the rate (benchmark, 300
-    # steps from a start 0.5 % off: 7.3 % at 0.2 with the grids at 10, 5.3 % at 0.2 and
-    # 1, 5.0 % at 0.05 and 10, 3.8 % at 0.05 and 1)
-    init_lr_scale: float = 0.05
-    init_grid_lr_scale: float = 1.0
+# The settings (config.Images) are in the config: docs/config.md.  After a "ggx" start
+# the image fit runs at images.start_lr_scale x train.lr, its grids at
+# images.start_grid_lr_scale x that (not model.grid.lr_scale): a noisy gradient makes
+# the network drift from a good start, the more so the higher the rate (benchmark, 300
+# steps from a start 0.5 % off: 7.3 % at 0.2 with the grids at 10, 5.3 % at 0.2 and 1,
+# 5.0 % at 0.05 and 10, 3.8 % at 0.05 and 1).
+# A resumed images fit keeps its start and its validation split (with the seed, in MUST_MATCH).
+RESUME_MUST_MATCH = (
+    *MUST_MATCH,
+    "images.start",
+    "images.validation_pixels",
+    "images.validation_views",
+)
+HELDOUT_COLUMN = "heldout_loss"  # log.csv's column of the held-out loss (with a split)
+VALIDATION_STEP = 999_983  # the held-out renders' seeds: _rng_seed(train.seed, this, view)
+# Bytes a render holds per sample in flight (path state, the AD graph of the gradient
+# pass), from above: 1.2 to 1.8 KiB measured (16 x 16 film, 256 and 1024 spp, the
+# example's path tracer of depth 3, primal and gradient passes).
+LANE_BYTES = 2048
 
 
 @dataclass
@@ -135,6 +146,24 @@ class View:
     bsdf: Any = None
     target_tensor: Any = None
     weight_tensor: Any = None
+    held_out: bool = False  # the whole view is held out (images.validation_views)
+    held_out_pixels: np.ndarray | None = None  # (H, W) bool: ... these of its pixels
+
+    def validation_mask(self) -> np.ndarray | None:
+        """(H, W) bool: the view's pixels in the validation split (None: none)."""
+        if self.held_out:
+            return np.ones(self.target.shape[:2], bool)
+        return self.held_out_pixels
+
+    def fit_weight(self) -> np.ndarray:
+        """The relative MSE's per-pixel weight (:func:`rel_weight`) over the pixels the
+        fit sees: held-out pixels weigh 0, the others n / (n - held out), so that the
+        loss stays the mean over the fitted pixels."""
+        w = rel_weight(self.target)
+        if self.held_out_pixels is None:
+            return w
+        keep = ~self.held_out_pixels
+        return (w * keep[..., None] * (keep.size / keep.sum())).astype(np.float32)
 
 
 # ------------------------------------------------------------------ Mitsuba set-up
@@ -231,6 +260,11 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
         raise InputError(f'{key}: {path}: no <bsdf id="fit"> (the BSDF to fit)')
     if len(fits) > 1:
         raise InputError(f'{key}: {path}: {len(fits)} elements <bsdf id="fit">; expected one')
+    if not fit_is_used(root):
+        raise InputError(
+            f'{key}: {path}: no <shape> uses <bsdf id="fit"> (refer to it in a shape with '
+            '<ref id="fit"/>, or nest it there)'
+        )
     integrators = root.findall("integrator")
     kind = integrators[0].get("type", "") if integrators else "path"
     if kind not in INTEGRATORS:
@@ -238,6 +272,17 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
             f"{key}: {path}: integrator {kind!r}: a fit renders with {', '.join(INTEGRATORS)}"
         )
     return tree, INTEGRATORS[kind]
+
+
+def fit_is_used(root: ET.Element) -> bool:
+    """Does a ``<shape>`` use ``<bsdf id="fit">``: a ``<ref id="fit"/>`` inside it (at any
+    depth: in a ``twosided``, say), or the BSDF itself nested in it?  Read from the XML:
+    ``mi.traverse`` lists a BSDF that no shape uses too (Mitsuba 3.9)."""
+    return any(
+        e.tag in ("ref", "bsdf") and e.get("id") == "fit"
+        for shape in root.iter("shape")
+        for e in shape.iter()
+    )
 
 
 def scene_text(
@@ -321,6 +366,33 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
     return views
 
 
+def split_views(views: list[View], images: cfgmod.Images, seed: int) -> None:
+    """Mark the validation split on ``views``: the views ``images.validation_views``
+    whole, and in every other view a share ``images.validation_pixels`` of its pixels
+    (rounded, at least one, never all), drawn without repetition from ``seed`` and the
+    view's index alone (a view added leaves the others' masks as they were)."""
+    share = images.validation_pixels
+    for k, v in enumerate(views):
+        v.held_out, v.held_out_pixels = k in images.validation_views, None
+        if v.held_out or share <= 0:
+            continue
+        h, w = v.target.shape[:2]
+        n = h * w
+        if n < 2:
+            raise InputError(
+                f"images.validation_pixels: {v.image_path} has {n} pixel; it cannot be split"
+            )
+        m = min(max(round(share * n), 1), n - 1)
+        mask = np.zeros(n, bool)
+        mask[np.random.default_rng([seed, 29, k]).choice(n, size=m, replace=False)] = True
+        v.held_out_pixels = mask.reshape(h, w)
+
+
+def fitted_views(views: list[View]) -> list[View]:
+    """The views the fit renders (those not held out whole)."""
+    return [v for v in views if not v.held_out]
+
+
 def check_films(views: list[View]) -> None:
     """Load every scene as it is (its own fit BSDF) and check that something uses the
     fit BSDF and that the target image has the film's size."""
@@ -329,6 +401,20 @@ def check_films(views: list[View]) -> None:
         if fit_bsdf(scene) is None:
             raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
         check_size(v, scene)
+
+
+def check_render_sizes(views: list[View], images: cfgmod.Images) -> None:
+    """limits.TooLarge naming the ``images`` key whose samples per pixel would make one
+    render of the largest film hold more than the memory budget (:data:`LANE_BYTES` a
+    sample)."""
+    h, w = max((v.target.shape[:2] for v in views), key=lambda s: s[0] * s[1])
+    for key in ("spp", "primal_spp", "validation_spp"):
+        spp = getattr(images, key)
+        limits.check_bytes(
+            f"images.{key}",
+            float(h * w) * spp * LANE_BYTES,
+            hint=f"give fewer samples per pixel (the largest film is {w}x{h})",
+        )
 
 
 def check_size(view: View, scene) -> None:
@@ -352,6 +438,29 @@ def relative_mse(img, target, weight):
 def rel_weight(target: np.ndarray) -> np.ndarray:
     y = target.mean(-1, keepdims=True)
     return np.broadcast_to(1.0 / (y * y + REL_EPS), target.shape).astype(np.float32)
+
+
+def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
+    """The relative MSE (module doc) over the validation split: the mean over the
+    held-out pixels (:meth:`View.validation_mask`) of every view and over RGB, each view
+    rendered as its scene now stands, without gradients, at ``spp`` samples per pixel
+    and a seed set by ``seed`` and the view alone, so that the scores of different
+    weights share their samples.  None when no pixel is held out."""
+    import drjit as dr
+    import mitsuba as mi
+
+    total, count = 0.0, 0
+    for i, v in enumerate(views):
+        mask = v.validation_mask()
+        if mask is None:
+            continue
+        fixed = _rng_seed(seed, VALIDATION_STEP, i)
+        with dr.suspend_grad():
+            img = mi.render(v.scene, spp=spp, seed=fixed)  # type: ignore[arg-type]  # stub: mi.UInt32
+        d = np.asarray(img, dtype=np.float64)[..., :3] - v.target
+        total += float(np.sum((d * d * rel_weight(v.target))[mask]))
+        count += 3 * int(mask.sum())
+    return total / count if count else None
 
 
 def albedo_directions(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -447,7 +556,7 @@ def prepare_views(views: list[View], bsdf: ET.Element) -> None:
             raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
         v.params = mi.traverse(v.bsdf)
         v.target_tensor = mi.TensorXf(v.target)
-        v.weight_tensor = mi.TensorXf(rel_weight(v.target))
+        v.weight_tensor = mi.TensorXf(v.fit_weight())
 
 
 def fit_neural(
@@ -455,7 +564,6 @@ def fit_neural(
     views: list[View],
     run_dir: Path,
     *,
-    settings: Settings,
     resume: bool = False,
     init_state: dict | None = None,
     init_value: float = INIT_VALUE,
@@ -464,23 +572,29 @@ def fit_neural(
     init_info: dict | None = None,
     session: Session | None = None,
 ) -> tuple[RawBRDF, dict[str, Any]]:
-    """Fit the RawBRDF of ``cfg.model`` to ``views``; writes ckpt.pt and log.csv.
-    ``session``: the run's session when :func:`fit` has begun it (else one is opened
-    here, :meth:`neural_brdf.train.session.Session.one`)."""
+    """Fit the RawBRDF of ``cfg.model`` to ``views`` (those not held out: the
+    validation split marked by :func:`split_views`) with ``cfg.images``'s settings;
+    writes ckpt.pt and log.csv.  With a split, returns the weights of the best held-out
+    loss (the start's when no step beats it).  ``session``: the run's session when
+    :func:`fit` has begun it (else one is opened here,
+    :meth:`neural_brdf.train.session.Session.one`)."""
     import drjit as dr
     import mitsuba as mi
 
     from neural_brdf.inverse import bsdf as ib
     from neural_brdf.train import loop
 
-    t = cfg.train
+    t, images = cfg.train, cfg.images
+    fitted = fitted_views(views)
+    split = any(v.validation_mask() is not None for v in views)
     # torch's ops here are small elementwise ones, called from inside the render: a
     # multiply of 92k floats took 0.025 ms on one thread and 0.14 ms on two
     # (OMP_WAIT_POLICY=PASSIVE, as the CLI sets; 7.8 ms without it) on the busy 2-core
     # reference machine, so the fit runs torch on one thread (Dr.Jit has its own pool)
     torch.set_num_threads(TORCH_THREADS)
-    sess = session or Session.one(cfg, run_dir, resume=resume, kind=KIND)
-    ckpt = sess.resumed()
+    columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if split else LOG_COLUMNS
+    sess = session or Session.one(cfg, run_dir, resume=resume, kind=KIND, columns=columns)
+    ckpt = sess.resumed(must_match=RESUME_MUST_MATCH)
     sess.begin()
 
     model_text = json.dumps(cfg.model.model_dump())
@@ -504,11 +618,15 @@ def fit_neural(
 
     render_seconds = 0.0
     lobe = None
+    # the split's record: the start's held-out loss, the best one, its step and weights,
+    # the last one scored and its step (kept in the checkpoint)
+    val: dict[str, Any] | None = None
     if ckpt is not None:
         _load_adam_state(opt, ckpt["optimizer"])
         sess.restore(ckpt)
         lobe, init_info = ckpt.get("lobe"), ckpt.get("init")
         render_seconds = float(ckpt.get("render_seconds", 0.0))
+        val = ckpt.get("validation")
 
     def weights_now() -> dict:
         return {n: torch.from_numpy(np.array(opt[n].numpy(), copy=True)) for n in names}
@@ -520,39 +638,59 @@ def fit_neural(
             "lobe": lobe,
             "init": init_info,
             "render_seconds": render_seconds,
+            **({"validation": val} if split else {}),
         }
 
     def set_lobe(new):
         for v in views:
             v.bsdf.set_lobe(new, "fitted to the network")
 
+    def score(step: int) -> float:
+        """The held-out loss of the weights now, recorded in ``val``."""
+        nonlocal val
+        for v in views:
+            if v.validation_mask() is not None:
+                for n in names:
+                    v.params["raw." + n] = opt[n]
+                v.params.update()
+        loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
+        assert loss is not None
+        if val is None:  # the start's
+            val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
+        if loss < val["best_loss"]:
+            val.update(best_loss=loss, best_step=step, best=weights_now())
+        val.update(last_loss=loss, last_step=step)
+        return loss
+
     if lobe is None:
         lobe = lead.refit_lobe(seed=t.seed)
     set_lobe(lobe)
     last = {"loss": math.nan, "image": math.nan, "albedo": math.nan, "max_albedo": math.nan}
     with sess.run(state) as s, ib.evaluated_mode():
+        if split and val is None:
+            score(s.step)  # the start's held-out loss, before the first step
         while s.step < t.steps:
             s.stop_if_interrupted()
             step = s.step
             lr = loop.learning_rate(t, step) * lr_factor
             opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
-            if step > 0 and step % settings.lobe_every == 0:
+            if step > 0 and step % images.lobe_every == 0:
                 lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
                 set_lobe(lobe)
             total = 0.0
             t_render = time.perf_counter()
-            for i, v in enumerate(views):
+            for i, v in enumerate(fitted):
                 for n in names:
                     v.params["raw." + n] = opt[n]
                 v.params.update()
                 img = mi.render(
                     v.scene,
                     v.params,
-                    spp=settings.primal_spp,
-                    spp_grad=settings.spp,
+                    spp=images.primal_spp,
+                    spp_grad=images.spp,
                     seed=_rng_seed(t.seed, step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
                 )
-                loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
+                loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(fitted)
                 dr.backward(loss)
                 total += float(loss.array[0])
             render_seconds += time.perf_counter() - t_render
@@ -571,15 +709,17 @@ def fit_neural(
                 raise s.diverged(last["loss"], step)
             opt.step()
             s.advance()
-            if s.due(t.log_every):
-                s.log(loss=last["loss"], lr=lr)
+            held = score(s.step) if split and s.due(images.validation_every) else None
+            if s.due(t.log_every) or held is not None:
+                extra: dict[str, Any] = {HELDOUT_COLUMN: held} if split else {}
+                s.log(loss=last["loss"], lr=lr, **extra)
                 s.postfix(loss=f"{last['loss']:.4g}", albedo=f"{last['max_albedo']:.3f}")
             if s.due(t.checkpoint_every):
                 s.check_weights(all(np.all(np.isfinite(opt[n].numpy())) for n in names))
                 s.checkpoint()
     raw = copy.deepcopy(raw_template)
-    raw.load_state_dict(weights_now())
-    return raw.eval(), {
+    raw.load_state_dict(val["best"] if val is not None else weights_now())
+    training: dict[str, Any] = {
         "steps": sess.step,
         "device": variant_of(),
         "train_seconds": sess.seconds,
@@ -588,14 +728,39 @@ def fit_neural(
         "final_image_loss": last["image"],
         "final_albedo_penalty": last["albedo"],
         "final_max_albedo_estimate": last["max_albedo"],
-        "spp_per_step": settings.spp,
-        "primal_spp_per_step": settings.primal_spp,
+        "spp_per_step": images.spp,
+        "primal_spp_per_step": images.primal_spp,
         "lr_factor": lr_factor,
         "grid_lr_scales": {p: s for p, s in scales.items()},
-        "views": len(views),
+        "views": len(fitted),
         LOBE_KEY: lobe,
         "init": init_info,
         "target": describe(views),
+    }
+    if val is not None:
+        training["validation"] = validation_figures(views, images, val)
+    return raw.eval(), training
+
+
+def validation_figures(views: list[View], images: cfgmod.Images, val: dict) -> dict[str, Any]:
+    """metrics.json's ``training.validation``: the split and its held-out losses."""
+    best = int(val["best_step"])
+    return {
+        "pixels": images.validation_pixels,
+        "views": [str(v.image_path.name) for v in views if v.held_out],
+        "heldout_pixels": sum(
+            int(m.sum()) for v in views if (m := v.validation_mask()) is not None
+        ),
+        "spp": images.validation_spp,
+        "every": images.validation_every,
+        "loss_definition": "relative MSE (x - y)^2 / (y_bar^2 + 0.01), mean over the held-out "
+        "pixels and RGB, every view rendered without gradients at the same seed each time",
+        "start_loss": val["start_loss"],
+        "best_loss": val["best_loss"],
+        "best_step": best,
+        "last_loss": val.get("last_loss"),
+        "last_step": val.get("last_step"),
+        "kept": "the start" if best == 0 else f"step {best}",
     }
 
 
@@ -606,8 +771,10 @@ def variant_of() -> str:
 
 
 def describe(views: list[View]) -> str:
-    names = ", ".join(v.image_path.name for v in views)
-    return f"{len(views)} images ({names}) by inverse rendering"
+    names = ", ".join(v.image_path.name for v in fitted_views(views))
+    held = [v.image_path.name for v in views if v.held_out]
+    out = f"{len(views) - len(held)} images ({names}) by inverse rendering"
+    return out + (f", {len(held)} held out ({', '.join(held)})" if held else "")
 
 
 # ------------------------------------------------------------------ the run
@@ -617,39 +784,67 @@ def fit(
     *,
     resume: bool = False,
     overwrite: bool = False,
-    settings: Settings | None = None,
     folder: runfolder.Folder | None = None,
 ) -> tuple[RawBRDF, dict[str, Any], float]:
     """The training stage of ``neural-brdf train`` for a config with ``target.images``:
-    check the folder and the images, fit (a GGX start first, by default); returns
-    (network, figures, the start time).  :func:`neural_brdf.pipeline.run` then exports
-    and validates it like any run (no reference: the physics checks only).  ``folder``:
-    ``run_dir`` as the caller opened it (:func:`neural_brdf.runfolder.hold`)."""
-    settings = settings or Settings()
+    check the folder and the images, assess the coverage of the fitted views
+    (``coverage.png``, ``training["coverage"]``, a warning when thin), fit (a GGX start
+    first, by default; ``cfg.images``); returns (network, figures, the start time).
+    :func:`neural_brdf.pipeline.run` then exports and validates it like any run (no
+    reference: the physics checks only).  ``folder``: ``run_dir`` as the caller opened
+    it (:func:`neural_brdf.runfolder.hold`)."""
     if folder is None:
         folder = runfolder.Folder.open(run_dir, resume=resume, overwrite=overwrite)
     t0 = time.perf_counter()
     use_variant(variant_name(cfg))
     views = read_views(cfg)
+    try:
+        raw, training = _fit_views(cfg, run_dir, views, folder, resume=resume)
+    finally:
+        release(views)
+    return raw, training, t0
+
+
+def _fit_views(
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    views: list[View],
+    folder: runfolder.Folder,
+    *,
+    resume: bool,
+) -> tuple[RawBRDF, dict[str, Any]]:
+    from neural_brdf.inverse import coverage
+
+    images = cfg.images
     check_films(views)  # before anything is written
-    sess = Session.one(cfg, folder, resume=resume, kind=KIND)
-    sess.resumed()  # a checkpoint that cannot be resumed: refused before any write
+    check_render_sizes(views, images)
+    split_views(views, images, cfg.train.seed)
+    columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
+    sess = Session.one(cfg, folder, resume=resume, kind=KIND, columns=columns)
+    # a checkpoint that cannot be resumed: refused before any write
+    sess.resumed(must_match=RESUME_MUST_MATCH)
     sess.begin()  # the marker and config.yaml (an overwritten run removed), then init/
+    covered, warning = coverage.assess(
+        fitted_views(views), picture=run_dir / runfolder.COVERAGE, seed=cfg.train.seed
+    )
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     init_state, init_info = None, None
     lr_factor, grid_lr_scale = 1.0, None
-    if settings.init == "ggx":
-        lr_factor, grid_lr_scale = settings.init_lr_scale, settings.init_grid_lr_scale
+    if images.start == "ggx":
+        lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
         if not resume:
             rough = fit_roughconductor(
                 views,
                 cfg.train,
-                spp=settings.spp,
-                primal_spp=settings.primal_spp,
-                steps=settings.init_steps,
+                spp=images.spp,
+                primal_spp=images.primal_spp,
+                steps=images.start_steps,
+                validation_spp=images.validation_spp,
                 label=f"{cfg.name}: GGX start, ",
             )
             init_state, init_info = ggx_initial_state(
-                cfg, rough, folder.init, settings.init_train_steps
+                cfg, rough, folder.init, images.start_train_steps
             )
             init_info["roughconductor"] = rough
             init_info["seconds"] += rough["seconds"]
@@ -657,7 +852,6 @@ def fit(
         cfg,
         views,
         run_dir,
-        settings=settings,
         resume=resume,
         init_state=init_state,
         lr_factor=lr_factor,
@@ -665,7 +859,21 @@ def fit(
         init_info=init_info,
         session=sess,
     )
-    return raw, training, t0
+    training["coverage"] = covered
+    return raw, training
+
+
+def release(views: list[View]) -> None:
+    """Drop the views' Mitsuba scenes and their ``neural_brdf_ad`` plugins, now (not at
+    some later garbage collection).  A live instance of a BSDF takes part in every later
+    render of the process in Mitsuba's symbolic mode (a symbolic virtual call traces
+    every registered instance), where the plugin cannot evaluate: the report's preview
+    renders right after the fit."""
+    import gc
+
+    for v in views:
+        v.scene = v.params = v.bsdf = v.target_tensor = v.weight_tensor = None
+    gc.collect()
 
 
 # ------------------------------------------------------------------ the analytic fit
@@ -683,11 +891,14 @@ def fit_roughconductor(
     primal_spp: int | None = None,
     steps: int | None = None,
     lr: float = 0.02,
+    validation_spp: int = 64,
     label: str = "",
 ) -> dict[str, Any]:
     """Fit ``roughconductor`` (GGX; alpha, RGB eta and k) to ``views`` with the fit's loss,
     mi.ad.Adam and ``train``'s schedule (warm-up, decay) at ``lr``; returns the fitted
     parameters and the time.  No torch is involved, so Mitsuba's symbolic mode is used.
+    With a validation split (:func:`split_views`) the held-out pixels and views take no
+    part, and the result has their loss (``heldout_loss``, at ``validation_spp``).
     ``label``: a progress bar (when ``train.progress``) named after it."""
     import drjit as dr
     import mitsuba as mi
@@ -710,10 +921,11 @@ def fit_roughconductor(
         mininterval=0.5,
         leave=False,
     )
+    fitted = fitted_views(views)
     for step in range(steps):
         opt.set_learning_rate(loop.learning_rate(sched, step))
         loss_value = 0.0
-        for i, v in enumerate(views):
+        for i, v in enumerate(fitted):
             v.params.update(opt)
             img = mi.render(
                 v.scene,
@@ -722,7 +934,7 @@ def fit_roughconductor(
                 spp_grad=spp,
                 seed=_rng_seed(train.seed, step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
             )
-            loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(views)
+            loss = relative_mse(img, v.target_tensor, v.weight_tensor) / len(fitted)
             dr.backward(loss)
             loss_value += float(loss.array[0])
         opt.step()
@@ -735,7 +947,7 @@ def fit_roughconductor(
     def values(key):
         return [float(x) for x in np.asarray(opt[key].numpy()).reshape(-1)]
 
-    return {
+    out = {
         "alpha": values("alpha.value")[0],
         "eta": values("eta.value"),
         "k": values("k.value"),
@@ -745,6 +957,11 @@ def fit_roughconductor(
         "final_image_loss": loss_value,
         "seconds": seconds,
     }
+    if any(v.validation_mask() is not None for v in views):
+        for v in views:
+            v.params.update(opt)
+        out["heldout_loss"] = heldout_loss(views, spp=validation_spp, seed=train.seed)
+    return out
 
 
 def roughconductor_element(fit: dict) -> ET.Element:
