@@ -69,11 +69,24 @@ REPORT_MD = "report.md"
 REPORT_PNG = "report-*.png"  # the markdown report's images (a glob)
 VIEWER = "viewer.html"  # the interactive viewer, beside the report
 INIT = "init"  # an images fit's start: a run folder of its own, inside this one
+TEACHER = "teacher.xml"  # in INIT: the fitted Mitsuba BSDF a start is distilled from
 LOCK = ".lock"  # while a run holds the folder: its pid
 
 # the files of a run (INIT aside), the order in which --overwrite removes them: the
 # checkpoint first, the marker last
-FILES = (CKPT, MODEL, METRICS, LOG, COVERAGE, REPORT_HTML, REPORT_MD, VIEWER, CONFIG, MARKER)
+FILES = (
+    CKPT,
+    MODEL,
+    METRICS,
+    LOG,
+    COVERAGE,
+    REPORT_HTML,
+    REPORT_MD,
+    VIEWER,
+    TEACHER,
+    CONFIG,
+    MARKER,
+)
 FINISHED = (MODEL, METRICS)  # a run that has written these has finished
 # Present in a folder without making it someone else's: the lock, and a sweep's record
 # of its trial (tooling/sweep/spec.py's MARKER), written before its run starts.  A run

@@ -1,0 +1,966 @@
+"""Starts for an images fit: analytic families fitted to the views, one chosen by a
+held-out split of the user's own pixels (issue 29, item 1; docs/inverse.md).
+
+    from neural_brdf.inverse import starts
+    choice = starts.choose_start(views)          # fit.View list: scenes + target images
+    choice.family, choice.params, choice.summary()   # the chosen start, every candidate
+    state, info = starts.distill(cfg, choice.element, run_dir, steps)   # the network's start
+
+A *family* (:data:`FAMILIES`) is one Mitsuba 3 BSDF plugin with its differentiable
+parameters, each kept in its range by construction: a free variable z (what
+``mi.ad.Adam`` steps) maps to ``lo + (hi - lo) s(z)``, or to its log-space analogue for a
+roughness, with s(z) = (1 + tanh(z / 2)) / 2 the logistic function, so no step of Adam can
+leave the valid domain and every reflectance is at most 1 (the albedo at most 1):
+
+=======================  ==============  ==================================================
+name                     plugin          fitted (free scalars)
+=======================  ==============  ==================================================
+``diffuse``              diffuse         reflectance RGB in [0, 1] (3)
+``roughplastic``         roughplastic    diffuse_reflectance RGB in [0, 1], GGX alpha in
+                                         [0.01, 1]; int_ior 1.5 fixed (4)
+``roughconductor``       roughconductor  GGX alpha in [0.01, 1], normal-incidence
+                                         reflectance F0 RGB in [0.005, 0.98] and edge tint
+                                         RGB in [0, 1], mapped to eta and k (7)
+``roughconductor_aniso`` roughconductor  alpha_u, alpha_v in [0.01, 1], F0, edge tint (8)
+``blend``                blendbsdf       a diffuse (reflectance RGB) and a roughconductor
+                                         (as above), the conductor's weight in [0, 1] (11)
+=======================  ==============  ==================================================
+
+The conductor's eta and k come from F0 = r and the edge tint g by Gulbrandsen's map
+(2014, "Artist Friendly Metallic Fresnel", JCGT 3(4)): n = g (1 - r) / (1 + r) +
+(1 - g) (1 + sqrt r) / (1 - sqrt r), k = sqrt((r (n + 1)^2 - (n - 1)^2) / (1 - r)), so
+that the conductor Fresnel at normal incidence is exactly r whatever g; the free
+variables are then well scaled, where raw eta and k are not.
+
+``roughplastic``'s int_ior is fixed at 1.5: Mitsuba 3 computes the plugin's
+transmittance table from scalar copies of alpha and eta (``dr::slice`` in
+``parameters_changed``), so no gradient reaches eta through the diffuse term (measured:
+-22 against a finite difference of +0.35, on 2,000 random pairs) and alpha's gradient
+misses that part too (-64 against -141); alpha still converges, since the diffuse
+reflectance absorbs the level the table sets (see the tests).
+
+The fit (:func:`fit_start`) minimises the relative MSE of :mod:`neural_brdf.inverse.fit`
+(:func:`~neural_brdf.inverse.fit.relative_mse`, :func:`~neural_brdf.inverse.fit.rel_weight`:
+the loss the network stage uses) over the *training* pixels of a seeded split of the
+object's pixels (:func:`split_pixels`; the run's own validation split, when the views
+carry one, is left out of both parts), with mi.ad.Adam on the free variables and a
+cosine-decayed rate (:class:`Schedule`); it renders in Mitsuba's symbolic mode (no
+torch).  Before the first step, one render scales the reflectances so that the mean
+brightness of the training pixels matches (each channel; clamped inside its range).
+:func:`choose_start` starts two families from simpler ones already fitted
+(:func:`warm_start`): the anisotropic conductor from the isotropic one, the blend from
+the diffuse and the conductor with the least-squares weight of their renders.
+
+The loss reported for a candidate, on the held-out pixels (and on the training pixels,
+for comparison), is the same relative MSE estimated without the render's own noise: two
+renders of ``val_spp`` samples with independent seeds, x1 and x2, give
+mean((x1 - y)(x2 - y) w), whose expectation is the relative MSE of the noise-free render
+(:func:`noise_free_loss`, :func:`pixel_losses`).  A plain (x - y)^2 adds the render's
+variance, which depends on the BSDF and the lighting, not on how well the BSDF fits: on
+the example's views at 96 x 96 it was two thirds of the plain figure of a good fit at
+2 x 64 samples (0.0037 against 0.0012 noise-free), enough to hide the differences
+between good candidates.
+
+:func:`choose_start` fits every family and keeps the simplest (fewest free scalars) whose
+held-out loss is within ``max(tie_tol x the least, sigmas x the standard error of the
+paired difference)`` of the least one (:func:`pick`): the families are scored on the same
+pixels with the same render seeds, the difference pixel by pixel, its standard error from
+its sums over the split's tiles.  A family with more parameters must earn its place.  It
+takes the views only: the scenes' own ``<bsdf id="fit">`` is never read (the object's
+pixels are found with a stand-in diffuse), so no truth the user does not have enters the
+choice.
+
+:func:`teacher_xml` writes the chosen BSDF as a standalone Mitsuba XML file, the teacher
+of ``target: {mitsuba: FILE.xml}`` (:class:`neural_brdf.measured.mitsuba.MitsubaTarget`),
+and :func:`distill` trains the network on it by sample-based training
+(:func:`neural_brdf.train.loop.train`), as :func:`neural_brdf.inverse.fit.ggx_initial_state`
+does from the analytic GGX.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+import xml.etree.ElementTree as ET
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neural_brdf import config as cfgmod
+from neural_brdf import runfolder
+from neural_brdf.inverse import fit as inverse
+
+TEACHER_XML = runfolder.TEACHER  # the file distill() writes into its run folder
+# A stand-in for the scene's own <bsdf id="fit"> where only the geometry matters (the
+# object's pixels): the scene's BSDF may be the truth of a synthetic view.
+STAND_IN = inverse.bsdf_element("diffuse")
+ROUGHPLASTIC_IOR = 1.5  # roughplastic's int_ior (ext_ior 1): see the module doc
+EPS_K2 = 1e-12  # the conductor's k^2 is clamped here (sqrt's gradient stays finite)
+
+
+# ------------------------------------------------------------------ ranges
+def _logistic(z: Any, xp: Any) -> Any:
+    """(1 + tanh(z / 2)) / 2: the logistic function, without overflow for any z."""
+    return 0.5 * (1.0 + xp.tanh(0.5 * z))
+
+
+@dataclass(frozen=True)
+class Bound:
+    """A parameter's range [lo, hi], linear or (``log``) in log space."""
+
+    lo: float
+    hi: float
+    log: bool = False
+
+    def value(self, z: Any, xp: Any) -> Any:
+        """The parameter of free variable ``z`` (numpy or Dr.Jit: ``xp`` is np or dr),
+        within [lo, hi] for every z."""
+        s = _logistic(z, xp)
+        if self.log:
+            a, b = math.log(self.lo), math.log(self.hi)
+            v = xp.exp(a + (b - a) * s)
+        else:
+            v = self.lo + (self.hi - self.lo) * s
+        return xp.minimum(xp.maximum(v, self.lo), self.hi)  # rounding at the ends
+
+    def free(self, value: Any) -> np.ndarray:
+        """The free variable of ``value`` (clamped 1e-4 of the range inside it)."""
+        v = np.asarray(value, dtype=np.float64)
+        if self.log:
+            s = (np.log(v) - math.log(self.lo)) / (math.log(self.hi) - math.log(self.lo))
+        else:
+            s = (v - self.lo) / (self.hi - self.lo)
+        s = np.clip(s, 1e-4, 1.0 - 1e-4)
+        return np.log(s / (1.0 - s))
+
+
+@dataclass(frozen=True)
+class Param:
+    """One fitted parameter of a family: its channels (1 or 3), range and start."""
+
+    channels: int
+    bound: Bound
+    init: float
+    brightness: bool = False  # scaled by the first render's brightness ratio
+
+
+Values = Mapping[str, Any]  # a family's parameters by name (numpy arrays or Dr.Jit values)
+
+
+@dataclass(frozen=True)
+class Family:
+    """A candidate start: a Mitsuba plugin, its fitted parameters, and two maps of their
+    values: to Mitsuba's parameter keys (``mi.traverse`` of the BSDF) and to its XML."""
+
+    name: str
+    plugin: str
+    about: str
+    params: Mapping[str, Param]
+    # (values, xp) -> {mi.traverse key: value}; xp is numpy or drjit
+    to_mitsuba: Callable[[Values, Any], dict[str, Any]]
+    # values (numpy) -> the <bsdf> element
+    to_element: Callable[[Values], ET.Element]
+    # values (numpy) -> derived figures worth reporting (a conductor's eta and k)
+    derived: Callable[[Values], dict[str, Any]] = lambda values: {}
+
+    @property
+    def complexity(self) -> int:
+        """The number of free scalars (a tie goes to the smaller)."""
+        return sum(p.channels for p in self.params.values())
+
+    def values(self, free: Mapping[str, Any], xp: Any) -> dict[str, Any]:
+        """The parameters of the free variables ``free`` (by name)."""
+        return {n: p.bound.value(free[n], xp) for n, p in self.params.items()}
+
+    def initial(self, scale: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The start values, the brightness parameters times ``scale`` (RGB) if given."""
+        out = {}
+        for n, p in self.params.items():
+            v = np.full(p.channels, p.init, dtype=np.float64)
+            if scale is not None and p.brightness:
+                v = v * (scale if p.channels == 3 else scale.mean())
+            out[n] = v
+        return out
+
+    def free_of(self, values: Mapping[str, Any]) -> dict[str, np.ndarray]:
+        """The free variables of parameter values (clamped into their ranges)."""
+        out = {}
+        for n, p in self.params.items():
+            v = np.broadcast_to(np.asarray(values[n], np.float64).reshape(-1), (p.channels,))
+            out[n] = p.bound.free(np.clip(v, p.bound.lo, p.bound.hi))
+        return out
+
+    def numbers(self, free: Mapping[str, Any]) -> dict[str, Any]:
+        """The parameters (floats, RGB as lists) of free variables given as numbers,
+        with the derived figures."""
+        vals = self.values({n: np.asarray(free[n], np.float64) for n in self.params}, np)
+        out: dict[str, Any] = {n: _plain(v) for n, v in vals.items()}
+        out.update(self.derived(vals))
+        return out
+
+    def element(self, params: Mapping[str, Any]) -> ET.Element:
+        """The ``<bsdf>`` of the parameters ``params`` (as :meth:`numbers` gives them)."""
+        return self.to_element({n: np.asarray(params[n], np.float64) for n in self.params})
+
+
+def _plain(v: np.ndarray) -> float | list[float]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    return float(a[0]) if a.size == 1 else [float(x) for x in a]
+
+
+def _rgb(v: Any) -> tuple[float, ...]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    return tuple(float(x) for x in (a if a.size == 3 else np.repeat(a, 3)))
+
+
+def _f(v: Any) -> float:
+    return float(np.asarray(v, dtype=np.float64).reshape(-1)[0])
+
+
+# ------------------------------------------------------------------ the conductor
+def eta_k(f0: Any, tint: Any, xp: Any) -> tuple[Any, Any]:
+    """(eta, k) of a conductor whose Fresnel reflectance at normal incidence is ``f0``
+    (< 1) and whose edge tint is ``tint`` in [0, 1] (Gulbrandsen 2014; module doc)."""
+    s = xp.sqrt(f0)
+    n = tint * (1.0 - f0) / (1.0 + f0) + (1.0 - tint) * (1.0 + s) / (1.0 - s)
+    k2 = (f0 * (n + 1.0) * (n + 1.0) - (n - 1.0) * (n - 1.0)) / (1.0 - f0)
+    return n, xp.sqrt(xp.maximum(k2, EPS_K2))
+
+
+def conductor_f0(eta: Any, k: Any) -> np.ndarray:
+    """The conductor Fresnel reflectance at normal incidence of (eta, k)."""
+    n, kk = np.asarray(eta, np.float64), np.asarray(k, np.float64)
+    return ((n - 1) ** 2 + kk**2) / ((n + 1) ** 2 + kk**2)
+
+
+ALPHA = Bound(0.01, 1.0, log=True)
+ALPHA_START = 0.3  # every roughness, without a warm start
+REFLECTANCE = Bound(0.0, 1.0)
+F0 = Bound(0.005, 0.98)
+TINT = Bound(0.0, 1.0)
+WEIGHT = Bound(0.0, 1.0)
+WEIGHT_START = 0.5  # the blend's conductor weight, without a warm start
+
+
+def _conductor_keys(v: Values, xp: Any, prefix: str = "", aniso: bool = False) -> dict[str, Any]:
+    eta, k = eta_k(v["f0"], v["edge_tint"], xp)
+    if aniso:
+        out = {prefix + "alpha_u.value": v["alpha_u"], prefix + "alpha_v.value": v["alpha_v"]}
+    else:
+        out = {prefix + "alpha.value": v["alpha"]}
+    out.update({prefix + "eta.value": eta, prefix + "k.value": k})
+    return out
+
+
+def _conductor_element(v: Values, aniso: bool = False) -> ET.Element:
+    eta, k = eta_k(v["f0"], v["edge_tint"], np)
+    alphas = (
+        {"alpha_u": _f(v["alpha_u"]), "alpha_v": _f(v["alpha_v"])}
+        if aniso
+        else {"alpha": _f(v["alpha"])}
+    )
+    return inverse.bsdf_element(
+        "roughconductor", distribution="ggx", **alphas, eta=_rgb(eta), k=_rgb(k)
+    )
+
+
+def _conductor_derived(v: Values) -> dict[str, Any]:
+    eta, k = eta_k(v["f0"], v["edge_tint"], np)
+    return {"eta": _plain(eta), "k": _plain(k)}
+
+
+def _blend_element(v: Values) -> ET.Element:
+    el = inverse.bsdf_element("blendbsdf", weight=_f(v["weight"]))
+    el.append(inverse.bsdf_element("diffuse", reflectance=_rgb(v["reflectance"])))
+    el.append(_conductor_element(v))
+    return el
+
+
+def _conductor_params(aniso: bool = False) -> dict[str, Param]:
+    alphas = (
+        {"alpha_u": Param(1, ALPHA, ALPHA_START), "alpha_v": Param(1, ALPHA, ALPHA_START)}
+        if aniso
+        else {"alpha": Param(1, ALPHA, ALPHA_START)}
+    )
+    return {
+        **alphas,
+        "f0": Param(3, F0, 0.6, brightness=True),
+        "edge_tint": Param(3, TINT, 0.5),
+    }
+
+
+FAMILIES: dict[str, Family] = {
+    f.name: f
+    for f in (
+        Family(
+            "diffuse",
+            "diffuse",
+            "Lambertian (Mitsuba diffuse): reflectance RGB",
+            {"reflectance": Param(3, REFLECTANCE, 0.5, brightness=True)},
+            lambda v, xp: {"reflectance.value": v["reflectance"]},
+            lambda v: inverse.bsdf_element("diffuse", reflectance=_rgb(v["reflectance"])),
+        ),
+        Family(
+            "roughplastic",
+            "roughplastic",
+            "a diffuse base under a GGX dielectric coating (Mitsuba roughplastic, int_ior "
+            f"{ROUGHPLASTIC_IOR:g}): diffuse_reflectance RGB, alpha",
+            {
+                "diffuse_reflectance": Param(3, REFLECTANCE, 0.5, brightness=True),
+                "alpha": Param(1, ALPHA, ALPHA_START),
+            },
+            lambda v, xp: {
+                "diffuse_reflectance.value": v["diffuse_reflectance"],
+                "alpha": v["alpha"],
+            },
+            lambda v: inverse.bsdf_element(
+                "roughplastic",
+                distribution="ggx",
+                diffuse_reflectance=_rgb(v["diffuse_reflectance"]),
+                alpha=_f(v["alpha"]),
+                int_ior=ROUGHPLASTIC_IOR,
+                ext_ior=1.0,
+            ),
+        ),
+        Family(
+            "roughconductor",
+            "roughconductor",
+            "an isotropic GGX conductor (Mitsuba roughconductor): alpha, F0 RGB, edge tint RGB",
+            _conductor_params(),
+            lambda v, xp: _conductor_keys(v, xp),
+            _conductor_element,
+            _conductor_derived,
+        ),
+        Family(
+            "roughconductor_aniso",
+            "roughconductor",
+            "an anisotropic GGX conductor (brushed; Mitsuba roughconductor): alpha_u, "
+            "alpha_v, F0 RGB, edge tint RGB",
+            _conductor_params(aniso=True),
+            lambda v, xp: _conductor_keys(v, xp, aniso=True),
+            lambda v: _conductor_element(v, aniso=True),
+            _conductor_derived,
+        ),
+        Family(
+            "blend",
+            "blendbsdf",
+            "a diffuse and an isotropic GGX conductor mixed (Mitsuba blendbsdf): the "
+            "conductor's weight, reflectance RGB, alpha, F0 RGB, edge tint RGB",
+            {
+                "weight": Param(1, WEIGHT, WEIGHT_START),
+                "reflectance": Param(3, REFLECTANCE, 0.5, brightness=True),
+                **_conductor_params(),
+            },
+            lambda v, xp: {
+                "weight.value": v["weight"],
+                "bsdf_0.reflectance.value": v["reflectance"],
+                **_conductor_keys(v, xp, prefix="bsdf_1."),
+            },
+            _blend_element,
+            _conductor_derived,
+        ),
+    )
+}
+DEFAULT = tuple(FAMILIES)  # every family, simplest first
+
+
+def family(name: str) -> Family:
+    """The family ``name``; ValueError naming the known ones otherwise."""
+    try:
+        return FAMILIES[name]
+    except KeyError:
+        raise ValueError(f"start family {name!r}: expected one of {', '.join(FAMILIES)}") from None
+
+
+# ------------------------------------------------------------------ the split
+def object_mask(view: inverse.View) -> np.ndarray:
+    """(H, W) bool: the pixels of the object to fit (:func:`~neural_brdf.inverse.fit.
+    sphere_mask`: every shape with ``<bsdf id="fit">``, eroded by the film's filter),
+    found with :data:`STAND_IN` in place of the scene's own BSDF."""
+    root = ET.fromstring(inverse.scene_text(view.tree, STAND_IN))
+    return inverse.sphere_mask(dataclasses.replace(view, tree=ET.ElementTree(root)))
+
+
+def tiles(shape: tuple[int, ...], block: int) -> np.ndarray:
+    """(H, W) int: the index of each pixel's ``block`` x ``block`` tile, row-major."""
+    h, w = shape[:2]
+    across = (w + block - 1) // block
+    return (np.arange(h)[:, None] // block) * across + np.arange(w)[None, :] // block
+
+
+def split_pixels(
+    views: Sequence[inverse.View], share: float, seed: int, *, block: int = 4
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(train, held-out) masks, each a list of (H, W) bool per view: the object's pixels
+    (:func:`object_mask`) cut into ``block`` x ``block`` tiles (:func:`tiles`),
+    ``share`` of each view's tiles (rounded; at least one and at most all but one when
+    ``share`` > 0) held out at random (seeded by ``seed`` and the view's index).  The two
+    are disjoint and together the object's pixels.  Tiles rather than single pixels: a
+    held-out pixel then mostly has held-out neighbours, which see nearly the same pairs
+    (wi, wo) as it does, and the choice's standard error (:func:`pick`) treats tiles as
+    independent.
+
+    The run's own validation split (``images.validation_pixels`` and
+    ``validation_views``: :func:`neural_brdf.inverse.fit.split_views`, marked on the
+    views) is left out of both masks: the start is chosen within the pixels the fit may
+    use, and the run's held-out pixels stay unseen by the start as by the network."""
+    if not 0.0 <= share < 1.0:
+        raise ValueError(f"share {share}: expected 0 <= share < 1")
+    if block < 1:
+        raise ValueError(f"block {block}: expected >= 1")
+    train, held = [], []
+    for i, v in enumerate(views):
+        obj = object_mask(v)
+        reserved = v.validation_mask()
+        if reserved is not None:
+            obj &= ~reserved
+        tile = tiles(obj.shape, block)
+        found = np.unique(tile[obj])
+        n = len(found)
+        k = int(round(share * n))
+        if share > 0 and n > 1:
+            k = min(max(k, 1), n - 1)
+        rng = np.random.default_rng([seed, i])
+        val = obj & np.isin(tile, rng.permutation(found)[:k])
+        train.append(obj & ~val)
+        held.append(val)
+    return train, held
+
+
+def units(masks: Sequence[np.ndarray], block: int) -> np.ndarray:
+    """The tile (:func:`tiles`) of each pixel of ``masks``, numbered across the views,
+    in the order of :func:`pixel_losses`: the independent units of :func:`pick`."""
+    out, offset = [], 0
+    for m in masks:
+        t = tiles(m.shape, block)
+        out.append(offset + t[m])
+        offset += int(t.max()) + 1
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+
+# ------------------------------------------------------------------ losses
+def pixel_losses(
+    view: inverse.View, mask: np.ndarray, x1: np.ndarray, x2: np.ndarray | None = None
+) -> np.ndarray:
+    """The relative MSE's terms (:func:`~neural_brdf.inverse.fit.relative_mse`) of
+    render ``x1`` against ``view``'s target at ``mask``'s pixels (row-major), averaged
+    over RGB: (x1 - y)^2 w; with a second render ``x2`` of independent samples,
+    (x1 - y)(x2 - y) w, whose expectation is the term of the noise-free render (module
+    doc)."""
+    y = view.target[mask].astype(np.float64)
+    w = inverse.rel_weight(view.target)[mask].astype(np.float64)
+    d1 = x1[mask].astype(np.float64) - y
+    d2 = d1 if x2 is None else x2[mask].astype(np.float64) - y
+    return (d1 * d2 * w).mean(-1)
+
+
+def masked_loss(
+    view: inverse.View, mask: np.ndarray, x1: np.ndarray, x2: np.ndarray | None = None
+) -> float:
+    """The mean of :func:`pixel_losses`: the relative MSE over ``mask``'s pixels and
+    RGB (without the render's noise when ``x2`` is given).  NaN for an empty mask."""
+    return float(pixel_losses(view, mask, x1, x2).mean()) if mask.any() else math.nan
+
+
+def _pooled(terms: Sequence[tuple[float, int]]) -> float:
+    """The pixel-weighted mean of per-view losses (loss, pixel count)."""
+    n = sum(c for _, c in terms if c)
+    return math.nan if n == 0 else sum(x * c for x, c in terms if c) / n
+
+
+def _render_np(view: inverse.View, params: Any, *, spp: int, seed: int) -> np.ndarray:
+    import mitsuba as mi
+
+    img = mi.render(view.scene, params, spp=spp, seed=seed)  # type: ignore[arg-type]  # stub: mi.UInt32
+    return np.asarray(img, dtype=np.float32)[..., :3]
+
+
+def noise_free_loss(
+    views: Sequence[inverse.View],
+    masks: Sequence[np.ndarray],
+    *,
+    spp: int,
+    seed: int,
+    plain: bool = False,
+) -> float:
+    """The relative MSE over ``masks`` (pixel-weighted over the views) of the views'
+    scenes as they are loaded (:func:`~neural_brdf.inverse.fit.prepare_views`), without
+    the render's noise: two renders of ``spp`` samples each (:func:`masked_loss`); with
+    ``plain`` the MSE of their mean instead.  For the network, render inside
+    :func:`neural_brdf.inverse.bsdf.evaluated_mode`."""
+    terms = []
+    for i, v in enumerate(views):
+        m = masks[i]
+        if not m.any():
+            continue
+        a = _render_np(v, v.params, spp=spp, seed=_seed(seed, 1, i))
+        b = _render_np(v, v.params, spp=spp, seed=_seed(seed, 2, i))
+        x = masked_loss(v, m, 0.5 * (a + b)) if plain else masked_loss(v, m, a, b)
+        terms.append((x, int(m.sum())))
+    return _pooled(terms)
+
+
+def _seed(seed: int, stage: int, view: int) -> int:
+    return (seed * 1_000_003 + stage * 7919 + view * 101 + 17) % (2**31 - 1)
+
+
+# ------------------------------------------------------------------ one family
+@dataclass
+class Candidate:
+    """One family fitted to the views: its parameters and figures."""
+
+    family: str
+    params: dict[str, Any]
+    train_loss: float  # relative MSE, noise-free estimate, on the training pixels
+    val_loss: float  # ... on the held-out pixels (the choice's figure)
+    val_loss_plain: float  # the plain relative MSE of a 2 x val_spp render, held out
+    seconds: float
+    steps: int
+    complexity: int
+    element: ET.Element = field(repr=False)
+    # the held-out pixels' terms (pixel_losses, noise-free), views in order: for pick()
+    val_pixels: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    # the fitted family's render of each view (2 x val_spp samples; None: not rendered)
+    images: list[np.ndarray | None] = field(default_factory=list, repr=False)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready (metrics.json)."""
+        return {
+            "family": self.family,
+            "plugin": FAMILIES[self.family].plugin,
+            "params": self.params,
+            "train_loss": self.train_loss,
+            "val_loss": self.val_loss,
+            "val_loss_plain": self.val_loss_plain,
+            "free_scalars": self.complexity,
+            "steps": self.steps,
+            "seconds": self.seconds,
+        }
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """How :func:`fit_start` steps: Adam's rate on the free variables, cosine-decayed to
+    ``lr_end`` times it; the samples per pixel of the gradient pass (``spp``), of the
+    primal pass, and of each of the two held-out renders."""
+
+    steps: int = 80
+    spp: int = 4
+    primal_spp: int = 16
+    val_spp: int = 64
+    lr: float = 0.2
+    lr_end: float = 0.05
+
+    def rate(self, step: int) -> float:
+        c = 0.5 * (1.0 + math.cos(math.pi * step / max(1, self.steps)))
+        return self.lr * (self.lr_end + (1.0 - self.lr_end) * c)
+
+
+def fit_start(
+    views: Sequence[inverse.View],
+    family_name: str,
+    *,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    seed: int = 0,
+    steps: int | None = None,
+    spp: int | None = None,
+    schedule: Schedule | None = None,
+    init: Mapping[str, Any] | None = None,
+) -> tuple[ET.Element, dict[str, Any], float, float]:
+    """Fit the family ``family_name`` to ``views`` on the training pixels ``mask_train``
+    (mi.ad.Adam, module doc); returns (its ``<bsdf>``, its parameters, the training and
+    the held-out (``mask_val``) relative MSE).  ``steps`` and ``spp`` override
+    ``schedule``'s; ``init``: the parameters to start from.  See :func:`fit_candidate`
+    for every figure."""
+    c = fit_candidate(
+        views,
+        family_name,
+        mask_train=mask_train,
+        mask_val=mask_val,
+        seed=seed,
+        steps=steps,
+        spp=spp,
+        schedule=schedule,
+        init=init,
+    )
+    return c.element, c.params, c.train_loss, c.val_loss
+
+
+def fit_candidate(
+    views: Sequence[inverse.View],
+    family_name: str,
+    *,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    seed: int = 0,
+    steps: int | None = None,
+    spp: int | None = None,
+    schedule: Schedule | None = None,
+    init: Mapping[str, Any] | None = None,
+) -> Candidate:
+    """:func:`fit_start` with every figure (a :class:`Candidate`).  ``init``: the
+    parameters to start from (by name, as :meth:`Family.numbers` gives them), else the
+    family's start values scaled to the images' brightness (module doc).  Loads the
+    views' scenes with the family's BSDF (:func:`~neural_brdf.inverse.fit.prepare_views`:
+    the views' ``scene``, ``params`` and tensors are replaced); views without training
+    pixels are not rendered during the fit."""
+    import drjit as dr
+    import mitsuba as mi
+
+    fam = family(family_name)
+    sched = schedule or Schedule()
+    if steps is not None:
+        sched = dataclasses.replace(sched, steps=steps)
+    if spp is not None:
+        sched = dataclasses.replace(sched, spp=spp)
+    if len(mask_train) != len(views) or len(mask_val) != len(views):
+        raise ValueError("mask_train and mask_val need one mask per view")
+    n_train = sum(int(m.sum()) for m in mask_train)
+    if n_train == 0:
+        raise ValueError("no training pixels")
+    start = time.perf_counter()
+    views = list(views)
+    fitted = [i for i, m in enumerate(mask_train) if m.any()]
+    if init is not None:
+        free0 = fam.free_of(init)
+        inverse.prepare_views(views, fam.element(fam.numbers(free0)))
+    else:
+        inverse.prepare_views(views, fam.element(fam.numbers(fam.free_of(fam.initial()))))
+        # the brightness of the training pixels, matched by the reflectances (module doc)
+        ys, xs = np.zeros(3), np.zeros(3)
+        for i in fitted:
+            v = views[i]
+            img = _render_np(v, v.params, spp=sched.primal_spp, seed=_seed(seed, 3, i))
+            ys += v.target[mask_train[i]].sum(0)
+            xs += img[mask_train[i]].sum(0)
+        scale = np.where(xs > 0, ys / np.maximum(xs, 1e-12), 1.0)
+        free0 = fam.free_of(fam.initial(scale))
+
+    def set_free(free: Mapping[str, Any], xp: Any) -> None:
+        keys = fam.to_mitsuba(fam.values(free, xp), xp)
+        for v in views:
+            for k, x in keys.items():
+                v.params[k] = x
+            v.params.update()
+
+    def typed(z: np.ndarray) -> Any:
+        return mi.Float(float(z[0])) if z.size == 1 else mi.Color3f(*(float(x) for x in z))
+
+    opt = mi.ad.Adam(lr=sched.lr)
+    for n, z in free0.items():
+        opt[n] = typed(z)
+    # the loss over all training pixels: relative_mse's mean over the film, rescaled to
+    # a mean over the training pixels of every view
+    weights = {}
+    for i in fitted:
+        v = views[i]
+        h, w = v.target.shape[:2]
+        m = mask_train[i][..., None].astype(np.float32)
+        weights[i] = mi.TensorXf(inverse.rel_weight(v.target) * m * (h * w / n_train))
+    for step in range(sched.steps):
+        opt.set_learning_rate(sched.rate(step))
+        for i in fitted:
+            v = views[i]
+            # the parameters from the free variables, per view: dr.backward frees the graph
+            for k, x in fam.to_mitsuba(fam.values({n: opt[n] for n in fam.params}, dr), dr).items():
+                v.params[k] = x
+            v.params.update()
+            render = mi.render(
+                v.scene,
+                v.params,
+                spp=sched.primal_spp,
+                spp_grad=sched.spp,
+                seed=_seed(seed, 100 + step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
+            )
+            dr.backward(inverse.relative_mse(render, v.target_tensor, weights[i]))
+        opt.step()
+    free = {n: np.asarray(opt[n].numpy(), np.float64).reshape(-1) for n in fam.params}
+    set_free({n: dr.detach(opt[n]) for n in fam.params}, dr)
+    train_terms, val_px, plain_terms = [], [], []
+    images: list[np.ndarray | None] = []
+    for i, v in enumerate(views):
+        if not (mask_train[i].any() or mask_val[i].any()):
+            images.append(None)
+            continue
+        a = _render_np(v, v.params, spp=sched.val_spp, seed=_seed(seed, 1, i))
+        b = _render_np(v, v.params, spp=sched.val_spp, seed=_seed(seed, 2, i))
+        images.append(0.5 * (a + b))
+        if mask_train[i].any():
+            train_terms.append((masked_loss(v, mask_train[i], a, b), int(mask_train[i].sum())))
+        if mask_val[i].any():
+            val_px.append(pixel_losses(v, mask_val[i], a, b))
+            plain_terms.append((masked_loss(v, mask_val[i], 0.5 * (a + b)), int(mask_val[i].sum())))
+    held = np.concatenate(val_px) if val_px else np.zeros(0)
+    params = fam.numbers(free)
+    return Candidate(
+        family=fam.name,
+        params=params,
+        train_loss=_pooled(train_terms),
+        val_loss=float(held.mean()) if held.size else math.nan,
+        val_loss_plain=_pooled(plain_terms),
+        seconds=time.perf_counter() - start,
+        steps=sched.steps,
+        complexity=fam.complexity,
+        element=fam.element(params),
+        val_pixels=held,
+        images=images,
+    )
+
+
+# ------------------------------------------------------------------ the choice
+# A family with more free scalars is chosen over a simpler one only when its held-out
+# loss is lower by more than TIE_TOL (relative) and by more than TIE_SIGMAS standard
+# errors of the paired difference (tiles as the independent units): pick().
+TIE_TOL = 0.02
+TIE_SIGMAS = 2.0
+
+
+def compare(a: Candidate, b: Candidate, unit: np.ndarray | None) -> tuple[float, float]:
+    """(a's held-out loss minus b's, the standard error of that difference), the
+    difference taken pixel by pixel (the same pixels, the same render seeds) and its
+    error from the spread of its sums over ``unit`` (each held-out pixel's tile:
+    :func:`units`); None: pixels as the units."""
+    d = a.val_pixels - b.val_pixels
+    n = d.size
+    if n == 0:
+        return math.nan, math.nan
+    ids = np.arange(n) if unit is None else np.unique(unit, return_inverse=True)[1]
+    sums = np.bincount(ids, weights=d)
+    k = len(sums)
+    se = float(np.std(sums, ddof=1) * math.sqrt(k) / n) if k > 1 else math.inf
+    return float(d.mean()), se
+
+
+def pick(
+    candidates: Sequence[Candidate],
+    unit: np.ndarray | None = None,
+    *,
+    tie_tol: float = TIE_TOL,
+    sigmas: float = TIE_SIGMAS,
+) -> tuple[Candidate, dict[str, dict[str, Any]]]:
+    """The simplest candidate (fewest free scalars; then the earlier) whose held-out loss
+    exceeds the least one's by no more than ``tie_tol`` times it or ``sigmas`` standard
+    errors of the paired difference (:func:`compare`, over ``unit``), whichever is
+    larger: a more complex family must earn its place.  Returns it and, per family, the
+    margin over the best (``above_best``, ``standard_error``, ``tied``)."""
+    ok = [c for c in candidates if math.isfinite(c.val_loss)]
+    if not ok:
+        raise ValueError("no candidate has a finite held-out loss")
+    best = min(ok, key=lambda c: c.val_loss)
+    margins: dict[str, dict[str, Any]] = {}
+    tied = []
+    for c in ok:
+        diff, se = compare(c, best, unit) if c is not best else (0.0, 0.0)
+        within = diff <= max(tie_tol * abs(best.val_loss), sigmas * se)
+        margins[c.family] = {"above_best": diff, "standard_error": se, "tied": bool(within)}
+        if within:
+            tied.append(c)
+    chosen = min(tied, key=lambda c: (c.complexity, list(candidates).index(c)))
+    return chosen, margins
+
+
+@dataclass
+class Choice:
+    """The chosen start and every candidate (in the order fitted)."""
+
+    family: str
+    element: ET.Element
+    params: dict[str, Any]
+    candidates: list[Candidate]
+    margins: dict[str, dict[str, Any]]  # pick()'s, per family
+    val_share: float
+    block: int
+    tie_tol: float
+    sigmas: float
+    seconds: float
+
+    @property
+    def chosen(self) -> Candidate:
+        return next(c for c in self.candidates if c.family == self.family)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready (metrics.json, the report): the choice, the rule, every candidate."""
+        return {
+            "family": self.family,
+            "params": self.params,
+            "val_loss": self.chosen.val_loss,
+            "rule": (
+                "the simplest family (fewest free scalars) whose held-out relative MSE "
+                "(noise-free estimate) is within max(tie_tol x the least, sigmas x the "
+                "standard error of the paired difference over tiles) of the least"
+            ),
+            "tie_tol": self.tie_tol,
+            "sigmas": self.sigmas,
+            "split": {"val_share": self.val_share, "block_pixels": self.block},
+            "candidates": [
+                {**c.summary(), **self.margins.get(c.family, {})} for c in self.candidates
+            ],
+            "seconds": self.seconds,
+        }
+
+
+def warm_start(
+    name: str,
+    fitted: Mapping[str, Candidate],
+    views: Sequence[inverse.View],
+    mask_train: Sequence[np.ndarray],
+) -> dict[str, Any] | None:
+    """The start of family ``name`` from the families already ``fitted``, or None (its
+    own start): ``roughconductor_aniso`` from ``roughconductor`` (alpha_u = alpha_v =
+    alpha), ``blend`` from ``diffuse`` and ``roughconductor``, its weight the least
+    squares one on the training pixels of their renders (with the loss's weights; the
+    image of a blend is the blend of the images where the object does not see itself,
+    nearly so elsewhere).  Each then starts about as well as its simpler families end."""
+    cond = fitted.get("roughconductor")
+    if name == "roughconductor_aniso" and cond is not None:
+        p = cond.params
+        return {
+            "alpha_u": p["alpha"],
+            "alpha_v": p["alpha"],
+            "f0": p["f0"],
+            "edge_tint": p["edge_tint"],
+        }
+    diff = fitted.get("diffuse")
+    if name != "blend" or cond is None or diff is None:
+        return None
+    num = den = 0.0
+    for i, v in enumerate(views):
+        a, b, m = diff.images[i], cond.images[i], mask_train[i]
+        if a is None or b is None or not m.any():
+            continue
+        wgt = inverse.rel_weight(v.target)[m].astype(np.float64)
+        r = (b[m] - a[m]).astype(np.float64)
+        e = (v.target[m] - a[m]).astype(np.float64)
+        num += float(np.sum(wgt * r * e))
+        den += float(np.sum(wgt * r * r))
+    weight = float(np.clip(num / den, 0.02, 0.98)) if den > 0 else WEIGHT_START
+    return {
+        "weight": weight,
+        "reflectance": diff.params["reflectance"],
+        **{k: cond.params[k] for k in ("alpha", "f0", "edge_tint")},
+    }
+
+
+def choose_start(
+    views: Sequence[inverse.View],
+    families: Sequence[str] = DEFAULT,
+    *,
+    steps: int | None = None,
+    spp: int | None = None,
+    seed: int = 0,
+    val_share: float = 0.25,
+    block: int = 4,
+    masks: tuple[Sequence[np.ndarray], Sequence[np.ndarray]] | None = None,
+    schedule: Schedule | None = None,
+    tie_tol: float = TIE_TOL,
+    sigmas: float = TIE_SIGMAS,
+    progress: Callable[[Candidate], None] | None = None,
+) -> Choice:
+    """Fit every family of ``families`` (:func:`fit_candidate`) to the training pixels
+    of a seeded split (:func:`split_pixels` with ``val_share``, ``block``, ``seed``; or
+    ``masks`` = (train, held-out) given) and choose by the held-out loss (:func:`pick`).
+    The views are all it looks at: the scenes' own ``<bsdf id="fit">`` plays no part.
+    ``progress`` is called with each candidate when it is fitted."""
+    start = time.perf_counter()
+    for name in families:
+        family(name)
+    if not families:
+        raise ValueError("no families to choose from")
+    if masks is None:
+        train, held = split_pixels(views, val_share, seed, block=block)
+    else:
+        train, held = list(masks[0]), list(masks[1])
+    if not any(m.any() for m in held):
+        raise ValueError("no held-out pixels: the choice needs a validation split")
+    out: list[Candidate] = []
+    for name in families:
+        c = fit_candidate(
+            views,
+            name,
+            mask_train=train,
+            mask_val=held,
+            seed=seed,
+            steps=steps,
+            spp=spp,
+            schedule=schedule,
+            init=warm_start(name, {c.family: c for c in out}, views, train),
+        )
+        out.append(c)
+        if progress is not None:
+            progress(c)
+    best, margins = pick(out, units(held, block), tie_tol=tie_tol, sigmas=sigmas)
+    return Choice(
+        family=best.family,
+        element=best.element,
+        params=best.params,
+        candidates=out,
+        margins=margins,
+        val_share=val_share,
+        block=block,
+        tie_tol=tie_tol,
+        sigmas=sigmas,
+        seconds=time.perf_counter() - start,
+    )
+
+
+# ------------------------------------------------------------------ the teacher
+def teacher_xml(element: ET.Element) -> str:
+    """``element`` as a standalone Mitsuba 3 XML file (``<bsdf version="3.0.0">``, no
+    id): the ``target: {mitsuba: FILE.xml}`` teacher (:class:`neural_brdf.measured.
+    mitsuba.MitsubaTarget`)."""
+    el = copy.deepcopy(element)
+    el.attrib.pop("id", None)
+    root = ET.Element("bsdf", {"version": "3.0.0", **el.attrib})
+    root.extend(list(el))
+    ET.indent(root, space="    ")
+    return (
+        '<?xml version="1.0" encoding="utf-8"?>\n'
+        "<!-- an images fit's start (neural_brdf.inverse.starts) -->\n"
+        + ET.tostring(root, encoding="unicode")
+        + "\n"
+    )
+
+
+def distill(
+    cfg: cfgmod.Config, element: ET.Element, run_dir: Path, steps: int
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The network of ``cfg.model`` trained on BRDF samples of ``element`` (sample-based
+    training, :func:`neural_brdf.train.loop.train`, ``steps`` steps, on one torch
+    thread) in the run folder ``run_dir`` (an images fit's ``init/``), whose
+    :data:`TEACHER_XML` holds the teacher (:func:`teacher_xml`) and whose config's
+    target is ``{mitsuba: that file}``.  Returns (the network's state_dict, figures),
+    as :func:`neural_brdf.inverse.fit.ggx_initial_state` does."""
+    from neural_brdf import runfolder
+    from neural_brdf.fileio import atomic_write
+    from neural_brdf.measured.mitsuba import MitsubaTarget
+    from neural_brdf.train import loop
+
+    run_dir = Path(run_dir)
+    xml = (run_dir / TEACHER_XML).absolute()
+    variant = inverse.variant_name(cfg)
+    d = cfg.model_dump()
+    d["target"] = {"mitsuba": str(xml), "variant": variant}
+    d["name"] = f"{cfg.name}: {element.get('type')} start, network"
+    d["train"].update(steps=steps, threads=inverse.TORCH_THREADS, eval_every=0)
+    d["train"]["checkpoint_every"] = max(1, steps)
+    icfg = cfgmod.from_dict(d, source="images start")
+    # the folder becomes a run (its marker) before the teacher is written into it: a
+    # folder holding a file no run wrote is refused (neural_brdf.runfolder)
+    folder = runfolder.Folder.open(run_dir, resume=False, overwrite=True)
+    folder.start(icfg.to_yaml())
+    atomic_write(xml, teacher_xml(element))
+    teacher = MitsubaTarget(xml, variant=variant, key="images start")
+    raw, info = loop.train(icfg, run_dir, target=teacher, folder=folder)
+    return raw.state_dict(), {
+        "target": info["target"],
+        "teacher": str(xml),
+        "steps": steps,
+        "seconds": info["train_seconds"],
+        "raw_val_rel_rmse": info["raw_val_rel_rmse"],
+    }

@@ -1,0 +1,408 @@
+"""The starts of an images fit (neural_brdf.inverse.starts), llvm_ad_rgb.
+
+* the choice: three views (24 x 24, 16 spp targets) of a ``diffuse``, a ``roughplastic``
+  and a copper ``roughconductor`` sphere; the family chosen by the held-out pixels is
+  the true one's (or one at least as good there), and the true family's fitted key
+  parameters are close to the truth (roughness within 30 %, reflectance within 10 %);
+* the choice never sees the truth: every scene's ``<bsdf id="fit">`` is replaced, after
+  its target was rendered, by a BSDF of another family, and ``choose_start`` takes the
+  views alone;
+* the split: the held-out pixels are disjoint from the training pixels, together they
+  are the object's pixels, and the seed decides them;
+* the ranges: every free variable, however large, gives parameters in their ranges (a
+  property test), the conductor's eta and k give back its F0, and Mitsuba evaluates
+  every such BSDF to finite, non-negative values;
+* the teacher: ``teacher_xml`` read by ``MitsubaTarget`` evaluates as the element does;
+  ``distill`` trains a network on it in a run folder that holds the file.
+
+About a minute and a half on 2 cores (the choices are ``slow``).
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from neural_brdf import config
+
+pytestmark = pytest.mark.mitsuba
+
+RES = 24  # film size of the test views
+TARGET_SPP = 16
+ALPHA_TOL = 0.30  # relative error of a fitted roughness
+REFLECTANCE_TOL = 0.10  # ... of a fitted reflectance (each channel)
+
+
+def _truths():
+    from neural_brdf.inverse import fit as inverse
+
+    return {
+        "diffuse": inverse.bsdf_element("diffuse", reflectance=(0.6, 0.45, 0.3)),
+        "roughplastic": inverse.bsdf_element(
+            "roughplastic",
+            distribution="ggx",
+            alpha=0.15,
+            diffuse_reflectance=(0.5, 0.2, 0.1),
+            int_ior=1.5,
+        ),
+        "roughconductor": inverse.bsdf_element(
+            "roughconductor", distribution="ggx", alpha=0.2, material="Cu"
+        ),
+    }
+
+
+# after its targets are rendered, each scene gets a BSDF of another family
+DECOYS = {"diffuse": "roughconductor", "roughplastic": "diffuse", "roughconductor": "roughplastic"}
+
+
+# ------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def mi():
+    from neural_brdf.inverse import fit as inverse
+
+    return inverse.use_variant("llvm_ad_rgb")
+
+
+def write_material(folder: Path, truth: ET.Element, decoy: ET.Element) -> Path:
+    """The example's three views with ``truth`` as the material of the targets, then
+    ``decoy`` in the scenes in its place; returns fit.yaml."""
+    from neural_brdf.fileio import atomic_write
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import scene
+
+    scene.write(folder, resolution=RES, spp=TARGET_SPP)
+    for k in (1, 2, 3):
+        xml = folder / f"view{k}.xml"
+        atomic_write(xml, inverse.scene_text(ET.parse(xml), truth))
+        scene.write_exr(folder / f"view{k}.exr", scene.render_file(xml, TARGET_SPP, seed=k))
+        atomic_write(xml, inverse.scene_text(ET.parse(xml), decoy))
+    return folder / "fit.yaml"
+
+
+@pytest.fixture(scope="module")
+def materials(mi, tmp_path_factory) -> dict[str, Path]:
+    from neural_brdf.inverse import starts
+
+    out = {}
+    for name, truth in _truths().items():
+        fam = starts.FAMILIES[DECOYS[name]]
+        decoy = fam.element(fam.numbers(fam.free_of(fam.initial())))
+        out[name] = write_material(tmp_path_factory.mktemp(name), truth, decoy)
+    return out
+
+
+def views_of(path: Path):
+    from neural_brdf.inverse import fit as inverse
+
+    return inverse.read_views(config.load(path))
+
+
+def truth_figures(name: str, mi) -> dict[str, np.ndarray]:
+    """The truth's key parameters, read from its Mitsuba BSDF (tests only)."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    params = mi.traverse(inverse.mitsuba_bsdf(_truths()[name]))
+
+    def get(key):
+        return np.asarray(params[key], dtype=np.float64).reshape(-1)
+
+    if name == "diffuse":
+        return {"reflectance": get("reflectance.value")}
+    if name == "roughplastic":
+        return {"diffuse_reflectance": get("diffuse_reflectance.value"), "alpha": get("alpha")}
+    return {
+        "alpha": get("alpha.value"),
+        "f0": starts.conductor_f0(get("eta.value"), get("k.value")),
+    }
+
+
+def relative_error(fitted, truth) -> float:
+    f = np.asarray(fitted, dtype=np.float64).reshape(-1)
+    return float(np.max(np.abs(f - truth) / np.abs(truth)))
+
+
+# ------------------------------------------------------------------ the choice
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["diffuse", "roughplastic", "roughconductor"])
+def test_choice_finds_the_family_and_its_parameters(mi, materials, name):
+    from neural_brdf.inverse import starts
+
+    views = views_of(materials[name])
+    choice = starts.choose_start(views, seed=3)  # the default schedule
+    by_family = {c.family: c for c in choice.candidates}
+    true = by_family[name]
+    assert choice.family == name or choice.chosen.val_loss <= true.val_loss, choice.summary()
+    # the held-out figure tells the families apart: each of the three that cannot hold
+    # the truth does worse than the true one there
+    for c in choice.candidates:
+        if c.family in ("diffuse", "roughplastic", "roughconductor") and c.family != name:
+            assert c.val_loss > true.val_loss, (c.family, choice.margins)
+    for key, value in truth_figures(name, mi).items():
+        tol = ALPHA_TOL if key == "alpha" else REFLECTANCE_TOL
+        err = relative_error(true.params[key], value)
+        assert err <= tol, f"{name}: {key} {true.params[key]} against {value} ({err:.1%})"
+    summary = choice.summary()
+    assert summary["family"] == choice.family
+    assert [c["family"] for c in summary["candidates"]] == list(starts.DEFAULT)
+    assert all(math.isfinite(c["val_loss"]) for c in summary["candidates"])
+
+
+def test_fit_start_on_the_training_pixels(mi, materials):
+    """fit_start's four results; from a start far off, the fit on the training pixels
+    recovers the reflectance and lowers the loss on the held-out ones."""
+    from neural_brdf.inverse import starts
+
+    views = views_of(materials["diffuse"])
+    train, held = starts.split_pixels(views, 0.3, seed=1)
+    far = {"reflectance": [0.2, 0.2, 0.2]}
+    kw = {"seed": 1, "mask_train": train, "mask_val": held, "init": far}
+    element, params, train_loss, val_loss = starts.fit_start(views, "diffuse", steps=60, **kw)
+    assert element.get("type") == "diffuse"
+    assert relative_error(params["reflectance"], [0.6, 0.45, 0.3]) <= REFLECTANCE_TOL
+    # the views are left loaded with the fitted BSDF: the same figure again, by the
+    # function the network stage can use (same seeds, same samples)
+    again = starts.noise_free_loss(views, held, spp=starts.Schedule().val_spp, seed=1)
+    assert again == pytest.approx(val_loss, rel=1e-6)
+    plain = starts.noise_free_loss(views, held, spp=starts.Schedule().val_spp, seed=1, plain=True)
+    assert plain > val_loss  # the render's own noise, which the noise-free figure leaves out
+    _, start, start_train, start_val = starts.fit_start(views, "diffuse", steps=0, **kw)
+    assert np.allclose(start["reflectance"], 0.2, rtol=1e-3)
+    assert 0 < val_loss < start_val / 5 and 0 < train_loss < start_train / 5
+
+
+def test_the_choice_takes_the_views_alone():
+    from neural_brdf.inverse import starts
+
+    params = inspect.signature(starts.choose_start).parameters
+    assert next(iter(params)) == "views"
+    for p in params.values():
+        assert p.name == "views" or p.kind is inspect.Parameter.KEYWORD_ONLY or p.name == "families"
+    assert not {"truth", "bsdf", "element", "reference"} & set(params)
+
+
+def test_no_held_out_pixels_is_refused(mi, materials):
+    from neural_brdf.inverse import starts
+
+    views = views_of(materials["diffuse"])
+    with pytest.raises(ValueError, match="no held-out pixels"):
+        starts.choose_start(views, ["diffuse"], steps=1, val_share=0.0)
+    with pytest.raises(ValueError, match="start family 'plaster'"):
+        starts.choose_start(views, ["plaster"], steps=1)
+
+
+# ------------------------------------------------------------------ the split
+def test_split_is_disjoint_covers_the_object_and_follows_the_seed(mi, materials):
+    from neural_brdf.inverse import starts
+
+    views = views_of(materials["roughconductor"])
+    train, held = starts.split_pixels(views, 0.25, seed=5)
+    again = starts.split_pixels(views, 0.25, seed=5)
+    other = starts.split_pixels(views, 0.25, seed=6)
+    for i, v in enumerate(views):
+        obj = starts.object_mask(v)
+        assert obj.sum() > 100
+        assert not (train[i] & held[i]).any()
+        assert np.array_equal(train[i] | held[i], obj)
+        share = held[i].sum() / obj.sum()
+        assert 0.1 < share < 0.4, share
+        assert np.array_equal(held[i], again[1][i])
+    assert any(not np.array_equal(h, o) for h, o in zip(held, other[1], strict=True))
+    # whole tiles: a held-out pixel's tile holds no training pixel
+    for tr, he in zip(train, held, strict=True):
+        t = starts.tiles(he.shape, 4)
+        assert not np.intersect1d(t[tr], t[he]).size
+
+
+def test_split_leaves_out_the_runs_own_validation_split(mi, materials):
+    """Pixels and views the run holds out (images.validation_*: fit.split_views) are in
+    neither part of the choice's split."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    views = views_of(materials["roughconductor"])
+    inverse.split_views(views, config.Images(validation_pixels=0.2, validation_views=[2]), seed=0)
+    train, held = starts.split_pixels(views, 0.25, seed=5)
+    for i, v in enumerate(views):
+        reserved = v.validation_mask()
+        assert reserved is not None and reserved.any()
+        assert not (train[i] & reserved).any() and not (held[i] & reserved).any()
+    assert train[0].any() and held[0].any()
+    assert not train[2].any() and not held[2].any()  # the view held out whole
+
+
+def test_object_mask_ignores_the_scenes_bsdf(mi, materials):
+    """The mask comes from the geometry: the same with any BSDF in the scene."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    a = views_of(materials["diffuse"])[0]
+    b = views_of(materials["roughplastic"])[0]
+    assert inverse.fit_element(a.tree).get("type") != inverse.fit_element(b.tree).get("type")
+    assert np.array_equal(starts.object_mask(a), starts.object_mask(b))
+
+
+# ------------------------------------------------------------------ the ranges
+FREE = st.floats(-1e6, 1e6, allow_nan=False) | st.sampled_from([-1e30, -80.0, 0.0, 80.0, 1e30])
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data())
+def test_every_free_variable_gives_parameters_in_range(data):
+    from neural_brdf.inverse import starts
+
+    fam = starts.FAMILIES[data.draw(st.sampled_from(sorted(starts.FAMILIES)))]
+    free = {
+        n: np.array(data.draw(st.lists(FREE, min_size=p.channels, max_size=p.channels)))
+        for n, p in fam.params.items()
+    }
+    values = fam.values(free, np)
+    for n, p in fam.params.items():
+        v = values[n]
+        assert np.all(np.isfinite(v)) and np.all(v >= p.bound.lo) and np.all(v <= p.bound.hi)
+    for n in ("reflectance", "diffuse_reflectance", "f0", "weight"):
+        if n in values:
+            assert np.all(values[n] <= 1.0)
+    if "f0" in values:
+        eta, k = starts.eta_k(values["f0"], values["edge_tint"], np)
+        assert np.all(np.isfinite(eta)) and np.all(eta > 0) and np.all(np.isfinite(k))
+        assert np.allclose(starts.conductor_f0(eta, k), values["f0"], rtol=1e-6, atol=1e-9)
+    # free_of inverts values (up to its clamp, 1e-4 of the range inside either end)
+    back = fam.values(fam.free_of(values), np)
+    for n, p in fam.params.items():
+        b = p.bound
+        t = np.log if b.log else np.asarray
+        span = t(b.hi) - t(b.lo)
+        assert np.all(np.abs(t(back[n]) - t(values[n])) <= 1.01e-4 * span + 1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(data=st.data())
+def test_mitsuba_gets_valid_parameters_for_any_free_variable(mi, data):
+    """The same maps in Dr.Jit (float32, as the fit steps them): parameters in range,
+    and the BSDF Mitsuba builds from them is finite and non-negative."""
+    import drjit as dr
+
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    fam = starts.FAMILIES[data.draw(st.sampled_from(sorted(starts.FAMILIES)))]
+    free = {n: [data.draw(FREE) for _ in range(p.channels)] for n, p in fam.params.items()}
+    typed = {n: mi.Float(z[0]) if len(z) == 1 else mi.Color3f(*z) for n, z in free.items()}
+    values = fam.values(typed, dr)
+    for n, p in fam.params.items():
+        v = np.asarray(values[n], dtype=np.float64).reshape(-1)
+        assert np.all(np.isfinite(v)) and np.all(v >= np.float32(p.bound.lo))
+        assert np.all(v <= np.float32(p.bound.hi))
+    keys = fam.to_mitsuba(values, dr)
+    for k, v in keys.items():
+        assert np.all(np.isfinite(np.asarray(v, dtype=np.float64))), k
+    bsdf = inverse.mitsuba_bsdf(fam.element(fam.numbers({n: np.array(z) for n, z in free.items()})))
+    rng = np.random.default_rng(0)
+    wi, wo = (np.abs(rng.normal(size=(256, 3))) for _ in range(2))  # upper hemisphere
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    f = inverse.mitsuba_f_cos(bsdf, wi, wo)
+    assert np.all(np.isfinite(f)) and np.all(f >= 0)
+
+
+# ------------------------------------------------------------------ the teacher
+@pytest.mark.parametrize("name", ["diffuse", "roughplastic", "roughconductor_aniso", "blend"])
+def test_teacher_xml_round_trips_through_mitsuba_target(mi, tmp_path, name):
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+    from neural_brdf.measured.mitsuba import MitsubaTarget
+
+    fam = starts.FAMILIES[name]
+    rng = np.random.default_rng(1)
+    free = {n: rng.normal(size=p.channels) for n, p in fam.params.items()}
+    if name == "roughconductor_aniso":
+        free["alpha_u"], free["alpha_v"] = np.array([-1.5]), np.array([0.5])
+    element = fam.element(fam.numbers(free))
+    path = tmp_path / "teacher.xml"
+    path.write_text(starts.teacher_xml(element))
+    teacher = MitsubaTarget(path)
+    assert teacher.excess is None  # albedo within 1: learned as it is
+    assert teacher.anisotropic == (name == "roughconductor_aniso")
+    z = rng.uniform(0.05, 1.0, 2000)
+    phi = rng.uniform(0, 2 * math.pi, (2, 2000))
+    dirs = [
+        np.stack([np.sqrt(1 - z * z) * np.cos(p), np.sqrt(1 - z * z) * np.sin(p), z], -1)
+        for p in phi
+    ]
+    wi, wo = dirs[0], np.roll(dirs[1], 7, axis=0)
+    expected = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(element), wi, wo) / wo[:, 2:3]
+    got = teacher.eval(wi, wo)
+    assert np.allclose(got, expected, rtol=1e-5, atol=1e-7)
+    assert np.abs(expected).max() > 0
+
+
+def test_distill_trains_on_the_teacher_file(mi, tmp_path):
+    import torch
+
+    from neural_brdf import runfolder
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+    from neural_brdf.train.model import RawBRDF
+
+    cfg = config.from_dict(
+        {
+            "name": "images_test",
+            "target": {"images": [{"scene": "view1.xml", "image": "view1.exr"}]},
+            "model": {"hidden": [16], "activation": "relu"},
+            "train": {"steps": 10, "progress": False, "warmup": 20},
+            "data": {"batch_size": 1024, "pool_size": 32768},
+        }
+    )
+    element = inverse.bsdf_element(
+        "roughplastic", distribution="ggx", alpha=0.3, diffuse_reflectance=(0.5, 0.3, 0.2)
+    )
+    run = tmp_path / "init"
+    state, info = starts.distill(cfg, element, run, 200)
+    assert (run / starts.TEACHER_XML).read_text() == starts.teacher_xml(element)
+    saved = config.load(run / runfolder.CONFIG)
+    assert saved.target.mitsuba == str((run / starts.TEACHER_XML).absolute())
+    assert "RoughPlastic" in info["target"]
+    raw = RawBRDF.from_config(cfg.model)
+    raw.load_state_dict(state)
+    # the network learned the teacher: its error is well below an untrained one's
+    assert info["raw_val_rel_rmse"] < 0.35, info
+    wi = torch.tensor([[0.3, 0.1, 0.95], [0.5, -0.2, 0.84]])
+    wo = torch.tensor([[-0.3, -0.1, 0.95], [0.0, 0.6, 0.8]])
+    with torch.no_grad():
+        f = raw(wi, wo).numpy()
+    fc = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(element), wi.numpy(), wo.numpy())
+    truth = fc / wo.numpy()[:, 2:3]
+    assert np.all(np.abs(f - truth) < 0.5 * truth + 0.02), (f, truth)
+    # a second start into the same folder replaces the first (a fresh run)
+    starts.distill(cfg, element, run, 20)
+    assert runfolder.is_run(run)
+
+
+def test_an_overwritten_run_removes_the_teacher(mi, tmp_path):
+    from neural_brdf import runfolder
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    cfg = config.from_dict(
+        {
+            "name": "images_test",
+            "target": {"images": [{"scene": "view1.xml", "image": "view1.exr"}]},
+            "model": {"hidden": [8]},
+            "train": {"progress": False, "warmup": 0},
+            "data": {"batch_size": 256, "pool_size": 4096},
+        }
+    )
+    run = tmp_path / "run"
+    folder = runfolder.Folder.open(run, resume=False, overwrite=False)
+    folder.start(cfg.to_yaml())
+    starts.distill(cfg, inverse.bsdf_element("diffuse"), folder.init, 5)
+    runfolder.remove_run(run)
+    assert not (folder.init / starts.TEACHER_XML).exists()
