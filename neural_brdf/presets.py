@@ -63,7 +63,7 @@ def directory() -> Path:
     return anchor.parent
 
 
-SUBFOLDERS = ("mlp",)  # preset families named "mlp/gold", listed with the rest
+SUBFOLDERS = ("mlp", "mitsuba")  # preset families named "mlp/gold", listed with the rest
 # Former names still accepted: the compact presets were "compact/gold" until they became
 # the top-level presets (issue 21); the 3 x 64 networks are now "mlp/gold".
 ALIASES = {"compact/": ""}

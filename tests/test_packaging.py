@@ -126,7 +126,9 @@ def test_presets_are_the_configs_folder():
     assert presets.names() == sorted(
         [p.stem for p in (ROOT / "configs").glob("*.yaml")]
         + [f"mlp/{p.stem}" for p in (ROOT / "configs" / "mlp").glob("*.yaml")]
+        + [f"mitsuba/{p.stem}" for p in (ROOT / "configs" / "mitsuba").glob("*.yaml")]
     )
+    assert "mitsuba/roughplastic" in presets.names()
     assert "mlp/gold" in presets.names()
     assert {"gold", "quickstart", "merl", "defaults"} <= set(presets.names())
     for name, text in presets.listing():
