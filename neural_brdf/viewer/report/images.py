@@ -15,11 +15,12 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from neural_brdf import runfolder
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.report.blocks import Block, Heading, Image, Table, Text
 from neural_brdf.viewer.report.run import Run
 
-COVERAGE_PICTURE = "coverage.png"  # the map a fit writes beside metrics.json
+COVERAGE_PICTURE = runfolder.COVERAGE  # the map a fit writes beside metrics.json
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 EXR_HEADER_BYTES = 1 << 16  # a header's attributes, read no further

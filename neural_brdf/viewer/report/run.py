@@ -12,15 +12,17 @@ from pathlib import Path
 import numpy as np
 
 from neural_brdf import config as cfgmod
+from neural_brdf import runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.runtime import NeuralBRDF, load
 from neural_brdf.train import data
 from neural_brdf.train.session import LOG_COLUMNS
 
-RUN_FILES = ("config.yaml", "metrics.json", "log.csv", "model.onnx")
+# the run's files a report reads (their names: runfolder)
+RUN_FILES = (runfolder.CONFIG, runfolder.METRICS, runfolder.LOG, runfolder.MODEL)
 RENDER_SPP = 16  # Mitsuba preview: enough to judge the material, seconds to render
 RENDER_RESOLUTION = 128
-VIEWER_FILE = "viewer.html"  # the interactive viewer, beside the report
+VIEWER_FILE = runfolder.VIEWER  # the interactive viewer, beside the report
 
 
 # ------------------------------------------------------------------ reading a run
