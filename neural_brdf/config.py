@@ -233,23 +233,65 @@ class Export(_Section):
     parity_tol: float = Field(1e-5, gt=0.0)  # max relative difference
 
 
+# The analytic families an images fit can start from (neural_brdf/inverse/starts.py,
+# FAMILIES; tests/inverse/test_starts.py keeps the two equal), simplest first.
+START_FAMILIES = ("diffuse", "roughplastic", "roughconductor", "roughconductor_aniso", "blend")
+START_CHOICES = ("auto", "ggx", "constant", *START_FAMILIES)
+ANISOTROPIC_FAMILIES = ("roughconductor_aniso",)  # need an anisotropic model.encoding
+
+
 class Images(_Section):
     # an images fit (target.images; docs/inverse.md): its start, its renders and its
     # validation split; read by no other target
-    start: Literal["ggx", "constant"] = "ggx"  # ggx: a fitted GGX, distilled; constant: a dim f
-    start_steps: int | None = Field(None, ge=1)  # roughconductor steps (null: train.steps)
-    start_train_steps: int = Field(1500, ge=1)  # sample-based training steps on the fitted GGX
-    start_lr_scale: float = Field(0.05, gt=0.0)  # after a ggx start: image stage lr / train.lr
+    # auto: every family of start_families fitted to the images, the one the validation
+    # split prefers distilled into the network; a family name: that one; ggx: the
+    # roughconductor fit of the first version; constant: a dim f
+    start: str = "auto"
+    start_families: list[str] = Field(default_factory=lambda: list(START_FAMILIES))
+    start_steps: int | None = Field(None, ge=1)  # each family's fit (null: 80; ggx: train.steps)
+    start_train_steps: int = Field(1500, ge=1)  # sample-based training steps on the start
+    start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(32, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network
-    # the validation split, held out of the fit (the start's too) and scored every
-    # validation_every steps; the best-scoring weights are kept (the start's if none beat it)
-    validation_pixels: float = Field(0.0, ge=0.0, lt=1.0)  # share of a fitted view's pixels
+    # the validation split, held out of the fit (the start's too), choosing the start
+    # (auto) and scored every validation_every steps; the best-scoring weights are kept
+    # (the start's if none beat it)
+    validation_pixels: float = Field(0.2, ge=0.0, lt=1.0)  # share of a fitted view's tiles
+    validation_block: int = Field(4, ge=1, le=64)  # the split's tiles: block x block pixels
     validation_views: list[int] = Field(default_factory=list)  # target.images indices, whole
     validation_every: int = Field(10, ge=1)  # steps between held-out losses
     validation_spp: int = Field(64, ge=1)  # samples per pixel of the held-out renders
+
+    @field_validator("start")
+    @classmethod
+    def _start(cls, name: str) -> str:
+        if name not in START_CHOICES:
+            *first, last = [repr(n) for n in START_CHOICES]
+            raise PydanticCustomError(
+                "literal_error",
+                "Input should be {expected}",
+                {"expected": f"{', '.join(first)} or {last}"},
+            )
+        return name
+
+    @field_validator("start_families")
+    @classmethod
+    def _families(cls, names: list[str]) -> list[str]:
+        bad = [n for n in names if n not in START_FAMILIES]
+        why = (
+            f"{bad[0]!r} is not a family; expected some of {', '.join(START_FAMILIES)}"
+            if bad
+            else "empty; name at least one family"
+            if not names
+            else f"{names} names a family twice"
+            if len(set(names)) != len(names)
+            else None
+        )
+        if why is not None:
+            raise PydanticCustomError("start_families", why)
+        return names
 
     @property
     def split(self) -> bool:
@@ -321,6 +363,24 @@ class Config(_Section):
             raise ValueError(f"{key}: {held} names a view twice")
         if len(held) >= n:
             raise ValueError(f"{key}: holds out all {n} views; at least one must be fitted")
+        return self
+
+    @model_validator(mode="after")
+    def _images_start(self):
+        im = self.images
+        if self.target.images is None:
+            return self
+        if im.start == "auto" and not im.split:
+            raise ValueError(
+                "images.start: auto chooses the start by the validation split, which is off; "
+                "set images.validation_pixels > 0 or images.validation_views, or name the "
+                "start (constant, ggx or a family)"
+            )
+        if im.start in ANISOTROPIC_FAMILIES and not encodings.get(self.model.encoding).anisotropic:
+            raise ValueError(
+                f"images.start: {im.start} needs an anisotropic model.encoding "
+                f"(anisotropic), not {self.model.encoding}"
+            )
         return self
 
     def to_yaml(self) -> str:

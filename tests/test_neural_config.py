@@ -172,30 +172,38 @@ def images_config(tmp_path):
     return path
 
 
-def test_the_images_section_keeps_the_fit_as_it_was():
-    # the defaults of the settings inverse.fit held in Python before (its Settings)
-    images = config.Config().images
-    assert images.model_dump() == {
-        "start": "ggx",
-        "start_steps": None,
-        "start_train_steps": 1500,
-        "start_lr_scale": 0.05,
-        "start_grid_lr_scale": 1.0,
-        "spp": 8,
-        "primal_spp": 32,
-        "lobe_every": 50,
-        "validation_pixels": 0.0,
-        "validation_views": [],
-        "validation_every": 10,
-        "validation_spp": 64,
-    }
-    assert not images.split
+def test_the_default_start_chooses_by_a_split_and_refuses_to_run_without_one(images_config):
+    # images.start: auto (the default) chooses the start on the validation split, so the
+    # default config has one, and switching it off without naming a start is refused
+    cfg = config.load(images_config)
+    assert cfg.images.start == "auto" and cfg.images.split
+    with pytest.raises(config.ConfigError) as err:
+        config.load(images_config, ["images.validation_pixels=0"])
+    assert "images.start: auto chooses the start by the validation split" in str(err.value)
+    for named in ("constant", "ggx", "roughplastic"):
+        assert not config.load(
+            images_config, ["images.validation_pixels=0", f"images.start={named}"]
+        ).images.split
+    # an anisotropic family needs an encoding that can hold it
+    with pytest.raises(
+        config.ConfigError, match="images.start: roughconductor_aniso needs an anisotropic"
+    ):
+        config.load(images_config, ["images.start=roughconductor_aniso"])
+    aniso = [
+        "images.start=roughconductor_aniso",
+        "model.encoding=anisotropic",
+        "model.grid.coords=half_disc",
+    ]
+    assert config.load(images_config, aniso).images.start == "roughconductor_aniso"
 
 
 @pytest.mark.parametrize(
     "override, key, words",
     [
-        ("images.start=mixture", "images.start", "'ggx' or 'constant'"),
+        ("images.start=mixture", "images.start", "'roughconductor_aniso' or 'blend'"),
+        ("images.start_families=[glass]", "images.start_families", "'glass' is not a family"),
+        ("images.start_families=[]", "images.start_families", "empty"),
+        ("images.validation_block=0", "images.validation_block", "greater than or equal to 1"),
         ("images.spp=0", "images.spp", "greater than or equal to 1"),
         ("images.primal_spp=2.5", "images.primal_spp", "integer"),
         ("images.start_steps=0", "images.start_steps", "greater than or equal to 1"),

@@ -148,6 +148,7 @@ class View:
     weight_tensor: Any = None
     held_out: bool = False  # the whole view is held out (images.validation_views)
     held_out_pixels: np.ndarray | None = None  # (H, W) bool: ... these of its pixels
+    object: np.ndarray | None = None  # (H, W) bool: the object's pixels (None: not found yet)
 
     def validation_mask(self) -> np.ndarray | None:
         """(H, W) bool: the view's pixels in the validation split (None: none)."""
@@ -368,24 +369,37 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
 
 def split_views(views: list[View], images: cfgmod.Images, seed: int) -> None:
     """Mark the validation split on ``views``: the views ``images.validation_views``
-    whole, and in every other view a share ``images.validation_pixels`` of its pixels
-    (rounded, at least one, never all), drawn without repetition from ``seed`` and the
-    view's index alone (a view added leaves the others' masks as they were)."""
-    share = images.validation_pixels
+    whole, and in every other view a share ``images.validation_pixels`` of its tiles of
+    ``images.validation_block`` x ``validation_block`` pixels (rounded, at least one,
+    never all), drawn without repetition from ``seed`` and the view's index alone (a
+    view added leaves the others' masks as they were).  Tiles rather than single pixels:
+    a held-out pixel then mostly has held-out neighbours, which see nearly the same
+    pairs (wi, wo), so the split measures how the fit does on directions it did not see;
+    the choice of a start (:func:`neural_brdf.inverse.starts.pick`) takes the tiles as
+    its independent units."""
+    share, block = images.validation_pixels, images.validation_block
     for k, v in enumerate(views):
         v.held_out, v.held_out_pixels = k in images.validation_views, None
         if v.held_out or share <= 0:
             continue
-        h, w = v.target.shape[:2]
-        n = h * w
+        tile = tiles(v.target.shape, block)
+        n = int(tile.max()) + 1
         if n < 2:
+            h, w = v.target.shape[:2]
             raise InputError(
-                f"images.validation_pixels: {v.image_path} has {n} pixel; it cannot be split"
+                f"images.validation_pixels: {v.image_path} ({w}x{h} pixels) is one tile of "
+                f"images.validation_block={block}; it cannot be split (give a smaller block)"
             )
         m = min(max(round(share * n), 1), n - 1)
-        mask = np.zeros(n, bool)
-        mask[np.random.default_rng([seed, 29, k]).choice(n, size=m, replace=False)] = True
-        v.held_out_pixels = mask.reshape(h, w)
+        chosen = np.random.default_rng([seed, 29, k]).choice(n, size=m, replace=False)
+        v.held_out_pixels = np.isin(tile, chosen)
+
+
+def tiles(shape: tuple[int, ...], block: int) -> np.ndarray:
+    """(H, W) int: the index of each pixel's ``block`` x ``block`` tile, row-major."""
+    h, w = shape[:2]
+    across = (w + block - 1) // block
+    return (np.arange(h)[:, None] // block) * across + np.arange(w)[None, :] // block
 
 
 def fitted_views(views: list[View]) -> list[View]:
@@ -441,24 +455,37 @@ def rel_weight(target: np.ndarray) -> np.ndarray:
 
 
 def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
-    """The relative MSE (module doc) over the validation split: the mean over the
-    held-out pixels (:meth:`View.validation_mask`) of every view and over RGB, each view
-    rendered as its scene now stands, without gradients, at ``spp`` samples per pixel
-    and a seed set by ``seed`` and the view alone, so that the scores of different
-    weights share their samples.  None when no pixel is held out."""
+    """The relative MSE (module doc) over the validation split, estimated without the
+    render's own noise: the mean over the held-out pixels (:meth:`View.validation_mask`,
+    within ``view.object`` when it is known) of every view and over RGB of
+    (x1 - y)(x2 - y) w, x1 and x2 two renders of the view as its scene now stands, without
+    gradients, of ``spp`` // 2 samples per pixel each (at least 1) and independent seeds
+    set by ``seed`` and the view alone.  Its expectation is the loss of the noise-free
+    render, so two weights (or a network and an analytic start:
+    :func:`neural_brdf.inverse.starts.noise_free_loss`) compare by how well they fit, not
+    by how noisy they render; scores of different weights share their samples.  None
+    when no pixel is held out."""
     import drjit as dr
     import mitsuba as mi
 
     total, count = 0.0, 0
+    each = max(1, spp // 2)
     for i, v in enumerate(views):
         mask = v.validation_mask()
         if mask is None:
             continue
-        fixed = _rng_seed(seed, VALIDATION_STEP, i)
-        with dr.suspend_grad():
-            img = mi.render(v.scene, spp=spp, seed=fixed)  # type: ignore[arg-type]  # stub: mi.UInt32
-        d = np.asarray(img, dtype=np.float64)[..., :3] - v.target
-        total += float(np.sum((d * d * rel_weight(v.target))[mask]))
+        if v.object is not None:
+            mask = mask & v.object
+        if not mask.any():
+            continue
+        renders = []
+        for k in (0, 1):
+            fixed = _rng_seed(seed, VALIDATION_STEP + k, i)
+            with dr.suspend_grad():
+                img = mi.render(v.scene, spp=each, seed=fixed)  # type: ignore[arg-type]  # stub: mi.UInt32
+            renders.append(np.asarray(img, dtype=np.float64)[..., :3] - v.target)
+        term = renders[0] * renders[1] * rel_weight(v.target)
+        total += float(np.sum(term[mask]))
         count += 3 * int(mask.sum())
     return total / count if count else None
 
@@ -754,7 +781,9 @@ def validation_figures(views: list[View], images: cfgmod.Images, val: dict) -> d
         "spp": images.validation_spp,
         "every": images.validation_every,
         "loss_definition": "relative MSE (x - y)^2 / (y_bar^2 + 0.01), mean over the held-out "
-        "pixels and RGB, every view rendered without gradients at the same seed each time",
+        "pixels of the object and RGB, estimated without the render's noise as "
+        "(x1 - y)(x2 - y) / (y_bar^2 + 0.01), x1 and x2 two renders of spp / 2 samples with "
+        "fixed independent seeds (the same at every scoring)",
         "start_loss": val["start_loss"],
         "best_loss": val["best_loss"],
         "best_step": best,
@@ -802,6 +831,10 @@ def fit(
         raw, training = _fit_views(cfg, run_dir, views, folder, resume=resume)
     finally:
         release(views)
+    init = training.get("init")
+    training["start_seconds"] = float(init["seconds"]) if isinstance(init, dict) else 0.0
+    # the whole fit (start, image stage, the checks before them); a resumed run: this part
+    training["fit_seconds"] = time.perf_counter() - t0
     return raw, training, t0
 
 
@@ -813,7 +846,7 @@ def _fit_views(
     *,
     resume: bool,
 ) -> tuple[RawBRDF, dict[str, Any]]:
-    from neural_brdf.inverse import coverage
+    from neural_brdf.inverse import coverage, starts
 
     images = cfg.images
     check_films(views)  # before anything is written
@@ -829,9 +862,17 @@ def _fit_views(
     )
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
+    for v in views:  # the object's pixels: the held-out loss and the start's split
+        v.object = starts.object_mask(v)
     init_state, init_info = None, None
     lr_factor, grid_lr_scale = 1.0, None
-    if images.start == "ggx":
+    if images.start not in ("ggx", "constant"):  # auto, or a family
+        lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
+        if not resume:
+            init_state, init_info = starts.network_start(
+                cfg, views, folder.init, report=_reporter(cfg)
+            )
+    elif images.start == "ggx":
         lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
         if not resume:
             rough = fit_roughconductor(
@@ -861,6 +902,13 @@ def _fit_views(
     )
     training["coverage"] = covered
     return raw, training
+
+
+def _reporter(cfg: cfgmod.Config):
+    """A line on stderr per stage of the start (with ``train.progress``), else None."""
+    if not cfg.train.progress:
+        return None
+    return lambda line: print(f"{cfg.name}: {line}", file=sys.stderr, flush=True)
 
 
 def release(views: list[View]) -> None:

@@ -93,6 +93,7 @@ import numpy as np
 
 from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
+from neural_brdf.errors import InputError
 from neural_brdf.inverse import fit as inverse
 
 TEACHER_XML = runfolder.TEACHER  # the file distill() writes into its run folder
@@ -386,11 +387,7 @@ def object_mask(view: inverse.View) -> np.ndarray:
     return inverse.sphere_mask(dataclasses.replace(view, tree=ET.ElementTree(root)))
 
 
-def tiles(shape: tuple[int, ...], block: int) -> np.ndarray:
-    """(H, W) int: the index of each pixel's ``block`` x ``block`` tile, row-major."""
-    h, w = shape[:2]
-    across = (w + block - 1) // block
-    return (np.arange(h)[:, None] // block) * across + np.arange(w)[None, :] // block
+tiles = inverse.tiles  # (H, W) tile indices (the split's units)
 
 
 def split_pixels(
@@ -719,6 +716,7 @@ def fit_candidate(
 # errors of the paired difference (tiles as the independent units): pick().
 TIE_TOL = 0.02
 TIE_SIGMAS = 2.0
+TIE_MAX = 0.25  # ... and never by more than this (relative): see the module doc
 
 
 def compare(a: Candidate, b: Candidate, unit: np.ndarray | None) -> tuple[float, float]:
@@ -743,11 +741,13 @@ def pick(
     *,
     tie_tol: float = TIE_TOL,
     sigmas: float = TIE_SIGMAS,
+    tie_max: float = TIE_MAX,
 ) -> tuple[Candidate, dict[str, dict[str, Any]]]:
     """The simplest candidate (fewest free scalars; then the earlier) whose held-out loss
     exceeds the least one's by no more than ``tie_tol`` times it or ``sigmas`` standard
     errors of the paired difference (:func:`compare`, over ``unit``), whichever is
-    larger: a more complex family must earn its place.  Returns it and, per family, the
+    larger, the latter capped at ``tie_max`` times the least: a more complex family must
+    earn its place, and a much worse simple one is never taken.  Returns it and, per family, the
     margin over the best (``above_best``, ``standard_error``, ``tied``)."""
     ok = [c for c in candidates if math.isfinite(c.val_loss)]
     if not ok:
@@ -757,7 +757,9 @@ def pick(
     tied = []
     for c in ok:
         diff, se = compare(c, best, unit) if c is not best else (0.0, 0.0)
-        within = diff <= max(tie_tol * abs(best.val_loss), sigmas * se)
+        within = diff <= max(
+            tie_tol * abs(best.val_loss), min(sigmas * se, tie_max * abs(best.val_loss))
+        )
         margins[c.family] = {"above_best": diff, "standard_error": se, "tied": bool(within)}
         if within:
             tied.append(c)
@@ -792,11 +794,13 @@ class Choice:
             "val_loss": self.chosen.val_loss,
             "rule": (
                 "the simplest family (fewest free scalars) whose held-out relative MSE "
-                "(noise-free estimate) is within max(tie_tol x the least, sigmas x the "
-                "standard error of the paired difference over tiles) of the least"
+                "(noise-free estimate) is within max(tie_tol x the least, min(sigmas x the "
+                "standard error of the paired difference over tiles, tie_max x the least)) "
+                "of the least"
             ),
             "tie_tol": self.tie_tol,
             "sigmas": self.sigmas,
+            "tie_max": TIE_MAX,
             "split": {"val_share": self.val_share, "block_pixels": self.block},
             "candidates": [
                 {**c.summary(), **self.margins.get(c.family, {})} for c in self.candidates
@@ -907,6 +911,126 @@ def choose_start(
         sigmas=sigmas,
         seconds=time.perf_counter() - start,
     )
+
+
+# ------------------------------------------------------------------ the run's start
+def candidates(cfg: cfgmod.Config) -> tuple[list[str], dict[str, str]]:
+    """The families an images fit of ``cfg`` fits (``images.start``: every one of
+    ``images.start_families`` for ``auto``, else that family), and those left out, with
+    why: an anisotropic family when ``model.encoding`` is isotropic (the network could
+    not represent it; config.py refuses one named alone)."""
+    from neural_brdf import encodings
+
+    images = cfg.images
+    names = list(images.start_families) if images.start == "auto" else [images.start]
+    left: dict[str, str] = {}
+    if not encodings.get(cfg.model.encoding).anisotropic:
+        for n in names:
+            if n in cfgmod.ANISOTROPIC_FAMILIES:
+                left[n] = (
+                    f"model.encoding {cfg.model.encoding!r} is isotropic and cannot represent "
+                    "it (model.encoding: anisotropic can)"
+                )
+    return [n for n in names if n not in left], left
+
+
+def run_masks(views: Sequence[inverse.View]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(train, held-out) masks of the run's own validation split (:func:`~neural_brdf.
+    inverse.fit.split_views`) within the object's pixels (``view.object``, else
+    :func:`object_mask`): the start is fitted on the pixels the network stage fits and
+    chosen on those it is scored on."""
+    train, held = [], []
+    for v in views:
+        obj = v.object if v.object is not None else object_mask(v)
+        val = v.validation_mask()
+        val = np.zeros_like(obj) if val is None else val
+        train.append(obj & ~val)
+        held.append(obj & val)
+    return train, held
+
+
+def network_start(
+    cfg: cfgmod.Config,
+    views: Sequence[inverse.View],
+    init_dir: Path,
+    *,
+    report: Callable[[str], None] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The start of an images fit whose ``images.start`` is ``auto`` or a family: the
+    candidates (:func:`candidates`) fitted on the run's training pixels, the one the
+    validation split prefers (:func:`choose_start`; a family named alone is taken as
+    it is), distilled into the network (:func:`distill`, ``images.start_train_steps``
+    steps in ``init_dir``).  Returns (the network's state_dict, figures: the distillation's,
+    with ``start``, every candidate and the choice).  ``report``: called with a line per
+    candidate fitted and one for the choice."""
+    images = cfg.images
+    names, left = candidates(cfg)
+    if not names:
+        raise InputError(
+            "images.start_families: every family is left out: "
+            + "; ".join(f"{k}: {why}" for k, why in left.items())
+        )
+    train, held = run_masks(views)
+    sched = Schedule(val_spp=images.validation_spp)
+
+    def said(c: Candidate) -> None:
+        if report is not None:
+            report(
+                f"start {c.family}: held-out loss {c.val_loss:.4g} (training pixels "
+                f"{c.train_loss:.4g}), {c.seconds:.1f} s"
+            )
+
+    if images.start == "auto":
+        if not any(m.any() for m in held):
+            raise InputError(
+                "images.start: auto chooses by the validation split, and it holds no pixel "
+                "of the object; set images.validation_pixels or images.validation_views"
+            )
+        choice = choose_start(
+            views,
+            names,
+            steps=images.start_steps,
+            seed=cfg.train.seed,
+            block=images.validation_block,
+            masks=(train, held),
+            schedule=sched,
+            progress=said,
+        )
+        element, summary = choice.element, choice.summary()
+    else:
+        c = fit_candidate(
+            views,
+            names[0],
+            mask_train=train,
+            mask_val=held,
+            seed=cfg.train.seed,
+            steps=images.start_steps,
+            schedule=sched,
+        )
+        said(c)
+        element = c.element
+        summary = {
+            "family": c.family,
+            "params": c.params,
+            "val_loss": c.val_loss,
+            "rule": "images.start names the family",
+            "candidates": [c.summary()],
+            "seconds": c.seconds,
+        }
+    summary["left_out"] = left
+    if report is not None:
+        shown = ", ".join(f"{k} {_short(v)}" for k, v in summary["params"].items())
+        report(f"start: {summary['family']} ({shown})")
+    state, info = distill(cfg, element, init_dir, images.start_train_steps)
+    info["start"] = summary
+    info["seconds"] = float(info["seconds"]) + float(summary["seconds"])
+    return state, info
+
+
+def _short(v: Any) -> str:
+    if isinstance(v, (list, tuple)):
+        return "(" + ", ".join(f"{float(x):.3g}" for x in v) + ")"
+    return f"{float(v):.3g}" if isinstance(v, (int, float)) else str(v)
 
 
 # ------------------------------------------------------------------ the teacher

@@ -6,8 +6,9 @@
   Monte Carlo samples are the same) to 0.5 %, for the two largest entries of every
   weight tensor (grid, hidden layer, head);
 * a small fast fit end to end through the CLI (``neural-brdf train fit.yaml``): three
-  16 x 16 views of the example's copper sphere, 30 steps (GGX start, then the network),
-  a fifth of each view's pixels held out (``images.validation_pixels``); the image stage
+  16 x 16 views of the example's copper sphere, 30 steps (the default ``auto`` start:
+  the families fitted and one chosen on the held-out pixels, a conductor here, then the
+  network), a fifth of each view's tiles held out (``images.validation_pixels``); the image stage
   must do something: its held-out loss ends clearly below the start's (a learning rate
   of 0 fails this) and the exported network differs from the start's; the exported
   model's render of a fitted view comes within the stated error of its target, which
@@ -48,17 +49,21 @@ TARGET_SPP = 64
 FIT_STEPS = 30
 # The stated error of the small fit: the exported model, rendered at 256 spp in the
 # first view, is within this relative RMSE of the target over the sphere's pixels, and
-# the network's constant start is not.
-FIT_IMAGE_ERROR = 0.15
-# The small fit holds out this share of each view's pixels; the image stage must bring
-# their loss below HELDOUT_GAIN x the start's (measured: 0.54 x; with the image stage's
+# the network's constant start is not (measured: 0.19 against 0.78; the start is a
+# conductor distilled for 30 steps only, about 20 % off, so that the image stage has
+# work to do).
+FIT_IMAGE_ERROR = 0.25
+# The small fit holds out this share of each view's tiles; the image stage must bring
+# their loss below HELDOUT_GAIN x the start's (measured: 0.31 x; with the image stage's
 # learning rate at 0 it stays at 1 x), and move the network by at least NETWORK_CHANGE
-# (relative RMS of f against the start's network; measured: 0.095).
+# (relative RMS of f against the start's network).
 HELDOUT_SHARE = 0.2
 HELDOUT_GAIN = 0.8
 NETWORK_CHANGE = 0.02
+BLOCK = 4  # images.validation_block's default
 FIT_OVERRIDES = [
     f"train.steps={FIT_STEPS}",
+    f"images.start_steps={FIT_STEPS}",
     "train.progress=false",
     "train.warmup=5",
     "train.lr=0.02",
@@ -193,7 +198,14 @@ def train_args(config_path: Path, run_dir: Path, overrides: list[str]) -> list[s
 @pytest.fixture(scope="module")
 def fitted(mi, example, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("fit") / "run"
-    split = [f"images.validation_pixels={HELDOUT_SHARE}"]
+    # a short distillation leaves the start about 20 % off, and the image stage runs at
+    # train.lr, so that it has something to do in 30 steps (a full distillation of the
+    # chosen roughconductor is already within the targets' noise at 16 x 16)
+    split = [
+        f"images.validation_pixels={HELDOUT_SHARE}",
+        "images.start_train_steps=30",
+        "images.start_lr_scale=1",
+    ]
     code = cli.main(train_args(example / "fit.yaml", run_dir, FIT_OVERRIDES + split))
     return code, run_dir
 
@@ -233,14 +245,25 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     metrics = json.loads((run_dir / "metrics.json").read_text())
     training = metrics["training"]
     assert training["steps"] == FIT_STEPS
-    assert training["init"]["roughconductor"]["steps"] == FIT_STEPS
+    # the default start (auto): the families the isotropic network can hold, fitted on
+    # the training pixels and chosen by the held-out ones: a conductor for this copper
+    start = training["init"]["start"]
+    assert [c["family"] for c in start["candidates"]] == [
+        "diffuse",
+        "roughplastic",
+        "roughconductor",
+        "blend",
+    ]
+    assert list(start["left_out"]) == ["roughconductor_aniso"]
+    assert start["family"] in ("roughconductor", "blend"), start
+    assert training["fit_seconds"] >= training["start_seconds"] > 0
     assert all(math.isfinite(x) for x in losses)
     # the image stage did something: the held-out pixels' loss fell clearly below the
     # start's, and the network moved away from the start's
     val = training["validation"]
-    assert val["pixels"] == HELDOUT_SHARE and val["heldout_pixels"] == 3 * round(
-        HELDOUT_SHARE * RES * RES
-    )
+    tiles = (RES // BLOCK) ** 2  # the split holds out whole BLOCK x BLOCK tiles
+    assert val["pixels"] == HELDOUT_SHARE
+    assert val["heldout_pixels"] == 3 * round(HELDOUT_SHARE * tiles) * BLOCK * BLOCK
     assert val["best_step"] > 0, val
     assert val["best_loss"] < HELDOUT_GAIN * val["start_loss"], val
     assert start_network_change(run_dir) > NETWORK_CHANGE
@@ -336,7 +359,12 @@ def test_the_pixel_split_is_seeded_and_out_of_the_loss(mi, example):
     inverse.split_views(views, cfg.images, seed=0)
     n = RES * RES
     masks = [v.validation_mask() for v in views]
-    assert all(m is not None and m.sum() == round(0.25 * n) for m in masks)
+    tiles = (RES // BLOCK) ** 2
+    assert all(m is not None and m.sum() == round(0.25 * tiles) * BLOCK * BLOCK for m in masks)
+    # whole tiles: every held-out pixel's tile is held out with it
+    for m in masks:
+        blocks = m.reshape(RES // BLOCK, BLOCK, RES // BLOCK, BLOCK).any(axis=(1, 3))
+        assert np.array_equal(np.repeat(np.repeat(blocks, BLOCK, 0), BLOCK, 1), m)
     assert not np.array_equal(masks[0], masks[1])  # each view its own draw
     again = inverse.read_views(cfg)
     inverse.split_views(again, cfg.images, seed=0)
@@ -349,14 +377,16 @@ def test_the_pixel_split_is_seeded_and_out_of_the_loss(mi, example):
         # the loss stays a mean over the fitted pixels
         assert w.sum() == pytest.approx(full[~m].sum() * n / (n - m.sum()), rel=1e-5)
     # whole views: held out, not fitted, every pixel scored
-    cfg = config.load(example / "fit.yaml", ["images.validation_views=[1]"])
+    cfg = config.load(
+        example / "fit.yaml", ["images.validation_views=[1]", "images.validation_pixels=0"]
+    )
     views = inverse.read_views(cfg)
     inverse.split_views(views, cfg.images, seed=0)
     assert [v.held_out for v in views] == [False, True, False]
     assert inverse.fitted_views(views) == [views[0], views[2]]
     assert views[1].validation_mask().all() and views[0].validation_mask() is None
     # no split: the fit's weights as before
-    cfg = config.load(example / "fit.yaml")
+    cfg = config.load(example / "fit.yaml", ["images.validation_pixels=0", "images.start=ggx"])
     views = inverse.read_views(cfg)
     inverse.split_views(views, cfg.images, seed=0)
     assert all(v.validation_mask() is None for v in views)

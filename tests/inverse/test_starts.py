@@ -406,3 +406,56 @@ def test_an_overwritten_run_removes_the_teacher(mi, tmp_path):
     starts.distill(cfg, inverse.bsdf_element("diffuse"), folder.init, 5)
     runfolder.remove_run(run)
     assert not (folder.init / starts.TEACHER_XML).exists()
+
+
+# ------------------------------------------------------------------ the choice's rule
+def _candidate(name: str, terms):
+    from neural_brdf.inverse import starts
+
+    terms = np.asarray(terms, np.float64)
+    fam = starts.family(name)
+    return starts.Candidate(
+        family=name,
+        params={},
+        train_loss=float(terms.mean()),
+        val_loss=float(terms.mean()),
+        val_loss_plain=float(terms.mean()),
+        seconds=0.0,
+        steps=0,
+        complexity=fam.complexity,
+        element=starts.STAND_IN,
+        val_pixels=terms,
+    )
+
+
+def test_pick_takes_the_simpler_family_within_the_noise_and_never_a_much_worse_one():
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(0)
+    unit = np.repeat(np.arange(9), 16)  # 9 tiles of 16 pixels: a small film's split
+    good = rng.gamma(2.0, 0.005, unit.size)
+    # 2 % worse on average with tile-to-tile noise: a tie, the simpler family wins
+    close = good * 1.02 + rng.normal(0.0, 0.002, unit.size)
+    chosen, margins = starts.pick([_candidate("diffuse", close), _candidate("blend", good)], unit)
+    assert chosen.family == "diffuse" and margins["diffuse"]["tied"]
+    # 35 times worse but with one wild tile, so 2 standard errors would cover it: the
+    # cap (TIE_MAX of the least) keeps the simple family out
+    bad = good * 35.0
+    bad[unit == 0] *= 200.0
+    chosen, margins = starts.pick([_candidate("diffuse", bad), _candidate("blend", good)], unit)
+    assert (
+        margins["diffuse"]["above_best"] < starts.TIE_SIGMAS * margins["diffuse"]["standard_error"]
+    )
+    assert chosen.family == "blend" and not margins["diffuse"]["tied"]
+    # without the cap the rule would have taken it
+    chosen, _ = starts.pick(
+        [_candidate("diffuse", bad), _candidate("blend", good)], unit, tie_max=math.inf
+    )
+    assert chosen.family == "diffuse"
+
+
+def test_the_config_names_every_family_and_only_those():
+    from neural_brdf.inverse import starts
+
+    assert tuple(starts.FAMILIES) == config.START_FAMILIES
+    assert set(config.ANISOTROPIC_FAMILIES) <= set(starts.FAMILIES)

@@ -199,12 +199,55 @@ def _fit_figures(run: Run) -> list[Block]:
         if v is not None:
             rows.append([label, format(v, spec) + (" s" if key.endswith("seconds") else "")])
     init = training.get("init")
-    if isinstance(init, dict) and isinstance(init.get("target"), str):
+    chosen = init.get("start") if isinstance(init, dict) else None
+    if isinstance(chosen, dict) and isinstance(chosen.get("family"), str):
+        n = len(chosen.get("candidates") or [])
+        how = f"chosen of {n} by the held-out pixels" if n > 1 else "named in the config"
+        rows.append(["start", f"{chosen['family']} ({how}), distilled into the network"])
+    elif isinstance(init, dict) and isinstance(init.get("target"), str):
         rows.append(["start", init["target"]])
     elif "init" in training and init is None:
         rows.append(["start", "a constant (no fitted start)"])
     rows += _validation_rows(training.get("validation"))
-    return [Table(["figure", "value"], rows)] if rows else []
+    out: list[Block] = [Table(["figure", "value"], rows)] if rows else []
+    return out + _start_candidates(chosen)
+
+
+def _start_candidates(chosen: Any) -> list[Block]:
+    """The families fitted for the start (``training.init.start.candidates``): each one's
+    held-out and training loss, its time and whether the choice's rule tied it with the
+    best; the families left out, with why."""
+    if not isinstance(chosen, dict) or not isinstance(chosen.get("candidates"), list):
+        return []
+    rows = []
+    for c in chosen["candidates"]:
+        if not isinstance(c, dict):
+            continue
+        val, train, secs = (_finite(c.get(k)) for k in ("val_loss", "train_loss", "seconds"))
+        mark = "chosen" if c.get("family") == chosen.get("family") else ""
+        rows.append(
+            [
+                str(c.get("family")),
+                "" if val is None else f"{val:.4g}",
+                "" if train is None else f"{train:.4g}",
+                "" if secs is None else f"{secs:.1f} s",
+                mark,
+            ]
+        )
+    left = chosen.get("left_out")
+    if isinstance(left, dict):
+        rows += [[str(k), "", "", "", f"left out: {why}"] for k, why in left.items()]
+    if not rows:
+        return []
+    header = ["start family", "held-out loss", "training loss", "fit time", ""]
+    return [
+        Text(
+            "Start: every family fitted to the training pixels, scored on the held-out "
+            "pixels (relative MSE without the render's noise); the simplest one within "
+            "the noise of the best is distilled into the network."
+        ),
+        Table(header, rows),
+    ]
 
 
 def loss_series(log: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
