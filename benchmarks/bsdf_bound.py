@@ -1,5 +1,7 @@
 """BSDF-bound render time of neural BRDFs against Mitsuba's built-in BSDF (llvm_ad_rgb).
 
+    python benchmarks/bsdf_bound.py --variant cuda_ad_rgb gold=runs/gold/model.onnx
+
     python benchmarks/bsdf_bound.py runs/gold/model.onnx runs/gold2x16/model.onnx
     python benchmarks/bsdf_bound.py --label gold=runs/gold/model.onnx --repeats 4
 
@@ -61,7 +63,18 @@ for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip instal
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-mi.set_variant("llvm_ad_rgb")
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
+def _variant_option() -> str:
+    """``--variant`` of the command line, read here: the plugins below register for the
+    variant set before they are imported."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--variant", default=VARIANTS[0], choices=VARIANTS)
+    return pre.parse_known_args()[0].variant
+
+
+mi.set_variant(_variant_option())
 
 import numpy as np  # noqa: E402
 import onnx  # noqa: E402
@@ -220,6 +233,8 @@ def first_render(bsdf: dict, resolution: int, spp: int) -> dict:
                 str(resolution),
                 "--spp",
                 str(spp),
+                "--variant",
+                str(mi.variant()),
             ],
             env=env,
             capture_output=True,
@@ -341,6 +356,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--repeats", type=int, default=4)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--variant", default=VARIANTS[0], choices=VARIANTS, help="Mitsuba variant")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child is not None:

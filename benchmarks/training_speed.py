@@ -3,6 +3,7 @@ and the phases of ``neural-brdf train`` (start, train, export, validate, report)
 
     python benchmarks/training_speed.py                 # quickstart, gold, mlp/gold
     python benchmarks/training_speed.py gold --repeats 5 --steps 1000
+    python benchmarks/training_speed.py gold --device cuda   # every loop and CLI run on the GPU
 
 Loops, all on the same thread count (``train.threads`` of the preset), timed in one run,
 interleaved (project, model-only, plain MLP; again), the best of ``--repeats``:
@@ -76,24 +77,33 @@ def project_loop(cfg: config.Config, folder: Path) -> float:
     return fig["train_seconds"] / fig["steps"]
 
 
-def _timed_steps(step, steps: int) -> float:
+def _sync(device: torch.device | None) -> None:
+    """Wait for the GPU's queued work (timers read host time); nothing on the CPU."""
+    if device is not None and device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _timed_steps(step, steps: int, device: torch.device | None = None) -> float:
     for _ in range(min(20, steps)):  # warm-up: allocator, first-call dispatch
         step()
+    _sync(device)
     t0 = time.perf_counter()
     for _ in range(steps):
         step()
+    _sync(device)
     return (time.perf_counter() - t0) / steps
 
 
 def model_only_loop(cfg: config.Config, steps: int) -> float:
     """Seconds per step of the same model, loss and optimizer on pre-drawn pairs."""
     t, d = cfg.train, cfg.data
+    dev = loop.resolve_device(t.device)
     target = data.build_target(cfg.target)
     gen = torch.Generator().manual_seed(t.seed)
-    wi, wo, f = data.pair_source(target, d, gen).draw(d.pool_size)
-    raw = RawBRDF.from_config(cfg.model)
+    wi, wo, f = (x.to(dev) for x in data.pair_source(target, d, gen).draw(d.pool_size))
+    raw = RawBRDF.from_config(cfg.model).to(dev)
     opt = torch.optim.Adam(raw.parameters(), lr=t.lr, fused=True)
-    order = torch.randperm(d.pool_size, generator=gen)
+    order = torch.randperm(d.pool_size, generator=gen).to(dev)
     state = {"k": 0}
 
     def step():
@@ -108,7 +118,7 @@ def model_only_loop(cfg: config.Config, steps: int) -> float:
         loss.backward()
         opt.step()
 
-    return _timed_steps(step, steps)
+    return _timed_steps(step, steps, dev)
 
 
 def plain_mlp_loop(cfg: config.Config, steps: int) -> float:
@@ -123,10 +133,11 @@ def plain_mlp_loop(cfg: config.Config, steps: int) -> float:
     for h in m.hidden:
         layers += [torch.nn.Linear(width, h), ACTIVATIONS[m.activation]()]
         width = h
-    net = torch.nn.Sequential(*layers, torch.nn.Linear(width, 3))
+    dev = loop.resolve_device(cfg.train.device)
+    net = torch.nn.Sequential(*layers, torch.nn.Linear(width, 3)).to(dev)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.train.lr, fused=True)
-    x = torch.rand(cfg.data.batch_size, n_in)
-    y = torch.rand(cfg.data.batch_size, 3)
+    x = torch.rand(cfg.data.batch_size, n_in).to(dev)
+    y = torch.rand(cfg.data.batch_size, 3).to(dev)
 
     def step():
         loss = torch.nn.functional.mse_loss(net(x), y)
@@ -134,15 +145,15 @@ def plain_mlp_loop(cfg: config.Config, steps: int) -> float:
         loss.backward()
         opt.step()
 
-    return _timed_steps(step, steps)
+    return _timed_steps(step, steps, dev)
 
 
-def phases(preset: str, folder: Path) -> dict:
+def phases(preset: str, folder: Path, device: str = "cpu") -> dict:
     """``neural-brdf train PRESET`` in a fresh process: its seconds and wall time."""
     run_dir = folder / "phases"
     shutil.rmtree(run_dir, ignore_errors=True)
     cmd = [sys.executable, "-m", "neural_brdf", "train", preset, "--out", str(run_dir)]
-    cmd += ["--set", "train.progress=false"]
+    cmd += ["--set", "train.progress=false", "--set", f"train.device={device}"]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True, cwd=folder)
     wall = time.perf_counter() - t0
@@ -158,7 +169,7 @@ def phases(preset: str, folder: Path) -> dict:
     }
 
 
-def measure(preset: str, steps: int, repeats: int, n_phases: int) -> dict:
+def measure(preset: str, steps: int, repeats: int, n_phases: int, device: str = "cpu") -> dict:
     base = config.load(presets.resolve(preset), ["train.progress=false"])
     t = base.train
     cfg = config.load(
@@ -169,6 +180,7 @@ def measure(preset: str, steps: int, repeats: int, n_phases: int) -> dict:
             # the preset's bookkeeping, scaled to the shorter run
             f"train.checkpoint_every={max(1, t.checkpoint_every * steps // t.steps)}",
             f"train.eval_every={max(1, t.eval_every * steps // t.steps)}",
+            f"train.device={device}",
         ],
     )
     torch.set_num_threads(cfg.train.threads)
@@ -179,10 +191,11 @@ def measure(preset: str, steps: int, repeats: int, n_phases: int) -> dict:
             best["project"] = min(best["project"], project_loop(cfg, folder))
             best["model_only"] = min(best["model_only"], model_only_loop(cfg, steps))
             best["plain_mlp"] = min(best["plain_mlp"], plain_mlp_loop(cfg, steps))
-        runs = [phases(preset, folder) for _ in range(n_phases)]
+        runs = [phases(preset, folder, device) for _ in range(n_phases)]
     ms = {k: 1e3 * v for k, v in best.items()}
     return {
         "preset": preset,
+        "device": str(loop.resolve_device(cfg.train.device)),
         "threads": cfg.train.threads,
         "batch_size": cfg.data.batch_size,
         "hidden": cfg.model.hidden,
@@ -202,7 +215,7 @@ MANY_METALS = ("Au", "Cu", "Al", "Ag")
 MANY_ALPHAS = (0.2, 0.4)
 
 
-def measure_many(k: int, steps: int, repeats: int) -> dict:
+def measure_many(k: int, steps: int, repeats: int, device: str = "cpu") -> dict:
     """K gold-recipe materials: one after the other, and in one batch."""
     combos = [(m, a) for a in MANY_ALPHAS for m in MANY_METALS]
     cfgs = [
@@ -216,6 +229,7 @@ def measure_many(k: int, steps: int, repeats: int) -> dict:
                 f"target.params.alpha={combos[i % len(combos)][1]}",
                 f"train.seed={i}",
                 f"name=m{i}",
+                f"train.device={device}",
             ],
         )
         for i in range(k)
@@ -238,6 +252,7 @@ def measure_many(k: int, steps: int, repeats: int) -> dict:
             }
     return {
         "materials": k,
+        "device": str(loop.resolve_device(cfgs[0].train.device)),
         "steps": steps,
         "batch_size": cfgs[0].data.batch_size,
         "seconds": best,
@@ -258,13 +273,16 @@ def main() -> None:
     ap.add_argument("--phases", type=int, default=2, help="CLI runs per preset (best of)")
     ap.add_argument("--many", type=int, default=8, help="materials of the batch (0: skip)")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--device", default="cpu", choices=("cpu", "cuda", "auto"), help="train.device of all"
+    )
     args = ap.parse_args()
     load_start = os.getloadavg()
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
     models = result.setdefault("presets", {})
     for name in args.presets:
         print(f"{name}:", flush=True)
-        models[name] = measure(name, args.steps, args.repeats, args.phases)
+        models[name] = measure(name, args.steps, args.repeats, args.phases, args.device)
         r = models[name]
         print(
             f"  project {r['ms_per_step']['project']:.2f} ms/step, model only "
@@ -274,7 +292,7 @@ def main() -> None:
         )
     if args.many:
         print(f"many: {args.many} materials", flush=True)
-        result["many"] = measure_many(args.many, args.steps, args.repeats)
+        result["many"] = measure_many(args.many, args.steps, args.repeats, args.device)
         r = result["many"]
         print(
             f"  sequential {r['seconds']['sequential']:.1f} s, batched "
