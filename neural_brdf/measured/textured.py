@@ -1,0 +1,423 @@
+"""A textured teacher that Mitsuba 3 evaluates: f depends on the surface position (issue 30,
+the first building block of spatially varying models).
+
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+    teacher = TexturedMitsubaTarget("teacher.xml")   # InputError naming the file if unusable
+    teacher.eval(wi, wo, uv)        # f (N, 3), 1/sr, no cosine, at texture coordinates uv
+    teacher.sample(wi, uv, u), teacher.pdf(wi, wo, uv)    # Mitsuba's own sampler
+    teacher.normal_field(uv)        # the normal map's shading normal (N, 3), tangent frame
+
+The file holds one ``<bsdf>`` (as for :class:`~neural_brdf.measured.mitsuba.MitsubaTarget`)
+whose parameters may be textures (``bitmap``, ``checkerboard``, ...); relative texture
+file names are resolved against the XML's folder by Mitsuba's file resolver, and a
+missing one is refused naming it.  Wrappers are unwrapped to the BSDF they hold:
+
+* ``twosided``: its front BSDF (a BRDF has one side);
+* ``normalmap`` and ``bumpmap``: the nested BSDF.  The target's f is the NESTED BSDF in
+  the unperturbed shading frame: the map is not baked into f, since Mitsuba's wrappers
+  are not reciprocal (they flip the normal by wi, and multiply by a shadowing term of wo
+  alone).  The map is exposed as :meth:`TexturedMitsubaTarget.normal_field`, the
+  perturbed normal at uv in the tangent frame, as Mitsuba's plugins compute it (Mitsuba
+  3.9.1, src/bsdfs/normalmap.cpp and bumpmap.cpp, ``frame()``):
+
+  - normalmap: n = normalize(2 t(uv) - 1), t the texture's RGB (bilinear lookup);
+  - bumpmap: n = normalize(-s dh/du, -s dh/dv, 1), h the texture, s its ``scale``: the
+    normal of the displaced surface p + h n with dp_du = x, dp_dv = y (a flat unit
+    square whose position is uv, as the interaction here is built);
+
+  the perturbed frame is then s = normalize(x - n n_x), t = n x s (Gram-Schmidt of the
+  tangent x).  Mitsuba also flips (n_x, n_y) where wi lies below the perturbed plane
+  (``flip_invalid_normals``, Schuessler et al. 2017) and multiplies by the shadowing
+  term 2 / (1 + sqrt(1 + a2 tan^2 theta_o)), a2 = min(1, tan^2 theta_n / 8)
+  (``use_shadowing_function``, Estevez et al., "A Microfacet-Based Shadowing Function
+  to Solve the Bump Terminator Problem", Ray Tracing Gems 2019); :attr:`normal_map`
+  records which, read from the XML.  A renderer that wants Mitsuba's look applies them.
+
+f is Mitsuba's ``BSDF.eval`` / cos(theta_o) at a surface interaction with ``si.uv`` = uv,
+the identity shading frame (z the normal, x the tangent dp_du) and ``si.p`` = (u, v, 0),
+in an RGB JIT variant.  There is no energy bound here (a later model bounds it): the
+albedo at given uv is estimated by :meth:`TexturedMitsubaTarget.max_albedo`.
+
+Refused, one line naming the file: a file Mitsuba cannot load, a missing texture file
+(named), a non-RGB variant, a BSDF that transmits or has a delta lobe.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from neural_brdf.errors import InputError
+from neural_brdf.measured.base import _unit
+from neural_brdf.measured.mitsuba import (
+    _DELTA_REFLECTION,
+    _SMOOTH_REFLECTION,
+    _TRANSMISSION,
+    CHUNK,
+    _children,
+    _first,
+    _hemisphere,
+    _mitsuba,
+    _np,
+    _tensor,
+)
+
+DEFAULT_VARIANT = "llvm_ad_rgb"
+WRAPPERS = {"TwoSidedBRDF": "twosided", "NormalMap": "normalmap", "BumpMap": "bumpmap"}
+# the anisotropy probe: pairs x uv, turned about the normal
+PROBE_PAIRS = 64
+PROBE_UV = 16
+ANISO_TOL = 1e-3  # relative RMS change under a turn (float32 noise ~1e-6)
+# max_albedo's defaults
+ALBEDO_THETA_DEG = (0.0, 30.0, 60.0, 80.0)
+ALBEDO_SAMPLES = 4096
+
+
+def _as_rows(x: Any, width: int) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().double().numpy()
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape[-1:] != (width,):
+        raise ValueError(f"expected a (..., {width}) array, got {a.shape}")
+    return a
+
+
+class TexturedMitsubaTarget:
+    """One textured BSDF of a Mitsuba XML file as a spatially varying target (module
+    doc): a :class:`neural_brdf.target.SpatiallyVarying` of kind ``"mitsuba"``."""
+
+    kind = "mitsuba"
+
+    def __init__(
+        self, path: str | Path, *, variant: str = DEFAULT_VARIANT, key: str = "target.mitsuba"
+    ):
+        self.path = Path(path)
+        self.source = str(path)
+        self.variant = variant
+        where = f"{key}: {self.source}"
+        if not self.path.is_file():
+            raise InputError(f"{where}: no such file")
+        mi = self._mi = _mitsuba(self.variant, key)
+        self.normal_map: dict[str, Any] | None = None
+        self._normal_tex: Any = None
+        self._bump_scale = 0.0
+        with self._scope():
+            self._check_files(where)
+            try:
+                obj = mi.load_file(str(self.path))
+            except Exception as e:  # Mitsuba's parser and plugins raise several types
+                raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
+            self.bsdf, self.plugin = self._unwrap(obj, where)
+            self._check_flags(where)
+            self.anisotropic = self._probe_anisotropy(where)
+
+    @property
+    def spatially_varying(self) -> Literal[True]:
+        return True
+
+    # ------------------------------------------------------------------ loading
+    @contextlib.contextmanager
+    def _scope(self) -> Iterator[None]:
+        """Mitsuba's variant is the teacher's inside (as MitsubaTarget._scope)."""
+        mi = self._mi
+        before = mi.variant()
+        if before == self.variant:
+            yield
+            return
+        mi.set_variant(self.variant)
+        try:
+            yield
+        finally:
+            if before is not None:
+                mi.set_variant(before)
+
+    def _xml(self, where: str) -> ET.Element:
+        try:
+            return ET.parse(self.path).getroot()
+        except (ET.ParseError, OSError) as e:
+            raise InputError(f"{where}: not a readable XML file ({_first(e)})") from None
+
+    def _check_files(self, where: str) -> None:
+        """Every ``filename`` string of the XML resolves, against the XML's folder first
+        (as Mitsuba's loader does) through a copy of Mitsuba's file resolver; a missing
+        one is named.  Also reads the normal/bump map's flags (module doc)."""
+        mi = self._mi
+        root = self._xml(where)
+        resolver = mi.FileResolver(mi.file_resolver())  # a copy: the global one is untouched
+        resolver.prepend(str(self.path.resolve().parent))
+        for el in root.iter("string"):
+            if el.get("name") != "filename":
+                continue
+            value = el.get("value", "")
+            if "$" in value:  # a parameter ($name): left to Mitsuba's loader
+                continue
+            if not Path(str(resolver.resolve(value))).is_file():
+                raise InputError(
+                    f"{where}: texture file {value!r} not found (relative names are "
+                    f"resolved against {self.path.resolve().parent})"
+                )
+        for el in root.iter("bsdf"):
+            if el.get("type") in ("normalmap", "bumpmap"):
+                flags = {b.get("name"): b.get("value", "true") for b in el.findall("boolean")}
+                self.normal_map = {
+                    "plugin": el.get("type"),
+                    "flip_invalid_normals": flags.get("flip_invalid_normals", "true") == "true",
+                    "use_shadowing_function": flags.get("use_shadowing_function", "true") == "true",
+                }
+                break
+
+    def _unwrap(self, obj: Any, where: str) -> tuple[Any, str]:
+        mi = self._mi
+        if isinstance(obj, mi.Scene):
+            found = [o for _, o in _children(mi, obj) if isinstance(o, mi.BSDF)]
+            if len(found) != 1:
+                raise InputError(
+                    f"{where}: a scene with {len(found)} top-level <bsdf> elements; "
+                    "give a file holding one"
+                )
+            obj = found[0]
+        if not isinstance(obj, mi.BSDF):
+            raise InputError(
+                f"{where}: holds a {obj.class_name()}, not a <bsdf> (give a file holding one)"
+            )
+        names = []
+        while obj.class_name() in WRAPPERS:
+            name = WRAPPERS[obj.class_name()]
+            names.append(name)
+            kids = dict(_children(mi, obj))
+            if name == "twosided":
+                inner = kids.get("brdf_0")
+            else:
+                inner = kids.get("nested_bsdf")
+                if self._normal_tex is not None:
+                    raise InputError(f"{where}: more than one normal or bump map")
+                if name == "normalmap":
+                    self._normal_tex = kids.get("normalmap")
+                else:
+                    self._normal_tex = kids.get("nested_texture")
+                    self._bump_scale = float(mi.traverse(obj)["scale"])
+                if self.normal_map is None:  # not found in the XML (a scene's reference)
+                    self.normal_map = {"plugin": name}
+            if inner is None:
+                raise InputError(f"{where}: a {name} BSDF without a nested BSDF")
+            obj = inner
+        names.append(obj.class_name())
+        return obj, " > ".join(names)
+
+    def _check_flags(self, where: str) -> None:
+        flags = int(self.bsdf.flags())
+        if flags & _TRANSMISSION:
+            raise InputError(
+                f"{where}: {self.plugin} transmits light (or passes it through): a "
+                "neural BRDF holds reflection only"
+            )
+        if flags & _DELTA_REFLECTION:
+            raise InputError(
+                f"{where}: {self.plugin} has a delta (perfectly smooth) lobe, which a BRDF "
+                "of finite values cannot hold: use a rough variant"
+            )
+        if not flags & _SMOOTH_REFLECTION:
+            raise InputError(f"{where}: {self.plugin} reflects nothing")
+
+    def _probe_anisotropy(self, where: str) -> bool:
+        """The same pairs at PROBE_UV random uv, turned about the normal: anisotropic
+        when the value changes (as MitsubaTarget's probe)."""
+        rng = np.random.default_rng(7)
+        n = PROBE_PAIRS * PROBE_UV
+        z_min = math.sin(math.radians(3.0))
+        wi = _hemisphere(rng.random((n, 2)), z_min=z_min)
+        wo = _hemisphere(rng.random((n, 2)), z_min=z_min)
+        uv = np.repeat(rng.random((PROBE_UV, 2)), PROBE_PAIRS, 0)
+        try:
+            base = self._eval_cos(wi, wo, uv)
+        except Exception as e:  # a plugin that needs what a bare interaction lacks
+            raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
+        if not np.all(np.isfinite(base)) or base.min() < 0:
+            raise InputError(f"{where}: {self.plugin} gives negative or non-finite values")
+        scale = max(float(np.sqrt(np.mean(base**2))), 1e-30)
+        diff = 0.0
+        for phi in (0.7, 1.9, 2.6):
+            c, s = math.cos(phi), math.sin(phi)
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            turned = self._eval_cos(wi @ rot.T, wo @ rot.T, uv)
+            diff = max(diff, float(np.sqrt(np.mean((turned - base) ** 2))))
+        return diff / scale > ANISO_TOL
+
+    # ------------------------------------------------------------------ Mitsuba calls
+    def _interaction(self, wi: np.ndarray, uv: np.ndarray) -> Any:
+        """The interaction of MitsubaTarget._interaction: identity shading frame (z the
+        normal, x = dp_du), si.uv = uv, si.p = (u, v, 0)."""
+        import drjit as dr
+
+        mi = self._mi
+        si = dr.zeros(mi.SurfaceInteraction3f, len(uv))
+        si.wi = _tensor(mi, wi)
+        x, y, z = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
+        si.sh_frame = mi.Frame3f(x, y, z)
+        si.n = z
+        si.dp_du, si.dp_dv = x, y
+        si.uv = mi.Point2f(np.ascontiguousarray(uv.T, dtype=np.float32))
+        si.p = mi.Point3f(np.ascontiguousarray(np.c_[uv, np.zeros(len(uv))].T, dtype=np.float32))
+        return si
+
+    def _eval_cos(self, wi: np.ndarray, wo: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Mitsuba's eval (f cos theta_o), (K, 3) float64, for unit (K, 3) pairs."""
+        mi = self._mi
+        with self._scope():
+            out = self.bsdf.eval(mi.BSDFContext(), self._interaction(wi, uv), _tensor(mi, wo))
+            return _np(out)
+
+    def _rows(
+        self, wi: Any, wo: Any, uv: Any
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, ...]]:
+        """Broadcast (…, 3), (…, 3), (…, 2) -> flat rows, the batch shape and the mask of
+        rows with finite entries and both directions strictly above the horizon."""
+        a, b, c = _as_rows(wi, 3), _as_rows(wo, 3), _as_rows(uv, 2)
+        batch = np.broadcast_shapes(a.shape[:-1], b.shape[:-1], c.shape[:-1])
+        a = np.broadcast_to(a, batch + (3,)).reshape(-1, 3)
+        b = np.broadcast_to(b, batch + (3,)).reshape(-1, 3)
+        c = np.broadcast_to(c, batch + (2,)).reshape(-1, 2)
+        ok = (
+            np.all(np.isfinite(a), -1)
+            & np.all(np.isfinite(b), -1)
+            & np.all(np.isfinite(c), -1)
+            & (a[:, 2] > 0)
+            & (b[:, 2] > 0)
+        )
+        return a, b, c, ok, batch
+
+    # ------------------------------------------------------------------ the target API
+    def eval(self, wi: Any, wo: Any, uv: Any) -> np.ndarray:
+        """f (..., 3) float64, 1/sr, no cosine, at texture coordinates uv (..., 2); 0 below
+        the horizon and where an entry is not finite (the edges of base.eval_pairs)."""
+        a, b, c, ok, batch = self._rows(wi, wo, uv)
+        out = np.zeros((len(a), 3))
+        rows = np.flatnonzero(ok)
+        for s in range(0, len(rows), CHUNK):
+            r = rows[s : s + CHUNK]
+            x, y = _unit(a[r]), _unit(b[r])
+            out[r] = self._eval_cos(x, y, c[r]) / y[:, 2:3]
+        return out.reshape(batch + (3,))
+
+    def f(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        out = self.eval(wi, wo, uv)
+        return torch.from_numpy(out).to(device=wi.device, dtype=wi.dtype)
+
+    def _sample_rows(self, wi: np.ndarray, uv: np.ndarray, u: np.ndarray) -> tuple[Any, Any]:
+        """Mitsuba's (BSDFSample3f, weight) for unit wi rows.  The lobe choice
+        (``sample1``) is a uniform number from a hash of ``u`` (as MitsubaTarget)."""
+        mi = self._mi
+        seed = int.from_bytes(hashlib.blake2b(u.tobytes(), digest_size=8).digest(), "little")
+        s1 = np.random.default_rng(seed).random(len(u))
+        return self.bsdf.sample(
+            mi.BSDFContext(),
+            self._interaction(wi, uv),
+            mi.Float(s1.astype(np.float32)),
+            mi.Point2f(np.ascontiguousarray(u.T, dtype=np.float32)),
+        )
+
+    def sample(self, wi: Any, uv: Any, u: Any) -> np.ndarray:
+        """wo (..., 3) for wi (..., 3) at uv (..., 2) from u (..., 2) in [0, 1)^2 by
+        Mitsuba's sampler; a failed sample, or wi at or below the horizon, gives
+        (0, 0, -1) (below the horizon)."""
+        a, c, uu = _as_rows(wi, 3), _as_rows(uv, 2), _as_rows(u, 2)
+        batch = np.broadcast_shapes(a.shape[:-1], c.shape[:-1], uu.shape[:-1])
+        a = np.broadcast_to(a, batch + (3,)).reshape(-1, 3)
+        c = np.broadcast_to(c, batch + (2,)).reshape(-1, 2)
+        uu = np.ascontiguousarray(np.broadcast_to(uu, batch + (2,)).reshape(-1, 2))
+        out = np.tile([0.0, 0.0, -1.0], (len(a), 1))
+        ok = np.flatnonzero(np.all(np.isfinite(a), -1) & np.all(np.isfinite(c), -1) & (a[:, 2] > 0))
+        for s in range(0, len(ok), CHUNK):
+            r = ok[s : s + CHUNK]
+            with self._scope():
+                bs, _ = self._sample_rows(_unit(a[r]), c[r], np.ascontiguousarray(uu[r]))
+                wo, pdf = _np(bs.wo), _np(bs.pdf)
+            good = (pdf > 0) & np.isfinite(pdf) & (wo[:, 2] > 0) & np.all(np.isfinite(wo), -1)
+            wo[~good] = (0.0, 0.0, -1.0)
+            out[r] = wo
+        return out.reshape(batch + (3,))
+
+    def pdf(self, wi: Any, wo: Any, uv: Any) -> np.ndarray:
+        """The density (...,) of :meth:`sample`'s wo per solid angle (Mitsuba's pdf);
+        0 below the horizon."""
+        a, b, c, ok, batch = self._rows(wi, wo, uv)
+        out = np.zeros(len(a))
+        rows = np.flatnonzero(ok)
+        mi = self._mi
+        for s in range(0, len(rows), CHUNK):
+            r = rows[s : s + CHUNK]
+            with self._scope():
+                si = self._interaction(_unit(a[r]), c[r])
+                out[r] = _np(self.bsdf.pdf(mi.BSDFContext(), si, _tensor(mi, _unit(b[r]))))
+        return out.reshape(batch)
+
+    def normal_field(self, uv: Any) -> np.ndarray:
+        """The perturbed shading normal (..., 3) at uv (..., 2), in the tangent frame, as
+        Mitsuba's normalmap / bumpmap computes it for wi = z (module doc); (0, 0, 1)
+        without a map."""
+        c = _as_rows(uv, 2)
+        batch = c.shape[:-1]
+        c = c.reshape(-1, 2)
+        out = np.tile([0.0, 0.0, 1.0], (len(c), 1))
+        if self._normal_tex is None or len(c) == 0:
+            return out.reshape(batch + (3,))
+        ok = np.flatnonzero(np.all(np.isfinite(c), -1))
+        for s in range(0, len(ok), CHUNK):
+            r = ok[s : s + CHUNK]
+            with self._scope():
+                si = self._interaction(np.tile([0.0, 0.0, 1.0], (len(r), 1)), c[r])
+                if self.normal_map is not None and self.normal_map["plugin"] == "bumpmap":
+                    # bumpmap.cpp frame(): cross(dp_du + n s h_u, dp_dv + n s h_v)
+                    g = _np(self._normal_tex.eval_1_grad(si)) * self._bump_scale
+                    n = np.c_[-g[:, 0], -g[:, 1], np.ones(len(r))]
+                else:
+                    # normalmap.cpp frame(): n = normalize(fmadd(texture, 2, -1))
+                    n = 2.0 * _np(self._normal_tex.eval(si)) - 1.0
+            out[r] = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return out.reshape(batch + (3,))
+
+    def max_albedo(
+        self,
+        uv: Any,
+        *,
+        theta_deg: tuple[float, ...] = ALBEDO_THETA_DEG,
+        samples: int = ALBEDO_SAMPLES,
+        seed: int = 0,
+    ) -> np.ndarray:
+        """The directional albedo A(wi) = int f cos dwo at uv (K, 2), maximised over the
+        incidences ``theta_deg`` (azimuth 0; and 90 degrees too when anisotropic), per
+        channel: (K, 3).  Estimated by Mitsuba's sampler: the mean of its sample weight
+        f cos / pdf over ``samples`` draws (failed draws weigh 0)."""
+        c = _as_rows(uv, 2).reshape(-1, 2)
+        phis = (0.0, 90.0) if self.anisotropic else (0.0,)
+        rng = np.random.default_rng(seed)
+        best = np.zeros((len(c), 3))
+        for t in theta_deg:
+            for p in phis:
+                th, ph = math.radians(t), math.radians(p)
+                w = [math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), math.cos(th)]
+                wi = np.tile(w, (len(c) * samples, 1))
+                cc = np.repeat(c, samples, 0)
+                u = rng.random((len(wi), 2))
+                with self._scope():
+                    _, weight = self._sample_rows(wi, cc, u)
+                    wt = _np(weight)
+                wt = np.where(np.isfinite(wt), wt, 0.0)
+                best = np.maximum(best, wt.reshape(len(c), samples, 3).mean(1))
+        return best
+
+    def describe(self) -> str:
+        text = f"Mitsuba {self.plugin} ({self.source}, {self.variant}), spatially varying"
+        if self.normal_map is not None:
+            text += f"; {self.normal_map['plugin']} as a separate normal field"
+        if self.anisotropic:
+            text += ", anisotropic"
+        return text
