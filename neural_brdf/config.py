@@ -253,7 +253,7 @@ class Images(_Section):
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
-    primal_spp: int = Field(32, ge=1)  # ... the primal pass (its noise is in every gradient)
+    primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network
     # the validation split, held out of the fit (the start's too), choosing the start
     # (auto) and scored every validation_every steps; the best-scoring weights are kept

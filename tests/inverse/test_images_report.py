@@ -161,7 +161,12 @@ def png_of(text: str) -> bytes:
 
 
 def make_images_run(
-    tiny_run: Path, folder: Path, *, with_coverage: bool = True, report_too: bool = False
+    tiny_run: Path,
+    folder: Path,
+    *,
+    with_coverage: bool = True,
+    report_too: bool = False,
+    extra: dict | None = None,
 ) -> Path:
     """An images run folder, as fit + pipeline.finish leave it (without the fit)."""
     views, run_dir = folder / "views", folder / "run"
@@ -175,6 +180,7 @@ def make_images_run(
         (run_dir / "coverage.png").write_bytes(png_of("coverage"))
     raw = export.raw_from_checkpoint(load_checkpoint(run_dir / "ckpt.pt"), cfg)
     training = training_figures(views, with_coverage=with_coverage)
+    training.update(extra or {})
     pipeline.finish(cfg, run_dir, raw, training, t0=time.perf_counter(), report=report_too)
     return run_dir
 
@@ -234,6 +240,35 @@ def test_report_without_a_coverage_figure_says_so(tiny_run, tmp_path):
     assert "<h2>Images fit</h2>" in page and "lambertian" not in text.lower()
     assert "No coverage figure in metrics.json" in text
     assert COVERAGE_ALT not in embedded_pngs(page)
+
+
+def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
+    # an auto start (neural_brdf.inverse.starts.network_start): every family fitted, one
+    # chosen, one left out; the report names each with its losses and marks the choice
+    start = {
+        "family": "roughplastic",
+        "params": {"alpha": 0.15},
+        "candidates": [
+            {"family": "diffuse", "val_loss": 0.0412, "train_loss": 0.0398, "seconds": 7.5},
+            {"family": "roughplastic", "val_loss": 0.00213, "train_loss": 0.0019, "seconds": 12.25},
+            {"family": "blend", "val_loss": 0.00209, "train_loss": 0.0018, "seconds": 21.0},
+        ],
+        "left_out": {"roughconductor_aniso": "model.encoding 'isotropic' is isotropic"},
+        "seconds": 40.75,
+    }
+    init = {"target": "Mitsuba RoughPlastic (teacher.xml)", "seconds": 60.0, "start": start}
+    run_dir = make_images_run(tiny_run, tmp_path, extra={"init": init})
+    page = report.write_report(run_dir, render=False)["html"].read_text()
+    text = " ".join(visible_text(page).split())
+    assert "start roughplastic (chosen of 3 by the held-out pixels), distilled" in text
+    assert "roughplastic 0.00213 0.0019 12.2 s chosen" in text
+    assert "diffuse 0.0412 0.0398 7.5 s" in text and "blend 0.00209 0.0018 21.0 s" in text
+    assert "diffuse 0.0412 0.0398 7.5 s chosen" not in text
+    assert "roughconductor_aniso left out: model.encoding 'isotropic' is isotropic" in text
+    # a run with no fitted start says so, and lists no candidates
+    plain = make_images_run(tiny_run, tmp_path / "plain")
+    text = visible_text(report.write_report(plain, render=False)["html"].read_text())
+    assert "a constant (no fitted start)" in text and "start family" not in text
 
 
 def test_report_cli_of_an_images_run_says_it_cannot_render(images_run, tmp_path, monkeypatch):
