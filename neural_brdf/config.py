@@ -235,7 +235,14 @@ class Export(_Section):
 
 # The analytic families an images fit can start from (neural_brdf/inverse/starts.py,
 # FAMILIES; tests/inverse/test_starts.py keeps the two equal), simplest first.
-START_FAMILIES = ("diffuse", "roughplastic", "roughconductor", "roughconductor_aniso", "blend")
+START_FAMILIES = (
+    "diffuse",
+    "roughplastic",
+    "principled",
+    "roughconductor",
+    "roughconductor_aniso",
+    "blend",
+)
 START_CHOICES = ("auto", "ggx", "constant", *START_FAMILIES)
 ANISOTROPIC_FAMILIES = ("roughconductor_aniso",)  # need an anisotropic model.encoding
 

@@ -251,6 +251,7 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert [c["family"] for c in start["candidates"]] == [
         "diffuse",
         "roughplastic",
+        "principled",
         "roughconductor",
         "blend",
     ]
