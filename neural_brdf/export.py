@@ -69,6 +69,7 @@ from neural_brdf.errors import ParityError
 from neural_brdf.fileformat import (
     FORMAT_VERSION,
     FRAME,
+    INPUT_WIDTHS,
     INPUTS,
     METADATA_VERSION,
     OUTPUT,
@@ -222,11 +223,19 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     )
 
 
-def to_onnx_bytes(model: torch.nn.Module, opset: int, *, portable: bool = True) -> bytes:
-    """``model`` (forward(wi, wo) -> f) as ONNX bytes: torch's legacy exporter, then
-    :func:`portable_graph` (``portable=False``: torch's graph as it is, for comparison)."""
+def to_onnx_bytes(
+    model: torch.nn.Module,
+    opset: int,
+    *,
+    portable: bool = True,
+    inputs: tuple[str, ...] = INPUTS,
+) -> bytes:
+    """``model`` (forward(wi, wo) -> f, or forward(wi, wo, uv) -> f with ``inputs`` =
+    ``fileformat.SIGNATURES[1]``: a textured model) as ONNX bytes: torch's legacy
+    exporter, then :func:`portable_graph` (``portable=False``: torch's graph as it is,
+    for comparison).  Each input is float32 [N, its width], N dynamic."""
     buf = io.BytesIO()
-    example = (torch.zeros(4, 3), torch.zeros(4, 3))
+    example = tuple(torch.zeros(4, INPUT_WIDTHS[name]) for name in inputs)
     with warnings.catch_warnings():
         # The TorchScript exporter (dynamo=False) warns that it is deprecated.  It is
         # used on purpose: it writes one self-contained file and needs no onnxscript,
@@ -238,9 +247,9 @@ def to_onnx_bytes(model: torch.nn.Module, opset: int, *, portable: bool = True) 
             buf,  # type: ignore[arg-type]  # a file object is accepted
             dynamo=False,
             opset_version=opset,
-            input_names=list(INPUTS),
+            input_names=list(inputs),
             output_names=[OUTPUT],
-            dynamic_axes={name: {0: "N"} for name in (*INPUTS, OUTPUT)},
+            dynamic_axes={name: {0: "N"} for name in (*inputs, OUTPUT)},
         )
     if not portable:
         return buf.getvalue()

@@ -27,7 +27,8 @@ OUTPUT = "f"
 # An optional third input, for a material that varies over the surface (a textured
 # material): uv float32 [N, 2], the surface point's texture coordinates (u, v) as the
 # host's mesh gives them (docs/model.md, "The ONNX contract").
-# No file is exported with it yet; a reader accepts a graph whose inputs are one of
+# Its graph is exported by neural_brdf.train.textured_model (issue 30; no command writes
+# such a file yet); a reader accepts a graph whose inputs are one of
 # SIGNATURES, in that order (reader.signature), and a consumer that gives no uv may
 # evaluate only a graph without it.
 UV = "uv"

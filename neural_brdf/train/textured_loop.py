@@ -1,0 +1,175 @@
+"""Fit a :class:`~neural_brdf.train.textured_model.TexturedBRDF` to a textured teacher.
+
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+    from neural_brdf.train.textured_loop import train_textured
+    from neural_brdf.train.textured_model import normalized_textured, to_onnx_bytes_textured
+
+    model, figures = train_textured(TexturedMitsubaTarget(xml), lobes=4, resolution=32)
+    model, tables = normalized_textured(model)   # each lobe's albedo bounded: f's too
+    onnx_bytes = to_onnx_bytes_textured(model)
+
+Data.  A teacher's calls (Mitsuba) are slow next to a step, so a pool of ``pool`` pairs
+is drawn once and batches are drawn from it with replacement: uv uniform in [0, 1)^2,
+wi cosine-distributed, wo uniform on the hemisphere for half the pool and from the
+teacher's own sampler ``teacher.sample(wi, uv, u)`` for the other half (a failed
+sample is replaced by a uniform one), and the target ``teacher.eval(wi, wo, uv)``.
+
+Loss and schedule are the project's (:mod:`neural_brdf.train.loop`): ``log_l2`` with the
+peak weight and cap (:func:`~neural_brdf.train.loop.loss_fn`), Adam with linear warm-up
+then cosine decay (:func:`~neural_brdf.train.loop.learning_rate`).  Learning rates:
+``lr`` for the lobes' MLPs, ``lr`` x the lobes' ``model.grid.lr_scale`` (10) for their
+learned feature grids (as the project's loop), and ``lr`` x ``field_lr_scale`` (10) for
+the weight field's logits.  The field is a table like the grids: each texel's logits see
+only the pairs in its footprint, about 4/R^2 of a batch, so they get a grid's rate.
+
+Accuracy: the relative RMSE of f cos(theta_o) against the teacher
+(:func:`~neural_brdf.train.loop.rel_rmse`) on ``val_pairs`` held-out pairs at random uv,
+wi uniform on the hemisphere, wo half uniform and half from the teacher's sampler (the
+project's validation draws wo from the target's sampler: :func:`neural_brdf.train.data.
+importance_pairs`).  It is measured before training (``init_val_rel_rmse``) and after.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from analytic import frame
+from neural_brdf import config as cfgmod
+from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
+from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.textured_model import TexturedBRDF, WeightField
+
+FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
+# pairs drawn from the teacher once: on a 16 x 16 roughplastic (K = 4, R = 16, 600
+# steps of 2048) 131072 gave a held-out error of 7.1 %, 32768 stalled at 24 % (overfitted)
+POOL = 131072
+VAL_PAIRS = 16384  # held-out pairs
+
+
+def _pairs(
+    teacher: Any, n: int, rng: np.random.Generator, *, cosine_wi: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """n pairs (wi, wo, uv, f) as float32 tensors: uv uniform, wi cosine-distributed
+    (``cosine_wi``) or uniform, wo uniform for the first half and from the teacher's
+    sampler for the second (failed samples: uniform)."""
+    uv = rng.random((n, 2))
+    u_wi = torch.from_numpy(rng.random((n, 2)))
+    wi = (
+        frame.square_to_cosine_hemisphere(u_wi)
+        if cosine_wi
+        else frame.square_to_uniform_hemisphere(u_wi)
+    ).numpy()
+    wo = frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((n, 2)))).numpy()
+    half = n // 2
+    sampled = np.asarray(teacher.sample(wi[half:], uv[half:], rng.random((n - half, 2))))
+    good = sampled[:, 2] > 0
+    wo[half:][good] = sampled[good]
+    f = np.asarray(teacher.eval(wi, wo, uv), dtype=np.float64)
+    f = np.where(np.isfinite(f), f, 0.0)
+    a, b, c, t = (torch.from_numpy(np.ascontiguousarray(x)).float() for x in (wi, wo, uv, f))
+    return a, b, c, t
+
+
+def train_textured(
+    teacher: Any,
+    *,
+    lobes: int = 4,
+    resolution: int = 32,
+    hidden: Sequence[int] = (32,),
+    steps: int = 1500,
+    batch: int = 4096,
+    lr: float = 3e-2,
+    field_lr_scale: float = FIELD_LR_SCALE,
+    warmup: int = 100,
+    pool: int = POOL,
+    val_pairs: int = VAL_PAIRS,
+    seed: int = 0,
+    model_section: cfgmod.Model | None = None,
+) -> tuple[TexturedBRDF, dict[str, Any]]:
+    """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
+    to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
+    :class:`~neural_brdf.measured.textured.TexturedMitsubaTarget`).  Returns the model
+    (raw lobes, not yet normalised: :func:`~neural_brdf.train.textured_model.
+    normalized_textured`) and its figures: ``init_val_rel_rmse`` and ``val_rel_rmse``
+    (module doc), ``final_loss``, ``train_seconds``, ``pool_seconds``.
+
+    Each lobe is ``RawBRDF.from_config(model_section)``; by default the project's
+    compact recipe (:class:`neural_brdf.config.Model`) with hidden widths ``hidden``.
+    Weights from ``torch.manual_seed(seed)``, data from ``numpy`` and torch generators
+    seeded with ``seed``; the thread count is the caller's (``torch.set_num_threads``).
+    """
+    m = model_section if model_section is not None else cfgmod.Model(hidden=list(hidden))
+    sched = cfgmod.Train(steps=steps, lr=lr, warmup=min(warmup, max(steps - 1, 0)), seed=seed)
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    p_wi, p_wo, p_uv, p_f = _pairs(teacher, pool, rng, cosine_wi=True)
+    v_wi, v_wo, v_uv, v_f = _pairs(
+        teacher, val_pairs, np.random.default_rng(seed + 101), cosine_wi=False
+    )
+    pool_seconds = time.perf_counter() - t0
+
+    torch.manual_seed(seed)
+    # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
+    init = float(p_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
+    model = TexturedBRDF(
+        [RawBRDF.from_config(m, init_value=init) for _ in range(lobes)],
+        WeightField(resolution, lobes),
+    )
+    scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
+    groups: dict[float, list[torch.nn.Parameter]] = {}
+    for name, p in model.named_parameters():
+        if name.startswith("field."):
+            scale = field_lr_scale
+        else:
+            local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
+            scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
+        groups.setdefault(scale, []).append(p)
+    opt = torch.optim.Adam(
+        [{"params": ps, "lr_scale": s} for s, ps in groups.items()], lr=lr, fused=True
+    )
+
+    def validate() -> float:
+        with torch.no_grad():
+            return rel_rmse(model(v_wi, v_wo, v_uv), v_f, v_wo[:, 2:3])
+
+    init_err = validate()
+    gen = torch.Generator().manual_seed(seed)
+    t1 = time.perf_counter()
+    last = math.nan
+    model.train()
+    for step in range(steps):
+        rate = learning_rate(sched, step)
+        for group in opt.param_groups:
+            group["lr"] = rate * group["lr_scale"]
+        idx = torch.randint(0, pool, (batch,), generator=gen)
+        wi, wo, uv, f = p_wi[idx], p_wo[idx], p_uv[idx], p_f[idx]
+        pred = model(wi, wo, uv)
+        loss = loss_fn(
+            sched.loss, pred, f, wo[:, 2:3], sched.loss_eps, sched.peak_weight, sched.peak_cap
+        )
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step == steps - 1 or step % 100 == 0:
+            last = float(loss.detach())
+            if not math.isfinite(last):
+                raise FloatingPointError(f"train_textured: loss {last} at step {step}")
+    model.eval()
+    return model, {
+        "steps": steps,
+        "lobes": lobes,
+        "resolution": resolution,
+        "pool": pool,
+        "pool_seconds": pool_seconds,
+        "train_seconds": time.perf_counter() - t1,
+        "final_loss": last,
+        "init_val_rel_rmse": init_err,
+        "val_rel_rmse": validate(),
+        "field_lr_scale": field_lr_scale,
+    }

@@ -1,0 +1,251 @@
+"""A spatially varying neural BRDF: a field of lobe weights over uv times K shared lobes.
+
+    f(wi, wo, uv) = sum_k z_k(uv) g_k(wi, wo)                  per RGB channel, 1/sr
+
+the design of docs/model.md, "Spatially varying models: the contract" (issue 30):
+
+* :class:`WeightField`: per texel, K + 1 logits and their softmax; the last slot is
+  "nothing" (it absorbs energy), so each texel's K weights are >= 0 with sum <= 1.  It
+  is looked up as a renderer samples a texture: WRAP (repeat, u -> u - floor(u)) and
+  BILINEAR filtering between texel centres, texel (i, j) (column i along u, row j along
+  v) centred at ((i + 0.5) / R, (j + 0.5) / R), the convention of GPU textures and of
+  Mitsuba 3's ``bitmap`` (Dr.Jit's texture.h: position = uv * resolution - 0.5; its
+  default ``wrap_mode`` is repeat and ``filter_type`` bilinear).  The table is stored
+  row-major as an image, [v row, u column]: flat index j * R + i.
+* :class:`TexturedBRDF`: the K lobes g_k, each a :class:`~neural_brdf.train.model.RawBRDF`
+  while training and a :class:`~neural_brdf.train.model.NormalizedBRDF` once
+  :func:`normalized_textured` has tabulated its albedo bound.
+
+Why this keeps the physics between texels (docs/model.md, same section): a bilinear blend
+of texels is a convex combination of their weight vectors, and the set {z >= 0,
+sum z <= 1} is convex, so z(uv) stays in it at every uv.  Then
+
+* reciprocity is exact: each g_k is bit-exactly symmetric (its encoding), z depends on uv
+  only, and the sum is formed in the same order for (wi, wo) and (wo, wi);
+* albedo: int f cos dwo = sum_k z_k int g_k cos dwo <= sum_k z_k A+_k <= max_k A+_k,
+  at most 1 + the tables' margin once each lobe is normalised ("Energy conservation that
+  stays reciprocal").
+
+Export, ``neural_brdf.export.to_onnx_bytes(exportable(model), opset,
+inputs=TEXTURED_INPUTS)``: the softmax is evaluated once and the [R*R, K] weight table
+baked into the graph as a constant (no Softmax or Exp in it); the look-up
+is Floor, Sub, Mul, Add, Less, Where, Clip, Cast and Gather, as for
+:class:`~neural_brdf.train.model.FeatureGrid`.  The graph is total
+(:class:`TotalTexturedBRDF`): any input row gives a finite f, and 0 where wi, wo or uv
+holds a NaN or an infinity (or a direction has zero length).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+import torch
+import torch.nn as nn
+
+from neural_brdf import config as cfgmod
+from neural_brdf.fileformat import SIGNATURES
+from neural_brdf.train.encoding import is_anisotropic
+from neural_brdf.train.model import NormalizedBRDF, RawBRDF, albedo_table, unit_or_invalid
+
+TEXTURED_INPUTS = SIGNATURES[1]  # ("wi", "wo", "uv")
+
+
+def bilinear_wrap(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> torch.Tensor:
+    """The bilinear, wrapping look-up of ``table`` [R*R, C] (row-major [v, u]) at ``uv``
+    [N, 2] (finite) -> [N, C].
+
+    Per axis: x = (u - floor(u)) * R - 0.5, i0 = floor(x) in [-1, R - 1], a = x - i0; the
+    two texels are i0 and i0 + 1, each wrapped into [0, R) (-1 -> R - 1, R -> 0).  A u
+    just below an integer may round to u - floor(u) = 1.0: then x = R - 0.5, i0 = R - 1
+    and a = 0.5, the same texels and weights as at u = 0.  The indices are clipped to
+    [0, R - 1] as well (a no-op for finite uv) before the Cast, so no Gather index can
+    leave the table.
+    """
+    r = float(resolution)
+    frac = uv - torch.floor(uv)  # wrap (repeat): in [0, 1]
+    x = frac * r - 0.5
+    i0 = torch.floor(x)
+    a = x - i0  # (N, 2), in [0, 1)
+    i1 = i0 + 1.0
+    i0 = torch.where(i0 < 0.0, i0 + r, i0).clamp(0.0, r - 1.0)
+    i1 = torch.where(i1 > r - 1.0, i1 - r, i1).clamp(0.0, r - 1.0)
+    u0, v0 = i0[..., 0].long(), i0[..., 1].long()
+    u1, v1 = i1[..., 0].long(), i1[..., 1].long()
+    au, av = a[..., 0:1], a[..., 1:2]
+    n = int(resolution)
+    return (
+        table[v0 * n + u0] * (1 - au) * (1 - av)
+        + table[v0 * n + u1] * au * (1 - av)
+        + table[v1 * n + u0] * (1 - au) * av
+        + table[v1 * n + u1] * au * av
+    )
+
+
+class WeightField(nn.Module):
+    """Per-texel logits [R*R, K + 1] -> K non-negative weights with sum <= 1 at every uv.
+
+    The softmax is taken per texel over the K + 1 slots and the last ("nothing") dropped;
+    :meth:`forward` looks the K weights up at uv by :func:`bilinear_wrap` (module doc:
+    WRAP, BILINEAR, texel centres at ((i + 0.5) / R, (j + 0.5) / R), flat index j * R + i).
+    """
+
+    def __init__(self, resolution: int, lobes: int, *, init_std: float = 1.0):
+        super().__init__()
+        if resolution < 1 or lobes < 1:
+            raise ValueError(f"WeightField: resolution and lobes >= 1, got {resolution}, {lobes}")
+        self.resolution = int(resolution)
+        self.lobes = int(lobes)
+        self.logits = nn.Parameter(torch.randn(self.resolution**2, self.lobes + 1) * init_std)
+
+    def weights(self) -> torch.Tensor:
+        """The K weights at the texel centres, [R*R, K]: >= 0, sum <= 1 per texel."""
+        return torch.softmax(self.logits, -1)[:, : self.lobes]
+
+    def forward(self, uv: torch.Tensor) -> torch.Tensor:  # (N, 2) -> (N, K)
+        return bilinear_wrap(self.weights(), uv, self.resolution)
+
+    def frozen(self) -> FrozenWeightField:
+        """The same look-up with the softmax evaluated once (for export)."""
+        with torch.no_grad():
+            return FrozenWeightField(self.weights(), self.resolution)
+
+
+class FrozenWeightField(nn.Module):
+    """A :class:`WeightField` whose weights [R*R, K] are a constant buffer: the same
+    values bit for bit (one softmax of the same logits), no Softmax in the graph."""
+
+    table: torch.Tensor  # a buffer (register_buffer)
+
+    def __init__(self, weights: torch.Tensor, resolution: int):
+        super().__init__()
+        self.resolution = int(resolution)
+        self.lobes = int(weights.shape[1])
+        self.register_buffer("table", weights.detach().float().clone())
+
+    def weights(self) -> torch.Tensor:
+        return self.table
+
+    def forward(self, uv: torch.Tensor) -> torch.Tensor:
+        return bilinear_wrap(self.table, uv, self.resolution)
+
+
+class TexturedBRDF(nn.Module):
+    """f(wi, wo, uv) = sum_k z_k(uv) g_k(wi, wo), (N, 3); module doc for why it is
+    reciprocal bit for bit and, with normalised lobes, energy conserving at every uv."""
+
+    def __init__(self, lobes: Iterable[nn.Module], field: WeightField | FrozenWeightField):
+        super().__init__()
+        self.lobes = nn.ModuleList(lobes)
+        if len(self.lobes) != field.lobes:
+            raise ValueError(f"TexturedBRDF: {len(self.lobes)} lobes, the field has {field.lobes}")
+        self.field = field
+        self.anisotropic = any(bool(getattr(g, "anisotropic", False)) for g in self.lobes)
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        z = self.field(uv)  # (N, K)
+        f = z[:, 0:1] * self.lobes[0](wi, wo)
+        for k in range(1, len(self.lobes)):  # left to right: the same order for (wo, wi)
+            f = f + z[:, k : k + 1] * self.lobes[k](wi, wo)
+        return f
+
+
+def _raw_of(lobe: nn.Module) -> RawBRDF:
+    raw = lobe.raw if isinstance(lobe, NormalizedBRDF) else lobe
+    if not isinstance(raw, RawBRDF):
+        raise TypeError(f"a lobe must be a RawBRDF or a NormalizedBRDF, got {type(lobe)}")
+    return raw
+
+
+def normalized_textured(
+    model: TexturedBRDF,
+    normalization: cfgmod.Normalization | None = None,
+    *,
+    seed: int = 0,
+    target: Any = None,
+) -> tuple[TexturedBRDF, list[dict[str, Any]]]:
+    """Each lobe wrapped in :class:`NormalizedBRDF` with its own A+ table
+    (:func:`albedo_table`, settings ``normalization``, default :class:`config.Normalization`;
+    seed ``seed + 17 + k`` for lobe k), and the field frozen (:meth:`WeightField.frozen`).
+    Returns (model, per-lobe table figures).  A lobe that is already a NormalizedBRDF is
+    tabulated again from its raw network.
+
+    Bound (docs/model.md, "Spatially varying models: the contract"): every g_k has
+    albedo <= A+_k / max(1, A+_k) <= 1 ("Energy conservation that stays reciprocal", with
+    A+_k >= A_k to the table's tolerance), and z(uv) >= 0 with sum z <= 1 at every uv
+    (a bilinear blend of convex weight vectors), so the albedo of f at uv is
+    sum_k z_k(uv) A_k <= 1 + margin, between texel centres included.  ``target``: a
+    sampler for the quadrature (an analytic BRDF), or None: a textured teacher's
+    sampler depends on uv, so none is passed by default.
+    """
+    n = normalization if normalization is not None else cfgmod.Normalization()
+    lobes: list[nn.Module] = []
+    info: list[dict[str, Any]] = []
+    for k, lobe in enumerate(model.lobes):
+        raw = _raw_of(lobe).eval()
+        if not n.enabled:
+            lobes.append(raw)
+            info.append({"enabled": False})
+            continue
+        aniso = is_anisotropic(raw.encoding)
+        table, a, err = albedo_table(
+            raw,
+            size=n.grid_size if aniso else n.table_size,
+            anisotropic=aniso,
+            samples=n.samples,
+            seed=seed + 17 + k,
+            sigmas=n.sigmas,
+            margin=n.margin,
+            target=target,
+        )
+        norm = NormalizedBRDF(raw, table).eval()
+        lobes.append(norm)
+        info.append(
+            {
+                "enabled": True,
+                "raw_max_albedo": float(a.max()),
+                "raw_max_stderr": float(err.max()),
+                "in_graph": not norm.identity,
+            }
+        )
+    field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
+    return TexturedBRDF(lobes, field).eval(), info
+
+
+# ------------------------------------------------------------------- total graph
+def uv_or_invalid(uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 2) -> (uv with invalid rows set to 0, valid (N, 1)): valid when both entries
+    are finite.  Elementwise ops only (IsNaN, IsInf, Or, Not, Where)."""
+    bad = torch.isnan(uv) | torch.isinf(uv)
+    ok = ~(bad[..., 0:1] | bad[..., 1:2])
+    return torch.where(ok, uv, torch.zeros_like(uv)), ok
+
+
+class TotalTexturedBRDF(nn.Module):
+    """The exported graph: ``model`` (forward(wi, wo, uv)) made total over every row.
+
+    wi and wo go through :func:`~neural_brdf.train.model.unit_or_invalid` (as
+    :class:`~neural_brdf.train.model.TotalBRDF`), uv through :func:`uv_or_invalid`; a
+    row with an invalid wi, wo or uv gives exactly 0 without touching another row.  Both
+    directions are cleaned by the same ops, so bit-exact symmetry survives."""
+
+    up: torch.Tensor  # a buffer (register_buffer)
+
+    def __init__(self, model: TexturedBRDF):
+        super().__init__()
+        self.model = model
+        self.anisotropic = model.anisotropic
+        self.register_buffer("up", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        ui, ok_i = unit_or_invalid(wi, self.up)
+        uo, ok_o = unit_or_invalid(wo, self.up)
+        c, ok_uv = uv_or_invalid(uv)
+        f = self.model(ui, uo, c)
+        return torch.where(ok_i & ok_o & ok_uv, f, torch.zeros_like(f))
+
+
+def exportable(model: TexturedBRDF) -> TotalTexturedBRDF:
+    """``model`` with its field frozen, made total: the module the ONNX graph is of."""
+    field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
+    return TotalTexturedBRDF(TexturedBRDF(list(model.lobes), field).eval()).eval()
