@@ -39,7 +39,7 @@ import torch
 
 from analytic import frame
 from analytic.microfacet import Distribution
-from neural_brdf.fileformat import INPUTS, OUTPUT
+from neural_brdf.fileformat import INPUTS, OUTPUT, SIGNATURES
 
 # The lobe's schema, its density and its metadata key belong to the file format
 # (neural_brdf.fileformat.lobe); the fit uses these of them.
@@ -249,6 +249,8 @@ _FITTED_MAX = 16
 
 def fit_onnx(model, *, seed: int = 0) -> dict:
     """:func:`fit` on an ONNX model (a path or the bytes of one), through onnxruntime.
+    A textured graph (inputs wi, wo, uv) gets one lobe for the whole surface, fitted to
+    f at uniformly drawn texture coordinates in [0, 1)^2.
 
     The fit is deterministic, so its result is kept for the same bytes and seed: a
     report that draws an analytic target in the viewer and renders it in Mitsuba fits
@@ -265,7 +267,21 @@ def fit_onnx(model, *, seed: int = 0) -> dict:
     opts.intra_op_num_threads = 1
     opts.log_severity_level = 3
     session = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
-    lobe = fit(lambda wi, wo: session.run([OUTPUT], dict(zip(INPUTS, (wi, wo))))[0], seed=seed)
+    if [i.name for i in session.get_inputs()] == list(SIGNATURES[1]):
+        # A textured graph: one lobe for the whole surface, fitted to f at texture
+        # coordinates drawn uniformly over [0, 1)^2, one per pair (seeded: deterministic).
+        uv_rng = np.random.default_rng(seed + 1)
+
+        def fn(wi, wo):
+            uv = uv_rng.random((len(wi), 2), dtype=np.float32)
+            return session.run([OUTPUT], dict(zip(SIGNATURES[1], (wi, wo, uv))))[0]
+
+    else:
+
+        def fn(wi, wo):
+            return session.run([OUTPUT], dict(zip(INPUTS, (wi, wo))))[0]
+
+    lobe = fit(fn, seed=seed)
     if len(_FITTED) >= _FITTED_MAX:
         _FITTED.pop(next(iter(_FITTED)))
     _FITTED[key] = copy.deepcopy(lobe)

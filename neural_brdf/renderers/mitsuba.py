@@ -27,6 +27,13 @@ Python per sample; it runs inside a conditional, skipped for SIMD packets in whi
 lane has both directions above the horizon.  An op the lowering lacks raises
 :class:`UnsupportedOnnxOp` naming it when the model loads.
 
+Textured models.  A graph with the inputs (wi, wo, uv) (``fileformat.SIGNATURES[1]``,
+docs/model.md, "Spatially varying models: the contract") is evaluated at the surface
+interaction's texture coordinates ``si.uv`` (the graph wraps them itself) in ``eval``
+and in ``sample``'s weight; the local frame is Mitsuba's shading frame (dp_du the
+tangent).  Its sampling lobe is global: the file's ``sampling_lobe``, or one fitted at
+load to f at uniformly drawn uv.  A two-input graph is traced exactly as before.
+
 The ``analytic_brdf`` plugin exports the analytic model's own torch ``f(wi, wo)`` to
 ONNX with ``torch.onnx`` (in memory) and runs it through the same interpreter, so it is
 as fast as the neural plugin and never calls back into torch while rendering.
@@ -57,7 +64,7 @@ import mitsuba as mi
 
 from neural_brdf.backends.drjit import OnnxProgram
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import INPUTS, OUTPUT, reader
+from neural_brdf.fileformat import OUTPUT, SIGNATURES, reader
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.graph import SUPPORTED_OPS, UnsupportedOnnxOp
 from neural_brdf.physics import lobe_fit
@@ -93,6 +100,10 @@ def _black(wi, wo):
     return mi.Color3f(0.0)
 
 
+def _black_uv(wi, wo, uv):
+    return mi.Color3f(0.0)
+
+
 def _interp(c, xs, ys):
     """ys interpolated linearly at c over the ascending nodes xs, clamped at the ends."""
     y = mi.Float(ys[0])
@@ -117,12 +128,16 @@ class _GraphBSDF(mi.BSDF):
                 f"{label}: needs a JIT variant (llvm_ad_rgb, cuda_ad_rgb, ...); "
                 f"the interpreter traces Dr.Jit arrays, and {mi.variant()} has none"
             )
-        if program.inputs != list(INPUTS) or program.outputs != [OUTPUT]:
+        if tuple(program.inputs) not in SIGNATURES or program.outputs != [OUTPUT]:
+            expected = " or ".join(str(list(s)) for s in SIGNATURES)
             raise InputError(
-                f"{label}: expected inputs {list(INPUTS)} and output {OUTPUT!r}, "
+                f"{label}: expected inputs {expected} and output {OUTPUT!r}, "
                 f"got {program.inputs} -> {program.outputs}"
             )
         self.program = program
+        # a textured graph (inputs wi, wo, uv: docs/model.md, "Spatially varying models")
+        # is evaluated at the interaction's texture coordinates si.uv
+        self.textured = tuple(program.inputs) == SIGNATURES[1]
         self.lobe = lobe_format.complete(lobe)
         self.label = label
         self.lobe_table = self.lobe.get("table")
@@ -144,10 +159,20 @@ class _GraphBSDF(mi.BSDF):
         # The graph runs inside a conditional, which Dr.Jit skips for a SIMD packet
         # (LLVM) or warp (CUDA) where no lane needs it: the unlit side of a light,
         # light samples below the horizon, paths that left the surface.
+        if self.textured:
+            return dr.if_stmt(
+                (si.wi, wo, si.uv), valid, self._graph_f_cos_uv, _black_uv, label="graph"
+            )
         return dr.if_stmt((si.wi, wo), valid, self._graph_f_cos, _black, label="graph")
 
     def _graph_f_cos(self, wi, wo):
         out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z])[OUTPUT]
+        return mi.Color3f(out[0], out[1], out[2]) * mi.Frame3f.cos_theta(wo)
+
+    def _graph_f_cos_uv(self, wi, wo, uv):
+        """The textured graph at the texture coordinates ``uv`` (the host's si.uv, wrapped
+        by the graph itself); the sampling lobe stays the file's global one."""
+        out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z], uv=[uv.x, uv.y])[OUTPUT]
         return mi.Color3f(out[0], out[1], out[2]) * mi.Frame3f.cos_theta(wo)
 
     def _pdf(self, si, wo, active):
