@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -1206,6 +1207,198 @@ def training_speed_section(d: dict) -> list[str]:
     return out
 
 
+def _grid_coords(d: dict) -> str:
+    """The grid's coordinates the file's fits used: an override, else its config."""
+    for o in d["overrides"]:
+        if o.startswith("model.grid.coords="):
+            return o.partition("=")[2]
+    return "half_disc" if "coords: half_disc" in d.get("config", "") else "theta"
+
+
+def _set_line(d: dict, which: str) -> str:
+    e = d["sets"][which]["environments"]
+    names = ", ".join(d["sets"][which]["materials"])
+    return f"{which}: {names} under `{e['fit']}` / `{e['relit']}`"
+
+
+def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
+    """issue 29: images of materials the project never saw; one table per file."""
+    which = d["set"]
+    envs = d["sets"][which]["environments"]
+    goals = d["goals"]
+    m = d["machine"]
+    settings = ", ".join(f"`{o}`" for o in d["overrides"]) or "the benchmark's config"
+    title = (
+        "## Images of any material: held out, relit (the test set)"
+        if which == "test"
+        else f"## Images of any material: the development set, {settings}"
+    )
+    out = [
+        title,
+        "",
+        _source(
+            f"benchmarks/results/{name}",
+            f"python benchmarks/images_any.py --set {which}"
+            + "".join(f" --set-key {o}" for o in d["overrides"]),
+        ),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cpus']} cores, `{m['variant']}`",
+            f"{m['loadavg_end'][0]:.1f} at the end; per material in the file",
+        ),
+        f"Set `{which}`: fitted under `{envs['fit']}`, relit under `{envs['relit']}` "
+        + f"({_set_line(d, 'dev')}; {_set_line(d, 'test')}). "
+        f"Three {d['views']['resolution']}² views at {d['views']['target_spp']} spp; "
+        f"one config for every material (compact network, anisotropic encoding, grid "
+        f"over `{_grid_coords(d)}`, `images.start: auto`), {d['steps']} image-stage steps"
+        + (f", overrides {', '.join(f'`{o}`' for o in d['overrides'])}" if d["overrides"] else "")
+        + f". Held-out camera at {d['heldout_spp']} spp against the truth at as many; PSNR: "
+        f"{d['psnr_definition']}. BRDF: relative RMSE of f·cos against Mitsuba's `eval` of the "
+        "truth, where both cosines > 0.5, and over the observed part of the domain "
+        "(the coverage's observed bins, both cosines > 0.1). Goals: "
+        f"≥ {goals['psnr_db']:g} dB and ≤ {100 * goals['image_rel_rmse']:g} % relit, "
+        f"BRDF ≤ {100 * goals['brdf_rel_rmse']:g} %. Each cell: network / its start "
+        "(the chosen family rendered by Mitsuba).",
+        "",
+    ]
+    rows = []
+    met_all = 0
+    for key, e in d["materials"].items():
+        im, br = e["images"], e["brdf"]
+
+        def pair(fig: dict, field: str, fmt) -> str:
+            a = fmt(fig["network"][field])
+            return a + (f" / {fmt(fig['start'][field])}" if "start" in fig else "")
+
+        def db(x: float) -> str:
+            return f"{x:.1f}"
+
+        relit, held = im["relit"], im["heldout"]
+        floor = relit["noise_floor"]["image_rel_rmse"]
+        image_goal = max(goals["image_rel_rmse"], 2 * floor)
+        ok = (
+            relit["network"]["psnr_db"] >= goals["psnr_db"]
+            and relit["network"]["image_rel_rmse"] <= image_goal
+            and held["network"]["psnr_db"] >= goals["psnr_db"]
+            and held["network"]["image_rel_rmse"]
+            <= max(goals["image_rel_rmse"], 2 * held["noise_floor"]["image_rel_rmse"])
+            and br["observed"].get("network", 1.0) <= goals["brdf_rel_rmse"]
+        )
+        met_all += ok
+        sec = e["seconds"]
+        rows.append(
+            [
+                key,
+                e["what"],
+                f"`{e['start']['family']}`",
+                pair(held, "psnr_db", db) + " dB",
+                pair(relit, "psnr_db", db) + " dB",
+                pair(relit, "image_rel_rmse", _pct) + f" (floor {_pct(floor)})",
+                " / ".join(
+                    _pct(br["observed"][k]) for k in ("network", "start") if k in br["observed"]
+                ),
+                " / ".join(
+                    _pct(br["cap_0.5"][k]) for k in ("network", "start") if k in br["cap_0.5"]
+                ),
+                f"{100 * e['coverage']:.0f} %",
+                f"{e['physics']['reciprocity']:.0f}, {e['physics']['max_albedo']:.3f}",
+                f"{sec['fit']:.0f} s ({sec['start_choice']:.0f} + "
+                f"{sec['distillation']:.0f} + {sec['image_stage']:.0f})",
+                f"{sec['image_stage_vs_roughconductor']:.1f}x"
+                if "image_stage_vs_roughconductor" in sec
+                else "-",
+                "met" if ok else "**missed**",
+            ]
+        )
+    out += _table(
+        [
+            "material",
+            "what",
+            "start",
+            "held-out PSNR",
+            "relit PSNR",
+            "relit rel. RMSE",
+            "BRDF, observed",
+            "BRDF, cos > 0.5",
+            "coverage",
+            "recip., max albedo",
+            "fit (start + distil + images)",
+            "images / `roughconductor` fit",
+            "goals",
+        ],
+        rows,
+    )
+    out += [
+        f"{met_all} of {len(rows)} materials meet every goal (the image goal: ≤ 5 % or twice "
+        "the reference's own noise floor, whichever is larger). Fit time: wall-clock "
+        "seconds on the machine above, the start (every family's fit and the choice), its "
+        "distillation into the network and the image stage; the image stage's time over "
+        "a stand-alone fit of Mitsuba's `roughconductor` parameters to the same views "
+        "(as many steps, the same samples per pixel).",
+        "",
+    ]
+    return out
+
+
+def _elsewhere(section, path: str, title: str, script: str):
+    """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
+    its title and source line say so."""
+
+    def run(d: dict) -> list[str]:
+        lines = section(d)
+        lines[0] = f"## {title}"
+        return [
+            lines[0],
+            "",
+            _source(path, script),
+            *(x for x in lines[2:] if not x.startswith("Source: ")),
+        ]
+
+    return run
+
+
+def images_cuda_section(d: dict) -> list[str]:
+    sec = d["seconds"]
+    rows = [
+        [
+            d["variant"],
+            f"{d['steps']}",
+            f"`{d['start']['family']}`",
+            f"{sec['start_seconds']:.1f} s",
+            f"{sec['train_seconds']:.1f} s ({sec['render_seconds']:.1f} s rendering)",
+            f"{sec['train_seconds'] / d['steps']:.2f} s",
+            f"{sec['fit_seconds']:.1f} s",
+            f"{d['validation']['start_loss']:.4g} -> {d['validation']['best_loss']:.4g} "
+            f"({d['validation']['kept']})",
+            "passed" if d["physics"]["passed"] else "**failed**",
+        ]
+    ]
+    return [
+        "## GPU (one H100): an images fit in cuda_ad_rgb",
+        "",
+        _source(
+            "benchmarks/results/cuda/images_fit.json", "benchmarks/gpu/run.sh on a lent GPU machine"
+        ),
+        _recorded(d["date"], d["device"], None),
+        f"What: {d['what']}.",
+        "",
+        *_table(
+            [
+                "variant",
+                "steps",
+                "start",
+                "start (choice + distillation)",
+                "image stage",
+                "per step",
+                "whole fit",
+                "held-out loss",
+                "physics",
+            ],
+            rows,
+        ),
+    ]
+
+
 # ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
@@ -1223,8 +1416,42 @@ SECTIONS = (
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
+    (RESULTS / "images_any.json", images_any_section),
+    (RESULTS / "images_any_dev.json", partial(images_any_section, name="images_any_dev.json")),
+    (
+        RESULTS / "images_any_dev_half_disc.json",
+        partial(images_any_section, name="images_any_dev_half_disc.json"),
+    ),
     (RESULTS / "training_speed.json", training_speed_section),
     (SWEEP_TIMING, sweep_timing_section),
+    (
+        RESULTS / "cuda" / "bsdf_bound.json",
+        _elsewhere(
+            bsdf_bound_section,
+            "benchmarks/results/cuda/bsdf_bound.json",
+            "GPU (one H100): render cost where the BSDF dominates, cuda_ad_rgb, 256², 64 spp",
+            "benchmarks/gpu/run.sh (python benchmarks/bsdf_bound.py --variant cuda_ad_rgb)",
+        ),
+    ),
+    (
+        RESULTS / "cuda" / "bsdf_bound_large.json",
+        _elsewhere(
+            bsdf_bound_section,
+            "benchmarks/results/cuda/bsdf_bound_large.json",
+            "GPU (one H100): render cost where the BSDF dominates, cuda_ad_rgb, 1024², 128 spp",
+            "benchmarks/gpu/run.sh (python benchmarks/bsdf_bound.py --variant cuda_ad_rgb)",
+        ),
+    ),
+    (
+        RESULTS / "cuda" / "training_speed.json",
+        _elsewhere(
+            training_speed_section,
+            "benchmarks/results/cuda/training_speed.json",
+            "GPU (one H100): training speed on CUDA",
+            "benchmarks/gpu/run.sh (python benchmarks/training_speed.py --device cuda)",
+        ),
+    ),
+    (RESULTS / "cuda" / "images_fit.json", images_cuda_section),
 )
 
 

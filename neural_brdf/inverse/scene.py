@@ -26,7 +26,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -86,19 +88,39 @@ train:
 def sky(height: int = 128) -> np.ndarray:
     """The environment, lat-long (H, 2H, 3) float32: rows from the zenith (+y, Mitsuba's
     envmap up axis) to the nadir, columns over the azimuth."""
+    ground = np.array([0.12, 0.1, 0.08])
+    return latlong(
+        np.array([0.15, 0.3, 0.75]),
+        np.array([0.9, 0.85, 0.75]),
+        lambda az: ground * (0.6 + 0.4 * np.cos(az))[..., None],
+        BLOBS,
+        height,
+    )
+
+
+def latlong(
+    zenith: np.ndarray,
+    horizon: np.ndarray,
+    ground: Any,
+    blobs: Sequence[tuple[float, float, float, Sequence[float]]],
+    height: int = 128,
+) -> np.ndarray:
+    """A procedural environment, lat-long (H, 2H, 3) float32 as :func:`sky`: a gradient
+    from ``horizon`` to ``zenith`` above the horizon, ``ground`` below (RGB, or a function
+    of the azimuth (1, 2H) giving (1, 2H, 3)), plus soft round ``blobs`` (elevation,
+    azimuth, angular radius in degrees, RGB radiance), each a Gaussian in the angle."""
     v = (np.arange(height) + 0.5) / height
     u = (np.arange(2 * height) + 0.5) / (2 * height)
     el = (0.5 - v)[:, None] * math.pi  # (H, 1)
     az = u[None, :] * 2.0 * math.pi  # (1, 2H)
     s = np.clip(np.sin(el), 0.0, 1.0)[..., None]
-    horizon, zenith = np.array([0.9, 0.85, 0.75]), np.array([0.15, 0.3, 0.75])
-    ground = np.array([0.12, 0.1, 0.08]) * (0.6 + 0.4 * np.cos(az))[..., None]
-    img = np.where(el[..., None] > 0, horizon * (1.0 - s) + zenith * s, ground)
+    below = ground(az) if callable(ground) else np.asarray(ground)
+    img = np.where(el[..., None] > 0, horizon * (1.0 - s) + zenith * s, below)
     img = np.broadcast_to(img, (height, 2 * height, 3)).copy()
     d = np.stack(
         np.broadcast_arrays(np.cos(el) * np.cos(az), np.sin(el), np.cos(el) * np.sin(az)), -1
     )
-    for b_el, b_az, radius, rgb in BLOBS:
+    for b_el, b_az, radius, rgb in blobs:
         e, a = math.radians(b_el), math.radians(b_az)
         c = np.array([math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)])
         ang = np.arccos(np.clip(d @ c, -1.0, 1.0))
