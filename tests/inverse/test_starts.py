@@ -2,7 +2,8 @@
 
 * the choice: three views (24 x 24, 16 spp targets) of a ``diffuse``, a ``roughplastic``
   and a copper ``roughconductor`` sphere; the family chosen by the held-out pixels is
-  the true one's (or one at least as good there), and the true family's fitted key
+  the true one's (or one at least as good there, or a simpler one within the rule's tie:
+  a metallic ``principled`` for the copper), and the true family's fitted key
   parameters are close to the truth (roughness within 30 %, reflectance within 10 %);
 * the choice never sees the truth: every scene's ``<bsdf id="fit">`` is replaced, after
   its target was rendered, by a BSDF of another family, and ``choose_start`` takes the
@@ -139,7 +140,19 @@ def test_choice_finds_the_family_and_its_parameters(mi, materials, name):
     choice = starts.choose_start(views, seed=3)  # the default schedule
     by_family = {c.family: c for c in choice.candidates}
     true = by_family[name]
-    assert choice.family == name or choice.chosen.val_loss <= true.val_loss, choice.summary()
+    # the true family, or one at least as good there, or a simpler one the rule ties with
+    # the best (within its noise and never more than TIE_MAX worse): a metallic
+    # principled can stand in for a copper conductor
+    chosen = choice.chosen
+    assert (
+        choice.family == name
+        or chosen.val_loss <= true.val_loss
+        or (
+            choice.margins[choice.family]["tied"]
+            and chosen.complexity < true.complexity
+            and chosen.val_loss <= (1.0 + starts.TIE_MAX) * true.val_loss
+        )
+    ), choice.summary()
     # the held-out figure tells the families apart: each of the three that cannot hold
     # the truth does worse than the true one there
     for c in choice.candidates:
