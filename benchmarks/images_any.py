@@ -325,8 +325,8 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
 
     wi, wo = inverse.brdf_pairs(truth_bsdf, PAIRS, seed=7)
     cap = brdf_errors(wi, wo)
-    cfg_views = inverse.read_views(cfg)
-    cov = coverage.compute(cfg_views, seed=3)
+    views = inverse.read_views(cfg)  # the fitted views: the coverage, the roughconductor fit
+    cov = coverage.compute(views, seed=3)
     wi, wo = inverse.brdf_pairs(truth_bsdf, 4 * PAIRS, seed=8, min_cos=coverage.MIN_COS)
     seen = coverage.observed_mask(cov, wi, wo)
     observed = brdf_errors(wi[seen], wo[seen]) if seen.any() else {"pairs": 0}
@@ -349,7 +349,6 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
 
     # the yardstick for the image stage: a stand-alone fit of Mitsuba's
     # roughconductor parameters to the same views, as many steps at the same spp
-    views = inverse.read_views(cfg)
     rough = inverse.fit_roughconductor(
         views,
         cfg.train,

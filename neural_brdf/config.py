@@ -287,18 +287,15 @@ class Images(_Section):
     @classmethod
     def _families(cls, names: list[str]) -> list[str]:
         bad = [n for n in names if n not in START_FAMILIES]
-        why = (
-            f"{bad[0]!r} is not a family; expected some of {', '.join(START_FAMILIES)}"
-            if bad
-            else "empty; name at least one family"
-            if not names
-            else f"{names} names a family twice"
-            if len(set(names)) != len(names)
-            else None
-        )
-        if why is not None:
-            raise PydanticCustomError("start_families", why)
-        return names
+        if bad:
+            why = f"{bad[0]!r} is not a family; expected some of {', '.join(START_FAMILIES)}"
+        elif not names:
+            why = "empty; name at least one family"
+        elif len(set(names)) != len(names):
+            why = f"{names} names a family twice"
+        else:
+            return names
+        raise PydanticCustomError("start_families", why)
 
     @property
     def split(self) -> bool:

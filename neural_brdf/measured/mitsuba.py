@@ -149,6 +149,24 @@ def _children(mi: Any, obj: Any) -> list[tuple[str, Any]]:
     return cb.found
 
 
+def one_bsdf(mi: Any, obj: Any, where: str) -> Any:
+    """The BSDF a loaded Mitsuba file holds: ``obj`` itself, or a scene's one top-level
+    ``<bsdf>``; InputError naming ``where`` otherwise."""
+    if isinstance(obj, mi.Scene):
+        found = [o for _, o in _children(mi, obj) if isinstance(o, mi.BSDF)]
+        if len(found) != 1:
+            raise InputError(
+                f"{where}: a scene with {len(found)} top-level <bsdf> elements; "
+                "give a file holding one"
+            )
+        obj = found[0]
+    if not isinstance(obj, mi.BSDF):
+        raise InputError(
+            f"{where}: holds a {obj.class_name()}, not a <bsdf> (give a file holding one)"
+        )
+    return obj
+
+
 def _tensor(mi: Any, x: np.ndarray) -> Any:
     """(N, 3) float64 numpy -> mi.Vector3f."""
     return mi.Vector3f(np.ascontiguousarray(x.T, dtype=np.float32))
@@ -207,18 +225,7 @@ class MitsubaTarget:
 
     def _the_bsdf(self, obj: Any, where: str) -> tuple[Any, str]:
         mi = self._mi
-        if isinstance(obj, mi.Scene):
-            found = [o for _, o in _children(mi, obj) if isinstance(o, mi.BSDF)]
-            if len(found) != 1:
-                raise InputError(
-                    f"{where}: a scene with {len(found)} top-level <bsdf> elements; "
-                    "give a file holding one"
-                )
-            obj = found[0]
-        if not isinstance(obj, mi.BSDF):
-            raise InputError(
-                f"{where}: holds a {obj.class_name()}, not a <bsdf> (give a file holding one)"
-            )
+        obj = one_bsdf(mi, obj, where)
         names = []
         while obj.class_name() == "TwoSidedBRDF":  # unwrapped to its front side
             names.append("twosided")

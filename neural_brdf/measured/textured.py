@@ -68,6 +68,7 @@ from neural_brdf.measured.mitsuba import (
     _mitsuba,
     _np,
     _tensor,
+    one_bsdf,
 )
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -176,18 +177,7 @@ class TexturedMitsubaTarget:
 
     def _unwrap(self, obj: Any, where: str) -> tuple[Any, str]:
         mi = self._mi
-        if isinstance(obj, mi.Scene):
-            found = [o for _, o in _children(mi, obj) if isinstance(o, mi.BSDF)]
-            if len(found) != 1:
-                raise InputError(
-                    f"{where}: a scene with {len(found)} top-level <bsdf> elements; "
-                    "give a file holding one"
-                )
-            obj = found[0]
-        if not isinstance(obj, mi.BSDF):
-            raise InputError(
-                f"{where}: holds a {obj.class_name()}, not a <bsdf> (give a file holding one)"
-            )
+        obj = one_bsdf(mi, obj, where)
         names = []
         while obj.class_name() in WRAPPERS:
             name = WRAPPERS[obj.class_name()]
