@@ -303,6 +303,20 @@ class Images(_Section):
         return self.validation_pixels > 0 or bool(self.validation_views)
 
 
+class Texture(_Section):
+    # a spatially varying teacher (target.mitsuba with textures, a normal or bump map;
+    # docs/mitsuba.md, "Textured materials"): the model is a field of lobe weights over
+    # uv times `lobes` shared neural lobes (docs/model.md, "Spatially varying models");
+    # read by no other target.  Each lobe is the `model` section's network; the steps,
+    # learning rate and loss are `train`'s, the batch and pool `data`'s.
+    lobes: int = Field(4, ge=1, le=16)  # K shared lobes
+    resolution: int = Field(32, ge=1, le=1024)  # the weight field's texels per side (R x R)
+    field_lr_scale: float = Field(10.0, gt=0.0)  # the field's logits: lr x this
+    validation_uv: int = Field(
+        64, ge=1
+    )  # random uv of the furnace (validate); pairs' uv: all random
+
+
 # A run's name is one plain folder name: never a path (``../..``, ``/etc``), never empty,
 # hidden or an option (``.x``, ``-x``), no control characters (issue 28).
 MAX_NAME = 128
@@ -343,6 +357,7 @@ class Config(_Section):
     validation: Validation = Field(default_factory=Validation)
     export: Export = Field(default_factory=Export)
     images: Images = Field(default_factory=Images)  # an images fit's settings
+    texture: Texture = Field(default_factory=Texture)  # a spatially varying teacher's
 
     @model_validator(mode="after")
     def _plain_name(self):

@@ -74,17 +74,20 @@ from neural_brdf.fileformat import (
     METADATA_VERSION,
     OUTPUT,
     PRODUCER_NAME,
+    SIGNATURES,
     UNITS,
+    UV,
 )
 from neural_brdf.fileformat.metadata import Metadata, plain
 from neural_brdf.fileformat.portable import portable_graph
 from neural_brdf.fileio import atomic_write
 from neural_brdf.physics import lobe_fit
-from neural_brdf.target import Described
+from neural_brdf.target import Described, spatially_varying
 from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.loop import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
+from neural_brdf.train.textured_model import TexturedBRDF, exportable
 from neural_brdf.version import __version__
 
 PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
@@ -137,13 +140,16 @@ def target_json(
             "variant": getattr(target, "variant", t.variant),
             "excess": plain(getattr(target, "excess", None)),  # where the albedo passed 1
             "description": description,
+            **({"spatially_varying": True} if spatially_varying(target) else {}),
         }
     if t.images is not None:
         return {"kind": "images", "views": len(t.images), "description": description}
     return {"kind": "unspecified", "description": description}
 
 
-def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
+def doc_string(
+    cfg: cfgmod.Config, target_desc: str, normalized: bool, *, textured: bool = False
+) -> str:
     """The ONNX ``doc_string``: what the model is and its input/output contract."""
     norm = (
         "albedo-normalised (max albedo <= 1 by construction)"
@@ -160,6 +166,13 @@ def doc_string(cfg: cfgmod.Config, target_desc: str, normalized: bool) -> str:
         "itself and gives f = 0 for a row with a NaN, an infinity or a zero-length "
         "direction, without affecting other rows. N is dynamic. Metadata "
         "(metadata_props) hold the physics figures and the training config."
+        + (
+            " Input uv: float32 [N, 2], the texture coordinates (wrapping by repeat, "
+            "bilinear filtering of the weight field; metadata 'texture'); a row with a "
+            "non-finite uv gives f = 0."
+            if textured
+            else ""
+        )
     )
 
 
@@ -223,6 +236,21 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     )
 
 
+def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) -> str:
+    """The ``normalization`` entry of a textured file (docs/model.md, "Spatially varying
+    models: the contract")."""
+    lobes = [lobe for lobe in model.lobes if isinstance(lobe, NormalizedBRDF)]
+    if not lobes:
+        return "none: each lobe is its raw network (normalization.enabled: false, an ablation)"
+    return (
+        f"f = sum_k z_k(uv) g_k with z_k >= 0, sum z_k <= 1 at every uv (bilinear blends "
+        f"of texels included), and each of the {len(model.lobes)} lobes "
+        "g_k = raw_k / max(1, A+_k(wi), A+_k(wo)) per channel, A+_k its own table "
+        f"(MIS quadrature + {n.sigmas:g} standard errors, neighbour maximum, times "
+        f"(1 + {n.margin:g})): the albedo is <= max_k A+_k / max(1, A+_k) <= 1 + margin"
+    )
+
+
 def to_onnx_bytes(
     model: torch.nn.Module,
     opset: int,
@@ -269,16 +297,26 @@ def parity_pairs(n: int, seed: int) -> torch.Tensor:
 
 
 def parity_error(
-    model: torch.nn.Module, session: ort.InferenceSession, n: int, seed: int
+    model: torch.nn.Module,
+    session: ort.InferenceSession,
+    n: int,
+    seed: int,
+    *,
+    textured: bool = False,
 ) -> tuple[float, float, float]:
     """(onnxruntime vs torch, torch float32 vs the same network in float64, onnxruntime
-    vs float64), relative."""
+    vs float64), relative.  ``textured``: the model takes uv too, drawn uniformly in
+    [-1, 2)^2 (wrapping included) with every pair."""
     pairs = parity_pairs(n, seed)
     wi, wo = pairs[:, :3].contiguous(), pairs[:, 3:].contiguous()
+    args: tuple[torch.Tensor, ...] = (wi, wo)
+    if textured:
+        uv = np.random.default_rng(seed + 1).uniform(-1.0, 2.0, (len(wi), 2))
+        args = (wi, wo, torch.from_numpy(uv).float())
     with torch.no_grad():
-        ref = model(wi, wo).numpy().astype(np.float64)
-        exact = copy.deepcopy(model).double()(wi.double(), wo.double()).numpy()
-    feeds = dict(zip(INPUTS, (wi.numpy(), wo.numpy())))
+        ref = model(*args).numpy().astype(np.float64)
+        exact = copy.deepcopy(model).double()(*(a.double() for a in args)).numpy()
+    feeds = dict(zip(SIGNATURES[1], (a.numpy() for a in args)))
     got = session.run([OUTPUT], feeds)[0].astype(np.float64)
     return (
         relative_difference(got, ref),
@@ -306,7 +344,7 @@ class Built:
     """A model's graph as :func:`write` writes it (the ONNX bytes, no metadata yet), an
     onnxruntime session of it, and how closely it agrees with torch (:func:`build`)."""
 
-    model: NormalizedBRDF | RawBRDF
+    model: NormalizedBRDF | RawBRDF | TexturedBRDF
     payload: bytes
     session: ort.InferenceSession
     parity_rel_error: float
@@ -316,9 +354,17 @@ class Built:
     def anisotropic(self) -> bool:
         return bool(self.model.anisotropic)
 
-    def eval(self, wi: Any, wo: Any) -> np.ndarray:
-        """f of the graph through onnxruntime: (N, 3) arrays in, (N, 3) float32 out."""
+    @property
+    def textured(self) -> bool:
+        """A graph of (wi, wo, uv): :func:`build_textured`'s."""
+        return isinstance(self.model, TexturedBRDF)
+
+    def eval(self, wi: Any, wo: Any, uv: Any = None) -> np.ndarray:
+        """f of the graph through onnxruntime: (N, 3) arrays in (and uv (N, 2) for a
+        textured graph), (N, 3) float32 out."""
         feeds = {name: np.asarray(x, np.float32) for name, x in zip(INPUTS, (wi, wo))}
+        if self.textured:
+            feeds[UV] = np.ascontiguousarray(np.asarray(uv, np.float32))
         return self.session.run([OUTPUT], feeds)[0]
 
 
@@ -365,6 +411,48 @@ def build(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config) -> Built:
     return Built(model, payload, session, parity, precision)
 
 
+def build_textured(model: TexturedBRDF, cfg: cfgmod.Config) -> Built:
+    """A textured model (:mod:`neural_brdf.train.textured_model`, lobes normalised by
+    ``normalized_textured``) as the graph of (wi, wo, uv): ``exportable(model)`` (the
+    weight field frozen, total over every row), checked against torch at random uv as
+    :func:`build` checks a homogeneous one."""
+    graph = exportable(model)
+    payload = to_onnx_bytes(graph, cfg.export.opset, inputs=SIGNATURES[1])
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    session = ort.InferenceSession(payload, opts, providers=["CPUExecutionProvider"])
+    parity, precision, ort_exact = parity_error(
+        graph, session, cfg.export.parity_pairs, cfg.train.seed + 29, textured=True
+    )
+    allowed = parity_allowed(cfg.export.parity_tol, precision)
+    if not (parity <= allowed or ort_exact <= allowed):  # as build()
+        raise ParityError(
+            f"torch and onnxruntime differ by {parity:.3g} relative (allowed "
+            f"{allowed:.3g}: export.parity_tol, or twice the float32 precision "
+            f"of the network, {precision:.3g}); nothing written"
+        )
+    return Built(model, payload, session, parity, precision)
+
+
+def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The ``texture`` metadata entry of a textured file: what its uv input means
+    (docs/portable.md, "Textured files")."""
+    field = model.field
+    return {
+        "inputs": list(SIGNATURES[1]),
+        "model": "sum_k z_k(uv) g_k(wi, wo): K shared lobes, a field of K weights",
+        "lobes": int(field.lobes),
+        "resolution": [int(field.resolution), int(field.resolution)],
+        "wrap": "repeat",
+        "filter": "bilinear",
+        "texel_centres": "((i + 0.5) / R, (j + 0.5) / R), i along u, j along v",
+        "layout": "row-major [v, u]: flat index j * R + i",
+        "weights": "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)",
+        "normal_field": None,  # a normal or bump map of the teacher is not in the file yet
+        "lobe_tables": plain(info) if info is not None else None,
+    }
+
+
 def write(
     built: Built,
     cfg: cfgmod.Config,
@@ -373,9 +461,11 @@ def write(
     physics: dict[str, Any],
     target: Described | None = None,
     target_desc: str | None = None,
+    texture_info: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Write ``built`` to ``out`` with its metadata; returns the parity figures and the
-    path.
+    path.  A textured graph (:func:`build_textured`) gets the ``texture`` entry
+    (:func:`texture_json`, ``texture_info``: each lobe's table figures).
 
     ``physics``: :func:`neural_brdf.validate.physics` of ``built.eval`` (the file records
     its figures); ``target``: what the model was fitted to, described by ``target_desc``
@@ -393,7 +483,11 @@ def write(
         frame=FRAME,
         units=UNITS,
         encoding=cfg.model.encoding,
-        normalization=normalization_note(built.model, cfg.normalization),
+        normalization=(
+            textured_normalization_note(built.model, cfg.normalization)
+            if isinstance(built.model, TexturedBRDF)
+            else normalization_note(built.model, cfg.normalization)
+        ),
         target=target_json(cfg, target_desc, target),
         max_albedo=checks["max_albedo"]["value"],
         hemispherical_albedo=plain(physics["hemispherical_albedo"]),
@@ -402,14 +496,25 @@ def write(
         parity_rel_error=built.parity_rel_error,
         float32_rel_precision=built.float32_rel_precision,
         training_config=cfg.model_dump(mode="json"),
-        sampling_lobe=lobe_fit.fit(built.eval),  # renderers' importance sampling
+        # renderers' importance sampling (a textured graph: one lobe for the surface)
+        sampling_lobe=lobe_fit.fit_onnx(built.payload)
+        if built.textured
+        else lobe_fit.fit(built.eval),
+        texture=texture_json(built.model, texture_info)
+        if isinstance(built.model, TexturedBRDF)
+        else None,
     ).to_props()
     proto = onnx.load_from_string(built.payload)
     onnx.helper.set_model_props(proto, meta)
     proto.producer_name = PRODUCER_NAME
     proto.producer_version = __version__
     proto.model_version = FORMAT_VERSION  # the file format, an integer
-    proto.doc_string = doc_string(cfg, target_desc, isinstance(built.model, NormalizedBRDF))
+    proto.doc_string = doc_string(
+        cfg,
+        target_desc,
+        isinstance(built.model, (NormalizedBRDF, TexturedBRDF)),
+        textured=built.textured,
+    )
     onnx.checker.check_model(proto)
     atomic_write(Path(out), proto.SerializeToString(), parents=True)
     return {
@@ -440,11 +545,61 @@ def export(
     return {**info, "physics": phys}
 
 
+def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
+    """The raw textured model of a textured run's checkpoint (``train.textured_loop``)."""
+    from neural_brdf.train.textured_model import WeightField
+
+    tx = cfg.texture
+    model = TexturedBRDF(
+        [RawBRDF.from_config(cfg.model) for _ in range(tx.lobes)],
+        WeightField(tx.resolution, tx.lobes),
+    )
+    model.load_state_dict(ckpt["model"])
+    return model.eval()
+
+
+def _export_textured(
+    ckpt: dict,
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    out: str | Path | None,
+    measure: Callable[..., dict[str, Any]] | None,
+    target: Any,
+) -> dict[str, Any]:
+    """:func:`export_run` of a textured run: its lobes normalised, the (wi, wo, uv)
+    graph built, ``measure`` (``validate.physics_textured``) on it, written."""
+    from neural_brdf.train.textured_model import normalized_textured
+
+    if measure is None:
+        raise TypeError("export_run: a textured run needs measure_textured")
+    model, tables = normalized_textured(
+        textured_from_checkpoint(ckpt, cfg), cfg.normalization, seed=cfg.train.seed
+    )
+    built = build_textured(model, cfg)
+    phys = measure(
+        built.eval,
+        anisotropic=built.anisotropic,
+        settings=cfg.validation,
+        uv_count=cfg.texture.validation_uv,
+    )
+    path = Path(out) if out is not None else run_dir / "model.onnx"
+    info = write(built, cfg, path, physics=phys, target=target, texture_info=tables)
+    info["physics"] = phys
+    info["normalization"] = tables
+    info["target"] = target_json(cfg, target.describe(), target)
+    return info
+
+
 def export_run(
-    run_dir: str | Path, out: str | Path | None = None, *, measure: Measure
+    run_dir: str | Path,
+    out: str | Path | None = None,
+    *,
+    measure: Measure,
+    measure_textured: Callable[..., dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """``neural-brdf export RUN_DIR [-o OUT]``: checkpoint -> normalised model -> ONNX
-    (:func:`export`, ``measure``: :func:`neural_brdf.validate.physics`).  Returns
+    (:func:`export`, ``measure``: :func:`neural_brdf.validate.physics`; a textured
+    run's: ``measure_textured``, :func:`neural_brdf.validate.physics_textured`).  Returns
     :func:`export`'s figures, ``normalization`` and ``target`` (the metadata's entry:
     ``kind`` "images" and ``views`` for an images fit, which has no reference)."""
     run_dir = Path(run_dir)
@@ -457,6 +612,8 @@ def export_run(
     # the metadata says {"kind": "images", "views": N} and physics is measured alone
     images = cfg.target.images is not None
     target = None if images else data.build_target(cfg.target)
+    if ckpt.get("kind") == "textured":
+        return _export_textured(ckpt, cfg, run_dir, out, measure_textured, target)
     raw = raw_from_checkpoint(ckpt, cfg)
     model, table_info = normalized_model(raw, cfg, target)
     out = Path(out) if out is not None else run_dir / "model.onnx"

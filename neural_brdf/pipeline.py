@@ -19,6 +19,7 @@ write into) from start to end.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -27,8 +28,9 @@ from neural_brdf import config as cfgmod
 from neural_brdf import export as exp
 from neural_brdf import runfolder, validate
 from neural_brdf.errors import InputError
-from neural_brdf.target import Target
+from neural_brdf.target import Target, spatially_varying
 from neural_brdf.train import data, loop
+from neural_brdf.train.session import MUST_MATCH, TEXTURED_MUST_MATCH
 
 
 def run(
@@ -98,6 +100,12 @@ def run_many(
             targets.append(data.build_target(c.target))
         except InputError as e:  # say which file of the batch holds the bad target
             raise cfgmod.ConfigError(f"{src}: {e}") from None
+    for src, target in zip(label, targets):
+        if spatially_varying(target):
+            raise cfgmod.ConfigError(
+                f"{src}: target.mitsuba: {target.describe()}: a textured teacher trains "
+                "alone (neural-brdf train), not in a batch"
+            )
     run_dirs = [Path(out) / n for n in names]
     for run_dir in run_dirs:  # a folder of the user's: refused before any lock file
         runfolder.check_writable(run_dir)
@@ -115,17 +123,111 @@ def run_many(
 
 def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[str, Any]:
     run_dir = folder.path
-    ckpt = loop.load_resumable(cfg, folder.ckpt) if resume else None
+    t0 = time.perf_counter()
+    # a Mitsuba teacher is loaded first: whether it varies over the surface decides the
+    # loop (and the kind of checkpoint a resumed run must have)
+    target = data.build_target(cfg.target) if cfg.target.mitsuba is not None else None
+    textured = spatially_varying(target)
+    ckpt = (
+        loop.load_resumable(
+            cfg,
+            folder.ckpt,
+            kind="textured" if textured else None,
+            must_match=TEXTURED_MUST_MATCH if textured else MUST_MATCH,
+        )
+        if resume
+        else None
+    )
     if ckpt is not None and int(ckpt["step"]) == cfg.train.steps:
         done = loop.finished_report(run_dir, cfg.train.steps)
         if done is not None:
             return {**done, "already_finished": cfg.train.steps}
-    t0 = time.perf_counter()
-    target = data.build_target(cfg.target)
+    if target is None:
+        target = data.build_target(cfg.target)
+    if textured:
+        from neural_brdf.train import textured_loop
+
+        if cfg.train.device == "cuda":
+            print(f"{cfg.name}: a textured model trains on the CPU", file=sys.stderr)
+        model, training = textured_loop.train(
+            cfg, run_dir, target=target, resume=resume, checkpoint=ckpt, folder=folder
+        )
+        return finish_textured(cfg, run_dir, model, training, t0=t0, target=target)
     raw, training = loop.train(
         cfg, run_dir, resume=resume, target=target, checkpoint=ckpt, folder=folder
     )
     return finish(cfg, run_dir, raw, training, t0=t0, target=target)
+
+
+def finish_textured(
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    model: Any,
+    training: dict[str, Any],
+    *,
+    t0: float,
+    target: Any,
+    report: bool = True,
+) -> dict[str, Any]:
+    """:func:`finish` for a textured model (``train.textured_loop.train``'s): each lobe
+    normalised (``normalized_textured``), the graph of (wi, wo, uv) built and checked
+    (``export.build_textured``), its physics measured at random uv
+    (``validate.physics_textured``), ``model.onnx`` written with the ``texture`` entry,
+    the accuracy against the teacher at random uv, ``metrics.json`` and the report."""
+    from neural_brdf.train.textured_model import normalized_textured
+
+    t1 = time.perf_counter()
+    excess = target.measure_excess(seed=cfg.validation.seed + 5, tol=cfg.validation.albedo_tol)
+    if excess is not None:
+        print(
+            f"{cfg.name}: the teacher's albedo reaches {excess['max_albedo']:.4f} (at uv "
+            f"{excess['at_uv']}); the model learns its energy-bounded version",
+            file=sys.stderr,
+        )
+    normalized, tables = normalized_textured(model, cfg.normalization, seed=cfg.train.seed)
+    built = exp.build_textured(normalized, cfg)
+    phys = validate.physics_textured(
+        built.eval,
+        anisotropic=built.anisotropic,
+        settings=cfg.validation,
+        uv_count=cfg.texture.validation_uv,
+    )
+    exp.write(
+        built,
+        cfg,
+        run_dir / "model.onnx",
+        physics=phys,
+        target=target,
+        target_desc=target.describe(),
+        texture_info=tables,
+    )
+    t2 = time.perf_counter()
+    metrics = validate.report(run_dir / "model.onnx", target=target, physics_report=phys)
+    t3 = time.perf_counter()
+    metrics["training"] = training
+    metrics["teacher_excess"] = excess
+    metrics["export"] = {
+        "parity_rel_error": built.parity_rel_error,
+        "float32_rel_precision": built.float32_rel_precision,
+        "normalization": tables,
+        "seconds": t2 - t1,
+    }
+    metrics["seconds"] = {
+        "train": training["train_seconds"],
+        "export": t2 - t1,
+        "validate": t3 - t2,
+        "total": t3 - t0,
+    }
+    validate.write_json(metrics, run_dir / "metrics.json")
+    if not report:
+        return metrics
+    from neural_brdf.viewer.report import write_report
+
+    write_report(run_dir)
+    metrics["seconds"]["report"] = time.perf_counter() - t3
+    metrics["seconds"]["total"] = time.perf_counter() - t0
+    validate.write_json(metrics, run_dir / "metrics.json")
+    return metrics
 
 
 def finish(

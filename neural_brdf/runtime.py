@@ -3,6 +3,7 @@
     import neural_brdf
     brdf = neural_brdf.load("runs/quickstart/model.onnx")
     f = brdf.eval(wi, wo)          # numpy (..., 3) in, (..., 3) float32 out, 1/sr, no cosine
+    f = brdf.eval(wi, wo, uv)      # a textured file (brdf.textured): uv (..., 2) too
     brdf.metadata["max_albedo"]    # every metadata_props entry, as strings
     brdf.meta["max_albedo"]        # the same, decoded: JSON values parsed (read_metadata)
     brdf.info.max_albedo           # the same, typed (neural_brdf.fileformat.metadata.Metadata)
@@ -30,7 +31,14 @@ from numpy.typing import ArrayLike
 from neural_brdf.errors import InputError
 
 # the file's contract (names, versions, metadata keys, their decoding): neural_brdf.fileformat
-from neural_brdf.fileformat import INPUTS, JSON_KEYS, METADATA_VERSION_KEY, OUTPUT  # noqa: F401
+from neural_brdf.fileformat import (  # noqa: F401
+    INPUTS,
+    JSON_KEYS,
+    METADATA_VERSION_KEY,
+    OUTPUT,
+    SIGNATURES,
+    UV,
+)
 from neural_brdf.fileformat.metadata import Metadata, parse_target, read_metadata  # noqa: F401
 
 CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
@@ -58,10 +66,12 @@ class NeuralBRDF:
             raise InputError(f"{path}: not a loadable ONNX model ({first[:200]})") from None
         names = tuple(i.name for i in self.session.get_inputs())
         outs = tuple(o.name for o in self.session.get_outputs())
-        if names != INPUTS or outs != (OUTPUT,):
+        if names not in SIGNATURES or outs != (OUTPUT,):
             raise InputError(
-                f"{path}: expected inputs {INPUTS} and output {OUTPUT!r}, got {names} -> {outs}"
+                f"{path}: expected inputs {INPUTS} (or {SIGNATURES[1]}) and output "
+                f"{OUTPUT!r}, got {names} -> {outs}"
             )
+        self.inputs = names
         self.path = path
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         self.meta: dict[str, Any] = read_metadata(self.metadata)
@@ -85,22 +95,44 @@ class NeuralBRDF:
     def encoding(self) -> str:
         return self.metadata.get("encoding", "isotropic")
 
-    def eval(self, wi: ArrayLike, wo: ArrayLike) -> np.ndarray:
-        """f(wi, wo) in 1/sr: (..., 3) unit vectors (broadcast) -> (..., 3) float32 RGB."""
+    @property
+    def textured(self) -> bool:
+        """Does f vary over the surface (the graph's inputs are wi, wo and uv)?"""
+        return UV in self.inputs
+
+    def eval(self, wi: ArrayLike, wo: ArrayLike, uv: ArrayLike | None = None) -> np.ndarray:
+        """f(wi, wo) in 1/sr: (..., 3) unit vectors (broadcast) -> (..., 3) float32 RGB.
+
+        A textured file (:attr:`textured`) needs ``uv``, (..., 2) texture coordinates
+        broadcast with the directions; a homogeneous one is the same at every uv, so a
+        ``uv`` given to it is checked for its shape and otherwise unused."""
         wi = np.asarray(wi, dtype=np.float32)
         wo = np.asarray(wo, dtype=np.float32)
-        wi, wo = np.broadcast_arrays(wi, wo)
-        if wi.shape[-1:] != (3,):
-            raise InputError(f"wi, wo: expected shape (..., 3), got {wi.shape}")
-        batch = wi.shape[:-1]
-        a = np.ascontiguousarray(wi.reshape(-1, 3))
-        b = np.ascontiguousarray(wo.reshape(-1, 3))
+        if wi.shape[-1:] != (3,) or wo.shape[-1:] != (3,):
+            raise InputError(f"wi, wo: expected shape (..., 3), got {wi.shape}, {wo.shape}")
+        if uv is None and self.textured:
+            raise InputError(
+                f"{self.path}: a textured material: give uv, (..., 2) texture coordinates"
+            )
+        c = np.zeros((2,), np.float32) if uv is None else np.asarray(uv, dtype=np.float32)
+        if c.shape[-1:] != (2,):
+            raise InputError(f"uv: expected shape (..., 2), got {c.shape}")
+        try:
+            batch = np.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], c.shape[:-1])
+        except ValueError:
+            raise InputError(
+                f"wi, wo, uv: shapes {wi.shape}, {wo.shape}, {c.shape} do not broadcast"
+            ) from None
+        a = np.ascontiguousarray(np.broadcast_to(wi, batch + (3,)).reshape(-1, 3))
+        b = np.ascontiguousarray(np.broadcast_to(wo, batch + (3,)).reshape(-1, 3))
+        rows = np.ascontiguousarray(np.broadcast_to(c, batch + (2,)).reshape(-1, 2))
         out = np.empty((len(a), 3), dtype=np.float32)
         for s in range(0, len(a), CHUNK):
+            feeds = {INPUTS[0]: a[s : s + CHUNK], INPUTS[1]: b[s : s + CHUNK]}
+            if self.textured:
+                feeds[UV] = rows[s : s + CHUNK]
             try:
-                out[s : s + CHUNK] = self.session.run(
-                    [OUTPUT], dict(zip(INPUTS, (a[s : s + CHUNK], b[s : s + CHUNK])))
-                )[0]
+                out[s : s + CHUNK] = self.session.run([OUTPUT], feeds)[0]
             except Exception as e:  # onnxruntime raises its own untyped errors (Fail, ...)
                 first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
                 raise InputError(f"{self.path}: onnxruntime failed ({first[:200]})") from None

@@ -58,10 +58,11 @@ import torch
 
 import analytic
 from neural_brdf import config as cfgmod
+from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_write, json_text
 from neural_brdf.physics import quadrature
 from neural_brdf.runtime import load
-from neural_brdf.target import Described, Target, kind_of
+from neural_brdf.target import Described, Target, kind_of, spatially_varying
 from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 
@@ -116,7 +117,20 @@ def physics(
     rho, err = quadrature.albedo(
         quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, target=target
     )
-    rho, err = rho.numpy(), err.numpy()
+    return _physics_report(rho.numpy(), err.numpy(), dirs, anisotropic, recip, min_val, s)
+
+
+def _physics_report(
+    rho: np.ndarray,
+    err: np.ndarray,
+    dirs: torch.Tensor,
+    anisotropic: bool,
+    recip: float,
+    min_val: float,
+    s: cfgmod.Validation,
+) -> dict[str, Any]:
+    """:func:`physics`'s report from its figures: ``rho``, ``err`` (M, C) the albedo and
+    its standard error at the furnace directions ``dirs`` (M, 3)."""
     # hemispherical albedo: 2 int_0^1 rho(mu) mu dmu, rows averaged over azimuth
     n_theta = len(dirs) // AZIMUTHS if anisotropic else len(dirs)
     mu = dirs[:, 2].numpy().reshape(n_theta, -1)[:, 0]
@@ -176,9 +190,20 @@ def accuracy(fn: Callable, target: Target, *, n: int, seed: int) -> dict[str, An
     data are compared on all their bins)."""
     measured = kind_of(target) == "measured"
     wi, wo, ref = data.accuracy_pairs(target, None if measured else n, seed)
-    n = len(wi)
     wi, wo, ref = wi.numpy(), wo.numpy(), ref.numpy()
-    pred = np.asarray(fn(wi, wo), dtype=np.float64)
+    return _accuracy_report(wi, wo, ref, np.asarray(fn(wi, wo), dtype=np.float64))
+
+
+def _accuracy_report(
+    wi: np.ndarray,
+    wo: np.ndarray,
+    ref: np.ndarray,
+    pred: np.ndarray,
+    uv: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """:func:`accuracy`'s figures from the pairs, the reference and the model's values
+    (``uv``: the texture coordinates of a textured model's pairs, named in ``worst``)."""
+    n = len(wi)
     cos = np.clip(wo[:, 2:3], 0.0, None)
     a, b = pred * cos, ref * cos
     rel = float(np.sqrt(np.sum((a - b) ** 2) / max(np.sum(b**2), 1e-300)))
@@ -199,6 +224,7 @@ def accuracy(fn: Callable, target: Target, *, n: int, seed: int) -> dict[str, An
                 "wo": wo[i].round(5).tolist(),
                 "f": ref[i].tolist(),
                 "f_model": pred[i].tolist(),
+                **({"uv": uv[i].round(5).tolist()} if uv is not None else {}),
             }
         )
     return {
@@ -208,6 +234,73 @@ def accuracy(fn: Callable, target: Target, *, n: int, seed: int) -> dict[str, An
         "rel_rmse_by_incidence": bands,
         "worst": worst,
     }
+
+
+# ------------------------------------------------------------------ textured files
+def uv_points(n: int, seed: int) -> np.ndarray:
+    """``n`` random texture coordinates, uniform in [-1, 2)^2: between texel centres
+    (almost surely), and outside [0, 1) as often as inside, since a renderer's uv wrap."""
+    return np.random.default_rng(seed).uniform(-1.0, 2.0, (n, 2))
+
+
+def physics_textured(
+    fn: Callable,
+    *,
+    anisotropic: bool,
+    settings: cfgmod.Validation,
+    uv_count: int,
+) -> dict[str, Any]:
+    """:func:`physics` of a textured ``fn(wi, wo, uv)`` (numpy, (N, 3), (N, 3), (N, 2)):
+    reciprocity and the smallest value over ``settings.pairs`` random pairs, each at its
+    own random uv (:func:`uv_points`); the furnace at ``uv_count`` random uv, each by
+    the quadrature of :func:`physics` over a grid of ``max(4, furnace_dirs // 8)``
+    polar angles (the largest albedo over every uv and direction is the check; the
+    curve and the hemispherical albedo are those of the uv where it was found).  The
+    report adds ``furnace.uv`` (the points) and ``furnace.uv_max_albedo`` (each one's)."""
+    s = settings
+    uv = uv_points(s.pairs, s.seed + 40)
+
+    def at_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return fn(a, b, uv)
+
+    recip = analytic.reciprocity_error(at_pairs, n=s.pairs, seed=s.seed)
+    min_val = analytic.min_value(at_pairs, n=s.pairs, seed=s.seed + 1)
+    dirs = furnace_directions(max(4, s.furnace_dirs // 8), anisotropic, s.seed + 2)
+    points = uv_points(uv_count, s.seed + 41)
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    per_uv = []
+    for k, p in enumerate(points):
+
+        def at_point(a: np.ndarray, b: np.ndarray, p: np.ndarray = p) -> np.ndarray:
+            return fn(a, b, np.broadcast_to(p, a.shape[:-1] + (2,)))
+
+        rho, err = quadrature.albedo(
+            quadrature.from_numpy(at_point), dirs, s.furnace_samples, seed=s.seed + 3 + k
+        )
+        r = rho.numpy()
+        top = float(r.max()) if np.all(np.isfinite(r)) else math.inf
+        per_uv.append(top)
+        if best is None or not top <= best[0]:
+            best = (top, r, err.numpy())
+    assert best is not None  # uv_count >= 1
+    out = _physics_report(best[1], best[2], dirs, anisotropic, recip, min_val, s)
+    worst = int(np.argmax(per_uv))
+    out["checks"]["max_albedo"]["at_uv"] = points[worst].round(6).tolist()
+    out["furnace"]["uv"] = points.round(6).tolist()
+    out["furnace"]["uv_max_albedo"] = per_uv
+    return out
+
+
+def accuracy_textured(fn: Callable, target: Any, *, n: int, seed: int) -> dict[str, Any]:
+    """:func:`accuracy` of a textured ``fn(wi, wo, uv)`` against a spatially varying
+    ``target`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``) on ``n`` pairs at random uv
+    in [0, 1)^2, drawn as its training's held-out pairs are (wi uniform, wo half uniform
+    and half from the teacher's sampler: ``train.textured_loop.pairs``)."""
+    from neural_brdf.train.textured_loop import pairs
+
+    wi, wo, uv, ref = (x.double().numpy() for x in pairs(target, n, np.random.default_rng(seed)))
+    pred = np.asarray(fn(wi, wo, uv), dtype=np.float64)
+    return _accuracy_report(wi, wo, ref, pred, uv)
 
 
 def peak_pairs(anisotropic: bool) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
@@ -305,12 +398,38 @@ def report(
         "encoding": model.encoding,
         "target": model.target.get("description", ""),  # text, as metadata_version 1 had
     }
+    if model.textured:  # f(wi, wo, uv): checked at random uv, against a textured teacher
+        if physics_report is None:
+            physics_report = physics_textured(
+                model.eval,
+                anisotropic=is_anisotropic(model.encoding),
+                settings=settings,
+                uv_count=_uv_count(model),
+            )
+        out.update(physics_report)
+        if built is not None:
+            if not spatially_varying(built):
+                raise InputError(
+                    f"{model_path}: a textured model, and the reference "
+                    f"({built.describe()}) does not vary over the surface"
+                )
+            out["reference"] = built.describe()
+            out["accuracy"] = accuracy_textured(
+                model.eval, built, n=settings.accuracy_samples, seed=settings.seed + 4
+            )
+        out["passed"] = physics_passed(out)
+        return out
     if physics_report is None:
         physics_report = physics(
             model.eval, anisotropic=is_anisotropic(model.encoding), settings=settings, target=built
         )
     out.update(physics_report)
     if built is not None:
+        if spatially_varying(built):
+            raise InputError(
+                f"{model_path}: the reference ({built.describe()}) varies over the surface "
+                "and this model does not (it has no uv input)"
+            )
         out["reference"] = built.describe()
         out["accuracy"] = accuracy(
             model.eval, built, n=settings.accuracy_samples, seed=settings.seed + 4
@@ -324,6 +443,14 @@ def report(
             )
     out["passed"] = physics_passed(out)
     return out
+
+
+def _uv_count(model: Any) -> int:
+    """The furnace's uv points for a textured file: its config's ``texture.validation_uv``."""
+    try:
+        return cfgmod.from_dict(model.config).texture.validation_uv
+    except cfgmod.ConfigError:
+        return cfgmod.Texture().validation_uv
 
 
 def format_table(report: dict[str, Any]) -> str:

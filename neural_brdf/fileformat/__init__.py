@@ -27,10 +27,10 @@ OUTPUT = "f"
 # An optional third input, for a material that varies over the surface (a textured
 # material): uv float32 [N, 2], the surface point's texture coordinates (u, v) as the
 # host's mesh gives them (docs/model.md, "The ONNX contract").
-# Its graph is exported by neural_brdf.train.textured_model (issue 30; no command writes
-# such a file yet); a reader accepts a graph whose inputs are one of
-# SIGNATURES, in that order (reader.signature), and a consumer that gives no uv may
-# evaluate only a graph without it.
+# Its graph is exported by neural_brdf.train.textured_model (issue 30: `neural-brdf
+# train` of a textured Mitsuba teacher; its metadata has a "texture" entry); a reader
+# accepts a graph whose inputs are one of SIGNATURES, in that order (reader.signature),
+# and a consumer that gives no uv may evaluate only a graph without it.
 UV = "uv"
 OPTIONAL_INPUTS = (UV,)
 SIGNATURES = (INPUTS, INPUTS + OPTIONAL_INPUTS)
@@ -63,6 +63,7 @@ JSON_KEYS = (
     "min_value",
     "parity_rel_error",
     "float32_rel_precision",
+    "texture",  # a spatially varying file only: its weight field (docs/portable.md)
 )
 TEXT_KEYS = ("producer", "frame", "units", "encoding", "normalization")
 KEYS = JSON_KEYS + TEXT_KEYS  # every key an exported model carries

@@ -160,6 +160,7 @@ class Metadata:
     float32_rel_precision: float | None = None
     training_config: dict[str, Any] | None = None
     sampling_lobe: dict[str, Any] | None = None
+    texture: dict[str, Any] | None = None  # a spatially varying file's weight field
     other: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @classmethod
@@ -186,6 +187,7 @@ class Metadata:
             float32_rel_precision=_figure(d.get("float32_rel_precision")),
             training_config=d.get("training_config"),
             sampling_lobe=lobe if isinstance(lobe, dict) else None,
+            texture=d.get("texture") if isinstance(d.get("texture"), dict) else None,
             other={k: v for k, v in props.items() if k not in KEYS},
         )
 

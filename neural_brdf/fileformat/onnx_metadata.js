@@ -78,7 +78,7 @@ function readOnnxMetadata(bytes) {
 // neural_brdf.runtime reads both forms).
 const ONNX_JSON_KEYS = ["metadata_version", "format_version", "target", "training_config",
   "hemispherical_albedo", "sampling_lobe", "max_albedo", "reciprocity_error", "min_value",
-  "parity_rel_error", "float32_rel_precision"];
+  "parity_rel_error", "float32_rel_precision", "texture"];
 
 // readOnnxMetadata's strings with the JSON values parsed; metadata_version is 1 when the
 // file has none.  A value that is not valid JSON (an older file's text) is kept as text.

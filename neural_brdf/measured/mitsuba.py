@@ -22,12 +22,13 @@ table in an RGB variant included), a BSDF that transmits (dielectrics, masks, th
 principled's ``spec_trans``), one with a delta (perfectly smooth) lobe, alone or beside
 rough ones (a network of finite values cannot hold it, and Mitsuba's ``eval`` leaves
 it out, so the file would silently lose it), and one whose value depends on the position
-on the surface (a texture, a normal or bump map): "spatially varying teachers: not
-yet".  Spatial variation is probed, not guessed from the plugin: the BSDF is evaluated
-at :data:`PROBE_UV` random texture coordinates (and positions) on the same pairs, and a
-bitmap texture with more than one distinct texel counts too.  Anisotropy is probed the
-same way (the same pairs turned about the normal): ``anisotropic`` is True when the
-value depends on the azimuth.
+on the surface (a texture, a normal or bump map): :class:`VariesOverSurface`, which
+``train.data.build_target`` answers with a spatially varying teacher
+(:mod:`neural_brdf.measured.textured`).  Spatial variation is probed, not guessed from
+the plugin: the BSDF is evaluated at :data:`PROBE_UV` random texture coordinates (and
+positions) on the same pairs, and a bitmap texture with more than one distinct texel
+counts too.  Anisotropy is probed the same way (the same pairs turned about the
+normal): ``anisotropic`` is True when the value depends on the azimuth.
 
 Energy.  A teacher whose directional albedo A(w) = int f cos dwo exceeds 1 (Mitsuba's
 ``principled`` does, 1.04 to 1.19 at base colour 1, roughness 0.5) is learned as its
@@ -175,6 +176,12 @@ def _tensor(mi: Any, x: np.ndarray) -> Any:
 def _np(x: Any) -> np.ndarray:
     """A Mitsuba array of (3, N) or (N,) -> (N, 3) / (N,) float64 numpy."""
     return np.array(x, dtype=np.float64).T
+
+
+class VariesOverSurface(InputError):
+    """The teacher varies over the surface: :class:`MitsubaTarget` (homogeneous) refuses
+    it, and ``train.data.build_target`` builds a
+    :class:`neural_brdf.measured.textured.TexturedMitsubaTarget` instead."""
 
 
 class MitsubaTarget:
@@ -344,9 +351,9 @@ class MitsubaTarget:
             raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
         change = float(np.sqrt(np.mean((at - np.tile(base, (PROBE_UV, 1))) ** 2))) / scale
         if change > SPATIAL_TOL or self._varying_bitmap():
-            raise InputError(
+            raise VariesOverSurface(
                 f"{where}: {self.plugin} varies over the surface (a texture, normal or "
-                "bump map): spatially varying teachers: not yet"
+                "bump map): a spatially varying teacher (measured.textured)"
             )
         # anisotropy: the same pairs turned about the normal by a few azimuths
         turned = []

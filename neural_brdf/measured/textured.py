@@ -108,6 +108,7 @@ class TexturedMitsubaTarget:
             raise InputError(f"{where}: no such file")
         mi = self._mi = _mitsuba(self.variant, key)
         self.normal_map: dict[str, Any] | None = None
+        self.excess: dict[str, Any] | None = None  # measure_excess()
         self._normal_tex: Any = None
         self._bump_scale = 0.0
         with self._scope():
@@ -403,6 +404,30 @@ class TexturedMitsubaTarget:
                 wt = np.where(np.isfinite(wt), wt, 0.0)
                 best = np.maximum(best, wt.reshape(len(c), samples, 3).mean(1))
         return best
+
+    def measure_excess(
+        self, *, points: int = 16, samples: int = 2048, seed: int = 0, tol: float = 1e-3
+    ) -> dict[str, Any] | None:
+        """Where and by how much the teacher's albedo exceeds 1 + ``tol``
+        (:meth:`max_albedo` at ``points`` random uv), kept in :attr:`excess` for the
+        file's metadata and the report; None when it does not.  A model learns the
+        teacher's energy-bounded version: each of its lobes is normalised."""
+        uv = np.random.default_rng(seed).random((points, 2))
+        a = self.max_albedo(uv, samples=samples, seed=seed + 1)
+        k = int(np.argmax(a.max(-1)))
+        top = float(a[k].max())
+        self.excess = (
+            {
+                "max_albedo": top,
+                "at_uv": uv[k].round(5).tolist(),
+                "uv_points": points,
+                "share_of_uv_above_1": float(np.mean(a.max(-1) > 1.0 + tol)),
+                "learned": "the energy-bounded version: each lobe of the model is normalised",
+            }
+            if top > 1.0 + tol
+            else None
+        )
+        return self.excess
 
     def describe(self) -> str:
         text = f"Mitsuba {self.plugin} ({self.source}, {self.variant}), spatially varying"

@@ -240,6 +240,7 @@ def render_comparison(
     out_png,
     *,
     reference: dict | None = None,
+    reference_bsdf: Any = None,
     spp: int = 64,
     resolution: int = 256,
     gain: float | None = None,
@@ -255,6 +256,8 @@ def render_comparison(
     # the reference is sampled with the model's lobe (fitted to a model of the same
     # target): no second fit at load
     ref_bsdf = None if reference is None else analytic_bsdf(reference, lobe=stored)
+    if reference_bsdf is not None:  # a Mitsuba BSDF object (a textured teacher's)
+        ref_bsdf = reference_bsdf
     neural = to_display(
         render_scene({"type": "neural_brdf", "filename": str(path)}, resolution=resolution, spp=spp)
     )
@@ -275,6 +278,7 @@ def render_preview(
     out_png,
     *,
     reference: dict | None = None,
+    reference_bsdf: Any = None,
     spp: int = 64,
     resolution: int = 256,
     gain: float | None = ERROR_GAIN,
@@ -282,5 +286,11 @@ def render_preview(
     """:func:`render_comparison` with a fixed gain by default; returns the PSNR (None
     without a reference)."""
     return render_comparison(
-        onnx_path, out_png, reference=reference, spp=spp, resolution=resolution, gain=gain
+        onnx_path,
+        out_png,
+        reference=reference,
+        reference_bsdf=reference_bsdf,
+        spp=spp,
+        resolution=resolution,
+        gain=gain,
     )["psnr"]

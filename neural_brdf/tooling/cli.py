@@ -352,7 +352,12 @@ def _export(args) -> int:
     from neural_brdf import export, validate
 
     # export writes (and checks parity); validate measures the graph and gives the verdict
-    info = export.export_run(args.run_dir, args.out, measure=validate.physics)
+    info = export.export_run(
+        args.run_dir,
+        args.out,
+        measure=validate.physics,
+        measure_textured=validate.physics_textured,
+    )
     c = info["physics"]["checks"]
     t = info.get("target") or {}
     fitted = f" (an images fit of {t['views']} views)" if t.get("kind") == "images" else ""
@@ -530,6 +535,26 @@ def _codegen(args) -> int:
         raise InputError(f"-o {args.out}: is a folder; give a file name")
     _not_an_input(args.out, {"model": args.model}, flag="-o")
     text = backends.generate(args.model, args.target)
+    # a textured file's code reads its weight table from buffers the host binds: their
+    # data go next to the code, OUT's stem + .texture<k>.f32 (docs/codegen.md)
+    textures = backends.textures(args.model) if "neural_brdf_texture0" in text else []
+    if textures and args.out == STDOUT:
+        _warn(
+            "the textures are not written with -o -: give -o FILE (FILE's stem + "
+            ".texture<k>.f32) or use neural_brdf.backends.textures()"
+        )
+    elif textures:
+        from neural_brdf.fileio import atomic_write
+
+        stem = Path(args.out).with_suffix("")
+        for k, data in enumerate(textures):
+            path = f"{stem}.texture{k}.f32"
+            _not_an_input(path, {"model": args.model}, flag="-o")
+            try:
+                atomic_write(path, data.astype("<f4").tobytes())
+            except OSError as e:
+                raise InputError(f"{path}: cannot write ({e.strerror})") from None
+            print(f"wrote {path} (texture {k}: {data.shape[0]} x {data.shape[1]} float32)")
     _write_text(args.out, text)
     # with -o -, stdout carries the code alone
     print(

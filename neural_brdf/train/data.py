@@ -86,13 +86,20 @@ class MeasuredTarget:
 def build_target(target: cfgmod.Target):
     """The model of ``target``: an analytic BRDF, a :class:`MeasuredTarget` for
     ``target.data``, or a :class:`neural_brdf.measured.mitsuba.MitsubaTarget` for
-    ``target.mitsuba``; bad names, parameters or files raise ConfigError (InputError)."""
+    ``target.mitsuba`` (a :class:`neural_brdf.measured.textured.TexturedMitsubaTarget`
+    when it varies over the surface); bad names, parameters or files raise ConfigError
+    (InputError)."""
     if target.data is not None:
         return MeasuredTarget.from_file(target.data)
     if target.mitsuba is not None:  # Mitsuba is imported by this target only
-        from neural_brdf.measured.mitsuba import MitsubaTarget
+        from neural_brdf.measured.mitsuba import MitsubaTarget, VariesOverSurface
 
-        return MitsubaTarget(target.mitsuba, variant=target.variant)
+        try:
+            return MitsubaTarget(target.mitsuba, variant=target.variant)
+        except VariesOverSurface:  # textures, a normal or bump map: f(wi, wo, uv)
+            from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+            return TexturedMitsubaTarget(target.mitsuba, variant=target.variant or "llvm_ad_rgb")
     if target.model not in analytic.available():
         raise cfgmod.ConfigError(
             f"target.model: unknown model {target.model!r}; available: {analytic.available()}"

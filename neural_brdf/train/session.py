@@ -64,7 +64,13 @@ LOG_COLUMNS = ("step", "loss", "lr", "seconds", "val_rel_rmse")
 # Settings a resumed run must share with its checkpoint (the rest may change, e.g. steps).
 MUST_MATCH = ("target", "model", "data", "train.seed", "train.loss", "train.loss_eps")
 # What trained a checkpoint (its "kind" key; none: BRDF samples), in the resume errors.
-KINDS = {None: "a training from BRDF samples", "images": "an images fit"}
+KINDS = {
+    None: "a training from BRDF samples",
+    "images": "an images fit",
+    "textured": "a textured model's training (a spatially varying teacher)",
+}
+# ... and what a textured run's must share too (train.textured_loop)
+TEXTURED_MUST_MATCH = (*MUST_MATCH, "texture")
 
 
 # ------------------------------------------------------------------ checkpoints

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -41,8 +42,10 @@ import torch
 
 from analytic import frame
 from neural_brdf import config as cfgmod
+from neural_brdf.runfolder import Folder
 from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
 from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
 from neural_brdf.train.textured_model import TexturedBRDF, WeightField
 
 FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
@@ -52,8 +55,8 @@ POOL = 131072
 VAL_PAIRS = 16384  # held-out pairs
 
 
-def _pairs(
-    teacher: Any, n: int, rng: np.random.Generator, *, cosine_wi: bool
+def pairs(
+    teacher: Any, n: int, rng: np.random.Generator, *, cosine_wi: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """n pairs (wi, wo, uv, f) as float32 tensors: uv uniform, wi cosine-distributed
     (``cosine_wi``) or uniform, wo uniform for the first half and from the teacher's
@@ -74,6 +77,38 @@ def _pairs(
     f = np.where(np.isfinite(f), f, 0.0)
     a, b, c, t = (torch.from_numpy(np.ascontiguousarray(x)).float() for x in (wi, wo, uv, f))
     return a, b, c, t
+
+
+def _model_and_optimizer(
+    m: cfgmod.Model,
+    lobes: int,
+    resolution: int,
+    pool_f: torch.Tensor,
+    lr: float,
+    field_lr_scale: float,
+) -> tuple[TexturedBRDF, torch.optim.Adam]:
+    """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field (weights from torch's
+    global generator: the caller seeds it), and Adam with the learning-rate groups of
+    the module doc (each group's ``lr_scale``)."""
+    # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
+    init = float(pool_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
+    model = TexturedBRDF(
+        [RawBRDF.from_config(m, init_value=init) for _ in range(lobes)],
+        WeightField(resolution, lobes),
+    )
+    scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
+    groups: dict[float, list[torch.nn.Parameter]] = {}
+    for name, p in model.named_parameters():
+        if name.startswith("field."):
+            scale = field_lr_scale
+        else:
+            local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
+            scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
+        groups.setdefault(scale, []).append(p)
+    opt = torch.optim.Adam(
+        [{"params": ps, "lr_scale": s} for s, ps in groups.items()], lr=lr, fused=True
+    )
+    return model, opt
 
 
 def train_textured(
@@ -108,31 +143,14 @@ def train_textured(
     sched = cfgmod.Train(steps=steps, lr=lr, warmup=min(warmup, max(steps - 1, 0)), seed=seed)
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    p_wi, p_wo, p_uv, p_f = _pairs(teacher, pool, rng, cosine_wi=True)
-    v_wi, v_wo, v_uv, v_f = _pairs(
+    p_wi, p_wo, p_uv, p_f = pairs(teacher, pool, rng, cosine_wi=True)
+    v_wi, v_wo, v_uv, v_f = pairs(
         teacher, val_pairs, np.random.default_rng(seed + 101), cosine_wi=False
     )
     pool_seconds = time.perf_counter() - t0
 
     torch.manual_seed(seed)
-    # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
-    init = float(p_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
-    model = TexturedBRDF(
-        [RawBRDF.from_config(m, init_value=init) for _ in range(lobes)],
-        WeightField(resolution, lobes),
-    )
-    scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
-    groups: dict[float, list[torch.nn.Parameter]] = {}
-    for name, p in model.named_parameters():
-        if name.startswith("field."):
-            scale = field_lr_scale
-        else:
-            local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
-            scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
-        groups.setdefault(scale, []).append(p)
-    opt = torch.optim.Adam(
-        [{"params": ps, "lr_scale": s} for s, ps in groups.items()], lr=lr, fused=True
-    )
+    model, opt = _model_and_optimizer(m, lobes, resolution, p_f, lr, field_lr_scale)
 
     def validate() -> float:
         with torch.no_grad():
@@ -172,4 +190,122 @@ def train_textured(
         "init_val_rel_rmse": init_err,
         "val_rel_rmse": validate(),
         "field_lr_scale": field_lr_scale,
+    }
+
+
+def train(
+    cfg: cfgmod.Config,
+    run_dir: Path,
+    *,
+    target: Any,
+    resume: bool = False,
+    checkpoint: dict | None = None,
+    folder: Folder | None = None,
+) -> tuple[TexturedBRDF, dict[str, Any]]:
+    """``neural-brdf train`` of a spatially varying teacher (``target``: a
+    :class:`~neural_brdf.measured.textured.TexturedMitsubaTarget`): the loop of
+    :func:`train_textured` with the config's settings (``texture``: K, R and the field's
+    learning rate; ``train``: steps, learning rate, schedule, loss, seed; ``data``: the
+    batch and the pool; ``model``: each lobe's network), run in a
+    :class:`~neural_brdf.train.session.Session`: ckpt.pt written atomically every
+    ``train.checkpoint_every`` steps (and at Ctrl-C / SIGTERM), log.csv, ``--resume``.
+
+    A resumed run draws the same pool again (the same teacher, the same seed) and
+    restores the weights, Adam's moments and the batch generator, so it continues the
+    run it resumes.  Returns the raw model (lobes not yet normalised) and its figures:
+    ``steps``, ``train_seconds``, ``pool_seconds``, ``final_loss``,
+    ``init_val_rel_rmse``, ``raw_val_rel_rmse`` (module doc), ``target``."""
+    t, tx = cfg.train, cfg.texture
+    torch.set_num_threads(t.threads)
+    sess = Session.one(
+        cfg,
+        folder if folder is not None else run_dir,
+        resume=resume,
+        kind="textured",
+    )
+    ckpt = sess.resumed(checkpoint, must_match=TEXTURED_MUST_MATCH)
+    sess.begin()
+    t0 = time.perf_counter()
+    p_wi, p_wo, p_uv, p_f = pairs(
+        target, cfg.data.pool_size, np.random.default_rng(t.seed), cosine_wi=True
+    )
+    v_wi, v_wo, v_uv, v_f = pairs(
+        target, VAL_PAIRS, np.random.default_rng(t.seed + 101), cosine_wi=False
+    )
+    pool_seconds = time.perf_counter() - t0
+    torch.manual_seed(t.seed)
+    model, opt = _model_and_optimizer(
+        cfg.model, tx.lobes, tx.resolution, p_f, t.lr, tx.field_lr_scale
+    )
+
+    def validate() -> float:
+        with torch.no_grad():
+            return rel_rmse(model(v_wi, v_wo, v_uv), v_f, v_wo[:, 2:3])
+
+    init_err = validate()
+    gen = torch.Generator().manual_seed(t.seed)
+    last = math.nan
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        gen.set_state(ckpt["generator"])
+        init_err = float(ckpt.get("init_val_rel_rmse", init_err))
+        last = float(ckpt.get("loss", math.nan))
+        sess.restore(ckpt)
+
+    def state() -> dict[str, Any]:
+        return {
+            "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
+            "optimizer": opt.state_dict(),
+            "generator": gen.get_state(),
+            "loss": last,
+            "init_val_rel_rmse": init_err,
+        }
+
+    pool = len(p_f)
+    model.train()
+    with sess.run(state) as s:
+        while s.step < t.steps:
+            s.stop_if_interrupted()
+            rate = learning_rate(t, s.step)
+            for group in opt.param_groups:
+                group["lr"] = rate * group["lr_scale"]
+            idx = torch.randint(0, pool, (cfg.data.batch_size,), generator=gen)
+            wi, wo, uv, f = p_wi[idx], p_wo[idx], p_uv[idx], p_f[idx]
+            loss = loss_fn(
+                t.loss, model(wi, wo, uv), f, wo[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap
+            )
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            s.advance()
+            if s.due(t.log_every):
+                last = float(loss.detach())
+                if not math.isfinite(last):
+                    raise sess.diverged(last, s.step - 1)
+                err = None
+                if t.eval_every and s.due(t.eval_every):
+                    model.eval()
+                    err = validate()
+                    model.train()
+                    s.postfix(loss=f"{last:.4g}", err=f"{100 * err:.2f}%")
+                else:
+                    s.postfix(loss=f"{last:.4g}")
+                s.log(loss=last, lr=rate, val_rel_rmse=err)
+            if s.due(t.checkpoint_every):
+                s.check_weights(all(bool(torch.isfinite(p).all()) for p in model.parameters()))
+                s.checkpoint()
+    model.eval()
+    return model, {
+        "steps": sess.step,
+        "device": "cpu",
+        "lobes": tx.lobes,
+        "resolution": tx.resolution,
+        "pool": pool,
+        "pool_seconds": pool_seconds,
+        "train_seconds": sess.seconds,
+        "final_loss": last,
+        "init_val_rel_rmse": init_err,
+        "raw_val_rel_rmse": validate(),
+        "target": target.describe(),
     }

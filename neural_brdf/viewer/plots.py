@@ -396,11 +396,25 @@ def mitsuba_unavailable() -> str | None:
 
 
 def spheres(
-    model_path, out_png, *, reference: dict | None = None, spp: int = 16, resolution: int = 128
+    model_path,
+    out_png,
+    *,
+    reference: dict | None = None,
+    reference_bsdf=None,
+    spp: int = 16,
+    resolution: int = 128,
 ) -> float | None:
-    """Render the model (and an analytic ``reference`` = {"model", "params"}) on the
-    Mitsuba preview scene into ``out_png``; returns the PSNR against the reference.
-    Call :func:`mitsuba_unavailable` first."""
+    """Render the model (and an analytic ``reference`` = {"model", "params"}, or a Mitsuba
+    BSDF object ``reference_bsdf``: a textured teacher's) on the Mitsuba preview scene
+    into ``out_png``; returns the PSNR against the reference.  Call
+    :func:`mitsuba_unavailable` first."""
     from neural_brdf.renderers.render import render_preview
 
-    return render_preview(model_path, out_png, reference=reference, spp=spp, resolution=resolution)
+    return render_preview(
+        model_path,
+        out_png,
+        reference=reference,
+        reference_bsdf=reference_bsdf,
+        spp=spp,
+        resolution=resolution,
+    )

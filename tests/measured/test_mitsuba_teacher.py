@@ -242,21 +242,45 @@ REFUSED = {
     "dielectric": ('<bsdf version="3.0.0" type="dielectric"/>', "transmits"),
     "conductor": ('<bsdf version="3.0.0" type="conductor"/>', "delta-only"),
     "plastic": ('<bsdf version="3.0.0" type="plastic"/>', "delta lobe"),
-    "bitmap": (
-        '<bsdf version="3.0.0" type="twosided"><bsdf type="roughplastic">{bitmap}</bsdf></bsdf>',
-        "spatially varying teachers: not yet",
-    ),
-    "one_texel": (
-        '<bsdf version="3.0.0" type="roughplastic">{one_texel}</bsdf>',
-        "spatially varying teachers: not yet",
-    ),
-    "checkerboard": (
-        '<bsdf version="3.0.0" type="diffuse">'
-        '<texture type="checkerboard" name="reflectance"/></bsdf>',
-        "spatially varying teachers: not yet",
-    ),
     "unknown_plugin": ('<bsdf version="3.0.0" type="roughplastik"/>', "Mitsuba cannot load it"),
 }
+
+
+# teachers that vary over the surface: MitsubaTarget (homogeneous) refuses them, and the
+# config's target builds a textured teacher instead (tests/train/test_textured_pipeline.py
+# trains one)
+VARYING = {
+    "bitmap": (
+        '<bsdf version="3.0.0" type="twosided">'
+        '<bsdf type="roughplastic">{bitmap}</bsdf></bsdf>'
+    ),
+    "one_texel": '<bsdf version="3.0.0" type="roughplastic">{one_texel}</bsdf>',
+    "checkerboard": (
+        '<bsdf version="3.0.0" type="diffuse">'
+        '<texture type="checkerboard" name="reflectance"/></bsdf>'
+    ),
+}
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("name", list(VARYING))
+def test_teachers_that_vary_over_the_surface_build_a_textured_target(mi, name, tmp_path):
+    from neural_brdf.measured.mitsuba import MitsubaTarget, VariesOverSurface
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+    from neural_brdf.train import data
+
+    xml = VARYING[name]
+    if "{bitmap}" in xml:
+        xml = xml.format(bitmap=_bitmap(mi, tmp_path))
+    if "{one_texel}" in xml:
+        xml = xml.format(one_texel=_bitmap(mi, tmp_path, one_texel=True))
+    path = write(tmp_path, f"{name}.xml", xml)
+    with pytest.raises(VariesOverSurface, match="varies over the surface"):
+        MitsubaTarget(path)
+    cfg = config.load(teacher_config(tmp_path, f"{name}.xml"))
+    target = data.build_target(cfg.target)
+    assert isinstance(target, TexturedMitsubaTarget)
+    assert target.spatially_varying
 
 
 @pytest.mark.mitsuba

@@ -8,6 +8,8 @@ import json
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
 from neural_brdf.viewer import plots
@@ -220,6 +222,7 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     ref = None
     if reference is not None and cfg.target.data is None and cfg.target.mitsuba is None:
         ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}  # analytic
+    teacher = getattr(reference, "bsdf", None) if run.model.textured else None
     with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         png_path = Path(tmp) / "render.png"
         try:
@@ -227,6 +230,7 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
                 run.dir / "model.onnx",
                 png_path,
                 reference=ref,
+                reference_bsdf=teacher,
                 spp=RENDER_SPP,
                 resolution=RENDER_RESOLUTION,
             )
@@ -236,7 +240,12 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     from neural_brdf.renderers.render import ERROR_GAIN
 
     caption = f"Mitsuba 3 preview, {RENDER_SPP} spp: neural"
-    if ref is not None:
+    if teacher is not None:
+        caption += (
+            " | the teacher (Mitsuba's own BSDF, its normal map left out as the file's is) | "
+            f"{ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB, Monte Carlo noise included)"
+        )
+    elif ref is not None:
         caption += (
             f" | reference | {ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB of "
             "neural against the reference, Monte Carlo noise included)"
@@ -265,6 +274,14 @@ def _viewer(run: Run, reference, curves: dict | None = None) -> list:
     blocks = [Heading("Interactive viewer")]
     cfg = run.config
     curves = curves or {}
+    if run.model.textured:
+        return blocks + [
+            Text(
+                "No viewer: the WebGL2 viewer draws a homogeneous model; a textured one is "
+                "shown by the render above.",
+                note=True,
+            )
+        ]
 
     def page_curve(key: str) -> dict | None:
         theta = curves.get(f"{key}_theta", curves.get("theta"))
@@ -330,11 +347,52 @@ def _training(run: Run) -> list:
     return blocks
 
 
+TEXTURED_UV = (0.5, 0.5)  # where a textured model's figures are drawn
+
+
+def _at_uv(fn, uv: tuple[float, float]):
+    """A textured ``fn(wi, wo, uv)`` as the (wi, wo) callable of the plots, at ``uv``."""
+
+    def at(wi, wo):
+        shape = np.broadcast_shapes(np.shape(wi)[:-1], np.shape(wo)[:-1])
+        return fn(wi, wo, np.broadcast_to(np.asarray(uv, np.float32), shape + (2,)))
+
+    return at
+
+
+def _textured_note(run: Run) -> list:
+    """What a textured model's sections show (uv, the teacher's excess, the normal map)."""
+    if not run.model.textured:
+        return []
+    tex = run.model.info.texture or {}
+    res = tex.get("resolution") or ["?", "?"]
+    text = (
+        f"A textured model: f(wi, wo, uv) = Σk zk(uv) gk(wi, wo), {tex.get('lobes', '?')} "
+        f"shared lobes and a {res[0]} × {res[1]} field of their weights (wrapping, "
+        "bilinear). The physics checks are at random uv (the furnace at "
+        f"{len(run.metrics.get('furnace', {}).get('uv', []))} points, its largest albedo "
+        f"at uv {run.metrics.get('checks', {}).get('max_albedo', {}).get('at_uv')}); the "
+        "accuracy is at random uv against the teacher's own eval; the figures below are at "
+        f"uv {TEXTURED_UV}."
+    )
+    excess = run.metrics.get("teacher_excess")
+    if isinstance(excess, dict):
+        text += (
+            f" The teacher's albedo reaches {excess.get('max_albedo', 0):.4f} (at uv "
+            f"{excess.get('at_uv')}): the model learns its energy-bounded version."
+        )
+    return [Text(text, note=True)]
+
+
 def _blocks(run: Run, out_dir: Path, render: bool) -> list:
     reference, note = reference_of(run.config)
     neural = run.model.eval
     ref = reference.eval if reference is not None else None
     sampler = reference if hasattr(reference, "sample_t") else None
+    if run.model.textured:  # the figures at one uv; the teacher's sampler depends on uv
+        neural = _at_uv(neural, TEXTURED_UV)
+        ref = _at_uv(ref, TEXTURED_UV) if ref is not None else None
+        sampler = None
     m, path = run.metrics, run.dir / "metrics.json"
     theta = _number(m, "checks.max_albedo.at_theta_deg", path, optional=True)
     validated = None if theta is None else (theta, _number(m, "checks.max_albedo.value", path))
@@ -386,6 +444,7 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
         middle = _accuracy(run, note, figures)
     return (
         _summary(run)
+        + _textured_note(run)
         + _physics(run, albedo, ref is not None)
         + middle
         + _rendering(run, render, out_dir, reference)
