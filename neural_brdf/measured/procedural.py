@@ -5,6 +5,8 @@ parameters are bitmaps generated here, for
     from neural_brdf.measured.procedural import write_teacher
     xml = write_teacher(folder, "principled", size=512, seed=0)   # folder/teacher.xml
 
+    python -m neural_brdf.measured.procedural runs/textured   # + runs/textured/textured.yaml
+
 Kinds (:data:`KINDS`):
 
 * ``"principled"``: ``twosided > normalmap > principled`` with a base colour bitmap
@@ -36,11 +38,13 @@ tensor's first axis is v; tests/measured/test_textured.py checks it).
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from neural_brdf.errors import InputError
+from neural_brdf.fileio import atomic_write
 
 KINDS = ("principled", "roughplastic")
 MAX_BASE = 0.8  # base colours / diffuse reflectances at most this (albedo <= 1)
@@ -169,5 +173,48 @@ def write_teacher(folder: str | Path, kind: str, size: int = 512, seed: int = 0)
             "</bsdf>\n"
         )
     path = folder / "teacher.xml"
-    path.write_text(xml)
+    atomic_write(path, xml)
     return path
+
+
+# The config written beside a teacher by ``python -m neural_brdf.measured.procedural DIR``:
+# the texture section's defaults, and steps enough for a CPU run of a few minutes.
+CONFIG = """\
+# A textured material: Mitsuba's own BSDF (teacher.xml, procedural textures) as the teacher
+# of K shared neural lobes times a field of their weights over uv (docs/mitsuba.md,
+# "Textured materials").  Train with: neural-brdf train {config} --out runs/{name}
+name: {name}
+target:
+  mitsuba: teacher.xml
+texture:
+  lobes: 4
+  resolution: 32
+train:
+  steps: {steps}
+"""
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m neural_brdf.measured.procedural DIR [--kind K] [--size N]``: a
+    procedural teacher (:func:`write_teacher`) and ``DIR/textured.yaml``, its config."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Write a procedural textured Mitsuba teacher.")
+    ap.add_argument("out", help="folder to write into")
+    ap.add_argument("--kind", choices=KINDS, default="roughplastic", help="the BSDF")
+    ap.add_argument("--size", type=int, default=512, help="texels per side of each texture")
+    ap.add_argument("--steps", type=int, default=1500, help="train.steps of textured.yaml")
+    args = ap.parse_args(argv)
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    xml = write_teacher(args.out, args.kind, size=args.size)
+    cfg = Path(args.out) / "textured.yaml"
+    name = "textured_" + args.kind
+    atomic_write(cfg, CONFIG.format(config=cfg, name=name, steps=args.steps))
+    print(f"wrote {xml} and its textures; train with: neural-brdf train {cfg}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

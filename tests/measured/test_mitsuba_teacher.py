@@ -251,8 +251,7 @@ REFUSED = {
 # trains one)
 VARYING = {
     "bitmap": (
-        '<bsdf version="3.0.0" type="twosided">'
-        '<bsdf type="roughplastic">{bitmap}</bsdf></bsdf>'
+        '<bsdf version="3.0.0" type="twosided"><bsdf type="roughplastic">{bitmap}</bsdf></bsdf>'
     ),
     "one_texel": '<bsdf version="3.0.0" type="roughplastic">{one_texel}</bsdf>',
     "checkerboard": (
