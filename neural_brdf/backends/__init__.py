@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import importlib
 
+import numpy as np
+
 from neural_brdf.errors import InputError
 
 # target -> (module, class)
@@ -36,11 +38,28 @@ def get(target: str):
     return getattr(importlib.import_module(module), cls)
 
 
-def generate(model, target: str, *, lobe: dict | None = None) -> str:
+def generate(model, target: str, *, lobe: dict | None = None, group: int | None = None) -> str:
     """Source code of ``target`` (one of TARGETS) for an ONNX model: f, pdf and sample.
 
     ``lobe`` overrides the sampling lobe stored in the model's metadata (a dict with
-    ``alpha`` and ``weight``); a model without one must be given it."""
+    ``alpha`` and ``weight``); a model without one must be given it.  ``group``: the
+    WGSL bind group of a textured file's textures (default 1; GLSL's bindings are
+    #defines, C's are parameters)."""
     if target not in TARGETS:
         raise InputError(f"target: expected one of {', '.join(TARGETS)}, got {target!r}")
-    return get(target)().generate(model, lobe=lobe)
+    if group is None:
+        return get(target)().generate(model, lobe=lobe)
+    if target != "wgsl":
+        raise InputError(f"group: a WGSL bind group, not for target {target!r}")
+    return get(target)(group=group).generate(model, lobe=lobe)
+
+
+def textures(model) -> list[np.ndarray]:
+    """The data the generated code of a textured file reads from its bound textures, in
+    order (``neural_brdf_texture0``, ...): float32 [rows, channels] each, row-major, as
+    the ONNX initializer holds them (for the weight field [R * R, K], row j * R + i for
+    texel column i along u and row j along v).  A two-input file has none: []."""
+    from neural_brdf import graph
+    from neural_brdf.fileformat import UV
+
+    return [t.data.copy() for t in graph.textures(graph.lower(model), UV)]

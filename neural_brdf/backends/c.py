@@ -6,6 +6,12 @@
     float wo2[3];
     float pdf = neural_brdf_sample(wi, u1, u2, wo2);    // float u1, const float u2[2]
 
+A textured file (inputs wi, wo, uv) binds its weight table through a pointer parameter
+per bound texture, after uv (docs/codegen.md, "Textured files"):
+
+    neural_brdf_eval(wi, wo, uv, weights, f);   // const float uv[2], const float *weights
+                                                // (NEURAL_BRDF_TEXTURE0_ROWS x _CHANNELS)
+
 Booleans are ints; min/max are comparisons (no libm call); fused multiply-adds are
 written ``a * b + c`` (a compiler contracts them only where its floating-point
 contraction setting allows: GCC's ISO C modes, e.g. ``-std=c99``, do not).
@@ -95,6 +101,7 @@ class CRenderer(CStyleRenderer):
         params = [
             f"float {n}" if w == 1 else f"const float {n}[{w}]" for n, w in prog.inputs.items()
         ]
+        params += [f"const float *{self.texture_name(k)}" for k in range(len(self.textures))]
         params += [f"float {n}[{len(cols)}]" for n, cols in outs if (n, cols) != ret]
         sig = f"static inline {'float' if ret else 'void'} {fname}({', '.join(params)})"
         body = [
@@ -112,7 +119,26 @@ class CRenderer(CStyleRenderer):
             body.append(f"    return {rendered[ret[1][0]]};")
         return [f"/* {doc} */", sig, "{", *body, "}", ""]
 
+    def texture_decls(self) -> list[str]:
+        """The size of each bound texture, for the host's buffer (the data are a
+        parameter of neural_brdf_eval: a header has no place to keep a pointer that every
+        translation unit shares)."""
+        lines = []
+        for k, tex in enumerate(self.textures):
+            rows, width = tex.data.shape
+            name = self.texture_name(k).upper()
+            lines += [f"#define {name}_ROWS {rows}", f"#define {name}_CHANNELS {width}"]
+        return lines + [""] if lines else []
+
     def usage(self) -> list[str]:
+        if self.textures:
+            args = ", ".join(self.texture_name(k) for k in range(len(self.textures)))
+            return [
+                '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
+                f"float f[3]; neural_brdf_eval(wi, wo, uv, {args}, f);  (float uv[2])",
+                "float pdf = neural_brdf_pdf(wi, wo);",
+                "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  (float u1, u2[2])",
+            ]
         return [
             '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
             "float f[3]; neural_brdf_eval(wi, wo, f);",

@@ -17,6 +17,13 @@ stored sampling lobe, :mod:`neural_brdf.backends.lobe_ir`):
     neural_brdf_eval(wi, wo) -> f (RGB, 1/sr, no cosine)
     neural_brdf_pdf(wi, wo) -> the lobe's solid-angle density of wo
     neural_brdf_sample(wi, u1, u2) -> wo and its pdf
+
+A textured file (inputs wi, wo, uv) gives ``neural_brdf_eval(wi, wo, uv)``; the tables it
+gathers at uv-dependent indices (its weight field, :func:`neural_brdf.graph.textures`)
+are not literals but buffers the host binds (``neural_brdf_texture0``, ...: a pointer
+parameter in C, an SSBO or a float texture in GLSL, a storage buffer in WGSL; see
+docs/codegen.md, "Textured files"), read at ``clamp(index, 0, rows - 1) * channels +
+channel``, the same element as the ONNX Gather.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ import numpy as np
 from neural_brdf import graph
 from neural_brdf.backends import lobe_ir
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import INPUTS, OUTPUT
+from neural_brdf.fileformat import INPUT_WIDTHS, OUTPUT, SIGNATURES, UV
 from neural_brdf.fileformat import lobe as lobe_format  # the stored lobe: its schema
 
 PREFIX = "neural_brdf"
@@ -78,6 +85,10 @@ class CStyleRenderer:
     }
     float_suffix = ""
     int_suffix = ""
+    # the bound tables of the program being rendered (set by generate for the BRDF's
+    # graph; the sampling programs have none): table number -> (texture, channel)
+    textures: list[graph.Texture] = []
+    fetches: dict[int, tuple[int, int]] = {}
 
     # ------------------------------------------------------------------ literals
     def literal(self, value, dtype: str) -> str:
@@ -130,6 +141,13 @@ class CStyleRenderer:
             return self.select(a[0], a[1], a[2])
         if op == "cast":
             return self.cast(a[0], prog.instrs[ins.args[0]].dtype, ins.dtype)
+        if op == "gather" and ins.attr in self.fetches:
+            tex, channel = self.fetches[ins.attr]
+            rows, width = self.textures[tex].data.shape
+            clamped = self.clamp_index(a[0], rows - 1)
+            return self.fetch(
+                tex, f"{clamped} * {self.literal(width, 'int')} + {self.literal(channel, 'int')}"
+            )
         if op == "gather":
             k = len(prog.tables[ins.attr])
             return f"{self.table_name(ins.attr)}[{self.clamp_index(a[0], k - 1)}]"
@@ -153,6 +171,17 @@ class CStyleRenderer:
 
     def table_name(self, k: int) -> str:
         return f"{PREFIX}_table{k}"
+
+    def texture_name(self, k: int) -> str:
+        return f"{PREFIX}_texture{k}"
+
+    def fetch(self, k: int, element: str) -> str:
+        """Element ``element`` (an int expression in [0, rows * channels)) of texture k."""
+        return f"{self.texture_name(k)}[{element}]"
+
+    def texture_decls(self) -> list[str]:
+        """The module-scope declarations of the bound textures (none in C: parameters)."""
+        return []
 
     # ------------------------------------------------------------------ statements
     def declare(self, dtype: str, name: str, expr: str) -> str:
@@ -190,7 +219,11 @@ class CStyleRenderer:
         raise NotImplementedError
 
     def tables(self, prog: graph.Program) -> list[str]:
-        return [self.table(self.table_name(k), t) for k, t in enumerate(prog.tables)]
+        return [
+            self.table(self.table_name(k), t)
+            for k, t in enumerate(prog.tables)
+            if k not in self.fetches
+        ]
 
     def table(self, name: str, values: np.ndarray) -> str:
         raise NotImplementedError
@@ -254,6 +287,24 @@ class CStyleRenderer:
             f"{c} in [0, 1)) and returns its pdf, as neural_brdf_pdf would.  Estimator: "
             f"f * cos(theta_o) / pdf.",
         ]
+        for k, tex in enumerate(self.textures):
+            rows, width = tex.data.shape
+            if k == 0:
+                lines += [
+                    f"{c}",
+                    f"{c} Textured: neural_brdf_eval takes uv as well; its weight table is "
+                    "bound by the host, not written",
+                    f'{c} here (docs/codegen.md, "Textured files"): float32, row-major '
+                    "[row][channel], row = the texel",
+                    f"{c} j * R + i (column i along u, row j along v); the data: "
+                    "`neural-brdf codegen -o NAME` writes",
+                    f"{c} NAME's stem + .texture<k>.f32 (raw little-endian), or "
+                    "neural_brdf.backends.textures(model).",
+                ]
+            lines.append(
+                f"{c} {self.texture_name(k)}: {rows} rows x {width} channels = "
+                f"{rows * width} floats ({rows * width * 4} bytes)"
+            )
         return lines + [f"{c}"] + [f"{c} {u}" for u in self.usage()]
 
     def usage(self) -> list[str]:
@@ -263,16 +314,18 @@ class CStyleRenderer:
         """The file's text for an ONNX model (path, bytes or ModelProto)."""
         proto = graph.load(model)
         prog = graph.lower(proto)
-        # the file's contract (fileformat): inputs wi, wo [N, 3], output f [N, 3]
+        # the file's contract (fileformat): inputs wi, wo [N, 3] (and uv [N, 2]: a
+        # textured file), output f [N, 3]
         if (
-            tuple(prog.inputs) != INPUTS
+            tuple(prog.inputs) not in SIGNATURES
             or list(prog.outputs) != [OUTPUT]
-            or any(prog.inputs[name] != 3 for name in INPUTS)
+            or any(prog.inputs[name] != INPUT_WIDTHS[name] for name in prog.inputs)
             or len(prog.outputs[OUTPUT]) != 3
         ):
             raise InputError(
-                f"codegen: expected inputs {', '.join(INPUTS)} [N, 3] and output {OUTPUT} "
-                f"[N, 3], got {prog.inputs} -> { {k: len(v) for k, v in prog.outputs.items()} }"
+                "codegen: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
+                f"{OUTPUT} [N, 3], got {prog.inputs} -> "
+                f"{ {k: len(v) for k, v in prog.outputs.items()} }"
             )
         if lobe is None:
             lobe = lobe_format.from_metadata(prog.metadata)
@@ -291,11 +344,21 @@ class CStyleRenderer:
                 if not isinstance(model, (bytes, bytearray)) and not hasattr(model, "graph")
                 else "an ONNX model"
             )
-        parts = self.helpers()
-        parts += self.tables(prog)
-        parts += self.function(
-            f"{PREFIX}_eval", prog, "f(wi, wo): the BRDF in 1/sr per RGB channel, no cosine."
-        )
+        try:
+            self.bind(graph.textures(prog, UV))
+            parts = self.helpers()
+            parts += self.tables(prog)
+            parts += self.texture_decls()
+            parts += self.function(
+                f"{PREFIX}_eval",
+                prog,
+                "f(wi, wo, uv): the BRDF in 1/sr per RGB channel, no cosine."
+                if UV in prog.inputs
+                else "f(wi, wo): the BRDF in 1/sr per RGB channel, no cosine.",
+            )
+            header = self.header(prog.metadata, lobe, source)
+        finally:
+            self.bind([])  # the sampling programs read no texture
         parts += self.function(
             f"{PREFIX}_pdf",
             lobe_ir.pdf_program(**shape),
@@ -306,4 +369,11 @@ class CStyleRenderer:
             lobe_ir.sample_program(**shape),
             "Draws wo from the lobe (u1, u2 uniform in [0, 1)); returns its pdf (0: reject).",
         )
-        return self.wrap(self.header(prog.metadata, lobe, source), parts)
+        return self.wrap(header, parts)
+
+    def bind(self, textures: list[graph.Texture]) -> None:
+        """Render the tables of ``textures`` as reads of bound buffers from now on."""
+        self.textures = textures
+        self.fetches = {
+            t: (k, channel) for k, tex in enumerate(textures) for t, channel in tex.channels.items()
+        }

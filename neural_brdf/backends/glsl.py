@@ -5,6 +5,12 @@ include after the ``#version`` line and ``precision highp float; precision highp
     vec3 wo2;
     float pdf = neural_brdf_sample(wi, u1, u2, wo2);   // float u1, vec2 u2; out vec3 wo2
 
+A textured file gives ``vec3 neural_brdf_eval(vec3 wi, vec3 wo, vec2 uv)``; its weight table
+is bound by the host (docs/codegen.md, "Textured files"): under GLSL ES (WebGL2 has no
+storage buffers) a ``highp sampler2D`` of one R32F texel per float, NEURAL_BRDF_TEXTURE_WIDTH
+(default 1024) texels to a row, read with texelFetch; in desktop GLSL (4.30 and later, and
+Vulkan) a std430 ``readonly buffer`` at binding NEURAL_BRDF_TEXTURE<k>_BINDING (default k).
+
 NaN and infinity tests are bit tests (``floatBitsToUint``): GLSL lets a compiler assume
 that isnan() is false.  GLSL has no erf; it is a polynomial (Abramowitz & Stegun 7.1.26).
 """
@@ -67,6 +73,36 @@ class GLSLRenderer(CStyleRenderer):
         body = "\n".join(f"    {row}" for row in self.table_values(values))
         return f"const {t} {name}[{n}] = {t}[{n}](\n{body}\n);\n"
 
+    def fetch(self, k: int, element: str) -> str:
+        return self.call(f"{PREFIX}_fetch{k}", element)
+
+    def texture_decls(self) -> list[str]:
+        """Per bound texture a reader ``neural_brdf_fetch<k>(int e)`` of its float e, over
+        a texture (GL_ES, which WebGL2 defines) or a storage buffer (desktop GLSL); the
+        host can change the width and the binding with #defines before this file."""
+        if not self.textures:
+            return []
+        width = f"{PREFIX.upper()}_TEXTURE_WIDTH"
+        lines = [f"#ifndef {width}", f"#define {width} 1024", "#endif"]
+        for k in range(len(self.textures)):
+            name = self.texture_name(k)
+            binding = f"{name.upper()}_BINDING"
+            lines += [
+                "#ifdef GL_ES",
+                f"uniform highp sampler2D {name};",
+                f"float {PREFIX}_fetch{k}(int e) {{ return texelFetch({name}, "
+                f"ivec2(e % {width}, e / {width}), 0).r; }}",
+                "#else",
+                f"#ifndef {binding}",
+                f"#define {binding} {k}",
+                "#endif",
+                f"layout(std430, binding = {binding}) readonly buffer NeuralBrdfTexture{k} "
+                f"{{ float {name}[]; }};",
+                f"float {PREFIX}_fetch{k}(int e) {{ return {name}[e]; }}",
+                "#endif",
+            ]
+        return lines + [""]
+
     def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
         lines, rendered = self.body(prog)
         outs = list(prog.outputs.items())
@@ -87,6 +123,15 @@ class GLSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
+        if self.textures:
+            return [
+                "#version 300 es  (or #version 450)",
+                "precision highp float;",
+                "precision highp int;",
+                "<this file>",
+                "vec3 f = neural_brdf_eval(wi, wo, uv);  // vec2 uv",
+                "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2",
+            ]
         return [
             "#version 300 es  (or #version 450)",
             "precision highp float;",

@@ -4,6 +4,11 @@
     let s = neural_brdf_sample(wi, u1, u2);           // f32, vec2<f32> -> NeuralBrdfSample
     // s.wo, s.pdf
 
+A textured file gives ``neural_brdf_eval(wi, wo, uv)`` (uv: vec2<f32>) and binds its weight
+table as ``@group(1) @binding(k) var<storage, read> neural_brdf_texture<k>: array<f32>``
+(the group: ``WGSLRenderer(group=...)``, ``backends.generate(..., group=...)``; WGSL has
+no preprocessor).  docs/codegen.md, "Textured files".
+
 WGSL has no isnan/isinf: they are bit tests on ``bitcast<u32>``; no erf either (a
 polynomial, as in GLSL).
 """
@@ -26,6 +31,10 @@ class WGSLRenderer(CStyleRenderer):
     functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
     float_suffix = "f"
     int_suffix = "i"
+
+    def __init__(self, group: int = 1):
+        # group 1: a host's own bindings are most often in group 0
+        self.group = int(group)
 
     def bitcast_float(self, bits: str) -> str:
         return f"bitcast<f32>({bits})"
@@ -63,6 +72,14 @@ class WGSLRenderer(CStyleRenderer):
         ty = f"array<{t}, {len(values)}>"
         return f"var<private> {name}: {ty} = {ty}(\n{body}\n);\n"
 
+    def texture_decls(self) -> list[str]:
+        lines = [
+            f"@group({self.group}) @binding({k}) var<storage, read> {self.texture_name(k)}: "
+            "array<f32>;"
+            for k in range(len(self.textures))
+        ]
+        return lines + [""] if lines else []
+
     def function(self, fname: str, prog: graph.Program, doc: str) -> list[str]:
         lines, rendered = self.body(prog)
         outs = list(prog.outputs.items())
@@ -84,6 +101,11 @@ class WGSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
+        if self.textures:
+            return [
+                "let f = neural_brdf_eval(wi, wo, uv);        // vec3<f32> (uv: vec2<f32>)",
+                "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",
+            ]
         return [
             "let f = neural_brdf_eval(wi, wo);            // vec3<f32>",
             "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",

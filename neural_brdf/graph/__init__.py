@@ -38,6 +38,11 @@ Instruction set (``Instr.op``; dtypes "float" (float32), "int" (int32), "bool"):
     cast      attr the target dtype
     gather    args (index,), attr the table number: tables[attr][clamp(index, 0, K - 1)]
 
+Textures.  ``Program.sources`` records which ONNX tensor [rows, channels] each table is a
+column of.  :func:`textures` picks the tensors that a gather at indices computed from an
+input (``uv``: the weight field of a textured file) reads: the source generators bind
+those as buffers instead of writing megabytes of literals (docs/codegen.md).
+
 An op outside :data:`SUPPORTED_OPS`, or in a form the lowering lacks, raises
 :class:`UnsupportedOnnxOp` (an InputError) naming the node and the op.  This module
 imports numpy and onnx only.
@@ -63,6 +68,8 @@ from neural_brdf.graph.ir import (
     Builder,
     Instr,
     Program,
+    Source,
+    Texture,
     UnsupportedOnnxOp,
 )
 from neural_brdf.graph.lowering import Lanes, Lowering, _obj
@@ -80,10 +87,13 @@ __all__ = [
     "Builder",
     "Instr",
     "Program",
+    "Source",
+    "Texture",
     "UnsupportedOnnxOp",
     "check",
     "load",
     "lower",
+    "textures",
 ]
 
 
@@ -158,3 +168,38 @@ def lower(model) -> Program:
         outputs[o.name] = cols
     meta = {p.key: p.value for p in proto.metadata_props}
     return b.finish(inputs, outputs, meta, op_counts)
+
+
+def textures(prog: Program, name: str = "uv") -> list[Texture]:
+    """The tensors to bind as buffers: every one with a table that a ``gather`` at an
+    index depending on the input ``name`` reads, in the order of ``prog.sources``.
+
+    Why this rule and not a size: a table indexed by directions alone is a fixed small
+    function of the model (the albedo bound, a feature grid), written as literals as
+    before; a table indexed by uv is the material's texture, which grows with its
+    resolution (a 256 x 256 weight field of 8 lobes is 2 MB) and which a host may
+    replace.  A table that is a column of two equal tensors goes with the first.  Only
+    float tables can be bound (an int one raises UnsupportedOnnxOp, one line)."""
+    if name not in prog.inputs:
+        return []
+    dep = prog.depends_on(name)
+    bound = {ins.attr for ins in prog.instrs if ins.op == "gather" and dep[ins.args[0]]}
+    out: list[Texture] = []
+    for src in prog.sources:
+        channels = {t: c for c, t in enumerate(src.tables) if t is not None and t in bound}
+        if not channels:
+            continue
+        if src.data.dtype != np.float32:
+            rows, width = src.data.shape
+            raise UnsupportedOnnxOp(
+                f"a table gathered at {name}-dependent indices is bound as a float buffer, "
+                f"got {src.data.dtype} [{rows}, {width}]"
+            )
+        bound -= set(channels)
+        out.append(Texture(src.data, channels))
+    if bound:  # a gather table without a source: only hand-built programs have those
+        raise UnsupportedOnnxOp(
+            f"tables {sorted(bound)}: gathered at {name}-dependent "
+            "indices but not from a recorded tensor"
+        )
+    return out

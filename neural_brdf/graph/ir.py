@@ -63,6 +63,26 @@ class Instr:
 
 
 @dataclass
+class Source:
+    """One constant ONNX tensor gathered at batch indices, as the tables it became: the
+    lowering splits it into one table per column (deduplicated by content), and a back
+    end that binds it as one buffer needs the tensor whole, in its own layout."""
+
+    data: np.ndarray  # [rows, channels]: the tensor, rows along its axis 0, row-major
+    tables: tuple[int | None, ...]  # per channel its table number (None: pruned)
+
+
+@dataclass
+class Texture:
+    """A :class:`Source` that a back end binds as a buffer instead of literals
+    (:func:`neural_brdf.graph.textures`): its data [rows, channels] float32, row-major,
+    and which channel each of its tables is."""
+
+    data: np.ndarray
+    channels: dict[int, int]  # table number -> channel
+
+
+@dataclass
 class Program:
     """A lowered graph: SSA instructions, readable names, constant tables, outputs."""
 
@@ -73,6 +93,17 @@ class Program:
     outputs: dict[str, list[int]]  # output name -> instruction id per column
     metadata: dict[str, str] = field(default_factory=dict)
     op_counts: dict[str, int] = field(default_factory=dict)  # ONNX ops of the source graph
+    sources: list[Source] = field(default_factory=list)  # the tensors the tables came from
+
+    def depends_on(self, name: str) -> list[bool]:
+        """Per instruction: whether its value depends on the input ``name``."""
+        out: list[bool] = []
+        for ins in self.instrs:
+            if ins.op == "input":
+                out.append(ins.attr[0] == name)
+            else:
+                out.append(any(out[a] for a in ins.args))
+        return out
 
     def count(self) -> dict[str, int]:
         """Instructions per op."""
@@ -189,6 +220,7 @@ class Builder:
         self.memo: dict[tuple, int] = {}
         self.tables: list[np.ndarray] = []
         self.table_memo: dict[bytes, int] = {}
+        self.sources: dict[tuple[int, ...], np.ndarray] = {}  # tables -> [rows, channels]
         self.hint = "t"
 
     def _add(self, ins: Instr) -> int:
@@ -250,6 +282,10 @@ class Builder:
             self.table_memo[key] = len(self.tables) - 1
         return self.table_memo[key]
 
+    def source(self, data: np.ndarray, tables: list[int]) -> None:
+        """Records that ``tables`` are the columns of ``data`` [rows, channels]."""
+        self.sources.setdefault(tuple(tables), data)
+
     # -- conveniences for hand-written programs (the sampling lobe)
     def scalar(self, v: float) -> int:
         return self.const(float(v), "float")
@@ -309,4 +345,9 @@ class Builder:
             {k: [new[i] for i in v] for k, v in outputs.items()},
             dict(metadata or {}),
             dict(op_counts or {}),
+            [
+                Source(data, tuple(tmap.get(t) for t in tables))
+                for tables, data in self.sources.items()
+                if any(t in tmap for t in tables)
+            ],
         )

@@ -249,6 +249,7 @@ def _gather(lo, args, attrs):
         b.table(np.ascontiguousarray(cols[:, j], dtype=np.float32 if floating else np.int32))
         for j in range(cols.shape[1])
     ]
+    b.source(np.ascontiguousarray(cols, dtype=np.float32 if floating else np.int32), tables)
     out = []
     for i in idx.a.reshape(-1):
         i = b.emit("cast", i, attr="int")

@@ -9,6 +9,9 @@
 ``glsl_source`` is GLSL ES 3.00 defining ``vec3 neural_brdf_eval(vec3 wi, vec3 wo)``
 (a ``#version`` line, if any, is dropped: the harness writes its own); ``wgsl_source``
 is WGSL defining ``fn neural_brdf_eval(wi: vec3<f32>, wo: vec3<f32>) -> vec3<f32>``.
+A textured GLSL file: ``eval_glsl(source, wi, wo, uv=uv, textures={name: (data,
+width)})`` calls ``neural_brdf_eval(wi, wo, uv)`` and binds each float array ``data`` as
+the R32F ``uniform sampler2D name``, ``width`` floats to a texel row (docs/codegen.md).
 
 WebGL2: the directions go into two RGBA32F textures, one fragment per pair renders
 ``neural_brdf_eval`` into an RGBA32F framebuffer (EXT_color_buffer_float) and
@@ -77,12 +80,12 @@ function nbEncode(f32) {
     s += String.fromCharCode.apply(null, u.subarray(i, i + 0x8000));
   return btoa(s);
 }
-function nbPad4(xyz, n, count) {      // (n, 3) -> (count, 4): vec4 rows, zero padding
+function nbPad4(xyz, n, count, k = 3) {  // (n, k) -> (count, 4): vec4 rows, zero padding
   const out = new Float32Array(count * 4);
-  for (let i = 0; i < n; i++) { out.set(xyz.subarray(3 * i, 3 * i + 3), 4 * i); }
+  for (let i = 0; i < n; i++) { out.set(xyz.subarray(k * i, k * i + k), 4 * i); }
   return out;
 }
-function nbEvalGLSL(source, wiB64, woB64, n, width) {
+function nbEvalGLSL(source, wiB64, woB64, n, width, uvB64 = null, textures = []) {
   const h = Math.ceil(n / width), w = Math.min(n, width);
   const canvas = document.createElement("canvas");
   canvas.width = w; canvas.height = h;
@@ -90,25 +93,40 @@ function nbEvalGLSL(source, wiB64, woB64, n, width) {
   if (!gl) throw new Error("WebGL2 is not available");
   if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("no EXT_color_buffer_float");
   const body = source.replace(/^\s*#version[^\n]*\n/, "");
+  const uv = uvB64 !== null;
   const fsrc = "#version 300 es\nprecision highp float;\nprecision highp int;\n" + body +
-    "\nuniform highp sampler2D nb_wi;\nuniform highp sampler2D nb_wo;\nout vec4 nb_out;\n" +
+    "\nuniform highp sampler2D nb_wi;\nuniform highp sampler2D nb_wo;\n" +
+    "uniform highp sampler2D nb_uv;\nout vec4 nb_out;\n" +
     "void main() {\n  ivec2 p = ivec2(gl_FragCoord.xy);\n" +
     "  vec3 wi = texelFetch(nb_wi, p, 0).xyz, wo = texelFetch(nb_wo, p, 0).xyz;\n" +
-    "  nb_out = vec4(neural_brdf_eval(wi, wo), 1.0);\n}\n";
+    (uv ? "  nb_out = vec4(neural_brdf_eval(wi, wo, texelFetch(nb_uv, p, 0).xy), 1.0);\n}\n"
+        : "  nb_out = vec4(neural_brdf_eval(wi, wo), 1.0);\n}\n");
   const vsrc = "#version 300 es\nvoid main() {\n" +
     "  vec2 p = vec2(float((gl_VertexID & 1) << 2), float((gl_VertexID & 2) << 1)) - 1.0;\n" +
     "  gl_Position = vec4(p, 0.0, 1.0);\n}\n";
   const prog = nbProgram(gl, vsrc, fsrc);
-  const tex = (b64, unit) => {
+  const tex = (b64, unit, k = 3) => {
     const t = gl.createTexture();
     gl.activeTexture(gl.TEXTURE0 + unit); gl.bindTexture(gl.TEXTURE_2D, t);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, w, h, 0, gl.RGBA, gl.FLOAT,
-                  nbPad4(nbDecode(b64), n, w * h));
+                  nbPad4(nbDecode(b64), n, w * h, k));
     return t;
   };
   tex(wiB64, 0); tex(woB64, 1);
+  if (uv) tex(uvB64, 3, 2);
+  textures.forEach((t, k) => {          // the bound data: R32F, t.width floats a row
+    const data = nbDecode(t.data), th = Math.ceil(data.length / t.width);
+    const padded = new Float32Array(t.width * th);
+    padded.set(data);
+    const tx = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE4 + k); gl.bindTexture(gl.TEXTURE_2D, tx);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, t.width, th, 0, gl.RED, gl.FLOAT, padded);
+  });
   const target = gl.createTexture();
   gl.activeTexture(gl.TEXTURE2); gl.bindTexture(gl.TEXTURE_2D, target);
   gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, w, h);
@@ -120,6 +138,12 @@ function nbEvalGLSL(source, wiB64, woB64, n, width) {
   gl.useProgram(prog);
   gl.uniform1i(gl.getUniformLocation(prog, "nb_wi"), 0);
   gl.uniform1i(gl.getUniformLocation(prog, "nb_wo"), 1);
+  if (uv) gl.uniform1i(gl.getUniformLocation(prog, "nb_uv"), 3);
+  textures.forEach((t, k) => {
+    const loc = gl.getUniformLocation(prog, t.name);
+    if (loc === null) throw new Error("no uniform " + t.name + " in the shader");
+    gl.uniform1i(loc, 4 + k);
+  });
   gl.viewport(0, 0, w, h);
   gl.drawArrays(gl.TRIANGLES, 0, 3);
   const px = new Float32Array(w * h * 4);
@@ -380,7 +404,7 @@ class Session:
             page.write_text(RUNNER_PAGE, encoding="utf-8")
             self.open(page)
 
-    def _eval(self, call: str, source: str, wi, wo, extra: int) -> np.ndarray:
+    def _eval(self, call: str, source: str, wi, wo, extra: int, *more: str) -> np.ndarray:
         wi = np.ascontiguousarray(wi, dtype=np.float32)
         wo = np.ascontiguousarray(wo, dtype=np.float32)
         wi, wo = np.broadcast_arrays(wi, wo)
@@ -397,15 +421,38 @@ class Session:
         ]
         r = self.evaluate(
             f"{call}({json.dumps(source)}, {json.dumps(b64[0])}, "
-            f"{json.dumps(b64[1])}, {n}, {extra})"
+            f"{json.dumps(b64[1])}, {n}, {extra}{''.join(', ' + m for m in more)})"
         )
         self.renderer = r["renderer"]
         f = np.frombuffer(base64.b64decode(r["f"]), dtype=np.float32)
         return f.reshape(batch + (3,)).copy()
 
-    def eval_glsl(self, source: str, wi, wo) -> np.ndarray:
-        """``neural_brdf_eval`` of GLSL ES 3.00 ``source`` on each (wi, wo) pair, in WebGL2."""
-        return self._eval("nbEvalGLSL", source, wi, wo, TEXTURE_WIDTH)
+    def eval_glsl(self, source: str, wi, wo, *, uv=None, textures=None) -> np.ndarray:
+        """``neural_brdf_eval`` of GLSL ES 3.00 ``source`` on each (wi, wo) pair, in WebGL2;
+        with ``uv`` (N, 2) on each (wi, wo, uv) row, ``textures`` (uniform name ->
+        (float array, floats per texel row)) bound as R32F textures."""
+        if uv is None and not textures:
+            return self._eval("nbEvalGLSL", source, wi, wo, TEXTURE_WIDTH)
+        batch = np.broadcast_shapes(np.shape(wi), np.shape(wo))[:-1]
+        uv = np.zeros(batch + (2,)) if uv is None else uv
+        uv = np.ascontiguousarray(np.broadcast_to(uv, batch + (2,)), np.float32).reshape(-1, 2)
+        bound = [
+            {
+                "name": name,
+                "width": int(width),
+                "data": base64.b64encode(np.asarray(data, "<f4").tobytes()).decode(),
+            }
+            for name, (data, width) in (textures or {}).items()
+        ]
+        return self._eval(
+            "nbEvalGLSL",
+            source,
+            wi,
+            wo,
+            TEXTURE_WIDTH,
+            json.dumps(base64.b64encode(uv.tobytes()).decode()),
+            json.dumps(bound),
+        )
 
     def eval_wgsl(self, source: str, wi, wo) -> np.ndarray:
         """``neural_brdf_eval`` of WGSL ``source`` on each (wi, wo) pair, in WebGPU."""
