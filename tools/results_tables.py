@@ -6,7 +6,7 @@
 
 Reads ``benchmarks/results/*.json`` (suite, neural_presets, neural_throughput,
 analytic_throughput, merl_fit, merl_sweep, mitsuba_render, mitsuba_presets, codegen_c, rgl_render,
-bsdf_bound, compact_presets, sampling_noise, peak, inverse, training_speed) and
+bsdf_bound, compact_presets, sampling_noise, peak, inverse, training_speed, textured) and
 ``docs/results/sweep_timing.json``.
 Each section names the JSON file and the script that wrote it, and the date, machine and
 load average that file records (or says that it records none).  ``render()`` is pure
@@ -1340,6 +1340,113 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
     return out
 
 
+def textured_section(d: dict) -> list[str]:
+    """issue 30: textured neural materials from textured Mitsuba teachers."""
+    g, st, m0, m1 = d["goals"], d["settings"], d["machine_start"], d.get("machine_end")
+    im = d["image"]
+    out = [
+        f"## Textured materials from Mitsuba teachers ({d['set']} set)",
+        "",
+        _source(
+            f"benchmarks/results/{'textured.json' if d['set'] == 'test' else 'textured_dev.json'}",
+            f"python benchmarks/textured.py{' --set dev' if d['set'] == 'dev' else ''}",
+        ),
+        _recorded(
+            d.get("date") or m0["date"],
+            f"{m0['platform']}, {m0['cores']} cores, `{d['variant']}`",
+            f"{_load(m0['loadavg'])} at the start"
+            + (f", {_load(m1['loadavg'])} at the end" if m1 else " (the run did not finish)")
+            + "; per teacher in the file",
+        ),
+        f"Test set: {d['sets']['test']}. Development set: {d['sets']['dev']}. Textured "
+        f"recipe: K = {st['lobes']} lobes (hidden {st['hidden']}), a weight field of "
+        f"{st['resolution']}² texels, {st['steps']} steps of {st['batch']} pairs from a pool of "
+        f"{st['pool']}, on {d['texture_size']}² maps; homogeneous: {d['homogeneous_recipe']}. "
+        "Accuracy: relative RMSE of f·cos against Mitsuba's `eval` at "
+        "pairs drawn as the validation draws them (uv uniform, wi uniform, wo half uniform, "
+        "half from the teacher's sampler). Physics at random uv between texel centres: "
+        "reciprocity (max relative), max albedo by quadrature of the file through "
+        "onnxruntime (± its standard error). Image: a sphere under the "
+        f"`{d['environment']['name']}` environment (used nowhere else), "
+        f"{im['resolution']}², {im['spp']} spp, the file through the `neural_brdf` plugin "
+        f"against Mitsuba's render of the teacher's nested BSDF; {d['normal_map']}. "
+        f"PSNR: {d['psnr_definition']}. Noise: equal-sample variance of f·cos/pdf, the "
+        "file's global lobe over Mitsuba's own sampler. Goals: "
+        f"≤ {100 * g['rel_rmse_textured']:g} % textured, ≤ {100 * g['rel_rmse_homogeneous']:g} "
+        f"% homogeneous, max albedo ≤ {g['max_albedo']:g}, ≥ {g['psnr_db']:g} dB, training "
+        f"≤ {g['train_seconds'] / 60:g} min.",
+        "",
+    ]
+    rows = []
+    for name, t in d["teachers"].items():
+        acc, ph, img, tr = t["accuracy"], t["physics"], t["image"], t["training"]
+        goal = g["rel_rmse_textured"] if t["textured"] else g["rel_rmse_homogeneous"]
+        ok = (
+            acc["rel_rmse"] <= goal
+            and ph["max_albedo"] <= g["max_albedo"]
+            and img["psnr_db"] >= g["psnr_db"]
+            and tr["total_seconds"] <= g["train_seconds"]
+        )
+        nz = t["sampling_noise"]["noise_ratio"]
+        size = f"{t['file_bytes'] / 1024:.0f} KiB"
+        if t["texture_bytes"]:
+            size += f" ({100 * t['file_bytes'] / t['texture_bytes']:.1f} % of the maps)"
+        rows.append(
+            [
+                name,
+                _pct(acc["rel_rmse"]),
+                f"{ph['reciprocity']:.1g}",
+                f"{ph['max_albedo']:.4f} ± {ph['max_albedo_stderr']:.1g}",
+                f"{img['psnr_db']:.1f} dB (floor {img['noise_floor']['psnr_db']:.1f})",
+                _pct(img["image_rel_rmse"]),
+                "-" if nz is None else f"{nz:.2f}x",
+                f"{tr['total_seconds']:.0f} s (load {_load(t['loadavg']['start'])})",
+                size,
+                "met" if ok else "**missed**",
+            ]
+        )
+    out += _table(
+        [
+            "teacher",
+            "f·cos rel. RMSE",
+            "reciprocity",
+            "max albedo",
+            "image PSNR",
+            "image rel. RMSE",
+            "noise vs Mitsuba",
+            "training",
+            "file",
+            "goals",
+        ],
+        rows,
+    )
+    c = d.get("render_cost")
+    if c:
+        r = c["ratios"]
+
+        def x(v: float | None) -> str:
+            return "-" if v is None else f"{v:.2f}x"
+
+        out += [
+            f"Render cost in the BSDF-bound scene of `benchmarks/bsdf_bound.py` "
+            f"({c['resolution']}², {c['spp']} spp, best of {c['repeats']} interleaved rounds; "
+            f"load {_load(c['loadavg_before'])} before, {_load(c['loadavg_after'])} after):",
+            "",
+            *_table(
+                ["BSDF", "best wall time"],
+                [[n, f"{s:.3f} s"] for n, s in c["best_s"].items()],
+            ),
+            f"Textured principled over the homogeneous compact file: "
+            f"{x(r['textured_principled_vs_compact'])} (goal ≤ {g['cost_vs_compact']:g}x; "
+            f"textured roughplastic {x(r['textured_roughplastic_vs_compact'])}); over "
+            f"Mitsuba's own textured principled {x(r['textured_principled_vs_mitsuba'])} "
+            f"(its nested BSDF without the normal map: "
+            f"{x(r['textured_principled_vs_mitsuba_nested'])}).",
+            "",
+        ]
+    return out
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -1423,6 +1530,7 @@ SECTIONS = (
         partial(images_any_section, name="images_any_dev_half_disc.json"),
     ),
     (RESULTS / "training_speed.json", training_speed_section),
+    (RESULTS / "textured.json", textured_section),
     (SWEEP_TIMING, sweep_timing_section),
     (
         RESULTS / "cuda" / "bsdf_bound.json",
