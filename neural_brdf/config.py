@@ -312,6 +312,9 @@ class Texture(_Section):
     lobes: int = Field(4, ge=1, le=16)  # K shared lobes
     resolution: int = Field(32, ge=1, le=1024)  # the weight field's texels per side (R x R)
     field_lr_scale: float = Field(10.0, gt=0.0)  # the field's logits: lr x this
+    # scalar: one weight per lobe and texel; rgb: one per lobe, texel and RGB channel (no
+    # gain on the development teachers: docs/mitsuba.md, "Textured materials")
+    weights: Literal["scalar", "rgb"] = "scalar"
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random

@@ -446,8 +446,9 @@ def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) 
         "wrap": "repeat",
         "filter": "bilinear",
         "texel_centres": "((i + 0.5) / R, (j + 0.5) / R), i along u, j along v",
-        "layout": "row-major [v, u]: flat index j * R + i",
+        "layout": "row-major [v, u]: flat index j * R + i; column c * K + k",
         "weights": "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)",
+        "channels": int(getattr(field, "channels", 1)),  # 3: a set of weights per RGB channel
         "normal_field": None,  # a normal or bump map of the teacher is not in the file yet
         "lobe_tables": plain(info) if info is not None else None,
     }
@@ -552,7 +553,7 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     tx = cfg.texture
     model = TexturedBRDF(
         [RawBRDF.from_config(cfg.model) for _ in range(tx.lobes)],
-        WeightField(tx.resolution, tx.lobes),
+        WeightField(tx.resolution, tx.lobes, channels=3 if tx.weights == "rgb" else 1),
     )
     model.load_state_dict(ckpt["model"])
     return model.eval()

@@ -53,6 +53,7 @@ FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
 # steps of 2048) 131072 gave a held-out error of 7.1 %, 32768 stalled at 24 % (overfitted)
 POOL = 131072
 VAL_PAIRS = 16384  # held-out pairs
+CHANNELS = {"scalar": 1, "rgb": 3}  # texture.weights: one weight per lobe, or per RGB channel
 
 
 def pairs(
@@ -86,15 +87,17 @@ def _model_and_optimizer(
     pool_f: torch.Tensor,
     lr: float,
     field_lr_scale: float,
+    channels: int = 1,
 ) -> tuple[TexturedBRDF, torch.optim.Adam]:
-    """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field (weights from torch's
+    """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field of ``channels`` (1:
+    one weight per lobe, 3: one per lobe and RGB channel) sets of weights (from torch's
     global generator: the caller seeds it), and Adam with the learning-rate groups of
     the module doc (each group's ``lr_scale``)."""
     # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
     init = float(pool_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
     model = TexturedBRDF(
         [RawBRDF.from_config(m, init_value=init) for _ in range(lobes)],
-        WeightField(resolution, lobes),
+        WeightField(resolution, lobes, channels=channels),
     )
     scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
     groups: dict[float, list[torch.nn.Parameter]] = {}
@@ -126,6 +129,7 @@ def train_textured(
     val_pairs: int = VAL_PAIRS,
     seed: int = 0,
     model_section: cfgmod.Model | None = None,
+    weights: str = "scalar",
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
     to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
@@ -150,7 +154,9 @@ def train_textured(
     pool_seconds = time.perf_counter() - t0
 
     torch.manual_seed(seed)
-    model, opt = _model_and_optimizer(m, lobes, resolution, p_f, lr, field_lr_scale)
+    model, opt = _model_and_optimizer(
+        m, lobes, resolution, p_f, lr, field_lr_scale, CHANNELS[weights]
+    )
 
     def validate() -> float:
         with torch.no_grad():
@@ -190,6 +196,7 @@ def train_textured(
         "init_val_rel_rmse": init_err,
         "val_rel_rmse": validate(),
         "field_lr_scale": field_lr_scale,
+        "weights": weights,
     }
 
 
@@ -235,7 +242,7 @@ def train(
     pool_seconds = time.perf_counter() - t0
     torch.manual_seed(t.seed)
     model, opt = _model_and_optimizer(
-        cfg.model, tx.lobes, tx.resolution, p_f, t.lr, tx.field_lr_scale
+        cfg.model, tx.lobes, tx.resolution, p_f, t.lr, tx.field_lr_scale, CHANNELS[tx.weights]
     )
 
     def validate() -> float:
@@ -301,6 +308,7 @@ def train(
         "device": "cpu",
         "lobes": tx.lobes,
         "resolution": tx.resolution,
+        "weights": tx.weights,
         "pool": pool,
         "pool_seconds": pool_seconds,
         "train_seconds": sess.seconds,

@@ -83,51 +83,64 @@ def bilinear_wrap(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> tor
 
 
 class WeightField(nn.Module):
-    """Per-texel logits [R*R, K + 1] -> K non-negative weights with sum <= 1 at every uv.
+    """Per-texel logits -> K non-negative weights with sum <= 1 at every uv, one set for
+    all channels (``channels`` 1: logits [R*R, K + 1]) or one per RGB channel
+    (``channels`` 3: logits [R*R, 3, K + 1]; docs/model.md: per-channel weights tint the
+    shared lobes, the bound holds per channel).
 
-    The softmax is taken per texel over the K + 1 slots and the last ("nothing") dropped;
-    :meth:`forward` looks the K weights up at uv by :func:`bilinear_wrap` (module doc:
-    WRAP, BILINEAR, texel centres at ((i + 0.5) / R, (j + 0.5) / R), flat index j * R + i).
+    The softmax is taken per texel (and channel) over the K + 1 slots and the last
+    ("nothing") dropped; :meth:`forward` looks the weights up at uv by
+    :func:`bilinear_wrap` (module doc: WRAP, BILINEAR, texel centres at ((i + 0.5) / R,
+    (j + 0.5) / R), flat index j * R + i).  The table is [R*R, C*K], column c * K + k.
     """
 
-    def __init__(self, resolution: int, lobes: int, *, init_std: float = 1.0):
+    def __init__(self, resolution: int, lobes: int, *, channels: int = 1, init_std: float = 1.0):
         super().__init__()
         if resolution < 1 or lobes < 1:
             raise ValueError(f"WeightField: resolution and lobes >= 1, got {resolution}, {lobes}")
+        if channels not in (1, 3):
+            raise ValueError(f"WeightField: channels 1 or 3, got {channels}")
         self.resolution = int(resolution)
         self.lobes = int(lobes)
-        self.logits = nn.Parameter(torch.randn(self.resolution**2, self.lobes + 1) * init_std)
+        self.channels = int(channels)
+        shape = (self.resolution**2, *(() if channels == 1 else (channels,)), self.lobes + 1)
+        self.logits = nn.Parameter(torch.randn(shape) * init_std)
 
     def weights(self) -> torch.Tensor:
-        """The K weights at the texel centres, [R*R, K]: >= 0, sum <= 1 per texel."""
-        return torch.softmax(self.logits, -1)[:, : self.lobes]
+        """The weights at the texel centres, [R*R, C*K]: >= 0, sum over k <= 1 per texel
+        and channel."""
+        w = torch.softmax(self.logits, -1)[..., : self.lobes]
+        return w.reshape(w.shape[0], -1)
 
-    def forward(self, uv: torch.Tensor) -> torch.Tensor:  # (N, 2) -> (N, K)
-        return bilinear_wrap(self.weights(), uv, self.resolution)
+    def forward(self, uv: torch.Tensor) -> torch.Tensor:  # (N, 2) -> (N, K) or (N, 3, K)
+        z = bilinear_wrap(self.weights(), uv, self.resolution)
+        return z if self.channels == 1 else z.view(-1, self.channels, self.lobes)
 
     def frozen(self) -> FrozenWeightField:
         """The same look-up with the softmax evaluated once (for export)."""
         with torch.no_grad():
-            return FrozenWeightField(self.weights(), self.resolution)
+            return FrozenWeightField(self.weights(), self.resolution, channels=self.channels)
 
 
 class FrozenWeightField(nn.Module):
-    """A :class:`WeightField` whose weights [R*R, K] are a constant buffer: the same
+    """A :class:`WeightField` whose weights [R*R, C*K] are a constant buffer: the same
     values bit for bit (one softmax of the same logits), no Softmax in the graph."""
 
     table: torch.Tensor  # a buffer (register_buffer)
 
-    def __init__(self, weights: torch.Tensor, resolution: int):
+    def __init__(self, weights: torch.Tensor, resolution: int, *, channels: int = 1):
         super().__init__()
         self.resolution = int(resolution)
-        self.lobes = int(weights.shape[1])
+        self.channels = int(channels)
+        self.lobes = int(weights.shape[1]) // self.channels
         self.register_buffer("table", weights.detach().float().clone())
 
     def weights(self) -> torch.Tensor:
         return self.table
 
     def forward(self, uv: torch.Tensor) -> torch.Tensor:
-        return bilinear_wrap(self.table, uv, self.resolution)
+        z = bilinear_wrap(self.table, uv, self.resolution)
+        return z if self.channels == 1 else z.view(-1, self.channels, self.lobes)
 
 
 class TexturedBRDF(nn.Module):
@@ -143,10 +156,12 @@ class TexturedBRDF(nn.Module):
         self.anisotropic = any(bool(getattr(g, "anisotropic", False)) for g in self.lobes)
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        z = self.field(uv)  # (N, K)
-        f = z[:, 0:1] * self.lobes[0](wi, wo)
+        z = self.field(uv)  # (N, K), or (N, 3, K) with per-channel weights
+        if z.dim() == 2:
+            z = z[:, None, :]  # one weight for every channel
+        f = z[:, :, 0] * self.lobes[0](wi, wo)
         for k in range(1, len(self.lobes)):  # left to right: the same order for (wo, wi)
-            f = f + z[:, k : k + 1] * self.lobes[k](wi, wo)
+            f = f + z[:, :, k] * self.lobes[k](wi, wo)
         return f
 
 

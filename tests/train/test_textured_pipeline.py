@@ -186,9 +186,10 @@ def test_validate_reference_export_and_report(run, capsys, tmp_path):
     assert "A textured model" in html and "report-render.png" in (run / "report.md").read_text()
 
 
-def test_resume_trains_on(teacher, tmp_path, capsys):
+def test_resume_trains_on_with_per_channel_weights(teacher, tmp_path, capsys):
     cfg = write_config(tmp_path, teacher, steps=20)
-    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
+    rgb = ("--set", "texture.weights=rgb")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"), *rgb)
     assert code == 0, err
     code, _, err = cli(
         capsys,
@@ -199,6 +200,7 @@ def test_resume_trains_on(teacher, tmp_path, capsys):
         "--resume",
         "--set",
         "train.steps=40",
+        *rgb,
     )
     assert code == 0, err
     assert "resuming" in err and "at step 20" in err
@@ -207,6 +209,18 @@ def test_resume_trains_on(teacher, tmp_path, capsys):
     assert steps == [10, 20, 30, 40]
     m = json.loads((tmp_path / "r" / "metrics.json").read_text())
     assert m["training"]["steps"] == 40
+    # a set of weights per RGB channel: the table is [R*R, 3 K], and export rebuilds it
+    proto = onnx.load(str(tmp_path / "r" / "model.onnx"))
+    props = {p.key: p.value for p in proto.metadata_props}
+    assert json.loads(props["texture"])["channels"] == 3
+    assert any(tuple(t.dims) == (64, 9) for t in proto.graph.initializer)
+    code, _, err = cli(capsys, "export", str(tmp_path / "r"), "-o", str(tmp_path / "e.onnx"))
+    assert code == 0, err
+    wi, wo, uv = rows(1024, 17)
+    feeds = {"wi": wi, "wo": wo, "uv": uv}
+    a = session(tmp_path / "r" / "model.onnx").run(["f"], feeds)[0]
+    b = session(tmp_path / "e.onnx").run(["f"], feeds)[0]
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
 
 
 def test_a_textured_teacher_is_refused_by_train_many(teacher, tmp_path, capsys):
