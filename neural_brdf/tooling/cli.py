@@ -432,6 +432,7 @@ def _bake(args) -> int:
 
         model = load(args.source)
         _project_model(model, args.source)
+        _homogeneous(model, args.source, "bake", "an RGL or MERL table holds one BRDF")
         fn = model.eval
     else:
         fn = _analytic_target(args.source)[2].eval
@@ -441,6 +442,15 @@ def _bake(args) -> int:
         raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
     print(f"wrote {args.out} ({fmt.name})")
     return EXIT_OK
+
+
+def _homogeneous(model, path: str, command: str, why: str) -> None:
+    """Refuse a textured file (inputs wi, wo, uv) where ``command`` draws one BRDF."""
+    if getattr(model, "textured", False):
+        raise InputError(
+            f"{path}: a textured model (inputs wi, wo, uv): {command} takes a homogeneous "
+            f"one ({why}); render it with neural-brdf render"
+        )
 
 
 def _project_model(model, path: str) -> None:
@@ -490,7 +500,12 @@ def _render(args) -> int:
 
 
 def _view(args) -> int:
+    from neural_brdf.runtime import load
     from neural_brdf.viewer import page as viewer
+
+    for path in (args.model, args.compare):
+        if path and str(path).endswith(".onnx") and Path(path).is_file():
+            _homogeneous(load(path), path, "view", "the WebGL2 viewer draws one BRDF")
 
     _not_an_input(
         args.out,

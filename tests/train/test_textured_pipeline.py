@@ -236,3 +236,11 @@ def test_a_homogeneous_reference_for_a_textured_file(run, capsys):
         capsys, "validate", str(run / "model.onnx"), "--reference", "configs/gold.yaml"
     )
     assert_one_line_error(code, err, "textured model", "does not vary over the surface")
+
+
+@pytest.mark.parametrize("command", ["bake", "view"])
+def test_bake_and_view_refuse_a_textured_file_in_one_line(run, command, capsys, tmp_path):
+    out = tmp_path / ("x.bsdf" if command == "bake" else "v.html")
+    code, _, err = cli(capsys, command, str(run / "model.onnx"), "-o", str(out))
+    assert_one_line_error(code, err, "a textured model", command)
+    assert not out.exists()
