@@ -390,13 +390,28 @@ def build(model: NormalizedBRDF | RawBRDF, cfg: cfgmod.Config) -> Built:
     :class:`neural_brdf.train.model.TotalBRDF`).
     """
     graph = TotalBRDF(model)
-    payload = to_onnx_bytes(graph, cfg.export.opset)
+    return _checked(model, graph, to_onnx_bytes(graph, cfg.export.opset), cfg)
+
+
+def _checked(
+    model: NormalizedBRDF | RawBRDF | TexturedBRDF,
+    graph: torch.nn.Module,
+    payload: bytes,
+    cfg: cfgmod.Config,
+    *,
+    textured: bool = False,
+) -> Built:
+    """``payload`` (the ONNX of ``graph``) in an onnxruntime session, checked against torch
+    by :func:`parity_error` (``textured``: at random uv too); ParityError when they differ
+    by more than :func:`parity_allowed`."""
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
     session = ort.InferenceSession(payload, opts, providers=["CPUExecutionProvider"])
-    parity, precision, ort_exact = parity_error(
-        graph, session, cfg.export.parity_pairs, cfg.train.seed + 29
-    )
+    args = (graph, session, cfg.export.parity_pairs, cfg.train.seed + 29)
+    if textured:
+        parity, precision, ort_exact = parity_error(*args, textured=True)
+    else:
+        parity, precision, ort_exact = parity_error(*args)
     allowed = parity_allowed(cfg.export.parity_tol, precision)
     # torch and onnxruntime each round in float32, in their own order: where both errors
     # are near torch's largest (a grazing pair on a steep grid cell) their difference can
@@ -418,20 +433,7 @@ def build_textured(model: TexturedBRDF, cfg: cfgmod.Config) -> Built:
     :func:`build` checks a homogeneous one."""
     graph = exportable(model)
     payload = to_onnx_bytes(graph, cfg.export.opset, inputs=SIGNATURES[1])
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    session = ort.InferenceSession(payload, opts, providers=["CPUExecutionProvider"])
-    parity, precision, ort_exact = parity_error(
-        graph, session, cfg.export.parity_pairs, cfg.train.seed + 29, textured=True
-    )
-    allowed = parity_allowed(cfg.export.parity_tol, precision)
-    if not (parity <= allowed or ort_exact <= allowed):  # as build()
-        raise ParityError(
-            f"torch and onnxruntime differ by {parity:.3g} relative (allowed "
-            f"{allowed:.3g}: export.parity_tol, or twice the float32 precision "
-            f"of the network, {precision:.3g}); nothing written"
-        )
-    return Built(model, payload, session, parity, precision)
+    return _checked(model, graph, payload, cfg, textured=True)
 
 
 def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) -> dict[str, Any]:

@@ -201,33 +201,18 @@ def finish_textured(
         target_desc=target.describe(),
         texture_info=tables,
     )
-    t2 = time.perf_counter()
-    metrics = validate.report(run_dir / "model.onnx", target=target, physics_report=phys)
-    t3 = time.perf_counter()
-    metrics["training"] = training
-    metrics["teacher_excess"] = excess
-    metrics["export"] = {
-        "parity_rel_error": built.parity_rel_error,
-        "float32_rel_precision": built.float32_rel_precision,
-        "normalization": tables,
-        "seconds": t2 - t1,
-    }
-    metrics["seconds"] = {
-        "train": training["train_seconds"],
-        "export": t2 - t1,
-        "validate": t3 - t2,
-        "total": t3 - t0,
-    }
-    validate.write_json(metrics, run_dir / "metrics.json")
-    if not report:
-        return metrics
-    from neural_brdf.viewer.report import write_report
-
-    write_report(run_dir)
-    metrics["seconds"]["report"] = time.perf_counter() - t3
-    metrics["seconds"]["total"] = time.perf_counter() - t0
-    validate.write_json(metrics, run_dir / "metrics.json")
-    return metrics
+    return _record(
+        run_dir,
+        built,
+        tables,
+        phys,
+        training,
+        target=target,
+        t0=t0,
+        t1=t1,
+        report=report,
+        extra={"teacher_excess": excess},
+    )
 
 
 def finish(
@@ -254,10 +239,33 @@ def finish(
         built.eval, anisotropic=built.anisotropic, settings=cfg.validation, target=target
     )
     exp.write(built, cfg, run_dir / "model.onnx", physics=phys, target=target, target_desc=desc)
+    return _record(
+        run_dir, built, table, phys, training, target=target, t0=t0, t1=t1, report=report
+    )
+
+
+def _record(
+    run_dir: Path,
+    built: exp.Built,
+    table: Any,
+    phys: dict[str, Any],
+    training: dict[str, Any],
+    *,
+    target: Any,
+    t0: float,
+    t1: float,
+    report: bool,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """After ``model.onnx`` is written (export began at ``t1``, the run at ``t0``): its
+    validation (``phys``, measured on the graph before writing, is reused), the training
+    figures, ``extra`` entries, the export's and the stages' times, ``metrics.json`` and,
+    with ``report``, report.html / report.md (``seconds.report`` only then)."""
     t2 = time.perf_counter()
     metrics = validate.report(run_dir / "model.onnx", target=target, physics_report=phys)
     t3 = time.perf_counter()
     metrics["training"] = training
+    metrics.update(extra or {})
     metrics["export"] = {
         "parity_rel_error": built.parity_rel_error,
         "float32_rel_precision": built.float32_rel_precision,

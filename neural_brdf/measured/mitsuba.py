@@ -178,6 +178,45 @@ def _np(x: Any) -> np.ndarray:
     return np.array(x, dtype=np.float64).T
 
 
+def check_reflective(bsdf: Any, plugin: str, where: str) -> None:
+    """InputError naming ``where`` unless ``bsdf`` (its name ``plugin``) is a BRDF of
+    finite values: no transmission, no delta lobe, some rough reflection."""
+    flags = int(bsdf.flags())
+    if flags & _TRANSMISSION:
+        raise InputError(
+            f"{where}: {plugin} transmits light (or passes it through): a "
+            "neural BRDF holds reflection only"
+        )
+    if flags & _DELTA_REFLECTION:
+        what = "is delta-only" if not flags & _SMOOTH_REFLECTION else "has a delta lobe"
+        raise InputError(
+            f"{where}: {plugin} {what} (a perfectly smooth reflection, which a "
+            "BRDF of finite values cannot hold): use a rough variant (e.g. "
+            "roughconductor, roughplastic)"
+        )
+    if not flags & _SMOOTH_REFLECTION:
+        raise InputError(f"{where}: {plugin} reflects nothing")
+
+
+def interaction(mi: Any, wi: np.ndarray, uv: np.ndarray | None = None) -> Any:
+    """A surface interaction per row of unit ``wi`` (K, 3): the local frame itself as the
+    shading frame (z the normal, tangent x = dp_du), si.uv = ``uv`` (K, 2; None: 0.5)
+    and si.p = (u, v, 0), for a BSDF's eval, sample and pdf."""
+    import drjit as dr
+
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.wi = _tensor(mi, wi)
+    x, y, z = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
+    si.sh_frame = mi.Frame3f(x, y, z)
+    si.n = z
+    si.dp_du, si.dp_dv = x, y
+    if uv is None:
+        uv = np.full((len(wi), 2), 0.5)
+    si.uv = mi.Point2f(np.ascontiguousarray(uv.T, dtype=np.float32))
+    si.p = mi.Point3f(np.ascontiguousarray(np.c_[uv, np.zeros(len(uv))].T, dtype=np.float32))
+    return si
+
+
 class VariesOverSurface(InputError):
     """The teacher varies over the surface: :class:`MitsubaTarget` (homogeneous) refuses
     it, and ``train.data.build_target`` builds a
@@ -206,7 +245,7 @@ class MitsubaTarget:
             except Exception as e:  # Mitsuba's parser and plugins raise RuntimeError & co.
                 raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
             self.bsdf, self.plugin = self._the_bsdf(obj, where)
-            self._check_flags(where)
+            check_reflective(self.bsdf, self.plugin, where)
             self.anisotropic = False  # probed below (the sampler needs none of it)
             self.scale_table: np.ndarray | None = None
             self.excess: dict[str, Any] | None = None
@@ -243,45 +282,12 @@ class MitsubaTarget:
         names.append(obj.class_name())
         return obj, " > ".join(names)
 
-    def _check_flags(self, where: str) -> None:
-        flags = int(self.bsdf.flags())
-        if flags & _TRANSMISSION:
-            raise InputError(
-                f"{where}: {self.plugin} transmits light (or passes it through): a "
-                "neural BRDF holds reflection only"
-            )
-        if flags & _DELTA_REFLECTION:
-            what = "is delta-only" if not flags & _SMOOTH_REFLECTION else "has a delta lobe"
-            raise InputError(
-                f"{where}: {self.plugin} {what} (a perfectly smooth reflection, which a "
-                "BRDF of finite values cannot hold): use a rough variant (e.g. "
-                "roughconductor, roughplastic)"
-            )
-        if not flags & _SMOOTH_REFLECTION:
-            raise InputError(f"{where}: {self.plugin} reflects nothing")
-
     # ------------------------------------------------------------------ Mitsuba calls
-    def _interaction(self, wi: np.ndarray, uv: np.ndarray | None = None) -> Any:
-        import drjit as dr
-
-        mi = self._mi
-        si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
-        si.wi = _tensor(mi, wi)
-        x, y, z = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
-        si.sh_frame = mi.Frame3f(x, y, z)  # the local frame itself: tangent x = dp_du
-        si.n = z
-        si.dp_du, si.dp_dv = x, y
-        if uv is None:
-            uv = np.full((len(wi), 2), 0.5)
-        si.uv = mi.Point2f(np.ascontiguousarray(uv.T, dtype=np.float32))
-        si.p = mi.Point3f(np.ascontiguousarray(np.c_[uv, np.zeros(len(uv))].T, dtype=np.float32))
-        return si
-
     def _eval_cos(self, wi: np.ndarray, wo: np.ndarray, uv: np.ndarray | None = None) -> np.ndarray:
         """Mitsuba's eval (f cos theta_o), (K, 3) float64, for unit (K, 3) pairs."""
         mi = self._mi
         with self._scope():
-            out = self.bsdf.eval(mi.BSDFContext(), self._interaction(wi, uv), _tensor(mi, wo))
+            out = self.bsdf.eval(mi.BSDFContext(), interaction(mi, wi, uv), _tensor(mi, wo))
             return _np(out)
 
     def _raw(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
@@ -303,7 +309,7 @@ class MitsubaTarget:
         with self._scope():
             bs, _ = self.bsdf.sample(
                 mi.BSDFContext(),
-                self._interaction(wi),
+                interaction(mi, wi),
                 mi.Float(s1.astype(np.float32)),
                 mi.Point2f(np.ascontiguousarray(u.T, dtype=np.float32)),
             )
@@ -315,7 +321,7 @@ class MitsubaTarget:
     def _pdf(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
         mi = self._mi
         with self._scope():
-            return _np(self.bsdf.pdf(mi.BSDFContext(), self._interaction(wi), _tensor(mi, wo)))
+            return _np(self.bsdf.pdf(mi.BSDFContext(), interaction(mi, wi), _tensor(mi, wo)))
 
     # ------------------------------------------------------------------ probes
     def _probe_pairs(self, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -58,9 +58,6 @@ import torch
 from neural_brdf.errors import InputError
 from neural_brdf.measured.base import _unit
 from neural_brdf.measured.mitsuba import (
-    _DELTA_REFLECTION,
-    _SMOOTH_REFLECTION,
-    _TRANSMISSION,
     CHUNK,
     _children,
     _first,
@@ -68,6 +65,8 @@ from neural_brdf.measured.mitsuba import (
     _mitsuba,
     _np,
     _tensor,
+    check_reflective,
+    interaction,
     one_bsdf,
 )
 
@@ -118,7 +117,7 @@ class TexturedMitsubaTarget:
             except Exception as e:  # Mitsuba's parser and plugins raise several types
                 raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
             self.bsdf, self.plugin = self._unwrap(obj, where)
-            self._check_flags(where)
+            check_reflective(self.bsdf, self.plugin, where)
             self.anisotropic = self._probe_anisotropy(where)
 
     @property
@@ -203,21 +202,6 @@ class TexturedMitsubaTarget:
         names.append(obj.class_name())
         return obj, " > ".join(names)
 
-    def _check_flags(self, where: str) -> None:
-        flags = int(self.bsdf.flags())
-        if flags & _TRANSMISSION:
-            raise InputError(
-                f"{where}: {self.plugin} transmits light (or passes it through): a "
-                "neural BRDF holds reflection only"
-            )
-        if flags & _DELTA_REFLECTION:
-            raise InputError(
-                f"{where}: {self.plugin} has a delta (perfectly smooth) lobe, which a BRDF "
-                "of finite values cannot hold: use a rough variant"
-            )
-        if not flags & _SMOOTH_REFLECTION:
-            raise InputError(f"{where}: {self.plugin} reflects nothing")
-
     def _probe_anisotropy(self, where: str) -> bool:
         """The same pairs at PROBE_UV random uv, turned about the normal: anisotropic
         when the value changes (as MitsubaTarget's probe)."""
@@ -243,27 +227,11 @@ class TexturedMitsubaTarget:
         return diff / scale > ANISO_TOL
 
     # ------------------------------------------------------------------ Mitsuba calls
-    def _interaction(self, wi: np.ndarray, uv: np.ndarray) -> Any:
-        """The interaction of MitsubaTarget._interaction: identity shading frame (z the
-        normal, x = dp_du), si.uv = uv, si.p = (u, v, 0)."""
-        import drjit as dr
-
-        mi = self._mi
-        si = dr.zeros(mi.SurfaceInteraction3f, len(uv))
-        si.wi = _tensor(mi, wi)
-        x, y, z = mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
-        si.sh_frame = mi.Frame3f(x, y, z)
-        si.n = z
-        si.dp_du, si.dp_dv = x, y
-        si.uv = mi.Point2f(np.ascontiguousarray(uv.T, dtype=np.float32))
-        si.p = mi.Point3f(np.ascontiguousarray(np.c_[uv, np.zeros(len(uv))].T, dtype=np.float32))
-        return si
-
     def _eval_cos(self, wi: np.ndarray, wo: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Mitsuba's eval (f cos theta_o), (K, 3) float64, for unit (K, 3) pairs."""
         mi = self._mi
         with self._scope():
-            out = self.bsdf.eval(mi.BSDFContext(), self._interaction(wi, uv), _tensor(mi, wo))
+            out = self.bsdf.eval(mi.BSDFContext(), interaction(self._mi, wi, uv), _tensor(mi, wo))
             return _np(out)
 
     def _rows(
@@ -310,7 +278,7 @@ class TexturedMitsubaTarget:
         s1 = np.random.default_rng(seed).random(len(u))
         return self.bsdf.sample(
             mi.BSDFContext(),
-            self._interaction(wi, uv),
+            interaction(self._mi, wi, uv),
             mi.Float(s1.astype(np.float32)),
             mi.Point2f(np.ascontiguousarray(u.T, dtype=np.float32)),
         )
@@ -346,7 +314,7 @@ class TexturedMitsubaTarget:
         for s in range(0, len(rows), CHUNK):
             r = rows[s : s + CHUNK]
             with self._scope():
-                si = self._interaction(_unit(a[r]), c[r])
+                si = interaction(self._mi, _unit(a[r]), c[r])
                 out[r] = _np(self.bsdf.pdf(mi.BSDFContext(), si, _tensor(mi, _unit(b[r]))))
         return out.reshape(batch)
 
@@ -364,7 +332,7 @@ class TexturedMitsubaTarget:
         for s in range(0, len(ok), CHUNK):
             r = ok[s : s + CHUNK]
             with self._scope():
-                si = self._interaction(np.tile([0.0, 0.0, 1.0], (len(r), 1)), c[r])
+                si = interaction(self._mi, np.tile([0.0, 0.0, 1.0], (len(r), 1)), c[r])
                 if self.normal_map is not None and self.normal_map["plugin"] == "bumpmap":
                     # bumpmap.cpp frame(): cross(dp_du + n s h_u, dp_dv + n s h_v)
                     g = _np(self._normal_tex.eval_1_grad(si)) * self._bump_scale

@@ -114,6 +114,38 @@ def _model_and_optimizer(
     return model, opt
 
 
+def _step(
+    model: TexturedBRDF,
+    opt: torch.optim.Adam,
+    sched: cfgmod.Train,
+    step: int,
+    pool: tuple[torch.Tensor, ...],
+    batch: int,
+    gen: torch.Generator,
+) -> tuple[torch.Tensor, float]:
+    """One optimisation step at ``step`` of ``sched``'s schedule (each group's rate times
+    its ``lr_scale``) on ``batch`` rows drawn from ``pool`` (wi, wo, uv, f) with ``gen``.
+    Returns the loss (a tensor: read it only when needed) and the learning rate."""
+    rate = learning_rate(sched, step)
+    for group in opt.param_groups:
+        group["lr"] = rate * group["lr_scale"]
+    idx = torch.randint(0, len(pool[0]), (batch,), generator=gen)
+    wi, wo, uv, f = (x[idx] for x in pool)
+    loss = loss_fn(
+        sched.loss,
+        model(wi, wo, uv),
+        f,
+        wo[:, 2:3],
+        sched.loss_eps,
+        sched.peak_weight,
+        sched.peak_cap,
+    )
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss, rate
+
+
 def train_textured(
     teacher: Any,
     *,
@@ -168,18 +200,7 @@ def train_textured(
     last = math.nan
     model.train()
     for step in range(steps):
-        rate = learning_rate(sched, step)
-        for group in opt.param_groups:
-            group["lr"] = rate * group["lr_scale"]
-        idx = torch.randint(0, pool, (batch,), generator=gen)
-        wi, wo, uv, f = p_wi[idx], p_wo[idx], p_uv[idx], p_f[idx]
-        pred = model(wi, wo, uv)
-        loss = loss_fn(
-            sched.loss, pred, f, wo[:, 2:3], sched.loss_eps, sched.peak_weight, sched.peak_cap
-        )
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        loss, _ = _step(model, opt, sched, step, (p_wi, p_wo, p_uv, p_f), batch, gen)
         if step == steps - 1 or step % 100 == 0:
             last = float(loss.detach())
             if not math.isfinite(last):
@@ -269,22 +290,12 @@ def train(
             "init_val_rel_rmse": init_err,
         }
 
-    pool = len(p_f)
+    pool = (p_wi, p_wo, p_uv, p_f)
     model.train()
     with sess.run(state) as s:
         while s.step < t.steps:
             s.stop_if_interrupted()
-            rate = learning_rate(t, s.step)
-            for group in opt.param_groups:
-                group["lr"] = rate * group["lr_scale"]
-            idx = torch.randint(0, pool, (cfg.data.batch_size,), generator=gen)
-            wi, wo, uv, f = p_wi[idx], p_wo[idx], p_uv[idx], p_f[idx]
-            loss = loss_fn(
-                t.loss, model(wi, wo, uv), f, wo[:, 2:3], t.loss_eps, t.peak_weight, t.peak_cap
-            )
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+            loss, rate = _step(model, opt, t, s.step, pool, cfg.data.batch_size, gen)
             s.advance()
             if s.due(t.log_every):
                 last = float(loss.detach())
@@ -309,7 +320,7 @@ def train(
         "lobes": tx.lobes,
         "resolution": tx.resolution,
         "weights": tx.weights,
-        "pool": pool,
+        "pool": len(p_f),
         "pool_seconds": pool_seconds,
         "train_seconds": sess.seconds,
         "final_loss": last,
