@@ -69,9 +69,11 @@ from neural_brdf.errors import ParityError
 from neural_brdf.fileformat import (
     FORMAT_VERSION,
     FRAME,
+    OUTPUT_SIGNATURES,
     INPUT_WIDTHS,
     INPUTS,
     METADATA_VERSION,
+    NORMAL,
     OUTPUT,
     PRODUCER_NAME,
     SIGNATURES,
@@ -257,11 +259,13 @@ def to_onnx_bytes(
     *,
     portable: bool = True,
     inputs: tuple[str, ...] = INPUTS,
+    outputs: tuple[str, ...] = (OUTPUT,),
 ) -> bytes:
     """``model`` (forward(wi, wo) -> f, or forward(wi, wo, uv) -> f with ``inputs`` =
-    ``fileformat.SIGNATURES[1]``: a textured model) as ONNX bytes: torch's legacy
-    exporter, then :func:`portable_graph` (``portable=False``: torch's graph as it is,
-    for comparison).  Each input is float32 [N, its width], N dynamic."""
+    ``fileformat.SIGNATURES[1]``: a textured model; -> (f, n) with ``outputs`` =
+    ``fileformat.OUTPUT_SIGNATURES[1]``: one with its normal field) as ONNX bytes:
+    torch's legacy exporter, then :func:`portable_graph` (``portable=False``: torch's
+    graph as it is, for comparison).  Each input is float32 [N, its width], N dynamic."""
     buf = io.BytesIO()
     example = tuple(torch.zeros(4, INPUT_WIDTHS[name]) for name in inputs)
     with warnings.catch_warnings():
@@ -276,8 +280,8 @@ def to_onnx_bytes(
             dynamo=False,
             opset_version=opset,
             input_names=list(inputs),
-            output_names=[OUTPUT],
-            dynamic_axes={name: {0: "N"} for name in (*inputs, OUTPUT)},
+            output_names=list(outputs),
+            dynamic_axes={name: {0: "N"} for name in (*inputs, *outputs)},
         )
     if not portable:
         return buf.getvalue()
@@ -306,7 +310,9 @@ def parity_error(
 ) -> tuple[float, float, float]:
     """(onnxruntime vs torch, torch float32 vs the same network in float64, onnxruntime
     vs float64), relative.  ``textured``: the model takes uv too, drawn uniformly in
-    [-1, 2)^2 (wrapping included) with every pair."""
+    [-1, 2)^2 (wrapping included) with every pair; a model that also returns its normal
+    field n (two outputs) is compared on f and n together (each relative to its own
+    scale, the larger difference counts)."""
     pairs = parity_pairs(n, seed)
     wi, wo = pairs[:, :3].contiguous(), pairs[:, 3:].contiguous()
     args: tuple[torch.Tensor, ...] = (wi, wo)
@@ -314,15 +320,22 @@ def parity_error(
         uv = np.random.default_rng(seed + 1).uniform(-1.0, 2.0, (len(wi), 2))
         args = (wi, wo, torch.from_numpy(uv).float())
     with torch.no_grad():
-        ref = model(*args).numpy().astype(np.float64)
-        exact = copy.deepcopy(model).double()(*(a.double() for a in args)).numpy()
+        refs = _outputs(model(*args))
+        exacts = _outputs(copy.deepcopy(model).double()(*(a.double() for a in args)))
     feeds = dict(zip(SIGNATURES[1], (a.numpy() for a in args)))
-    got = session.run([OUTPUT], feeds)[0].astype(np.float64)
+    names = [OUTPUT, NORMAL][: len(refs)]
+    gots = [g.astype(np.float64) for g in session.run(names, feeds)]
     return (
-        relative_difference(got, ref),
-        relative_difference(ref, exact),
-        relative_difference(got, exact),
+        max(relative_difference(g, r) for g, r in zip(gots, refs)),
+        max(relative_difference(r, e) for r, e in zip(refs, exacts)),
+        max(relative_difference(g, e) for g, e in zip(gots, exacts)),
     )
+
+
+def _outputs(out: Any) -> list[np.ndarray]:
+    """A model's output(s) as float64 arrays: [f] or [f, n]."""
+    outs = out if isinstance(out, tuple) else (out,)
+    return [o.numpy().astype(np.float64) for o in outs]
 
 
 def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
@@ -366,6 +379,18 @@ class Built:
         if self.textured:
             feeds[UV] = np.ascontiguousarray(np.asarray(uv, np.float32))
         return self.session.run([OUTPUT], feeds)[0]
+
+    @property
+    def has_normal(self) -> bool:
+        """A textured graph that carries its teacher's normal field (output ``n``)."""
+        return isinstance(self.model, TexturedBRDF) and self.model.normal is not None
+
+    def normal(self, uv: Any) -> np.ndarray:
+        """The graph's normal field n(uv) (N, 3) through onnxruntime (needs
+        :attr:`has_normal`)."""
+        uv = np.ascontiguousarray(np.asarray(uv, np.float32))
+        zeros = np.zeros((len(uv), 3), np.float32)
+        return self.session.run([NORMAL], {INPUTS[0]: zeros, INPUTS[1]: zeros, UV: uv})[0]
 
 
 class Measure(Protocol):
@@ -432,8 +457,28 @@ def build_textured(model: TexturedBRDF, cfg: cfgmod.Config) -> Built:
     weight field frozen, total over every row), checked against torch at random uv as
     :func:`build` checks a homogeneous one."""
     graph = exportable(model)
-    payload = to_onnx_bytes(graph, cfg.export.opset, inputs=SIGNATURES[1])
+    outputs = OUTPUT_SIGNATURES[1] if model.normal is not None else OUTPUT_SIGNATURES[0]
+    payload = to_onnx_bytes(graph, cfg.export.opset, inputs=SIGNATURES[1], outputs=outputs)
     return _checked(model, graph, payload, cfg, textured=True)
+
+
+def with_normal_field(model: TexturedBRDF, target: Any) -> TexturedBRDF:
+    """``model`` carrying ``target``'s normal field (a textured Mitsuba teacher's normal or
+    bump map, ``TexturedMitsubaTarget.normal_texels``) when it has one: the file then has
+    the second output n (docs/model.md, "The normal field")."""
+    from neural_brdf.train.textured_model import NormalField
+
+    texels = target.normal_texels() if hasattr(target, "normal_texels") else None
+    if texels is None:
+        return model
+    flags = dict(target.normal_map or {})
+    model.normal = NormalField(
+        texels,
+        source=str(flags.get("plugin", "normalmap")),
+        flip_invalid_normals=bool(flags.get("flip_invalid_normals", True)),
+        use_shadowing_function=bool(flags.get("use_shadowing_function", True)),
+    )
+    return model
 
 
 def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -451,8 +496,30 @@ def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) 
         "layout": "row-major [v, u]: flat index j * R + i; column c * K + k",
         "weights": "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)",
         "channels": int(getattr(field, "channels", 1)),  # 3: a set of weights per RGB channel
-        "normal_field": None,  # a normal or bump map of the teacher is not in the file yet
+        "normal_field": normal_json(model),
         "lobe_tables": plain(info) if info is not None else None,
+    }
+
+
+def normal_json(model: TexturedBRDF) -> dict[str, Any] | None:
+    """The ``texture.normal_field`` entry: None, or how the output ``n`` is made and how a
+    renderer applies it (docs/portable.md, "Textured files")."""
+    nf = model.normal
+    if nf is None:
+        return None
+    ru, rv = nf.resolution
+    return {
+        "output": NORMAL,
+        "source": nf.source,
+        "resolution": [ru, rv],
+        "wrap": "repeat",
+        "filter": "bilinear, then normalised",
+        "texel_centres": "((i + 0.5) / Ru, (j + 0.5) / Rv), i along u, j along v",
+        "frame": "n in the unperturbed shading frame; the rotated frame is n, "
+        "s = normalize(x - n n_x), t = n x s (Mitsuba 3's normalmap); f is evaluated "
+        "with wi, wo in it",
+        "flip_invalid_normals": nf.flip_invalid_normals,
+        "use_shadowing_function": nf.use_shadowing_function,
     }
 
 
@@ -578,7 +645,7 @@ def _export_textured(
     model, tables = normalized_textured(
         textured_from_checkpoint(ckpt, cfg), cfg.normalization, seed=cfg.train.seed
     )
-    built = build_textured(model, cfg)
+    built = build_textured(with_normal_field(model, target), cfg)
     phys = measure(
         built.eval,
         anisotropic=built.anisotropic,

@@ -185,7 +185,7 @@ def finish_textured(
             file=sys.stderr,
         )
     normalized, tables = normalized_textured(model, cfg.normalization, seed=cfg.train.seed)
-    built = exp.build_textured(normalized, cfg)
+    built = exp.build_textured(exp.with_normal_field(normalized, target), cfg)
     phys = validate.physics_textured(
         built.eval,
         anisotropic=built.anisotropic,

@@ -4,6 +4,7 @@
     brdf = neural_brdf.load("runs/quickstart/model.onnx")
     f = brdf.eval(wi, wo)          # numpy (..., 3) in, (..., 3) float32 out, 1/sr, no cosine
     f = brdf.eval(wi, wo, uv)      # a textured file (brdf.textured): uv (..., 2) too
+    n = brdf.normal(uv)            # its normal field (brdf.has_normal_field), (..., 3)
     brdf.metadata["max_albedo"]    # every metadata_props entry, as strings
     brdf.meta["max_albedo"]        # the same, decoded: JSON values parsed (read_metadata)
     brdf.info.max_albedo           # the same, typed (neural_brdf.fileformat.metadata.Metadata)
@@ -35,7 +36,9 @@ from neural_brdf.fileformat import (  # noqa: F401
     INPUTS,
     JSON_KEYS,
     METADATA_VERSION_KEY,
+    NORMAL,
     OUTPUT,
+    OUTPUT_SIGNATURES,
     SIGNATURES,
     UV,
 )
@@ -66,12 +69,14 @@ class NeuralBRDF:
             raise InputError(f"{path}: not a loadable ONNX model ({first[:200]})") from None
         names = tuple(i.name for i in self.session.get_inputs())
         outs = tuple(o.name for o in self.session.get_outputs())
-        if names not in SIGNATURES or outs != (OUTPUT,):
+        allowed = OUTPUT_SIGNATURES if names == SIGNATURES[1] else OUTPUT_SIGNATURES[:1]
+        if names not in SIGNATURES or outs not in allowed:
             raise InputError(
                 f"{path}: expected inputs {INPUTS} (or {SIGNATURES[1]}) and output "
-                f"{OUTPUT!r}, got {names} -> {outs}"
+                f"{OUTPUT!r} (and {NORMAL!r} with uv), got {names} -> {outs}"
             )
         self.inputs = names
+        self.outputs = outs
         self.path = path
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         self.meta: dict[str, Any] = read_metadata(self.metadata)
@@ -99,6 +104,40 @@ class NeuralBRDF:
     def textured(self) -> bool:
         """Does f vary over the surface (the graph's inputs are wi, wo and uv)?"""
         return UV in self.inputs
+
+    @property
+    def has_normal_field(self) -> bool:
+        """Does the file carry its teacher's normal field (the output n, docs/portable.md,
+        "Textured files")?  A renderer then rotates its shading frame to n(uv) and
+        evaluates f in the rotated frame."""
+        return NORMAL in self.outputs
+
+    def normal(self, uv: ArrayLike) -> np.ndarray:
+        """The shading normal n(uv): (..., 2) -> (..., 3) float32 unit vectors in the
+        unperturbed shading frame; (0, 0, 1) everywhere for a file without a normal
+        field, and where uv is not finite."""
+        c = np.asarray(uv, dtype=np.float32)
+        if c.shape[-1:] != (2,):
+            raise InputError(f"uv: expected shape (..., 2), got {c.shape}")
+        rows = np.ascontiguousarray(c.reshape(-1, 2))
+        out = np.zeros((len(rows), 3), dtype=np.float32)
+        out[:, 2] = 1.0
+        if not self.has_normal_field:
+            return out.reshape(c.shape[:-1] + (3,))
+        for s in range(0, len(rows), CHUNK):
+            part = rows[s : s + CHUNK]
+            zeros = np.zeros((len(part), 3), np.float32)  # onnxruntime wants every input
+            out[s : s + CHUNK] = self._run(
+                NORMAL, {INPUTS[0]: zeros, INPUTS[1]: zeros, UV: part}
+            )
+        return out.reshape(c.shape[:-1] + (3,))
+
+    def _run(self, output: str, feeds: dict[str, np.ndarray]) -> np.ndarray:
+        try:
+            return self.session.run([output], feeds)[0]
+        except Exception as e:  # onnxruntime raises its own untyped errors (Fail, ...)
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise InputError(f"{self.path}: onnxruntime failed ({first[:200]})") from None
 
     def eval(self, wi: ArrayLike, wo: ArrayLike, uv: ArrayLike | None = None) -> np.ndarray:
         """f(wi, wo) in 1/sr: (..., 3) unit vectors (broadcast) -> (..., 3) float32 RGB.
@@ -131,11 +170,7 @@ class NeuralBRDF:
             feeds = {INPUTS[0]: a[s : s + CHUNK], INPUTS[1]: b[s : s + CHUNK]}
             if self.textured:
                 feeds[UV] = rows[s : s + CHUNK]
-            try:
-                out[s : s + CHUNK] = self.session.run([OUTPUT], feeds)[0]
-            except Exception as e:  # onnxruntime raises its own untyped errors (Fail, ...)
-                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-                raise InputError(f"{self.path}: onnxruntime failed ({first[:200]})") from None
+            out[s : s + CHUNK] = self._run(OUTPUT, feeds)
         return out.reshape(batch + (3,))
 
     __call__ = eval

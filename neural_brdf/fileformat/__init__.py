@@ -34,6 +34,13 @@ OUTPUT = "f"
 UV = "uv"
 OPTIONAL_INPUTS = (UV,)
 SIGNATURES = (INPUTS, INPUTS + OPTIONAL_INPUTS)
+# An optional second output of a textured graph: n float32 [N, 3], the shading normal
+# that the teacher's normal (or bump) map gives at uv, a unit vector in the unperturbed
+# shading frame.  It depends on uv alone.  The host rotates its frame to it (as
+# Mitsuba's normalmap does) and evaluates f in the rotated frame: f stays reciprocal
+# there, and the normal map is never baked into f (docs/model.md, "The normal field").
+NORMAL = "n"
+OUTPUT_SIGNATURES = ((OUTPUT,), (OUTPUT, NORMAL))  # the second only with the uv input
 INPUT_WIDTHS = {INPUTS[0]: 3, INPUTS[1]: 3, UV: 2}  # each input is float32 [N, width]
 
 # Of the resolved config, the checkpoint and the exported model (its ONNX model_version).

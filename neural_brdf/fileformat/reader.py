@@ -19,7 +19,7 @@ import os
 import onnx
 
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import INPUT_WIDTHS, OUTPUT, SIGNATURES, sizes
+from neural_brdf.fileformat import INPUT_WIDTHS, NORMAL, OUTPUT, OUTPUT_SIGNATURES, SIGNATURES, sizes
 from neural_brdf.fileformat.metadata import Metadata
 
 
@@ -61,20 +61,22 @@ def signature(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ..
     """The graph's input names, checked against the contract: one of
     :data:`~neural_brdf.fileformat.SIGNATURES` ((wi, wo), or (wi, wo, uv) for a material
     that varies over the surface), in that order, each float32 [N, width] where its shape
-    is declared, and the one output ``f`` [N, 3].  A one-line InputError naming ``source``
-    otherwise."""
+    is declared, and the output ``f`` [N, 3], followed in a textured graph by the
+    optional normal field ``n`` [N, 3] (:func:`outputs`).  A one-line InputError naming
+    ``source`` otherwise."""
     g = proto.graph
     inits = {t.name for t in g.initializer}  # IR < 4 lists initializers among the inputs
     values = [v for v in g.input if v.name not in inits]
     names = tuple(v.name for v in values)
     outs = tuple(v.name for v in g.output)
-    if names not in SIGNATURES or outs != (OUTPUT,):
+    allowed = OUTPUT_SIGNATURES if names == SIGNATURES[1] else OUTPUT_SIGNATURES[:1]
+    if names not in SIGNATURES or outs not in allowed:
         expected = " or ".join(str(s) for s in SIGNATURES)
         raise InputError(
-            f"{source}: expected inputs {expected} and output {OUTPUT!r}, got "
-            f"{_names(names)} -> {_names(outs)}"
+            f"{source}: expected inputs {expected} and output {OUTPUT!r} (and {NORMAL!r} "
+            f"with uv), got {_names(names)} -> {_names(outs)}"
         )
-    for v, width in [(v, INPUT_WIDTHS[v.name]) for v in values] + [(g.output[0], 3)]:
+    for v, width in [(v, INPUT_WIDTHS[v.name]) for v in values] + [(o, 3) for o in g.output]:
         t = v.type.tensor_type
         dims = [d.dim_value if d.HasField("dim_value") else None for d in t.shape.dim]
         if t.elem_type != onnx.TensorProto.FLOAT or (
@@ -82,6 +84,13 @@ def signature(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ..
         ):
             raise InputError(f"{source}: {v.name!r}: expected float32 [N, {width}]")
     return names
+
+
+def outputs(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ...]:
+    """The graph's output names, checked with its inputs by :func:`signature`: ("f",) or,
+    for a textured graph that carries its teacher's normal field, ("f", "n")."""
+    signature(proto, source=source)
+    return tuple(v.name for v in proto.graph.output)
 
 
 def _names(names: tuple[str, ...]) -> str:

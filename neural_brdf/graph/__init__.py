@@ -123,9 +123,20 @@ def check(proto: onnx.ModelProto) -> list:
     return nodes
 
 
-def lower(model) -> Program:
-    """Load, check, fold and lower an ONNX model (inputs [N, k], outputs [N, k...])."""
+def lower(model, outputs: tuple[str, ...] | None = None) -> Program:
+    """Load, check, fold and lower an ONNX model (inputs [N, k], outputs [N, k...]).
+
+    ``outputs``: the graph outputs to keep (default all), in that order; the program is
+    pruned to what they need, and its ``inputs`` to the inputs they read.  A textured
+    file's normal field ``n`` depends on uv alone, so ``lower(model, ("n",))`` is a
+    program of uv: a host evaluates it first, rotates its frame, then evaluates
+    ``lower(model, ("f",))`` (docs/model.md, "The normal field")."""
     proto = load(model)
+    names = [o.name for o in proto.graph.output]
+    if outputs is not None:
+        unknown = [o for o in outputs if o not in names]
+        if unknown:
+            raise UnsupportedOnnxOp(f"outputs {unknown}: the graph has {names}")
     nodes = check(proto)
     g = proto.graph
     b = Builder()
@@ -155,19 +166,40 @@ def lower(model) -> Program:
             res = (res,)
         for o, v in zip(outs, res, strict=False):
             env[o] = v
-    outputs = {}
+    kept = list(outputs) if outputs is not None else names
+    outs = {}
     b.hint = "out"
-    for o in g.output:
-        v = env[o.name]
+    for name in kept:
+        v = env[name]
         if isinstance(v, Lanes):
             cols = [lo.to_float(x) for x in v.a.reshape(-1)]
         else:
             c = np.asarray(v)
             c = c[0] if c.ndim >= 1 and c.shape[0] == 1 else c
             cols = [b.const(float(x), "float") for x in c.reshape(-1)]
-        outputs[o.name] = cols
+        outs[name] = cols
     meta = {p.key: p.value for p in proto.metadata_props}
-    return b.finish(inputs, outputs, meta, op_counts)
+    if outputs is not None:  # only the inputs that the kept outputs read
+        read = _inputs_read(b, outs)
+        inputs = {k: w for k, w in inputs.items() if k in read}
+    return b.finish(inputs, outs, meta, op_counts)
+
+
+def _inputs_read(b: Builder, outs: dict[str, list[int]]) -> set[str]:
+    """The input names that the instructions ``outs`` need read."""
+    seen: set[int] = set()
+    stack = [i for cols in outs.values() for i in cols]
+    read: set[str] = set()
+    while stack:
+        i = stack.pop()
+        if i in seen:
+            continue
+        seen.add(i)
+        ins = b.instrs[i]
+        if ins.op == "input":
+            read.add(ins.attr[0])
+        stack.extend(ins.args)
+    return read
 
 
 def textures(prog: Program, name: str = "uv") -> list[Texture]:

@@ -329,19 +329,50 @@ class TexturedMitsubaTarget:
         if self._normal_tex is None or len(c) == 0:
             return out.reshape(batch + (3,))
         ok = np.flatnonzero(np.all(np.isfinite(c), -1))
-        for s in range(0, len(ok), CHUNK):
-            r = ok[s : s + CHUNK]
+        n = self._raw_normal(c[ok])
+        out[ok] = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return out.reshape(batch + (3,))
+
+    def _raw_normal(self, uv: np.ndarray) -> np.ndarray:
+        """The map's unnormalised normal (K, 3) at finite uv (K, 2), before Mitsuba's
+        normalize: 2 t - 1 of a normalmap, (-s h_u, -s h_v, 1) of a bumpmap."""
+        out = np.empty((len(uv), 3))
+        for s in range(0, len(uv), CHUNK):
+            r = slice(s, s + CHUNK)
             with self._scope():
-                si = interaction(self._mi, np.tile([0.0, 0.0, 1.0], (len(r), 1)), c[r])
+                si = interaction(self._mi, np.tile([0.0, 0.0, 1.0], (len(uv[r]), 1)), uv[r])
                 if self.normal_map is not None and self.normal_map["plugin"] == "bumpmap":
                     # bumpmap.cpp frame(): cross(dp_du + n s h_u, dp_dv + n s h_v)
                     g = _np(self._normal_tex.eval_1_grad(si)) * self._bump_scale
-                    n = np.c_[-g[:, 0], -g[:, 1], np.ones(len(r))]
+                    out[r] = np.c_[-g[:, 0], -g[:, 1], np.ones(len(g))]
                 else:
                     # normalmap.cpp frame(): n = normalize(fmadd(texture, 2, -1))
-                    n = 2.0 * _np(self._normal_tex.eval(si)) - 1.0
-            out[r] = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        return out.reshape(batch + (3,))
+                    out[r] = 2.0 * _np(self._normal_tex.eval(si)) - 1.0
+        return out
+
+    def normal_texels(self, default_resolution: int = 512) -> np.ndarray | None:
+        """The normal field as texels for the file (``train.textured_model.NormalField``):
+        (Rv, Ru, 3) unnormalised normals at the texel centres ((i + 0.5) / Ru, (j + 0.5)
+        / Rv), or None without a map.
+
+        A normalmap's texels are its texture's own 2 t - 1 (at a texel centre a bitmap's
+        bilinear look-up is the texel itself), at the bitmap's resolution, so bilinear
+        interpolation and normalisation reproduce Mitsuba's normal between centres too.
+        A bump map's normal (the height's gradient) and a procedural texture are sampled
+        at ``default_resolution`` (or the bitmap's) texel centres: an approximation
+        between them, which ``validate`` measures (docs/model.md, "The normal field")."""
+        if self._normal_tex is None:
+            return None
+        mi = self._mi
+        with self._scope():
+            data = mi.traverse(self._normal_tex).get("data")
+        shape = tuple(int(d) for d in data.shape) if data is not None else ()
+        rv, ru = shape[:2] if len(shape) >= 2 else (default_resolution, default_resolution)
+        u = (np.arange(ru) + 0.5) / ru
+        v = (np.arange(rv) + 0.5) / rv
+        uv = np.stack(np.meshgrid(u, v, indexing="xy"), -1).reshape(-1, 2)  # row j, column i
+        out = self._raw_normal(uv)
+        return out.reshape(rv, ru, 3)
 
     def max_albedo(
         self,

@@ -51,9 +51,16 @@ from neural_brdf.train.model import NormalizedBRDF, RawBRDF, albedo_table, unit_
 TEXTURED_INPUTS = SIGNATURES[1]  # ("wi", "wo", "uv")
 
 
-def bilinear_wrap(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> torch.Tensor:
-    """The bilinear, wrapping look-up of ``table`` [R*R, C] (row-major [v, u]) at ``uv``
-    [N, 2] (finite) -> [N, C].
+def bilinear_wrap(
+    table: torch.Tensor,
+    uv: torch.Tensor,
+    resolution: int | tuple[int, int],
+    scale: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The bilinear, wrapping look-up of ``table`` [Rv*Ru, C] (row-major [v, u]) at ``uv``
+    [N, 2] (finite) -> [N, C].  ``resolution``: R (a square R x R table) or (Ru, Rv),
+    the texels along u and along v; a rectangular table also needs ``scale``, the
+    tensor [Ru, Rv] (a module's buffer, so that tracing records it as a constant).
 
     Per axis: x = (u - floor(u)) * R - 0.5, i0 = floor(x) in [-1, R - 1], a = x - i0; the
     two texels are i0 and i0 + 1, each wrapped into [0, R) (-1 -> R - 1, R -> 0).  A u
@@ -62,18 +69,27 @@ def bilinear_wrap(table: torch.Tensor, uv: torch.Tensor, resolution: int) -> tor
     [0, R - 1] as well (a no-op for finite uv) before the Cast, so no Gather index can
     leave the table.
     """
-    r = float(resolution)
+    ru, rv = (resolution, resolution) if isinstance(resolution, int) else resolution
+    # a square table keeps scalar constants (the graph of every earlier file); a
+    # rectangular one has a pair (Ru, Rv), the same ops broadcast
+    if ru != rv and scale is None:
+        raise ValueError(f"bilinear_wrap: a {ru} x {rv} table needs scale = [Ru, Rv]")
+    r: float | torch.Tensor = float(ru) if ru == rv else scale.to(uv.dtype)  # type: ignore[union-attr]
     frac = uv - torch.floor(uv)  # wrap (repeat): in [0, 1]
     x = frac * r - 0.5
     i0 = torch.floor(x)
     a = x - i0  # (N, 2), in [0, 1)
     i1 = i0 + 1.0
-    i0 = torch.where(i0 < 0.0, i0 + r, i0).clamp(0.0, r - 1.0)
-    i1 = torch.where(i1 > r - 1.0, i1 - r, i1).clamp(0.0, r - 1.0)
+    if isinstance(r, float):
+        i0 = torch.where(i0 < 0.0, i0 + r, i0).clamp(0.0, r - 1.0)
+        i1 = torch.where(i1 > r - 1.0, i1 - r, i1).clamp(0.0, r - 1.0)
+    else:
+        i0 = torch.where(i0 < 0.0, i0 + r, i0).clamp(min=0.0).minimum(r - 1.0)
+        i1 = torch.where(i1 > r - 1.0, i1 - r, i1).clamp(min=0.0).minimum(r - 1.0)
     u0, v0 = i0[..., 0].long(), i0[..., 1].long()
     u1, v1 = i1[..., 0].long(), i1[..., 1].long()
     au, av = a[..., 0:1], a[..., 1:2]
-    n = int(resolution)
+    n = int(ru)
     return (
         table[v0 * n + u0] * (1 - au) * (1 - av)
         + table[v0 * n + u1] * au * (1 - av)
@@ -143,16 +159,73 @@ class FrozenWeightField(nn.Module):
         return z if self.channels == 1 else z.view(-1, self.channels, self.lobes)
 
 
+class NormalField(nn.Module):
+    """The teacher's shading normal over uv (docs/model.md, "The normal field"): a table
+    ``texels`` [Rv, Ru, 3] of unnormalised normals (a normal map's 2 t - 1), looked up
+    as :class:`WeightField` is (:func:`bilinear_wrap`: repeat, bilinear, texel centres
+    at ((i + 0.5) / Ru, (j + 0.5) / Rv)) and normalised:
+
+        n(uv) = normalize(bilinear(texels, uv))     Mitsuba 3.9.1's normalmap.cpp frame()
+
+    the order of Mitsuba's normalmap (interpolate the texture, then normalise), so a
+    file whose texels are a bitmap's own reproduces Mitsuba's normal between texel
+    centres too.  A texel sum of zero length gives (0, 0, 1).  Not trained: it is copied
+    from the teacher at export.
+
+    ``source`` ("normalmap" or "bumpmap") and the two flags of Mitsuba's wrappers
+    (``flip_invalid_normals``, ``use_shadowing_function``) travel to the file's metadata:
+    a renderer that wants the teacher's look applies them with the rotation."""
+
+    texels: torch.Tensor  # buffers (register_buffer)
+    scale: torch.Tensor
+    up: torch.Tensor
+
+    def __init__(
+        self,
+        texels: Any,
+        *,
+        source: str = "normalmap",
+        flip_invalid_normals: bool = True,
+        use_shadowing_function: bool = True,
+    ):
+        super().__init__()
+        texels = torch.as_tensor(texels, dtype=torch.float32)
+        if texels.dim() != 3 or texels.shape[-1] != 3 or min(texels.shape[:2]) < 1:
+            raise ValueError(f"NormalField: texels [Rv, Ru, 3], got {tuple(texels.shape)}")
+        self.register_buffer("texels", texels.detach().clone())
+        self.resolution = (int(texels.shape[1]), int(texels.shape[0]))  # (Ru, Rv)
+        self.register_buffer("scale", torch.tensor(self.resolution, dtype=torch.float32), False)
+        self.register_buffer("up", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
+        self.source = str(source)
+        self.flip_invalid_normals = bool(flip_invalid_normals)
+        self.use_shadowing_function = bool(use_shadowing_function)
+
+    def forward(self, uv: torch.Tensor) -> torch.Tensor:  # (N, 2) -> (N, 3), unit
+        v = bilinear_wrap(self.texels.reshape(-1, 3), uv, self.resolution, self.scale)
+        length = torch.sqrt((v * v).sum(-1, keepdim=True))
+        up = torch.zeros_like(v) + self.up
+        ok = length > 0.0
+        return torch.where(ok, v / torch.where(ok, length, torch.ones_like(length)), up)
+
+
 class TexturedBRDF(nn.Module):
     """f(wi, wo, uv) = sum_k z_k(uv) g_k(wi, wo), (N, 3); module doc for why it is
     reciprocal bit for bit and, with normalised lobes, energy conserving at every uv."""
 
-    def __init__(self, lobes: Iterable[nn.Module], field: WeightField | FrozenWeightField):
+    def __init__(
+        self,
+        lobes: Iterable[nn.Module],
+        field: WeightField | FrozenWeightField,
+        normal: NormalField | None = None,
+    ):
         super().__init__()
         self.lobes = nn.ModuleList(lobes)
         if len(self.lobes) != field.lobes:
             raise ValueError(f"TexturedBRDF: {len(self.lobes)} lobes, the field has {field.lobes}")
         self.field = field
+        # the teacher's normal field (docs/model.md, "The normal field"): carried to the
+        # file as a second output, never part of f
+        self.normal = normal
         self.anisotropic = any(bool(getattr(g, "anisotropic", False)) for g in self.lobes)
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -224,7 +297,7 @@ def normalized_textured(
             }
         )
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
-    return TexturedBRDF(lobes, field).eval(), info
+    return TexturedBRDF(lobes, field, model.normal).eval(), info
 
 
 # ------------------------------------------------------------------- total graph
@@ -242,7 +315,10 @@ class TotalTexturedBRDF(nn.Module):
     wi and wo go through :func:`~neural_brdf.train.model.unit_or_invalid` (as
     :class:`~neural_brdf.train.model.TotalBRDF`), uv through :func:`uv_or_invalid`; a
     row with an invalid wi, wo or uv gives exactly 0 without touching another row.  Both
-    directions are cleaned by the same ops, so bit-exact symmetry survives."""
+    directions are cleaned by the same ops, so bit-exact symmetry survives.
+
+    With a normal field (``model.normal``) the graph has a second output, n(uv) [N, 3]
+    (``fileformat.NORMAL``): (0, 0, 1) where uv is invalid."""
 
     up: torch.Tensor  # a buffer (register_buffer)
 
@@ -252,15 +328,21 @@ class TotalTexturedBRDF(nn.Module):
         self.anisotropic = model.anisotropic
         self.register_buffer("up", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
 
-    def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         ui, ok_i = unit_or_invalid(wi, self.up)
         uo, ok_o = unit_or_invalid(wo, self.up)
         c, ok_uv = uv_or_invalid(uv)
         f = self.model(ui, uo, c)
-        return torch.where(ok_i & ok_o & ok_uv, f, torch.zeros_like(f))
+        f = torch.where(ok_i & ok_o & ok_uv, f, torch.zeros_like(f))
+        if self.model.normal is None:
+            return f
+        n = self.model.normal(c)
+        return f, torch.where(ok_uv, n, torch.zeros_like(n) + self.up)
 
 
 def exportable(model: TexturedBRDF) -> TotalTexturedBRDF:
     """``model`` with its field frozen, made total: the module the ONNX graph is of."""
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
-    return TotalTexturedBRDF(TexturedBRDF(list(model.lobes), field).eval()).eval()
+    return TotalTexturedBRDF(TexturedBRDF(list(model.lobes), field, model.normal).eval()).eval()
