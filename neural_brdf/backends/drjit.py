@@ -130,8 +130,9 @@ class OnnxProgram:
     columns (Dr.Jit Float arrays) and returns ``{output name: list of columns}``.
     """
 
-    def __init__(self, model):
-        self.program = graph.lower(model)
+    def __init__(self, model, outputs: tuple[str, ...] | None = None):
+        # ``outputs``: the graph outputs to evaluate (default all; graph.lower)
+        self.program = graph.lower(model, outputs)
         self.inputs = list(self.program.inputs)
         self.outputs = list(self.program.outputs)
         self.op_counts = dict(self.program.op_counts)

@@ -34,6 +34,18 @@ and in ``sample``'s weight; the local frame is Mitsuba's shading frame (dp_du th
 tangent).  Its sampling lobe is global: the file's ``sampling_lobe``, or one fitted at
 load to f at uniformly drawn uv.  A two-input graph is traced exactly as before.
 
+Normal fields.  A textured graph with the second output ``n`` (the teacher's normal
+map, docs/model.md, "The normal field") is applied as Mitsuba 3.9.1's ``normalmap``
+applies its texture (src/bsdfs/normalmap.cpp): the normal n(si.uv), flipped to
+(-n_x, -n_y, n_z) where wi lies below its plane (``flip_invalid_normals``), gives the
+rotated frame n, s = normalize(x - n n_x), t = n x s; f, the pdf and the sampler run
+with wi and wo in that frame; a pair is kept only where wo is on the same side of both
+normals; eval and the sample weight are multiplied by Estevez et al.'s shadowing term
+2 / (1 + sqrt(1 + a2 tan^2 theta_o)), a2 = min(1, tan^2 theta_n / 8) ("A
+Microfacet-Based Shadowing Function to Solve the Bump Terminator Problem", Ray Tracing
+Gems 2019; ``use_shadowing_function``).  Both flags come from the file's
+``texture.normal_field`` metadata, as the teacher's wrapper had them.
+
 The ``analytic_brdf`` plugin exports the analytic model's own torch ``f(wi, wo)`` to
 ONNX with ``torch.onnx`` (in memory) and runs it through the same interpreter, so it is
 as fast as the neural plugin and never calls back into torch while rendering.
@@ -64,7 +76,7 @@ import mitsuba as mi
 
 from neural_brdf.backends.drjit import OnnxProgram
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import OUTPUT, SIGNATURES, reader
+from neural_brdf.fileformat import NORMAL, OUTPUT, SIGNATURES, reader
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.graph import SUPPORTED_OPS, UnsupportedOnnxOp
 from neural_brdf.physics import lobe_fit
@@ -119,8 +131,18 @@ def _turn(w):
     return mi.Vector3f(-w.x, -w.y, w.z)
 
 
+def _shadow_terminator(n, wo):
+    """Estevez et al. 2019's shadowing term of a perturbed normal n (in the unperturbed
+    frame) for wo: normalmap_helpers.h's eval_shadow_terminator."""
+    alpha2 = dr.minimum(0.125 * mi.Frame3f.tan_theta_2(n), 1.0)
+    return 2.0 / (1.0 + dr.sqrt(1.0 + alpha2 * mi.Frame3f.tan_theta_2(wo)))
+
+
 class _GraphBSDF(mi.BSDF):
     """A BSDF evaluated by an ONNX graph (f, no cosine) with the mixture sampler."""
+
+    normal_program: OnnxProgram | None = None
+    normal_flags: dict = {}
 
     def _setup(self, program: OnnxProgram, lobe: dict, label: str):
         if not dr.is_jit_v(mi.Float):
@@ -226,22 +248,76 @@ class _GraphBSDF(mi.BSDF):
             mi.BSDFFlags.DiffuseReflection, 0
         )
 
+    # -- the normal field (module doc, "Normal fields"): Mitsuba's normalmap.cpp
+    def _frame(self, si):
+        """The rotated frame at si (in the unperturbed local frame), as normalmap.cpp's
+        frame(): n(si.uv) from the graph, flipped by wi, then Gram-Schmidt of x."""
+        assert self.normal_program is not None
+        cols = self.normal_program(uv=[si.uv.x, si.uv.y])[NORMAL]
+        n = mi.Vector3f(cols[0], cols[1], cols[2])
+        if self.normal_flags.get("flip_invalid_normals", True):
+            flip = mi.Frame3f.cos_theta(si.wi) * dr.dot(si.wi, n) <= 0.0
+            n = dr.select(flip, mi.Vector3f(-n.x, -n.y, n.z), n)
+        frame = mi.Frame3f(dr.normalize(n))
+        frame.s = dr.normalize(mi.Vector3f(1.0, 0.0, 0.0) - frame.n * frame.n.x)
+        frame.t = dr.cross(frame.n, frame.s)
+        return frame
+
+    def _rotated(self, si, wo, active):
+        """(frame, si with wi in the frame, wo in the frame, active & same side)."""
+        frame = self._frame(si)
+        psi = mi.SurfaceInteraction3f(si)
+        psi.wi = frame.to_local(si.wi)
+        pwo = frame.to_local(wo)
+        ok = active & (mi.Frame3f.cos_theta(wo) * mi.Frame3f.cos_theta(pwo) > 0.0)
+        return frame, psi, pwo, ok
+
+    def _shadowed(self, value, frame, wo):
+        if self.normal_flags.get("use_shadowing_function", True):
+            return value * _shadow_terminator(frame.n, wo)
+        return value
+
     def eval(self, ctx, si, wo, active=True):
         if not self._enabled(ctx):
             return mi.Color3f(0.0)
-        return self._f_cos(si, wo, active)
+        if self.normal_program is None:
+            return self._f_cos(si, wo, active)
+        frame, psi, pwo, ok = self._rotated(si, wo, active)
+        value = self._shadowed(self._f_cos(psi, pwo, ok), frame, wo)
+        return dr.select(ok, value, 0.0)
 
     def pdf(self, ctx, si, wo, active=True):
         if not self._enabled(ctx):
             return mi.Float(0.0)
-        return self._pdf(si, wo, active)
+        if self.normal_program is None:
+            return self._pdf(si, wo, active)
+        _, psi, pwo, ok = self._rotated(si, wo, active)
+        return dr.select(ok, self._pdf(psi, pwo, ok), 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):
         if not self._enabled(ctx):
             return mi.Color3f(0.0), mi.Float(0.0)
-        return self._f_cos(si, wo, active), self._pdf(si, wo, active)
+        if self.normal_program is None:
+            return self._f_cos(si, wo, active), self._pdf(si, wo, active)
+        frame, psi, pwo, ok = self._rotated(si, wo, active)
+        value = self._shadowed(self._f_cos(psi, pwo, ok), frame, wo)
+        return dr.select(ok, value, 0.0), dr.select(ok, self._pdf(psi, pwo, ok), 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
+        if self.normal_program is None or not self._enabled(ctx):
+            return self._sample(ctx, si, sample1, sample2, active)
+        frame = self._frame(si)
+        psi = mi.SurfaceInteraction3f(si)
+        psi.wi = frame.to_local(si.wi)
+        bs, weight = self._sample(ctx, psi, sample1, sample2, active)
+        wo = frame.to_world(bs.wo)
+        ok = active & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(wo) > 0.0)
+        bs.pdf = dr.select(ok, bs.pdf, 0.0)
+        bs.wo = wo
+        weight = self._shadowed(weight, frame, wo)
+        return bs, dr.select(ok, weight, 0.0)
+
+    def _sample(self, ctx, si, sample1, sample2, active=True):
         bs = dr.zeros(mi.BSDFSample3f)
         if not self._enabled(ctx):
             return bs, mi.Color3f(0.0)
@@ -305,7 +381,9 @@ def _resolve(filename: str) -> Path:
 
 
 def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
-    """Resolve, load and check an exported model: (path, program, stored lobe or None).
+    """Resolve, load and check an exported model: (path, program of f, stored lobe or
+    None).  A file's normal field (output n) is left out of the program: the plugin
+    lowers it on its own (:class:`NeuralBSDF`).
 
     A missing or unusable file raises a one-line InputError.  :func:`render_preview`
     calls this before it loads a scene, because Mitsuba reports an exception raised in a
@@ -319,7 +397,11 @@ def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
         stored = lobe_format.from_metadata(reader.props(proto))
     except InputError as e:
         raise InputError(f"neural_brdf: {path}: {e}") from None
-    return path, OnnxProgram(proto), stored
+    return path, OnnxProgram(proto, (OUTPUT,) if _has_normal(proto) else None), stored
+
+
+def _has_normal(proto) -> bool:
+    return NORMAL in [o.name for o in proto.graph.output]
 
 
 class NeuralBSDF(_GraphBSDF):
@@ -331,6 +413,14 @@ class NeuralBSDF(_GraphBSDF):
             raise InputError("neural_brdf: the 'filename' property (an ONNX file) is required")
         path, program, stored = read_model(props["filename"])
         self.lobe_source = "metadata" if stored else "fitted at load"
+        proto = reader.load(path)
+        if _has_normal(proto):  # a textured file with its normal field
+            field = (reader.metadata(proto).texture or {}).get("normal_field") or {}
+            self.normal_flags = {
+                k: bool(field.get(k, True))
+                for k in ("flip_invalid_normals", "use_shadowing_function")
+            }
+            self.normal_program = OnnxProgram(proto, (NORMAL,))
         self._setup(program, stored or lobe_fit.fit_onnx(path), str(path))
 
 
