@@ -303,6 +303,32 @@ def accuracy_textured(fn: Callable, target: Any, *, n: int, seed: int) -> dict[s
     return _accuracy_report(wi, wo, ref, pred, uv)
 
 
+def normal_field_error(
+    normal: Callable | None, target: Any, *, n: int, seed: int
+) -> dict[str, Any] | None:
+    """How far a textured file's normal field (``normal(uv)``, (N, 3); None: a file
+    without one, whose normal is (0, 0, 1)) is from its teacher's (``target.normal_field``)
+    at ``n`` random uv (:func:`uv_points`): the angle between them in degrees, max and
+    mean, beside the teacher's largest tilt.  None when neither has a field."""
+    if normal is None and getattr(target, "normal_map", None) is None:
+        return None
+    uv = uv_points(n, seed)
+    ref = np.asarray(target.normal_field(uv), dtype=np.float64)
+    got = np.tile([0.0, 0.0, 1.0], (n, 1)) if normal is None else np.asarray(normal(uv), float)
+
+    def angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # atan2: exact at small angles
+        return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+    err = angle(got, ref)
+    return {
+        "in_file": normal is not None,
+        "uv": n,
+        "max_deg": float(err.max()),
+        "mean_deg": float(err.mean()),
+        "teacher_max_tilt_deg": float(angle(ref, np.array([0.0, 0.0, 1.0])).max()),
+    }
+
+
 def peak_pairs(anisotropic: bool) -> tuple[np.ndarray, np.ndarray, list[dict[str, Any]]]:
     """The peak probe (module doc): wi, wo (float64, (N, 3)) and one label per pair."""
     wis, wos, labels = [], [], []
@@ -417,6 +443,12 @@ def report(
             out["accuracy"] = accuracy_textured(
                 model.eval, built, n=settings.accuracy_samples, seed=settings.seed + 4
             )
+            normal = model.normal if model.has_normal_field else None
+            field = normal_field_error(
+                normal, built, n=settings.accuracy_samples, seed=settings.seed + 6
+            )
+            if field is not None:
+                out["normal_field"] = field
         out["passed"] = physics_passed(out)
         return out
     if physics_report is None:

@@ -116,6 +116,7 @@ class TexturedMitsubaTarget:
                 obj = mi.load_file(str(self.path))
             except Exception as e:  # Mitsuba's parser and plugins raise several types
                 raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
+            self.whole_bsdf = obj  # wrappers included: what a scene of the teacher renders
             self.bsdf, self.plugin = self._unwrap(obj, where)
             check_reflective(self.bsdf, self.plugin, where)
             self.anisotropic = self._probe_anisotropy(where)

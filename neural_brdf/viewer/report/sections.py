@@ -223,6 +223,11 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     if reference is not None and cfg.target.data is None and cfg.target.mitsuba is None:
         ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}  # analytic
     teacher = getattr(reference, "bsdf", None) if run.model.textured else None
+    # a file that carries its teacher's normal field renders beside the whole teacher
+    # (normal map included); one without it beside the nested BSDF
+    whole = run.model.textured and run.model.has_normal_field
+    if whole:
+        teacher = getattr(reference, "whole_bsdf", teacher)
     with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         png_path = Path(tmp) / "render.png"
         try:
@@ -242,7 +247,9 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     caption = f"Mitsuba 3 preview, {RENDER_SPP} spp: neural"
     if teacher is not None:
         caption += (
-            " | the teacher (Mitsuba's own BSDF, its normal map left out as the file's is) | "
+            " | the teacher (Mitsuba's own BSDF"
+            + (", normal map included" if whole else ", its normal map left out as the file's is")
+            + ") | "
             f"{ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB, Monte Carlo noise included)"
         )
     elif ref is not None:
@@ -375,6 +382,21 @@ def _textured_note(run: Run) -> list:
         "accuracy is at random uv against the teacher's own eval; the figures below are at "
         f"uv {TEXTURED_UV}."
     )
+    field = run.metrics.get("normal_field")
+    if isinstance(field, dict) and field.get("in_file"):
+        source = (tex.get("normal_field") or {}).get("source", "normal map")
+        text += (
+            f" The file carries the teacher's normal field ({source}, "
+            f"applied by the renderer as a frame rotation): at {field.get('uv')} random uv it is "
+            f"within {field.get('max_deg', 0):.3g}° of the teacher's (mean "
+            f"{field.get('mean_deg', 0):.2g}°; the teacher tilts up to "
+            f"{field.get('teacher_max_tilt_deg', 0):.3g}°)."
+        )
+    elif isinstance(field, dict):
+        text += (
+            f" The teacher has a normal map (tilts up to "
+            f"{field.get('teacher_max_tilt_deg', 0):.3g}°) that this file does not carry."
+        )
     excess = run.metrics.get("teacher_excess")
     if isinstance(excess, dict):
         text += (
