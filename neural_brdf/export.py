@@ -69,12 +69,12 @@ from neural_brdf.errors import ParityError
 from neural_brdf.fileformat import (
     FORMAT_VERSION,
     FRAME,
-    OUTPUT_SIGNATURES,
     INPUT_WIDTHS,
     INPUTS,
     METADATA_VERSION,
     NORMAL,
     OUTPUT,
+    OUTPUT_SIGNATURES,
     PRODUCER_NAME,
     SIGNATURES,
     UNITS,

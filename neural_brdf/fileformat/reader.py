@@ -19,7 +19,14 @@ import os
 import onnx
 
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import INPUT_WIDTHS, NORMAL, OUTPUT, OUTPUT_SIGNATURES, SIGNATURES, sizes
+from neural_brdf.fileformat import (
+    INPUT_WIDTHS,
+    NORMAL,
+    OUTPUT,
+    OUTPUT_SIGNATURES,
+    SIGNATURES,
+    sizes,
+)
 from neural_brdf.fileformat.metadata import Metadata
 
 
