@@ -39,11 +39,14 @@ A textured model is ``train_textured`` (2 torch threads), each lobe normalised
   and channels must stay <= 1 + 1e-3 (its standard error is recorded beside it);
 * **image**: a unit sphere (Mitsuba's uv: u = azimuth / 2 pi, v = polar angle / pi) under
   :data:`ENVIRONMENT` (a procedural lat-long used nowhere else in the project), rendered
-  by the ``neural_brdf`` plugin from the file and by Mitsuba from the teacher's NESTED
-  BSDF (the ``normalmap`` unwrapped: the file does not carry the normal field yet, so the
-  normal map is left out of both), same seed and spp; PSNR over the sphere's pixels
-  (linear RGB, peak the reference's largest value; goal 38 dB), relative RMSE, and the
-  noise floor (the reference against itself with another seed);
+  by the ``neural_brdf`` plugin from the file and by Mitsuba from the WHOLE teacher
+  (``twosided > normalmap > principled``: the file carries the normal field, which the
+  plugin applies as Mitsuba's normalmap does), same seed and spp; PSNR over the sphere's
+  pixels (linear RGB, peak the reference's largest value; goal 38 dB), relative RMSE,
+  and the noise floor (the reference against itself with another seed).  For a teacher
+  with a normal map the same figures against its NESTED BSDF (the normal map left out
+  of both renders, the file rendered without its field) are kept beside them
+  (``image.nested``): the lobes' error alone;
 * **sampling noise**: the variance of the one-sample albedo estimator f cos / pdf with
   the file's global sampling lobe against Mitsuba's own sampler of the teacher, equal
   samples, each sample at its own random uv, summed over :data:`NOISE_THETA` (as
@@ -216,6 +219,7 @@ def nested_xml(xml: Path) -> Path:
 def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, dict]:
     """``train_textured`` -> normalised -> model.onnx; (path, figures with seconds)."""
     from neural_brdf import export
+    from neural_brdf.fileformat import OUTPUT_SIGNATURES
     from neural_brdf.train.textured_loop import train_textured
     from neural_brdf.train.textured_model import exportable, normalized_textured
 
@@ -231,8 +235,25 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
     )
     t1 = time.perf_counter()
     model, tables = normalized_textured(model)
-    payload = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1])
+    # the same lobes and weights without and with the teacher's normal field
+    bare = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1])
+    (folder / "bare.onnx").write_bytes(bare)
+    model = export.with_normal_field(model, teacher)
+    outputs = OUTPUT_SIGNATURES[1] if model.normal is not None else OUTPUT_SIGNATURES[0]
+    payload = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1], outputs=outputs)
     path = folder / "model.onnx"
+    if model.normal is not None:  # the plugin reads the normalmap's flags from the metadata
+        import onnx
+
+        proto = onnx.load_from_string(payload)
+        onnx.helper.set_model_props(
+            proto,
+            {
+                "metadata_version": "2",
+                "texture": json.dumps({"normal_field": export.normal_json(model)}),
+            },
+        )
+        payload = proto.SerializeToString()
     path.write_bytes(payload)
     t2 = time.perf_counter()
     fig.update(
@@ -452,16 +473,43 @@ def render(bsdf, env: Path, resolution: int, spp: int, seed: int) -> np.ndarray:
 
 
 def image_figures(path: Path, xml: Path, env: Path, resolution: int, spp: int) -> dict:
+    """The sphere from the file against Mitsuba's render of the whole teacher; for a
+    teacher with a normal map also the file without its field (``bare.onnx`` beside it)
+    against the nested BSDF (``nested``: the lobes' error alone)."""
+    out = _image_pair(
+        {"type": "neural_brdf", "filename": str(path)},
+        mi.load_file(str(xml)),
+        env,
+        resolution,
+        spp,
+    )
+    out["reference"] = "Mitsuba's render of " + xml.name + " (the whole teacher)"
+    bare = path.parent / "bare.onnx"
+    if bare.is_file() and any(k in xml.read_text() for k in ("normalmap", "bumpmap")):
+        nested = nested_xml(xml)
+        out["nested"] = _image_pair(
+            {"type": "neural_brdf", "filename": str(bare)},
+            mi.load_file(str(nested)),
+            env,
+            resolution,
+            spp,
+        )
+        out["nested"]["reference"] = (
+            "Mitsuba's render of " + nested.name + " (the nested BSDF), against the file "
+            "without its normal field"
+        )
+    return out
+
+
+def _image_pair(neural, ref_bsdf, env: Path, resolution: int, spp: int) -> dict:
     from neural_brdf.inverse.fit import image_rel_rmse, psnr_linear
 
-    nested = nested_xml(xml)
-    ref_bsdf = mi.load_file(str(nested))
     t0 = time.perf_counter()
     ref = render(ref_bsdf, env, resolution, spp, 0)
     t1 = time.perf_counter()
     floor = render(ref_bsdf, env, resolution, spp, 1)
     t2 = time.perf_counter()
-    img = render({"type": "neural_brdf", "filename": str(path)}, env, resolution, spp, 0)
+    img = render(neural, env, resolution, spp, 0)
     t3 = time.perf_counter()
     mask = sphere_mask(resolution)
     return {
@@ -474,7 +522,6 @@ def image_figures(path: Path, xml: Path, env: Path, resolution: int, spp: int) -
         "finite": bool(np.isfinite(img).all()),
         "pixels": int(mask.sum()),
         "render_seconds": {"mitsuba": t1 - t0, "neural": t3 - t2},
-        "reference": "Mitsuba's render of " + nested.name + " (the nested BSDF)",
     }
 
 
@@ -538,14 +585,24 @@ def measure_teacher(name: str, spec: dict, work: Path, env: Path, args, settings
         f"{100 * img['image_rel_rmse']:.2f} %",
         flush=True,
     )
+    field = None
+    if spec["textured"]:
+        import neural_brdf
+        from neural_brdf import validate
+
+        model = neural_brdf.load(path)
+        normal = model.normal if model.has_normal_field else None
+        field = validate.normal_field_error(normal, teacher, n=args.uv, seed=17)
+        if field is not None:
+            print(f"  normal field within {field['max_deg']:.2g} deg of the teacher's", flush=True)
     nz = noise(f, path, teacher, args.noise_samples, seed=13)
     print(f"  sampling noise {nz['noise_ratio']:.2f}x Mitsuba's sampler", flush=True)
     return {
         "xml": Path(spec["xml"]).name if spec["textured"] else str(spec["xml"]),
         "textured": spec["textured"],
         "teacher": teacher.describe(),
-        "normal_map": "left out of both renders: the file does not carry the normal field "
-        "yet (the teacher's f is its nested BSDF)"
+        "normal_map": "in the file (output n), applied by the plugin as Mitsuba's "
+        "normalmap; the image is against the whole teacher"
         if spec["textured"] and "normalmap" in Path(spec["xml"]).read_text()
         else None,
         "training": training,
@@ -554,6 +611,7 @@ def measure_teacher(name: str, spec: dict, work: Path, env: Path, args, settings
         "accuracy": acc,
         "physics": phys,
         "image": img,
+        "normal_field": field,
         "sampling_noise": nz,
         "loadavg": {"start": start, "end": loadavg()},
         "_path": str(path),
@@ -610,8 +668,8 @@ def main(argv: list[str] | None = None) -> int:
         "image": {**IMAGE, "resolution": args.image_resolution, "spp": args.image_spp},
         "psnr_definition": "10 log10(peak^2 / MSE) of linear RGB over the sphere's pixels "
         f"(centre ray within {IMAGE['edge']} of the radius); peak = the reference's max there",
-        "normal_map": "not in the file yet: the images compare the nested BSDF (no normal "
-        "map) in both renders",
+        "normal_map": "the file carries the teacher's normal field (output n); the images "
+        "compare against the whole teacher, and image.nested against its nested BSDF",
         "teachers": {},
         "date": time.strftime("%Y-%m-%dT%H:%M:%S"),  # the start; the end's when it finishes
         "machine_start": bsdf_bound.machine(),

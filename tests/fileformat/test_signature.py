@@ -108,3 +108,31 @@ def test_the_lobe_key_is_spelled_in_fileformat_only():
             if isinstance(n, ast.Constant) and n.value == fileformat.LOBE_KEY:
                 spelled.append(f"{path.relative_to(PACKAGE)}:{n.lineno}")
     assert spelled == []
+
+
+UV3 = [("wi", ["N", 3]), ("wo", ["N", 3]), ("uv", ["N", 2])]
+
+
+def test_a_textured_graph_may_carry_the_normal_field_as_its_second_output():
+    assert fileformat.NORMAL == "n"
+    assert fileformat.OUTPUT_SIGNATURES == (("f",), ("f", "n"))
+    proto = _graph(UV3, outputs=(("f", ["N", 3]), ("n", ["N", 3])))
+    assert reader.signature(proto) == ("wi", "wo", "uv")
+    assert reader.outputs(proto) == ("f", "n")
+
+
+@pytest.mark.parametrize(
+    "inputs, outputs, needle",
+    [
+        # a normal field needs uv: a homogeneous graph has no surface position
+        (UV3[:2], (("f", ["N", 3]), ("n", ["N", 3])), "and 'n' with uv"),
+        (UV3, (("n", ["N", 3]), ("f", ["N", 3])), "got"),  # the order is the contract's
+        (UV3, (("f", ["N", 3]), ("normal", ["N", 3])), "got"),
+        (UV3, (("f", ["N", 3]), ("n", ["N", 3]), ("x", ["N", 1])), "got"),
+        (UV3, (("f", ["N", 3]), ("n", ["N", 2])), "'n': expected float32 [N, 3]"),
+    ],
+)
+def test_a_wrong_normal_output_is_one_line(inputs, outputs, needle):
+    with pytest.raises(InputError) as e:
+        reader.signature(_graph(inputs, outputs=outputs))
+    assert needle in str(e.value) and "\n" not in str(e.value)
