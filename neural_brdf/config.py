@@ -315,6 +315,9 @@ class Texture(_Section):
     # scalar: one weight per lobe and texel; rgb: one per lobe, texel and RGB channel (no
     # gain on the development teachers: docs/mitsuba.md, "Textured materials")
     weights: Literal["scalar", "rgb"] = "scalar"
+    # separate: K networks (the `model` section's each); shared: one network with K
+    # heads (one set of features and hidden layers; a renderer evaluates one network)
+    lobe_network: Literal["separate", "shared"] = "separate"
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random

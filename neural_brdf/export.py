@@ -244,9 +244,11 @@ def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) ->
     lobes = [lobe for lobe in model.lobes if isinstance(lobe, NormalizedBRDF)]
     if not lobes:
         return "none: each lobe is its raw network (normalization.enabled: false, an ablation)"
+    count = model.field.lobes
+    shared = f" (the {count} heads of one network)" if model.shared else ""
     return (
         f"f = sum_k z_k(uv) g_k with z_k >= 0, sum z_k <= 1 at every uv (bilinear blends "
-        f"of texels included), and each of the {len(model.lobes)} lobes "
+        f"of texels included), and each of the {count} lobes{shared} "
         "g_k = raw_k / max(1, A+_k(wi), A+_k(wo)) per channel, A+_k its own table "
         f"(MIS quadrature + {n.sigmas:g} standard errors, neighbour maximum, times "
         f"(1 + {n.margin:g})): the albedo is <= max_k A+_k / max(1, A+_k) <= 1 + margin"
@@ -617,11 +619,12 @@ def export(
 
 def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     """The raw textured model of a textured run's checkpoint (``train.textured_loop``)."""
+    from neural_brdf.train.textured_loop import lobe_networks
     from neural_brdf.train.textured_model import WeightField
 
     tx = cfg.texture
     model = TexturedBRDF(
-        [RawBRDF.from_config(cfg.model) for _ in range(tx.lobes)],
+        lobe_networks(cfg.model, tx.lobes, tx.lobe_network == "shared"),
         WeightField(tx.resolution, tx.lobes, channels=3 if tx.weights == "rgb" else 1),
     )
     model.load_state_dict(ckpt["model"])

@@ -74,6 +74,7 @@ class MLP(nn.Module):
         *,
         init_value: float = 0.3,
         output_scale: float = 1.0,
+        outputs: int = 3,
     ):
         super().__init__()
         self.output_scale = float(output_scale)
@@ -82,12 +83,12 @@ class MLP(nn.Module):
             layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
             width = h
         self.body = nn.Sequential(*layers)
-        self.head = nn.Linear(width, 3)
+        self.head = nn.Linear(width, outputs)
         # start near a plausible constant BRDF so early log-space gradients are tame
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, softplus_inverse(init_value / self.output_scale))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:  # (N, F) -> (N, 3), >= 0
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # (N, F) -> (N, outputs), >= 0
         y = F.softplus(self.head(self.body(x)))
         return y if self.output_scale == 1.0 else self.output_scale * y
 
@@ -179,8 +180,12 @@ class RawBRDF(nn.Module):
         cosine_grid_channels: int = 4,
         cosine_grid_init_std: float = 1e-2,
         peak_coordinate: str = "u_h",
+        heads: int = 1,
     ):
         super().__init__()
+        # heads > 1: the same features and hidden layers, ``heads`` RGB outputs side by
+        # side, (N, 3 * heads) (a textured model's shared lobes: docs/model.md)
+        self.heads = int(heads)
         self.encoding = encoding
         self.spec = spec = encodings.get(encoding)  # its width, grid axes and features
         self.peak_coordinate = peak_coordinate
@@ -213,7 +218,14 @@ class RawBRDF(nn.Module):
             + (grid_channels if grid_size else 0)
             + (cosine_grid_channels if cosine_grid_size else 0)
         )
-        self.mlp = MLP(n_in, hidden, activation, init_value=init_value, output_scale=output_scale)
+        self.mlp = MLP(
+            n_in,
+            hidden,
+            activation,
+            init_value=init_value,
+            output_scale=output_scale,
+            outputs=3 * self.heads,
+        )
 
     @staticmethod
     def parameter_count(m) -> int:
@@ -221,7 +233,7 @@ class RawBRDF(nn.Module):
         return sum(p.numel() for p in RawBRDF.from_config(m).parameters())
 
     @classmethod
-    def from_config(cls, m, *, init_value: float = 0.3) -> RawBRDF:
+    def from_config(cls, m, *, init_value: float = 0.3, heads: int = 1) -> RawBRDF:
         """From the ``model`` section of a config (:class:`neural_brdf.config.Model`)."""
         return cls(
             m.encoding,
@@ -239,6 +251,7 @@ class RawBRDF(nn.Module):
             cosine_grid_channels=m.cosine_grid.channels,
             cosine_grid_init_std=m.cosine_grid.init_std,
             peak_coordinate=m.peak_coordinate,
+            heads=heads,
         )
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
@@ -311,7 +324,7 @@ def albedo_table(
         a, err = quadrature.albedo(raw, dirs, samples, seed=seed, target=target)
     upper = a + sigmas * err
     if anisotropic:
-        upper = upper.reshape(size, size, 3).permute(2, 0, 1)[None]  # (1, 3, K, K)
+        upper = upper.reshape(size, size, -1).permute(2, 0, 1)[None]  # (1, C, K, K)
         upper = F.max_pool2d(upper, 3, stride=1, padding=1)[0].permute(1, 2, 0)
     else:
         upper = F.max_pool1d(upper.T[None], 3, stride=1, padding=1)[0].T  # (K, 3)
@@ -352,7 +365,7 @@ class NormalizedBRDF(nn.Module):
         i0 = i0.long()
         j = i0[..., 0] * k + i0[..., 1]  # flat index of the (x0, y0) corner
         ax, ay = a[..., 0:1], a[..., 1:2]
-        tb = self.table.reshape(k * k, 3)
+        tb = self.table.reshape(k * k, self.table.shape[-1])
         return (
             tb[j] * (1 - ax) * (1 - ay)
             + tb[j + k] * ax * (1 - ay)

@@ -88,15 +88,18 @@ def _model_and_optimizer(
     lr: float,
     field_lr_scale: float,
     channels: int = 1,
+    shared: bool = False,
 ) -> tuple[TexturedBRDF, torch.optim.Adam]:
     """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field of ``channels`` (1:
     one weight per lobe, 3: one per lobe and RGB channel) sets of weights (from torch's
     global generator: the caller seeds it), and Adam with the learning-rate groups of
-    the module doc (each group's ``lr_scale``)."""
+    the module doc (each group's ``lr_scale``).  ``shared``: one network with K heads
+    instead of K networks (``texture.lobe_network``), its heads' weights drawn small and
+    random so that they start apart."""
     # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
     init = float(pool_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
     model = TexturedBRDF(
-        [RawBRDF.from_config(m, init_value=init) for _ in range(lobes)],
+        lobe_networks(m, lobes, shared, init_value=init),
         WeightField(resolution, lobes, channels=channels),
     )
     scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
@@ -112,6 +115,19 @@ def _model_and_optimizer(
         [{"params": ps, "lr_scale": s} for s, ps in groups.items()], lr=lr, fused=True
     )
     return model, opt
+
+
+def lobe_networks(
+    m: cfgmod.Model, lobes: int, shared: bool, *, init_value: float = 0.3
+) -> list[RawBRDF]:
+    """K raw networks of the ``model`` section, or one with K heads (``shared``)."""
+    if not shared:
+        return [RawBRDF.from_config(m, init_value=init_value) for _ in range(lobes)]
+    net = RawBRDF.from_config(m, init_value=init_value, heads=lobes)
+    if lobes > 1:
+        with torch.no_grad():  # K zero heads would stay equal but for the field's weights
+            torch.nn.init.normal_(net.mlp.head.weight, std=1e-2)
+    return [net]
 
 
 def _step(
@@ -162,6 +178,7 @@ def train_textured(
     seed: int = 0,
     model_section: cfgmod.Model | None = None,
     weights: str = "scalar",
+    lobe_network: str = "separate",
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
     to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
@@ -187,7 +204,14 @@ def train_textured(
 
     torch.manual_seed(seed)
     model, opt = _model_and_optimizer(
-        m, lobes, resolution, p_f, lr, field_lr_scale, CHANNELS[weights]
+        m,
+        lobes,
+        resolution,
+        p_f,
+        lr,
+        field_lr_scale,
+        CHANNELS[weights],
+        shared=lobe_network == "shared",
     )
 
     def validate() -> float:
@@ -218,6 +242,7 @@ def train_textured(
         "val_rel_rmse": validate(),
         "field_lr_scale": field_lr_scale,
         "weights": weights,
+        "lobe_network": lobe_network,
     }
 
 
@@ -263,7 +288,14 @@ def train(
     pool_seconds = time.perf_counter() - t0
     torch.manual_seed(t.seed)
     model, opt = _model_and_optimizer(
-        cfg.model, tx.lobes, tx.resolution, p_f, t.lr, tx.field_lr_scale, CHANNELS[tx.weights]
+        cfg.model,
+        tx.lobes,
+        tx.resolution,
+        p_f,
+        t.lr,
+        tx.field_lr_scale,
+        CHANNELS[tx.weights],
+        shared=tx.lobe_network == "shared",
     )
 
     def validate() -> float:

@@ -210,7 +210,14 @@ class NormalField(nn.Module):
 
 class TexturedBRDF(nn.Module):
     """f(wi, wo, uv) = sum_k z_k(uv) g_k(wi, wo), (N, 3); module doc for why it is
-    reciprocal bit for bit and, with normalised lobes, energy conserving at every uv."""
+    reciprocal bit for bit and, with normalised lobes, energy conserving at every uv.
+
+    ``lobes``: K separate networks, each (N, 3); or ONE network with K heads (a
+    ``RawBRDF`` with ``heads`` = K, or its ``NormalizedBRDF``), (N, 3K), head k in
+    columns 3k .. 3k + 2: the shared lobes (``texture.lobe_network: shared``), one set of
+    features and hidden layers for all K, each head normalised by its own columns of
+    the albedo table, so the bound's argument is unchanged and a renderer evaluates one
+    network instead of K (docs/model.md, "Spatially varying models")."""
 
     def __init__(
         self,
@@ -220,8 +227,10 @@ class TexturedBRDF(nn.Module):
     ):
         super().__init__()
         self.lobes = nn.ModuleList(lobes)
-        if len(self.lobes) != field.lobes:
-            raise ValueError(f"TexturedBRDF: {len(self.lobes)} lobes, the field has {field.lobes}")
+        self.shared = len(self.lobes) == 1 and heads_of(self.lobes[0]) > 1
+        count = heads_of(self.lobes[0]) if self.shared else len(self.lobes)
+        if count != field.lobes:
+            raise ValueError(f"TexturedBRDF: {count} lobes, the field has {field.lobes}")
         self.field = field
         # the teacher's normal field (docs/model.md, "The normal field"): carried to the
         # file as a second output, never part of f
@@ -232,10 +241,23 @@ class TexturedBRDF(nn.Module):
         z = self.field(uv)  # (N, K), or (N, 3, K) with per-channel weights
         if z.dim() == 2:
             z = z[:, None, :]  # one weight for every channel
+        if self.shared:  # one network, K heads side by side
+            g = self.lobes[0](wi, wo)
+            f = z[:, :, 0] * g[:, 0:3]
+            for k in range(1, self.field.lobes):  # left to right, as below
+                f = f + z[:, :, k] * g[:, 3 * k : 3 * k + 3]
+            return f
         f = z[:, :, 0] * self.lobes[0](wi, wo)
         for k in range(1, len(self.lobes)):  # left to right: the same order for (wo, wi)
             f = f + z[:, :, k] * self.lobes[k](wi, wo)
         return f
+
+
+def heads_of(lobe: nn.Module) -> int:
+    """How many lobes one network holds: its ``heads`` (a RawBRDF's, or the raw network
+    of a NormalizedBRDF), 1 for any other module."""
+    raw = lobe.raw if isinstance(lobe, NormalizedBRDF) else lobe
+    return int(getattr(raw, "heads", 1))
 
 
 def _raw_of(lobe: nn.Module) -> RawBRDF:
@@ -276,6 +298,7 @@ def normalized_textured(
             info.append({"enabled": False})
             continue
         aniso = is_anisotropic(raw.encoding)
+        # a shared network's table has 3K columns: head k normalised by its own three
         table, a, err = albedo_table(
             raw,
             size=n.grid_size if aniso else n.table_size,
@@ -288,14 +311,17 @@ def normalized_textured(
         )
         norm = NormalizedBRDF(raw, table).eval()
         lobes.append(norm)
-        info.append(
-            {
-                "enabled": True,
-                "raw_max_albedo": float(a.max()),
-                "raw_max_stderr": float(err.max()),
-                "in_graph": not norm.identity,
-            }
-        )
+        heads = heads_of(raw)  # one entry per lobe: a shared network's K heads each
+        for h in range(heads):
+            cols = slice(3 * h, 3 * h + 3)
+            info.append(
+                {
+                    "enabled": True,
+                    "raw_max_albedo": float(a[..., cols].max()),
+                    "raw_max_stderr": float(err[..., cols].max()),
+                    "in_graph": not norm.identity,
+                }
+            )
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
     return TexturedBRDF(lobes, field, model.normal).eval(), info
 

@@ -275,6 +275,46 @@ def test_per_channel_weights_keep_the_bound_and_reciprocity(bright):
     np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
 
 
+def test_shared_heads_keep_the_bound_and_reciprocity():
+    """texture.lobe_network: shared: one network with K = 3 heads, deliberately bright
+    (raw albedos far above 1), each head normalised by its own columns of one table: the
+    albedo stays <= 1 between texel centres, the graph is reciprocal bit for bit through
+    onnxruntime, and the heads are distinct lobes (not one lobe three times)."""
+    from neural_brdf.train.textured_model import heads_of
+
+    torch.manual_seed(6)
+    net = RawBRDF("isotropic", [16], "relu", grid_size=4, heads=3)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 2.0)
+        net.mlp.head.bias.fill_(3.0)
+    field = WeightField(R_BRIGHT, 3, init_std=2.0)
+    with torch.no_grad():
+        field.logits[:, -1] = -12.0
+    raw = TexturedBRDF([net.eval()], field).eval()
+    assert raw.shared and heads_of(raw.lobes[0]) == 3
+    norm = cfgmod.Normalization(table_size=33, samples=4096)
+    model, info = normalized_textured(raw, norm, seed=3)
+    assert len(info) == 3 and min(i["raw_max_albedo"] for i in info) > 5.0
+    uvs = _uv_off_centres(60, 14)
+    theta = np.radians([0.0, 45.0, 80.0, 89.0])
+    wi = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], -1)
+    rho, err = _albedos(model, uvs, wi)
+    assert rho.max() <= 1.0 + 1e-3, rho.max()
+    assert rho.max() > 0.6  # not crushed
+    wi_r, wo_r, uv_r = _rows(4096, 23)
+    with torch.no_grad():
+        heads = model.lobes[0](torch.from_numpy(wi_r), torch.from_numpy(wo_r)).numpy()
+    assert np.abs(heads[:, 0:3] - heads[:, 3:6]).max() > 0.05  # distinct lobes
+    session = _session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
+    a = _run(session, wi_r, wo_r, uv_r)
+    np.testing.assert_array_equal(a, _run(session, wo_r, wi_r, uv_r))
+    with torch.no_grad():
+        ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
+    up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
+    np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
+
+
 # ------------------------------------------------------------------ (b), (d) the graph
 def _rows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pairs above the horizon (10 % within 1 degree of it), a quarter anywhere on the

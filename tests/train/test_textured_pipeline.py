@@ -223,6 +223,29 @@ def test_resume_trains_on_with_per_channel_weights(teacher, tmp_path, capsys):
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
 
 
+def test_shared_heads_train_export_and_say_so(teacher, tmp_path, capsys):
+    """texture.lobe_network: shared: one network with 3 heads trains, learns, and export
+    from the checkpoint rebuilds it (the same f); the file's normalisation note says so."""
+    cfg = write_config(tmp_path, teacher, steps=40)
+    shared = ("--set", "texture.lobe_network=shared")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "s"), *shared)
+    assert code == 0, err
+    m = json.loads((tmp_path / "s" / "metrics.json").read_text())
+    assert m["training"]["raw_val_rel_rmse"] < 0.8 * m["training"]["init_val_rel_rmse"]
+    assert m["checks"]["reciprocity"]["value"] == 0.0 and m["checks"]["max_albedo"]["passed"]
+    proto = onnx.load(str(tmp_path / "s" / "model.onnx"))
+    props = {p.key: p.value for p in proto.metadata_props}
+    assert "the 3 heads of one network" in props["normalization"]
+    assert len(json.loads(props["texture"])["lobe_tables"]) == 3
+    code, _, err = cli(capsys, "export", str(tmp_path / "s"), "-o", str(tmp_path / "e.onnx"))
+    assert code == 0, err
+    wi, wo, uv = rows(1024, 19)
+    feeds = {"wi": wi, "wo": wo, "uv": uv}
+    a = session(tmp_path / "s" / "model.onnx").run(["f"], feeds)[0]
+    b = session(tmp_path / "e.onnx").run(["f"], feeds)[0]
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+
+
 def test_a_textured_teacher_is_refused_by_train_many(teacher, tmp_path, capsys):
     a = write_config(tmp_path, teacher, name="a")
     b = write_config(tmp_path, teacher, name="b")
