@@ -127,9 +127,7 @@ class NeuralBRDF:
         for s in range(0, len(rows), CHUNK):
             part = rows[s : s + CHUNK]
             zeros = np.zeros((len(part), 3), np.float32)  # onnxruntime wants every input
-            out[s : s + CHUNK] = self._run(
-                NORMAL, {INPUTS[0]: zeros, INPUTS[1]: zeros, UV: part}
-            )
+            out[s : s + CHUNK] = self._run(NORMAL, {INPUTS[0]: zeros, INPUTS[1]: zeros, UV: part})
         return out.reshape(c.shape[:-1] + (3,))
 
     def _run(self, output: str, feeds: dict[str, np.ndarray]) -> np.ndarray:

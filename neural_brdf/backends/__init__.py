@@ -58,8 +58,9 @@ def textures(model) -> list[np.ndarray]:
     """The data the generated code of a textured file reads from its bound textures, in
     order (``neural_brdf_texture0``, ...): float32 [rows, channels] each, row-major, as
     the ONNX initializer holds them (for the weight field [R * R, K], row j * R + i for
-    texel column i along u and row j along v).  A two-input file has none: []."""
-    from neural_brdf import graph
-    from neural_brdf.fileformat import UV
+    texel column i along u and row j along v).  A file with the normal field (output n)
+    lists after neural_brdf_eval's the one neural_brdf_normal reads, its texels [Rv * Ru,
+    3] (row j * Ru + i).  A two-input file has none: []."""
+    from neural_brdf.backends.cstyle import lower_file
 
-    return [t.data.copy() for t in graph.textures(graph.lower(model), UV)]
+    return [t.data.copy() for t in lower_file(model)[2]]

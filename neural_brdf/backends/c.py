@@ -12,6 +12,10 @@ per bound texture, after uv (docs/codegen.md, "Textured files"):
     neural_brdf_eval(wi, wo, uv, weights, f);   // const float uv[2], const float *weights
                                                 // (NEURAL_BRDF_TEXTURE0_ROWS x _CHANNELS)
 
+and one with the normal field (output n) also gives, its texels a pointer too:
+
+    neural_brdf_normal(uv, texels, n);          // const float *texels (texture 1), float n[3]
+
 Booleans are ints; min/max are comparisons (no libm call); fused multiply-adds are
 written ``a * b + c`` (a compiler contracts them only where its floating-point
 contraction setting allows: GCC's ISO C modes, e.g. ``-std=c99``, do not).
@@ -101,7 +105,7 @@ class CRenderer(CStyleRenderer):
         params = [
             f"float {n}" if w == 1 else f"const float {n}[{w}]" for n, w in prog.inputs.items()
         ]
-        params += [f"const float *{self.texture_name(k)}" for k in range(len(self.textures))]
+        params += [f"const float *{self.texture_name(k)}" for k in self.reads]
         params += [f"float {n}[{len(cols)}]" for n, cols in outs if (n, cols) != ret]
         sig = f"static inline {'float' if ret else 'void'} {fname}({', '.join(params)})"
         body = [
@@ -131,6 +135,16 @@ class CRenderer(CStyleRenderer):
         return lines + [""] if lines else []
 
     def usage(self) -> list[str]:
+        if self.normal_reads is not None:
+            args = "".join(f"{self.texture_name(k)}, " for k in self.f_reads)
+            nargs = "".join(f"{self.texture_name(k)}, " for k in self.normal_reads)
+            return [
+                '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
+                f"float n[3]; neural_brdf_normal(uv, {nargs}n);  (float uv[2]; first: the frame)",
+                f"float f[3]; neural_brdf_eval(wi, wo, uv, {args}f);  (wi, wo in n's frame)",
+                "float pdf = neural_brdf_pdf(wi, wo);",
+                "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  (float u1, u2[2])",
+            ]
         if self.textures:
             args = ", ".join(self.texture_name(k) for k in range(len(self.textures)))
             return [

@@ -24,21 +24,127 @@ are not literals but buffers the host binds (``neural_brdf_texture0``, ...: a po
 parameter in C, an SSBO or a float texture in GLSL, a storage buffer in WGSL; see
 docs/codegen.md, "Textured files"), read at ``clamp(index, 0, rows - 1) * channels +
 channel``, the same element as the ONNX Gather.
+
+A textured file with the teacher's normal field (its second output ``n``,
+:data:`neural_brdf.fileformat.NORMAL`) gives one more function, of uv alone:
+
+    neural_brdf_normal(uv) -> n, the unit shading normal in the unperturbed frame
+
+rendered from ``graph.lower(model, ("n",))`` while ``neural_brdf_eval`` is rendered from
+``graph.lower(model, ("f",))``.  The file has ONE list of bound textures: those of
+neural_brdf_eval first (numbered as in a file without n), then those that only
+neural_brdf_normal reads (:func:`lower_file`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from neural_brdf import graph
 from neural_brdf.backends import lobe_ir
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import INPUT_WIDTHS, OUTPUT, SIGNATURES, UV
+from neural_brdf.fileformat import (
+    INPUT_WIDTHS,
+    NORMAL,
+    OUTPUT,
+    OUTPUT_SIGNATURES,
+    SIGNATURES,
+    UV,
+)
 from neural_brdf.fileformat import lobe as lobe_format  # the stored lobe: its schema
 
 PREFIX = "neural_brdf"
+NORMAL_FUNCTION = f"{PREFIX}_normal"
+
+
+@dataclass
+class Part:
+    """One generated function's program and the textures it reads: ``textures`` are
+    :func:`neural_brdf.graph.textures` of ``prog`` (their channels are its table
+    numbers), ``numbers`` each one's number in the file's list."""
+
+    prog: graph.Program
+    textures: list[graph.Texture]
+    numbers: list[int]
+
+
+def _declared_inputs(proto) -> dict[str, int]:
+    """The graph's inputs (not initializers) -> their widths, in order."""
+    inits = {t.name for t in proto.graph.initializer}
+    out = {}
+    for i in proto.graph.input:
+        if i.name not in inits:
+            dims = i.type.tensor_type.shape.dim
+            out[i.name] = int(dims[1].dim_value) if len(dims) == 2 else -1
+    return out
+
+
+def lower_file(model) -> tuple[Part, Part | None, list[graph.Texture]]:
+    """The programs of a file's functions: f's (``neural_brdf_eval``), n's
+    (``neural_brdf_normal``, None without the output n) and the file's bound textures.
+
+    A file without n is lowered whole (``graph.lower(model)``), as it always was.  With
+    n, f is ``graph.lower(model, ("f",))`` with the file's inputs (wi, wo, uv), n is
+    ``graph.lower(model, ("n",))`` with the input uv.  Texture numbers: f's textures
+    are 0, 1, ... in their order (the weight field is texture 0, as without n); n's
+    follow, except one whose data equal one already listed, which shares its number.
+    The file's contract (inputs wi, wo [N, 3] (and uv [N, 2]), output f [N, 3] (and n
+    [N, 3] with uv)) is checked: a one-line InputError otherwise."""
+    proto = graph.load(model)
+    names = tuple(o.name for o in proto.graph.output)
+    with_normal = names == OUTPUT_SIGNATURES[1]
+    if with_normal:
+        prog = graph.lower(proto, (OUTPUT,))
+        prog.inputs = _declared_inputs(proto)  # the signature, whatever f reads
+        nprog = graph.lower(proto, (NORMAL,))
+        nprog.inputs = {UV: INPUT_WIDTHS[UV]}  # n is of uv alone
+    else:
+        prog = graph.lower(proto)
+        nprog = None
+    # the file's contract (fileformat): inputs wi, wo [N, 3] (and uv [N, 2]: a
+    # textured file), output f [N, 3] (and n [N, 3], a textured file's normal field)
+    if (
+        tuple(prog.inputs) not in SIGNATURES
+        or list(prog.outputs) != [OUTPUT]
+        or any(prog.inputs[name] != INPUT_WIDTHS[name] for name in prog.inputs)
+        or len(prog.outputs[OUTPUT]) != 3
+        or (
+            nprog is not None
+            and (tuple(prog.inputs) != SIGNATURES[1] or len(nprog.outputs[NORMAL]) != 3)
+        )
+    ):
+        outs = {k: len(v) for k, v in prog.outputs.items()}
+        if nprog is not None:
+            outs[NORMAL] = len(nprog.outputs[NORMAL])
+        raise InputError(
+            "codegen: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
+            f"{OUTPUT} [N, 3] (and {NORMAL} [N, 3] with uv), got {prog.inputs} -> {outs}"
+            if nprog is not None
+            else "codegen: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
+            f"{OUTPUT} [N, 3], got {prog.inputs} -> {outs}"
+        )
+    textures = graph.textures(prog, UV)
+    f = Part(prog, textures, list(range(len(textures))))
+    listed = list(textures)
+    if nprog is None:
+        return f, None, listed
+    ntextures = graph.textures(nprog, UV)
+    numbers = []
+    for tex in ntextures:
+        same = [
+            k
+            for k, t in enumerate(listed)
+            if t.data.shape == tex.data.shape and np.array_equal(t.data, tex.data)
+        ]
+        if same:
+            numbers.append(same[0])
+        else:
+            numbers.append(len(listed))
+            listed.append(tex)
+    return f, Part(nprog, ntextures, numbers), listed
 
 
 class CStyleRenderer:
@@ -85,10 +191,17 @@ class CStyleRenderer:
     }
     float_suffix = ""
     int_suffix = ""
-    # the bound tables of the program being rendered (set by generate for the BRDF's
-    # graph; the sampling programs have none): table number -> (texture, channel)
+    # the file's bound textures (set by generate; the sampling programs read none), the
+    # numbers of those the function being rendered reads (C: its parameters), and its
+    # table number -> (texture number, channel)
     textures: list[graph.Texture] = []
+    reads: list[int] = []
+    f_reads: list[int] = []  # those neural_brdf_eval reads
     fetches: dict[int, tuple[int, int]] = {}
+    # with the output n: the numbers of the textures neural_brdf_normal reads (None: the
+    # file has no normal field)
+    normal_reads: list[int] | None = None
+    table_stem = "table"  # the literal tables' names: neural_brdf_table<k>
 
     # ------------------------------------------------------------------ literals
     def literal(self, value, dtype: str) -> str:
@@ -170,7 +283,7 @@ class CStyleRenderer:
         return self.call("clamp", i, self.literal(0, "int"), self.literal(last, "int"))
 
     def table_name(self, k: int) -> str:
-        return f"{PREFIX}_table{k}"
+        return f"{PREFIX}_{self.table_stem}{k}"
 
     def texture_name(self, k: int) -> str:
         return f"{PREFIX}_texture{k}"
@@ -304,8 +417,46 @@ class CStyleRenderer:
             lines.append(
                 f"{c} {self.texture_name(k)}: {rows} rows x {width} channels = "
                 f"{rows * width} floats ({rows * width * 4} bytes)"
+                + (self.texture_role(k) if self.normal_reads is not None else "")
             )
+        if self.normal_reads is not None:
+            lines += self.normal_header()
         return lines + [f"{c}"] + [f"{c} {u}" for u in self.usage()]
+
+    def texture_role(self, k: int) -> str:
+        """Which functions read texture k (a file with the output n)."""
+        users = [
+            fname
+            for fname, reads in (
+                (f"{PREFIX}_eval", self.f_reads),
+                (NORMAL_FUNCTION, self.normal_reads or []),
+            )
+            if k in reads
+        ]
+        what = "the normal texels, " if users == [NORMAL_FUNCTION] else ""
+        return f"; {what}read by {' and '.join(users)}"
+
+    def normal_header(self) -> list[str]:
+        """The header's lines on neural_brdf_normal (a file with the output n)."""
+        c = self.comment
+        reads = ", ".join(self.texture_name(k) for k in self.normal_reads or [])
+        return [
+            f"{c}",
+            f"{c} Normal field: {NORMAL_FUNCTION}(uv) returns the teacher's unit shading "
+            "normal n at uv, in the",
+            f"{c} unperturbed shading frame (a normal map: wrapping bilinear look-up of "
+            "the texels, normalised;",
+            f"{c} (0, 0, 1) where uv is not finite).  A renderer calls it first, rotates "
+            "its frame to n",
+            f"{c} (s = normalize(x - n n.x), t = n x s, as Mitsuba's normalmap), "
+            "expresses wi and wo in it",
+            f"{c} and calls neural_brdf_eval (and _pdf, _sample) there; metadata "
+            "texture.normal_field holds",
+            f"{c} flip_invalid_normals and use_shadowing_function.  Its texels "
+            f"({reads or 'none bound'}): [Rv * Ru, 3],",
+            f"{c} row j * Ru + i (column i along u, row j along v; Ru, Rv: "
+            "texture.normal_field.resolution).",
+        ]
 
     def usage(self) -> list[str]:
         return []
@@ -313,20 +464,8 @@ class CStyleRenderer:
     def generate(self, model, *, lobe: dict | None = None, source: str | None = None) -> str:
         """The file's text for an ONNX model (path, bytes or ModelProto)."""
         proto = graph.load(model)
-        prog = graph.lower(proto)
-        # the file's contract (fileformat): inputs wi, wo [N, 3] (and uv [N, 2]: a
-        # textured file), output f [N, 3]
-        if (
-            tuple(prog.inputs) not in SIGNATURES
-            or list(prog.outputs) != [OUTPUT]
-            or any(prog.inputs[name] != INPUT_WIDTHS[name] for name in prog.inputs)
-            or len(prog.outputs[OUTPUT]) != 3
-        ):
-            raise InputError(
-                "codegen: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
-                f"{OUTPUT} [N, 3], got {prog.inputs} -> "
-                f"{ {k: len(v) for k, v in prog.outputs.items()} }"
-            )
+        f, n, listed = lower_file(proto)  # checks the file's contract
+        prog = f.prog
         if lobe is None:
             lobe = lobe_format.from_metadata(prog.metadata)
             if lobe is None:
@@ -345,7 +484,13 @@ class CStyleRenderer:
                 else "an ONNX model"
             )
         try:
-            self.bind(graph.textures(prog, UV))
+            if n is None:
+                self.bind(f.textures)
+            else:  # one texture list for the file: f's numbers, then n's
+                self.textures = listed
+                self.f_reads = f.numbers
+                self.normal_reads = n.numbers
+                self.bind(f.textures, f.numbers)
             parts = self.helpers()
             parts += self.tables(prog)
             parts += self.texture_decls()
@@ -357,8 +502,20 @@ class CStyleRenderer:
                 else "f(wi, wo): the BRDF in 1/sr per RGB channel, no cosine.",
             )
             header = self.header(prog.metadata, lobe, source)
+            if n is not None:  # its own literal tables (if any) just before it
+                self.bind(n.textures, n.numbers)
+                self.table_stem = "normal_table"
+                parts += self.tables(n.prog)
+                parts += self.function(
+                    NORMAL_FUNCTION,
+                    n.prog,
+                    "n(uv): the unit shading normal at uv in the unperturbed frame "
+                    "(evaluate f in the frame rotated to n).",
+                )
         finally:
             self.bind([])  # the sampling programs read no texture
+            self.table_stem = CStyleRenderer.table_stem
+            self.normal_reads = None
         parts += self.function(
             f"{PREFIX}_pdf",
             lobe_ir.pdf_program(**shape),
@@ -371,9 +528,16 @@ class CStyleRenderer:
         )
         return self.wrap(header, parts)
 
-    def bind(self, textures: list[graph.Texture]) -> None:
-        """Render the tables of ``textures`` as reads of bound buffers from now on."""
-        self.textures = textures
+    def bind(self, textures: list[graph.Texture], numbers: list[int] | None = None) -> None:
+        """Render the tables of ``textures`` (one program's, :func:`graph.textures`) as
+        reads of bound buffers from now on.  ``numbers``: each one's number in the file's
+        list ``self.textures``; None: they are the file's list, numbered 0, 1, ..."""
+        if numbers is None:
+            self.textures = list(textures)
+            self.f_reads = numbers = list(range(len(textures)))
+        self.reads = list(numbers)
         self.fetches = {
-            t: (k, channel) for k, tex in enumerate(textures) for t, channel in tex.channels.items()
+            t: (numbers[i], channel)
+            for i, tex in enumerate(textures)
+            for t, channel in tex.channels.items()
         }

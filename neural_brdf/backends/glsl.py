@@ -10,6 +10,8 @@ is bound by the host (docs/codegen.md, "Textured files"): under GLSL ES (WebGL2 
 storage buffers) a ``highp sampler2D`` of one R32F texel per float, NEURAL_BRDF_TEXTURE_WIDTH
 (default 1024) texels to a row, read with texelFetch; in desktop GLSL (4.30 and later, and
 Vulkan) a std430 ``readonly buffer`` at binding NEURAL_BRDF_TEXTURE<k>_BINDING (default k).
+One with the normal field (output n) also gives ``vec3 neural_brdf_normal(vec2 uv)``, its
+texels bound the same way (texture 1).
 
 NaN and infinity tests are bit tests (``floatBitsToUint``): GLSL lets a compiler assume
 that isnan() is false.  GLSL has no erf; it is a polynomial (Abramowitz & Stegun 7.1.26).
@@ -123,6 +125,16 @@ class GLSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
+        if self.normal_reads is not None:
+            return [
+                "#version 300 es  (or #version 450)",
+                "precision highp float;",
+                "precision highp int;",
+                "<this file>",
+                "vec3 n = neural_brdf_normal(uv);  // vec2 uv; first: rotate the frame to n",
+                "vec3 f = neural_brdf_eval(wi, wo, uv);  // wi, wo in n's frame",
+                "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2",
+            ]
         if self.textures:
             return [
                 "#version 300 es  (or #version 450)",

@@ -7,7 +7,9 @@
 A textured file gives ``neural_brdf_eval(wi, wo, uv)`` (uv: vec2<f32>) and binds its weight
 table as ``@group(1) @binding(k) var<storage, read> neural_brdf_texture<k>: array<f32>``
 (the group: ``WGSLRenderer(group=...)``, ``backends.generate(..., group=...)``; WGSL has
-no preprocessor).  docs/codegen.md, "Textured files".
+no preprocessor).  One with the normal field (output n) also gives
+``fn neural_brdf_normal(uv: vec2<f32>) -> vec3<f32>``, its texels at binding 1.
+docs/codegen.md, "Textured files".
 
 WGSL has no isnan/isinf: they are bit tests on ``bitcast<u32>``; no erf either (a
 polynomial, as in GLSL).
@@ -101,6 +103,12 @@ class WGSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
+        if self.normal_reads is not None:
+            return [
+                "let n = neural_brdf_normal(uv);              // vec3<f32>; first: the frame",
+                "let f = neural_brdf_eval(wi, wo, uv);        // wi, wo in n's frame",
+                "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",
+            ]
         if self.textures:
             return [
                 "let f = neural_brdf_eval(wi, wo, uv);        // vec3<f32> (uv: vec2<f32>)",
