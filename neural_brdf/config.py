@@ -315,9 +315,11 @@ class Texture(_Section):
     # scalar: one weight per lobe and texel; rgb: one per lobe, texel and RGB channel (no
     # gain on the development teachers: docs/mitsuba.md, "Textured materials")
     weights: Literal["scalar", "rgb"] = "scalar"
-    # separate: K networks (the `model` section's each); shared: one network with K
-    # heads (one set of features and hidden layers; a renderer evaluates one network)
-    lobe_network: Literal["separate", "shared"] = "separate"
+    # shared: one network with K heads (one set of features and hidden layers; a
+    # renderer evaluates one network); separate: K networks (the `model` section's
+    # each).  Shared was both more accurate and cheaper to render on the development
+    # teachers (benchmarks/textured_lobes.py, docs/mitsuba.md)
+    lobe_network: Literal["separate", "shared"] = "shared"
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random

@@ -623,8 +623,10 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     from neural_brdf.train.textured_model import WeightField
 
     tx = cfg.texture
+    # the checkpoint's own layout decides (a run of separate lobes has lobes.1.*)
+    separate = any(k.startswith("lobes.1.") for k in ckpt["model"])
     model = TexturedBRDF(
-        lobe_networks(cfg.model, tx.lobes, tx.lobe_network == "shared"),
+        lobe_networks(cfg.model, tx.lobes, not separate and tx.lobes > 1),
         WeightField(tx.resolution, tx.lobes, channels=3 if tx.weights == "rgb" else 1),
     )
     model.load_state_dict(ckpt["model"])

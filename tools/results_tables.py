@@ -1369,8 +1369,14 @@ def textured_section(d: dict) -> list[str]:
         "onnxruntime (± its standard error). Image: a sphere under the "
         f"`{d['environment']['name']}` environment (used nowhere else), "
         f"{im['resolution']}², {im['spp']} spp, the file through the `neural_brdf` plugin "
-        f"against Mitsuba's render of the teacher's nested BSDF; {d['normal_map']}. "
-        f"PSNR: {d['psnr_definition']}. Noise: equal-sample variance of f·cos/pdf, the "
+        + (
+            "against Mitsuba's render of the whole teacher (the file carries the normal "
+            "field; in brackets, the file without it against the nested BSDF: the lobes' "
+            "error alone). "
+            if "whole teacher" in str(d.get("normal_map"))
+            else f"against Mitsuba's render of the teacher's nested BSDF; {d['normal_map']}. "
+        )
+        + f"PSNR: {d['psnr_definition']}. Noise: equal-sample variance of f·cos/pdf, the "
         "file's global lobe over Mitsuba's own sampler. Goals: "
         f"≤ {100 * g['rel_rmse_textured']:g} % textured, ≤ {100 * g['rel_rmse_homogeneous']:g} "
         f"% homogeneous, max albedo ≤ {g['max_albedo']:g}, ≥ {g['psnr_db']:g} dB, training "
@@ -1397,7 +1403,8 @@ def textured_section(d: dict) -> list[str]:
                 _pct(acc["rel_rmse"]),
                 f"{ph['reciprocity']:.1g}",
                 f"{ph['max_albedo']:.4f} ± {ph['max_albedo_stderr']:.1g}",
-                f"{img['psnr_db']:.1f} dB (floor {img['noise_floor']['psnr_db']:.1f})",
+                f"{img['psnr_db']:.1f} dB (floor {img['noise_floor']['psnr_db']:.1f})"
+                + (f" [{img['nested']['psnr_db']:.1f} dB]" if img.get("nested") else ""),
                 _pct(img["image_rel_rmse"]),
                 "-" if nz is None else f"{nz:.2f}x",
                 f"{tr['total_seconds']:.0f} s (load {_load(t['loadavg']['start'])})",

@@ -223,11 +223,13 @@ def test_resume_trains_on_with_per_channel_weights(teacher, tmp_path, capsys):
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
 
 
-def test_shared_heads_train_export_and_say_so(teacher, tmp_path, capsys):
-    """texture.lobe_network: shared: one network with 3 heads trains, learns, and export
-    from the checkpoint rebuilds it (the same f); the file's normalisation note says so."""
+@pytest.mark.parametrize("network", ["shared", "separate"])
+def test_either_lobe_network_trains_exports_and_says_so(teacher, tmp_path, capsys, network):
+    """texture.lobe_network: one network with 3 heads (shared, the default) or 3 networks
+    trains, learns, and export from the checkpoint rebuilds it (the same f); the file's
+    normalisation note says which."""
     cfg = write_config(tmp_path, teacher, steps=40)
-    shared = ("--set", "texture.lobe_network=shared")
+    shared = ("--set", f"texture.lobe_network={network}")
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "s"), *shared)
     assert code == 0, err
     m = json.loads((tmp_path / "s" / "metrics.json").read_text())
@@ -235,7 +237,9 @@ def test_shared_heads_train_export_and_say_so(teacher, tmp_path, capsys):
     assert m["checks"]["reciprocity"]["value"] == 0.0 and m["checks"]["max_albedo"]["passed"]
     proto = onnx.load(str(tmp_path / "s" / "model.onnx"))
     props = {p.key: p.value for p in proto.metadata_props}
-    assert "the 3 heads of one network" in props["normalization"]
+    assert ("the 3 heads of one network" in props["normalization"]) == (network == "shared")
+    heads = [t for t in proto.graph.initializer if tuple(t.dims)[-1:] == (9,)]  # 3 heads x RGB
+    assert bool(heads) == (network == "shared")
     assert len(json.loads(props["texture"])["lobe_tables"]) == 3
     code, _, err = cli(capsys, "export", str(tmp_path / "s"), "-o", str(tmp_path / "e.onnx"))
     assert code == 0, err
