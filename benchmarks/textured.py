@@ -24,7 +24,7 @@ too, with no gain (docs/mitsuba.md), so the benchmark keeps one weight per lobe.
 lobe network (``texture.lobe_network: shared``, one network with K heads) was chosen on
 the development teachers by benchmarks/textured_lobes.py (results/textured_lobes_dev.json:
 held-out error 36.0 % against 43.4 % (principled) and 5.5 % against 9.6 %
-(roughplastic), render cost 0.75x and 0.68x of K separate networks).
+(roughplastic), render cost 0.74x and 0.68x of K separate networks).
 
 A textured model is ``train_textured`` (2 torch threads), each lobe normalised
 (``normalized_textured``) and exported with the inputs (wi, wo, uv) (``exportable``,

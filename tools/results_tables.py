@@ -1454,6 +1454,51 @@ def textured_section(d: dict) -> list[str]:
     return out
 
 
+def textured_lobes_section(d: dict) -> list[str]:
+    """issue 30: the textured model's lobe networks on the development set."""
+    m0, m1, rc = d["machine_start"], d.get("machine_end"), d.get("render_cost") or {}
+    r = d["recipe"]
+    out = [
+        "## Textured materials: lobe networks (development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_lobes_dev.json", "python benchmarks/textured_lobes.py"
+        ),
+        _recorded(
+            m0["date"],
+            f"{m0['platform']}, {m0['cores']} cores",
+            f"{_load(m0['loadavg'])} at the start"
+            + (f", {_load(m1['loadavg'])} at the end" if m1 else ""),
+        ),
+        f"Set: {d['set']}. Recipe: K = {r['lobes']} lobes unless named, a {r['resolution']}² "
+        f"field, {r['steps']} steps, {r['size']}² maps. Error: the held-out relative RMSE "
+        "of f·cos against Mitsuba's eval (raw lobes). Render cost: the BSDF-bound scene "
+        f"of `benchmarks/bsdf_bound.py` ({rc.get('resolution')}², {rc.get('spp')} spp, best "
+        f"of {rc.get('repeats')} interleaved rounds), over the separate networks' file of "
+        "the same teacher. These figures chose `texture.lobe_network: shared`; the test "
+        "set's figures are in the next section.",
+        "",
+    ]
+    rows = []
+    for kind, variants in d["teachers"].items():
+        for name, v in variants.items():
+            ratio = (rc.get("ratio_to_separate") or {}).get(f"{kind} {name}")
+            rows.append(
+                [
+                    kind,
+                    name,
+                    str(v.get("lobes", r["lobes"])),
+                    _pct(v["val_rel_rmse"]),
+                    f"{v['train_seconds']:.0f} s",
+                    "-" if ratio is None else f"{ratio:.2f}x",
+                    f"{v['file_bytes'] / 1024:.0f} KiB",
+                ]
+            )
+    return out + _table(
+        ["teacher", "variant", "K", "held-out error", "training", "render cost", "file"], rows
+    )
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -1537,6 +1582,7 @@ SECTIONS = (
         partial(images_any_section, name="images_any_dev_half_disc.json"),
     ),
     (RESULTS / "training_speed.json", training_speed_section),
+    (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
     (RESULTS / "textured.json", textured_section),
     (SWEEP_TIMING, sweep_timing_section),
     (
