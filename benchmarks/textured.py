@@ -632,9 +632,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=None, help="teachers and files (default: temp)")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--variant", default="llvm_ad_rgb", help=argparse.SUPPRESS)  # bsdf_bound's
+    ap.add_argument(
+        "--setting",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change one SETTINGS value (the development set only: a choice is made there)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     settings = dict(QUICK if args.quick else SETTINGS)
+    for item in args.setting:
+        key, _, value = item.partition("=")
+        if args.which != "dev" or key not in settings or isinstance(settings[key], list):
+            ap.error(f"--setting {item}: a scalar key of SETTINGS, with --set dev only")
+        settings[key] = type(settings[key])(value)
     size = 32 if args.quick else SIZE
     args.pairs = 2000 if args.quick else ACCURACY_PAIRS
     args.uv = 200 if args.quick else PHYSICS_UV
