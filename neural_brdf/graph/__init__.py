@@ -204,18 +204,26 @@ def _inputs_read(b: Builder, outs: dict[str, list[int]]) -> set[str]:
 
 def textures(prog: Program, name: str = "uv") -> list[Texture]:
     """The tensors to bind as buffers: every one with a table that a ``gather`` at an
-    index depending on the input ``name`` reads, in the order of ``prog.sources``.
+    index computed from the input ``name`` reads, in the order of ``prog.sources``.
+    "Computed from" is arithmetic on ``name`` alone: a table read at an index that also
+    uses a value another gather returned does not count.
 
     Why this rule and not a size: a table indexed by directions alone is a fixed small
     function of the model (the albedo bound, a feature grid), written as literals as
     before; a table indexed by uv is the material's texture, which grows with its
     resolution (a 256 x 256 weight field of 8 lobes is 2 MB) and which a host may
-    replace.  A table that is a column of two equal tensors goes with the first.  Only
+    replace.  The tables of conditioned lobes (docs/model.md) are read at the latent s,
+    a value of the weight field's texture: they are functions of the model as well, and
+    stay literals.  A table that is a column of two equal tensors goes with the first.  Only
     float tables can be bound (an int one raises UnsupportedOnnxOp, one line)."""
     if name not in prog.inputs:
         return []
-    dep = prog.depends_on(name)
-    bound = {ins.attr for ins in prog.instrs if ins.op == "gather" and dep[ins.args[0]]}
+    dep, read = prog.depends_on(name), prog.reads_a_table()
+    bound = {
+        ins.attr
+        for ins in prog.instrs
+        if ins.op == "gather" and dep[ins.args[0]] and not read[ins.args[0]]
+    }
     out: list[Texture] = []
     for src in prog.sources:
         channels = {t: c for c, t in enumerate(src.tables) if t is not None and t in bound}

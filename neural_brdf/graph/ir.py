@@ -105,6 +105,14 @@ class Program:
                 out.append(any(out[a] for a in ins.args))
         return out
 
+    def reads_a_table(self) -> list[bool]:
+        """Per instruction: whether its value is computed from a value a ``gather``
+        returned (the gather itself included)."""
+        out: list[bool] = []
+        for ins in self.instrs:
+            out.append(ins.op == "gather" or any(out[a] for a in ins.args))
+        return out
+
     def count(self) -> dict[str, int]:
         """Instructions per op."""
         out: dict[str, int] = {}
