@@ -320,6 +320,10 @@ class Texture(_Section):
     # each).  Shared was both more accurate and cheaper to render on the development
     # teachers (benchmarks/textured_lobes.py, docs/mitsuba.md)
     lobe_network: Literal["separate", "shared"] = "shared"
+    # 1: the lobes take a latent s(uv) in [0, 1] from the field as one more input
+    # (conditioned lobes: a head can follow a roughness map; normalised by a table over
+    # (s, theta): docs/model.md, "Conditioned lobes"); isotropic encodings only
+    latent: int = Field(0, ge=0, le=1)
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random
@@ -390,6 +394,16 @@ class Config(_Section):
             raise ValueError(f"{key}: {held} names a view twice")
         if len(held) >= n:
             raise ValueError(f"{key}: holds out all {n} views; at least one must be fitted")
+        return self
+
+    @model_validator(mode="after")
+    def _conditioned_lobes(self):
+        # the (s, theta) albedo table of conditioned lobes is isotropic (train/conditioned.py)
+        if self.texture.latent and encodings.get(self.model.encoding).anisotropic:
+            raise ValueError(
+                f"texture.latent: conditioned lobes need an isotropic model.encoding, "
+                f"not {self.model.encoding}"
+            )
         return self
 
     @model_validator(mode="after")

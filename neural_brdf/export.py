@@ -241,17 +241,28 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
 def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) -> str:
     """The ``normalization`` entry of a textured file (docs/model.md, "Spatially varying
     models: the contract")."""
-    lobes = [lobe for lobe in model.lobes if isinstance(lobe, NormalizedBRDF)]
+    from neural_brdf.train.textured_model import FOLD_LIMIT, NORMALIZED, ScaledBRDF
+
+    lobes = [lobe for lobe in model.lobes if isinstance(lobe, NORMALIZED)]
     if not lobes:
         return "none: each lobe is its raw network (normalization.enabled: false, an ablation)"
     count = model.field.lobes
     shared = f" (the {count} heads of one network)" if model.shared else ""
+    latent = bool(getattr(model.field, "latent", 0))
+    at = "(s, wi)" if latent else "(wi)"
+    table = f"A+_k{at}, its own table over {'(s, theta)' if latent else 'the direction'}"
+    form = (
+        f" (a table whose largest node is <= {FOLD_LIMIT:g} is folded into a constant: "
+        "raw_k / max(1, max A+_k))"
+        if any(isinstance(lobe, ScaledBRDF) for lobe in lobes)
+        else ""
+    )
     return (
         f"f = sum_k z_k(uv) g_k with z_k >= 0, sum z_k <= 1 at every uv (bilinear blends "
         f"of texels included), and each of the {count} lobes{shared} "
-        "g_k = raw_k / max(1, A+_k(wi), A+_k(wo)) per channel, A+_k its own table "
+        f"g_k = raw_k / max(1, A+_k{at}, A+_k{at.replace('wi', 'wo')}) per channel, {table} "
         f"(MIS quadrature + {n.sigmas:g} standard errors, neighbour maximum, times "
-        f"(1 + {n.margin:g})): the albedo is <= max_k A+_k / max(1, A+_k) <= 1 + margin"
+        f"(1 + {n.margin:g})){form}: the albedo is <= max_k A+_k / max(1, A+_k) <= 1 + margin"
     )
 
 
@@ -495,9 +506,12 @@ def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) 
         "wrap": "repeat",
         "filter": "bilinear",
         "texel_centres": "((i + 0.5) / R, (j + 0.5) / R), i along u, j along v",
-        "layout": "row-major [v, u]: flat index j * R + i; column c * K + k",
+        "layout": "row-major [v, u]: flat index j * R + i; column c * K + k, the latent at C * K",
         "weights": "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)",
         "channels": int(getattr(field, "channels", 1)),  # 3: a set of weights per RGB channel
+        # 1: one more column of the table, s(uv) in [0, 1], an input of every lobe
+        # (conditioned lobes, docs/model.md), its albedo table over (s, theta)
+        "latent": int(getattr(field, "latent", 0)),
         "normal_field": normal_json(model),
         "lobe_tables": plain(info) if info is not None else None,
     }
@@ -625,9 +639,14 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     tx = cfg.texture
     # the checkpoint's own layout decides (a run of separate lobes has lobes.1.*)
     separate = any(k.startswith("lobes.1.") for k in ckpt["model"])
+    # and so does its latent (conditioned lobes have field.latent_logits)
+    state = ckpt["model"]
+    latent = int(state["field.latent_logits"].shape[1]) if "field.latent_logits" in state else 0
     model = TexturedBRDF(
-        lobe_networks(cfg.model, tx.lobes, not separate and tx.lobes > 1),
-        WeightField(tx.resolution, tx.lobes, channels=3 if tx.weights == "rgb" else 1),
+        lobe_networks(cfg.model, tx.lobes, not separate and tx.lobes > 1, latent=latent),
+        WeightField(
+            tx.resolution, tx.lobes, channels=3 if tx.weights == "rgb" else 1, latent=latent
+        ),
     )
     model.load_state_dict(ckpt["model"])
     return model.eval()

@@ -189,6 +189,8 @@ target:
 texture:
   lobes: 4
   resolution: 32
+  latent: 1      # conditioned lobes: a lobe can follow a roughness map (docs/model.md)
+  weights: rgb   # a weight per lobe and RGB channel
 train:
   steps: {steps}
 """

@@ -181,11 +181,16 @@ class RawBRDF(nn.Module):
         cosine_grid_init_std: float = 1e-2,
         peak_coordinate: str = "u_h",
         heads: int = 1,
+        latent: int = 0,
     ):
         super().__init__()
         # heads > 1: the same features and hidden layers, ``heads`` RGB outputs side by
         # side, (N, 3 * heads) (a textured model's shared lobes: docs/model.md)
         self.heads = int(heads)
+        # latent > 0: ``latent`` more inputs s in [0, 1] appended to the features, the
+        # same for (wi, wo) and (wo, wi) (a textured model's conditioned lobes: s
+        # depends on uv only, so reciprocity stays exact; docs/model.md)
+        self.latent = int(latent)
         self.encoding = encoding
         self.spec = spec = encodings.get(encoding)  # its width, grid axes and features
         self.peak_coordinate = peak_coordinate
@@ -217,6 +222,7 @@ class RawBRDF(nn.Module):
             spec.width
             + (grid_channels if grid_size else 0)
             + (cosine_grid_channels if cosine_grid_size else 0)
+            + self.latent
         )
         self.mlp = MLP(
             n_in,
@@ -233,7 +239,14 @@ class RawBRDF(nn.Module):
         return sum(p.numel() for p in RawBRDF.from_config(m).parameters())
 
     @classmethod
-    def from_config(cls, m, *, init_value: float = 0.3, heads: int = 1) -> RawBRDF:
+    def from_config(
+        cls,
+        m,
+        *,
+        init_value: float = 0.3,
+        heads: int = 1,
+        latent: int = 0,
+    ) -> RawBRDF:
         """From the ``model`` section of a config (:class:`neural_brdf.config.Model`)."""
         return cls(
             m.encoding,
@@ -252,9 +265,12 @@ class RawBRDF(nn.Module):
             cosine_grid_init_std=m.cosine_grid.init_std,
             peak_coordinate=m.peak_coordinate,
             heads=heads,
+            latent=latent,
         )
 
-    def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:  # (N,3),(N,3) -> (N,3)
+    def forward(
+        self, wi: torch.Tensor, wo: torch.Tensor, s: torch.Tensor | None = None
+    ) -> torch.Tensor:  # (N,3),(N,3)[,(N,latent)] -> (N,3 * heads)
         x = self.spec.features(wi, wo, self.peak_coordinate)
         if self.grid is not None:
             i, j = self.grid_features
@@ -267,6 +283,10 @@ class RawBRDF(nn.Module):
             total = ci + co
             ratio = (ci - co).abs() / total.clamp_min(MIN_MEAN_COS)
             x = torch.cat([x, self.cos_grid(0.5 * total, ratio.clamp_max(1.0))], -1)
+        if self.latent:
+            if s is None:
+                raise ValueError(f"RawBRDF: {self.latent} latent inputs expected, got none")
+            x = torch.cat([x, s], -1)
         f = self.mlp(x)
         if self.grazing_power != 0.0:
             ci, co = wi[..., 2:3], wo[..., 2:3]

@@ -45,6 +45,7 @@ import torch.nn as nn
 
 from neural_brdf import config as cfgmod
 from neural_brdf.fileformat import SIGNATURES
+from neural_brdf.train.conditioned import ConditionedNormalizedBRDF, normalized_conditioned
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, albedo_table, unit_or_invalid
 
@@ -110,32 +111,67 @@ class WeightField(nn.Module):
     (j + 0.5) / R), flat index j * R + i).  The table is [R*R, C*K], column c * K + k.
     """
 
-    def __init__(self, resolution: int, lobes: int, *, channels: int = 1, init_std: float = 1.0):
+    def __init__(
+        self,
+        resolution: int,
+        lobes: int,
+        *,
+        channels: int = 1,
+        init_std: float = 1.0,
+        latent: int = 0,
+    ):
         super().__init__()
         if resolution < 1 or lobes < 1:
             raise ValueError(f"WeightField: resolution and lobes >= 1, got {resolution}, {lobes}")
         if channels not in (1, 3):
             raise ValueError(f"WeightField: channels 1 or 3, got {channels}")
+        if latent not in (0, 1):
+            raise ValueError(f"WeightField: latent 0 or 1, got {latent}")
         self.resolution = int(resolution)
         self.lobes = int(lobes)
         self.channels = int(channels)
+        self.latent = int(latent)
         shape = (self.resolution**2, *(() if channels == 1 else (channels,)), self.lobes + 1)
         self.logits = nn.Parameter(torch.randn(shape) * init_std)
+        # the lobes' latent s = sigmoid(logit) per texel (docs/model.md, "Conditioned
+        # lobes"), started in the middle of [0, 1] with a little spread
+        self.latent_logits = (
+            nn.Parameter(torch.randn(self.resolution**2, self.latent) * 0.1) if latent else None
+        )
 
     def weights(self) -> torch.Tensor:
-        """The weights at the texel centres, [R*R, C*K]: >= 0, sum over k <= 1 per texel
-        and channel."""
+        """The field's table at the texel centres, [R*R, C*K + latent]: the weights
+        (>= 0, sum over k <= 1 per texel and channel), then the latent columns (in [0, 1])."""
         w = torch.softmax(self.logits, -1)[..., : self.lobes]
-        return w.reshape(w.shape[0], -1)
+        w = w.reshape(w.shape[0], -1)
+        if self.latent_logits is None:
+            return w
+        return torch.cat([w, torch.sigmoid(self.latent_logits)], -1)
+
+    def lookup(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(N, 2) -> (weights (N, K) or (N, 3, K), latent (N, latent) or None)."""
+        return split_field(bilinear_wrap(self.weights(), uv, self.resolution), self)
 
     def forward(self, uv: torch.Tensor) -> torch.Tensor:  # (N, 2) -> (N, K) or (N, 3, K)
-        z = bilinear_wrap(self.weights(), uv, self.resolution)
-        return z if self.channels == 1 else z.view(-1, self.channels, self.lobes)
+        return self.lookup(uv)[0]
 
     def frozen(self) -> FrozenWeightField:
         """The same look-up with the softmax evaluated once (for export)."""
         with torch.no_grad():
-            return FrozenWeightField(self.weights(), self.resolution, channels=self.channels)
+            return FrozenWeightField(
+                self.weights(), self.resolution, channels=self.channels, latent=self.latent
+            )
+
+
+def split_field(
+    values: torch.Tensor, field: WeightField | FrozenWeightField
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """A looked-up row of a field's table [N, C*K + latent] -> (weights (N, K) or
+    (N, 3, K), latent (N, latent) or None)."""
+    ck = field.channels * field.lobes
+    z = values[:, :ck] if field.latent else values
+    z = z if field.channels == 1 else z.reshape(-1, field.channels, field.lobes)
+    return z, (values[:, ck : ck + field.latent] if field.latent else None)
 
 
 class FrozenWeightField(nn.Module):
@@ -144,19 +180,24 @@ class FrozenWeightField(nn.Module):
 
     table: torch.Tensor  # a buffer (register_buffer)
 
-    def __init__(self, weights: torch.Tensor, resolution: int, *, channels: int = 1):
+    def __init__(
+        self, weights: torch.Tensor, resolution: int, *, channels: int = 1, latent: int = 0
+    ):
         super().__init__()
         self.resolution = int(resolution)
         self.channels = int(channels)
-        self.lobes = int(weights.shape[1]) // self.channels
+        self.latent = int(latent)
+        self.lobes = (int(weights.shape[1]) - self.latent) // self.channels
         self.register_buffer("table", weights.detach().float().clone())
 
     def weights(self) -> torch.Tensor:
         return self.table
 
+    def lookup(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        return split_field(bilinear_wrap(self.table, uv, self.resolution), self)
+
     def forward(self, uv: torch.Tensor) -> torch.Tensor:
-        z = bilinear_wrap(self.table, uv, self.resolution)
-        return z if self.channels == 1 else z.view(-1, self.channels, self.lobes)
+        return self.lookup(uv)[0]
 
 
 class NormalField(nn.Module):
@@ -231,6 +272,10 @@ class TexturedBRDF(nn.Module):
         count = heads_of(self.lobes[0]) if self.shared else len(self.lobes)
         if count != field.lobes:
             raise ValueError(f"TexturedBRDF: {count} lobes, the field has {field.lobes}")
+        wants = {int(getattr(getattr(g, "raw", g), "latent", 0)) for g in self.lobes}
+        if wants != {int(getattr(field, "latent", 0))}:
+            has = int(getattr(field, "latent", 0))
+            raise ValueError(f"TexturedBRDF: lobes with latent {wants}, the field has {has}")
         self.field = field
         # the teacher's normal field (docs/model.md, "The normal field"): carried to the
         # file as a second output, never part of f
@@ -238,30 +283,64 @@ class TexturedBRDF(nn.Module):
         self.anisotropic = any(bool(getattr(g, "anisotropic", False)) for g in self.lobes)
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        z = self.field(uv)  # (N, K), or (N, 3, K) with per-channel weights
+        # z: (N, K), or (N, 3, K) with per-channel weights; s: the lobes' latent or None
+        z, s = self.field.lookup(uv)
         if z.dim() == 2:
             z = z[:, None, :]  # one weight for every channel
+        extra = () if s is None else (s,)  # conditioned lobes: g(wi, wo; s(uv))
         if self.shared:  # one network, K heads side by side
-            g = self.lobes[0](wi, wo)
+            g = self.lobes[0](wi, wo, *extra)
             f = z[:, :, 0] * g[:, 0:3]
             for k in range(1, self.field.lobes):  # left to right, as below
                 f = f + z[:, :, k] * g[:, 3 * k : 3 * k + 3]
             return f
-        f = z[:, :, 0] * self.lobes[0](wi, wo)
+        f = z[:, :, 0] * self.lobes[0](wi, wo, *extra)
         for k in range(1, len(self.lobes)):  # left to right: the same order for (wo, wi)
-            f = f + z[:, :, k] * self.lobes[k](wi, wo)
+            f = f + z[:, :, k] * self.lobes[k](wi, wo, *extra)
         return f
+
+
+# A lobe table whose largest node is at most this is replaced by a constant scale
+# (ScaledBRDF): the head dimmed by at most 2 % everywhere instead of two table look-ups
+# and a divide per evaluation, which cost about a third of a homogeneous compact file's
+# render (development roughplastic, one head's raw albedo 1.018: 1.84x the compact file
+# with the table, 1.47x without).
+FOLD_LIMIT = 1.02
+
+
+class ScaledBRDF(nn.Module):
+    """raw(wi, wo[, s]) times a constant per output column, c = 1 / max(1, the column's
+    largest A+ over the table's nodes): its albedo is at most A+ c <= 1 everywhere (A+
+    bounds A on each cell as the table's does), reciprocal (a constant), and a renderer
+    pays one multiply instead of the look-ups (:data:`FOLD_LIMIT`)."""
+
+    scale: torch.Tensor  # a buffer (register_buffer): (3 * heads,)
+
+    def __init__(self, raw: RawBRDF, table: torch.Tensor):
+        super().__init__()
+        self.raw = raw
+        self.anisotropic = bool(getattr(raw, "anisotropic", False))
+        self.latent = int(getattr(raw, "latent", 0))
+        peak = table.reshape(-1, table.shape[-1]).amax(0).clamp_min(1.0)
+        self.register_buffer("scale", (1.0 / peak).float())
+        self.identity = False
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor, *s: torch.Tensor) -> torch.Tensor:
+        return self.raw(wi, wo, *s) * self.scale
+
+
+NORMALIZED = (NormalizedBRDF, ConditionedNormalizedBRDF, ScaledBRDF)
 
 
 def heads_of(lobe: nn.Module) -> int:
     """How many lobes one network holds: its ``heads`` (a RawBRDF's, or the raw network
     of a NormalizedBRDF), 1 for any other module."""
-    raw = lobe.raw if isinstance(lobe, NormalizedBRDF) else lobe
+    raw = lobe.raw if isinstance(lobe, NORMALIZED) else lobe
     return int(getattr(raw, "heads", 1))
 
 
 def _raw_of(lobe: nn.Module) -> RawBRDF:
-    raw = lobe.raw if isinstance(lobe, NormalizedBRDF) else lobe
+    raw = lobe.raw if isinstance(lobe, NORMALIZED) else lobe
     if not isinstance(raw, RawBRDF):
         raise TypeError(f"a lobe must be a RawBRDF or a NormalizedBRDF, got {type(lobe)}")
     return raw
@@ -298,18 +377,24 @@ def normalized_textured(
             info.append({"enabled": False})
             continue
         aniso = is_anisotropic(raw.encoding)
-        # a shared network's table has 3K columns: head k normalised by its own three
-        table, a, err = albedo_table(
-            raw,
-            size=n.grid_size if aniso else n.table_size,
-            anisotropic=aniso,
-            samples=n.samples,
-            seed=seed + 17 + k,
-            sigmas=n.sigmas,
-            margin=n.margin,
-            target=target,
-        )
-        norm = NormalizedBRDF(raw, table).eval()
+        norm: NormalizedBRDF | ConditionedNormalizedBRDF | ScaledBRDF
+        if raw.latent:  # conditioned lobes: a table over (s, theta) (train/conditioned.py)
+            norm, a, err = normalized_conditioned(raw, n, seed=seed + 17 + k)
+        else:
+            # a shared network's table has 3K columns: head k normalised by its own three
+            table, a, err = albedo_table(
+                raw,
+                size=n.grid_size if aniso else n.table_size,
+                anisotropic=aniso,
+                samples=n.samples,
+                seed=seed + 17 + k,
+                sigmas=n.sigmas,
+                margin=n.margin,
+                target=target,
+            )
+            norm = NormalizedBRDF(raw, table).eval()
+        if not norm.identity and float(norm.table.max()) <= FOLD_LIMIT:
+            norm = ScaledBRDF(raw, norm.table).eval()  # a constant instead of the table
         lobes.append(norm)
         heads = heads_of(raw)  # one entry per lobe: a shared network's K heads each
         for h in range(heads):
@@ -320,6 +405,7 @@ def normalized_textured(
                     "raw_max_albedo": float(a[..., cols].max()),
                     "raw_max_stderr": float(err[..., cols].max()),
                     "in_graph": not norm.identity,
+                    "form": "scale" if isinstance(norm, ScaledBRDF) else "table",
                 }
             )
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field

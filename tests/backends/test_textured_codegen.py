@@ -417,19 +417,25 @@ def test_glsl_validates_as_es_and_as_vulkan(textured, tmp_path):
     assert "Binding 3" in r.stdout  # the #define moved it
 
 
-def test_glsl_in_webgl2_matches_onnxruntime(textured, reference):
-    """The ES variant: the texture an R32F sampler, ES_WIDTH floats a row (the host's
-    #define NEURAL_BRDF_TEXTURE_WIDTH), read by texelFetch in headless Chromium."""
+def webgl_eval(path, wi, wo, uv, tables: list[np.ndarray]) -> list[np.ndarray]:
+    """The generated GLSL ES in headless Chromium, once per table given as texture 0
+    (an R32F sampler, ES_WIDTH floats a row: the host's #define)."""
     from harness import gpu_browser
 
-    path, table = textured
-    wi, wo, uv, ref = reference
     source = f"#define NEURAL_BRDF_TEXTURE_WIDTH {ES_WIDTH}\n" + backends.generate(path, "glsl")
     with gpu_browser.Session() as s:
-        got, wrong = (
+        return [
             s.eval_glsl(
                 source, wi, wo, uv=uv, textures={"neural_brdf_texture0": (t.reshape(-1), ES_WIDTH)}
             )
-            for t in (table, table[::-1])
-        )
+            for t in tables
+        ]
+
+
+def test_glsl_in_webgl2_matches_onnxruntime(textured, reference):
+    """The ES variant: the texture an R32F sampler, ES_WIDTH floats a row (the host's
+    #define NEURAL_BRDF_TEXTURE_WIDTH), read by texelFetch in headless Chromium."""
+    path, table = textured
+    wi, wo, uv, ref = reference
+    got, wrong = webgl_eval(path, wi, wo, uv, [table, table[::-1]])
     check_parity(got, wrong, ref, GPU_TOL)

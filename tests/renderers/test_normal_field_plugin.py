@@ -30,20 +30,13 @@ from neural_brdf.fileformat import OUTPUT_SIGNATURES, SIGNATURES
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.textured_model import NormalField, TexturedBRDF, WeightField, exportable
+from textured_helpers import one_torch_thread  # noqa: F401  (autouse: one torch thread)
 
 pytestmark = pytest.mark.mitsuba
 
 LOBE = {"distribution": "ggx", "alpha": 0.3, "weight": 0.5}
 RU, RV = 7, 5  # a rectangular normal table: u and v are not swapped anywhere
 TOL = 2e-4  # relative, float32 frames built in a different order than Mitsuba's C++
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

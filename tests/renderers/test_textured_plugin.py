@@ -29,6 +29,7 @@ from neural_brdf.fileformat import OUTPUT, SIGNATURES
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.train.model import RawBRDF, TotalBRDF
 from neural_brdf.train.textured_model import TexturedBRDF, WeightField, exportable
+from textured_helpers import one_torch_thread  # noqa: F401  (autouse: one torch thread)
 
 pytestmark = pytest.mark.mitsuba
 
@@ -41,14 +42,6 @@ RES, SPP = 32, 16  # the render: pixels per side, samples per pixel
 SCALE = 1.1  # half-width of the orthographic view (sphere radius 1)
 ALBEDO = (0.79, 0.09)  # the two constant lobes of the render (u < 1/2, u >= 1/2)
 R_HALVES = 16  # the render's weight field: texels per side
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,6 @@ import math
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import pytest
 import torch
 
@@ -39,28 +38,14 @@ from neural_brdf.train.textured_model import (
     exportable,
     normalized_textured,
 )
-
-INPUTS = SIGNATURES[1]  # ("wi", "wo", "uv")
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One torch thread (the machine is shared), before the module's fixtures build."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-def _session(payload: bytes) -> ort.InferenceSession:
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    return ort.InferenceSession(payload, opts, providers=["CPUExecutionProvider"])
-
-
-def _run(sess: ort.InferenceSession, wi, wo, uv) -> np.ndarray:
-    feeds = {k: np.ascontiguousarray(x, np.float32) for k, x in zip(INPUTS, (wi, wo, uv))}
-    return sess.run([OUTPUT], feeds)[0]
+from textured_helpers import (
+    INPUTS,
+    albedos,
+    one_torch_thread,  # noqa: F401  (autouse: one torch thread)
+    rows,
+    run,
+    session,
+)
 
 
 # ------------------------------------------------------------------ (a) the field
@@ -204,24 +189,6 @@ def _uv_off_centres(n: int, seed: int) -> np.ndarray:
     return uv.astype(np.float32)
 
 
-def _albedos(model, uvs: np.ndarray, wi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cosine-weighted Sobol quadrature (analytic.physics.albedo_of, 4096 directions per
-    wi) of f at each uv: (len(uvs), len(wi), 3) albedos and standard errors."""
-    rhos, errs = [], []
-    for c in uvs:
-
-        def fn(a, b, c=c):
-            with torch.no_grad():
-                x, y = torch.as_tensor(a).float(), torch.as_tensor(b).float()
-                uv = torch.from_numpy(c).expand(len(x), 2)
-                return model(x, y, uv).double().numpy()
-
-        rho, err = physics.albedo_of(fn, wi, n=4096, seed=5, return_error=True)
-        rhos.append(rho)
-        errs.append(err)
-    return np.stack(rhos), np.stack(errs)
-
-
 def test_albedo_at_most_one_between_texel_centres(bright):
     info = bright["info"]
     assert all(i["enabled"] and i["in_graph"] and i["raw_max_albedo"] > 5.0 for i in info)
@@ -232,14 +199,14 @@ def test_albedo_at_most_one_between_texel_centres(bright):
     between = _uv_off_centres(200, 10)
     centres = ((np.array([[0, 0], [1, 2], [3, 3], [2, 1]]) + 0.5) / R_BRIGHT).astype(np.float32)
     uvs = np.concatenate([between, centres])
-    rho, err = _albedos(bright["model"], uvs, wi)
+    rho, err = albedos(bright["model"], uvs, wi)
     # the bound: 1 + the validator's tolerance.  Measured: max 0.985 (standard error of
     # this quadrature up to 0.014 on these wild lobes; deterministic, fixed seeds), and
     # 0.985 at the centres too; the raw lobes' albedos are 157 to 564
     assert rho.max() <= 1.0 + 1e-3, rho.max()
     assert (rho - 3.0 * err).max() <= 1.0 + 1e-3
     assert rho.max() > 0.8  # not crushed: where the constant lobe dominates, near 1
-    raw_rho, _ = _albedos(bright["raw"], uvs[:20], wi[:2])
+    raw_rho, _ = albedos(bright["raw"], uvs[:20], wi[:2])
     assert raw_rho.max() > 5.0  # the same lobes and weights, un-normalised
 
 
@@ -260,14 +227,14 @@ def test_per_channel_weights_keep_the_bound_and_reciprocity(bright):
     assert float(z.min()) >= 0.0 and float(z.sum(-1).max()) <= 1.0 + 1e-6
     theta = np.radians([0.0, 60.0, 88.0])
     wi = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], -1)
-    rho, err = _albedos(model, uvs, wi)
+    rho, err = albedos(model, uvs, wi)
     assert rho.max() <= 1.0 + 1e-3, rho.max()
     assert rho.max() > 0.6  # not crushed
     payload = export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS)
-    session = _session(payload)
-    wi_r, wo_r, uv_r = _rows(4096, 21)
-    a = session.run([OUTPUT], {"wi": wi_r, "wo": wo_r, "uv": uv_r})[0]
-    b = session.run([OUTPUT], {"wi": wo_r, "wo": wi_r, "uv": uv_r})[0]
+    sess = session(payload)
+    wi_r, wo_r, uv_r = rows(4096, 21)
+    a = sess.run([OUTPUT], {"wi": wi_r, "wo": wo_r, "uv": uv_r})[0]
+    b = sess.run([OUTPUT], {"wi": wo_r, "wo": wi_r, "uv": uv_r})[0]
     assert np.array_equal(a, b)
     with torch.no_grad():
         ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
@@ -299,16 +266,16 @@ def test_shared_heads_keep_the_bound_and_reciprocity():
     uvs = _uv_off_centres(60, 14)
     theta = np.radians([0.0, 45.0, 80.0, 89.0])
     wi = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], -1)
-    rho, err = _albedos(model, uvs, wi)
+    rho, err = albedos(model, uvs, wi)
     assert rho.max() <= 1.0 + 1e-3, rho.max()
     assert rho.max() > 0.6  # not crushed
-    wi_r, wo_r, uv_r = _rows(4096, 23)
+    wi_r, wo_r, uv_r = rows(4096, 23)
     with torch.no_grad():
         heads = model.lobes[0](torch.from_numpy(wi_r), torch.from_numpy(wo_r)).numpy()
     assert np.abs(heads[:, 0:3] - heads[:, 3:6]).max() > 0.05  # distinct lobes
-    session = _session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
-    a = _run(session, wi_r, wo_r, uv_r)
-    np.testing.assert_array_equal(a, _run(session, wo_r, wi_r, uv_r))
+    sess = session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
+    a = run(sess, wi_r, wo_r, uv_r)
+    np.testing.assert_array_equal(a, run(sess, wo_r, wi_r, uv_r))
     with torch.no_grad():
         ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
     up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
@@ -316,28 +283,14 @@ def test_shared_heads_keep_the_bound_and_reciprocity():
 
 
 # ------------------------------------------------------------------ (b), (d) the graph
-def _rows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pairs above the horizon (10 % within 1 degree of it), a quarter anywhere on the
-    sphere, uv in [-3, 3)^2."""
-    rng = np.random.default_rng(seed)
-    wi = physics.random_directions(n, seed)
-    wo = physics.random_directions(n, seed + 1)
-    k = n // 4
-    anywhere = rng.normal(size=(k, 6))
-    wi[:k] = anywhere[:, :3] / np.linalg.norm(anywhere[:, :3], axis=-1, keepdims=True)
-    wo[:k] = anywhere[:, 3:] / np.linalg.norm(anywhere[:, 3:], axis=-1, keepdims=True)
-    uv = rng.uniform(-3.0, 3.0, (n, 2))
-    return wi.astype(np.float32), wo.astype(np.float32), uv.astype(np.float32)
-
-
 @pytest.fixture(scope="module")
 def exported(bright) -> dict:
     payload = export.to_onnx_bytes(exportable(bright["model"]), 17, inputs=INPUTS)
-    return {"payload": payload, "session": _session(payload), "graph": exportable(bright["model"])}
+    return {"payload": payload, "session": session(payload), "graph": exportable(bright["model"])}
 
 
 def test_reciprocity_is_bit_exact_in_torch_and_onnxruntime(bright, exported):
-    wi, wo, uv = _rows(10_000, 21)
+    wi, wo, uv = rows(10_000, 21)
     a, b, c = (torch.from_numpy(x) for x in (wi, wo, uv))
     for model in (bright["model"], bright["raw"], exported["graph"]):
         with torch.no_grad():
@@ -345,11 +298,11 @@ def test_reciprocity_is_bit_exact_in_torch_and_onnxruntime(bright, exported):
         assert torch.equal(fab, fba)
         assert (fab > 0).float().mean() > 0.5  # not trivially 0
     sess = exported["session"]
-    fab, fba = _run(sess, wi, wo, uv), _run(sess, wo, wi, uv)
+    fab, fba = run(sess, wi, wo, uv), run(sess, wo, wi, uv)
     np.testing.assert_array_equal(fab, fba)
     assert np.all(fab[(wi[:, 2] > 0) & (wo[:, 2] > 0)] > 0)
     # f varies over uv (the same pairs at other uv)
-    assert np.abs(_run(sess, wi, wo, uv[::-1].copy()) - fab).max() > 0.1
+    assert np.abs(run(sess, wi, wo, uv[::-1].copy()) - fab).max() > 0.1
 
 
 def test_onnx_matches_torch_and_has_the_uv_signature(exported):
@@ -358,10 +311,10 @@ def test_onnx_matches_torch_and_has_the_uv_signature(exported):
     onnx.checker.check_model(proto)
     ops = {n.op_type for n in proto.graph.node}
     assert {"Floor", "Gather", "Cast"} <= ops and not ops & {"Softmax", "Exp", "Mod"}
-    wi, wo, uv = _rows(20_000, 31)
+    wi, wo, uv = rows(20_000, 31)
     with torch.no_grad():
         ref = exported["graph"](*(torch.from_numpy(x) for x in (wi, wo, uv))).double().numpy()
-    got = _run(exported["session"], wi, wo, uv).astype(np.float64)
+    got = run(exported["session"], wi, wo, uv).astype(np.float64)
     with torch.no_grad():  # the same network in float64: the float32 precision of torch
         exact = (
             copy.deepcopy(exported["graph"])
@@ -389,14 +342,14 @@ def test_onnx_matches_torch_and_has_the_uv_signature(exported):
     np.testing.assert_allclose(direct, ref, rtol=1e-4, atol=1e-6)
     # an empty batch
     empty = np.zeros((0, 3), np.float32)
-    assert _run(exported["session"], empty, empty, np.zeros((0, 2), np.float32)).shape == (0, 3)
+    assert run(exported["session"], empty, empty, np.zeros((0, 2), np.float32)).shape == (0, 3)
 
 
 def test_invalid_rows_give_zero_and_leave_other_rows_alone(exported):
-    wi, wo, uv = _rows(64, 41)
+    wi, wo, uv = rows(64, 41)
     wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]) + 0.05, np.abs(wo[:, 2]) + 0.05  # all valid
     sess = exported["session"]
-    clean = _run(sess, wi, wo, uv)
+    clean = run(sess, wi, wo, uv)
     assert np.all(clean > 0)
     inf, nan = np.float32(np.inf), np.float32(np.nan)
     bad_dirs = [
@@ -412,7 +365,7 @@ def test_invalid_rows_give_zero_and_leave_other_rows_alone(exported):
         x = [wi.copy(), wo.copy(), uv.copy()]
         bad = bad_uv if which == 2 else bad_dirs
         x[which][: len(bad)] = bad
-        got = _run(sess, *x)
+        got = run(sess, *x)
         assert np.all(np.isfinite(got))
         np.testing.assert_array_equal(got[: len(bad)], 0.0)
         np.testing.assert_array_equal(got[len(bad) :], clean[len(bad) :])
@@ -421,17 +374,17 @@ def test_invalid_rows_give_zero_and_leave_other_rows_alone(exported):
     x = [wi.copy(), wo.copy(), uv.copy()]
     x[0][:4] *= np.float32(1e-30)
     x[1][:4] *= np.float32(1e30)
-    got = _run(sess, *x)
+    got = run(sess, *x)
     np.testing.assert_allclose(got[:4], clean[:4], rtol=1e-5)
     far = uv.copy()
     far[:3] = [[1e30, 0.0], [-1e30, 0.0], [0.0, -0.0]]
     at0 = uv.copy()
     at0[:3] = 0.0
-    np.testing.assert_array_equal(_run(sess, wi, wo, far)[:3], _run(sess, wi, wo, at0)[:3])
+    np.testing.assert_array_equal(run(sess, wi, wo, far)[:3], run(sess, wi, wo, at0)[:3])
     # a direction below the horizon: 0 by the BRDF's own test
     below = wo.copy()
     below[:, 2] *= -1.0
-    np.testing.assert_array_equal(_run(sess, wi, below, uv), 0.0)
+    np.testing.assert_array_equal(run(sess, wi, below, uv), 0.0)
 
 
 # ------------------------------------------------------------------ (e) training

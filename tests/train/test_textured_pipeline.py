@@ -228,7 +228,7 @@ def test_either_lobe_network_trains_exports_and_says_so(teacher, tmp_path, capsy
     """texture.lobe_network: one network with 3 heads (shared, the default) or 3 networks
     trains, learns, and export from the checkpoint rebuilds it (the same f); the file's
     normalisation note says which."""
-    cfg = write_config(tmp_path, teacher, steps=40)
+    cfg = write_config(tmp_path, teacher, steps=100)
     shared = ("--set", f"texture.lobe_network={network}")
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "s"), *shared)
     assert code == 0, err

@@ -1,0 +1,81 @@
+"""Shared by the textured model's tests: one torch thread per module (import
+:func:`one_torch_thread`), an onnxruntime session on one thread, rows of
+(wi, wo, uv) with hostile entries, and the albedo of a textured model at fixed uv by
+analytic's cosine quadrature (independent of the MIS quadrature that builds the tables).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from analytic import physics
+from neural_brdf.fileformat import OUTPUT, SIGNATURES
+
+INPUTS = SIGNATURES[1]  # ("wi", "wo", "uv")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """One torch thread (the machine is shared), before the module's fixtures build;
+    autouse in every module that imports it."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def session(payload: bytes) -> ort.InferenceSession:
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    return ort.InferenceSession(payload, opts, providers=["CPUExecutionProvider"])
+
+
+def run(sess: ort.InferenceSession, wi, wo, uv) -> np.ndarray:
+    feeds = {k: np.ascontiguousarray(x, np.float32) for k, x in zip(INPUTS, (wi, wo, uv))}
+    return sess.run([OUTPUT], feeds)[0]
+
+
+def rows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs above the horizon (10 % within 1 degree of it), a quarter anywhere on the
+    sphere, uv in [-3, 3)^2."""
+    rng = np.random.default_rng(seed)
+    wi = physics.random_directions(n, seed)
+    wo = physics.random_directions(n, seed + 1)
+    k = n // 4
+    anywhere = rng.normal(size=(k, 6))
+    wi[:k] = anywhere[:, :3] / np.linalg.norm(anywhere[:, :3], axis=-1, keepdims=True)
+    wo[:k] = anywhere[:, 3:] / np.linalg.norm(anywhere[:, 3:], axis=-1, keepdims=True)
+    uv = rng.uniform(-3.0, 3.0, (n, 2))
+    return wi.astype(np.float32), wo.astype(np.float32), uv.astype(np.float32)
+
+
+def albedos_of(
+    fns: list[Callable[[torch.Tensor, torch.Tensor], torch.Tensor]], wi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cosine-weighted Sobol quadrature (analytic.physics.albedo_of, 4096 directions per
+    wi) of each torch function f(wi, wo) -> (N, 3): (len(fns), len(wi), 3) albedos and
+    standard errors."""
+    rhos, errs = [], []
+    for f in fns:
+
+        def fn(a, b, f=f):
+            with torch.no_grad():
+                return f(torch.as_tensor(a).float(), torch.as_tensor(b).float()).double().numpy()
+
+        rho, err = physics.albedo_of(fn, wi, n=4096, seed=5, return_error=True)
+        rhos.append(rho)
+        errs.append(err)
+    return np.stack(rhos), np.stack(errs)
+
+
+def albedos(model, uvs: np.ndarray, wi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`albedos_of` of a textured ``model(wi, wo, uv)`` at each uv of ``uvs``."""
+    fns = [
+        (lambda x, y, c=c: model(x, y, torch.from_numpy(c).float().expand(len(x), 2))) for c in uvs
+    ]
+    return albedos_of(fns, wi)
