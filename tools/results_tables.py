@@ -1359,7 +1359,8 @@ def textured_section(d: dict) -> list[str]:
             + "; per teacher in the file",
         ),
         f"Test set: {d['sets']['test']}. Development set: {d['sets']['dev']}. Textured "
-        f"recipe: K = {st['lobes']} lobes (hidden {st['hidden']}), a weight field of "
+        f"recipe: K = {st['lobes']} lobes (hidden {st['hidden']}, weights "
+        f"{st.get('weights', 'scalar')}, latent {st.get('latent', 0)}), a weight field of "
         f"{st['resolution']}² texels, {st['steps']} steps of {st['batch']} pairs from a pool of "
         f"{st['pool']}, on {d['texture_size']}² maps; homogeneous: {d['homogeneous_recipe']}. "
         "Accuracy: relative RMSE of f·cos against Mitsuba's `eval` at "
