@@ -181,7 +181,9 @@ DEV_SWEEP = (
         # 2000 steps: the latent, the weights per channel and the feature grid's slices
         # along the latent (since removed); `--setting latent=1 --setting weights=rgb ...`.
         # Chosen: latent 1, weights rgb.  The cost is against the compact file in the
-        # same run (a lobe table in the graph costs about 0.4x to 0.7x more)
+        # same run (a lobe table in the graph costs about 0.4x to 0.7x more).  Measured
+        # before the latent's start had its diffuse floor and before the table kept one
+        # column per head; results/textured_dev.json is the final recipe's run
         {
             "kind": kind,
             "lobes": k,

@@ -249,8 +249,10 @@ def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) ->
     count = model.field.lobes
     shared = f" (the {count} heads of one network)" if model.shared else ""
     latent = bool(getattr(model.field, "latent", 0))
-    at = "(s, wi)" if latent else "(wi)"
-    table = f"A+_k{at}, its own table over {'(s, theta)' if latent else 'the direction'}"
+    lat = "s, " if latent else ""
+    # conditioned lobes: one column per head, the largest of its channels' (conditioned.py)
+    per = "per head (the largest of its channels' bounds)" if latent else "per channel"
+    table = f"A+_k its own table over {'(s, theta)' if latent else 'the direction'}"
     form = (
         f" (a table whose largest node is <= {FOLD_LIMIT:g} is folded into a constant: "
         "raw_k / max(1, max A+_k))"
@@ -260,7 +262,7 @@ def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) ->
     return (
         f"f = sum_k z_k(uv) g_k with z_k >= 0, sum z_k <= 1 at every uv (bilinear blends "
         f"of texels included), and each of the {count} lobes{shared} "
-        f"g_k = raw_k / max(1, A+_k{at}, A+_k{at.replace('wi', 'wo')}) per channel, {table} "
+        f"g_k = raw_k / max(1, A+_k({lat}wi), A+_k({lat}wo)) {per}, {table} "
         f"(MIS quadrature + {n.sigmas:g} standard errors, neighbour maximum, times "
         f"(1 + {n.margin:g})){form}: the albedo is <= max_k A+_k / max(1, A+_k) <= 1 + margin"
     )

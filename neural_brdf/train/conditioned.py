@@ -85,9 +85,18 @@ def conditioned_albedo_table(
 class ConditionedNormalizedBRDF(nn.Module):
     """raw(wi, wo; s) / max(1, A+(s, wi), A+(s, wo)) (module doc); ``identity`` when no
     node exceeds 1 (the bilinear look-up is then <= 1 everywhere, as for
-    :class:`~neural_brdf.train.model.NormalizedBRDF`), and the graph carries no table."""
+    :class:`~neural_brdf.train.model.NormalizedBRDF`), and the graph carries no table.
 
-    table: torch.Tensor  # a buffer (register_buffer): (S, K, C)
+    One table per head, not per channel: the graph's table holds, for each head, the
+    largest of its three channels' A+ (``head_table``), so a look-up gathers H values
+    instead of 3H (the gathers are what a renderer pays for).  Each channel is then
+    divided by at least its own bound, so the argument above holds channel by channel;
+    a head whose channels exceed 1 unequally is dimmed a little more in the lesser ones.
+    ``table`` keeps the per-channel bounds (for the file's figures and the fold of
+    :class:`~neural_brdf.train.textured_model.ScaledBRDF`)."""
+
+    table: torch.Tensor  # buffers (register_buffer): (S, K, C) and (S * K, H)
+    head_table: torch.Tensor
 
     def __init__(self, raw: RawBRDF, table: torch.Tensor):
         super().__init__()
@@ -99,10 +108,13 @@ class ConditionedNormalizedBRDF(nn.Module):
         self.latent = raw.latent
         self.register_buffer("table", table.detach().float().clone())
         self.nodes = (int(table.shape[0]), int(table.shape[1]))  # (S, K): Python ints
+        self.heads = max(1, int(table.shape[-1]) // 3)
+        per_head = self.table.reshape(self.nodes[0] * self.nodes[1], self.heads, -1).amax(-1)
+        self.register_buffer("head_table", per_head.contiguous())
         self.identity = bool((self.table <= 1.0).all())
 
     def lookup(self, w: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        """(N, 3), (N, 1) -> (N, C): bilinear in (s, x), x = theta / (pi / 2)."""
+        """(N, 3), (N, 1) -> (N, H): bilinear in (s, x), x = theta / (pi / 2)."""
         ns, k = self.nodes
         ts = s[..., 0] * (ns - 1)
         tx = table_coords(w, False) * (k - 1)
@@ -110,7 +122,7 @@ class ConditionedNormalizedBRDF(nn.Module):
         j0 = torch.floor(tx).clamp(0, k - 2)
         a, b = (ts - i0)[..., None], (tx - j0)[..., None]
         j = i0.long() * k + j0.long()  # flat index of the (s0, x0) corner
-        tb = self.table.reshape(ns * k, self.table.shape[-1])
+        tb = self.head_table
         return (
             tb[j] * (1 - a) * (1 - b)
             + tb[j + k] * a * (1 - b)
@@ -122,8 +134,12 @@ class ConditionedNormalizedBRDF(nn.Module):
         f = self.raw(wi, wo, s)
         if self.identity:
             return f
-        denom = torch.maximum(self.lookup(wi, s), self.lookup(wo, s)).clamp_min(1.0)
-        return f / denom
+        denom = torch.maximum(self.lookup(wi, s), self.lookup(wo, s)).clamp_min(1.0)  # (N, H)
+        if self.heads == 1:
+            return f / denom
+        return torch.cat(
+            [f[:, 3 * h : 3 * h + 3] / denom[:, h : h + 1] for h in range(self.heads)], -1
+        )
 
 
 def normalized_conditioned(

@@ -126,15 +126,20 @@ def _model_and_optimizer(
 
 
 # the latent's start (latent_from_teacher): the lobe's fall-off from the mirror
-# direction at normal incidence, between wo = n and wo tilted by this angle
+# direction at normal incidence, between wo = n and wo tilted by LATENT_TILT_DEG, above
+# the value at LATENT_FLOOR_DEG (a floor that removes a broad diffuse part, so that the
+# start follows the glossy lobe's width, not its share: on the development principled
+# 9.6 % and 12.9 % held-out error for two seeds, against 10.6 % and 13.4 % without it)
 LATENT_TILT_DEG = 15.0
+LATENT_FLOOR_DEG = 60.0
 
 
 def latent_from_teacher(teacher: Any, resolution: int) -> torch.Tensor:
     """A start for the field's latent logits, [R*R, 1] (docs/model.md, "Conditioned
     lobes"): at each texel centre, how sharply the teacher's lobe falls off,
-    log((f(n, n) + e) / (f(n, w) + e)) (channel mean, w tilted by
-    :data:`LATENT_TILT_DEG` from the normal n), ranked over the texels and mapped to
+    log((f(n, n) - f(n, w') + e) / (f(n, w) - f(n, w') + e)) (channel means, w tilted by
+    :data:`LATENT_TILT_DEG` from the normal n, w' by :data:`LATENT_FLOOR_DEG`: a
+    diffuse floor removed), ranked over the texels and mapped to
     s = (rank + 0.5) / R^2, so that s spans [0, 1] and orders the texels from the
     broadest lobe (s near 0) to the sharpest (s near 1).  Any teacher works: it asks
     only ``eval``.  Without this start every texel's s sits at 0.5, the lobes' slices
@@ -148,8 +153,11 @@ def latent_from_teacher(teacher: Any, resolution: int) -> torch.Tensor:
     w = np.tile([math.sin(t), 0.0, math.cos(t)], (r * r, 1))
     f0 = np.nan_to_num(np.asarray(teacher.eval(n, n, uv), dtype=np.float64)).mean(-1)
     f1 = np.nan_to_num(np.asarray(teacher.eval(n, w, uv), dtype=np.float64)).mean(-1)
+    t2 = math.radians(LATENT_FLOOR_DEG)
+    w2 = np.tile([math.sin(t2), 0.0, math.cos(t2)], (r * r, 1))
+    f2 = np.nan_to_num(np.asarray(teacher.eval(n, w2, uv), dtype=np.float64)).mean(-1)
     e = 1e-3 * max(float(np.abs(f0).mean()), 1e-6)
-    sharp = np.log((np.maximum(f0, 0.0) + e) / (np.maximum(f1, 0.0) + e))
+    sharp = np.log((np.maximum(f0 - f2, 0.0) + e) / (np.maximum(f1 - f2, 0.0) + e))
     rank = np.argsort(np.argsort(sharp, kind="stable"), kind="stable")
     s = (rank + 0.5) / (r * r)
     return torch.from_numpy(np.log(s / (1.0 - s))).float()[:, None]
