@@ -89,7 +89,13 @@ from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.loop import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
-from neural_brdf.train.textured_model import TexturedBRDF, exportable
+from neural_brdf.train.textured_model import (
+    FOLD_LIMIT,
+    NORMALIZED,
+    ScaledBRDF,
+    TexturedBRDF,
+    exportable,
+)
 from neural_brdf.version import __version__
 
 PRODUCER = f"{PRODUCER_NAME} {__version__}"  # the ``producer`` metadata entry
@@ -241,8 +247,6 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
 def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) -> str:
     """The ``normalization`` entry of a textured file (docs/model.md, "Spatially varying
     models: the contract")."""
-    from neural_brdf.train.textured_model import FOLD_LIMIT, NORMALIZED, ScaledBRDF
-
     lobes = [lobe for lobe in model.lobes if isinstance(lobe, NORMALIZED)]
     if not lobes:
         return "none: each lobe is its raw network (normalization.enabled: false, an ablation)"
@@ -640,9 +644,9 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
 
     tx = cfg.texture
     # the checkpoint's own layout decides (a run of separate lobes has lobes.1.*)
-    separate = any(k.startswith("lobes.1.") for k in ckpt["model"])
-    # and so does its latent (conditioned lobes have field.latent_logits)
     state = ckpt["model"]
+    separate = any(k.startswith("lobes.1.") for k in state)
+    # and so does its latent (conditioned lobes have field.latent_logits)
     latent = int(state["field.latent_logits"].shape[1]) if "field.latent_logits" in state else 0
     model = TexturedBRDF(
         lobe_networks(cfg.model, tx.lobes, not separate and tx.lobes > 1, latent=latent),

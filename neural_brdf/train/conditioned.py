@@ -32,10 +32,15 @@ from typing import Any
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from neural_brdf.physics import quadrature
-from neural_brdf.train.model import RawBRDF, node_directions, table_coords
+from neural_brdf.train.model import (
+    RawBRDF,
+    bilinear_corners,
+    neighbour_max_2d,
+    node_directions,
+    table_coords,
+)
 
 
 class _AtLatent(nn.Module):
@@ -77,8 +82,7 @@ def conditioned_albedo_table(
             est.append(a)
             errs.append(err)
     a, err = torch.stack(est), torch.stack(errs)  # (S, K, C)
-    upper = (a + sigmas * err).permute(2, 0, 1)[None]  # (1, C, S, K)
-    upper = F.max_pool2d(upper, 3, stride=1, padding=1)[0].permute(1, 2, 0)
+    upper = neighbour_max_2d(a + sigmas * err)
     return (upper * (1.0 + margin)).float(), a, err
 
 
@@ -105,7 +109,6 @@ class ConditionedNormalizedBRDF(nn.Module):
             raise ValueError(f"ConditionedNormalizedBRDF: table (S, K, C), got {shape}")
         self.raw = raw
         self.anisotropic = False
-        self.latent = raw.latent
         self.register_buffer("table", table.detach().float().clone())
         self.nodes = (int(table.shape[0]), int(table.shape[1]))  # (S, K): Python ints
         self.heads = max(1, int(table.shape[-1]) // 3)
@@ -122,13 +125,7 @@ class ConditionedNormalizedBRDF(nn.Module):
         j0 = torch.floor(tx).clamp(0, k - 2)
         a, b = (ts - i0)[..., None], (tx - j0)[..., None]
         j = i0.long() * k + j0.long()  # flat index of the (s0, x0) corner
-        tb = self.head_table
-        return (
-            tb[j] * (1 - a) * (1 - b)
-            + tb[j + k] * a * (1 - b)
-            + tb[j + 1] * (1 - a) * b
-            + tb[j + k + 1] * a * b
-        )
+        return bilinear_corners(self.head_table, j, k, a, b)
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         f = self.raw(wi, wo, s)

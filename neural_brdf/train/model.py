@@ -119,14 +119,30 @@ class FeatureGrid(nn.Module):
         i0 = torch.floor(tu).clamp(0, k - 2)
         j0 = torch.floor(tv).clamp(0, k - 2)
         au, av = (tu - i0)[..., None], (tv - j0)[..., None]
-        j = i0.long() * k + j0.long()
-        tb = self.table
-        return (
-            tb[j] * (1 - au) * (1 - av)
-            + tb[j + k] * au * (1 - av)
-            + tb[j + 1] * (1 - au) * av
-            + tb[j + k + 1] * au * av
-        )
+        return bilinear_corners(self.table, i0.long() * k + j0.long(), k, au, av)
+
+
+def bilinear_corners(
+    tb: torch.Tensor, j: torch.Tensor, stride: int, a: torch.Tensor, b: torch.Tensor
+) -> torch.Tensor:
+    """The bilinear blend of a row-major 2-D table ``tb`` [rows, C] at the cell whose
+    first corner is row ``j`` (N,), ``stride`` rows per step of the first axis, with
+    weights ``a`` (first axis) and ``b`` (second), each (N, 1): the four Gathers of every
+    grid and table look-up of the model (FeatureGrid, NormalizedBRDF's anisotropic
+    table, conditioned lobes' (s, theta) table)."""
+    return (
+        tb[j] * (1 - a) * (1 - b)
+        + tb[j + stride] * a * (1 - b)
+        + tb[j + 1] * (1 - a) * b
+        + tb[j + stride + 1] * a * b
+    )
+
+
+def neighbour_max_2d(upper: torch.Tensor) -> torch.Tensor:
+    """(A, B, C) -> (A, B, C): each node the maximum over its 3 x 3 neighbours (the
+    table bound of docs/model.md, "Energy conservation that stays reciprocal")."""
+    pooled = F.max_pool2d(upper.permute(2, 0, 1)[None], 3, stride=1, padding=1)
+    return pooled[0].permute(1, 2, 0)
 
 
 class RawBRDF(nn.Module):
@@ -344,8 +360,7 @@ def albedo_table(
         a, err = quadrature.albedo(raw, dirs, samples, seed=seed, target=target)
     upper = a + sigmas * err
     if anisotropic:
-        upper = upper.reshape(size, size, -1).permute(2, 0, 1)[None]  # (1, C, K, K)
-        upper = F.max_pool2d(upper, 3, stride=1, padding=1)[0].permute(1, 2, 0)
+        upper = neighbour_max_2d(upper.reshape(size, size, -1))  # (K, K, C)
     else:
         upper = F.max_pool1d(upper.T[None], 3, stride=1, padding=1)[0].T  # (K, 3)
     return (upper * (1.0 + margin)).float(), a, err
@@ -384,14 +399,8 @@ class NormalizedBRDF(nn.Module):
         a = t - i0
         i0 = i0.long()
         j = i0[..., 0] * k + i0[..., 1]  # flat index of the (x0, y0) corner
-        ax, ay = a[..., 0:1], a[..., 1:2]
         tb = self.table.reshape(k * k, self.table.shape[-1])
-        return (
-            tb[j] * (1 - ax) * (1 - ay)
-            + tb[j + k] * ax * (1 - ay)
-            + tb[j + 1] * (1 - ax) * ay
-            + tb[j + k + 1] * ax * ay
-        )
+        return bilinear_corners(tb, j, k, a[..., 0:1], a[..., 1:2])
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         f = self.raw(wi, wo)

@@ -149,13 +149,13 @@ def latent_from_teacher(teacher: Any, resolution: int) -> torch.Tensor:
     j = (np.arange(r * r) // r + 0.5) / r
     uv = np.stack([i, j], -1)  # row-major [v, u]: texel j * R + i
     n = np.tile([0.0, 0.0, 1.0], (r * r, 1))
-    t = math.radians(LATENT_TILT_DEG)
-    w = np.tile([math.sin(t), 0.0, math.cos(t)], (r * r, 1))
-    f0 = np.nan_to_num(np.asarray(teacher.eval(n, n, uv), dtype=np.float64)).mean(-1)
-    f1 = np.nan_to_num(np.asarray(teacher.eval(n, w, uv), dtype=np.float64)).mean(-1)
-    t2 = math.radians(LATENT_FLOOR_DEG)
-    w2 = np.tile([math.sin(t2), 0.0, math.cos(t2)], (r * r, 1))
-    f2 = np.nan_to_num(np.asarray(teacher.eval(n, w2, uv), dtype=np.float64)).mean(-1)
+
+    def at(deg: float) -> np.ndarray:  # f(n, wo tilted by deg) at every texel, channel mean
+        t = math.radians(deg)
+        wo = np.tile([math.sin(t), 0.0, math.cos(t)], (r * r, 1))
+        return np.nan_to_num(np.asarray(teacher.eval(n, wo, uv), dtype=np.float64)).mean(-1)
+
+    f0, f1, f2 = at(0.0), at(LATENT_TILT_DEG), at(LATENT_FLOOR_DEG)
     e = 1e-3 * max(float(np.abs(f0).mean()), 1e-6)
     sharp = np.log((np.maximum(f0 - f2, 0.0) + e) / (np.maximum(f1 - f2, 0.0) + e))
     rank = np.argsort(np.argsort(sharp, kind="stable"), kind="stable")

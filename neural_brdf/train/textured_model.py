@@ -320,7 +320,6 @@ class ScaledBRDF(nn.Module):
         super().__init__()
         self.raw = raw
         self.anisotropic = bool(getattr(raw, "anisotropic", False))
-        self.latent = int(getattr(raw, "latent", 0))
         peak = table.reshape(-1, table.shape[-1]).amax(0).clamp_min(1.0)
         self.register_buffer("scale", (1.0 / peak).float())
         self.identity = False
