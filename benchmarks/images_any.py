@@ -400,6 +400,23 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     }
 
 
+def machine(mi) -> dict:
+    """Where the run is (the GPU's name in a CUDA variant) and its load now."""
+    out = {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "mitsuba": mi.__version__,
+        "variant": mi.variant(),
+        "cpus": os.cpu_count(),
+        "loadavg_end": loadavg(),
+    }
+    if mi.variant().startswith("cuda"):
+        import torch
+
+        out["gpu"] = torch.cuda.get_device_name(0)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", dest="which", choices=tuple(SETS), default="test")
@@ -415,7 +432,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "nbrdf-images-any")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--resume", action="store_true", help="keep --work's finished materials")
+    ap.add_argument(
+        "--variant",
+        default="llvm_ad_rgb",
+        choices=("llvm_ad_rgb", "cuda_ad_rgb"),
+        help="Mitsuba's variant of every render and fit (cuda_ad_rgb: train.device cuda too)",
+    )
     args = ap.parse_args(argv)
+    if args.variant != "llvm_ad_rgb":  # the fits follow the variant (target.variant)
+        device = "cuda" if args.variant.startswith("cuda") else "cpu"
+        args.set_key = [f"target.variant={args.variant}", f"train.device={device}", *args.set_key]
     out = args.out or RESULTS / (
         "images_any.json" if args.which == "test" else "images_any_dev.json"
     )
@@ -423,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     from neural_brdf.inverse import fit as inverse
     from neural_brdf.inverse import scene
 
-    mi = inverse.use_variant("llvm_ad_rgb")
+    mi = inverse.use_variant(args.variant)
     import neural_brdf.renderers.mitsuba  # noqa: F401  (registers analytic_brdf for the variant)
 
     work = args.work / args.which
@@ -458,6 +484,8 @@ def main(argv: list[str] | None = None) -> int:
         "psnr_definition": "10 log10(peak^2 / MSE) of linear RGB over the sphere's pixels "
         "(centre ray on the sphere, 2-pixel erosion); peak = the reference's max there",
         "materials": {},
+        "machine": machine(mi),  # again at the end; here so that a run cut short has it
+        "date": time.strftime("%Y-%m-%dT%H:%M:%S"),  # the start; the end's when it finishes
     }
     for name, spec in chosen.items():
         done = work / name / "result.json"
@@ -467,6 +495,7 @@ def main(argv: list[str] | None = None) -> int:
             entry = measure(name, spec, args, work, envs)
             write_json(done, entry)
         result["materials"][name] = entry
+        write_json(out, result)  # so far: a run cut short keeps its finished materials
         net = entry["images"]["relit"]["network"]
         brdf = entry["brdf"]["cap_0.5"]["network"]
         print(
@@ -475,14 +504,7 @@ def main(argv: list[str] | None = None) -> int:
             f"fit {entry['seconds']['fit'] or float('nan'):.0f} s",
             flush=True,
         )
-    result["machine"] = {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "mitsuba": mi.__version__,
-        "variant": mi.variant(),
-        "cpus": os.cpu_count(),
-        "loadavg_end": loadavg(),
-    }
+    result["machine"] = machine(mi)
     result["date"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     write_json(out, result)
     print(f"wrote {out}")

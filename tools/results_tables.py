@@ -1559,6 +1559,58 @@ def images_cuda_section(d: dict) -> list[str]:
     ]
 
 
+def textured_cost_section(d: dict) -> list[str]:
+    """issue 30's render cost on another machine (benchmarks/gpu/textured_cost.py)."""
+    st = d["settings"]
+    out = [
+        f"## GPU (one H100): textured render cost, `{d['variant']}`",
+        "",
+        _source(
+            "benchmarks/results/cuda/textured_cost.json",
+            "benchmarks/gpu/run.sh (python benchmarks/gpu/textured_cost.py "
+            f"--variant {d['variant']})",
+        ),
+        _recorded(d["date"], f"{d['device']}, `{d['variant']}`", None),
+        "The test set's files of `benchmarks/textured.py` (trained on a CPU with its recipe: "
+        f"K = {st['lobes']}, weights {st['weights']}, latent {st['latent']}, "
+        f"{st['resolution']}² field) in the BSDF-bound scene of `benchmarks/bsdf_bound.py`, "
+        "beside the homogeneous principled's compact file and Mitsuba's own textured "
+        "principled (whole, and its nested BSDF without the normal map); interleaved rounds "
+        "in rotating order after one compiling render each, best of the rounds. At 256² the "
+        "GPU renders every BSDF in the same time (launch-bound): the 1024² row is the one "
+        "where the BSDF is the cost.",
+        "",
+    ]
+    rows = []
+    for c in d["sizes"].values():
+        b, r = c["best_s"], c["ratios"]
+        rows.append(
+            [
+                f"{c['resolution']}², {c['spp']} spp",
+                f"{b['neural principled_plain']:.3f} s",
+                f"{b['neural principled_textured']:.3f} s",
+                f"{b['neural roughplastic_textured']:.3f} s",
+                f"{b['mitsuba principled_textured']:.3f} s",
+                f"{r['textured_principled_vs_compact']:.2f}x",
+                f"{r['textured_roughplastic_vs_compact']:.2f}x",
+                f"{r['textured_principled_vs_mitsuba']:.2f}x",
+            ]
+        )
+    return out + _table(
+        [
+            "size",
+            "compact (homogeneous)",
+            "textured principled",
+            "textured roughplastic",
+            "Mitsuba textured principled",
+            "principled / compact",
+            "roughplastic / compact",
+            "principled / Mitsuba's",
+        ],
+        rows,
+    )
+
+
 # ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
@@ -1614,6 +1666,16 @@ SECTIONS = (
         ),
     ),
     (RESULTS / "cuda" / "images_fit.json", images_cuda_section),
+    (RESULTS / "cuda" / "textured_cost.json", textured_cost_section),
+    (
+        RESULTS / "cuda" / "images_any.json",
+        _elsewhere(
+            partial(images_any_section, name="cuda/images_any.json"),
+            "benchmarks/results/cuda/images_any.json",
+            "GPU (one H100): images of any material in cuda_ad_rgb (cut short)",
+            "benchmarks/gpu/run.sh (python benchmarks/images_any.py --variant cuda_ad_rgb)",
+        ),
+    ),
 )
 
 

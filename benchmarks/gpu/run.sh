@@ -6,9 +6,13 @@
 # b. training speed on CUDA (benchmarks/training_speed.py --device cuda), plus a CPU
 #    baseline of gold on the same machine
 # c. an images fit (inverse rendering) in cuda_ad_rgb on the example scenes
-# Everything lands in $OUT (at most 8 files): log.txt, env.txt, bsdf_bound_cuda.json,
+# d. issue 30: textured files against the compact file and Mitsuba's textured principled
+#    (benchmarks/gpu/textured_cost.py; its --train makes the files on a CPU first)
+# e. issue 29: benchmarks/images_any.py --variant cuda_ad_rgb on $IMAGES_ONLY
+# PARTS="presets textured images_any" picks (a)-(c), (d), (e).
+# Everything lands in $OUT: log.txt, env.txt, bsdf_bound_cuda.json,
 # bsdf_bound_cuda_large.json, images_cuda_metrics.json, images_cuda_log.csv,
-# training_speed_cuda.json, training_speed_cpu.json.
+# training_speed_cuda.json, training_speed_cpu.json, textured_cost.json, images_any_cuda.json.
 # A dry run on a CPU machine: VARIANT=llvm_ad_rgb SKIP_WHEELS=1 SMALL=1 OUT=/tmp/gpuout bash benchmarks/gpu/run.sh
 set -uo pipefail
 export PYTHONUNBUFFERED=1
@@ -16,6 +20,8 @@ cd "$(dirname "$0")/../.." || exit 1  # the repo root
 
 VARIANT=${VARIANT:-cuda_ad_rgb}
 case "$VARIANT" in cuda_*) DEVICE=cuda ;; *) DEVICE=cpu ;; esac
+PARTS=${PARTS:-presets textured images_any}  # which of (a)-(c), (d), (e) to run
+IMAGES_ONLY=${IMAGES_ONLY:-orange_plastic brushed_gold}  # (e)'s materials
 SMALL=${SMALL:-0}          # 1: tiny sizes, for a dry run on a CPU
 BUDGET=${BUDGET:-360}      # seconds: a step is skipped, or cut short, past this
 OUT=${OUT:?set OUT}
@@ -28,13 +34,16 @@ if [ "$SMALL" = 1 ]; then
   TS_STEPS=100; TS_REP=1; TS_MANY=2
   EX_RES=32; EX_SPP=32; EX_STEPS=10; EX_START_TRAIN=300; EX_EXTRA=(--set images.start_steps=20)
   MODEL_SET=(--set train.steps=300)
+  IA_STEPS=10
 else
   RES=256; SPP=64; REP=4; RES_L=1024; SPP_L=128
   TS_STEPS=500; TS_REP=2; TS_MANY=8
   EX_RES=96; EX_SPP=128; EX_STEPS=60; EX_START_TRAIN=300; EX_EXTRA=()
   MODEL_SET=()
+  IA_STEPS=150
 fi
 
+want() { case " $PARTS " in *" $1 "*) return 0 ;; esac; return 1; }
 left() { echo $((BUDGET - ($(date +%s) - T0))); }
 # step NAME MAX_SECONDS CMD...: run CMD under timeout min(MAX, time left); never stops the script
 step() {
@@ -88,6 +97,7 @@ print("set_variant", mi.variant(), "cornell box mean", dr.mean(img, axis=None),
       f"{time.perf_counter() - t:.2f} s")
 EOF
 
+if want presets; then
 # models for (a): the compact gold preset (32 relu + 32x32x4 grid) and the 3x64 silu MLP,
 # trained on the CPU side by side (the render benchmark needs their files, not their speed)
 M=$WORK/models
@@ -137,6 +147,24 @@ step training-speed-many 70 python3 benchmarks/training_speed.py quickstart --de
   --steps $TS_STEPS --repeats 1 --phases 1 --many $TS_MANY --out "$OUT/training_speed_cuda.json"
 step training-speed-cpu 60 python3 benchmarks/training_speed.py gold --device cpu \
   --steps $TS_STEPS --repeats $TS_REP --phases 1 --many 0 --out "$OUT/training_speed_cpu.json"
+
+fi
+
+# (d) issue 30: the textured files (trained on a CPU: --models, benchmarks/gpu/textured_cost.py
+#     --train) against the compact file and Mitsuba's textured principled, in $VARIANT
+if want textured; then
+  step textured-cost 200 python3 benchmarks/gpu/textured_cost.py --variant "$VARIANT" \
+    --models "${TEXTURED_MODELS:-runs/gpu_models}" --repeats $REP --out "$OUT/textured_cost.json" \
+    --size ${RES}x${SPP} --size ${RES_L}x${SPP_L}
+fi
+
+# (e) issue 29: images of materials the project never saw (benchmarks/images_any.py), the
+#     fits and renders in $VARIANT, the materials in $IMAGES_ONLY
+if want images_any; then
+  only=(); for m in $IMAGES_ONLY; do only+=(--only "$m"); done
+  step images-any 300 python3 benchmarks/images_any.py --variant "$VARIANT" "${only[@]}" \
+    --steps $IA_STEPS --work "$WORK/images_any" --out "$OUT/images_any_cuda.json"
+fi
 
 echo "=== done in $(( $(date +%s) - T0 ))s; files:"; ls -la "$OUT"
 rm -rf "$WORK"
