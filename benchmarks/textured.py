@@ -22,7 +22,7 @@ R = 256, 128, 64, 32 and 128 with 4000 steps; R = 64 gave the best image on both
 36.0 and 47.1 dB, and 15.4 % and 1.84 %); then K = 4 (against 6) for the render cost:
 1.49x and 1.47x the compact file against 1.68x and 1.65x, the same errors, the
 principled's image 3.5 dB lower (32.5 against 36.0 dB, both short of the goal);
-2000 steps were set for run time, not chosen on any figure.  Then, with the pool's wi
+2000 steps were set for run time then (later chosen again, below).  Then, with the pool's wi
 uniform (it was cosine-distributed; the grazing pairs carried 98 % of the principled's
 squared error), the conditioned lobes (``latent``: 1, docs/model.md) and per-channel
 weights (``weights``: rgb) on the development set (the last rows of DEV_SWEEP): with
@@ -31,7 +31,12 @@ both, the principled's error fell from 12.5 % to 8.6 % and its image rose from 3
 per lobe gave 9.8 % and 35.5 dB, a feature grid of 8 slices along the latent 9.6 % and
 37.3 dB, and K = 3 9.9 % and 37.4 dB: latent and rgb weights with K = 4 were chosen, for
 accuracy; their render cost on the development set was 1.80x and 1.72x the compact file
-(the goal is 1.5x), against 1.47x for the recipe before.  The
+(the goal is 1.5x), against 1.47x for the recipe before.  Then lr 0.01 with 4000 steps
+(against 0.03 with 2000), chosen on fixed sets of development pairs over two training
+seeds, and ``lobe_bound: scale`` (each lobe bounded by one constant, trained with it:
+docs/model.md), chosen for the render cost: on the development principled 11.8 % and
+41.7 dB at 1.70x the compact file, against 14.1 % and 38.3 dB for the recipe before and
+10.8 % and 42.6 dB at 2.35x with a table (DEV_SWEEP's last rows).  The
 lobe network (``texture.lobe_network: shared``, one network with K heads) was chosen on
 the development teachers by benchmarks/textured_lobes.py (results/textured_lobes_dev.json:
 held-out error 36.0 % against 43.4 % (principled) and 5.5 % against 9.6 %
@@ -41,10 +46,14 @@ A textured model is ``train_textured`` (2 torch threads), each lobe normalised
 (``normalized_textured``) and exported with the inputs (wi, wo, uv) (``exportable``,
 ``export.to_onnx_bytes``).  Measured per teacher, from the ONNX file:
 
-* **accuracy**: the relative RMSE of f cos(theta_o) against Mitsuba's ``eval`` at 20,000
+* **accuracy**: the relative RMSE of f cos(theta_o) against Mitsuba's ``eval`` at 200,000
   pairs drawn as the training's validation draws them: uv uniform in [0, 1)^2, wi uniform
   on the hemisphere, wo uniform for half the pairs and from the teacher's own sampler for
-  the other half (goals: 3 % textured, 2 % homogeneous);
+  the other half (goals: 3 % textured, 2 % homogeneous).  The issue names 20,000 pairs;
+  f cos is heavy-tailed at the sharp texels (a few sampled pairs carry much of the squared
+  error), and on the development principled two draws of 40,000 pairs gave 9.1 and 12.3 %
+  for one model.  So the figure is over ten times as many, and the ten interleaved blocks
+  of 20,000 are kept beside it (``rel_rmse_blocks``: the spread a 20,000-pair figure has);
 * **physics** at 10,000 random uv between the weight field's texel centres (a texel
   centre plus a uniform offset in (0, 1) texel along each axis): reciprocity, the largest
   |f(wi, wo, uv) - f(wo, wi, uv)| / max(|f|) over one random pair per uv and the three
@@ -120,11 +129,13 @@ SETTINGS = {
     "lobe_network": "shared",  # chosen on the development set: textured_lobes.py
     "resolution": 64,  # chosen on the development set with shared lobes: DEV_SWEEP
     "hidden": [32],
-    "steps": 2000,
+    "steps": 4000,  # chosen on the development set with lr: DEV_SWEEP's last rows
     "batch": 8192,
     "pool": 1 << 21,
     "weights": "rgb",  # chosen on the development set: DEV_SWEEP's last rows
     "latent": 1,  # chosen on the development set: DEV_SWEEP's last rows
+    "lr": 0.01,  # chosen on the development set: DEV_SWEEP's last rows
+    "lobe_bound": "scale",  # chosen on the development set: DEV_SWEEP's last rows
 }
 # (kind, K, R, steps, batch, pool) -> ``train_textured``'s held-out relative RMSE of
 # f cos on the development teacher (seed 1, 512^2), 2 threads
@@ -210,6 +221,62 @@ DEV_SWEEP = (
             ("roughplastic", 3, 1, "rgb", 1, 0.0151, 46.9, 1.537, False),
         )
     ]
+    + [
+        # then the learning rate and the steps (K 4, R 64, latent 1, weights rgb), on the
+        # development principled through train_textured (/tmp experiment, 2 threads).
+        # First by the training's own held-out error ("val", 20,000 pairs, seed 0 only):
+        # lr 0.03 with 6000 steps 9.7 % (2000: 9.0 %); lr 0.01 7.7 %; with 4000 steps
+        # 5.9 %; field lr scale 3 7.3 %, 1 17 %; hidden [64, 64] at lr 0.01 7.2 %; K 6
+        # 7.6 %.  Two training seeds then differed by more than the settings (lr 0.01,
+        # 4000 steps: 5.9 and 11.6 %), and two draws of 40,000 pairs by 9.1 and 12.3 % for
+        # one model: the figure is heavy-tailed.  So the choice was made on two fixed sets
+        # of 200,000 development pairs (validation's draw, seeds 900 and 901), the same for
+        # every model (paired), over two training seeds: lr 0.01 with 4000 steps was lower
+        # on all four pairs of figures (mean 10.5 % against 13.2 %), and lr 0.01 with 2000
+        # steps on both sets of seed 0.  Chosen: lr 0.01, 4000 steps (train time ~1 min)
+        {
+            "kind": "principled",
+            "lr": lr,
+            "steps": steps,
+            "seed": seed,
+            "rel_rmse_fixed_sets": [a, b],
+        }
+        for lr, steps, seed, a, b in (
+            (0.03, 2000, 0, 0.1605, 0.1105),
+            (0.03, 2000, 1, 0.1295, 0.1282),
+            (0.01, 2000, 0, 0.1380, 0.1055),
+            (0.01, 4000, 0, 0.1270, 0.0930),
+            (0.01, 4000, 1, 0.1037, 0.0957),
+        )
+    ]
+    + [
+        # then this benchmark on the development set (200,000 pairs; the same pairs and
+        # renders for every row, so the rows are paired): the recipe before (lr 0.03,
+        # 2000 steps), lr 0.01 with 4000 steps, and that with texture.lobe_bound: scale
+        # (docs/model.md, "The lobes' bound").  The table kept by the second costs 2.35x
+        # the compact file; the constant 1.70x for 0.9 points of error and 0.9 dB, both
+        # still better than the recipe before: chosen for the cost.  "blocks": the lowest
+        # and highest of ten blocks of 20,000 pairs.  The third row's training time (306 s)
+        # shared the 2 cores with a test run; its render cost did not
+        {
+            "kind": kind,
+            "lr": lr,
+            "steps": steps,
+            "lobe_bound": bound,
+            "rel_rmse": e,
+            "blocks": blocks,
+            "psnr_db": db,
+            "cost_vs_compact": cost,
+        }
+        for kind, lr, steps, bound, e, blocks, db, cost in (
+            ("principled", 0.03, 2000, "table", 0.1409, (0.0876, 0.1828), 38.3, 1.737),
+            ("roughplastic", 0.03, 2000, "table", 0.0161, (0.0132, 0.0196), 46.9, 1.781),
+            ("principled", 0.01, 4000, "table", 0.1078, (0.0588, 0.1515), 42.6, 2.348),
+            ("roughplastic", 0.01, 4000, "table", 0.0170, (0.0143, 0.0201), 47.1, 1.775),
+            ("principled", 0.01, 4000, "scale", 0.1176, (0.0723, 0.1518), 41.7, 1.698),
+            ("roughplastic", 0.01, 4000, "scale", 0.0173, (0.0145, 0.0204), 47.0, 1.708),
+        )
+    ]
 )
 QUICK = {
     "lobes": 2,
@@ -255,7 +322,8 @@ GOALS = {
     "cost_vs_compact": 1.5,
     "train_seconds": 600.0,
 }
-ACCURACY_PAIRS = 20_000
+ACCURACY_PAIRS = 200_000  # the issue's 20,000 ten times (ACCURACY_BLOCKS)
+ACCURACY_BLOCKS = 10
 PHYSICS_UV = 10_000
 FURNACE_THETA = (10.0, 50.0, 80.0)
 FURNACE_SIDE = 32  # 32 x 32 stratified samples per incidence
@@ -341,9 +409,11 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
         lobe_network=settings.get("lobe_network", "separate"),
         weights=settings.get("weights", "scalar"),
         latent=settings.get("latent", 0),
+        lr=settings.get("lr", 3e-2),
+        lobe_bound=settings.get("lobe_bound", "table"),
     )
     t1 = time.perf_counter()
-    model, tables = normalized_textured(model)
+    model, tables = normalized_textured(model, bound=settings.get("lobe_bound", "table"))
     # the same lobes and weights without and with the teacher's normal field
     bare = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1])
     (folder / "bare.onnx").write_bytes(bare)
@@ -437,9 +507,21 @@ def accuracy(f: OnnxFile, teacher, n: int, seed: int) -> dict:
         d = (got[part] - ref[part]) * cos[part]
         return float(np.linalg.norm(d) / np.linalg.norm(ref[part] * cos[part]))
 
+    # the spread of the figure: the same pairs in ACCURACY_BLOCKS blocks, each half uniform
+    # and half sampled as the whole (f cos is heavy-tailed at sharp lobes, so a figure from
+    # 20,000 pairs, the issue's count, moves by tens of per cent between draws)
+    blocks = []
+    for b in range(ACCURACY_BLOCKS):
+        u = np.arange(b, half, ACCURACY_BLOCKS)
+        d = np.concatenate([u, half + np.arange(b, n - half, ACCURACY_BLOCKS)])
+        blocks.append(
+            float(np.linalg.norm((got[d] - ref[d]) * cos[d]) / np.linalg.norm(ref[d] * cos[d]))
+        )
     return {
         "pairs": n,
         "rel_rmse": rel(slice(None)),
+        "rel_rmse_blocks": blocks,
+        "block_pairs": n // ACCURACY_BLOCKS,
         "rel_rmse_uniform_wo": rel(slice(0, half)),
         "rel_rmse_sampled_wo": rel(slice(half, n)),
     }
@@ -774,9 +856,9 @@ def main(argv: list[str] | None = None) -> int:
         "sets": {
             "dev": "write_teacher(principled | roughplastic, size 512, seed 1) and "
             "configs/mitsuba/roughplastic.xml (homogeneous): the shared lobe network "
-            "(textured_lobes_dev.json), R = 64, K = 4, the latent and rgb weights "
-            "(dev_sweep) were chosen here; "
-            "2000 steps were set for run time; nothing on the test set",
+            "(textured_lobes_dev.json), R = 64, K = 4, the latent and rgb weights, "
+            "lr 0.01 with 4000 steps and the lobes' constant bound (dev_sweep) were "
+            "chosen here; nothing on the test set",
             "test": "write_teacher(principled | roughplastic, size 512, seed 0) and two "
             "homogeneous teachers written by the benchmark (roughplastic_plain, "
             "principled_plain): measured once, not tuned on",

@@ -324,6 +324,12 @@ class Texture(_Section):
     # (conditioned lobes: a head can follow a roughness map; normalised by a table over
     # (s, theta): docs/model.md, "Conditioned lobes"); isotropic encodings only
     latent: int = Field(0, ge=0, le=1)
+    # how each lobe's albedo is bounded in the file (docs/model.md, "The lobes' bound"):
+    # table, A+ looked up per evaluation (a constant instead when its largest node is at
+    # most 1.02); scale, always one constant per head, 1 / max(1, its largest A+), and
+    # training sees that constant too (re-estimated every 100 steps), so the lobes learn
+    # within it and a renderer pays one multiply instead of the table's look-ups
+    lobe_bound: Literal["table", "scale"] = "table"
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random

@@ -673,7 +673,10 @@ def _export_textured(
     if measure is None:
         raise TypeError("export_run: a textured run needs measure_textured")
     model, tables = normalized_textured(
-        textured_from_checkpoint(ckpt, cfg), cfg.normalization, seed=cfg.train.seed
+        textured_from_checkpoint(ckpt, cfg),
+        cfg.normalization,
+        seed=cfg.train.seed,
+        bound=cfg.texture.lobe_bound,
     )
     built = build_textured(with_normal_field(model, target), cfg)
     phys = measure(

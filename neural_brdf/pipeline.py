@@ -184,7 +184,9 @@ def finish_textured(
             f"{excess['at_uv']}); the model learns its energy-bounded version",
             file=sys.stderr,
         )
-    normalized, tables = normalized_textured(model, cfg.normalization, seed=cfg.train.seed)
+    normalized, tables = normalized_textured(
+        model, cfg.normalization, seed=cfg.train.seed, bound=cfg.texture.lobe_bound
+    )
     built = exp.build_textured(exp.with_normal_field(normalized, target), cfg)
     phys = validate.physics_textured(
         built.eval,

@@ -1365,7 +1365,15 @@ def textured_section(d: dict) -> list[str]:
         f"{st['pool']}, on {d['texture_size']}² maps; homogeneous: {d['homogeneous_recipe']}. "
         "Accuracy: relative RMSE of f·cos against Mitsuba's `eval` at "
         "pairs drawn as the validation draws them (uv uniform, wi uniform, wo half uniform, "
-        "half from the teacher's sampler). Physics at random uv between texel centres: "
+        "half from the teacher's sampler)"
+        + (
+            f", {next(iter(d['teachers'].values()))['accuracy']['pairs']:,} of them; in "
+            "brackets the lowest and highest over ten blocks of a tenth of them each (the "
+            "spread of a figure from that many pairs)"
+            if any("rel_rmse_blocks" in t["accuracy"] for t in d["teachers"].values())
+            else ""
+        )
+        + ". Physics at random uv between texel centres: "
         "reciprocity (max relative), max albedo by quadrature of the file through "
         "onnxruntime (± its standard error). Image: a sphere under the "
         f"`{d['environment']['name']}` environment (used nowhere else), "
@@ -1401,7 +1409,12 @@ def textured_section(d: dict) -> list[str]:
         rows.append(
             [
                 name,
-                _pct(acc["rel_rmse"]),
+                _pct(acc["rel_rmse"])
+                + (
+                    f" ({_pct(min(acc['rel_rmse_blocks']))}-{_pct(max(acc['rel_rmse_blocks']))})"
+                    if acc.get("rel_rmse_blocks")
+                    else ""
+                ),
                 f"{ph['reciprocity']:.1g}",
                 f"{ph['max_albedo']:.4f} ± {ph['max_albedo_stderr']:.1g}",
                 f"{img['psnr_db']:.1f} dB (floor {img['noise_floor']['psnr_db']:.1f})"
@@ -1563,7 +1576,7 @@ def textured_cost_section(d: dict) -> list[str]:
     """issue 30's render cost on another machine (benchmarks/gpu/textured_cost.py)."""
     st = d["settings"]
     out = [
-        f"## GPU (one H100): textured render cost, `{d['variant']}`",
+        f"## GPU ({d['device']}): textured render cost, `{d['variant']}`",
         "",
         _source(
             "benchmarks/results/cuda/textured_cost.json",
@@ -1573,7 +1586,8 @@ def textured_cost_section(d: dict) -> list[str]:
         _recorded(d["date"], f"{d['device']}, `{d['variant']}`", None),
         "The test set's files of `benchmarks/textured.py` (trained on a CPU with its recipe: "
         f"K = {st['lobes']}, weights {st['weights']}, latent {st['latent']}, "
-        f"{st['resolution']}² field) in the BSDF-bound scene of `benchmarks/bsdf_bound.py`, "
+        f"{st['resolution']}² field, {st['steps']} steps at lr {st.get('lr', 0.03)}, lobe bound "
+        f"{st.get('lobe_bound', 'table')}) in the BSDF-bound scene of `benchmarks/bsdf_bound.py`, "
         "beside the homogeneous principled's compact file and Mitsuba's own textured "
         "principled (whole, and its nested BSDF without the normal map); interleaved rounds "
         "in rotating order after one compiling render each, best of the rounds. At 256² the "

@@ -125,6 +125,64 @@ def _model_and_optimizer(
     return model, opt
 
 
+# texture.lobe_bound: scale (bound_scale): the training-time estimate of each raw lobe's
+# largest albedo, every BOUND_EVERY steps, on a coarse grid of incidences (and latent
+# values), BOUND_SAMPLES quadrature points each; the export tabulates the bound itself at
+# the normalization section's full settings (textured_model.normalized_textured)
+BOUND_EVERY = 100
+BOUND_THETA = 17  # incidence nodes
+BOUND_LATENT = 9  # latent nodes (conditioned lobes)
+BOUND_SAMPLES = 1024
+
+
+def bound_scale(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
+    """(3K,) per lobe and channel: 1 / max(1, the raw lobe's largest albedo), estimated
+    by the same quadrature as the export's tables at coarse settings (above, no added
+    sigmas or margin: an estimate, not a bound).  Training divides each lobe by it
+    (``texture.lobe_bound: scale``), so the lobes learn within albedo 1 and the
+    export's constant (:class:`~neural_brdf.train.textured_model.ScaledBRDF`) dims them
+    only by the two estimates' difference."""
+    from neural_brdf.train.conditioned import conditioned_albedo_table
+    from neural_brdf.train.model import albedo_table
+
+    cols = []
+    with torch.no_grad():
+        for k, lobe in enumerate(model.lobes):
+            raw: Any = getattr(lobe, "raw", lobe)
+            was = raw.training
+            raw.eval()
+            if getattr(raw, "latent", 0):
+                _, a, _ = conditioned_albedo_table(
+                    raw,
+                    latent_nodes=BOUND_LATENT,
+                    size=BOUND_THETA,
+                    samples=BOUND_SAMPLES,
+                    seed=seed + 7 * k,
+                    sigmas=0.0,
+                    margin=0.0,
+                )
+            else:
+                _, a, _ = albedo_table(
+                    raw,
+                    size=BOUND_THETA,
+                    anisotropic=bool(raw.anisotropic),
+                    samples=BOUND_SAMPLES,
+                    seed=seed + 7 * k,
+                    sigmas=0.0,
+                    margin=0.0,
+                )
+            raw.train(was)
+            cols.append(a.reshape(-1, a.shape[-1]).amax(0))
+    peak = torch.cat(cols).float().clamp_min(1.0)
+    return 1.0 / peak
+
+
+def _rebound(model: TexturedBRDF, bound: str, step: int, seed: int) -> None:
+    """``texture.lobe_bound: scale``: the lobes' scale again every BOUND_EVERY steps."""
+    if bound == "scale" and step % BOUND_EVERY == 0:
+        model.lobe_scale = bound_scale(model, seed + step)
+
+
 # the latent's start (latent_from_teacher): the lobe's fall-off from the mirror
 # direction at normal incidence, between wo = n and wo tilted by LATENT_TILT_DEG, above
 # the value at LATENT_FLOOR_DEG (a floor that removes a broad diffuse part, so that the
@@ -232,6 +290,7 @@ def train_textured(
     weights: str = "scalar",
     lobe_network: str = "separate",
     latent: int = 0,
+    lobe_bound: str = "table",
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
     to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
@@ -273,12 +332,14 @@ def train_textured(
         with torch.no_grad():
             return rel_rmse(model(v_wi, v_wo, v_uv), v_f, v_wo[:, 2:3])
 
+    _rebound(model, lobe_bound, 0, seed)
     init_err = validate()
     gen = torch.Generator().manual_seed(seed)
     t1 = time.perf_counter()
     last = math.nan
     model.train()
     for step in range(steps):
+        _rebound(model, lobe_bound, step, seed)
         loss, _ = _step(model, opt, sched, step, (p_wi, p_wo, p_uv, p_f), batch, gen)
         if step == steps - 1 or step % 100 == 0:
             last = float(loss.detach())
@@ -299,6 +360,7 @@ def train_textured(
         "weights": weights,
         "lobe_network": lobe_network,
         "latent": latent,
+        "lobe_bound": lobe_bound,
     }
 
 
@@ -358,6 +420,8 @@ def train(
         with torch.no_grad():
             return rel_rmse(model(v_wi, v_wo, v_uv), v_f, v_wo[:, 2:3])
 
+    if tx.lobe_bound == "scale":  # the lobes' training-time scale (bound_scale)
+        model.lobe_scale = bound_scale(model, t.seed)
     init_err = validate()
     gen = torch.Generator().manual_seed(t.seed)
     last = math.nan
@@ -381,8 +445,11 @@ def train(
     pool = (p_wi, p_wo, p_uv, p_f)
     model.train()
     with sess.run(state) as s:
+        if tx.lobe_bound == "scale" and s.step % BOUND_EVERY:  # a resumed run's scale
+            model.lobe_scale = bound_scale(model, t.seed + s.step)
         while s.step < t.steps:
             s.stop_if_interrupted()
+            _rebound(model, tx.lobe_bound, s.step, t.seed)
             loss, rate = _step(model, opt, t, s.step, pool, cfg.data.batch_size, gen)
             s.advance()
             if s.due(t.log_every):

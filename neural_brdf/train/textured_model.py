@@ -281,6 +281,18 @@ class TexturedBRDF(nn.Module):
         # file as a second output, never part of f
         self.normal = normal
         self.anisotropic = any(bool(getattr(g, "anisotropic", False)) for g in self.lobes)
+        # texture.lobe_bound: scale, while training: a constant per lobe and channel, (3K,),
+        # 1 / max(1, the raw lobe's largest albedo), set by the loop (textured_loop.
+        # bound_scale); not saved (the loop estimates it again on resume), never exported
+        # (normalized_textured folds the export's own bound into ScaledBRDF)
+        self.lobe_scale: torch.Tensor | None
+        self.register_buffer("lobe_scale", None, persistent=False)
+
+    def _lobe(self, k: int, g: torch.Tensor) -> torch.Tensor:
+        """Lobe k's (N, 3) values ``g`` times its training-time scale, if any."""
+        if self.lobe_scale is None:
+            return g
+        return g * self.lobe_scale[3 * k : 3 * k + 3]
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         # z: (N, K), or (N, 3, K) with per-channel weights; s: the lobes' latent or None
@@ -290,13 +302,13 @@ class TexturedBRDF(nn.Module):
         extra = () if s is None else (s,)  # conditioned lobes: g(wi, wo; s(uv))
         if self.shared:  # one network, K heads side by side
             g = self.lobes[0](wi, wo, *extra)
-            f = z[:, :, 0] * g[:, 0:3]
+            f = z[:, :, 0] * self._lobe(0, g[:, 0:3])
             for k in range(1, self.field.lobes):  # left to right, as below
-                f = f + z[:, :, k] * g[:, 3 * k : 3 * k + 3]
+                f = f + z[:, :, k] * self._lobe(k, g[:, 3 * k : 3 * k + 3])
             return f
-        f = z[:, :, 0] * self.lobes[0](wi, wo, *extra)
+        f = z[:, :, 0] * self._lobe(0, self.lobes[0](wi, wo, *extra))
         for k in range(1, len(self.lobes)):  # left to right: the same order for (wo, wi)
-            f = f + z[:, :, k] * self.lobes[k](wi, wo, *extra)
+            f = f + z[:, :, k] * self._lobe(k, self.lobes[k](wi, wo, *extra))
         return f
 
 
@@ -351,6 +363,7 @@ def normalized_textured(
     *,
     seed: int = 0,
     target: Any = None,
+    bound: str = "table",
 ) -> tuple[TexturedBRDF, list[dict[str, Any]]]:
     """Each lobe wrapped in :class:`NormalizedBRDF` with its own A+ table
     (:func:`albedo_table`, settings ``normalization``, default :class:`config.Normalization`;
@@ -365,7 +378,15 @@ def normalized_textured(
     sum_k z_k(uv) A_k <= 1 + margin, between texel centres included.  ``target``: a
     sampler for the quadrature (an analytic BRDF), or None: a textured teacher's
     sampler depends on uv, so none is passed by default.
+
+    ``bound`` (``texture.lobe_bound``): "table" keeps a lobe's table unless its largest
+    node is at most :data:`FOLD_LIMIT`; "scale" always folds it into
+    :class:`ScaledBRDF`, 1 / max(1, the largest A+ of each column): the same bound (A+
+    bounds the albedo on every cell of the table, so its largest node bounds it
+    everywhere), no table in the graph.
     """
+    if bound not in ("table", "scale"):
+        raise ValueError(f"normalized_textured: bound table or scale, got {bound!r}")
     n = normalization if normalization is not None else cfgmod.Normalization()
     lobes: list[nn.Module] = []
     info: list[dict[str, Any]] = []
@@ -392,7 +413,7 @@ def normalized_textured(
                 target=target,
             )
             norm = NormalizedBRDF(raw, table).eval()
-        if not norm.identity and float(norm.table.max()) <= FOLD_LIMIT:
+        if not norm.identity and (bound == "scale" or float(norm.table.max()) <= FOLD_LIMIT):
             norm = ScaledBRDF(raw, norm.table).eval()  # a constant instead of the table
         lobes.append(norm)
         heads = heads_of(raw)  # one entry per lobe: a shared network's K heads each
