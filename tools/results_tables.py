@@ -1686,7 +1686,7 @@ SECTIONS = (
         _elsewhere(
             partial(images_any_section, name="cuda/images_any.json"),
             "benchmarks/results/cuda/images_any.json",
-            "GPU (one H100): images of any material in cuda_ad_rgb (cut short)",
+            "GPU (H100, H200): images of any material in cuda_ad_rgb (two materials)",
             "benchmarks/gpu/run.sh (python benchmarks/images_any.py --variant cuda_ad_rgb)",
         ),
     ),
