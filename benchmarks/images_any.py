@@ -439,9 +439,8 @@ def main(argv: list[str] | None = None) -> int:
         help="Mitsuba's variant of every render and fit (cuda_ad_rgb: train.device cuda too)",
     )
     args = ap.parse_args(argv)
-    if args.variant != "llvm_ad_rgb":  # the fits follow the variant (target.variant)
-        device = "cuda" if args.variant.startswith("cuda") else "cpu"
-        args.set_key = [f"target.variant={args.variant}", f"train.device={device}", *args.set_key]
+    if args.variant == "cuda_ad_rgb":  # the fits follow the variant, the network on CUDA
+        args.set_key = ["target.variant=cuda_ad_rgb", "train.device=cuda", *args.set_key]
     out = args.out or RESULTS / (
         "images_any.json" if args.which == "test" else "images_any_dev.json"
     )

@@ -743,6 +743,21 @@ def render_cost(bsdfs: dict[str, object], resolution: int, spp: int, repeats: in
     }
 
 
+def cost_ratios(best: dict[str, float]) -> dict[str, float | None]:
+    """The textured files' best times over the compact file's (the homogeneous principled's,
+    else the roughplastic's) and over Mitsuba's own textured principled (whole, nested)."""
+    compact = best.get("neural principled_plain") or best.get("neural roughplastic_plain")
+    prin = best["neural principled_textured"]
+    return {
+        "textured_principled_vs_compact": prin / compact if compact else None,
+        "textured_roughplastic_vs_compact": best["neural roughplastic_textured"] / compact
+        if compact
+        else None,
+        "textured_principled_vs_mitsuba": prin / best["mitsuba principled_textured"],
+        "textured_principled_vs_mitsuba_nested": prin / best["mitsuba principled_textured nested"],
+    }
+
+
 # ------------------------------------------------------------------ main
 def measure_teacher(name: str, spec: dict, work: Path, env: Path, args, settings: dict) -> dict:
     from neural_brdf.measured.textured import TexturedMitsubaTarget
@@ -899,19 +914,7 @@ def main(argv: list[str] | None = None) -> int:
     print("render cost:", ", ".join(bsdfs), flush=True)
     c = render_cost(bsdfs, cost["resolution"], cost["spp"], repeats)
     best = c["best_s"]
-    compact = best.get("neural principled_plain") or best.get("neural roughplastic_plain")
-    c["ratios"] = {
-        "textured_principled_vs_compact": best["neural principled_textured"] / compact
-        if compact
-        else None,
-        "textured_roughplastic_vs_compact": best["neural roughplastic_textured"] / compact
-        if compact
-        else None,
-        "textured_principled_vs_mitsuba": best["neural principled_textured"]
-        / best["mitsuba principled_textured"],
-        "textured_principled_vs_mitsuba_nested": best["neural principled_textured"]
-        / best["mitsuba principled_textured nested"],
-    }
+    c["ratios"] = cost_ratios(best)
     result["render_cost"] = c
     result["machine_end"] = bsdf_bound.machine()
     result["wall_seconds"] = time.perf_counter() - t_start

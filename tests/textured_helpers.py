@@ -1,7 +1,8 @@
 """Shared by the textured model's tests: one torch thread per module (import
 :func:`one_torch_thread`), an onnxruntime session on one thread, rows of
-(wi, wo, uv) with hostile entries, and the albedo of a textured model at fixed uv by
-analytic's cosine quadrature (independent of the MIS quadrature that builds the tables).
+(wi, wo, uv) with hostile entries, the albedo of a textured model at fixed uv by
+analytic's cosine quadrature (independent of the MIS quadrature that builds the tables),
+incidences in the xz plane, and deliberately bright conditioned lobes.
 """
 
 from __future__ import annotations
@@ -79,3 +80,31 @@ def albedos(model, uvs: np.ndarray, wi: np.ndarray) -> tuple[np.ndarray, np.ndar
         (lambda x, y, c=c: model(x, y, torch.from_numpy(c).float().expand(len(x), 2))) for c in uvs
     ]
     return albedos_of(fns, wi)
+
+
+def incidences(*deg: float) -> np.ndarray:
+    """Unit directions at the polar angles ``deg`` (degrees) in the xz plane, (n, 3)."""
+    t = np.radians(deg)
+    return np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1)
+
+
+def bright_conditioned(resolution: int):
+    """One network with 2 heads and one latent input, large random weights (raw albedos
+    far above 1, changing a lot with s), and a ``resolution``² field whose latent spans
+    [0, 1]: (the raw TexturedBRDF, its field)."""
+    from neural_brdf.train.model import RawBRDF
+    from neural_brdf.train.textured_model import TexturedBRDF, WeightField
+
+    torch.manual_seed(11)
+    net = RawBRDF("isotropic", [16], "relu", grid_size=4, heads=2, latent=1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 2.0)
+        net.mlp.head.bias.fill_(3.0)
+        # the latent's column of the first layer large: the lobes change a lot with s
+        net.mlp.body[0].weight[:, -1].normal_(0.0, 6.0)
+    field = WeightField(resolution, 2, init_std=2.0, latent=1)
+    with torch.no_grad():
+        field.logits[:, -1] = -12.0
+        field.latent_logits.normal_(0.0, 3.0)
+    return TexturedBRDF([net.eval()], field).eval(), field

@@ -109,17 +109,7 @@ def measure(models: Path, sizes: list[tuple[int, int]], repeats: int) -> dict:
         for res, spp in sizes:
             print(f"{res}^2 x {spp} spp:", ", ".join(bsdfs), flush=True)
             c = textured.render_cost(bsdfs, res, spp, repeats)
-            b = c["best_s"]
-            c["ratios"] = {
-                "textured_principled_vs_compact": b["neural principled_textured"]
-                / b["neural principled_plain"],
-                "textured_roughplastic_vs_compact": b["neural roughplastic_textured"]
-                / b["neural principled_plain"],
-                "textured_principled_vs_mitsuba": b["neural principled_textured"]
-                / b["mitsuba principled_textured"],
-                "textured_principled_vs_mitsuba_nested": b["neural principled_textured"]
-                / b["mitsuba principled_textured nested"],
-            }
+            c["ratios"] = textured.cost_ratios(c["best_s"])
             print(json.dumps(c["ratios"], indent=1), flush=True)
             result["sizes"][f"{res}x{spp}"] = c
     return result

@@ -49,7 +49,7 @@ from neural_brdf.runfolder import Folder
 from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
-from neural_brdf.train.textured_model import TexturedBRDF, WeightField
+from neural_brdf.train.textured_model import TexturedBRDF, WeightField, raw_of
 
 FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
 # pairs drawn from the teacher once: on a 16 x 16 roughplastic (K = 4, R = 16, 600
@@ -148,7 +148,7 @@ def bound_scale(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
     cols = []
     with torch.no_grad():
         for k, lobe in enumerate(model.lobes):
-            raw: Any = getattr(lobe, "raw", lobe)
+            raw = raw_of(lobe)
             was = raw.training
             raw.eval()
             if getattr(raw, "latent", 0):
@@ -178,8 +178,9 @@ def bound_scale(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
 
 
 def _rebound(model: TexturedBRDF, bound: str, step: int, seed: int) -> None:
-    """``texture.lobe_bound: scale``: the lobes' scale again every BOUND_EVERY steps."""
-    if bound == "scale" and step % BOUND_EVERY == 0:
+    """``texture.lobe_bound: scale``: the lobes' scale when the model has none (the start,
+    a resumed run's restored lobes) and again every BOUND_EVERY steps after the first."""
+    if bound == "scale" and (model.lobe_scale is None or (step and step % BOUND_EVERY == 0)):
         model.lobe_scale = bound_scale(model, seed + step)
 
 
@@ -420,8 +421,7 @@ def train(
         with torch.no_grad():
             return rel_rmse(model(v_wi, v_wo, v_uv), v_f, v_wo[:, 2:3])
 
-    if tx.lobe_bound == "scale":  # the lobes' training-time scale (bound_scale)
-        model.lobe_scale = bound_scale(model, t.seed)
+    _rebound(model, tx.lobe_bound, 0, t.seed)  # the lobes' training-time scale
     init_err = validate()
     gen = torch.Generator().manual_seed(t.seed)
     last = math.nan
@@ -432,6 +432,7 @@ def train(
         init_err = float(ckpt.get("init_val_rel_rmse", init_err))
         last = float(ckpt.get("loss", math.nan))
         sess.restore(ckpt)
+        model.lobe_scale = None  # estimated again for the restored lobes (_rebound)
 
     def state() -> dict[str, Any]:
         return {
@@ -445,8 +446,6 @@ def train(
     pool = (p_wi, p_wo, p_uv, p_f)
     model.train()
     with sess.run(state) as s:
-        if tx.lobe_bound == "scale" and s.step % BOUND_EVERY:  # a resumed run's scale
-            model.lobe_scale = bound_scale(model, t.seed + s.step)
         while s.step < t.steps:
             s.stop_if_interrupted()
             _rebound(model, tx.lobe_bound, s.step, t.seed)

@@ -350,7 +350,8 @@ def heads_of(lobe: nn.Module) -> int:
     return int(getattr(raw, "heads", 1))
 
 
-def _raw_of(lobe: nn.Module) -> RawBRDF:
+def raw_of(lobe: nn.Module) -> RawBRDF:
+    """A lobe's raw network (a normalised lobe's ``raw``, a raw one itself)."""
     raw = lobe.raw if isinstance(lobe, NORMALIZED) else lobe
     if not isinstance(raw, RawBRDF):
         raise TypeError(f"a lobe must be a RawBRDF or a NormalizedBRDF, got {type(lobe)}")
@@ -391,7 +392,7 @@ def normalized_textured(
     lobes: list[nn.Module] = []
     info: list[dict[str, Any]] = []
     for k, lobe in enumerate(model.lobes):
-        raw = _raw_of(lobe).eval()
+        raw = raw_of(lobe).eval()
         if not n.enabled:
             lobes.append(raw)
             info.append({"enabled": False})

@@ -38,6 +38,8 @@ from textured_helpers import (
     INPUTS,
     albedos,
     albedos_of,
+    bright_conditioned,
+    incidences,
     one_torch_thread,  # noqa: F401  (autouse: one torch thread)
     rows,
     run,
@@ -50,29 +52,11 @@ S_NODES = 9
 
 @pytest.fixture(scope="module")
 def bright() -> dict:
-    """One network with 2 heads and one latent input, large random weights (raw albedos
-    far above 1), a 4 x 4 field whose latent spans [0, 1]; raw and normalised."""
-    torch.manual_seed(11)
-    net = RawBRDF("isotropic", [16], "relu", grid_size=4, heads=2, latent=1)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.normal_(0.0, 2.0)
-        net.mlp.head.bias.fill_(3.0)
-        # the latent's column of the first layer large: the lobes change a lot with s
-        net.mlp.body[0].weight[:, -1].normal_(0.0, 6.0)
-    field = WeightField(R, 2, init_std=2.0, latent=1)
-    with torch.no_grad():
-        field.logits[:, -1] = -12.0
-        field.latent_logits.normal_(0.0, 3.0)
-    raw = TexturedBRDF([net.eval()], field).eval()
+    """The helpers' bright conditioned lobes on a 4 x 4 field; raw and normalised."""
+    raw, field = bright_conditioned(R)
     norm = cfgmod.Normalization(table_size=33, grid_size=S_NODES, samples=4096)
     model, info = normalized_textured(raw, norm, seed=3)
     return {"raw": raw, "model": model, "info": info, "field": field}
-
-
-def _wi(*deg: float) -> np.ndarray:
-    t = np.radians(deg)
-    return np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1)
 
 
 def test_the_latent_is_a_column_of_the_field_in_0_1_and_changes_the_lobes(bright):
@@ -103,7 +87,7 @@ def test_the_latent_is_a_column_of_the_field_in_0_1_and_changes_the_lobes(bright
 def test_bright_conditioned_heads_are_bounded_between_texels_and_latent_nodes(bright):
     info = bright["info"]
     assert len(info) == 2 and min(i["raw_max_albedo"] for i in info) > 5.0
-    wi = _wi(0.0, 40.0, 70.0, 86.0, 89.5)
+    wi = incidences(0.0, 40.0, 70.0, 86.0, 89.5)
     rng = np.random.default_rng(13)
     uvs = rng.uniform(0.0, 1.0, (40, 2)).astype(np.float32)
     rho, _ = albedos(bright["model"], uvs, wi)
@@ -227,7 +211,7 @@ def test_a_lobe_barely_above_one_is_folded_into_a_constant(albedo, folded):
     assert isinstance(model.lobes[0], ScaledBRDF) == folded
     assert info[0]["form"] == ("scale" if folded else "table")
     assert abs(info[0]["raw_max_albedo"] - albedo) < 5e-3
-    wi = _wi(0.0, 50.0, 85.0)
+    wi = incidences(0.0, 50.0, 85.0)
     uvs = np.array([[0.3, 0.6], [0.9, 0.1]], np.float32)
     rho, _ = albedos(model, uvs, wi)
     assert rho.max() <= 1.0 + 1e-3, rho.max()

@@ -32,6 +32,8 @@ from textured_helpers import (
     INPUTS,
     albedos,
     albedos_of,
+    bright_conditioned,
+    incidences,
     one_torch_thread,  # noqa: F401  (autouse: one torch thread)
     rows,
     run,
@@ -40,11 +42,6 @@ from textured_helpers import (
 
 S_NODES = 9
 T_NODES = 33
-
-
-def _wi(*deg: float) -> np.ndarray:
-    t = np.radians(deg)
-    return np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1)
 
 
 def _constant(albedo: float, lobes: int = 1) -> TexturedBRDF:
@@ -84,20 +81,8 @@ def test_training_divides_each_lobe_by_its_scale_and_never_saves_it():
 
 @pytest.fixture(scope="module")
 def bright() -> dict:
-    """One network with 2 heads and one latent input, large random weights (raw albedos
-    far above 1, changing with s), a 4 x 4 field whose latent spans [0, 1]."""
-    torch.manual_seed(11)
-    net = RawBRDF("isotropic", [16], "relu", grid_size=4, heads=2, latent=1)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.normal_(0.0, 2.0)
-        net.mlp.head.bias.fill_(3.0)
-        net.mlp.body[0].weight[:, -1].normal_(0.0, 6.0)
-    field = WeightField(4, 2, init_std=2.0, latent=1)
-    with torch.no_grad():
-        field.logits[:, -1] = -12.0
-        field.latent_logits.normal_(0.0, 3.0)
-    raw = TexturedBRDF([net.eval()], field).eval()
+    """The helpers' bright conditioned lobes on a 4 x 4 field, with either bound."""
+    raw, _ = bright_conditioned(4)
     norm = cfgmod.Normalization(table_size=T_NODES, grid_size=S_NODES, samples=4096)
     model, info = normalized_textured(raw, norm, seed=3, bound="scale")
     table, table_info = normalized_textured(raw, norm, seed=3, bound="table")
@@ -110,7 +95,7 @@ def test_scale_bound_folds_bright_heads_and_bounds_them_everywhere(bright):
     assert isinstance(model.lobes[0], ScaledBRDF)
     assert {i["form"] for i in info} == {"scale"}
     assert {i["form"] for i in bright["table_info"]} == {"table"}  # the default keeps it
-    wi = _wi(0.0, 40.0, 70.0, 86.0, 89.5)
+    wi = incidences(0.0, 40.0, 70.0, 86.0, 89.5)
     uvs = np.random.default_rng(13).uniform(0.0, 1.0, (40, 2)).astype(np.float32)
     rho, _ = albedos(model, uvs, wi)
     assert rho.max() <= 1.0 + 1e-3, rho.max()
