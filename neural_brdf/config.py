@@ -256,7 +256,7 @@ class Images(_Section):
     start: str = "auto"
     start_families: list[str] = Field(default_factory=lambda: list(START_FAMILIES))
     start_steps: int | None = Field(None, ge=1)  # each family's fit (null: 80; ggx: train.steps)
-    start_train_steps: int = Field(1500, ge=1)  # sample-based training steps on the start
+    start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass

@@ -1645,6 +1645,10 @@ SECTIONS = (
     (RESULTS / "images_any.json", images_any_section),
     (RESULTS / "images_any_dev.json", partial(images_any_section, name="images_any_dev.json")),
     (
+        RESULTS / "images_any_dev_start6000.json",
+        partial(images_any_section, name="images_any_dev_start6000.json"),
+    ),
+    (
         RESULTS / "images_any_dev_half_disc.json",
         partial(images_any_section, name="images_any_dev_half_disc.json"),
     ),
