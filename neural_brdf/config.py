@@ -330,6 +330,11 @@ class Texture(_Section):
     # training sees that constant too (re-estimated every 100 steps), so the lobes learn
     # within it and a renderer pays one multiply instead of the table's look-ups
     lobe_bound: Literal["table", "scale"] = "table"
+    # several starts (docs/mitsuba.md, "Several starts"): `starts` models from the seeds
+    # train.seed, +1, ..., each trained `start_steps` steps (null: all of train.steps), the
+    # one with the lowest error on pairs of its own (not the held-out ones) continued
+    starts: int = Field(1, ge=1, le=16)
+    start_steps: int | None = Field(None, ge=1)
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random
@@ -409,6 +414,15 @@ class Config(_Section):
             raise ValueError(
                 f"texture.latent: conditioned lobes need an isotropic model.encoding, "
                 f"not {self.model.encoding}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _texture_starts(self):
+        n = self.texture.start_steps
+        if n is not None and n > self.train.steps:
+            raise ValueError(
+                f"texture.start_steps: {n} is more than train.steps ({self.train.steps})"
             )
         return self
 

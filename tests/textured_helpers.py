@@ -108,3 +108,19 @@ def bright_conditioned(resolution: int):
         field.logits[:, -1] = -12.0
         field.latent_logits.normal_(0.0, 3.0)
     return TexturedBRDF([net.eval()], field).eval(), field
+
+
+def small_run_config(path, xml, *, texture: str, train: str, normalization: str) -> None:
+    """Write a small, fast textured CLI config to ``path``: the teacher ``xml``, and the
+    ``texture``, ``train`` and ``normalization`` sections as YAML flow maps (the part a
+    test is about); a small pool, validation and parity check."""
+    path.write_text(
+        f"target: {{mitsuba: {xml}}}\n"
+        f"texture: {{{texture}}}\n"
+        f"train: {{{train}}}\n"
+        "data: {pool_size: 8192, batch_size: 1024}\n"
+        "validation: {pairs: 2000, furnace_dirs: 32, furnace_samples: 4096, "
+        "accuracy_samples: 8192}\n"
+        f"normalization: {{{normalization}}}\n"
+        "export: {parity_pairs: 512}\n"
+    )

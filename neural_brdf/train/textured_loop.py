@@ -35,6 +35,7 @@ importance_pairs`).  It is measured before training (``init_val_rel_rmse``) and 
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -56,6 +57,7 @@ FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
 # steps of 2048) 131072 gave a held-out error of 7.1 %, 32768 stalled at 24 % (overfitted)
 POOL = 131072
 VAL_PAIRS = 16384  # held-out pairs
+CHOOSE_SEED = 202  # several starts: the choice's own VAL_PAIRS pairs draw from seed + this
 CHANNELS = {"scalar": 1, "rgb": 3}  # texture.weights: one weight per lobe, or per RGB channel
 
 
@@ -273,6 +275,80 @@ def _step(
     return loss, rate
 
 
+def _train_span(
+    model: TexturedBRDF,
+    opt: torch.optim.Adam,
+    sched: cfgmod.Train,
+    pool: tuple[torch.Tensor, ...],
+    batch: int,
+    gen: torch.Generator,
+    *,
+    lobe_bound: str,
+    seed: int,
+    start: int,
+    stop: int,
+) -> float:
+    """Steps ``start`` to ``stop`` of ``sched``'s schedule (no checkpoints); the last
+    loss read (every 100 steps and the last), which must be finite."""
+    last = math.nan
+    model.train()
+    for step in range(start, stop):
+        _rebound(model, lobe_bound, step, seed)
+        loss, _ = _step(model, opt, sched, step, pool, batch, gen)
+        if step == stop - 1 or step % 100 == 0:
+            last = float(loss.detach())
+            if not math.isfinite(last):
+                raise FloatingPointError(f"train_textured: loss {last} at step {step}")
+    model.eval()
+    return last
+
+
+def pick_start(
+    make: Any,
+    starts: int,
+    steps: int,
+    seed: int,
+    train_span: Any,
+    choose: tuple[torch.Tensor, ...],
+) -> tuple[TexturedBRDF, torch.optim.Adam, torch.Generator, dict[str, Any]]:
+    """Several starts (``texture.starts``, docs/mitsuba.md): for i < ``starts``, the model
+    and optimiser ``make()`` builds after ``torch.manual_seed(seed + i)``, trained
+    ``steps`` steps by ``train_span(model, opt, gen, seed + i)`` with a batch generator
+    seeded ``seed + i``; the one with the lowest relative RMSE of f cos on the pairs
+    ``choose`` (wi, wo, uv, f: drawn apart from the held-out pairs) is returned with its
+    optimiser and generator, to continue from step ``steps``.  Start 0 is the run a single
+    start would make.  The others are dropped as soon as one is better."""
+    c_wi, c_wo, c_uv, c_f = choose
+    best: tuple | None = None
+    errors = []
+    t0 = time.perf_counter()
+    for i in range(starts):
+        torch.manual_seed(seed + i)
+        model, opt = make()
+        gen = torch.Generator().manual_seed(seed + i)
+        loss = train_span(model, opt, gen, seed + i)
+        with torch.no_grad():
+            err = rel_rmse(model(c_wi, c_wo, c_uv), c_f, c_wo[:, 2:3])
+        errors.append(err)
+        if best is None or err < best[0]:
+            best = (err, model, opt, gen, i, loss)
+    assert best is not None
+    return (
+        best[1],
+        best[2],
+        best[3],
+        {
+            "starts": starts,
+            "start_steps": steps,
+            "start_errors": errors,
+            "chosen_start": best[4],
+            "chosen_seed": seed + best[4],
+            "chosen_loss": best[5],
+            "starts_seconds": time.perf_counter() - t0,
+        },
+    )
+
+
 def train_textured(
     teacher: Any,
     *,
@@ -292,6 +368,10 @@ def train_textured(
     lobe_network: str = "separate",
     latent: int = 0,
     lobe_bound: str = "table",
+    peak_weight: float | None = None,
+    peak_cap: float | None = None,
+    starts: int = 1,
+    start_steps: int | None = None,
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
     to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
@@ -306,7 +386,12 @@ def train_textured(
     seeded with ``seed``; the thread count is the caller's (``torch.set_num_threads``).
     """
     m = model_section if model_section is not None else cfgmod.Model(hidden=list(hidden))
-    sched = cfgmod.Train(steps=steps, lr=lr, warmup=min(warmup, max(steps - 1, 0)), seed=seed)
+    peak = {
+        k: v for k, v in (("peak_weight", peak_weight), ("peak_cap", peak_cap)) if v is not None
+    }  # the loss's peak weight (train.peak_weight, train.peak_cap; None: their defaults)
+    sched = cfgmod.Train(
+        steps=steps, lr=lr, warmup=min(warmup, max(steps - 1, 0)), seed=seed, **peak
+    )
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     p_wi, p_wo, p_uv, p_f = pairs(teacher, pool, rng)
@@ -315,19 +400,31 @@ def train_textured(
     )
     pool_seconds = time.perf_counter() - t0
 
+    latent_init = latent_from_teacher(teacher, resolution) if latent else None
+    pool_t = (p_wi, p_wo, p_uv, p_f)
+
+    def make() -> tuple[TexturedBRDF, torch.optim.Adam]:  # from torch's seeded generator
+        return _model_and_optimizer(
+            m,
+            lobes,
+            resolution,
+            p_f,
+            lr,
+            field_lr_scale,
+            CHANNELS[weights],
+            shared=lobe_network == "shared",
+            latent=latent,
+            latent_init=latent_init,
+        )
+
+    def span(model, opt, gen, run_seed: int, start: int, stop: int) -> float:
+        return _train_span(
+            model, opt, sched, pool_t, batch, gen,
+            lobe_bound=lobe_bound, seed=run_seed, start=start, stop=stop,
+        )  # fmt: skip
+
     torch.manual_seed(seed)
-    model, opt = _model_and_optimizer(
-        m,
-        lobes,
-        resolution,
-        p_f,
-        lr,
-        field_lr_scale,
-        CHANNELS[weights],
-        shared=lobe_network == "shared",
-        latent=latent,
-        latent_init=latent_from_teacher(teacher, resolution) if latent else None,
-    )
+    model, opt = make()
 
     def validate() -> float:
         with torch.no_grad():
@@ -335,18 +432,17 @@ def train_textured(
 
     _rebound(model, lobe_bound, 0, seed)
     init_err = validate()
-    gen = torch.Generator().manual_seed(seed)
     t1 = time.perf_counter()
-    last = math.nan
-    model.train()
-    for step in range(steps):
-        _rebound(model, lobe_bound, step, seed)
-        loss, _ = _step(model, opt, sched, step, (p_wi, p_wo, p_uv, p_f), batch, gen)
-        if step == steps - 1 or step % 100 == 0:
-            last = float(loss.detach())
-            if not math.isfinite(last):
-                raise FloatingPointError(f"train_textured: loss {last} at step {step}")
-    model.eval()
+    first, chosen = 0, {}
+    if starts > 1:
+        first = steps if start_steps is None else min(start_steps, steps)
+        choose = pairs(teacher, val_pairs, np.random.default_rng(seed + CHOOSE_SEED))
+        model, opt, gen, chosen = pick_start(
+            make, starts, first, seed, lambda mo, op, g, s: span(mo, op, g, s, 0, first), choose
+        )
+    else:
+        gen = torch.Generator().manual_seed(seed)
+    last = span(model, opt, gen, seed, first, steps) if first < steps else chosen["chosen_loss"]
     return model, {
         "steps": steps,
         "lobes": lobes,
@@ -362,6 +458,7 @@ def train_textured(
         "lobe_network": lobe_network,
         "latent": latent,
         "lobe_bound": lobe_bound,
+        **chosen,
     }
 
 
@@ -403,19 +500,25 @@ def train(
         target, VAL_PAIRS, np.random.default_rng(t.seed + 101), cosine_wi=False
     )
     pool_seconds = time.perf_counter() - t0
+    latent_init = latent_from_teacher(target, tx.resolution) if tx.latent else None
+    pool = (p_wi, p_wo, p_uv, p_f)
+
+    def make() -> tuple[TexturedBRDF, torch.optim.Adam]:  # from torch's seeded generator
+        return _model_and_optimizer(
+            cfg.model,
+            tx.lobes,
+            tx.resolution,
+            p_f,
+            t.lr,
+            tx.field_lr_scale,
+            CHANNELS[tx.weights],
+            shared=tx.lobe_network == "shared",
+            latent=tx.latent,
+            latent_init=latent_init,
+        )
+
     torch.manual_seed(t.seed)
-    model, opt = _model_and_optimizer(
-        cfg.model,
-        tx.lobes,
-        tx.resolution,
-        p_f,
-        t.lr,
-        tx.field_lr_scale,
-        CHANNELS[tx.weights],
-        shared=tx.lobe_network == "shared",
-        latent=tx.latent,
-        latent_init=latent_from_teacher(target, tx.resolution) if tx.latent else None,
-    )
+    model, opt = make()
 
     def validate() -> float:
         with torch.no_grad():
@@ -425,14 +528,33 @@ def train(
     init_err = validate()
     gen = torch.Generator().manual_seed(t.seed)
     last = math.nan
+    chosen: dict[str, Any] = {}
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         gen.set_state(ckpt["generator"])
         init_err = float(ckpt.get("init_val_rel_rmse", init_err))
         last = float(ckpt.get("loss", math.nan))
+        chosen = dict(ckpt.get("starts") or {})
         sess.restore(ckpt)
         model.lobe_scale = None  # estimated again for the restored lobes (_rebound)
+    elif tx.starts > 1:  # several starts, before the checkpointed loop (pick_start)
+        first = t.steps if tx.start_steps is None else tx.start_steps
+        print(
+            f"{cfg.name}: {tx.starts} starts of {first} steps each, then the best",
+            file=sys.stderr,
+        )
+        choose = pairs(target, VAL_PAIRS, np.random.default_rng(t.seed + CHOOSE_SEED))
+
+        def span(mo: TexturedBRDF, op: torch.optim.Adam, g: torch.Generator, sd: int) -> float:
+            return _train_span(
+                mo, op, t, pool, cfg.data.batch_size, g,
+                lobe_bound=tx.lobe_bound, seed=sd, start=0, stop=first,
+            )  # fmt: skip
+
+        model, opt, gen, chosen = pick_start(make, tx.starts, first, t.seed, span, choose)
+        sess.step, sess.seconds = first, chosen["starts_seconds"]
+        last = chosen["chosen_loss"]
 
     def state() -> dict[str, Any]:
         return {
@@ -441,11 +563,19 @@ def train(
             "generator": gen.get_state(),
             "loss": last,
             "init_val_rel_rmse": init_err,
+            "starts": chosen,
         }
 
-    pool = (p_wi, p_wo, p_uv, p_f)
     model.train()
     with sess.run(state) as s:
+        if ckpt is None and chosen:  # log.csv's first row: the chosen start
+            model.eval()
+            s.log(
+                loss=chosen["chosen_loss"],
+                lr=learning_rate(t, s.step - 1),
+                val_rel_rmse=validate(),
+            )
+            model.train()
         while s.step < t.steps:
             s.stop_if_interrupted()
             _rebound(model, tx.lobe_bound, s.step, t.seed)
@@ -482,4 +612,5 @@ def train(
         "init_val_rel_rmse": init_err,
         "raw_val_rel_rmse": validate(),
         "target": target.describe(),
+        **chosen,
     }

@@ -44,6 +44,7 @@ from textured_helpers import (
     rows,
     run,
     session,
+    small_run_config,
 )
 
 R = 4
@@ -130,15 +131,12 @@ def test_a_latent_run_trains_exports_and_says_so(tmp_path, capsys):
 
     xml = write_teacher(tmp_path / "teacher", "principled", size=16)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(
-        f"target: {{mitsuba: {xml}}}\n"
-        "texture: {lobes: 2, resolution: 8, validation_uv: 8, latent: 1, weights: rgb}\n"
-        "train: {steps: 150, checkpoint_every: 50, log_every: 10, progress: false}\n"
-        "data: {pool_size: 8192, batch_size: 1024}\n"
-        "validation: {pairs: 2000, furnace_dirs: 32, furnace_samples: 4096, "
-        "accuracy_samples: 8192}\n"
-        "normalization: {samples: 2048, grid_size: 5}\n"
-        "export: {parity_pairs: 512}\n"
+    small_run_config(
+        cfg,
+        xml,
+        texture="lobes: 2, resolution: 8, validation_uv: 8, latent: 1, weights: rgb",
+        train="steps: 150, checkpoint_every: 50, log_every: 10, progress: false",
+        normalization="samples: 2048, grid_size: 5",
     )
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
     assert code == 0, err

@@ -38,6 +38,7 @@ from textured_helpers import (
     rows,
     run,
     session,
+    small_run_config,
 )
 
 S_NODES = 9
@@ -139,16 +140,13 @@ def test_a_scale_bound_run_trains_exports_and_export_rebuilds_it(tmp_path, capsy
 
     xml = write_teacher(tmp_path / "teacher", "principled", size=16)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text(
-        f"target: {{mitsuba: {xml}}}\n"
-        "texture: {lobes: 2, resolution: 8, validation_uv: 8, latent: 1, weights: rgb, "
-        "lobe_bound: scale}\n"
-        "train: {steps: 150, checkpoint_every: 50, log_every: 10, progress: false}\n"
-        "data: {pool_size: 8192, batch_size: 1024}\n"
-        "validation: {pairs: 2000, furnace_dirs: 32, furnace_samples: 4096, "
-        "accuracy_samples: 8192}\n"
-        "normalization: {samples: 256, grid_size: 5, table_size: 17, sigmas: 200.0}\n"
-        "export: {parity_pairs: 512}\n"
+    small_run_config(
+        cfg,
+        xml,
+        texture="lobes: 2, resolution: 8, validation_uv: 8, latent: 1, weights: rgb, "
+        "lobe_bound: scale",
+        train="steps: 150, checkpoint_every: 50, log_every: 10, progress: false",
+        normalization="samples: 256, grid_size: 5, table_size: 17, sigmas: 200.0",
     )
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
     assert code == 0, err
