@@ -70,6 +70,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -388,6 +389,12 @@ def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
     A missing or unusable file raises a one-line InputError.  :func:`render_preview`
     calls this before it loads a scene, because Mitsuba reports an exception raised in a
     plugin's constructor as a RuntimeError carrying the Python traceback."""
+    path, proto, stored = _read_proto(filename)
+    return path, OnnxProgram(proto, (OUTPUT,) if _has_normal(proto) else None), stored
+
+
+def _read_proto(filename) -> tuple[Path, Any, dict | None]:
+    """:func:`read_model` before lowering: (path, the loaded proto, stored lobe or None)."""
     path = _resolve(str(filename))
     try:
         proto = reader.load(path)
@@ -397,7 +404,7 @@ def read_model(filename) -> tuple[Path, OnnxProgram, dict | None]:
         stored = lobe_format.from_metadata(reader.props(proto))
     except InputError as e:
         raise InputError(f"neural_brdf: {path}: {e}") from None
-    return path, OnnxProgram(proto, (OUTPUT,) if _has_normal(proto) else None), stored
+    return path, proto, stored
 
 
 def _has_normal(proto) -> bool:
@@ -411,9 +418,9 @@ class NeuralBSDF(_GraphBSDF):
         mi.BSDF.__init__(self, props)
         if "filename" not in props:
             raise InputError("neural_brdf: the 'filename' property (an ONNX file) is required")
-        path, program, stored = read_model(props["filename"])
+        path, proto, stored = _read_proto(props["filename"])  # the file is read once
+        program = OnnxProgram(proto, (OUTPUT,) if _has_normal(proto) else None)
         self.lobe_source = "metadata" if stored else "fitted at load"
-        proto = reader.load(path)
         if _has_normal(proto):  # a textured file with its normal field
             field = (reader.metadata(proto).texture or {}).get("normal_field") or {}
             self.normal_flags = {
