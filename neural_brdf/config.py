@@ -259,6 +259,11 @@ class Images(_Section):
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
+    # a chosen start whose held-out loss exceeds this fits the views poorly (no family
+    # holds the material): the image stage then runs at train.lr with the grids at their
+    # lr_scale, as from the constant start (null: never; chosen on the development set:
+    # docs/inverse.md, "A poor start")
+    poor_start_loss: float | None = Field(0.004, gt=0.0)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network

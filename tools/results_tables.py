@@ -1716,6 +1716,14 @@ SECTIONS = (
         partial(images_any_section, name="images_any_dev_start6000.json"),
     ),
     (
+        RESULTS / "images_any_dev_rough_clay.json",
+        partial(images_any_section, name="images_any_dev_rough_clay.json"),
+    ),
+    (
+        RESULTS / "images_any_dev_rough_clay_full_rate.json",
+        partial(images_any_section, name="images_any_dev_rough_clay_full_rate.json"),
+    ),
+    (
         RESULTS / "images_any_dev_half_disc.json",
         partial(images_any_section, name="images_any_dev_half_disc.json"),
     ),

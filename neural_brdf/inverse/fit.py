@@ -454,6 +454,25 @@ def rel_weight(target: np.ndarray) -> np.ndarray:
     return np.broadcast_to(1.0 / (y * y + REL_EPS), target.shape).astype(np.float32)
 
 
+def poor_start(init_info: dict, limit: float | None) -> bool:
+    """Mark the chosen start poor (``init_info["start"]["poor"]``, kept in the
+    checkpoint) when its held-out loss exceeds ``limit`` (``images.poor_start_loss``):
+    no family holds the material, and the image stage, which :func:`fit_neural` then
+    runs at ``train.lr`` with the grids at their ``lr_scale``, must do the work.  Says so
+    on stderr.  True when marked."""
+    start = init_info.get("start") or {}
+    loss = start.get("val_loss")
+    if limit is None or loss is None or not loss > limit:
+        return False
+    start["poor"] = {"val_loss": float(loss), "limit": float(limit)}
+    print(
+        f"start {start.get('family')}: held-out loss {loss:.4g} > images.poor_start_loss "
+        f"{limit:g}: no family fits the views; the image stage runs at train.lr",
+        file=sys.stderr,
+    )
+    return True
+
+
 def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
     """The relative MSE (module doc) over the validation split, estimated without the
     render's own noise: the mean over the held-out pixels (:meth:`View.validation_mask`,
@@ -623,6 +642,10 @@ def fit_neural(
     sess = session or Session.one(cfg, run_dir, resume=resume, kind=KIND, columns=columns)
     ckpt = sess.resumed(must_match=RESUME_MUST_MATCH)
     sess.begin()
+    if ckpt is not None:
+        init_info = ckpt.get("init")
+    if ((init_info or {}).get("start") or {}).get("poor"):  # a poor start (poor_start)
+        lr_factor, grid_lr_scale = 1.0, None
 
     model_text = json.dumps(cfg.model.model_dump())
     bsdf = bsdf_element(ib.PLUGIN, model=model_text, seed=int(t.seed), init_value=float(init_value))
@@ -872,6 +895,7 @@ def _fit_views(
             init_state, init_info = starts.network_start(
                 cfg, views, folder.init, report=_reporter(cfg)
             )
+            poor_start(init_info, images.poor_start_loss)
     elif images.start == "ggx":
         lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
         if not resume:

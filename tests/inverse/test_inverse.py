@@ -535,3 +535,46 @@ def test_paths_are_relative_to_the_config_file(copy_of):
     assert cfg.target.images[0].image == os.path.abspath(copy_of / "view1.exr")
     with pytest.raises(config.ConfigError, match="target.images"):
         config.load(path, ["target.model=microfacet"])
+
+
+# ------------------------------------------------------------------ a poor start
+def test_poor_start_marks_only_a_start_above_the_limit(capsys):
+    from neural_brdf.inverse import fit as inverse
+
+    info = {"start": {"family": "diffuse", "val_loss": 0.25}}
+    assert not inverse.poor_start(info, None) and "poor" not in info["start"]
+    assert not inverse.poor_start(info, 0.3) and "poor" not in info["start"]
+    assert inverse.poor_start(info, 0.02)
+    assert info["start"]["poor"] == {"val_loss": 0.25, "limit": 0.02}
+    err = capsys.readouterr().err
+    assert "images.poor_start_loss" in err and "diffuse" in err
+
+
+@pytest.mark.parametrize("limit, poor", [("1e-9", True), ("null", False)])
+def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
+    mi, example, tmp_path, capsys, limit, poor
+):
+    """Every start is poor under a limit of 1e-9: the image stage runs at train.lr (the
+    grids at their lr_scale), and a resumed run keeps that rate; no limit keeps
+    images.start_lr_scale."""
+    run_dir = tmp_path / "run"
+    sets = [
+        *FIT_OVERRIDES,
+        "train.steps=4",
+        "images.start=diffuse",
+        "images.start_steps=5",
+        "images.start_train_steps=20",
+        f"images.poor_start_loss={limit}",
+    ]
+    code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
+    assert code == 0, err
+    tr = json.loads((run_dir / "metrics.json").read_text())["training"]
+    assert tr["lr_factor"] == (1.0 if poor else 0.05)
+    assert ("poor" in tr["init"]["start"]) == poor
+    assert ("no family fits the views" in err) == poor
+    if poor:  # resumed: the rate comes from the checkpoint's start
+        more = train_args(example / "fit.yaml", run_dir, [*sets, "train.steps=6"])
+        code, err = run_cli([*more, "--resume"], capsys)
+        assert code == 0, err
+        again = json.loads((run_dir / "metrics.json").read_text())["training"]
+        assert again["lr_factor"] == 1.0 and again["steps"] == 6
