@@ -386,12 +386,12 @@ def train_textured(
     seeded with ``seed``; the thread count is the caller's (``torch.set_num_threads``).
     """
     m = model_section if model_section is not None else cfgmod.Model(hidden=list(hidden))
+    sched = cfgmod.Train(steps=steps, lr=lr, warmup=min(warmup, max(steps - 1, 0)), seed=seed)
     peak = {
         k: v for k, v in (("peak_weight", peak_weight), ("peak_cap", peak_cap)) if v is not None
-    }  # the loss's peak weight (train.peak_weight, train.peak_cap; None: their defaults)
-    sched = cfgmod.Train(
-        steps=steps, lr=lr, warmup=min(warmup, max(steps - 1, 0)), seed=seed, **peak
-    )
+    }
+    if peak:  # the loss's peak weight (train.peak_weight, train.peak_cap; None: defaults)
+        sched = sched.model_copy(update=peak)
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     p_wi, p_wo, p_uv, p_f = pairs(teacher, pool, rng)
@@ -433,7 +433,7 @@ def train_textured(
     _rebound(model, lobe_bound, 0, seed)
     init_err = validate()
     t1 = time.perf_counter()
-    first, chosen = 0, {}
+    first, chosen = 0, dict[str, Any]()
     if starts > 1:
         first = steps if start_steps is None else min(start_steps, steps)
         choose = pairs(teacher, val_pairs, np.random.default_rng(seed + CHOOSE_SEED))
