@@ -674,7 +674,7 @@ def fit_neural(
     if ckpt is not None:
         _load_adam_state(opt, ckpt["optimizer"])
         sess.restore(ckpt)
-        lobe, init_info = ckpt.get("lobe"), ckpt.get("init")
+        lobe = ckpt.get("lobe")  # (init_info: read from it above)
         render_seconds = float(ckpt.get("render_seconds", 0.0))
         val = ckpt.get("validation")
 
