@@ -9,11 +9,25 @@ Each instruction becomes one Dr.Jit operation on arrays of the input's width; co
 stay Python scalars, so in a JIT variant they are literals of the traced kernel (the
 weights of a dense layer included) and the whole graph traces into the caller's
 kernel: the Mitsuba plugin's render runs no Python per sample.
+
+Gathers.  The lowering gives one ``gather`` per table column, all at one index when they
+come from one ONNX tensor (a textured file's weight field: 13 columns, at each of four
+bilinear corners).  Here the columns of each float tensor (``Program.sources``) of three
+or more columns are laid out again row-major, padded to a multiple of 4, in a buffer that
+starts on a cache line, and read as 4-wide packets (``dr.gather`` of an ``Array4f``: one
+vector load per lane instead of four gathers), each packet once per index; the values are
+the same floats, so the result is bit-identical (tests/backends/test_drjit_packets.py).
+In the BSDF-bound scene (LLVM, 2 cores) this took the textured principled of the
+benchmark from 0.39 s to 0.32 s and the compact principled from 0.24 s to 0.22 s.
 """
 
 from __future__ import annotations
 
+import sys
+from typing import Any
+
 import drjit as dr
+import numpy as np
 
 from neural_brdf import graph
 
@@ -73,13 +87,72 @@ def _is_array(v) -> bool:
     return isinstance(v, dr.ArrayBase)
 
 
-def run(prog: graph.Program, columns: dict[str, list]) -> dict[str, list]:
-    """Evaluate ``prog`` on ``{input: [column arrays]}`` -> ``{output: [Float columns]}``."""
+PACKET = 4  # floats per packet gather
+MIN_COLUMNS = 3  # a tensor of fewer distinct float columns keeps one gather per column
+CACHE_LINE = 64  # bytes
+
+
+class PacketPlan:
+    """Where each float table of ``prog`` sits in a packed buffer (module doc, Gathers):
+    ``buffers[b]`` is [rows, packets * PACKET] float32 flattened, and ``where[table]`` is
+    (b, packet, lane).  Only tensors of MIN_COLUMNS or more distinct float columns are
+    packed (a 3-column normal field of 512^2 texels, padded to 4, rendered faster packed:
+    0.316 s against 0.337 s for the textured principled in the BSDF-bound scene, LLVM on
+    2 cores); a table in several tensors (the lowering deduplicates columns) takes the
+    first."""
+
+    def __init__(self, prog: graph.Program):
+        self.buffers: list[np.ndarray] = []
+        self.packets: list[int] = []
+        self.rows: list[int] = []
+        self.where: dict[int, tuple[int, int, int]] = {}
+        for src in prog.sources:
+            cols = [(c, tb) for c, tb in enumerate(src.tables) if tb is not None]
+            if src.data.dtype.kind != "f" or len({tb for _, tb in cols}) < MIN_COLUMNS:
+                continue
+            rows, channels = src.data.shape
+            n = -(-channels // PACKET)
+            packed = _aligned_zeros(rows * n * PACKET).reshape(rows, n * PACKET)
+            packed[:, :channels] = src.data
+            b = len(self.buffers)
+            self.buffers.append(packed.reshape(-1))
+            self.packets.append(n)
+            self.rows.append(rows)
+            for c, tb in cols:
+                self.where.setdefault(tb, (b, c // PACKET, c % PACKET))
+
+
+def _aligned_zeros(n: int) -> np.ndarray:
+    """n float32 zeros whose first element sits on a cache-line boundary.  A row of 16
+    floats then fills one line: at numpy's own 16-byte alignment three buffers in four
+    straddled two lines per row, and a textured render in the BSDF-bound scene took
+    0.38 s against 0.33 s with the buffer aligned (LLVM, 2 cores; Dr.Jit reads a CPU
+    array in place, so the alignment carries)."""
+    raw = np.zeros(n + CACHE_LINE // 4, np.float32)
+    skip = (-raw.ctypes.data % CACHE_LINE) // 4
+    return raw[skip : skip + n]
+
+
+def _packet_type(float_type):
+    """The variant's Array4f (drjit.llvm.ad.Array4f, ...); None outside a JIT variant."""
+    mod = sys.modules.get(getattr(float_type, "__module__", ""))
+    return getattr(mod, "Array4f", None) if mod is not None else None
+
+
+def run(
+    prog: graph.Program, columns: dict[str, list], plan: PacketPlan | None = None
+) -> dict[str, list]:
+    """Evaluate ``prog`` on ``{input: [column arrays]}`` -> ``{output: [Float columns]}``;
+    ``plan`` (default: built here) packs the gathers (module doc)."""
     missing = set(prog.inputs) - set(columns)
     if missing:
         raise ValueError(f"missing graph inputs {sorted(missing)}")
     t = _Types(next(iter(columns.values()))[0])
     tables = [(t.Float if tb.dtype.kind == "f" else t.Int)(tb) for tb in prog.tables]
+    plan = PacketPlan(prog) if plan is None else plan
+    array4 = _packet_type(t.Float)
+    buffers = [t.Float(b) for b in plan.buffers] if array4 is not None else []
+    fetched: dict[tuple[int, int, int], Any] = {}  # (index id, buffer, packet) -> Array4f
     vals: list = [None] * len(prog.instrs)
     for i, ins in enumerate(prog.instrs):
         op, a = ins.op, ins.args
@@ -102,6 +175,13 @@ def run(prog: graph.Program, columns: dict[str, list]) -> dict[str, list]:
             v = t.Float(columns[name][col])
         elif op == "cast":
             v = _cast(t, vals[a[0]], prog.instrs[a[0]].dtype, ins.dtype)
+        elif op == "gather" and buffers and ins.attr in plan.where:
+            b, k, lane = plan.where[ins.attr]
+            key = (a[0], b, k)
+            if key not in fetched:
+                idx = t.UInt(dr.clip(vals[a[0]], 0, plan.rows[b] - 1))
+                fetched[key] = dr.gather(array4, buffers[b], idx * plan.packets[b] + k)
+            v = fetched[key][lane]
         elif op == "gather":
             table = tables[ins.attr]
             idx = dr.clip(vals[a[0]], 0, dr.width(table) - 1)
@@ -133,12 +213,13 @@ class OnnxProgram:
     def __init__(self, model, outputs: tuple[str, ...] | None = None):
         # ``outputs``: the graph outputs to evaluate (default all; graph.lower)
         self.program = graph.lower(model, outputs)
+        self.plan = PacketPlan(self.program)
         self.inputs = list(self.program.inputs)
         self.outputs = list(self.program.outputs)
         self.op_counts = dict(self.program.op_counts)
 
     def __call__(self, **columns) -> dict[str, list]:
-        return run(self.program, columns)
+        return run(self.program, columns, self.plan)
 
 
 class DrJitBackend:
