@@ -389,8 +389,18 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         "brdf": {"cap_0.5": cap, "observed": observed},
         "coverage": float(cov.figure),
         "validation": {
-            k: val.get(k) for k in ("start_loss", "best_loss", "best_step", "last_loss", "kept")
+            k: val.get(k)
+            for k in (
+                "start_loss",
+                "best_loss",
+                "best_step",
+                "last_loss",
+                "kept",
+                "patience",
+                "stopped_at",
+            )
         },
+        "image_steps": tr["steps"],
         "physics": {
             "reciprocity": checks["reciprocity"]["value"],
             "max_albedo": checks["max_albedo"]["value"],
@@ -405,6 +415,10 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "pipeline_wall": wall,
             "roughconductor_fit": rough["seconds"],
             "image_stage_vs_roughconductor": tr["train_seconds"] / rough["seconds"],
+            # per step: the stage's cost without its early stop (the roughconductor fit
+            # runs train.steps)
+            "image_step_vs_roughconductor": (tr["train_seconds"] / max(tr["steps"], 1))
+            / (rough["seconds"] / cfg.train.steps),
         },
         "loadavg_before": load_before,
         "loadavg_after": loadavg(),

@@ -274,6 +274,10 @@ class Images(_Section):
     validation_block: int = Field(4, ge=1, le=64)  # the split's tiles: block x block pixels
     validation_views: list[int] = Field(default_factory=list)  # target.images indices, whole
     validation_every: int = Field(10, ge=1)  # steps between held-out losses
+    # held-out scorings in a row without a new best after which the image stage stops
+    # (its best weights kept as ever; null: it runs train.steps; chosen on the development
+    # set: docs/inverse.md, "When the image stage stops")
+    patience: int | None = Field(5, ge=1)
     validation_spp: int = Field(64, ge=1)  # samples per pixel of the held-out renders
 
     @field_validator("start")

@@ -211,6 +211,7 @@ def test_the_default_start_chooses_by_a_split_and_refuses_to_run_without_one(ima
         ("images.validation_pixels=1", "images.validation_pixels", "less than 1"),
         ("images.validation_pixels=-0.1", "images.validation_pixels", "greater than or equal"),
         ("images.validation_every=0", "images.validation_every", "greater than or equal to 1"),
+        ("images.patience=0", "images.patience", "greater than or equal to 1"),
         ("images.validation_views=[3]", "images.validation_views", "3 is not an index"),
         ("images.validation_views=[-1]", "images.validation_views", "-1 is not an index"),
         ("images.validation_views=[1, 1]", "images.validation_views", "names a view twice"),

@@ -1221,6 +1221,17 @@ def _set_line(d: dict, which: str) -> str:
     return f"{which}: {names} under `{e['fit']}` / `{e['relit']}`"
 
 
+def _steps_cell(e: dict) -> str:
+    """The image stage's steps, where it stopped early, and its cost per step over the
+    stand-alone roughconductor fit's (files before images.patience: '-')."""
+    if "image_steps" not in e:
+        return "-"
+    stop = e["validation"].get("stopped_at")
+    per = e["seconds"].get("image_step_vs_roughconductor")
+    text = f"{e['image_steps']}" + (" (stopped)" if stop is not None else "")
+    return text + (f", {per:.1f}x" if per is not None else "")
+
+
 def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
     """issue 29: images of materials the project never saw; one table per file."""
     which = d["set"]
@@ -1307,6 +1318,7 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
                 f"{sec['image_stage_vs_roughconductor']:.1f}x"
                 if "image_stage_vs_roughconductor" in sec
                 else "-",
+                _steps_cell(e),
                 "met" if ok else "**missed**",
             ]
         )
@@ -1324,6 +1336,7 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
             "recip., max albedo",
             "fit (start + distil + images)",
             "images / `roughconductor` fit",
+            "image steps (per step vs `roughconductor`)",
             "goals",
         ],
         rows,
@@ -1580,6 +1593,36 @@ def textured_sweep_section(d: dict) -> list[str]:
     )
 
 
+def images_patience_section(d: dict) -> list[str]:
+    """issue 29: images.patience replayed on recorded development fits."""
+    out = [
+        "## Images of any material: when the image stage stops (development set)",
+        "",
+        _source(
+            "benchmarks/results/images_patience_dev.json",
+            "python benchmarks/images_patience.py W [W2 ...]",
+        ),
+        _recorded(d["date"], "the fits' own (replayed here, no timing)", None),
+        f"Definition: {d['definition']}. Chosen: {d['chosen']} ({d['why']}).",
+        "",
+    ]
+    names = list(d["runs"])
+    rows = []
+    for p, s in d["summary"].items():
+        per = [d["runs"][n]["per_patience"][p] for n in names]
+        rows.append(
+            [
+                p,
+                f"{s['same_weights']} / {s['runs']}",
+                f"{s['steps']} / {s['steps_full']}",
+                *(f"{x['stop']} ({x['best_step']})" for x in per),
+            ]
+        )
+    head = ["patience", "same weights", "image-stage steps"]
+    head += [f"{n}: stop (best)" for n in names]
+    return out + _table(head, rows)
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -1727,6 +1770,7 @@ SECTIONS = (
         RESULTS / "images_any_dev_half_disc.json",
         partial(images_any_section, name="images_any_dev_half_disc.json"),
     ),
+    (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "training_speed.json", training_speed_section),
     (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
     (RESULTS / "textured.json", textured_section),

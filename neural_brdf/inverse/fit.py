@@ -712,6 +712,10 @@ def fit_neural(
         val.update(last_loss=loss, last_step=step)
         return loss
 
+    def stalled() -> bool:
+        """``images.patience`` scorings since the best one (the split only)."""
+        return stalled_for(val, images, t.steps) is not None
+
     if lobe is None:
         lobe = lead.refit_lobe(seed=t.seed)
     set_lobe(lobe)
@@ -719,7 +723,7 @@ def fit_neural(
     with sess.run(state) as s, ib.evaluated_mode():
         if split and val is None:
             score(s.step)  # the start's held-out loss, before the first step
-        while s.step < t.steps:
+        while s.step < t.steps and not stalled():
             s.stop_if_interrupted()
             step = s.step
             lr = loop.learning_rate(t, step) * lr_factor
@@ -764,9 +768,18 @@ def fit_neural(
                 extra: dict[str, Any] = {HELDOUT_COLUMN: held} if split else {}
                 s.log(loss=last["loss"], lr=lr, **extra)
                 s.postfix(loss=f"{last['loss']:.4g}", albedo=f"{last['max_albedo']:.3f}")
-            if s.due(t.checkpoint_every):
+            stop = held is not None and stalled()
+            if s.due(t.checkpoint_every) or stop:
                 s.check_weights(all(np.all(np.isfinite(opt[n].numpy())) for n in names))
                 s.checkpoint()
+            if stop:
+                assert val is not None
+                print(
+                    f"images: no better held-out loss in {images.patience} scorings since step "
+                    f"{val['best_step']}: the image stage stops at step {s.step} "
+                    f"(images.patience; train.steps {t.steps})",
+                    file=sys.stderr,
+                )
     raw = copy.deepcopy(raw_template)
     raw.load_state_dict(val["best"] if val is not None else weights_now())
     training: dict[str, Any] = {
@@ -788,12 +801,27 @@ def fit_neural(
         "target": describe(views),
     }
     if val is not None:
-        training["validation"] = validation_figures(views, images, val)
+        training["validation"] = validation_figures(views, images, val, t.steps)
     return raw.eval(), training
 
 
-def validation_figures(views: list[View], images: cfgmod.Images, val: dict) -> dict[str, Any]:
-    """metrics.json's ``training.validation``: the split and its held-out losses."""
+def stalled_for(val: dict | None, images: cfgmod.Images, steps: int) -> int | None:
+    """The step at which the image stage stops early: the last scored one, when it is
+    before ``steps`` (train.steps) and ``images.patience`` scorings (``patience *
+    validation_every`` steps) have passed since the best; None while it runs on, when it
+    ran to ``steps``, and without a split or a patience."""
+    if images.patience is None or val is None or "last_step" not in val:
+        return None
+    last = int(val["last_step"])
+    waited = last - int(val["best_step"])
+    return last if last < steps and waited >= images.patience * images.validation_every else None
+
+
+def validation_figures(
+    views: list[View], images: cfgmod.Images, val: dict, steps: int
+) -> dict[str, Any]:
+    """metrics.json's ``training.validation``: the split and its held-out losses, and
+    where the image stage stopped early (``steps``: train.steps)."""
     best = int(val["best_step"])
     return {
         "pixels": images.validation_pixels,
@@ -813,6 +841,8 @@ def validation_figures(views: list[View], images: cfgmod.Images, val: dict) -> d
         "last_loss": val.get("last_loss"),
         "last_step": val.get("last_step"),
         "kept": "the start" if best == 0 else f"step {best}",
+        "patience": images.patience,
+        "stopped_at": stalled_for(val, images, steps),
     }
 
 

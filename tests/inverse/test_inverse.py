@@ -336,6 +336,43 @@ def test_the_start_is_kept_when_the_image_stage_only_makes_it_worse(mi, example,
     assert start_network_change(run_dir) < 1e-4  # the export's own float32 parity
 
 
+@pytest.mark.slow
+def test_the_image_stage_stops_after_patience_scorings_without_a_better_one(
+    mi, example, tmp_path, capsys
+):
+    # the same too-high rate: no scored step beats the start, so with patience 2 and a
+    # scoring every 5 steps the stage stops at step 10 of 30, keeps the start, says so
+    # once on stderr and records it; a resumed run does not train on
+    run_dir = tmp_path / "run"
+    worse = [
+        "train.steps=30",
+        "images.start_steps=10",
+        "images.start_train_steps=300",
+        "images.start_lr_scale=25",
+        "images.validation_pixels=0.2",
+        "images.validation_every=5",
+        "images.patience=2",
+    ]
+    args = train_args(example / "fit.yaml", run_dir, FIT_OVERRIDES + worse)
+    code, err = run_cli(args, capsys)
+    assert code == 0, err
+    stops = [line for line in err.splitlines() if "the image stage stops at step" in line]
+    assert len(stops) == 1 and "step 10 " in stops[0], err
+    training = json.loads((run_dir / "metrics.json").read_text())["training"]
+    val = training["validation"]
+    assert training["steps"] == 10, training["steps"]
+    assert val["patience"] == 2 and val["stopped_at"] == 10 and val["last_step"] == 10, val
+    assert val["best_step"] == 0 and val["kept"] == "the start"
+    steps = [int(line.split(",")[0]) for line in (run_dir / "log.csv").read_text().splitlines()[1:]]
+    assert max(steps) == 10, steps
+    report = (run_dir / "report.md").read_text()
+    assert "image stage stopped" in report and "at step 10 (images.patience 2)" in report
+    code, err = run_cli(args + ["--resume"], capsys)
+    assert code == 0, err
+    again = json.loads((run_dir / "metrics.json").read_text())["training"]
+    assert again["steps"] == 10 and again["validation"]["stopped_at"] == 10
+
+
 def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):
     from neural_brdf.inverse import scene as inverse_example
 

@@ -186,6 +186,11 @@ def _validation_rows(val: Any) -> list[list[str]]:
             rows.append([label, f"{v:.4g}" + ("" if step is None else f" (step {step:.0f})")])
     if isinstance(val.get("kept"), str):
         rows.append(["weights kept", val["kept"]])
+    stop = _finite(val.get("stopped_at"))
+    if stop is not None:
+        rows.append(
+            ["image stage stopped", f"at step {stop:.0f} (images.patience {val.get('patience')})"]
+        )
     return rows
 
 
