@@ -1623,6 +1623,55 @@ def images_patience_section(d: dict) -> list[str]:
     return out + _table(head, rows)
 
 
+def packet_gathers_section(d: dict) -> list[str]:
+    """The Dr.Jit back end's packet gathers on and off, in the BSDF-bound scene."""
+    models = d["models"]
+    first = next(iter(models.values()))
+    m0, m1 = first["machine_start"], first["machine_end"]
+    out = [
+        "## Packet gathers in the Mitsuba plugin: on and off, BSDF-bound scene",
+        "",
+        _source(
+            "benchmarks/results/packet_gathers.json",
+            "python benchmarks/packet_gathers.py LABEL=PATH ...",
+        ),
+        _recorded(
+            m0["date"],
+            f"{m0['platform']}, {m0['cores']} cores, `{d['variant']}`",
+            f"{_load(m0['loadavg'])} before, {_load(m1['loadavg'])} after",
+        ),
+        f"Scene: {d['scene']}; best of {d['repeats']} interleaved rounds in one process. "
+        "`packets`: a tensor's gathered columns read as 4-wide packets from a "
+        "cache-line-aligned copy (the default); `columns`: one gather per column "
+        "(`neural_brdf.backends.drjit.PACKET_GATHERS = False`). Reference: Mitsuba's "
+        f"`roughconductor` ({d['reference']['distribution']} α {d['reference']['alpha']}, "
+        f"{d['reference']['material']}).",
+        "",
+    ]
+    rows = [
+        [
+            f"`{label}`",
+            f"{e['best_s']['packets']:.3f} s",
+            f"{e['best_s']['columns']:.3f} s",
+            f"{e['packets_over_columns']:.2f}",
+            f"{e['vs_roughconductor']['packets']:.2f}x",
+            f"{e['vs_roughconductor']['columns']:.2f}x",
+            "yes" if e["images_equal"] else "**no**",
+        ]
+        for label, e in models.items()
+    ]
+    head = [
+        "model",
+        "packets",
+        "columns",
+        "packets / columns",
+        "vs `roughconductor`, packets",
+        "vs `roughconductor`, columns",
+        "images equal",
+    ]
+    return out + _table(head, rows)
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -1748,6 +1797,7 @@ SECTIONS = (
     (RESULTS / "codegen_c.json", codegen_c_section),
     (RESULTS / "rgl_render.json", rgl_render_section),
     (RESULTS / "bsdf_bound.json", bsdf_bound_section),
+    (RESULTS / "packet_gathers.json", packet_gathers_section),
     (RESULTS / "compact_presets.json", compact_presets_section),
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),

@@ -87,6 +87,9 @@ def _is_array(v) -> bool:
     return isinstance(v, dr.ArrayBase)
 
 
+# False before a model is loaded: its program reads one gather per column (a comparison,
+# benchmarks/packet_gathers.py, or a fallback); read by OnnxProgram, not by run()
+PACKET_GATHERS = True
 PACKET = 4  # floats per packet gather
 MIN_COLUMNS = 3  # a tensor of fewer distinct float columns keeps one gather per column
 CACHE_LINE = 64  # bytes
@@ -101,12 +104,12 @@ class PacketPlan:
     2 cores); a table in several tensors (the lowering deduplicates columns) takes the
     first."""
 
-    def __init__(self, prog: graph.Program):
+    def __init__(self, prog: graph.Program, *, enabled: bool = True):
         self.buffers: list[np.ndarray] = []
         self.packets: list[int] = []
         self.rows: list[int] = []
         self.where: dict[int, tuple[int, int, int]] = {}
-        for src in prog.sources:
+        for src in prog.sources if enabled else ():
             cols = [(c, tb) for c, tb in enumerate(src.tables) if tb is not None]
             if src.data.dtype.kind != "f" or len({tb for _, tb in cols}) < MIN_COLUMNS:
                 continue
@@ -213,7 +216,7 @@ class OnnxProgram:
     def __init__(self, model, outputs: tuple[str, ...] | None = None):
         # ``outputs``: the graph outputs to evaluate (default all; graph.lower)
         self.program = graph.lower(model, outputs)
-        self.plan = PacketPlan(self.program)
+        self.plan = PacketPlan(self.program, enabled=PACKET_GATHERS)
         self.inputs = list(self.program.inputs)
         self.outputs = list(self.program.outputs)
         self.op_counts = dict(self.program.op_counts)

@@ -7,8 +7,8 @@ grid) as 4-wide packets from one padded, cache-line-aligned buffer.  Checked her
 random textured file (RGB weights and a latent, so a 13-column field, and lobes with a
 feature grid):
 
-* the plan covers the field and the grid, each buffer starts on a 64-byte boundary, and
-  every packed column equals the table it replaces;
+* the plan covers the field and the grid (none with ``PACKET_GATHERS`` off), each buffer
+  starts on a 64-byte boundary, and every packed column equals the table it replaces;
 * the whole program evaluated with packets equals the one-gather-per-column evaluation
   bit for bit, at uv in [0, 1), wrapped, on texel centres and edges, and at NaN / inf /
   huge uv (clamped indices);
@@ -90,11 +90,13 @@ def _run(dr, prog, plan, wi, wo, uv) -> np.ndarray:
     return np.stack([np.asarray(c, dtype=np.float32) for c in out], axis=-1)
 
 
-def _unpacked():
+def _unpacked(prog):
     """A plan that packs nothing: every gather reads its own column."""
     from neural_brdf.backends.drjit import PacketPlan
 
-    return PacketPlan(graph.Program(instrs=[], names=[], tables=[], inputs={}, outputs={}))
+    plan = PacketPlan(prog, enabled=False)
+    assert not plan.where and not plan.buffers
+    return plan
 
 
 def test_plan_packs_the_field_and_the_grid_aligned(dr, payload):
@@ -120,10 +122,20 @@ def test_packets_equal_one_gather_per_column_bit_for_bit(dr, payload):
     prog = graph.lower(payload)
     wi, wo, uv = _rows(3)
     packets = _run(dr, prog, PacketPlan(prog), wi, wo, uv)
-    columns = _run(dr, prog, _unpacked(), wi, wo, uv)
+    columns = _run(dr, prog, _unpacked(prog), wi, wo, uv)
     assert np.isfinite(packets).all()
     assert (packets > 0).mean() > 0.5  # the rows are not all zero
     np.testing.assert_array_equal(packets.view(np.uint32), columns.view(np.uint32))
+
+
+def test_the_switch_turns_packets_off_for_programs_loaded_after_it(dr, payload, monkeypatch):
+    from neural_brdf.backends import drjit as backend
+
+    monkeypatch.setattr(backend, "PACKET_GATHERS", False)
+    off = backend.OnnxProgram(payload)
+    monkeypatch.setattr(backend, "PACKET_GATHERS", True)
+    on = backend.OnnxProgram(payload)
+    assert not off.plan.where and on.plan.where
 
 
 def test_packets_match_onnxruntime(dr, payload):
