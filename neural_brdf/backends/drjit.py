@@ -151,10 +151,15 @@ def run(
     if missing:
         raise ValueError(f"missing graph inputs {sorted(missing)}")
     t = _Types(next(iter(columns.values()))[0])
-    tables = [(t.Float if tb.dtype.kind == "f" else t.Int)(tb) for tb in prog.tables]
     plan = PacketPlan(prog) if plan is None else plan
     array4 = _packet_type(t.Float)
     buffers = [t.Float(b) for b in plan.buffers] if array4 is not None else []
+    packed = plan.where if buffers else {}
+    # the packed tables are read from the buffers only (no copy of them is made here)
+    tables = [
+        None if i in packed else (t.Float if tb.dtype.kind == "f" else t.Int)(tb)
+        for i, tb in enumerate(prog.tables)
+    ]
     fetched: dict[tuple[int, int, int], Any] = {}  # (index id, buffer, packet) -> Array4f
     vals: list = [None] * len(prog.instrs)
     for i, ins in enumerate(prog.instrs):
@@ -178,8 +183,8 @@ def run(
             v = t.Float(columns[name][col])
         elif op == "cast":
             v = _cast(t, vals[a[0]], prog.instrs[a[0]].dtype, ins.dtype)
-        elif op == "gather" and buffers and ins.attr in plan.where:
-            b, k, lane = plan.where[ins.attr]
+        elif op == "gather" and ins.attr in packed:
+            b, k, lane = packed[ins.attr]
             key = (a[0], b, k)
             if key not in fetched:
                 idx = t.UInt(dr.clip(vals[a[0]], 0, plan.rows[b] - 1))
