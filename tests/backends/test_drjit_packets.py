@@ -14,7 +14,8 @@ feature grid):
   huge uv (clamped indices);
 * both equal onnxruntime to float32 precision (the parity every back end keeps);
 * a Mitsuba scene holding a textured and a homogeneous file (the plugin inside Dr.Jit's
-  symbolic virtual calls) renders the same image bit for bit with packets and without.
+  symbolic virtual calls) renders the same image with packets and without, to float32
+  rounding.
 """
 
 from __future__ import annotations
@@ -199,4 +200,7 @@ def test_a_scene_of_two_files_renders_the_same_with_and_without_packets(
     monkeypatch.setattr(backend, "PACKET_GATHERS", False)
     columns = np.asarray(mi.render(scene(), spp=8, seed=3))
     assert np.isfinite(packed).all() and packed.mean() > 0.01
-    np.testing.assert_array_equal(packed, columns)
+    # to float32 rounding, not bit for bit: the evaluations are bit-identical (above), but
+    # the two render kernels are compiled apart, and in CI, after the rest of the suite,
+    # 7 % of the values differed by up to 6e-7 relative (none did here on a fresh process)
+    np.testing.assert_allclose(packed, columns, rtol=1e-5, atol=1e-6)
