@@ -177,6 +177,39 @@ def render_once(sc, spp: int) -> float:
     return time.perf_counter() - t0
 
 
+def render_cost(
+    bsdfs: dict[str, object],
+    resolution: int,
+    spp: int,
+    repeats: int,
+    images: dict[str, np.ndarray] | None = None,
+) -> dict:
+    """:func:`scene` for each BSDF (a dict or a loaded object); interleaved rounds,
+    rotating order, best of, after one compiling render each (its image kept in
+    ``images`` when given)."""
+    before = loadavg()
+    scenes = {n: mi.load_dict(scene(b, resolution=resolution, spp=spp)) for n, b in bsdfs.items()}
+    names = list(scenes)
+    for n in names:  # trace + compile
+        img = mi.render(scenes[n], spp=spp, seed=0)
+        if images is not None:
+            images[n] = np.asarray(img)
+    runs: dict[str, list[float]] = {n: [] for n in names}
+    for r in range(repeats):
+        for n in names[r % len(names) :] + names[: r % len(names)]:
+            runs[n].append(render_once(scenes[n], spp))
+        print("  cost round", r + 1, {n: round(v[-1], 3) for n, v in runs.items()}, flush=True)
+    return {
+        "resolution": resolution,
+        "spp": spp,
+        "repeats": repeats,
+        "render_wall_s": runs,
+        "best_s": {n: min(v) for n, v in runs.items()},
+        "loadavg_before": before,
+        "loadavg_after": loadavg(),
+    }
+
+
 def model_size(path: Path) -> dict:
     """MLP parameters and Linear FLOPs per evaluation from the ONNX initializers, and the
     lowered op list's instruction counts."""

@@ -21,11 +21,13 @@ that split.
 
 **Two sets, disjoint.**  ``dev``: the materials and environments on which the settings
 were chosen (``--set-key`` overrides, compared by their figures here; ``rough_clay``, an
-Oren-Nayar outside every family, was added to choose ``images.poor_start_loss``); ``test``: other
-materials (a conductor, ``roughplastic``, ``principled`` with metallic 0.5, roughness 0.4,
-specular 0.5 and no sheen, ``diffuse``, an anisotropic conductor, a ``blendbsdf`` of two
-lobes, and the retroreflector), under two environments used nowhere in development: one
-to fit (``studio``) and one to relight (``sunset``).
+Oren-Nayar outside every family, was added to choose ``images.poor_start_loss``;
+``images.patience`` was chosen by replaying it on this set's recorded fits,
+benchmarks/images_patience.py); ``test``: other materials (a conductor, ``roughplastic``,
+``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
+anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two
+environments used nowhere in development: one to fit (``studio``) and one to relight
+(``sunset``).
 
 Measured per material, for the network and for its start (the chosen family with its
 fitted parameters, rendered by Mitsuba itself), against the true material:

@@ -26,33 +26,37 @@ import sys
 import time
 from pathlib import Path
 
+from neural_brdf import config as cfgmod
+from neural_brdf.inverse.fit import stalled_for
+
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "images_patience_dev.json"
 PATIENCES = tuple(range(1, 9))
 
 
-def scorings(run: Path) -> tuple[list[tuple[int, float]], int, int]:
-    """[(step, held-out loss)] with the start's at step 0, validation_every, train.steps."""
-    metrics = json.loads((run / "metrics.json").read_text())
-    training = metrics["training"]
-    val = training["validation"]
-    out = [(0, float(val["start_loss"]))]
+def scorings(run: Path) -> tuple[list[tuple[int, float]], dict]:
+    """[(step, held-out loss)] with the start's at step 0, and metrics.json's training."""
+    training = json.loads((run / "metrics.json").read_text())["training"]
+    out = [(0, float(training["validation"]["start_loss"]))]
     with open(run / "log.csv", newline="") as fh:
         for row in csv.DictReader(fh):
             if row.get("heldout_loss"):
                 out.append((int(row["step"]), float(row["heldout_loss"])))
-    return out, int(val["every"]), int(training["steps"])
+    return out, training
 
 
 def replay(seq: list[tuple[int, float]], every: int, steps: int, patience: int | None):
-    """(stop step, best step, best loss) of the rule on the scorings ``seq``."""
-    best_step, best = seq[0]
+    """(stop step, best step) of the fit's own rule (``inverse.fit.stalled_for``) on the
+    scorings ``seq``, recorded as the fit records them."""
+    images = cfgmod.Images(patience=patience, validation_every=every)
+    val: dict = {"best_step": seq[0][0], "best_loss": seq[0][1]}
     for step, loss in seq[1:]:
-        if loss < best:
-            best_step, best = step, loss
-        if patience is not None and step < steps and step - best_step >= patience * every:
-            return step, best_step, best
-    return seq[-1][0], best_step, best
+        if loss < val["best_loss"]:
+            val.update(best_step=step, best_loss=loss)
+        val["last_step"] = step
+        if stalled_for(val, images, steps) is not None:
+            break
+    return val.get("last_step", seq[0][0]), val["best_step"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,13 +69,13 @@ def main(argv: list[str] | None = None) -> int:
         for run in sorted((work / "dev").glob("*/run")):
             if not (run / "metrics.json").is_file():
                 continue
-            seq, every, steps = scorings(run)
+            seq, training = scorings(run)
+            every, steps = int(training["validation"]["every"]), int(training["steps"])
             if seq[-1][0] != steps:
                 print(
                     f"{run}: stopped before train.steps ({seq[-1][0]} < {steps})", file=sys.stderr
                 )
                 return 2
-            training = json.loads((run / "metrics.json").read_text())["training"]
             # the image stage's rate over train.lr tells two fits of one material apart
             name = f"{run.parent.name}, lr x{training.get('lr_factor', 1.0):g}"
             full = replay(seq, every, steps, None)
@@ -85,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
                 "per_patience": {},
             }
             for p in PATIENCES:
-                stop, best_step, _ = replay(seq, every, steps, p)
+                stop, best_step = replay(seq, every, steps, p)
                 runs[name]["per_patience"][str(p)] = {
                     "stop": stop,
                     "best_step": best_step,

@@ -748,32 +748,6 @@ def _image_pair(neural, ref_bsdf, env: Path, resolution: int, spp: int) -> dict:
 
 
 # ------------------------------------------------------------------ render cost
-def render_cost(bsdfs: dict[str, object], resolution: int, spp: int, repeats: int) -> dict:
-    """bsdf_bound's scene for each BSDF; interleaved rounds, rotating order, best of."""
-    before = loadavg()
-    scenes = {
-        n: mi.load_dict(bsdf_bound.scene(b, resolution=resolution, spp=spp))
-        for n, b in bsdfs.items()
-    }
-    names = list(scenes)
-    for n in names:
-        bsdf_bound.render_once(scenes[n], spp)  # trace + compile
-    runs: dict[str, list[float]] = {n: [] for n in names}
-    for r in range(repeats):
-        for n in names[r % len(names) :] + names[: r % len(names)]:
-            runs[n].append(bsdf_bound.render_once(scenes[n], spp))
-        print("  cost round", r + 1, {n: round(v[-1], 3) for n, v in runs.items()}, flush=True)
-    return {
-        "resolution": resolution,
-        "spp": spp,
-        "repeats": repeats,
-        "render_wall_s": runs,
-        "best_s": {n: min(v) for n, v in runs.items()},
-        "loadavg_before": before,
-        "loadavg_after": loadavg(),
-    }
-
-
 def cost_ratios(best: dict[str, float]) -> dict[str, float | None]:
     """The textured files' best times over the compact file's (the homogeneous principled's,
     else the roughplastic's) and over Mitsuba's own textured principled (whole, nested)."""
@@ -944,7 +918,7 @@ def main(argv: list[str] | None = None) -> int:
     bsdfs["mitsuba principled_textured"] = mi.load_file(str(prin))
     bsdfs["mitsuba principled_textured nested"] = mi.load_file(str(nested_xml(prin)))
     print("render cost:", ", ".join(bsdfs), flush=True)
-    c = render_cost(bsdfs, cost["resolution"], cost["spp"], repeats)
+    c = bsdf_bound.render_cost(bsdfs, cost["resolution"], cost["spp"], repeats)
     best = c["best_s"]
     c["ratios"] = cost_ratios(best)
     result["render_cost"] = c

@@ -41,7 +41,7 @@ import bsdf_bound  # noqa: E402  (sets the Mitsuba variant, registers the plugin
 import mitsuba as mi  # noqa: E402
 import torch  # noqa: E402
 from common import write_json  # noqa: E402
-from textured import loadavg, render_cost  # noqa: E402
+from textured import loadavg  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 RECIPE = {"lobes": 6, "resolution": 64, "steps": 800, "size": 256, "seed": 1}
@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         n: {"type": "neural_brdf", "filename": str(p)} for n, p in files.items()
     }
     bsdfs["mitsuba principled (whole teacher)"] = mi.load_file(str(xmls["principled"]))
-    c = render_cost(bsdfs, 256, 64, args.repeats)
+    c = bsdf_bound.render_cost(bsdfs, 256, 64, args.repeats)
     best = c["best_s"]
     c["ratio_to_separate"] = {n: best[n] / best[f"{n.split()[0]} separate_32"] for n in files}
     result["render_cost"] = c

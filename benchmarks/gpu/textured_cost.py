@@ -8,7 +8,7 @@
 (``SETTINGS`` for the textured principled and roughplastic, the pipeline's compact recipe for
 the homogeneous principled) into a folder: training reads the teacher through Mitsuba's
 llvm variant on a CPU, which a GPU machine without libLLVM lacks.  The second form renders
-benchmarks/textured.py's render-cost comparison (its ``render_cost``: bsdf_bound's
+benchmarks/textured.py's render-cost comparison (bsdf_bound's ``render_cost``: its
 BSDF-bound scene, interleaved rounds in rotating order after one compiling render each,
 best of ``--repeats``) with those files and Mitsuba's own textured principled (the whole
 teacher, and its nested BSDF), the teachers' maps written again by the same deterministic
@@ -33,7 +33,8 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-import textured  # noqa: E402  (imports bsdf_bound, which sets --variant's Mitsuba variant)
+import bsdf_bound  # noqa: E402  (sets --variant's Mitsuba variant, registers the plugins)
+import textured  # noqa: E402
 from common import write_json  # noqa: E402
 
 FILES = ("principled_textured", "roughplastic_textured", "principled_plain")
@@ -108,7 +109,7 @@ def measure(models: Path, sizes: list[tuple[int, int]], repeats: int) -> dict:
         bsdfs["mitsuba principled_textured nested"] = mi.load_file(str(textured.nested_xml(prin)))
         for res, spp in sizes:
             print(f"{res}^2 x {spp} spp:", ", ".join(bsdfs), flush=True)
-            c = textured.render_cost(bsdfs, res, spp, repeats)
+            c = bsdf_bound.render_cost(bsdfs, res, spp, repeats)
             c["ratios"] = textured.cost_ratios(c["best_s"])
             print(json.dumps(c["ratios"], indent=1), flush=True)
             result["sizes"][f"{res}x{spp}"] = c
