@@ -344,6 +344,15 @@ class Texture(_Section):
     # one with the lowest error on pairs of its own (not the held-out ones) continued
     starts: int = Field(1, ge=1, le=16)
     start_steps: int | None = Field(None, ge=1)
+    # the training pairs drawn from the teacher again every this many steps (fresh pairs;
+    # null: one pool of data.pool_size for the run): a fine field sees a fixed pool's few
+    # pairs per texel over and over (docs/mitsuba.md, "The pool and the field's resolution")
+    fresh_every: int | None = Field(None, ge=1)
+    # the field's logits learned as the sum of this many tables, R, R/2, R/4, ... (each
+    # looked up at the R x R texel centres): the same R x R field in the file, but coarse
+    # logits see many texels' pairs (docs/mitsuba.md, "The pool and the field's
+    # resolution"); R must be divisible by 2^(field_levels - 1)
+    field_levels: int = Field(1, ge=1, le=8)
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random
@@ -428,6 +437,12 @@ class Config(_Section):
 
     @model_validator(mode="after")
     def _texture_starts(self):
+        lv = self.texture.field_levels
+        if self.texture.resolution % (1 << (lv - 1)):
+            raise ValueError(
+                f"texture.field_levels: {lv} levels need texture.resolution divisible by "
+                f"{1 << (lv - 1)} (got {self.texture.resolution})"
+            )
         n = self.texture.start_steps
         if n is not None and n > self.train.steps:
             raise ValueError(

@@ -648,10 +648,16 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     separate = any(k.startswith("lobes.1.") for k in state)
     # and so does its latent (conditioned lobes have field.latent_logits)
     latent = int(state["field.latent_logits"].shape[1]) if "field.latent_logits" in state else 0
+    # and its field's levels (field.coarse.<l - 1> for each coarser level)
+    levels = 1 + len({k.split(".")[2] for k in state if k.startswith("field.coarse.")})
     model = TexturedBRDF(
         lobe_networks(cfg.model, tx.lobes, not separate and tx.lobes > 1, latent=latent),
         WeightField(
-            tx.resolution, tx.lobes, channels=3 if tx.weights == "rgb" else 1, latent=latent
+            tx.resolution,
+            tx.lobes,
+            channels=3 if tx.weights == "rgb" else 1,
+            latent=latent,
+            levels=levels,
         ),
     )
     model.load_state_dict(ckpt["model"])

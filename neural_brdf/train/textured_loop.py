@@ -9,7 +9,8 @@
     onnx_bytes = to_onnx_bytes_textured(model)
 
 Data.  A teacher's calls (Mitsuba) are slow next to a step, so a pool of ``pool`` pairs
-is drawn once and batches are drawn from it with replacement: uv uniform in [0, 1)^2,
+is drawn (once, or every ``fresh_every`` steps: :class:`PairPool`) and batches are drawn
+from it with replacement: uv uniform in [0, 1)^2,
 wi uniform on the hemisphere (as validation draws it: on the development principled the
 grazing pairs carried 98 % of the squared error, and a cosine-distributed wi, used before,
 left them rare in training: 16 % held-out error against 9.4 % with uniform wi), wo uniform
@@ -85,6 +86,42 @@ def pairs(
     return a, b, c, t
 
 
+class PairPool:
+    """The training pairs: ``size`` pairs drawn by :func:`pairs`, and with ``fresh_every``
+    steps drawn again (``texture.fresh_every``; None: one pool for the whole run).
+
+    Draw c (steps c x fresh_every onwards) comes from ``numpy.random.default_rng([seed,
+    c])``, draw 0 from ``default_rng(seed)`` (the pool a run without fresh pairs draws), so
+    a resumed run, and each of several starts, sees the same pairs at the same step.
+    Why: a field of R x R texels sees a fixed pool's pairs over and over, and a finer
+    field fewer of them per texel; on the development principled (R = 64 and 128, a
+    pool of 2M pairs) the held-out error fell when the pool grew, and the teacher's calls
+    cost about 0.6 s per million pairs against about 14 ms per step of 8192."""
+
+    def __init__(self, teacher: Any, size: int, seed: int, fresh_every: int | None = None):
+        if fresh_every is not None and fresh_every < 1:
+            raise ValueError(f"PairPool: fresh_every >= 1 or None, got {fresh_every}")
+        self.teacher, self.size, self.seed, self.fresh_every = teacher, size, seed, fresh_every
+        self.draw = -1
+        self.draws = 0  # how many times the teacher was asked (figures)
+        self.seconds = 0.0
+        self.pairs: tuple[torch.Tensor, ...] = ()
+        self.at(0)
+
+    def at(self, step: int) -> tuple[torch.Tensor, ...]:
+        """The pool in use at ``step`` (drawn now if it is a new one)."""
+        draw = 0 if self.fresh_every is None else step // self.fresh_every
+        if draw != self.draw:
+            t0 = time.perf_counter()
+            rng = np.random.default_rng(self.seed if draw == 0 else [self.seed, draw])
+            self.pairs = ()  # free the old pool before the new one is drawn
+            self.pairs = pairs(self.teacher, self.size, rng)
+            self.draw = draw
+            self.draws += 1
+            self.seconds += time.perf_counter() - t0
+        return self.pairs
+
+
 def _model_and_optimizer(
     m: cfgmod.Model,
     lobes: int,
@@ -96,6 +133,7 @@ def _model_and_optimizer(
     shared: bool = False,
     latent: int = 0,
     latent_init: torch.Tensor | None = None,
+    levels: int = 1,
 ) -> tuple[TexturedBRDF, torch.optim.Adam]:
     """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field of ``channels`` (1:
     one weight per lobe, 3: one per lobe and RGB channel) sets of weights (from torch's
@@ -107,7 +145,7 @@ def _model_and_optimizer(
     logits started at ``latent_init``."""
     # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
     init = float(pool_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
-    field = WeightField(resolution, lobes, channels=channels, latent=latent)
+    field = WeightField(resolution, lobes, channels=channels, latent=latent, levels=levels)
     if field.latent_logits is not None and latent_init is not None:
         with torch.no_grad():
             field.latent_logits.copy_(latent_init)
@@ -279,7 +317,7 @@ def _train_span(
     model: TexturedBRDF,
     opt: torch.optim.Adam,
     sched: cfgmod.Train,
-    pool: tuple[torch.Tensor, ...],
+    pool: PairPool,
     batch: int,
     gen: torch.Generator,
     *,
@@ -294,7 +332,7 @@ def _train_span(
     model.train()
     for step in range(start, stop):
         _rebound(model, lobe_bound, step, seed)
-        loss, _ = _step(model, opt, sched, step, pool, batch, gen)
+        loss, _ = _step(model, opt, sched, step, pool.at(step), batch, gen)
         if step == stop - 1 or step % 100 == 0:
             last = float(loss.detach())
             if not math.isfinite(last):
@@ -372,6 +410,8 @@ def train_textured(
     peak_cap: float | None = None,
     starts: int = 1,
     start_steps: int | None = None,
+    fresh_every: int | None = None,
+    field_levels: int = 1,
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
     to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
@@ -392,16 +432,15 @@ def train_textured(
     }
     if peak:  # the loss's peak weight (train.peak_weight, train.peak_cap; None: defaults)
         sched = sched.model_copy(update=peak)
-    rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    p_wi, p_wo, p_uv, p_f = pairs(teacher, pool, rng)
+    pool_t = PairPool(teacher, pool, seed, fresh_every)
+    p_f = pool_t.at(0)[3]
     v_wi, v_wo, v_uv, v_f = pairs(
         teacher, val_pairs, np.random.default_rng(seed + 101), cosine_wi=False
     )
     pool_seconds = time.perf_counter() - t0
 
     latent_init = latent_from_teacher(teacher, resolution) if latent else None
-    pool_t = (p_wi, p_wo, p_uv, p_f)
 
     def make() -> tuple[TexturedBRDF, torch.optim.Adam]:  # from torch's seeded generator
         return _model_and_optimizer(
@@ -415,6 +454,7 @@ def train_textured(
             shared=lobe_network == "shared",
             latent=latent,
             latent_init=latent_init,
+            levels=field_levels,
         )
 
     def span(model, opt, gen, run_seed: int, start: int, stop: int) -> float:
@@ -449,6 +489,10 @@ def train_textured(
         "resolution": resolution,
         "pool": pool,
         "pool_seconds": pool_seconds,
+        "fresh_every": fresh_every,
+        "field_levels": field_levels,
+        "pool_draws": pool_t.draws,
+        "pool_draw_seconds": pool_t.seconds,
         "train_seconds": time.perf_counter() - t1,
         "final_loss": last,
         "init_val_rel_rmse": init_err,
@@ -495,13 +539,13 @@ def train(
     ckpt = sess.resumed(checkpoint, must_match=TEXTURED_MUST_MATCH)
     sess.begin()
     t0 = time.perf_counter()
-    p_wi, p_wo, p_uv, p_f = pairs(target, cfg.data.pool_size, np.random.default_rng(t.seed))
+    pool = PairPool(target, cfg.data.pool_size, t.seed, tx.fresh_every)
+    p_f = pool.at(0)[3]
     v_wi, v_wo, v_uv, v_f = pairs(
         target, VAL_PAIRS, np.random.default_rng(t.seed + 101), cosine_wi=False
     )
     pool_seconds = time.perf_counter() - t0
     latent_init = latent_from_teacher(target, tx.resolution) if tx.latent else None
-    pool = (p_wi, p_wo, p_uv, p_f)
 
     def make() -> tuple[TexturedBRDF, torch.optim.Adam]:  # from torch's seeded generator
         return _model_and_optimizer(
@@ -515,6 +559,7 @@ def train(
             shared=tx.lobe_network == "shared",
             latent=tx.latent,
             latent_init=latent_init,
+            levels=tx.field_levels,
         )
 
     torch.manual_seed(t.seed)
@@ -579,7 +624,7 @@ def train(
         while s.step < t.steps:
             s.stop_if_interrupted()
             _rebound(model, tx.lobe_bound, s.step, t.seed)
-            loss, rate = _step(model, opt, t, s.step, pool, cfg.data.batch_size, gen)
+            loss, rate = _step(model, opt, t, s.step, pool.at(s.step), cfg.data.batch_size, gen)
             s.advance()
             if s.due(t.log_every):
                 last = float(loss.detach())
@@ -607,6 +652,10 @@ def train(
         "latent": tx.latent,
         "pool": len(p_f),
         "pool_seconds": pool_seconds,
+        "fresh_every": tx.fresh_every,
+        "field_levels": tx.field_levels,
+        "pool_draws": pool.draws,
+        "pool_draw_seconds": pool.seconds,
         "train_seconds": sess.seconds,
         "final_loss": last,
         "init_val_rel_rmse": init_err,
