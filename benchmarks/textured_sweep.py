@@ -47,21 +47,38 @@ RESULTS = REPO / "benchmarks" / "results"
 PAIRS = 200_000
 EVAL_SEEDS = (900, 901)  # the fixed development sets (as DEV_SWEEP's lr rows)
 # name -> changes to textured.SETTINGS (grid_size: the lobes' (theta_h, theta_d) grid)
+POOL_BEFORE = 1 << 21  # SETTINGS' pool when the first variants ran (now pool8m's 8M)
 VARIANTS = {
-    "base": {},
-    "r128": {"resolution": 128},
-    "r128_8k": {"resolution": 128, "steps": 8000},
-    "r256_8k": {"resolution": 256, "steps": 8000},
-    "steps8k": {"steps": 8000},
-    "r128_b16k": {"resolution": 128, "batch": 16384},
-    "grid64": {"grid_size": 64},
-    "h64": {"hidden": [64]},
+    "base": {"pool": POOL_BEFORE},
+    "r128": {"resolution": 128, "pool": POOL_BEFORE},
+    "r128_8k": {"resolution": 128, "steps": 8000, "pool": POOL_BEFORE},
+    "r256_8k": {"resolution": 256, "steps": 8000, "pool": POOL_BEFORE},
+    "steps8k": {"steps": 8000, "pool": POOL_BEFORE},
+    "r128_b16k": {"resolution": 128, "batch": 16384, "pool": POOL_BEFORE},
+    "grid64": {"grid_size": 64, "pool": POOL_BEFORE},
+    "h64": {"hidden": [64], "pool": POOL_BEFORE},
     # the loss's weight on large f cos (train.peak_weight 10, peak_cap 100 by default):
     # the figure is dominated by the largest values (grazing, sharp texels)
-    "cap1k": {"peak_cap": 1000.0},
-    "cap10k": {"peak_cap": 10000.0},
-    "cap1k_w30": {"peak_cap": 1000.0, "peak_weight": 30.0},
-    "r128_cap1k": {"resolution": 128, "peak_cap": 1000.0},
+    "cap1k": {"peak_cap": 1000.0, "pool": POOL_BEFORE},
+    "cap10k": {"peak_cap": 10000.0, "pool": POOL_BEFORE},
+    "cap1k_w30": {"peak_cap": 1000.0, "peak_weight": 30.0, "pool": POOL_BEFORE},
+    "r128_cap1k": {"resolution": 128, "peak_cap": 1000.0, "pool": POOL_BEFORE},
+    # the pool: a bilinear field of R^2 texels needs pairs at every texel (2M pairs are
+    # 512 per texel at 64^2, 32 at 256^2), and the teacher's calls are cheap next to steps
+    "pool8m": {"pool": 1 << 23},
+    "r128_pool8m": {"resolution": 128, "pool": 1 << 23},
+    "r256_pool16m": {"resolution": 256, "pool": 1 << 24},
+    # fresh pairs (texture.fresh_every): a pool of 2M drawn again every 256 steps, so
+    # every pair of the 4000 steps' 33M is new
+    "fresh": {"fresh_every": 256, "pool": POOL_BEFORE},
+    "r256_fresh": {"resolution": 256, "fresh_every": 256, "pool": POOL_BEFORE},
+    # the fine field learned as a sum of levels (texture.field_levels): 256, 128, 64
+    "r256_l3_fresh": {
+        "resolution": 256,
+        "field_levels": 3,
+        "fresh_every": 256,
+        "pool": POOL_BEFORE,
+    },
 }
 
 
