@@ -73,6 +73,7 @@ VARIANTS = {
     "fresh": {"fresh_every": 256, "pool": POOL_BEFORE},
     "r256_fresh": {"resolution": 256, "fresh_every": 256, "pool": POOL_BEFORE},
     # the fine field learned as a sum of levels (texture.field_levels): 256, 128, 64
+    "r128_l2_pool8m": {"resolution": 128, "field_levels": 2, "pool": 1 << 23},
     "r256_l3_fresh": {
         "resolution": 256,
         "field_levels": 3,
