@@ -16,7 +16,7 @@ import torch
 
 from cli_helpers import assert_one_line_error, cli
 from neural_brdf.train.textured_model import WeightField, bilinear_wrap
-from textured_helpers import one_torch_thread  # noqa: F401  (autouse)
+from textured_helpers import one_torch_thread, small_run_config  # noqa: F401  (autouse)
 
 
 def test_the_levels_sum_to_the_fine_logits_at_the_texel_centres():
@@ -66,15 +66,14 @@ def test_a_coarse_level_learns_from_pairs_far_from_its_fine_texels():
         WeightField(10, 2, levels=3)
 
 
-CONFIG = """\
-target: {{mitsuba: {xml}}}
-texture: {{lobes: 2, resolution: {r}, field_levels: {levels}, validation_uv: 8}}
-train: {{steps: 30, checkpoint_every: 10, log_every: 10, eval_every: 0, progress: false}}
-data: {{pool_size: 4096, batch_size: 512}}
-validation: {{pairs: 2000, furnace_dirs: 32, furnace_samples: 4096, accuracy_samples: 8192}}
-normalization: {{samples: 4096}}
-export: {{parity_pairs: 512}}
-"""
+def _config(path, xml, r: int, levels: int) -> None:
+    small_run_config(
+        path,
+        xml,
+        texture=f"lobes: 2, resolution: {r}, field_levels: {levels}, validation_uv: 8",
+        train="steps: 30, checkpoint_every: 10, log_every: 10, eval_every: 0, progress: false",
+        normalization="samples: 4096",
+    )
 
 
 @pytest.mark.mitsuba
@@ -83,7 +82,7 @@ def test_a_run_with_levels_trains_records_and_exports_the_same_file(tmp_path, ca
 
     xml = write_teacher(tmp_path / "teacher", "roughplastic", size=16)
     cfg = tmp_path / "lv.yaml"
-    cfg.write_text(CONFIG.format(xml=xml, r=8, levels=3))
+    _config(cfg, xml, 8, 3)
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"))
     assert code == 0, err
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -113,6 +112,6 @@ def test_a_run_with_levels_trains_records_and_exports_the_same_file(tmp_path, ca
 
 def test_levels_need_a_resolution_they_divide(tmp_path, capsys):
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text(CONFIG.format(xml=tmp_path / "none.xml", r=10, levels=3))
+    _config(cfg, tmp_path / "none.xml", 10, 3)
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
     assert_one_line_error(code, err, "texture.field_levels", "divisible by 4")

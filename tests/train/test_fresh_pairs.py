@@ -15,7 +15,7 @@ import torch
 
 from cli_helpers import assert_one_line_error, cli
 from neural_brdf.train import textured_loop
-from textured_helpers import one_torch_thread  # noqa: F401  (autouse)
+from textured_helpers import one_torch_thread, small_run_config  # noqa: F401  (autouse)
 
 
 class _Teacher:
@@ -73,15 +73,15 @@ def test_a_run_with_fresh_pairs_sees_more_of_the_teacher():
     assert len(seen) == 4 * 64 and pool.draws == 4
 
 
-CONFIG = """\
-target: {{mitsuba: {xml}}}
-texture: {{lobes: 2, resolution: 8, validation_uv: 8, fresh_every: {fresh}}}
-train: {{steps: {steps}, checkpoint_every: 10, log_every: 10, eval_every: 0, progress: false}}
-data: {{pool_size: 4096, batch_size: 512}}
-validation: {{pairs: 2000, furnace_dirs: 32, furnace_samples: 4096, accuracy_samples: 8192}}
-normalization: {{samples: 4096}}
-export: {{parity_pairs: 512}}
-"""
+def _config(path, xml, fresh, steps: int) -> None:
+    small_run_config(
+        path,
+        xml,
+        texture=f"lobes: 2, resolution: 8, validation_uv: 8, fresh_every: {fresh}",
+        train=f"steps: {steps}, checkpoint_every: 10, log_every: 10, eval_every: 0, "
+        "progress: false",
+        normalization="samples: 4096",
+    )
 
 
 @pytest.mark.mitsuba
@@ -92,8 +92,8 @@ def test_a_resumed_run_with_fresh_pairs_continues_the_run_it_resumes(tmp_path, c
 
     xml = write_teacher(tmp_path / "teacher", "roughplastic", size=16)
     whole, part = tmp_path / "whole.yaml", tmp_path / "part.yaml"
-    whole.write_text(CONFIG.format(xml=xml, fresh=10, steps=40))
-    part.write_text(CONFIG.format(xml=xml, fresh=10, steps=20))
+    _config(whole, xml, 10, 40)
+    _config(part, xml, 10, 20)
     code, _, err = cli(capsys, "train", str(whole), "--out", str(tmp_path / "a"))
     assert code == 0, err
     code, _, err = cli(capsys, "train", str(part), "--out", str(tmp_path / "b"))
@@ -122,7 +122,7 @@ def test_a_resumed_run_with_fresh_pairs_continues_the_run_it_resumes(tmp_path, c
     np.testing.assert_allclose(f(tmp_path / "b"), f(tmp_path / "a"), rtol=1e-5, atol=1e-7)
     # and it is not the run without fresh pairs
     plain = tmp_path / "plain.yaml"
-    plain.write_text(CONFIG.format(xml=xml, fresh="null", steps=40))
+    _config(plain, xml, "null", 40)
     code, _, err = cli(capsys, "train", str(plain), "--out", str(tmp_path / "c"))
     assert code == 0, err
     assert json.loads((tmp_path / "c" / "metrics.json").read_text())["training"]["pool_draws"] == 1
@@ -131,6 +131,6 @@ def test_a_resumed_run_with_fresh_pairs_continues_the_run_it_resumes(tmp_path, c
 
 def test_fresh_every_must_be_a_positive_step_count(tmp_path, capsys):
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text(CONFIG.format(xml=tmp_path / "none.xml", fresh=0, steps=10))
+    _config(cfg, tmp_path / "none.xml", 0, 10)
     code, out, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
     assert_one_line_error(code, err, "texture.fresh_every")
