@@ -348,6 +348,10 @@ class Texture(_Section):
     # null: one pool of data.pool_size for the run): a fine field sees a fixed pool's few
     # pairs per texel over and over (docs/mitsuba.md, "The pool and the field's resolution")
     fresh_every: int | None = Field(None, ge=1)
+    # the pool holds at least this many pairs per texel of the field: max(data.pool_size,
+    # pool_per_texel x R^2) pairs (null: data.pool_size alone); 2048 chosen on the
+    # development teachers (docs/mitsuba.md, "The pool and the field's resolution")
+    pool_per_texel: int | None = Field(2048, ge=1)
     # the field's logits learned as the sum of this many tables, R, R/2, R/4, ... (each
     # looked up at the R x R texel centres): the same R x R field in the file, but coarse
     # logits see many texels' pairs (docs/mitsuba.md, "The pool and the field's
@@ -356,6 +360,11 @@ class Texture(_Section):
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random
+
+    def pool(self, pool_size: int) -> int:
+        """The pairs of a textured fit's pool, given ``data.pool_size``."""
+        per = 0 if self.pool_per_texel is None else self.pool_per_texel * self.resolution**2
+        return max(pool_size, per)
 
 
 # A run's name is one plain folder name: never a path (``../..``, ``/etc``), never empty,
@@ -498,6 +507,10 @@ def sizes(cfg: Config) -> list[tuple[str, float]]:
         ("normalization.samples", float(n.samples) * max(n.table_size, n.grid_size**2) * 12),
         ("export.parity_pairs", float(cfg.export.parity_pairs) * PAIR_BYTES),
     ]
+    if cfg.target.mitsuba is not None and cfg.texture.pool_per_texel is not None:
+        # a textured teacher's pool (a homogeneous one reads data.pool_size alone)
+        pool = cfg.texture.pool(d.pool_size)
+        out.append(("texture.pool_per_texel", float(pool) * PAIR_BYTES))
     for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
         out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))
     return out

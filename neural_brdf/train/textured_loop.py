@@ -539,7 +539,7 @@ def train(
     ckpt = sess.resumed(checkpoint, must_match=TEXTURED_MUST_MATCH)
     sess.begin()
     t0 = time.perf_counter()
-    pool = PairPool(target, cfg.data.pool_size, t.seed, tx.fresh_every)
+    pool = PairPool(target, tx.pool(cfg.data.pool_size), t.seed, tx.fresh_every)
     p_f = pool.at(0)[3]
     v_wi, v_wo, v_uv, v_f = pairs(
         target, VAL_PAIRS, np.random.default_rng(t.seed + 101), cosine_wi=False

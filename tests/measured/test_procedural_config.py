@@ -1,7 +1,8 @@
 """``python -m neural_brdf.measured.procedural DIR``: the teacher and the config it writes
-beside it (docs/mitsuba.md "Textured materials") are valid and train, and the config's
-pool is larger than data.pool_size's default (docs/mitsuba.md "The pool and the field's
-resolution": the example's error fell on both sets with 2M pairs)."""
+beside it (docs/mitsuba.md "Textured materials") are valid and train, and the run's
+pool is texture.pool_per_texel pairs per texel, larger than data.pool_size's default
+(docs/mitsuba.md "The pool and the field's resolution": the example's error fell on
+both sets with 2M pairs)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ def test_the_written_config_is_valid_trains_and_draws_a_large_pool(tmp_path, cap
     cfg_path = tmp_path / "mat" / "textured.yaml"
     cfg = cfgmod.load(cfg_path)
     assert cfg.texture.latent == 1 and cfg.texture.weights == "rgb"
-    assert cfg.data.pool_size > cfgmod.Data().pool_size
+    pool = cfg.texture.pool(cfg.data.pool_size)
+    assert pool == cfg.texture.pool_per_texel * cfg.texture.resolution**2 > cfgmod.Data().pool_size
     code, _, err = cli(
         capsys, "train", str(cfg_path), "--out", str(tmp_path / "run"),
         "--set", "train.progress=false", "--set", "validation.pairs=2000",
@@ -31,4 +33,4 @@ def test_the_written_config_is_valid_trains_and_draws_a_large_pool(tmp_path, cap
     )  # fmt: skip
     assert code == 0, err
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert m["training"]["pool"] == cfg.data.pool_size
+    assert m["training"]["pool"] == pool

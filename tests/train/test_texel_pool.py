@@ -1,0 +1,49 @@
+"""The pool of a textured fit grows with its field (``texture.pool_per_texel``,
+docs/mitsuba.md "The pool and the field's resolution"): at least that many pairs per
+texel of the R x R field, never fewer than ``data.pool_size``; null leaves
+``data.pool_size`` alone; the memory check names the key before anything is drawn."""
+
+from __future__ import annotations
+
+import pytest
+
+from neural_brdf import config as cfgmod
+from neural_brdf import limits
+
+
+def _cfg(**texture) -> cfgmod.Config:
+    return cfgmod.Config.model_validate({"target": {"mitsuba": "teacher.xml"}, "texture": texture})
+
+
+def test_the_pool_holds_pool_per_texel_pairs_per_texel_and_never_fewer_than_pool_size():
+    small = _cfg(resolution=8, pool_per_texel=100)
+    assert small.texture.pool(small.data.pool_size) == small.data.pool_size  # 6,400 < default
+    big = _cfg(resolution=64, pool_per_texel=100)
+    assert big.texture.pool(big.data.pool_size) == 100 * 64 * 64
+    assert big.texture.pool(1 << 20) == 1 << 20  # a larger data.pool_size is kept
+    off = _cfg(resolution=256, pool_per_texel=None)
+    assert off.texture.pool(off.data.pool_size) == off.data.pool_size
+    # the default grows the default field's pool beyond data.pool_size's default
+    d = _cfg()
+    assert d.texture.pool(d.data.pool_size) == d.texture.pool_per_texel * d.texture.resolution**2
+    assert d.texture.pool(d.data.pool_size) > d.data.pool_size
+
+
+def test_the_memory_check_names_pool_per_texel_for_a_textured_teacher(monkeypatch):
+    cfg = _cfg(resolution=1024)  # 2048 pairs per texel of 1024^2: 2^31 pairs
+    sizes = dict(cfgmod.sizes(cfg))
+    assert sizes["texture.pool_per_texel"] == cfg.texture.pool(cfg.data.pool_size) * (
+        cfgmod.PAIR_BYTES
+    )
+    monkeypatch.setenv(limits.ENV_LIMIT, "64G")
+    with pytest.raises(limits.TooLarge, match=r"^config: texture\.pool_per_texel: would need"):
+        cfgmod.check_sizes(cfg)
+    cfgmod.check_sizes(_cfg(resolution=1024, pool_per_texel=None))  # data.pool_size alone
+    # a homogeneous target never reads it
+    assert "texture.pool_per_texel" not in dict(cfgmod.sizes(cfgmod.Config()))
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "1.5", "many"])
+def test_a_bad_pool_per_texel_is_refused(value):
+    with pytest.raises(cfgmod.ConfigError, match="texture.pool_per_texel"):
+        cfgmod.load(None, ["target.mitsuba=t.xml", f"texture.pool_per_texel={value}"])
