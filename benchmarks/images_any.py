@@ -23,7 +23,9 @@ that split.
 were chosen (``--set-key`` overrides, compared by their figures here; ``rough_clay``, an
 Oren-Nayar outside every family, was added to choose ``images.poor_start_loss``;
 ``images.patience`` was chosen by replaying it on this set's recorded fits,
-benchmarks/images_patience.py); ``test``: other materials (a conductor, ``roughplastic``,
+benchmarks/images_patience.py; ``images.start_refine_steps`` by the start's figures before
+and after its refinement, both recorded in one run, images_any_dev_refine.json);
+``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two
 environments used nowhere in development: one to fit (``studio``) and one to relight
@@ -45,6 +47,10 @@ fitted parameters, rendered by Mitsuba itself), against the true material:
   image stage, and the whole (wall-clock, with the load average); and, as the yardstick
   of the image stage, a stand-alone fit of Mitsuba's ``roughconductor`` parameters to the
   same views with as many steps at the same samples per pixel.
+
+Where the chosen family was refined (``images.start_refine_steps``), the start is also
+scored with its parameters before the refinement (``start_unrefined``: the BRDF errors and
+both images), so one run shows what the refinement did.
 
 Nothing here asserts anything; the JSON goes to benchmarks/results/images_any.json
 (``--set dev``: images_any_dev.json) and ``tools/results_tables.py`` makes the table of
@@ -327,13 +333,21 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     start_el = starts.family(start["family"]).element(start["params"]) if start else None
     model = runtime.load(run_dir / "model.onnx")
 
+    # the chosen family before images.start_refine_steps (when they ran): its parameters
+    # at the end of the choice's fit
+    refined = start.get("refine") or {}
+    before_el = (
+        starts.family(start["family"]).element(refined["params_before"]) if refined else None
+    )
+
     def brdf_errors(wi: np.ndarray, wo: np.ndarray) -> dict:
         fc_true = inverse.mitsuba_f_cos(truth_bsdf, wi, wo)
         fc_net = np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3]
         out = {"pairs": int(len(wi)), "network": inverse.brdf_rel_rmse(fc_net, fc_true)}
-        if start_el is not None:
-            fc_start = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(start_el), wi, wo)
-            out["start"] = inverse.brdf_rel_rmse(fc_start, fc_true)
+        for key, el in (("start", start_el), ("start_unrefined", before_el)):
+            if el is not None:
+                fc = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(el), wi, wo)
+                out[key] = inverse.brdf_rel_rmse(fc, fc_true)
         return out
 
     wi, wo = inverse.brdf_pairs(truth_bsdf, PAIRS, seed=7)
@@ -359,6 +373,8 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         }
         if start_el is not None:
             images[label]["start"] = image_figures(view, ref, mask, start_el, 303)
+        if before_el is not None:
+            images[label]["start_unrefined"] = image_figures(view, ref, mask, before_el, 303)
 
     # the issue's yardstick for the image stage: a stand-alone fit of Mitsuba's
     # roughconductor parameters to the same views, as many steps at the same spp
@@ -386,6 +402,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "params": start.get("params"),
             "candidates": candidates,
             "left_out": start.get("left_out"),
+            "refine": refined or None,
         },
         "images": images,
         "brdf": {"cap_0.5": cap, "observed": observed},

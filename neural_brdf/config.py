@@ -256,6 +256,17 @@ class Images(_Section):
     start: str = "auto"
     start_families: list[str] = Field(default_factory=lambda: list(START_FAMILIES))
     start_steps: int | None = Field(None, ge=1)  # each family's fit (null: 80; ggx: train.steps)
+    start_lr: float = Field(0.2, gt=0.0)  # ... Adam's rate on its free variables, decayed
+    start_lr_end: float = Field(0.05, gt=0.0, le=1.0)  # ... (cosine) to this fraction of it
+    start_spp: int = Field(4, ge=1)  # ... samples per pixel of its gradient pass
+    start_primal_spp: int = Field(16, ge=1)  # ... and of its primal pass
+    # the chosen family's fit continued from its parameters, its second half's iterates
+    # averaged; kept unless the validation split prefers the unrefined parameters
+    # (0 steps: off; chosen on the development set: docs/inverse.md, "Refining the choice")
+    start_refine_steps: int = Field(60, ge=0)
+    start_refine_lr: float = Field(0.02, gt=0.0)  # its rate, decayed (cosine) ...
+    start_refine_lr_end: float = Field(0.1, gt=0.0, le=1.0)  # ... to this fraction of it
+    start_refine_spp: int = Field(16, ge=1)  # its gradient pass's samples (primal: twice)
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)

@@ -592,6 +592,31 @@ class Schedule:
         c = 0.5 * (1.0 + math.cos(math.pi * step / max(1, self.steps)))
         return self.lr * (self.lr_end + (1.0 - self.lr_end) * c)
 
+    @classmethod
+    def of(cls, images: cfgmod.Images) -> Schedule:
+        """Each family's fit as the config's ``images`` section sets it."""
+        return cls(
+            steps=cls.steps if images.start_steps is None else images.start_steps,
+            spp=images.start_spp,
+            primal_spp=images.start_primal_spp,
+            val_spp=images.validation_spp,
+            lr=images.start_lr,
+            lr_end=images.start_lr_end,
+        )
+
+    @classmethod
+    def refining(cls, images: cfgmod.Images) -> Schedule:
+        """The chosen family's refinement (:func:`refine`) as ``images`` sets it: its
+        primal pass at twice its gradient pass's samples."""
+        return cls(
+            steps=images.start_refine_steps,
+            spp=images.start_refine_spp,
+            primal_spp=2 * images.start_refine_spp,
+            val_spp=images.validation_spp,
+            lr=images.start_refine_lr,
+            lr_end=images.start_refine_lr_end,
+        )
+
 
 def fit_start(
     views: Sequence[inverse.View],
@@ -635,10 +660,14 @@ def fit_candidate(
     spp: int | None = None,
     schedule: Schedule | None = None,
     init: Mapping[str, Any] | None = None,
+    average_from: int | None = None,
 ) -> Candidate:
     """:func:`fit_start` with every figure (a :class:`Candidate`).  ``init``: the
     parameters to start from (by name, as :meth:`Family.numbers` gives them), else the
-    family's start values scaled to the images' brightness (module doc).  Loads the
+    family's start values scaled to the images' brightness (module doc).
+    ``average_from``: the fit's result is the mean of the free variables after each step
+    from this one on (Polyak averaging: the last steps' jitter averaged out), else the
+    last step's.  Loads the
     views' scenes with the family's BSDF (:func:`~neural_brdf.inverse.fit.prepare_views`:
     the views' ``scene``, ``params`` and tensors are replaced); views without training
     pixels are not rendered during the fit."""
@@ -695,6 +724,8 @@ def fit_candidate(
         h, w = v.target.shape[:2]
         m = mask_train[i][..., None].astype(np.float32)
         weights[i] = mi.TensorXf(inverse.rel_weight(v.target) * m * (h * w / n_train))
+    sums: dict[str, np.ndarray] = {}
+    n_sum = 0
     for step in range(sched.steps):
         opt.set_learning_rate(sched.rate(step))
         for i in fitted:
@@ -712,8 +743,16 @@ def fit_candidate(
             )
             dr.backward(inverse.relative_mse(render, v.target_tensor, weights[i]))
         opt.step()
-    free = {n: np.asarray(opt[n].numpy(), np.float64).reshape(-1) for n in fam.params}
-    set_free({n: dr.detach(opt[n]) for n in fam.params}, dr)
+        if average_from is not None and step >= average_from:
+            for n in fam.params:
+                z = np.asarray(opt[n].numpy(), np.float64).reshape(-1)
+                sums[n] = sums[n] + z if n in sums else z
+            n_sum += 1
+    if n_sum:
+        free = {n: sums[n] / n_sum for n in fam.params}
+    else:
+        free = {n: np.asarray(opt[n].numpy(), np.float64).reshape(-1) for n in fam.params}
+    set_free({n: typed(z) for n, z in free.items()}, dr)
     train_terms, val_px, plain_terms = [], [], []
     images: list[np.ndarray | None] = []
     for i, v in enumerate(views):
@@ -948,6 +987,58 @@ def choose_start(
     )
 
 
+# ------------------------------------------------------------------ refining the choice
+# The candidates' fits end at images.start_lr_end (0.05) x their rate, about 1-2 % of a
+# roughness or a reflectance per Adam step in the logistic's free variable: the jitter the
+# family's final parameters keep.  The chosen family's fit continues at a tenth of the
+# rate with more samples per pixel, its iterates averaged over the second half of the
+# steps (refine(); Schedule.refining).
+
+
+def refine(
+    views: Sequence[inverse.View],
+    chosen: Candidate,
+    *,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    seed: int,
+    schedule: Schedule,
+) -> tuple[Candidate, dict[str, Any]]:
+    """Continue ``chosen``'s fit from its parameters by ``schedule``
+    (:meth:`Schedule.refining`), the result the mean of the second half's iterates.
+    ``chosen``'s held-out loss must come from renders of ``schedule.val_spp`` samples
+    and the same ``seed``.  Returns (the candidate kept: the refined one unless its
+    held-out loss, scored on the same pixels with the same render seeds, is higher than
+    ``chosen``'s, or there is no held-out pixel; a summary for metrics.json)."""
+    sched = schedule
+    steps = sched.steps
+    r = fit_candidate(
+        views,
+        chosen.family,
+        mask_train=mask_train,
+        mask_val=mask_val,
+        seed=seed,  # the choice's held-out render seeds: the two losses are paired
+        schedule=sched,
+        init=chosen.params,
+        average_from=steps // 2,
+    )
+    before = chosen.val_loss
+    # without a split (a family named alone, no held-out pixels: NaN) nothing prefers it
+    kept = chosen if r.val_loss > before else r
+    summary = {
+        "steps": steps,
+        "spp": sched.spp,
+        "lr": sched.lr,
+        "val_loss_before": before,
+        "val_loss_after": r.val_loss,
+        "kept": kept is r,
+        "params_before": chosen.params,
+        "params_after": r.params,
+        "seconds": r.seconds,
+    }
+    return kept, summary
+
+
 # ------------------------------------------------------------------ the run's start
 def candidates(cfg: cfgmod.Config) -> tuple[list[str], dict[str, str]]:
     """The families an images fit of ``cfg`` fits (``images.start``: every one of
@@ -1006,7 +1097,7 @@ def network_start(
             + "; ".join(f"{k}: {why}" for k, why in left.items())
         )
     train, held = run_masks(views)
-    sched = Schedule(val_spp=images.validation_spp)
+    sched = Schedule.of(images)
 
     def said(c: Candidate) -> None:
         if report is not None:
@@ -1032,6 +1123,7 @@ def network_start(
             progress=said,
         )
         element, summary = choice.element, choice.summary()
+        chosen = choice.chosen
     else:
         c = fit_candidate(
             views,
@@ -1043,7 +1135,7 @@ def network_start(
             schedule=sched,
         )
         said(c)
-        element = c.element
+        element, chosen = c.element, c
         summary = {
             "family": c.family,
             "params": c.params,
@@ -1052,6 +1144,26 @@ def network_start(
             "candidates": [c.summary()],
             "seconds": c.seconds,
         }
+    if images.start_refine_steps > 0:
+        kept, summary["refine"] = refine(
+            views,
+            chosen,
+            mask_train=train,
+            mask_val=held,
+            seed=cfg.train.seed,
+            schedule=Schedule.refining(images),
+        )
+        r = summary["refine"]
+        if report is not None:
+            report(
+                f"refined {chosen.family}: held-out loss {r['val_loss_after']:.4g} against "
+                f"{r['val_loss_before']:.4g} ({'kept' if r['kept'] else 'not kept'}), "
+                f"{r['seconds']:.1f} s"
+            )
+        element = kept.element
+        summary["params"] = kept.params
+        summary["val_loss"] = kept.val_loss
+        summary["seconds"] = float(summary["seconds"]) + float(r["seconds"])
     summary["left_out"] = left
     if report is not None:
         shown = ", ".join(f"{k} {_short(v)}" for k, v in summary["params"].items())
