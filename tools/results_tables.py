@@ -1355,31 +1355,31 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
 
 def _refine_table(d: dict) -> list[str]:
     """The chosen family before and after ``images.start_refine_steps`` (when it ran)."""
-    rows = []
+
+    def two(fig: dict, fmt) -> str:  # the start before -> after
+        return f"{fmt(fig['start_unrefined'])} → {fmt(fig['start'])}"
+
+    rows, r0 = [], None
     for key, e in d["materials"].items():
         r = (e.get("start") or {}).get("refine")
         if not r:
             continue
-        relit, br = e["images"]["relit"], e["brdf"]
-
-        def two(fig: dict, fmt) -> str:
-            return f"{fmt(fig['start_unrefined'])} → {fmt(fig['start'])}"
-
+        r0 = r0 or r
+        br = e["brdf"]
         rows.append(
             [
                 key,
                 f"`{e['start']['family']}`",
                 f"{r['val_loss_before']:.3g} → {r['val_loss_after']:.3g}",
                 "yes" if r["kept"] else "no",
-                f"{relit['start_unrefined']['psnr_db']:.1f} → {relit['start']['psnr_db']:.1f} dB",
+                two(e["images"]["relit"], lambda fig: f"{fig['psnr_db']:.1f}") + " dB",
                 two(br["observed"], _pct),
                 two(br["cap_0.5"], _pct),
                 f"{r['seconds']:.0f} s",
             ]
         )
-    if not rows:
+    if r0 is None:
         return []
-    r0 = next(e["start"]["refine"] for e in d["materials"].values() if e["start"].get("refine"))
     return [
         f"The start before and after its refinement ({r0['steps']} steps at {r0['lr']:g}, "
         f"{r0['spp']} spp; `images.start_refine_*`, chosen on the development set): the "

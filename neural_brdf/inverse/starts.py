@@ -1010,25 +1010,23 @@ def refine(
     and the same ``seed``.  Returns (the candidate kept: the refined one unless its
     held-out loss, scored on the same pixels with the same render seeds, is higher than
     ``chosen``'s, or there is no held-out pixel; a summary for metrics.json)."""
-    sched = schedule
-    steps = sched.steps
     r = fit_candidate(
         views,
         chosen.family,
         mask_train=mask_train,
         mask_val=mask_val,
         seed=seed,  # the choice's held-out render seeds: the two losses are paired
-        schedule=sched,
+        schedule=schedule,
         init=chosen.params,
-        average_from=steps // 2,
+        average_from=schedule.steps // 2,
     )
     before = chosen.val_loss
     # without a split (a family named alone, no held-out pixels: NaN) nothing prefers it
     kept = chosen if r.val_loss > before else r
     summary = {
-        "steps": steps,
-        "spp": sched.spp,
-        "lr": sched.lr,
+        "steps": schedule.steps,
+        "spp": schedule.spp,
+        "lr": schedule.lr,
         "val_loss_before": before,
         "val_loss_after": r.val_loss,
         "kept": kept is r,
@@ -1115,7 +1113,6 @@ def network_start(
         choice = choose_start(
             views,
             names,
-            steps=images.start_steps,
             seed=cfg.train.seed,
             block=images.validation_block,
             masks=(train, held),
@@ -1131,7 +1128,6 @@ def network_start(
             mask_train=train,
             mask_val=held,
             seed=cfg.train.seed,
-            steps=images.start_steps,
             schedule=sched,
         )
         said(c)
