@@ -1758,6 +1758,48 @@ def packet_gathers_section(d: dict) -> list[str]:
     return out + _table(head, rows)
 
 
+def image_step_section(d: dict) -> list[str]:
+    """One image-fit step: the neural plugin's evaluators against roughconductor."""
+    m = d["machine"]
+    out = [
+        "## One step of an image fit: the plugin's evaluators against roughconductor",
+        "",
+        _source("benchmarks/results/image_step.json", "python benchmarks/image_step.py"),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores, `{d['variant']}`, torch on "
+            f"{m['torch_threads']} thread",
+            f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
+        ),
+        f"{d['views']} views of {d['resolution']}², {d['primal_spp']} spp primal + "
+        f"{d['spp']} spp gradient pass, relative MSE, `dr.backward`, one Adam step; target "
+        f"{d['target']}. Best of {d['rounds']} interleaved rounds in one process. "
+        "`neural_auto` (the default): the primal pass through the lowered graph with the "
+        "live weights bound, the gradient pass through torch; `neural_torch`: torch in "
+        "both; `roughconductor`: Mitsuba's own BSDF in symbolic mode (the issue's 2x "
+        "yardstick).",
+        "",
+    ]
+    rows = [
+        [
+            f"`{name}`",
+            f"{d['step_s'][name]:.3f} s",
+            f"{d['step_vs_roughconductor'][name]:.2f}x",
+            f"{d['primal_s'][name]:.3f} s",
+        ]
+        for name in d["step_s"]
+    ]
+    a = d["auto_over_torch"]
+    tail = [
+        f"`neural_auto` / `neural_torch`: {a['step']:.2f} a step, {a['primal']:.2f} the "
+        "primal pass.",
+        "",
+    ]
+    return (
+        out + _table(["variant", "step", "vs `roughconductor`", "primal pass alone"], rows) + tail
+    )
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -1911,6 +1953,7 @@ SECTIONS = (
         partial(images_any_section, name="images_any_dev_half_disc.json"),
     ),
     (RESULTS / "images_patience_dev.json", images_patience_section),
+    (RESULTS / "image_step.json", image_step_section),
     (RESULTS / "training_speed.json", training_speed_section),
     (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
     (RESULTS / "textured.json", textured_section),

@@ -19,6 +19,18 @@ vector load per lane instead of four gathers), each packet once per index; the v
 the same floats, so the result is bit-identical (tests/backends/test_drjit_packets.py).
 In the BSDF-bound scene (LLVM, 2 cores) this took the textured principled of the
 benchmark from 0.39 s to 0.32 s and the compact principled from 0.24 s to 0.22 s.
+
+Trained parameters.  A program lowered with ``graph.lower(..., params=...)`` reads each
+parameter through tables that ``Program.params`` ties to it; :func:`run` given
+``params={name: flat Float}`` reads those arrays instead, so one lowering serves every
+value the weights take (the differentiable plugin, :mod:`neural_brdf.inverse.bsdf`).  A
+weight (a gather at a constant index) is one scalar load broadcast to every lane when
+its array tracks no gradient.  When it does, the index is repeated over the lanes, so
+that its adjoint is a scatter-add inside the backward kernel: with a width-1 gather the
+adjoint is a reduction over the lanes, and Dr.Jit launched one kernel per weight (about
+a thousand a view; 2.8 s against 0.5 s a step of three 96^2 views, LLVM on 2 cores, a
+development measurement).  Either is exact; both are slower to differentiate than
+torch's matrix products, which is why the plugin differentiates with torch.
 """
 
 from __future__ import annotations
@@ -143,10 +155,18 @@ def _packet_type(float_type):
 
 
 def run(
-    prog: graph.Program, columns: dict[str, list], plan: PacketPlan | None = None
+    prog: graph.Program,
+    columns: dict[str, list],
+    plan: PacketPlan | None = None,
+    params: dict[str, Any] | None = None,
 ) -> dict[str, list]:
     """Evaluate ``prog`` on ``{input: [column arrays]}`` -> ``{output: [Float columns]}``;
-    ``plan`` (default: built here) packs the gathers (module doc)."""
+    ``plan`` (default: built here) packs the gathers (module doc).
+
+    ``params``: ``{name: flat Float array}`` for the trained parameters of a program
+    lowered with ``graph.lower(..., params=...)`` (``Program.params``): their gathers
+    read these arrays, row-major, instead of the tables' copies, so gradients reach them
+    (Dr.Jit differentiates a gather as a scatter-add; a weight: :func:`_weight_index`)."""
     missing = set(prog.inputs) - set(columns)
     if missing:
         raise ValueError(f"missing graph inputs {sorted(missing)}")
@@ -155,9 +175,11 @@ def run(
     array4 = _packet_type(t.Float)
     buffers = [t.Float(b) for b in plan.buffers] if array4 is not None else []
     packed = plan.where if buffers else {}
+    width = max(dr.width(c) for cols in columns.values() for c in cols)
+    bound = {tb: p for tb, p in prog.params.items() if params is not None and p[0] in params}
     # the packed tables are read from the buffers only (no copy of them is made here)
     tables = [
-        None if i in packed else (t.Float if tb.dtype.kind == "f" else t.Int)(tb)
+        None if (i in packed or i in bound) else (t.Float if tb.dtype.kind == "f" else t.Int)(tb)
         for i, tb in enumerate(prog.tables)
     ]
     fetched: dict[tuple[int, int, int], Any] = {}  # (index id, buffer, packet) -> Array4f
@@ -190,6 +212,16 @@ def run(
                 idx = t.UInt(dr.clip(vals[a[0]], 0, plan.rows[b] - 1))
                 fetched[key] = dr.gather(array4, buffers[b], idx * plan.packets[b] + k)
             v = fetched[key][lane]
+        elif op == "gather" and ins.attr in bound:
+            name, column, channels = bound[ins.attr]
+            rows = len(prog.tables[ins.attr])
+            index = vals[a[0]]
+            if _is_array(index):
+                row = t.UInt(dr.clip(index, 0, rows - 1))
+                v = dr.gather(t.Float, params[name], row * channels + column)  # type: ignore[index]
+            else:  # a weight: the same element in every lane
+                at = min(max(int(index), 0), rows - 1) * channels + column
+                v = dr.gather(t.Float, params[name], _weight_index(t, at, params[name], width))  # type: ignore[index]
         elif op == "gather":
             table = tables[ins.attr]
             idx = dr.clip(vals[a[0]], 0, dr.width(table) - 1)
@@ -201,6 +233,13 @@ def run(
         name: [v if _is_array(v) else t.Float(v) for v in (vals[c] for c in cols)]
         for name, cols in prog.outputs.items()
     }
+
+
+def _weight_index(t, at: int, param, width: int):
+    """Where a weight's gather reads ``param`` (module doc, Trained parameters)."""
+    if dr.grad_enabled(param):
+        return dr.zeros(t.UInt, width) + at
+    return t.UInt(at)
 
 
 def _cast(t, x, src: str, dst: str):

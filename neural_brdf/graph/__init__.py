@@ -72,7 +72,7 @@ from neural_brdf.graph.ir import (
     Texture,
     UnsupportedOnnxOp,
 )
-from neural_brdf.graph.lowering import Lanes, Lowering, _obj
+from neural_brdf.graph.lowering import Lanes, Lowering, Param, _obj
 from neural_brdf.graph.ops import _OPS, SUPPORTED_OPS
 
 __all__ = [
@@ -82,6 +82,7 @@ __all__ = [
     "DOT_CHAINS",
     "LOGIC",
     "OPS",
+    "PARAM_OPS",
     "UNARY",
     "SUPPORTED_OPS",
     "Builder",
@@ -123,14 +124,26 @@ def check(proto: onnx.ModelProto) -> list:
     return nodes
 
 
-def lower(model, outputs: tuple[str, ...] | None = None) -> Program:
+# ONNX ops that may read a trained parameter (lower(..., params=...))
+PARAM_OPS = frozenset({"Gemm", "MatMul", "Gather"})
+
+
+def lower(model, outputs: tuple[str, ...] | None = None, params: tuple[str, ...] = ()) -> Program:
     """Load, check, fold and lower an ONNX model (inputs [N, k], outputs [N, k...]).
 
     ``outputs``: the graph outputs to keep (default all), in that order; the program is
     pruned to what they need, and its ``inputs`` to the inputs they read.  A textured
     file's normal field ``n`` depends on uv alone, so ``lower(model, ("n",))`` is a
     program of uv: a host evaluates it first, rotates its frame, then evaluates
-    ``lower(model, ("f",))`` (docs/model.md, "The normal field")."""
+    ``lower(model, ("f",))`` (docs/model.md, "The normal field").
+
+    ``params``: initializers kept as trained parameters instead of folded constants
+    (the differentiable plugin of :mod:`neural_brdf.inverse.bsdf`).  Each is read by
+    ``gather`` instructions from tables that ``Program.params`` ties to it, so a back end
+    can bind the parameter's live (differentiable) values in their place
+    (:func:`neural_brdf.backends.drjit.run`); other back ends see ordinary tables.  Only
+    Gemm/MatMul weights and biases and Gather tables may be parameters: any other use
+    raises, naming the parameter and the node."""
     proto = load(model)
     names = [o.name for o in proto.graph.output]
     if outputs is not None:
@@ -142,6 +155,11 @@ def lower(model, outputs: tuple[str, ...] | None = None) -> Program:
     b = Builder()
     lo = Lowering(b)
     env: dict[str, object] = {t.name: numpy_helper.to_array(t) for t in g.initializer}
+    unknown = [p for p in params if p not in env]
+    if unknown:
+        raise UnsupportedOnnxOp(f"params {unknown}: not initializers of the graph")
+    for p in params:
+        env[p] = Param(p, np.asarray(env[p]))
     inputs: dict[str, int] = {}
     for i in g.input:
         if i.name in env:
@@ -157,6 +175,12 @@ def lower(model, outputs: tuple[str, ...] | None = None) -> Program:
     for op, ins, outs, attrs, node in nodes:
         op_counts[op] = op_counts.get(op, 0) + 1
         args = [env[i] if i else None for i in ins]
+        trained = [i for i, a in zip(ins, args, strict=True) if isinstance(a, Param)]
+        if trained and op not in PARAM_OPS:
+            raise UnsupportedOnnxOp(
+                f"node {node.name!r} ({op}) reads the trained parameter {trained[0]!r}; "
+                f"only {', '.join(sorted(PARAM_OPS))} may"
+            )
         b.hint = _hint(node)
         try:
             res = _OPS[op](lo, args, attrs)

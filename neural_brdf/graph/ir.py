@@ -94,6 +94,10 @@ class Program:
     metadata: dict[str, str] = field(default_factory=dict)
     op_counts: dict[str, int] = field(default_factory=dict)  # ONNX ops of the source graph
     sources: list[Source] = field(default_factory=list)  # the tensors the tables came from
+    # table number -> (parameter name, column, channels) for the tables of trained
+    # parameters (graph.lower(..., params=...)): the table is column ``column`` of the
+    # parameter flattened to [rows, channels], row-major
+    params: dict[int, tuple[str, int, int]] = field(default_factory=dict)
 
     def depends_on(self, name: str) -> list[bool]:
         """Per instruction: whether its value depends on the input ``name``."""
@@ -229,6 +233,7 @@ class Builder:
         self.tables: list[np.ndarray] = []
         self.table_memo: dict[bytes, int] = {}
         self.sources: dict[tuple[int, ...], np.ndarray] = {}  # tables -> [rows, channels]
+        self.param_of: dict[int, tuple[str, int, int]] = {}  # table -> its parameter
         self.hint = "t"
 
     def _add(self, ins: Instr) -> int:
@@ -288,6 +293,16 @@ class Builder:
         if key not in self.table_memo:
             self.tables.append(values)
             self.table_memo[key] = len(self.tables) - 1
+        return self.table_memo[key]
+
+    def param_table(self, name: str, values: np.ndarray, column: int, channels: int) -> int:
+        """A table that is column ``column`` of the trained parameter ``name`` as
+        [rows, channels]: never shared with another table, even of equal content."""
+        key = f"param:{name}:{column}".encode()
+        if key not in self.table_memo:
+            self.tables.append(np.ascontiguousarray(values, dtype=np.float32))
+            self.table_memo[key] = len(self.tables) - 1
+            self.param_of[len(self.tables) - 1] = (name, column, channels)
         return self.table_memo[key]
 
     def source(self, data: np.ndarray, tables: list[int]) -> None:
@@ -358,4 +373,5 @@ class Builder:
                 for tables, data in self.sources.items()
                 if any(t in tmap for t in tables)
             ],
+            {tmap[t]: p for t, p in self.param_of.items() if t in tmap},
         )

@@ -264,19 +264,20 @@ class Lowering:
         return self.b.emit("cast", x, attr="float")
 
     # -- linear algebra
-    def dot(self, xs: list[int], ws: list[float], bias) -> int:
+    def dot(self, xs: list[int], ws: list, bias, *, ids: bool = False) -> int:
         """sum_i xs[i] * ws[i] (+ bias) as DOT_CHAINS interleaved FMA chains, summed
-        pairwise."""
+        pairwise.  ``ids``: ``ws`` and ``bias`` are instruction ids (a trained
+        parameter's gathers, :func:`param_ids`), not float constants."""
         b = self.b
+
+        def w_id(v) -> int:
+            return v if ids else b.scalar(v)
+
         chains: list[int] = []
         for c in range(min(DOT_CHAINS, len(xs))):
-            acc = b.scalar(bias) if (c == 0 and bias is not None) else None
+            acc = w_id(bias) if (c == 0 and bias is not None) else None
             for x, w in zip(xs[c::DOT_CHAINS], ws[c::DOT_CHAINS], strict=True):
-                acc = (
-                    b.emit("mul", x, b.scalar(w))
-                    if acc is None
-                    else b.emit("fma", x, b.scalar(w), acc)
-                )
+                acc = b.emit("mul", x, w_id(w)) if acc is None else b.emit("fma", x, w_id(w), acc)
             assert acc is not None  # each chain has at least one term: c < len(xs)
             chains.append(acc)
         while len(chains) > 1:
@@ -300,3 +301,43 @@ class Lowering:
             for j in range(m):
                 out.append(self.dot(xs, ws[j], None if bias is None else float(bias[j])))
         return Lanes(_obj(out, lead + (m,)))
+
+    def linear_ids(self, x: Lanes, w: np.ndarray, bias: np.ndarray | None) -> Lanes:
+        """x (trailing (..., K)) @ w (K, M) + bias (M,), ``w`` and ``bias`` object arrays
+        of instruction ids (a trained parameter's gathers, :func:`param_ids`)."""
+        k, m = w.shape
+        if x.shape[-1] != k:
+            raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights {w.shape}")
+        lead = x.shape[:-1]
+        rows = x.a.reshape(-1, k)
+        out = []
+        for r in range(rows.shape[0]):
+            xs = list(rows[r])
+            for j in range(m):
+                out.append(self.dot(xs, list(w[:, j]), None if bias is None else bias[j], ids=True))
+        return Lanes(_obj(out, lead + (m,)))
+
+
+class Param:
+    """An initializer kept as a trained parameter (``graph.lower(..., params=...)``):
+    its name and current values.  Gemm/MatMul weights and biases and Gather tables may
+    be parameters; :func:`param_ids` and the Gather kernel read them through tables that
+    the program records in ``Program.params``, so a back end can bind the live values."""
+
+    __slots__ = ("name", "value")
+
+    def __init__(self, name: str, value: np.ndarray):
+        self.name = name
+        self.value = np.asarray(value, np.float32)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.value.shape
+
+
+def param_ids(b: Builder, p: Param) -> np.ndarray:
+    """Each element of ``p`` as one gather, at its row-major index, from a table that
+    holds ``p`` flattened: an object array of instruction ids of ``p``'s shape."""
+    table = b.param_table(p.name, p.value.reshape(-1), 0, 1)
+    flat = [b.emit("gather", b.const(i, "int"), attr=table) for i in range(p.value.size)]
+    return _obj(flat, p.shape)

@@ -13,10 +13,12 @@ from neural_brdf.graph.lowering import (
     _NP_TYPES,
     _NP_UNARY,
     Lanes,
+    Param,
     _align,
     _axes_arg,
     _axis,
     _obj,
+    param_ids,
 )
 
 
@@ -237,6 +239,8 @@ def _gather(lo, args, attrs):
         return Lanes(np.take(data.a, idx, axis=ax))
     if isinstance(data, Lanes):
         raise UnsupportedOnnxOp("Gather from a batch tensor at batch-dependent indices")
+    if isinstance(data, Param):
+        return _gather_param(b, data, idx, axis)
     data = np.asarray(data)
     axis = axis + data.ndim if axis < 0 else axis
     if axis != 0:
@@ -250,7 +254,13 @@ def _gather(lo, args, attrs):
         for j in range(cols.shape[1])
     ]
     b.source(np.ascontiguousarray(cols, dtype=np.float32 if floating else np.int32), tables)
-    out = []
+    return _rows_at(b, idx, k, tables, rest)
+
+
+def _rows_at(b, idx: Lanes, k: int, tables: list[int], rest: tuple[int, ...]) -> Lanes:
+    """Rows ``idx`` (negative ones from the end, as ONNX Gather) of a tensor of ``k`` rows
+    held as ``tables``, one per column: a tensor of shape idx.shape + rest."""
+    out: list[int] = []
     for i in idx.a.reshape(-1):
         i = b.emit("cast", i, attr="int")
         i = b.emit(
@@ -258,6 +268,18 @@ def _gather(lo, args, attrs):
         )
         out.extend(b.emit("gather", i, attr=t) for t in tables)
     return Lanes(_obj(out, idx.shape + rest))
+
+
+def _gather_param(b, p: Param, idx: Lanes, axis: int) -> Lanes:
+    """A trained parameter's rows at batch indices: one gather per column, from tables
+    that ``Program.params`` ties to the parameter (graph.lower(..., params=...))."""
+    if (axis + p.value.ndim if axis < 0 else axis) != 0:
+        raise UnsupportedOnnxOp(f"Gather of parameter {p.name!r} at batch indices needs axis 0")
+    k = p.shape[0]
+    rest = p.shape[1:]
+    cols = p.value.reshape(k, -1)
+    tables = [b.param_table(p.name, cols[:, j], j, cols.shape[1]) for j in range(cols.shape[1])]
+    return _rows_at(b, idx, k, tables, rest)
 
 
 def _reduce(kind):
@@ -322,10 +344,36 @@ def _reduce(kind):
     return run
 
 
+def _param_linear(lo, x, w, bias, trans_b: bool) -> Lanes:
+    """x @ w (+ bias) where ``w`` or ``bias`` is a trained parameter: weights as gathers
+    from the parameter's table (:func:`param_ids`), constants as constants."""
+
+    def ids(v):
+        if isinstance(v, Param):
+            return param_ids(lo.b, v)
+        c = np.asarray(v, np.float32)
+        return np.vectorize(lambda e: lo.b.scalar(float(e)), otypes=[object])(c)
+
+    wi = ids(w)
+    if wi.ndim != 2:
+        raise UnsupportedOnnxOp(f"matrix product with weights of shape {wi.shape}")
+    wi = wi.T if trans_b else wi
+    bi = None
+    if bias is not None:
+        bi = np.broadcast_to(ids(bias).reshape(-1), (wi.shape[1],))
+    return lo.linear_ids(x, wi, bi)
+
+
 def _gemm(lo, args, attrs):
     a, b = args[0], args[1]
     c = args[2] if len(args) > 2 else None
     alpha, beta = float(attrs.get("alpha", 1.0)), float(attrs.get("beta", 1.0))
+    if isinstance(b, Param) or isinstance(c, Param):
+        if not isinstance(a, Lanes) or attrs.get("transA", 0) or alpha != 1.0 or beta != 1.0:
+            raise UnsupportedOnnxOp(
+                "Gemm of a trained parameter needs a batch input, transA 0, alpha 1 and beta 1"
+            )
+        return _param_linear(lo, a, b, c, bool(attrs.get("transB", 0)))
     if not isinstance(a, Lanes):
         raise (
             UnsupportedOnnxOp("Gemm of two constants")
@@ -348,6 +396,8 @@ def _gemm(lo, args, attrs):
 
 def _matmul(lo, args, attrs):
     a, b = args
+    if isinstance(b, Param) and isinstance(a, Lanes):
+        return _param_linear(lo, a, b, None, False)
     if not isinstance(a, Lanes) and not isinstance(b, Lanes):
         return np.matmul(a, b)
     if isinstance(b, Lanes) or np.ndim(b) != 2:

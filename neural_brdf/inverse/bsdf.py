@@ -21,14 +21,31 @@ done, :func:`state_dict` turns the tensors back into the RawBRDF's state and the
 export (:func:`neural_brdf.export.normalized_model`, ONNX) applies unchanged.  Renderers
 then use the exported graph (:mod:`neural_brdf.renderers.mitsuba`); this plugin is for fitting only.
 
+Speed: two evaluations of one function.  Where no weight tracks a gradient (Mitsuba's
+primal pass of ``mi.render``, held-out scores, plain renders), the plugin does not call
+torch: it evaluates the RawBRDF's own ONNX graph (the exporter every file goes through,
+without the normalisation), lowered once by :func:`neural_brdf.graph.lower` with every
+``state_dict`` entry kept as a trained parameter, and the Dr.Jit back end binds the
+live tensors at each evaluation (:func:`neural_brdf.backends.drjit.run`, ``params``), so
+the primal pass traces into Mitsuba's kernels like the ``neural_brdf`` plugin's, in
+symbolic or evaluated mode.  Where a gradient is tracked (the gradient pass) torch
+evaluates the RawBRDF through ``dr.wrap`` as above: differentiating the lowered graph in
+Dr.Jit turned every weight's adjoint into a scatter or a reduction over the lanes, slower
+than torch's matrix products (module doc of :mod:`neural_brdf.backends.drjit`).  Both
+evaluate the same function to float32 rounding (tests/backends/test_trained_params.py,
+tests/inverse/test_inverse.py); ``'evaluator': 'torch'`` uses torch for both passes.
+In a symbolic scope the graph is used whatever the evaluator: a symbolic virtual call
+traces every BSDF instance alive, so a symbolic render of another scene (a
+``roughconductor`` fit beside a live plugin) traces this one, and torch cannot.
+
 Reciprocity is exact, as in training: it is a property of the encoding (bit-identical
 features for (wi, wo) and (wo, wi)), which this plugin evaluates unchanged.  The albedo
 bound is not enforced here (raw network, no table): :mod:`neural_brdf.inverse.fit` penalises
 an albedo above 1 during the fit and the export bakes the exact normalisation.
 
-Constraints of :func:`drjit.wrap`.  Torch needs evaluated arrays, so a render must run
-with symbolic loops and symbolic virtual calls switched off (:func:`evaluated_mode`);
-``eval`` raises a one-line error otherwise.  Sampling is the mixture of
+Constraints of :func:`drjit.wrap`.  Torch needs evaluated arrays, so a render that
+tracks gradients must run with symbolic loops and symbolic virtual calls switched off
+(:func:`evaluated_mode`); ``eval`` raises a one-line error otherwise.  Sampling is the mixture of
 :mod:`neural_brdf.physics.lobe_fit` (cosine hemisphere + a GGX/Beckmann visible-normal lobe), with
 code shared with the ``neural_brdf`` plugin (:class:`neural_brdf.renderers.mitsuba._GraphBSDF`); the
 lobe is fitted to the current network by :meth:`NeuralBSDFAD.refit_lobe`.  The sample
@@ -53,6 +70,7 @@ import torch
 import yaml
 
 from neural_brdf import config as cfgmod
+from neural_brdf import graph
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.physics import lobe_fit
@@ -63,10 +81,18 @@ if mi.variant() is None or not (mi.is_rgb and dr.is_diff_v(mi.Float) and dr.is_j
         "variant; set llvm_ad_rgb or cuda_ad_rgb first"
     )
 
+from neural_brdf.backends import drjit as drjit_backend  # noqa: E402
+from neural_brdf.export import to_onnx_bytes  # noqa: E402
 from neural_brdf.renderers.mitsuba import _GraphBSDF  # noqa: E402  (needs the variant set, like this module)
 from neural_brdf.train.model import RawBRDF  # noqa: E402
 
 PLUGIN = "neural_brdf_ad"
+# How the plugin evaluates the network (its 'evaluator' property; module doc, Speed):
+# "auto" (the default): the RawBRDF's ONNX graph, lowered once with its weights kept as
+# parameters, where no gradient is tracked (a primal render), torch where one is;
+# "torch": the RawBRDF through dr.wrap wherever arrays are evaluated (the graph only
+# where they are symbolic, which torch cannot take).
+EVALUATORS = ("auto", "torch")
 # The compact recipe (configs/gold.yaml): 32 x 32 x 4 grid + one ReLU layer of 32.
 COMPACT = "{hidden: [32], activation: relu, grid: {size: 32, channels: 4, lr_scale: 10.0}}"
 # A start for the sampling lobe before it is fitted to the network.
@@ -123,6 +149,14 @@ def _eval_torch(raw: RawBRDF):
     return f_cos
 
 
+def _trained_program(raw: RawBRDF) -> graph.Program:
+    """The RawBRDF's ONNX graph (the exporter every file goes through, no normalisation)
+    lowered with every ``state_dict`` entry kept as a trained parameter: what
+    :func:`drjit_backend.run` evaluates with the plugin's live weights bound to those."""
+    onnx_bytes = to_onnx_bytes(raw, cfgmod.Export().opset)
+    return graph.lower(onnx_bytes, ("f",), params=tuple(raw.state_dict()))
+
+
 class NeuralBSDFAD(_GraphBSDF):
     """``{'type': 'neural_brdf_ad', 'model': '<YAML of a model section>', 'seed': 0,
     'init_value': 0.3}``: a trainable RawBRDF (see the module doc).
@@ -142,6 +176,14 @@ class NeuralBSDFAD(_GraphBSDF):
             self.raw = RawBRDF.from_config(section, init_value=init_value).eval()
         self.weights = {k: _to_dr(v) for k, v in self.raw.state_dict().items()}
         self._f_cos_torch = _eval_torch(self.raw)
+        self.evaluator = str(props["evaluator"]) if "evaluator" in props else EVALUATORS[0]
+        if self.evaluator not in EVALUATORS:
+            raise InputError(
+                f"{PLUGIN}: 'evaluator': {self.evaluator!r} is not one of {', '.join(EVALUATORS)}"
+            )
+        self.program = _trained_program(self.raw)
+        self.plan = drjit_backend.PacketPlan(self.program)
+        self.textured = False  # the parent's _f_cos: a homogeneous graph (wi, wo)
         self.label = "trainable RawBRDF"
         self.lobe_source = "default"
         self.set_lobe(DEFAULT_LOBE)
@@ -200,8 +242,32 @@ class NeuralBSDFAD(_GraphBSDF):
         self.set_lobe(fitted, "fitted to the current weights")
         return fitted
 
-    # -- evaluation: torch through dr.wrap ------------------------------------------
+    # -- evaluation: the lowered graph, or torch through dr.wrap ---------------------
+    def _graph_uses_program(self) -> bool:
+        """Whether this evaluation runs the lowered graph (else torch).  Always inside a
+        symbolic scope: torch cannot take symbolic arrays, and a symbolic virtual call
+        traces every BSDF instance alive, so a render of any other scene in symbolic
+        mode traces this one too.  Otherwise with "auto", when no weight tracks a
+        gradient (Mitsuba's primal pass suspends them)."""
+        if dr.flag(dr.JitFlag.SymbolicScope):
+            return True
+        return self.evaluator == "auto" and not any(
+            dr.grad_enabled(v.array) for v in self.weights.values()
+        )
+
     def _graph_f_cos(self, wi, wo):
+        """The lowered graph with the live weights bound (parent's ``_f_cos`` calls it
+        inside its conditional, symbolic or evaluated)."""
+        cols = drjit_backend.run(
+            self.program,
+            {"wi": [wi.x, wi.y, wi.z], "wo": [wo.x, wo.y, wo.z]},
+            self.plan,
+            params={k: v.array for k, v in self.weights.items()},
+        )
+        cos_o = mi.Frame3f.cos_theta(wo)
+        return mi.Color3f(cols["f"][0], cols["f"][1], cols["f"][2]) * cos_o
+
+    def _torch_f_cos(self, wi, wo):
         if dr.flag(dr.JitFlag.SymbolicLoops) or dr.flag(dr.JitFlag.SymbolicCalls):
             raise InputError(
                 f"{PLUGIN}: render inside neural_brdf.inverse.bsdf.evaluated_mode() "
@@ -211,11 +277,13 @@ class NeuralBSDFAD(_GraphBSDF):
         return mi.Color3f(r, g, b)
 
     def _f_cos(self, si, wo, active):
+        if self._graph_uses_program():  # the parent's conditional, symbolic or not
+            return super()._f_cos(si, wo, active)
         wi = si.wi
         valid = active & (mi.Frame3f.cos_theta(wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
         if dr.width(valid) == 0 or not dr.any(valid, axis=None):
             return mi.Color3f(0.0)
-        value = self._graph_f_cos(wi, wo)
+        value = self._torch_f_cos(wi, wo)
         return dr.select(valid, value, mi.Color3f(0.0))
 
     def traverse(self, callback):

@@ -5,6 +5,9 @@
   torch) matches central finite differences of the same render (same seed, so the
   Monte Carlo samples are the same) to 0.5 %, for the two largest entries of every
   weight tensor (grid, hidden layer, head);
+* a primal render (no gradient tracked) evaluates the RawBRDF's lowered graph and never
+  calls torch, and its image equals the torch evaluator's at the same seed; in symbolic
+  mode both evaluators use the graph; an unknown evaluator is refused;
 * a small fast fit end to end through the CLI (``neural-brdf train fit.yaml``): three
   16 x 16 views of the example's copper sphere, 30 steps (the default ``auto`` start:
   the families fitted and one chosen on the held-out pixels, a conductor here, then the
@@ -185,6 +188,62 @@ def test_render_gradient_matches_finite_differences(mi, example):
             assert fd == pytest.approx(float(g[j]), rel=5e-3), (name, int(j))
             checked += 1
     assert checked == 10
+
+
+def _random_state(bsdf, seed: int) -> dict:
+    import torch
+
+    rng = np.random.default_rng(seed)
+    return {
+        k: torch.from_numpy(t.numpy() + 0.2 * rng.standard_normal(t.shape).astype(np.float32))
+        for k, t in bsdf.state_dict().items()
+    }
+
+
+def test_a_primal_render_runs_the_lowered_graph_and_equals_torchs(mi, example):
+    """Without a tracked gradient the 'auto' evaluator evaluates the RawBRDF's lowered
+    graph and never calls torch; the 'torch' evaluator calls torch; both images agree at
+    the same seed.  In symbolic mode (which torch cannot take) both use the graph, so a
+    live plugin does not break a symbolic render."""
+    import drjit as dr
+
+    from neural_brdf.inverse import bsdf as ib
+    from neural_brdf.inverse import fit as inverse
+
+    cfg = config.load(example / "fit.yaml")
+    model = json.dumps(cfg.model.model_dump())
+    images, calls = {}, {}
+    for evaluator in ib.EVALUATORS:
+        views = inverse.read_views(cfg)[:1]
+        el = inverse.bsdf_element(ib.PLUGIN, model=model, init_value=0.05, evaluator=evaluator)
+        inverse.prepare_views(views, el)
+        v = views[0]
+        v.bsdf.load_state_dict(_random_state(v.bsdf, 3))
+        torch_f_cos, count = v.bsdf._f_cos_torch, [0]
+
+        def counted(*args, _f=torch_f_cos, _n=count):
+            _n[0] += 1
+            return _f(*args)
+
+        v.bsdf._f_cos_torch = counted
+        with ib.evaluated_mode():
+            images[evaluator] = np.asarray(mi.render(v.scene, spp=4, seed=5).numpy())
+        calls[evaluator] = count[0]
+        symbolic = np.asarray(mi.render(v.scene, spp=4, seed=5).numpy())
+        assert count[0] == calls[evaluator]  # the symbolic render did not call torch
+        np.testing.assert_allclose(symbolic, images[evaluator], rtol=1e-4, atol=1e-6)
+        dr.sync_thread()
+    assert calls == {"auto": 0, "torch": calls["torch"]} and calls["torch"] > 0
+    ref = images["torch"]
+    assert ref.max() > 0.05
+    np.testing.assert_allclose(images["auto"], ref, rtol=1e-4, atol=1e-5 * float(ref.max()))
+
+
+def test_an_unknown_evaluator_is_refused(mi):
+    from neural_brdf.inverse import bsdf as ib
+
+    with pytest.raises(Exception, match="'evaluator': 'jax' is not one of auto, torch"):
+        mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "evaluator": "jax"})
 
 
 # ------------------------------------------------------------------ a fit end to end
