@@ -61,11 +61,10 @@ def loadavg() -> list[float]:
 class Case:
     """One variant's scenes, parameters and optimiser."""
 
-    def __init__(self, mi, name: str, trees, targets, bsdf: ET.Element, keys, evaluated: bool):
+    def __init__(self, mi, trees, targets, bsdf: ET.Element, keys, evaluated: bool):
         from neural_brdf.inverse import bsdf as ib
         from neural_brdf.inverse import fit as inverse
 
-        self.name = name
         self.scenes = [inverse.load_scene(Path("."), inverse.scene_text(t, bsdf)) for t in trees]
         self.params = [mi.traverse(inverse.fit_bsdf(s)) for s in self.scenes]
         self.keys = [k for k in self.params[0].keys() if keys(k)]
@@ -74,8 +73,6 @@ class Case:
             self.opt[k] = self.params[0][k]
         self.targets = targets
         self.mode = ib.evaluated_mode if evaluated else contextlib.nullcontext
-        self.step_s = math.inf
-        self.primal_s = math.inf
 
     def step(self, mi, dr, seed: int, spp: int, primal_spp: int) -> float:
         from neural_brdf.inverse import fit as inverse
@@ -159,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
                 # one variant's scenes alive at a time: a symbolic virtual call traces
                 # every BSDF instance alive, so the neural plugins would enter
                 # roughconductor's kernels
-                c = Case(mi, name, trees, targets, el, keys, evaluated)
+                c = Case(mi, trees, targets, el, keys, evaluated)
                 c.step(mi, dr, 0, args.spp, args.primal_spp)  # warm-up: kernel compilation
                 c.primal(mi, dr, 0, args.primal_spp)
                 seed = 1000 * (r + 1)
