@@ -142,8 +142,9 @@ def lower(model, outputs: tuple[str, ...] | None = None, params: tuple[str, ...]
     ``gather`` instructions from tables that ``Program.params`` ties to it, so a back end
     can bind the parameter's live (differentiable) values in their place
     (:func:`neural_brdf.backends.drjit.run`); other back ends see ordinary tables.  Only
-    Gemm/MatMul weights and biases and Gather tables may be parameters: any other use
-    raises, naming the parameter and the node."""
+    Gemm/MatMul weights and biases of a batch input and Gather tables read at batch
+    indices may be parameters: any other use (another op, a Gather at constant indices,
+    a product with no batch operand, a graph output) raises, naming the parameter."""
     proto = load(model)
     names = [o.name for o in proto.graph.output]
     if outputs is not None:
@@ -195,6 +196,8 @@ def lower(model, outputs: tuple[str, ...] | None = None, params: tuple[str, ...]
     b.hint = "out"
     for name in kept:
         v = env[name]
+        if isinstance(v, Param):
+            raise UnsupportedOnnxOp(f"output {name!r} is the trained parameter {v.name!r}")
         if isinstance(v, Lanes):
             cols = [lo.to_float(x) for x in v.a.reshape(-1)]
         else:

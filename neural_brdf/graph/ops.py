@@ -231,7 +231,17 @@ def _gather(lo, args, attrs):
     data, idx = args
     axis = attrs.get("axis", 0)
     b = lo.b
+    if isinstance(idx, Param):
+        raise UnsupportedOnnxOp(
+            f"Gather at the trained parameter {idx.name!r} as indices "
+            "(a parameter is gathered only as the table)"
+        )
     if not isinstance(idx, Lanes):
+        if isinstance(data, Param):  # np.take would fold the Param object itself
+            raise UnsupportedOnnxOp(
+                f"Gather of the trained parameter {data.name!r} at constant indices "
+                "(a parameter is gathered only at batch-dependent indices)"
+            )
         idx = np.asarray(idx)
         if not isinstance(data, Lanes):
             return np.take(np.asarray(data), idx, axis=axis)
@@ -368,10 +378,24 @@ def _gemm(lo, args, attrs):
     a, b = args[0], args[1]
     c = args[2] if len(args) > 2 else None
     alpha, beta = float(attrs.get("alpha", 1.0)), float(attrs.get("beta", 1.0))
-    if isinstance(b, Param) or isinstance(c, Param):
-        if not isinstance(a, Lanes) or attrs.get("transA", 0) or alpha != 1.0 or beta != 1.0:
+    p = next((v for v in (a, b, c) if isinstance(v, Param)), None)
+    if p is not None:
+        if not isinstance(a, Lanes) and not isinstance(b, Lanes):
             raise UnsupportedOnnxOp(
-                "Gemm of a trained parameter needs a batch input, transA 0, alpha 1 and beta 1"
+                f"Gemm of the trained parameter {p.name!r} with constant A and B "
+                "(a product of parameters and constants, no batch operand)"
+            )
+        if (
+            not isinstance(a, Lanes)
+            or isinstance(b, Lanes)
+            or isinstance(c, Lanes)
+            or attrs.get("transA", 0)
+            or alpha != 1.0
+            or beta != 1.0
+        ):
+            raise UnsupportedOnnxOp(
+                f"Gemm of the trained parameter {p.name!r} needs a batch input A, weights B "
+                "and bias C that are not batch tensors, transA 0, alpha 1 and beta 1"
             )
         return _param_linear(lo, a, b, c, bool(attrs.get("transB", 0)))
     if not isinstance(a, Lanes):
@@ -398,6 +422,13 @@ def _matmul(lo, args, attrs):
     a, b = args
     if isinstance(b, Param) and isinstance(a, Lanes):
         return _param_linear(lo, a, b, None, False)
+    if isinstance(a, Param) or isinstance(b, Param):  # np.matmul would fold the Param objects
+        p = a if isinstance(a, Param) else b
+        form = "on the left of a batch tensor" if isinstance(b, Lanes) else "with no batch operand"
+        raise UnsupportedOnnxOp(
+            f"MatMul of the trained parameter {p.name!r} {form} "
+            "(a parameter is only the right-hand weights of a batch tensor)"
+        )
     if not isinstance(a, Lanes) and not isinstance(b, Lanes):
         return np.matmul(a, b)
     if isinstance(b, Lanes) or np.ndim(b) != 2:

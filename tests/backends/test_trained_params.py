@@ -13,7 +13,12 @@ a parameter, and binding the optimiser's current weights at each evaluation.  Ch
   encoding with a half-disc grid; so no table of one parameter stands in for another's;
 * gradients through the bound weights equal torch's autograd of the same function;
 * a parameter no node may read as one (a Mul) and a name that is not an initializer are
-  refused with one line naming them.
+  refused with one line naming them;
+* so are the forms of Gather, MatMul and Gemm that would fold a parameter as a constant
+  (a Gather at constant indices, a product with no batch operand, a parameter as the
+  left factor or as the indices) and a parameter that is a graph output: one line naming
+  the node and the parameter, where before they raised numpy's errors or, for a Gather at
+  index 0, lowered the whole parameter in place of its row (a silent wrong answer).
 """
 
 from __future__ import annotations
@@ -168,3 +173,117 @@ def test_a_parameter_only_gemm_or_gather_may_read_is_refused():
 def test_a_parameter_that_is_not_an_initializer_is_refused():
     with pytest.raises(graph.UnsupportedOnnxOp, match="not_there"):
         graph.lower(_mul_graph(), params=("not_there",))
+
+
+def _model(nodes, inits, out_shape, inputs=(("x", 3),), extra=None) -> bytes:
+    """A tiny checked ONNX graph: float inputs [N, k], the float output f of ``out_shape``
+    and ``extra`` ones ({name: shape})."""
+    g = helper.make_graph(
+        nodes,
+        "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, ["N", k]) for n, k in inputs],
+        [
+            helper.make_tensor_value_info(o, TensorProto.FLOAT, shape)
+            for o, shape in {"f": out_shape, **(extra or {})}.items()
+        ],
+        inits,
+    )
+    model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    onnx.checker.check_model(model, full_check=True)
+    return model.SerializeToString()
+
+
+def _refused(model: bytes, params: tuple[str, ...], node: str, param: str, form: str) -> None:
+    with pytest.raises(graph.UnsupportedOnnxOp) as e:
+        graph.lower(model, params=params)
+    msg = str(e.value)
+    assert f"node {node!r}" in msg and repr(param) in msg and form in msg, msg
+    assert "\n" not in msg
+
+
+def _table() -> onnx.TensorProto:
+    return helper.make_tensor("w", TensorProto.FLOAT, [4, 3], [float(v) for v in range(12)])
+
+
+def test_a_parameter_gathered_at_constant_indices_is_refused():
+    # y = x * w[[2]]: lowers with w a constant; np.take of the parameter raised IndexError
+    i = helper.make_tensor("i", TensorProto.INT64, [1], [2])
+    rows = _model(
+        [
+            helper.make_node("Gather", ["w", "i"], ["row"], name="look"),
+            helper.make_node("Mul", ["x", "row"], ["f"], name="scale"),
+        ],
+        [_table(), i],
+        ["N", 3],
+    )
+    assert graph.lower(rows).outputs
+    _refused(rows, ("w",), "look", "w", "constant indices")
+    # y = x @ w[0]: the scalar index 0 took the whole parameter (a 0-d object array's
+    # one element), so the MatMul lowered x @ w, three columns where ONNX has one
+    w = helper.make_tensor("w", TensorProto.FLOAT, [3, 3], [float(v) for v in range(9)])
+    zero = helper.make_tensor("i", TensorProto.INT64, [], [0])
+    dot = _model(
+        [
+            helper.make_node("Gather", ["w", "i"], ["row"], name="look"),
+            helper.make_node("MatMul", ["x", "row"], ["f"], name="dot"),
+        ],
+        [w, zero],
+        ["N"],
+    )
+    _refused(dot, ("w",), "look", "w", "constant indices")
+
+
+def test_a_parameter_as_gather_indices_is_refused():
+    i = helper.make_tensor("i", TensorProto.INT64, [1], [0])
+    pick = _model(
+        [helper.make_node("Gather", ["x", "i"], ["f"], name="pick", axis=1)], [i], ["N", 1]
+    )
+    assert graph.lower(pick).outputs
+    _refused(pick, ("i",), "pick", "i", "as indices")
+
+
+def _product(op: str) -> bytes:
+    """y = x @ (w @ v), the inner product of two initializers: no batch operand."""
+    w = helper.make_tensor("w", TensorProto.FLOAT, [3, 3], [float(v) for v in range(9)])
+    v = helper.make_tensor("v", TensorProto.FLOAT, [3, 3], [float(-v) for v in range(9)])
+    return _model(
+        [
+            helper.make_node(op, ["w", "v"], ["wv"], name="inner"),
+            helper.make_node("MatMul", ["x", "wv"], ["f"], name="outer"),
+        ],
+        [w, v],
+        ["N", 3],
+    )
+
+
+@pytest.mark.parametrize("params", [("w",), ("v",), ("w", "v")])
+def test_a_matmul_of_a_parameter_without_a_batch_operand_is_refused(params):
+    model = _product("MatMul")
+    assert graph.lower(model).outputs  # folded as constants it lowers
+    _refused(model, params, "inner", params[0], "no batch operand")
+
+
+@pytest.mark.parametrize("params", [("w",), ("v",), ("w", "v")])
+def test_a_gemm_of_a_parameter_without_a_batch_operand_is_refused(params):
+    _refused(_product("Gemm"), params, "inner", params[0], "no batch operand")
+
+
+def test_a_parameter_left_of_a_batch_tensor_is_refused():
+    w = helper.make_tensor("w", TensorProto.FLOAT, [3, 3], [float(v) for v in range(9)])
+    left = _model([helper.make_node("MatMul", ["w", "x"], ["f"], name="left")], [w], ["N", 3])
+    _refused(left, ("w",), "left", "w", "on the left of a batch tensor")
+    gemm = _model([helper.make_node("Gemm", ["w", "x"], ["f"], name="left")], [w], ["N", 3])
+    _refused(gemm, ("w",), "left", "w", "needs a batch input A")
+
+
+def test_a_parameter_that_is_a_graph_output_is_refused():
+    model = _model(
+        [helper.make_node("Mul", ["x", "x"], ["f"], name="square")],
+        [_table()],
+        ["N", 3],
+        extra={"w": [4, 3]},
+    )
+    with pytest.raises(graph.UnsupportedOnnxOp) as e:
+        graph.lower(model, ("w",), params=("w",))
+    assert "output 'w'" in str(e.value) and "trained parameter 'w'" in str(e.value)
+    assert graph.lower(model, ("f",), params=("w",)).outputs  # unread, it is harmless
