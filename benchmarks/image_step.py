@@ -3,6 +3,7 @@
 
     python benchmarks/image_step.py                        # about a minute on 2 cores
     python benchmarks/image_step.py --rounds 3 --out /tmp/step.json
+    python benchmarks/image_step.py --variant cuda_ad_rgb --out results/cuda/image_step.json
 
 A step is what the image stage does per step, less its bookkeeping: for each of three
 96 x 96 views of the unit sphere (``neural_brdf.inverse.scene``, its sky environment)
@@ -17,9 +18,13 @@ work.  Timed, each in its own scenes:
   of the issue's 2x goal);
 * ``neural_torch``: the ``neural_brdf_ad`` plugin (the compact recipe) with
   ``evaluator: torch``: torch evaluates the network, through ``dr.wrap``, in both passes;
-* ``neural_auto``: the same with the default ``evaluator: auto``: the primal pass
-  evaluates the RawBRDF's lowered ONNX graph in Dr.Jit with the live weights bound, the
-  gradient pass torch, as before.
+* ``neural_graph``: the same with ``evaluator: graph``: the primal pass evaluates the
+  RawBRDF's lowered ONNX graph in Dr.Jit with the live weights bound, the gradient pass
+  torch, as before.
+
+The plugin's default, ``evaluator: auto``, is whichever of the two the variant's entry
+of ``neural_brdf.inverse.bsdf.AUTO`` names (chosen from this benchmark's primal passes;
+the JSON records it).
 
 Both neural variants run in ``evaluated_mode`` (the gradient pass needs it), and each
 also times its primal pass alone (``mi.render`` without parameters, 3 views).  Rounds
@@ -51,11 +56,20 @@ from common import write_json  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 RESOLUTION = 96
 TARGET_SPP = 64
-VARIANTS = ("roughconductor", "neural_torch", "neural_auto")
+VARIANTS = ("roughconductor", "neural_torch", "neural_graph")
 
 
 def loadavg() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
+
+
+def sync(dr) -> None:
+    """Wait for Dr.Jit's queue and, on a GPU, torch's (the gradient pass runs torch)."""
+    import torch
+
+    dr.sync_thread()
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
 
 
 class Case:
@@ -87,7 +101,7 @@ class Case:
                 weight = dr.ones(mi.TensorXf, self.targets[i].shape)
                 dr.backward(inverse.relative_mse(img, self.targets[i], weight))
             self.opt.step()
-        dr.sync_thread()
+        sync(dr)
         return time.perf_counter() - t0
 
     def primal(self, mi, dr, seed: int, spp: int) -> float:
@@ -95,7 +109,7 @@ class Case:
         with self.mode():
             for i, scene in enumerate(self.scenes):
                 dr.eval(mi.render(scene, spp=spp, seed=seed + i))
-        dr.sync_thread()
+        sync(dr)
         return time.perf_counter() - t0
 
 
@@ -105,6 +119,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=8, help="gradient pass (images.spp)")
     ap.add_argument("--primal-spp", type=int, default=16, help="primal pass (images.primal_spp)")
     ap.add_argument("--out", type=Path, default=RESULTS / "image_step.json")
+    ap.add_argument(
+        "--variant",
+        default="llvm_ad_rgb",
+        choices=("llvm_ad_rgb", "cuda_ad_rgb"),
+        help="Mitsuba's variant (cuda_ad_rgb: torch runs the gradient pass on the GPU)",
+    )
     args = ap.parse_args(argv)
 
     import drjit as dr
@@ -113,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     from neural_brdf.inverse import fit as inverse
     from neural_brdf.inverse import scene
 
-    mi = inverse.use_variant("llvm_ad_rgb")
+    mi = inverse.use_variant(args.variant)
     from neural_brdf.inverse import bsdf as ib
 
     torch.set_num_threads(inverse.TORCH_THREADS)  # as the fit runs it
@@ -147,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
                     lambda k: k.startswith("raw."),
                     True,
                 )
-                for ev in ("torch", "auto")
+                for ev in ("torch", "graph")
             },
         }
         best = {name: {"step_s": math.inf, "primal_s": math.inf, "keys": []} for name in specs}
@@ -182,8 +202,9 @@ def main(argv: list[str] | None = None) -> int:
             "drjit": dr.__version__,
             "torch": torch.__version__,
             "torch_threads": torch.get_num_threads(),
+            **({"gpu": torch.cuda.get_device_name(0)} if args.variant.startswith("cuda") else {}),
         },
-        "variant": "llvm_ad_rgb",
+        "variant": args.variant,
         "views": len(trees),
         "resolution": RESOLUTION,
         "spp": args.spp,
@@ -194,9 +215,10 @@ def main(argv: list[str] | None = None) -> int:
         "step_s": {n: b["step_s"] for n, b in best.items()},
         "primal_s": {n: b["primal_s"] for n, b in best.items()},
         "step_vs_roughconductor": {n: b["step_s"] / base for n, b in best.items()},
-        "auto_over_torch": {
-            "step": best["neural_auto"]["step_s"] / best["neural_torch"]["step_s"],
-            "primal": best["neural_auto"]["primal_s"] / best["neural_torch"]["primal_s"],
+        "auto": ib.AUTO[args.variant],
+        "graph_over_torch": {
+            "step": best["neural_graph"]["step_s"] / best["neural_torch"]["step_s"],
+            "primal": best["neural_graph"]["primal_s"] / best["neural_torch"]["primal_s"],
         },
     }
     write_json(args.out, out)

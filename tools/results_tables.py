@@ -1767,17 +1767,19 @@ def image_step_section(d: dict) -> list[str]:
         _source("benchmarks/results/image_step.json", "python benchmarks/image_step.py"),
         _recorded(
             d["date"],
-            f"{m['platform']}, {m['cores']} cores, `{d['variant']}`, torch on "
-            f"{m['torch_threads']} thread",
+            f"{m['platform']}, {m['cores']} cores"
+            + (f", {m['gpu']}" if "gpu" in m else "")
+            + f", `{d['variant']}`, torch on {m['torch_threads']} thread",
             f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
         ),
         f"{d['views']} views of {d['resolution']}², {d['primal_spp']} spp primal + "
         f"{d['spp']} spp gradient pass, relative MSE, `dr.backward`, one Adam step; target "
         f"{d['target']}. Best of {d['rounds']} interleaved rounds in one process. "
-        "`neural_auto` (the default): the primal pass through the lowered graph with the "
-        "live weights bound, the gradient pass through torch; `neural_torch`: torch in "
-        "both; `roughconductor`: Mitsuba's own BSDF in symbolic mode (the issue's 2x "
-        "yardstick).",
+        "`neural_graph`: the primal pass through the lowered graph with the live weights "
+        "bound, the gradient pass through torch; `neural_torch`: torch in both; "
+        "`roughconductor`: Mitsuba's own BSDF in symbolic mode (the issue's 2x yardstick). "
+        f"The plugin's default (`evaluator: auto`) in `{d['variant']}` is "
+        f"`{d['auto']}` (`neural_brdf.inverse.bsdf.AUTO`, chosen from these primal passes).",
         "",
     ]
     rows = [
@@ -1789,9 +1791,9 @@ def image_step_section(d: dict) -> list[str]:
         ]
         for name in d["step_s"]
     ]
-    a = d["auto_over_torch"]
+    a = d["graph_over_torch"]
     tail = [
-        f"`neural_auto` / `neural_torch`: {a['step']:.2f} a step, {a['primal']:.2f} the "
+        f"`neural_graph` / `neural_torch`: {a['step']:.2f} a step, {a['primal']:.2f} the "
         "primal pass.",
         "",
     ]
@@ -1990,11 +1992,20 @@ SECTIONS = (
     (RESULTS / "cuda" / "images_fit.json", images_cuda_section),
     (RESULTS / "cuda" / "textured_cost.json", textured_cost_section),
     (
+        RESULTS / "cuda" / "image_step.json",
+        _elsewhere(
+            image_step_section,
+            "benchmarks/results/cuda/image_step.json",
+            "GPU (one H200): one step of an image fit in cuda_ad_rgb",
+            "benchmarks/gpu/run.sh (python benchmarks/image_step.py --variant cuda_ad_rgb)",
+        ),
+    ),
+    (
         RESULTS / "cuda" / "images_any.json",
         _elsewhere(
             partial(images_any_section, name="cuda/images_any.json"),
             "benchmarks/results/cuda/images_any.json",
-            "GPU (H100, H200): images of any material in cuda_ad_rgb (two materials)",
+            "GPU (one H200): images of any material in cuda_ad_rgb (two materials, two runs)",
             "benchmarks/gpu/run.sh (python benchmarks/images_any.py --variant cuda_ad_rgb)",
         ),
     ),

@@ -9,10 +9,13 @@
 # d. issue 30: textured files against the compact file and Mitsuba's textured principled
 #    (benchmarks/gpu/textured_cost.py; its --train makes the files on a CPU first)
 # e. issue 29: benchmarks/images_any.py --variant cuda_ad_rgb on $IMAGES_ONLY
-# PARTS="presets textured images_any" picks (a)-(c), (d), (e).
+# f. issue 29: one image-fit step, the neural plugin's evaluators against roughconductor
+#    (benchmarks/image_step.py --variant cuda_ad_rgb)
+# PARTS="presets textured images_any image_step" picks (a)-(c), (d), (e), (f).
 # Everything lands in $OUT: log.txt, env.txt, bsdf_bound_cuda.json,
 # bsdf_bound_cuda_large.json, images_cuda_metrics.json, images_cuda_log.csv,
-# training_speed_cuda.json, training_speed_cpu.json, textured_cost.json, images_any_cuda.json.
+# training_speed_cuda.json, training_speed_cpu.json, textured_cost.json, images_any_cuda.json,
+# image_step_cuda.json.
 # A dry run on a CPU machine: VARIANT=llvm_ad_rgb SKIP_WHEELS=1 SMALL=1 OUT=/tmp/gpuout bash benchmarks/gpu/run.sh
 set -uo pipefail
 export PYTHONUNBUFFERED=1
@@ -20,7 +23,7 @@ cd "$(dirname "$0")/../.." || exit 1  # the repo root
 
 VARIANT=${VARIANT:-cuda_ad_rgb}
 case "$VARIANT" in cuda_*) DEVICE=cuda ;; *) DEVICE=cpu ;; esac
-PARTS=${PARTS:-presets textured images_any}  # which of (a)-(c), (d), (e) to run
+PARTS=${PARTS:-presets textured images_any image_step}  # which of (a)-(c), (d), (e), (f) to run
 IMAGES_ONLY=${IMAGES_ONLY:-orange_plastic brushed_gold}  # (e)'s materials
 SMALL=${SMALL:-0}          # 1: tiny sizes, for a dry run on a CPU
 BUDGET=${BUDGET:-360}      # seconds: a step is skipped, or cut short, past this
@@ -34,13 +37,13 @@ if [ "$SMALL" = 1 ]; then
   TS_STEPS=100; TS_REP=1; TS_MANY=2
   EX_RES=32; EX_SPP=32; EX_STEPS=10; EX_START_TRAIN=300; EX_EXTRA=(--set images.start_steps=20)
   MODEL_SET=(--set train.steps=300)
-  IA_STEPS=10
+  IA_STEPS=10; IS_ROUNDS=1
 else
   RES=256; SPP=64; REP=4; RES_L=1024; SPP_L=128
   TS_STEPS=500; TS_REP=2; TS_MANY=8
   EX_RES=96; EX_SPP=128; EX_STEPS=60; EX_START_TRAIN=300; EX_EXTRA=()
   MODEL_SET=()
-  IA_STEPS=150
+  IA_STEPS=150; IS_ROUNDS=8
 fi
 
 want() { case " $PARTS " in *" $1 "*) return 0 ;; esac; return 1; }
@@ -156,6 +159,12 @@ if want textured; then
   step textured-cost 200 python3 benchmarks/gpu/textured_cost.py --variant "$VARIANT" \
     --models "${TEXTURED_MODELS:-runs/gpu_models}" --repeats $REP --out "$OUT/textured_cost.json" \
     --size ${RES}x${SPP} --size ${RES_L}x${SPP_L}
+fi
+
+# (f) issue 29: one image-fit step in $VARIANT, the plugin's evaluators against roughconductor
+if want image_step; then
+  step image-step 150 python3 benchmarks/image_step.py --variant "$VARIANT" \
+    --rounds $IS_ROUNDS --out "$OUT/image_step_cuda.json"
 fi
 
 # (e) issue 29: images of materials the project never saw (benchmarks/images_any.py), the

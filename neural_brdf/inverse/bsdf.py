@@ -22,18 +22,22 @@ export (:func:`neural_brdf.export.normalized_model`, ONNX) applies unchanged.  R
 then use the exported graph (:mod:`neural_brdf.renderers.mitsuba`); this plugin is for fitting only.
 
 Speed: two evaluations of one function.  Where no weight tracks a gradient (Mitsuba's
-primal pass of ``mi.render``, held-out scores, plain renders), the plugin does not call
-torch: it evaluates the RawBRDF's own ONNX graph (the exporter every file goes through,
-without the normalisation), lowered once by :func:`neural_brdf.graph.lower` with every
-``state_dict`` entry kept as a trained parameter, and the Dr.Jit back end binds the
-live tensors at each evaluation (:func:`neural_brdf.backends.drjit.run`, ``params``), so
+primal pass of ``mi.render``, held-out scores, plain renders), the ``graph`` evaluator
+(the default, ``auto``, in ``llvm_ad_rgb``) does not call torch: it evaluates the
+RawBRDF's own ONNX graph (the exporter every file goes through, without the
+normalisation), lowered once per model section (every instance of it shares the
+program) by :func:`neural_brdf.graph.lower` with every ``state_dict`` entry kept as a
+trained parameter, and the Dr.Jit back end binds the live tensors at each evaluation
+(:func:`neural_brdf.backends.drjit.run`, ``params``), so
 the primal pass traces into Mitsuba's kernels like the ``neural_brdf`` plugin's, in
 symbolic or evaluated mode.  Where a gradient is tracked (the gradient pass) torch
 evaluates the RawBRDF through ``dr.wrap`` as above: differentiating the lowered graph in
 Dr.Jit turned every weight's adjoint into a scatter or a reduction over the lanes, slower
 than torch's matrix products (module doc of :mod:`neural_brdf.backends.drjit`).  Both
 evaluate the same function to float32 rounding (tests/backends/test_trained_params.py,
-tests/inverse/test_inverse.py); ``'evaluator': 'torch'`` uses torch for both passes.
+tests/inverse/test_inverse.py); ``'evaluator': 'torch'`` uses torch for both passes,
+and is what ``auto`` picks in ``cuda_ad_rgb``, where torch's matrix products on the GPU
+measured faster than the lowered graph's per-weight loads (:data:`AUTO`).
 In a symbolic scope the graph is used whatever the evaluator: a symbolic virtual call
 traces every BSDF instance alive, so a symbolic render of another scene (a
 ``roughconductor`` fit beside a live plugin) traces this one, and torch cannot.
@@ -88,11 +92,18 @@ from neural_brdf.train.model import RawBRDF  # noqa: E402
 
 PLUGIN = "neural_brdf_ad"
 # How the plugin evaluates the network (its 'evaluator' property; module doc, Speed):
-# "auto" (the default): the RawBRDF's ONNX graph, lowered once with its weights kept as
-# parameters, where no gradient is tracked (a primal render), torch where one is;
+# "graph": the RawBRDF's ONNX graph, lowered once with its weights kept as parameters,
+# where no gradient is tracked (a primal render), torch where one is;
 # "torch": the RawBRDF through dr.wrap wherever arrays are evaluated (the graph only
-# where they are symbolic, which torch cannot take).
-EVALUATORS = ("auto", "torch")
+# where they are symbolic, which torch cannot take);
+# "auto" (the default): whichever measured faster in the variant (primal_evaluator).
+EVALUATORS = ("auto", "graph", "torch")
+# "auto" per variant, from benchmarks/image_step.py (the primal pass of three 96² views
+# at 16 spp, results/image_step.json and results/cuda/image_step.json): llvm_ad_rgb on 2
+# cores, graph 0.166 s against torch 0.241 s; cuda_ad_rgb on an H200, graph 0.054 s
+# against torch 0.030 s (torch's GPU matrix products beat the per-weight loads that the
+# lowered graph makes in every lane).
+AUTO = {"llvm_ad_rgb": "graph", "cuda_ad_rgb": "torch"}
 # The compact recipe (configs/gold.yaml): 32 x 32 x 4 grid + one ReLU layer of 32.
 COMPACT = "{hidden: [32], activation: relu, grid: {size: 32, channels: 4, lr_scale: 10.0}}"
 # A start for the sampling lobe before it is fitted to the network.
@@ -135,11 +146,21 @@ def _to_dr(t: torch.Tensor) -> mi.TensorXf:
     return mi.TensorXf(np.ascontiguousarray(t.detach().cpu().float().numpy()))
 
 
-def _eval_torch(raw: RawBRDF):
-    """The torch side: (wi, wo components, weights) -> f cos(theta_o), RGB columns."""
+def _eval_torch(raw: RawBRDF, directions_grad: bool = True):
+    """The torch side: (wi, wo components, weights) -> f cos(theta_o), RGB columns.
+
+    :func:`drjit.wrap` hands torch every floating-point input with ``requires_grad``
+    set, so torch's backward would also differentiate the encoding with respect to the
+    six direction columns (about as much work again as the weights' gradients: the
+    features' trigonometry, the first layer's full input adjoint).  With
+    ``directions_grad=False`` the columns are detached: for directions that track no
+    gradient in Dr.Jit (those adjoints would be dropped), the weights' gradients are the
+    same, bit for bit."""
 
     @dr.wrap(source="drjit", target="torch")
     def f_cos(wx, wy, wz, ox, oy, oz, weights):
+        if not directions_grad:
+            wx, wy, wz, ox, oy, oz = (t.detach() for t in (wx, wy, wz, ox, oy, oz))
         wi = torch.stack([wx, wy, wz], -1)
         wo = torch.stack([ox, oy, oz], -1)
         f = torch.func.functional_call(raw, weights, (wi, wo))
@@ -149,12 +170,32 @@ def _eval_torch(raw: RawBRDF):
     return f_cos
 
 
-def _trained_program(raw: RawBRDF) -> graph.Program:
+def primal_evaluator(evaluator: str, variant: str) -> str:
+    """What evaluates the network where no gradient is tracked: "graph" or "torch"
+    (``evaluator`` as the plugin's property; "auto" resolved by :data:`AUTO`)."""
+    if evaluator not in EVALUATORS:
+        raise InputError(
+            f"{PLUGIN}: 'evaluator': {evaluator!r} is not one of {', '.join(EVALUATORS)}"
+        )
+    return AUTO.get(variant, "graph") if evaluator == "auto" else evaluator
+
+
+# Lowered programs by model section (JSON): every weight is a parameter bound at run
+# time, so one program serves every plugin instance of a section (a fit makes 3 or 4;
+# an export and lowering took about 0.36 s each on 2 cores).
+_PROGRAMS: dict[str, graph.Program] = {}
+
+
+def _trained_program(raw: RawBRDF, section: cfgmod.Model) -> graph.Program:
     """The RawBRDF's ONNX graph (the exporter every file goes through, no normalisation)
     lowered with every ``state_dict`` entry kept as a trained parameter: what
-    :func:`drjit_backend.run` evaluates with the plugin's live weights bound to those."""
-    onnx_bytes = to_onnx_bytes(raw, cfgmod.Export().opset)
-    return graph.lower(onnx_bytes, ("f",), params=tuple(raw.state_dict()))
+    :func:`drjit_backend.run` evaluates with the plugin's live weights bound to those.
+    ``raw`` is built from ``section``; the program is lowered once per section."""
+    key = section.model_dump_json()
+    if key not in _PROGRAMS:
+        onnx_bytes = to_onnx_bytes(raw, cfgmod.Export().opset)
+        _PROGRAMS[key] = graph.lower(onnx_bytes, ("f",), params=tuple(raw.state_dict()))
+    return _PROGRAMS[key]
 
 
 class NeuralBSDFAD(_GraphBSDF):
@@ -175,13 +216,12 @@ class NeuralBSDFAD(_GraphBSDF):
             torch.manual_seed(seed)
             self.raw = RawBRDF.from_config(section, init_value=init_value).eval()
         self.weights = {k: _to_dr(v) for k, v in self.raw.state_dict().items()}
-        self._f_cos_torch = _eval_torch(self.raw)
+        # the direction columns' adjoints only where wi or wo track a gradient
+        self._f_cos_torch = _eval_torch(self.raw, directions_grad=False)
+        self._f_cos_torch_directions = _eval_torch(self.raw, directions_grad=True)
         self.evaluator = str(props["evaluator"]) if "evaluator" in props else EVALUATORS[0]
-        if self.evaluator not in EVALUATORS:
-            raise InputError(
-                f"{PLUGIN}: 'evaluator': {self.evaluator!r} is not one of {', '.join(EVALUATORS)}"
-            )
-        self.program = _trained_program(self.raw)
+        self.primal = primal_evaluator(self.evaluator, mi.variant())
+        self.program = _trained_program(self.raw, section)
         self.plan = drjit_backend.PacketPlan(self.program)
         self.textured = False  # the parent's _f_cos: a homogeneous graph (wi, wo)
         self.label = "trainable RawBRDF"
@@ -247,11 +287,11 @@ class NeuralBSDFAD(_GraphBSDF):
         """Whether this evaluation runs the lowered graph (else torch).  Always inside a
         symbolic scope: torch cannot take symbolic arrays, and a symbolic virtual call
         traces every BSDF instance alive, so a render of any other scene in symbolic
-        mode traces this one too.  Otherwise with "auto", when no weight tracks a
-        gradient (Mitsuba's primal pass suspends them)."""
+        mode traces this one too.  Otherwise where the primal evaluator is "graph" and
+        no weight tracks a gradient (Mitsuba's primal pass suspends them)."""
         if dr.flag(dr.JitFlag.SymbolicScope):
             return True
-        return self.evaluator == "auto" and not any(
+        return self.primal == "graph" and not any(
             dr.grad_enabled(v.array) for v in self.weights.values()
         )
 
@@ -273,7 +313,12 @@ class NeuralBSDFAD(_GraphBSDF):
                 f"{PLUGIN}: render inside neural_brdf.inverse.bsdf.evaluated_mode() "
                 "(torch needs evaluated loops and calls)"
             )
-        r, g, b = self._f_cos_torch(wi.x, wi.y, wi.z, wo.x, wo.y, wo.z, self.weights)
+        fn = (
+            self._f_cos_torch_directions
+            if dr.grad_enabled(wi) or dr.grad_enabled(wo)
+            else self._f_cos_torch
+        )
+        r, g, b = fn(wi.x, wi.y, wi.z, wo.x, wo.y, wo.z, self.weights)
         return mi.Color3f(r, g, b)
 
     def _f_cos(self, si, wo, active):

@@ -129,12 +129,27 @@ def bilinear_corners(
     first corner is row ``j`` (N,), ``stride`` rows per step of the first axis, with
     weights ``a`` (first axis) and ``b`` (second), each (N, 1): the four Gathers of every
     grid and table look-up of the model (FeatureGrid, NormalizedBRDF's anisotropic
-    table, conditioned lobes' (s, theta) table)."""
+    table, conditioned lobes' (s, theta) table).
+
+    A 1-D ``j`` gathers with ``index_select``: the same values and the same ONNX graph
+    (Gather; the exported bytes are identical) as ``tb[j]``, but torch's CPU kernels for
+    it and its backward (index_add) are faster than advanced indexing's (index,
+    index_put with accumulate)."""
+    if j.dim() == 1:
+
+        def g(r: torch.Tensor) -> torch.Tensor:
+            return tb.index_select(0, r)
+
+    else:
+
+        def g(r: torch.Tensor) -> torch.Tensor:
+            return tb[r]
+
     return (
-        tb[j] * (1 - a) * (1 - b)
-        + tb[j + stride] * a * (1 - b)
-        + tb[j + 1] * (1 - a) * b
-        + tb[j + stride + 1] * a * b
+        g(j) * (1 - a) * (1 - b)
+        + g(j + stride) * a * (1 - b)
+        + g(j + 1) * (1 - a) * b
+        + g(j + stride + 1) * a * b
     )
 
 

@@ -5,9 +5,12 @@
   torch) matches central finite differences of the same render (same seed, so the
   Monte Carlo samples are the same) to 0.5 %, for the two largest entries of every
   weight tensor (grid, hidden layer, head);
-* a primal render (no gradient tracked) evaluates the RawBRDF's lowered graph and never
-  calls torch, and its image equals the torch evaluator's at the same seed; in symbolic
-  mode both evaluators use the graph; an unknown evaluator is refused;
+* a primal render (no gradient tracked) with the ``graph`` evaluator (``auto`` in
+  llvm_ad_rgb) evaluates the RawBRDF's lowered graph and never calls torch, and its
+  image equals the torch evaluator's at the same seed; in symbolic mode every evaluator
+  uses the graph; an unknown evaluator is refused; ``auto`` resolves per variant
+  (``torch`` in cuda_ad_rgb); instances of one model section share one lowered program
+  and each evaluates its own weights;
 * a small fast fit end to end through the CLI (``neural-brdf train fit.yaml``): three
   16 x 16 views of the example's copper sphere, 30 steps (the default ``auto`` start:
   the families fitted and one chosen on the held-out pixels, a conductor here, then the
@@ -201,10 +204,10 @@ def _random_state(bsdf, seed: int) -> dict:
 
 
 def test_a_primal_render_runs_the_lowered_graph_and_equals_torchs(mi, example):
-    """Without a tracked gradient the 'auto' evaluator evaluates the RawBRDF's lowered
-    graph and never calls torch; the 'torch' evaluator calls torch; both images agree at
-    the same seed.  In symbolic mode (which torch cannot take) both use the graph, so a
-    live plugin does not break a symbolic render."""
+    """Without a tracked gradient the 'graph' evaluator (and 'auto' in llvm_ad_rgb)
+    evaluates the RawBRDF's lowered graph and never calls torch; the 'torch' evaluator
+    calls torch; the images agree at the same seed.  In symbolic mode (which torch
+    cannot take) all use the graph, so a live plugin does not break a symbolic render."""
     import drjit as dr
 
     from neural_brdf.inverse import bsdf as ib
@@ -233,17 +236,110 @@ def test_a_primal_render_runs_the_lowered_graph_and_equals_torchs(mi, example):
         assert count[0] == calls[evaluator]  # the symbolic render did not call torch
         np.testing.assert_allclose(symbolic, images[evaluator], rtol=1e-4, atol=1e-6)
         dr.sync_thread()
-    assert calls == {"auto": 0, "torch": calls["torch"]} and calls["torch"] > 0
+    assert mi.variant() == "llvm_ad_rgb"  # where 'auto' is 'graph' (ib.AUTO)
+    assert calls == {"auto": 0, "graph": 0, "torch": calls["torch"]} and calls["torch"] > 0
     ref = images["torch"]
     assert ref.max() > 0.05
-    np.testing.assert_allclose(images["auto"], ref, rtol=1e-4, atol=1e-5 * float(ref.max()))
+    for ev in ("auto", "graph"):
+        np.testing.assert_allclose(images[ev], ref, rtol=1e-4, atol=1e-5 * float(ref.max()))
+
+
+def test_detached_directions_give_the_same_weight_gradients(mi):
+    """The gradient pass detaches the direction columns where wi and wo track no
+    gradient (bsdf._eval_torch): the weights' gradients are the same bit for bit, and
+    where a direction does track one it still gets its adjoint."""
+    import drjit as dr
+    import torch
+
+    from neural_brdf.inverse import bsdf as ib
+
+    bsdf = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT})
+    raw = bsdf.torch_model()
+    with torch.no_grad():
+        raw.mlp.head.weight.normal_(0.0, 0.3)
+    rng = np.random.default_rng(3)
+    dirs = rng.normal(size=(2, 3, 500))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs[:, 2] = np.abs(dirs[:, 2])
+    adj = [mi.Float(a) for a in rng.random((3, 500))]
+
+    def grads(directions_grad: bool):
+        cols = [mi.Float(c) for c in dirs.reshape(6, 500)]
+        if directions_grad:
+            dr.enable_grad(cols[0])
+        w = {k: ib._to_dr(v) for k, v in raw.state_dict().items()}
+        dr.enable_grad(w)
+        r, g, b = ib._eval_torch(raw, directions_grad=directions_grad)(*cols, w)
+        dr.backward(dr.sum(r * adj[0] + g * adj[1] + b * adj[2]))
+        return {k: dr.grad(v).numpy() for k, v in w.items()}, dr.grad(cols[0]).numpy()
+
+    (detached, _), (tracked, wx_grad) = grads(False), grads(True)
+    for k in detached:
+        assert np.array_equal(detached[k], tracked[k]), k
+        assert np.any(detached[k] != 0.0), k
+    assert np.any(wx_grad != 0.0)
 
 
 def test_an_unknown_evaluator_is_refused(mi):
     from neural_brdf.inverse import bsdf as ib
 
-    with pytest.raises(Exception, match="'evaluator': 'jax' is not one of auto, torch"):
+    with pytest.raises(Exception, match="'evaluator': 'jax' is not one of auto, graph, torch"):
         mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "evaluator": "jax"})
+
+
+def test_instances_of_one_model_share_a_program_and_keep_their_own_weights(mi):
+    """The lowered program is made once per model section (its weights are parameters
+    bound at run time): two instances share it, and each evaluates its own weights, as
+    torch's RawBRDF holding them does; another section gets its own program."""
+    import drjit as dr
+    import torch
+
+    from neural_brdf.inverse import bsdf as ib
+
+    a, b = (
+        mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "evaluator": "graph"})
+        for _ in range(2)
+    )
+    other = mi.load_dict({"type": ib.PLUGIN, "model": "{hidden: [16], activation: relu}"})
+    assert a.program is b.program and other.program is not a.program
+    a.load_state_dict(_random_state(a, 1))
+    b.load_state_dict(_random_state(b, 2))
+    rng = np.random.default_rng(4)
+    wi, wo = (_hemisphere(rng, 256) for _ in range(2))
+    values = []
+    for plugin in (a, b):
+        got = plugin._graph_f_cos(mi.Vector3f(*wi.T), mi.Vector3f(*wo.T))
+        got = np.stack([np.asarray(c) for c in (got.x, got.y, got.z)], -1)
+        with torch.no_grad():
+            raw = plugin.torch_model()
+            ref = raw(torch.from_numpy(wi), torch.from_numpy(wo)).numpy() * wo[:, 2:]
+        assert ref.max() > 0.01
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-6 * float(ref.max()))
+        values.append(got)
+        dr.sync_thread()
+    assert np.abs(values[0] - values[1]).max() > 0.01 * float(values[0].max())
+
+
+def _hemisphere(rng, n: int) -> np.ndarray:
+    v = rng.standard_normal((n, 3)).astype(np.float32)
+    v[:, 2] = np.abs(v[:, 2]) + 0.05
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_auto_picks_the_primal_evaluator_per_variant(mi):
+    """'auto' is the graph in llvm_ad_rgb and torch in cuda_ad_rgb (ib.AUTO, from
+    benchmarks/image_step.py); 'graph' and 'torch' are kept in both; a plugin built in
+    this variant holds what its variant's rule gives."""
+    from neural_brdf.inverse import bsdf as ib
+
+    assert ib.primal_evaluator("auto", "llvm_ad_rgb") == "graph"
+    assert ib.primal_evaluator("auto", "cuda_ad_rgb") == "torch"
+    for variant in ib.AUTO:
+        for ev in ("graph", "torch"):
+            assert ib.primal_evaluator(ev, variant) == ev
+    for ev in ib.EVALUATORS:
+        plugin = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "evaluator": ev})
+        assert plugin.primal == ib.primal_evaluator(ev, mi.variant())
 
 
 # ------------------------------------------------------------------ a fit end to end
