@@ -270,6 +270,14 @@ class Images(_Section):
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
+    # auto's choice: a family with more free scalars is taken over a simpler one only when
+    # its held-out loss is lower by more than max(start_tie_tol x the least,
+    # min(start_tie_sigmas standard errors of the paired difference, start_tie_max x the
+    # least)) (docs/inverse.md, "The start")
+    start_tie_tol: float = Field(0.02, ge=0.0)
+    start_tie_sigmas: float = Field(2.0, ge=0.0)
+    start_tie_max: float = Field(0.25, ge=0.0)
+    ggx_lr: float = Field(0.02, gt=0.0)  # the ggx start's roughconductor fit: Adam's rate
     # a chosen start whose held-out loss exceeds this fits the views poorly (no family
     # holds the material): the image stage then runs at train.lr with the grids at their
     # lr_scale, as from the constant start (null: never; chosen on the development set:
@@ -278,6 +286,14 @@ class Images(_Section):
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network
+    # the image stage's albedo penalty: albedo_weight x the sum over albedo_incidences
+    # (degrees) and RGB of max(0, A - 1)^2, A estimated from albedo_side^2 stratified
+    # cosine-distributed wo per incidence, fresh every step (0: off; docs/inverse.md)
+    albedo_weight: float = Field(1.0, ge=0.0)
+    albedo_incidences: list[float] = Field(
+        default_factory=lambda: [0.0, 30.0, 50.0, 65.0, 75.0, 82.0, 87.0]
+    )
+    albedo_side: int = Field(24, ge=1, le=256)
     # the validation split, held out of the fit (the start's too), choosing the start
     # (auto) and scored every validation_every steps; the best-scoring weights are kept
     # (the start's if none beat it)
@@ -316,6 +332,18 @@ class Images(_Section):
         else:
             return names
         raise PydanticCustomError("start_families", why)
+
+    @field_validator("albedo_incidences")
+    @classmethod
+    def _incidences(cls, degrees: list[float]) -> list[float]:
+        if not degrees:
+            why = "empty; name at least one incidence (degrees)"
+        elif any(not (0.0 <= d < 90.0) for d in degrees):
+            bad = next(d for d in degrees if not (0.0 <= d < 90.0))
+            why = f"{bad} is not an incidence in degrees from 0 to below 90"
+        else:
+            return degrees
+        raise PydanticCustomError("albedo_incidences", why)
 
     @property
     def split(self) -> bool:

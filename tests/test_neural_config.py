@@ -217,6 +217,13 @@ def test_the_default_start_chooses_by_a_split_and_refuses_to_run_without_one(ima
         ("images.validation_views=[1, 1]", "images.validation_views", "names a view twice"),
         ("images.validation_views=[0, 1, 2]", "images.validation_views", "at least one"),
         ("images.validation_view=[0]", "images.validation_view", "unknown key"),
+        ("images.start_tie_tol=-0.1", "images.start_tie_tol", "greater than or equal to 0"),
+        ("images.start_tie_max=-1", "images.start_tie_max", "greater than or equal to 0"),
+        ("images.ggx_lr=0", "images.ggx_lr", "greater than 0"),
+        ("images.albedo_weight=-1", "images.albedo_weight", "greater than or equal to 0"),
+        ("images.albedo_incidences=[]", "images.albedo_incidences", "empty"),
+        ("images.albedo_incidences=[0, 90]", "images.albedo_incidences", "90.0 is not an"),
+        ("images.albedo_side=0", "images.albedo_side", "greater than or equal to 1"),
     ],
 )
 def test_bad_images_keys_name_the_key_and_the_override(images_config, override, key, words):

@@ -60,11 +60,12 @@ without Clean Data", ICML) use for HDR Monte Carlo renders, with the denominator
 clean target rather than from the estimate, so that a dark rim counts as much as a
 highlight.  Energy: the fit adds
 
-    L_albedo = ALBEDO_WEIGHT * sum over K incidences and RGB of max(0, A(wi) - 1)^2,
+    L_albedo = images.albedo_weight * sum over K incidences and RGB of max(0, A(wi) - 1)^2,
 
-A(wi) = (pi / N) sum_j f(wi, wo_j), wo_j cosine-distributed (N = ``ALBEDO_SIDE``^2,
-fresh every step), so the fit is steered away from a network the normalisation would have
-to scale down; the exported bound itself comes from the normalisation, not the penalty.
+the K incidences ``images.albedo_incidences``, A(wi) = (pi / N) sum_j f(wi, wo_j), wo_j
+cosine-distributed (N = ``images.albedo_side``^2, fresh every step), so the fit is
+steered away from a network the normalisation would have to scale down; the exported
+bound itself comes from the normalisation, not the penalty.
 """
 
 from __future__ import annotations
@@ -103,9 +104,6 @@ INTEGRATORS = {
 }
 VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 REL_EPS = 1e-2  # the relative MSE's offset (Lehtinen et al. 2018 use 0.01)
-ALBEDO_WEIGHT = 1.0  # weight of the albedo penalty
-ALBEDO_THETAS_DEG = (0.0, 30.0, 50.0, 65.0, 75.0, 82.0, 87.0)  # its incidences
-ALBEDO_SIDE = 24  # ALBEDO_SIDE^2 stratified cosine-distributed wo per incidence and step
 TORCH_THREADS = 1  # see fit_neural
 # The network's start: a constant f = INIT_VALUE / ((cos_i + cos_o) / 2) (model.py), whose
 # albedo, 12.6 INIT_VALUE at grazing incidence, stays below 1 everywhere.
@@ -509,15 +507,20 @@ def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
     return total / count if count else None
 
 
-def albedo_directions(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """wi (K*N, 3) at ALBEDO_THETAS_DEG (a random azimuth each) and cosine-distributed
-    wo (K*N, 3), stratified, for the albedo penalty; fresh for every ``seed``."""
+def albedo_directions(
+    seed: int, images: cfgmod.Images | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """wi (K*N, 3) at ``images.albedo_incidences`` (degrees; a random azimuth each) and
+    cosine-distributed wo (K*N, 3), ``images.albedo_side``^2 stratified per incidence,
+    for the albedo penalty; fresh for every ``seed``.  ``images``: the config's section
+    (None: its defaults)."""
     from analytic import frame
 
+    images = cfgmod.Images() if images is None else images
     g = torch.Generator().manual_seed(seed)
-    k, side = len(ALBEDO_THETAS_DEG), ALBEDO_SIDE
+    k, side = len(images.albedo_incidences), images.albedo_side
     n = side * side
-    theta = torch.tensor(ALBEDO_THETAS_DEG).deg2rad()
+    theta = torch.tensor([float(d) for d in images.albedo_incidences]).deg2rad()
     phi = 2 * math.pi * torch.rand(k, generator=g)
     wi = torch.stack(
         [theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()], -1
@@ -530,16 +533,20 @@ def albedo_directions(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return wi.float(), wo.float()
 
 
-def albedo_penalty_fn(raw: RawBRDF):
-    """A dr.wrap'ed torch function: (weights, wi, wo) -> ALBEDO_WEIGHT * sum of
-    max(0, A - 1)^2 (module doc), and the largest A estimated."""
+def albedo_penalty_fn(raw: RawBRDF, images: cfgmod.Images | None = None):
+    """A dr.wrap'ed torch function: (weights, wi, wo) -> ``images.albedo_weight`` x the
+    sum of max(0, A - 1)^2 (module doc) over :func:`albedo_directions`' incidences, and
+    the largest A estimated.  ``images``: the config's section (None: its defaults)."""
     import drjit as dr
+
+    images = cfgmod.Images() if images is None else images
+    k, weight = len(images.albedo_incidences), images.albedo_weight
 
     @dr.wrap(source="drjit", target="torch")
     def penalty(weights, wi, wo):
         f = torch.func.functional_call(raw, weights, (wi, wo))  # (K*N, 3)
-        a = math.pi * f.reshape(len(ALBEDO_THETAS_DEG), -1, 3).mean(1)  # (K, 3)
-        return ALBEDO_WEIGHT * torch.relu(a - 1.0).square().sum().reshape(1), a.max().reshape(1)
+        a = math.pi * f.reshape(k, -1, 3).mean(1)  # (K, 3)
+        return weight * torch.relu(a - 1.0).square().sum().reshape(1), a.max().reshape(1)
 
     return penalty
 
@@ -664,7 +671,7 @@ def fit_neural(
     if grid_lr_scale is not None:
         scales = dict.fromkeys(scales, grid_lr_scale)
     lr_scale = {n: next((s for p, s in scales.items() if n.startswith(p)), 1.0) for n in names}
-    penalty = albedo_penalty_fn(raw_template)
+    penalty = albedo_penalty_fn(raw_template, cfg.images)
 
     render_seconds = 0.0
     lobe = None
@@ -748,7 +755,7 @@ def fit_neural(
                 dr.backward(loss)
                 total += float(loss.array[0])
             render_seconds += time.perf_counter() - t_render
-            wi, wo = albedo_directions(t.seed * 7919 + step)
+            wi, wo = albedo_directions(t.seed * 7919 + step, cfg.images)
             pen, amax = penalty(
                 {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
             )
@@ -935,6 +942,7 @@ def _fit_views(
                 spp=images.spp,
                 primal_spp=images.primal_spp,
                 steps=images.start_steps,
+                lr=images.ggx_lr,
                 validation_spp=images.validation_spp,
                 label=f"{cfg.name}: GGX start, ",
             )

@@ -787,10 +787,12 @@ def fit_candidate(
 # ------------------------------------------------------------------ the choice
 # A family with more free scalars is chosen over a simpler one only when its held-out
 # loss is lower by more than TIE_TOL (relative) and by more than TIE_SIGMAS standard
-# errors of the paired difference (tiles as the independent units): pick().
-TIE_TOL = 0.02
-TIE_SIGMAS = 2.0
-TIE_MAX = 0.25  # ... and never by more than this (relative): see the module doc
+# errors of the paired difference (tiles as the independent units), the latter capped
+# at TIE_MAX (relative): pick().  The config's defaults (images.start_tie_tol,
+# start_tie_sigmas, start_tie_max), which network_start passes.
+TIE_TOL = cfgmod.Images().start_tie_tol
+TIE_SIGMAS = cfgmod.Images().start_tie_sigmas
+TIE_MAX = cfgmod.Images().start_tie_max
 
 
 def compare(a: Candidate, b: Candidate, unit: np.ndarray | None) -> tuple[float, float]:
@@ -854,6 +856,7 @@ class Choice:
     block: int
     tie_tol: float
     sigmas: float
+    tie_max: float
     seconds: float
 
     @property
@@ -874,7 +877,7 @@ class Choice:
             ),
             "tie_tol": self.tie_tol,
             "sigmas": self.sigmas,
-            "tie_max": TIE_MAX,
+            "tie_max": self.tie_max,
             "split": {"val_share": self.val_share, "block_pixels": self.block},
             "candidates": [
                 {**c.summary(), **self.margins.get(c.family, {})} for c in self.candidates
@@ -938,6 +941,7 @@ def choose_start(
     schedule: Schedule | None = None,
     tie_tol: float = TIE_TOL,
     sigmas: float = TIE_SIGMAS,
+    tie_max: float = TIE_MAX,
     progress: Callable[[Candidate], None] | None = None,
 ) -> Choice:
     """Fit every family of ``families`` (:func:`fit_candidate`) to the training pixels
@@ -972,7 +976,7 @@ def choose_start(
         out.append(c)
         if progress is not None:
             progress(c)
-    best, margins = pick(out, units(held, block), tie_tol=tie_tol, sigmas=sigmas)
+    best, margins = pick(out, units(held, block), tie_tol=tie_tol, sigmas=sigmas, tie_max=tie_max)
     return Choice(
         family=best.family,
         element=best.element,
@@ -983,6 +987,7 @@ def choose_start(
         block=block,
         tie_tol=tie_tol,
         sigmas=sigmas,
+        tie_max=tie_max,
         seconds=time.perf_counter() - start,
     )
 
@@ -1117,6 +1122,9 @@ def network_start(
             block=images.validation_block,
             masks=(train, held),
             schedule=sched,
+            tie_tol=images.start_tie_tol,
+            sigmas=images.start_tie_sigmas,
+            tie_max=images.start_tie_max,
             progress=said,
         )
         element, summary = choice.element, choice.summary()

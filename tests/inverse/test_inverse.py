@@ -770,3 +770,35 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         assert code == 0, err
         again = json.loads((run_dir / "metrics.json").read_text())["training"]
         assert again["lr_factor"] == 1.0 and again["steps"] == 6
+
+
+def test_the_albedo_penalty_follows_the_images_section(mi):
+    """images.albedo_incidences, albedo_side and albedo_weight set the penalty's
+    directions and weight: K x side^2 pairs at those incidences, the penalty linear in
+    the weight (0: off), and the penalty max(0, A - 1)^2 of a network whose albedo
+    exceeds 1."""
+    import drjit as dr
+
+    from neural_brdf.inverse import bsdf as ib
+    from neural_brdf.inverse import fit as inverse
+
+    images = config.Images(albedo_incidences=[10.0, 60.0, 85.0], albedo_side=5)
+    wi, wo = inverse.albedo_directions(3, images)
+    assert wi.shape == wo.shape == (3 * 25, 3)
+    cos = wi[:, 2].reshape(3, 25).numpy()
+    np.testing.assert_allclose(cos[:, 0], np.cos(np.deg2rad([10.0, 60.0, 85.0])), rtol=1e-6)
+    assert np.all(cos == cos[:, :1])  # one incidence per block
+    bsdf = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "init_value": 0.3})
+    raw = bsdf.torch_model()
+    w = {k: ib._to_dr(v) for k, v in raw.state_dict().items()}
+    args = (w, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy()))
+    values = {}
+    for weight in (0.0, 1.0, 2.5):
+        pen, amax = inverse.albedo_penalty_fn(
+            raw, images.model_copy(update={"albedo_weight": weight})
+        )(*args)
+        values[weight] = float(pen.array[0])
+        dr.sync_thread()
+    assert float(amax.array[0]) > 1.0  # init 0.3: an albedo near 12.6 x 0.3 at grazing
+    assert values[0.0] == 0.0 and values[1.0] > 0.0
+    np.testing.assert_allclose(values[2.5], 2.5 * values[1.0], rtol=1e-6)

@@ -542,6 +542,37 @@ def test_averaged_fit_is_the_mean_of_the_iterates_from_its_step(mi, materials):
     assert np.all(np.asarray(mean) < np.asarray(last)) and np.all(np.asarray(mean) > 0.1)
 
 
+def test_the_choice_rule_comes_from_the_config(mi, materials, monkeypatch):
+    """network_start hands images.start_tie_tol, start_tie_sigmas and start_tie_max to
+    choose_start, whose record names them; starts.pick's defaults are the config's."""
+    from neural_brdf.inverse import starts
+
+    assert (starts.TIE_TOL, starts.TIE_SIGMAS, starts.TIE_MAX) == (
+        config.Images().start_tie_tol,
+        config.Images().start_tie_sigmas,
+        config.Images().start_tie_max,
+    )
+    seen = {}
+
+    def choose(views, names, **kw):
+        seen.update(kw)
+        raise RuntimeError("stop here")
+
+    from neural_brdf.inverse import fit as inverse
+
+    monkeypatch.setattr(starts, "choose_start", choose)
+    path = materials["diffuse"]
+    ties = ["images.start_tie_tol=0.07", "images.start_tie_sigmas=3.5", "images.start_tie_max=0.4"]
+    cfg = config.load(path, ["images.start=auto", *ties])
+    views = views_of(path)
+    inverse.split_views(views, cfg.images, cfg.train.seed)
+    for v in views:
+        v.object = starts.object_mask(v)
+    with pytest.raises(RuntimeError, match="stop here"):
+        starts.network_start(cfg, views, path.parent / "init")
+    assert (seen["tie_tol"], seen["sigmas"], seen["tie_max"]) == (0.07, 3.5, 0.4)
+
+
 def test_the_start_schedules_come_from_the_config():
     """Every setting of the starts' fits is a key of the images section."""
     from neural_brdf.inverse import starts
