@@ -286,6 +286,10 @@ class Images(_Section):
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network
+    # where the plugin evaluates the network without a tracked gradient (the primal
+    # pass, the held-out scores): auto (per variant, measured), graph (the lowered ONNX
+    # graph in Dr.Jit) or torch; the function is the same (docs/inverse.md)
+    evaluator: Literal["auto", "graph", "torch"] = "auto"
     # the image stage's albedo penalty: albedo_weight x the sum over albedo_incidences
     # (degrees) and RGB of max(0, A - 1)^2, A estimated from albedo_side^2 stratified
     # cosine-distributed wo per incidence, fresh every step (0: off; docs/inverse.md)

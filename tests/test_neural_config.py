@@ -224,6 +224,7 @@ def test_the_default_start_chooses_by_a_split_and_refuses_to_run_without_one(ima
         ("images.albedo_incidences=[]", "images.albedo_incidences", "empty"),
         ("images.albedo_incidences=[0, 90]", "images.albedo_incidences", "90.0 is not an"),
         ("images.albedo_side=0", "images.albedo_side", "greater than or equal to 1"),
+        ("images.evaluator=jax", "images.evaluator", "'auto', 'graph' or 'torch'"),
     ],
 )
 def test_bad_images_keys_name_the_key_and_the_override(images_config, override, key, words):

@@ -97,7 +97,7 @@ PLUGIN = "neural_brdf_ad"
 # "torch": the RawBRDF through dr.wrap wherever arrays are evaluated (the graph only
 # where they are symbolic, which torch cannot take);
 # "auto" (the default): whichever measured faster in the variant (primal_evaluator).
-EVALUATORS = ("auto", "graph", "torch")
+EVALUATORS = ("auto", "graph", "torch")  # images.evaluator's choices (config.Images)
 # "auto" per variant, from benchmarks/image_step.py (the primal pass of three 96² views
 # at 16 spp, results/image_step.json and results/cuda/image_step.json): llvm_ad_rgb on 2
 # cores, graph 0.166 s against torch 0.241 s; cuda_ad_rgb on an H200, graph 0.054 s

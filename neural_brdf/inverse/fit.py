@@ -655,7 +655,13 @@ def fit_neural(
         lr_factor, grid_lr_scale = 1.0, None
 
     model_text = json.dumps(cfg.model.model_dump())
-    bsdf = bsdf_element(ib.PLUGIN, model=model_text, seed=int(t.seed), init_value=float(init_value))
+    bsdf = bsdf_element(
+        ib.PLUGIN,
+        model=model_text,
+        seed=int(t.seed),
+        init_value=float(init_value),
+        evaluator=cfg.images.evaluator,
+    )
     prepare_views(views, bsdf)
     lead = views[0].bsdf
     if init_state is not None:

@@ -326,6 +326,29 @@ def _hemisphere(rng, n: int) -> np.ndarray:
     return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
 
 
+def test_the_fit_builds_its_plugin_with_images_evaluator(mi, example, tmp_path, monkeypatch):
+    """images.evaluator reaches the plugin that fit_neural builds; its choices are the
+    plugin's."""
+    import typing
+
+    from neural_brdf.inverse import bsdf as ib
+    from neural_brdf.inverse import fit as inverse
+
+    assert typing.get_args(config.Images.model_fields["evaluator"].annotation) == ib.EVALUATORS
+    seen = []
+
+    def prepare(views, element):
+        seen.append(element.find("string[@name='evaluator']").get("value"))
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(inverse, "prepare_views", prepare)
+    for ev in ib.EVALUATORS:
+        cfg = config.load(example / "fit.yaml", [f"images.evaluator={ev}", "images.start=constant"])
+        with pytest.raises(RuntimeError, match="stop here"):
+            inverse.fit_neural(cfg, inverse.read_views(cfg), tmp_path / ev)
+    assert seen == list(ib.EVALUATORS)
+
+
 def test_auto_picks_the_primal_evaluator_per_variant(mi):
     """'auto' is the graph in llvm_ad_rgb and torch in cuda_ad_rgb (ib.AUTO, from
     benchmarks/image_step.py); 'graph' and 'torch' are kept in both; a plugin built in
