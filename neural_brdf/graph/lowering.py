@@ -289,33 +289,29 @@ class Lowering:
 
     def linear(self, x: Lanes, w: np.ndarray, bias, scale: float) -> Lanes:
         """x (trailing (..., K)) @ w (K, M) * scale + bias (M,) as fused multiply-adds."""
-        k, m = w.shape
-        if x.shape[-1] != k:
-            raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights {w.shape}")
-        lead = x.shape[:-1]
-        rows = x.a.reshape(-1, k)
-        ws = [[float(v) for v in (w[:, j] * scale).astype(np.float32)] for j in range(m)]
-        out = []
-        for r in range(rows.shape[0]):
-            xs = list(rows[r])
-            for j in range(m):
-                out.append(self.dot(xs, ws[j], None if bias is None else float(bias[j])))
-        return Lanes(_obj(out, lead + (m,)))
+        ws = [[float(v) for v in (w[:, j] * scale).astype(np.float32)] for j in range(w.shape[1])]
+        return self._rows(
+            x, w.shape, lambda xs, j: self.dot(xs, ws[j], None if bias is None else float(bias[j]))
+        )
 
     def linear_ids(self, x: Lanes, w: np.ndarray, bias: np.ndarray | None) -> Lanes:
         """x (trailing (..., K)) @ w (K, M) + bias (M,), ``w`` and ``bias`` object arrays
         of instruction ids (a trained parameter's gathers, :func:`param_ids`)."""
-        k, m = w.shape
+        return self._rows(
+            x,
+            w.shape,
+            lambda xs, j: self.dot(xs, list(w[:, j]), None if bias is None else bias[j], ids=True),
+        )
+
+    def _rows(self, x: Lanes, shape: tuple[int, ...], column) -> Lanes:
+        """A matrix product's outputs, row by row of x (trailing (..., K)) and column by
+        column j of the (K, M) weights: ``column(x's row as a list, j)``'s instruction."""
+        k, m = shape
         if x.shape[-1] != k:
-            raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights {w.shape}")
-        lead = x.shape[:-1]
+            raise UnsupportedOnnxOp(f"matrix product of width {x.shape[-1]} with weights {shape}")
         rows = x.a.reshape(-1, k)
-        out = []
-        for r in range(rows.shape[0]):
-            xs = list(rows[r])
-            for j in range(m):
-                out.append(self.dot(xs, list(w[:, j]), None if bias is None else bias[j], ids=True))
-        return Lanes(_obj(out, lead + (m,)))
+        out = [column(list(rows[r]), j) for r in range(rows.shape[0]) for j in range(m)]
+        return Lanes(_obj(out, x.shape[:-1] + (m,)))
 
 
 class Param:
