@@ -56,7 +56,6 @@ from common import write_json  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 RESOLUTION = 96
 TARGET_SPP = 64
-VARIANTS = ("roughconductor", "neural_torch", "neural_graph")
 
 
 def loadavg() -> list[float]:

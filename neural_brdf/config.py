@@ -340,11 +340,11 @@ class Images(_Section):
     @field_validator("albedo_incidences")
     @classmethod
     def _incidences(cls, degrees: list[float]) -> list[float]:
+        bad = [d for d in degrees if not 0.0 <= d < 90.0]
         if not degrees:
             why = "empty; name at least one incidence (degrees)"
-        elif any(not (0.0 <= d < 90.0) for d in degrees):
-            bad = next(d for d in degrees if not (0.0 <= d < 90.0))
-            why = f"{bad} is not an incidence in degrees from 0 to below 90"
+        elif bad:
+            why = f"{bad[0]} is not an incidence in degrees from 0 to below 90"
         else:
             return degrees
         raise PydanticCustomError("albedo_incidences", why)

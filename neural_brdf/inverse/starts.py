@@ -790,9 +790,12 @@ def fit_candidate(
 # errors of the paired difference (tiles as the independent units), the latter capped
 # at TIE_MAX (relative): pick().  The config's defaults (images.start_tie_tol,
 # start_tie_sigmas, start_tie_max), which network_start passes.
-TIE_TOL = cfgmod.Images().start_tie_tol
-TIE_SIGMAS = cfgmod.Images().start_tie_sigmas
-TIE_MAX = cfgmod.Images().start_tie_max
+_IMAGES = cfgmod.Images()
+TIE_TOL, TIE_SIGMAS, TIE_MAX = (
+    _IMAGES.start_tie_tol,
+    _IMAGES.start_tie_sigmas,
+    _IMAGES.start_tie_max,
+)
 
 
 def compare(a: Candidate, b: Candidate, unit: np.ndarray | None) -> tuple[float, float]:
