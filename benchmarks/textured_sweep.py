@@ -74,6 +74,10 @@ VARIANTS = {
     "r256_fresh": {"resolution": 256, "fresh_every": 256, "pool": POOL_BEFORE},
     # the fine field learned as a sum of levels (texture.field_levels): 256, 128, 64
     "r128_l2_pool8m": {"resolution": 128, "field_levels": 2, "pool": 1 << 23},
+    # the lobes' bound (texture.lobe_bound): one constant per lobe (the recipe's scale)
+    # against the texels' bound (texel), one start each (results/textured_bound_dev.json)
+    "scale_1start": {"lobe_bound": "scale", "starts": 1},
+    "texel_1start": {"lobe_bound": "texel", "starts": 1},
     "r256_l3_fresh": {
         "resolution": 256,
         "field_levels": 3,

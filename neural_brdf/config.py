@@ -381,7 +381,11 @@ class Texture(_Section):
     # most 1.02); scale, always one constant per head, 1 / max(1, its largest A+), and
     # training sees that constant too (re-estimated every 100 steps), so the lobes learn
     # within it and a renderer pays one multiply instead of the table's look-ups
-    lobe_bound: Literal["table", "scale"] = "table"
+    # texel, every lobe raw and the field's texels bounded instead: each texel's weights
+    # divided so that sum_k z_k A+_k <= 1 at every incidence node and channel (linear in
+    # z, so bilinear blends keep it); looser than one constant per lobe where lobes peak
+    # at different incidences, and neither a table nor a multiply in the graph
+    lobe_bound: Literal["table", "scale", "texel"] = "table"
     # several starts (docs/mitsuba.md, "Several starts"): `starts` models from the seeds
     # train.seed, +1, ..., each trained `start_steps` steps (null: all of train.steps), the
     # one with the lowest error on pairs of its own (not the held-out ones) continued

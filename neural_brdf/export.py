@@ -244,10 +244,23 @@ def normalization_note(model: torch.nn.Module, n: cfgmod.Normalization) -> str:
     )
 
 
-def textured_normalization_note(model: TexturedBRDF, n: cfgmod.Normalization) -> str:
+def textured_normalization_note(
+    model: TexturedBRDF, n: cfgmod.Normalization, bound: str = "table"
+) -> str:
     """The ``normalization`` entry of a textured file (docs/model.md, "Spatially varying
-    models: the contract")."""
+    models: the contract"); ``bound``: ``texture.lobe_bound``."""
     lobes = [lobe for lobe in model.lobes if isinstance(lobe, NORMALIZED)]
+    if bound == "texel" and n.enabled:
+        latent = bool(getattr(model.field, "latent", 0))
+        return (
+            f"f = sum_k z_k(uv) g_k, each of the {model.field.lobes} lobes g_k its raw "
+            "network, and each texel's weights divided so that sum_k z_k,c A+_k,c(node) "
+            "<= 1 at every node of incidence and channel c (texture.lobe_bound: texel), "
+            f"A+_k the lobe's table{' at its largest over s' if latent else ''} "
+            f"(MIS quadrature + {n.sigmas:g} standard errors, neighbour maximum, times "
+            f"(1 + {n.margin:g})); the constraints are linear in z, so every bilinear "
+            "blend of texels keeps them: the albedo is <= 1 + margin at every uv"
+        )
     if not lobes:
         return "none: each lobe is its raw network (normalization.enabled: false, an ablation)"
     count = model.field.lobes
@@ -576,7 +589,7 @@ def write(
         units=UNITS,
         encoding=cfg.model.encoding,
         normalization=(
-            textured_normalization_note(built.model, cfg.normalization)
+            textured_normalization_note(built.model, cfg.normalization, cfg.texture.lobe_bound)
             if isinstance(built.model, TexturedBRDF)
             else normalization_note(built.model, cfg.normalization)
         ),

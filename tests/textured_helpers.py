@@ -124,3 +124,18 @@ def small_run_config(path, xml, *, texture: str, train: str, normalization: str)
         f"normalization: {{{normalization}}}\n"
         "export: {parity_pairs: 512}\n"
     )
+
+
+def assert_file_matches(model, payload: bytes, seed: int) -> None:
+    """The file ``payload`` of the textured ``model``: reciprocal bit for bit through
+    onnxruntime, finite and >= 0 on any row, and equal to torch's model where both
+    directions are above the horizon."""
+    sess = session(payload)
+    wi, wo, uv = rows(8192, seed)
+    a = run(sess, wi, wo, uv)
+    np.testing.assert_array_equal(a, run(sess, wo, wi, uv))
+    assert np.isfinite(a).all() and a.min() >= 0.0
+    with torch.no_grad():
+        ref = model(torch.from_numpy(wi), torch.from_numpy(wo), torch.from_numpy(uv)).numpy()
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    np.testing.assert_allclose(a[up], ref[up], rtol=1e-4, atol=1e-6)

@@ -1618,6 +1618,11 @@ def textured_sweep_section(d: dict) -> list[str]:
         "64-texel field texel of the maps' tile edges (12 % of the pairs).",
         "",
     ]
+    return out + _sweep_table(by)
+
+
+def _sweep_table(by: dict[str, list[dict]]) -> list[str]:
+    """The rows of textured_sweep.py's runs by variant (textured_sweep_section)."""
     rows = []
     for name, runs in by.items():
         runs.sort(key=lambda r: r["seed"])
@@ -1637,7 +1642,7 @@ def textured_sweep_section(d: dict) -> list[str]:
                 f"{max(r['train_seconds'] for r in runs):.0f} s",
             ]
         )
-    return out + _table(
+    return _table(
         [
             "variant",
             "error per seed",
@@ -1649,6 +1654,37 @@ def textured_sweep_section(d: dict) -> list[str]:
         ],
         rows,
     )
+
+
+def textured_bound_section(d: dict) -> list[str]:
+    """issue 30: texture.lobe_bound scale against texel, textured_sweep.py's pairs."""
+    by: dict[str, list[dict]] = {}
+    for r in d["runs"]:
+        if "rel_rmse_fixed_sets" in r:
+            by.setdefault(r["variant"], []).append(r)
+    out = [
+        "## Textured materials: the lobes' bound, one constant or the texels (development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_bound_dev.json",
+            "python benchmarks/textured_sweep.py --only scale_1start --only texel_1start "
+            "--seeds 0 1 --jobs 2 --threads 1 --out benchmarks/results/textured_bound_dev.json",
+        ),
+        _recorded(
+            d["date"],
+            f"{d['cpus']} cores, {d['jobs']} jobs of {d['threads_per_job']} torch thread(s), "
+            f"{d['variant']}",
+            f"{_load(d['loadavg'])} at the end (the jobs included)",
+        ),
+        f"Teacher: {d['teacher']} (development). The benchmark's recipe "
+        "(benchmarks/textured.py SETTINGS) with one start, `texture.lobe_bound` scale (one "
+        "constant per lobe) against texel (the texels' weights bounded by the lobes' "
+        "tables, docs/model.md), scored as in the section above on the same "
+        f"{d['pairs']:,} pairs. These figures chose `lobe_bound: texel` for the test set's "
+        "recipe.",
+        "",
+    ]
+    return out + _sweep_table(by)
 
 
 def textured_floor_section(d: dict) -> list[str]:
@@ -1677,6 +1713,57 @@ def textured_floor_section(d: dict) -> list[str]:
                     ]
                 )
     return out + _table(["teacher (set)", "R", "200k pairs", "1M pairs"], rows)
+
+
+def textured_ceiling_section(d: dict) -> list[str]:
+    """issue 30: the textured recipe's lobes at one texel against the compact file."""
+    m = d["machine"]
+    out = [
+        "## Textured materials: what the lobes reach at one texel (development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_ceiling_dev.json",
+            "python benchmarks/textured_ceiling.py",
+        ),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores",
+            f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
+        ),
+        f"Teachers: {d['teacher']}. `lobes`: the test set's textured recipe (K = "
+        f"{d['lobes_settings']['lobes']} shared lobes, weights {d['lobes_settings']['weights']}, "
+        f"latent {d['lobes_settings']['latent']}, {d['lobes_settings']['steps']} steps) with a "
+        "field of one texel and one start; `compact`: the homogeneous pipeline's file of the "
+        f"same teacher. Both scored by onnxruntime on {d['pairs']['n']:,} pairs drawn as "
+        "benchmarks/textured.py draws them (seed "
+        f"{d['pairs']['seed']}): relative RMSE of f·cos, and per band of cos θi its value and "
+        "its share of the squared error. A textured file is no closer to a texel's material "
+        "than its lobes are: where the field is perfect, the `lobes` column bounds its error "
+        "from below.",
+        "",
+    ]
+    rows = []
+    for r in d["rows"].values():
+        for model in ("lobes", "compact"):
+            x = r[model]
+            bands = [
+                f"{_pct(b['rel_rmse'], 1)} ({_pct(b['share_sq_error'], 0)})"
+                for b in x["cos_i"].values()
+            ]
+            rows.append(
+                [
+                    f"{r['roughness']:g}",
+                    f"{r['metallic']:g}",
+                    f"`{model}`",
+                    _pct(x["rel_rmse"], 2),
+                    *bands,
+                    f"{x['seconds']:.0f} s",
+                ]
+            )
+    bands = [f"cos θi {k} (share)" for k in next(iter(d["rows"].values()))["lobes"]["cos_i"]]
+    return out + _table(
+        ["roughness", "metallic", "model", "f·cos rel. RMSE", *bands, "training"], rows
+    )
 
 
 def images_patience_section(d: dict) -> list[str]:
@@ -1961,6 +2048,8 @@ SECTIONS = (
     (RESULTS / "textured.json", textured_section),
     (RESULTS / "textured_sweep_dev.json", textured_sweep_section),
     (RESULTS / "textured_floor.json", textured_floor_section),
+    (RESULTS / "textured_ceiling_dev.json", textured_ceiling_section),
+    (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (SWEEP_TIMING, sweep_timing_section),
     (
         RESULTS / "cuda" / "bsdf_bound.json",

@@ -51,7 +51,7 @@ from neural_brdf.runfolder import Folder
 from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
-from neural_brdf.train.textured_model import TexturedBRDF, WeightField, raw_of
+from neural_brdf.train.textured_model import TexturedBRDF, WeightField, lobe_envelope, raw_of
 
 FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
 # pairs drawn from the teacher once: on a 16 x 16 roughplastic (K = 4, R = 16, 600
@@ -175,6 +175,52 @@ BOUND_LATENT = 9  # latent nodes (conditioned lobes)
 BOUND_SAMPLES = 1024
 
 
+def _coarse_tables(
+    model: TexturedBRDF,
+    seed: int,
+    size: int = BOUND_THETA,
+    samples: int = BOUND_SAMPLES,
+    upper: bool = False,
+) -> list[tuple[torch.Tensor, bool]]:
+    """Each raw lobe's albedo estimate at the coarse training settings (``size`` nodes of
+    incidence, ``samples`` points each, no sigmas, no margin), or with ``upper`` its
+    neighbour maximum over the nodes, as the export's tables take it: (table,
+    conditioned) per lobe, a conditioned table (S, K, C), an isotropic one (K, C), an
+    anisotropic one (K, K, C); C = 3 x the lobe's heads."""
+    from neural_brdf.train.conditioned import conditioned_albedo_table
+    from neural_brdf.train.model import albedo_table
+
+    out = []
+    with torch.no_grad():
+        for k, lobe in enumerate(model.lobes):
+            raw = raw_of(lobe)
+            was = raw.training
+            raw.eval()
+            if getattr(raw, "latent", 0):
+                up, a, _ = conditioned_albedo_table(
+                    raw,
+                    latent_nodes=BOUND_LATENT,
+                    size=size,
+                    samples=samples,
+                    seed=seed + 7 * k,
+                    sigmas=0.0,
+                    margin=0.0,
+                )
+            else:
+                up, a, _ = albedo_table(
+                    raw,
+                    size=size,
+                    anisotropic=bool(raw.anisotropic),
+                    samples=samples,
+                    seed=seed + 7 * k,
+                    sigmas=0.0,
+                    margin=0.0,
+                )
+            raw.train(was)
+            out.append((up if upper else a, bool(getattr(raw, "latent", 0))))
+    return out
+
+
 def bound_scale(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
     """(3K,) per lobe and channel: 1 / max(1, the raw lobe's largest albedo), estimated
     by the same quadrature as the export's tables at coarse settings (above, no added
@@ -182,46 +228,39 @@ def bound_scale(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
     (``texture.lobe_bound: scale``), so the lobes learn within albedo 1 and the
     export's constant (:class:`~neural_brdf.train.textured_model.ScaledBRDF`) dims them
     only by the two estimates' difference."""
-    from neural_brdf.train.conditioned import conditioned_albedo_table
-    from neural_brdf.train.model import albedo_table
-
-    cols = []
-    with torch.no_grad():
-        for k, lobe in enumerate(model.lobes):
-            raw = raw_of(lobe)
-            was = raw.training
-            raw.eval()
-            if getattr(raw, "latent", 0):
-                _, a, _ = conditioned_albedo_table(
-                    raw,
-                    latent_nodes=BOUND_LATENT,
-                    size=BOUND_THETA,
-                    samples=BOUND_SAMPLES,
-                    seed=seed + 7 * k,
-                    sigmas=0.0,
-                    margin=0.0,
-                )
-            else:
-                _, a, _ = albedo_table(
-                    raw,
-                    size=BOUND_THETA,
-                    anisotropic=bool(raw.anisotropic),
-                    samples=BOUND_SAMPLES,
-                    seed=seed + 7 * k,
-                    sigmas=0.0,
-                    margin=0.0,
-                )
-            raw.train(was)
-            cols.append(a.reshape(-1, a.shape[-1]).amax(0))
+    cols = [a.reshape(-1, a.shape[-1]).amax(0) for a, _ in _coarse_tables(model, seed)]
     peak = torch.cat(cols).float().clamp_min(1.0)
     return 1.0 / peak
 
 
+# texture.lobe_bound: texel (bound_envelope): the export's nodes of incidence (config.
+# Normalization's table_size) and their neighbour maximum, so that training bounds the
+# texels as the export will, with fewer points per node (no sigmas or margin)
+ENVELOPE_THETA = 65
+ENVELOPE_SAMPLES = 256
+
+
+def bound_envelope(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
+    """[J, 3K]: each raw lobe's albedo estimate per node of incidence, the neighbour
+    maximum over the nodes (and its largest over the latent, for conditioned lobes), the
+    lobes side by side, at :data:`ENVELOPE_THETA` nodes of :data:`ENVELOPE_SAMPLES`
+    points.  Training bounds the field's texels by it
+    (``texture.lobe_bound: texel``, :func:`~neural_brdf.train.textured_model.
+    texel_bound`) as the export does by its own tables."""
+    tables = _coarse_tables(model, seed, ENVELOPE_THETA, ENVELOPE_SAMPLES, upper=True)
+    parts = [lobe_envelope(a, cond) for a, cond in tables]
+    return torch.cat(parts, -1).float()
+
+
 def _rebound(model: TexturedBRDF, bound: str, step: int, seed: int) -> None:
-    """``texture.lobe_bound: scale``: the lobes' scale when the model has none (the start,
-    a resumed run's restored lobes) and again every BOUND_EVERY steps after the first."""
-    if bound == "scale" and (model.lobe_scale is None or (step and step % BOUND_EVERY == 0)):
+    """``texture.lobe_bound`` scale (the lobes' scale) or texel (the field's envelope):
+    estimated when the model has none (the start, a resumed run's restored lobes) and
+    again every BOUND_EVERY steps after the first."""
+    due = bool(step and step % BOUND_EVERY == 0)
+    if bound == "scale" and (model.lobe_scale is None or due):
         model.lobe_scale = bound_scale(model, seed + step)
+    if bound == "texel" and (model.texel_envelope is None or due):
+        model.texel_envelope = bound_envelope(model, seed + step)
 
 
 # the latent's start (latent_from_teacher): the lobe's fall-off from the mirror
@@ -583,6 +622,7 @@ def train(
         chosen = dict(ckpt.get("starts") or {})
         sess.restore(ckpt)
         model.lobe_scale = None  # estimated again for the restored lobes (_rebound)
+        model.texel_envelope = None
     elif tx.starts > 1:  # several starts, before the checkpointed loop (pick_start)
         first = t.steps if tx.start_steps is None else tx.start_steps
         print(

@@ -24,7 +24,9 @@ sum z <= 1} is convex, so z(uv) stays in it at every uv.  Then
   only, and the sum is formed in the same order for (wi, wo) and (wo, wi);
 * albedo: int f cos dwo = sum_k z_k int g_k cos dwo <= sum_k z_k A+_k <= max_k A+_k,
   at most 1 + the tables' margin once each lobe is normalised ("Energy conservation that
-  stays reciprocal").
+  stays reciprocal").  With ``texture.lobe_bound: texel`` the lobes stay raw and each
+  texel's z is scaled so that sum_k z_k A+_k <= 1 at every node of incidence
+  (:func:`texel_bound`): linear constraints in z, which every convex blend keeps.
 
 Export, ``neural_brdf.export.to_onnx_bytes(exportable(model), opset,
 inputs=TEXTURED_INPUTS)``: the softmax is evaluated once and the [R*R, K] weight table
@@ -294,6 +296,28 @@ class NormalField(nn.Module):
         return torch.where(ok, v / torch.where(ok, length, torch.ones_like(length)), up)
 
 
+def texel_bound(
+    table: torch.Tensor, envelope: torch.Tensor, field: WeightField | FrozenWeightField
+) -> torch.Tensor:
+    """``texture.lobe_bound: texel`` (docs/model.md, "The lobes' bound"): a field's table
+    [R*R, C*K + latent] with each texel's weights divided, per RGB channel c, by
+    max(1, max_j sum_k z_k,c E[j, 3k + c]), where ``envelope`` E [J, 3K] bounds lobe k's
+    albedo in channel c on node j's cell of incidences (for conditioned lobes, at every
+    latent value).  After it every texel satisfies the J x 3 linear constraints
+    sum_k z_k,c E[j, 3k + c] <= 1, and so does every convex blend of texels: bilinear
+    filtering cannot leave the set.  With one weight per lobe (``channels`` 1) the texel
+    takes the largest of its three channels' factors.  The latent columns are unchanged."""
+    k, ck = field.lobes, field.channels * field.lobes
+    env = envelope.reshape(-1, k, 3).permute(0, 2, 1)  # (J, 3, K): [j, c, k]
+    z = table[:, :ck].reshape(table.shape[0], field.channels, k)
+    if field.channels == 1:
+        m = torch.einsum("tk,jck->tjc", z[:, 0], env).amax(1).amax(1, keepdim=True)
+    else:
+        m = torch.einsum("tck,jck->tjc", z, env).amax(1)  # (T, 3)
+    z = (z / m.clamp_min(1.0)[..., None]).reshape(table.shape[0], ck)
+    return torch.cat([z, table[:, ck:]], -1)
+
+
 class TexturedBRDF(nn.Module):
     """f(wi, wo, uv) = sum_k z_k(uv) g_k(wi, wo), (N, 3); module doc for why it is
     reciprocal bit for bit and, with normalised lobes, energy conserving at every uv.
@@ -332,6 +356,12 @@ class TexturedBRDF(nn.Module):
         # (normalized_textured folds the export's own bound into ScaledBRDF)
         self.lobe_scale: torch.Tensor | None
         self.register_buffer("lobe_scale", None, persistent=False)
+        # texture.lobe_bound: texel, while training: the envelope E [J, 3K] of
+        # texel_bound, estimated by the loop (textured_loop.bound_envelope) and applied to
+        # the field's table before the look-up; never saved, never exported (the export
+        # bakes its own bound into the frozen table: normalized_textured)
+        self.texel_envelope: torch.Tensor | None
+        self.register_buffer("texel_envelope", None, persistent=False)
 
     def _lobe(self, k: int, g: torch.Tensor) -> torch.Tensor:
         """Lobe k's (N, 3) values ``g`` times its training-time scale, if any."""
@@ -341,7 +371,11 @@ class TexturedBRDF(nn.Module):
 
     def forward(self, wi: torch.Tensor, wo: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
         # z: (N, K), or (N, 3, K) with per-channel weights; s: the lobes' latent or None
-        z, s = self.field.lookup(uv)
+        if self.texel_envelope is None:
+            z, s = self.field.lookup(uv)
+        else:  # each texel's weights bounded first, then blended (texel_bound)
+            table = texel_bound(self.field.weights(), self.texel_envelope, self.field)
+            z, s = split_field(bilinear_wrap(table, uv, self.field.resolution), self.field)
         if z.dim() == 2:
             z = z[:, None, :]  # one weight for every channel
         extra = () if s is None else (s,)  # conditioned lobes: g(wi, wo; s(uv))
@@ -386,6 +420,7 @@ class ScaledBRDF(nn.Module):
 
 
 NORMALIZED = (NormalizedBRDF, ConditionedNormalizedBRDF, ScaledBRDF)
+BOUNDS = ("table", "scale", "texel")  # texture.lobe_bound (normalized_textured)
 
 
 def heads_of(lobe: nn.Module) -> int:
@@ -429,13 +464,22 @@ def normalized_textured(
     node is at most :data:`FOLD_LIMIT`; "scale" always folds it into
     :class:`ScaledBRDF`, 1 / max(1, the largest A+ of each column): the same bound (A+
     bounds the albedo on every cell of the table, so its largest node bounds it
-    everywhere), no table in the graph.
+    everywhere), no table in the graph.  "texel" keeps every lobe raw and bounds the
+    field instead (:func:`texel_bound`): the envelope E [J, 3K] is each lobe's A+ table
+    (its largest node over the latent, for conditioned lobes) side by side, and the
+    frozen table's texels are divided so that sum_k z_k,c A+_k,c <= 1 on every node's
+    cell, for every channel c; a blend of texels keeps it (the constraints are linear in
+    z), so the albedo at any uv is at most 1 + margin.  It is less strict than a
+    constant per lobe where the lobes peak at different incidences (a diffuse lobe at
+    the normal, a Fresnel-bright one at grazing), and the graph carries neither a table
+    nor a multiply.
     """
-    if bound not in ("table", "scale"):
-        raise ValueError(f"normalized_textured: bound table or scale, got {bound!r}")
+    if bound not in BOUNDS:
+        raise ValueError(f"normalized_textured: bound {' or '.join(BOUNDS)}, got {bound!r}")
     n = normalization if normalization is not None else cfgmod.Normalization()
     lobes: list[nn.Module] = []
     info: list[dict[str, Any]] = []
+    envelopes: list[torch.Tensor] = []  # bound "texel": each lobe's nodes, side by side
     for k, lobe in enumerate(model.lobes):
         raw = raw_of(lobe).eval()
         if not n.enabled:
@@ -459,9 +503,13 @@ def normalized_textured(
                 target=target,
             )
             norm = NormalizedBRDF(raw, table).eval()
-        if not norm.identity and (bound == "scale" or float(norm.table.max()) <= FOLD_LIMIT):
-            norm = ScaledBRDF(raw, norm.table).eval()  # a constant instead of the table
-        lobes.append(norm)
+        if bound == "texel":  # the lobe stays raw; its nodes join the field's envelope
+            envelopes.append(lobe_envelope(norm.table, bool(raw.latent)))
+            lobes.append(raw)
+        else:
+            if not norm.identity and (bound == "scale" or float(norm.table.max()) <= FOLD_LIMIT):
+                norm = ScaledBRDF(raw, norm.table).eval()  # a constant instead of the table
+            lobes.append(norm)
         heads = heads_of(raw)  # one entry per lobe: a shared network's K heads each
         for h in range(heads):
             cols = slice(3 * h, 3 * h + 3)
@@ -470,12 +518,33 @@ def normalized_textured(
                     "enabled": True,
                     "raw_max_albedo": float(a[..., cols].max()),
                     "raw_max_stderr": float(err[..., cols].max()),
-                    "in_graph": not norm.identity,
-                    "form": "scale" if isinstance(norm, ScaledBRDF) else "table",
+                    "in_graph": bound != "texel" and not norm.identity,
+                    "form": (
+                        "texel"
+                        if bound == "texel"
+                        else "scale"
+                        if isinstance(norm, ScaledBRDF)
+                        else "table"
+                    ),
                 }
             )
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
+    if envelopes:
+        bounded = texel_bound(field.weights(), torch.cat(envelopes, -1), field)
+        field = FrozenWeightField(
+            bounded, field.resolution, channels=field.channels, latent=field.latent
+        )
     return TexturedBRDF(lobes, field, model.normal).eval(), info
+
+
+def lobe_envelope(table: torch.Tensor, conditioned: bool) -> torch.Tensor:
+    """A lobe's A+ table -> [J, C] (J nodes of incidence, C = 3 x heads columns): an
+    isotropic table as it is, an anisotropic grid's nodes flattened, a conditioned
+    table (S, K, C) its largest value over the latent axis, so that each node's bound
+    holds at every latent value."""
+    if conditioned:
+        return table.amax(0)
+    return table.reshape(-1, table.shape[-1])
 
 
 # ------------------------------------------------------------------- total graph

@@ -38,6 +38,7 @@ from textured_helpers import (
     INPUTS,
     albedos,
     albedos_of,
+    assert_file_matches,
     bright_conditioned,
     incidences,
     one_torch_thread,  # noqa: F401  (autouse: one torch thread)
@@ -110,15 +111,7 @@ def test_bright_conditioned_heads_are_bounded_between_texels_and_latent_nodes(br
 def test_reciprocity_bit_exact_and_onnxruntime_agrees(bright):
     model = bright["model"]
     payload = export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS)
-    sess = session(payload)
-    wi, wo, uv = rows(8192, 21)
-    a = run(sess, wi, wo, uv)
-    np.testing.assert_array_equal(a, run(sess, wo, wi, uv))
-    assert np.isfinite(a).all() and a.min() >= 0.0
-    with torch.no_grad():
-        ref = model(torch.from_numpy(wi), torch.from_numpy(wo), torch.from_numpy(uv)).numpy()
-    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    np.testing.assert_allclose(a[up], ref[up], rtol=1e-4, atol=1e-6)
+    assert_file_matches(model, payload, 21)
     # the field's table in the file has the latent's column: K + 1 = 3 columns
     tables = [t for t in onnx.load_from_string(payload).graph.initializer if t.dims == [R * R, 3]]
     assert tables
