@@ -13,9 +13,10 @@ teachers' roughness range (``neural_brdf.measured.procedural.ROUGHNESS``) and me
 range.  Two models are trained for each:
 
 * ``lobes``: ``textured.SETTINGS`` (the test set's recipe: K shared lobes with per-channel
-  weights and the latent, lr, steps, batch, pool, the lobes' scale bound) with a field of
-  one texel (R = 1) and one start, through ``textured.train_textured_file`` (trained,
-  normalised, exported);
+  weights and the latent, lr, steps, batch, pool, the lobes' bound; the JSON records
+  them as ``lobes_settings``: the run in results/ had ``lobe_bound: scale``, the recipe
+  then) with a field of one texel (R = 1) and one start, through
+  ``textured.train_textured_file`` (trained, normalised, exported);
 * ``compact``: the ordinary pipeline on ``target: {mitsuba: teacher.xml}`` (the compact
   recipe, ``textured.train_homogeneous_file``): the homogeneous file of the same teacher.
 

@@ -1730,9 +1730,10 @@ def textured_ceiling_section(d: dict) -> list[str]:
             f"{m['platform']}, {m['cores']} cores",
             f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
         ),
-        f"Teachers: {d['teacher']}. `lobes`: the test set's textured recipe (K = "
+        f"Teachers: {d['teacher']}. `lobes`: the test set's textured recipe at the run (K = "
         f"{d['lobes_settings']['lobes']} shared lobes, weights {d['lobes_settings']['weights']}, "
-        f"latent {d['lobes_settings']['latent']}, {d['lobes_settings']['steps']} steps) with a "
+        f"latent {d['lobes_settings']['latent']}, {d['lobes_settings']['steps']} steps, "
+        f"lobe_bound {d['lobes_settings']['lobe_bound']}) with a "
         "field of one texel and one start; `compact`: the homogeneous pipeline's file of the "
         f"same teacher. Both scored by onnxruntime on {d['pairs']['n']:,} pairs drawn as "
         "benchmarks/textured.py draws them (seed "

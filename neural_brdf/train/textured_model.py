@@ -308,6 +308,8 @@ def texel_bound(
     filtering cannot leave the set.  With one weight per lobe (``channels`` 1) the texel
     takes the largest of its three channels' factors.  The latent columns are unchanged."""
     k, ck = field.lobes, field.channels * field.lobes
+    if envelope.dim() != 2 or envelope.shape[1] != 3 * k:
+        raise ValueError(f"texel_bound: an envelope [J, {3 * k}], got {tuple(envelope.shape)}")
     env = envelope.reshape(-1, k, 3).permute(0, 2, 1)  # (J, 3, K): [j, c, k]
     z = table[:, :ck].reshape(table.shape[0], field.channels, k)
     if field.channels == 1:

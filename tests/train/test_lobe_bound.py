@@ -128,6 +128,9 @@ def test_texel_bound_holds_at_every_texel_and_between_them(channels, latent):
     uv = torch.from_numpy(np.random.default_rng(2).uniform(-1.0, 2.0, (2000, 2))).float()
     blended = bilinear_wrap(bounded, uv, 4).numpy()
     assert _texel_sums(blended, env.numpy(), channels, lobes).max() <= 1.0 + 1e-5
+    # an envelope of another width (a per-head table, not per channel) is refused
+    with pytest.raises(ValueError, match="envelope"):
+        texel_bound(table, env[:, :lobes], field)
 
 
 def test_training_bounds_the_texels_by_the_estimated_envelope():
