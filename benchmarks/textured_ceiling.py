@@ -82,6 +82,7 @@ def teacher_xml(roughness: float, metallic: float) -> str:
 def score(f, pairs) -> dict:
     """Relative RMSE of f cos on ``pairs`` (wi, wo, uv, ref), overall and by cos theta_i."""
     import numpy as np
+    from textured_sweep import error_share
 
     wi, wo, uv, ref = pairs
     got = f(wi, wo, uv)
@@ -91,11 +92,7 @@ def score(f, pairs) -> dict:
     out = {"rel_rmse": float(np.sqrt(d2.sum() / r2.sum())), "cos_i": {}}
     for lo, hi in BANDS:
         m = (wi[:, 2] >= lo) & (wi[:, 2] < hi)
-        out["cos_i"][f"{lo:g}-{min(hi, 1.0):g}"] = {
-            "share_pairs": float(m.mean()),
-            "share_sq_error": float(d2[m].sum() / d2.sum()),
-            "rel_rmse": float(np.sqrt(d2[m].sum() / max(r2[m].sum(), 1e-300))),
-        }
+        out["cos_i"][f"{lo:g}-{min(hi, 1.0):g}"] = error_share(m, d2, r2)
     return out
 
 

@@ -134,6 +134,18 @@ def _roughness(folder: Path):
     return a[..., 0] if a.ndim == 3 else a
 
 
+def error_share(mask, d2, r2) -> dict:
+    """The pairs in ``mask``: their share of the pairs and of the squared error ``d2``,
+    and their relative RMSE (``r2``: the reference's squares)."""
+    import numpy as np
+
+    return {
+        "share_pairs": float(mask.mean()),
+        "share_sq_error": float(d2[mask].sum() / d2.sum()),
+        "rel_rmse": float(np.sqrt(d2[mask].sum() / max(r2[mask].sum(), 1e-300))),
+    }
+
+
 def where_error(f, teacher, n: int, seed: int, rough) -> dict:
     """The relative RMSE of f cos on validation-style pairs (``textured.accuracy``'s
     draw) and where its squared error lies (module doc)."""
@@ -151,11 +163,7 @@ def where_error(f, teacher, n: int, seed: int, rough) -> dict:
     total = d2.sum()
 
     def part(mask) -> dict:
-        return {
-            "share_pairs": float(mask.mean()),
-            "share_sq_error": float(d2[mask].sum() / total),
-            "rel_rmse": float(np.sqrt(d2[mask].sum() / max(r2[mask].sum(), 1e-300))),
-        }
+        return error_share(mask, d2, r2)
 
     # distance to the nearest tile edge, in units of the texture (every map jumps there)
     t = (uv * TILES) % 1.0

@@ -1591,10 +1591,6 @@ def textured_lobes_section(d: dict) -> list[str]:
 
 def textured_sweep_section(d: dict) -> list[str]:
     """issue 30: textured recipes on fixed development pairs, several training seeds."""
-    by: dict[str, list[dict]] = {}
-    for r in d["runs"]:
-        if "rel_rmse_fixed_sets" in r:
-            by.setdefault(r["variant"], []).append(r)
     out = [
         "## Textured materials: recipes over training seeds (development set)",
         "",
@@ -1618,11 +1614,15 @@ def textured_sweep_section(d: dict) -> list[str]:
         "64-texel field texel of the maps' tile edges (12 % of the pairs).",
         "",
     ]
-    return out + _sweep_table(by)
+    return out + _sweep_table(d["runs"])
 
 
-def _sweep_table(by: dict[str, list[dict]]) -> list[str]:
-    """The rows of textured_sweep.py's runs by variant (textured_sweep_section)."""
+def _sweep_table(runs: list[dict]) -> list[str]:
+    """textured_sweep.py's scored runs, one row per variant (textured_sweep_section)."""
+    by: dict[str, list[dict]] = {}
+    for r in runs:
+        if "rel_rmse_fixed_sets" in r:
+            by.setdefault(r["variant"], []).append(r)
     rows = []
     for name, runs in by.items():
         runs.sort(key=lambda r: r["seed"])
@@ -1658,10 +1658,6 @@ def _sweep_table(by: dict[str, list[dict]]) -> list[str]:
 
 def textured_bound_section(d: dict) -> list[str]:
     """issue 30: texture.lobe_bound scale against texel, textured_sweep.py's pairs."""
-    by: dict[str, list[dict]] = {}
-    for r in d["runs"]:
-        if "rel_rmse_fixed_sets" in r:
-            by.setdefault(r["variant"], []).append(r)
     out = [
         "## Textured materials: the lobes' bound, one constant or the texels (development set)",
         "",
@@ -1684,7 +1680,7 @@ def textured_bound_section(d: dict) -> list[str]:
         "recipe.",
         "",
     ]
-    return out + _sweep_table(by)
+    return out + _sweep_table(d["runs"])
 
 
 def textured_floor_section(d: dict) -> list[str]:
