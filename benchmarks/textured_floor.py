@@ -63,12 +63,14 @@ def floor_of(xml: Path, resolutions, pairs: dict, work: Path) -> dict:
     draws = {k: bench.validation_pairs(teacher, n, seed) for k, (n, seed) in pairs.items()}
     maps = sorted(p.name for p in xml.parent.glob("*.exr"))
     out: dict = {"maps": maps, "teacher": teacher.describe(), **{k: {} for k in pairs}}
+    images = {}  # each map read once, averaged at every R
+    for name in maps:
+        image = np.array(mi.Bitmap(str(xml.parent / name)), dtype=np.float64)
+        images[name] = image.reshape(image.shape[0], image.shape[1], -1)
     for r in resolutions:
         folder = work / f"{xml.parent.name}_{r}"
         folder.mkdir(parents=True, exist_ok=True)
-        for name in maps:
-            image = np.array(mi.Bitmap(str(xml.parent / name)), dtype=np.float64)
-            image = image.reshape(image.shape[0], image.shape[1], -1)
+        for name, image in images.items():
             mi.Bitmap(block_average(image, r).astype(np.float32)).write(str(folder / name))
         (folder / xml.name).write_text(xml.read_text())
         coarse = TexturedMitsubaTarget(folder / xml.name)
