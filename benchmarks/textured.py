@@ -404,13 +404,18 @@ def nested_xml(xml: Path) -> Path:
 # ------------------------------------------------------------------ training
 def _lobe_model(settings: dict):
     """The lobes' model section: the compact recipe with ``hidden`` (and ``grid_size``, the
-    (theta_h, theta_d) grid's nodes per axis, where a sweep sets it); None: the default."""
-    if "grid_size" not in settings:
+    (theta_h, theta_d) grid's nodes per axis, and ``grazing_power``, where the settings
+    have them); None: the default."""
+    if "grid_size" not in settings and "grazing_power" not in settings:
         return None
     from neural_brdf import config as cfgmod
 
     m = cfgmod.Model(hidden=list(settings["hidden"]))
-    return m.model_copy(update={"grid": m.grid.model_copy(update={"size": settings["grid_size"]})})
+    if "grazing_power" in settings:
+        m = m.model_copy(update={"grazing_power": float(settings["grazing_power"])})
+    if "grid_size" in settings:
+        m = m.model_copy(update={"grid": m.grid.model_copy(update={"size": settings["grid_size"]})})
+    return m
 
 
 def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, dict]:
@@ -476,14 +481,17 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
     return path, fig
 
 
-def train_homogeneous_file(xml: Path, folder: Path, quick: bool) -> tuple[Path, dict]:
-    """The ordinary pipeline on ``target: {mitsuba: xml}`` (the compact recipe)."""
+def train_homogeneous_file(
+    xml: Path, folder: Path, quick: bool, overrides: list[str] | None = None
+) -> tuple[Path, dict]:
+    """The ordinary pipeline on ``target: {mitsuba: xml}`` (the compact recipe, with the
+    config ``overrides`` KEY=VALUE where given)."""
     from neural_brdf import config as cfgmod
     from neural_brdf import pipeline
 
     cfg_path = folder / "config.yaml"
     cfg_path.write_text(f"name: {folder.name}\ntarget:\n  mitsuba: {xml.resolve()}\n")
-    overrides = ["train.steps=100", "train.warmup=10"] if quick else []
+    overrides = (["train.steps=100", "train.warmup=10"] if quick else []) + list(overrides or [])
     cfg = cfgmod.load(cfg_path, overrides)
     t0 = time.perf_counter()
     metrics = pipeline.run(cfg, folder / "run", overwrite=True)

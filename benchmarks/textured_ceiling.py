@@ -3,6 +3,8 @@
 
     python benchmarks/textured_ceiling.py            # about 15 minutes on 2 cores
     python benchmarks/textured_ceiling.py --quick    # tiny budgets: the machinery only
+    python benchmarks/textured_ceiling.py --grazing-power 2 --only r0.25_m0   # both
+        # models' model.grazing_power 2 -> results/textured_ceiling_gp2_dev.json
 
 ``textured_floor.py`` asks what an R x R field costs by itself (the teacher's maps
 block-averaged).  This asks the other half: with no field at all, how close does the
@@ -100,10 +102,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", action="append", default=[], help="a name of TEACHERS (repeat)")
     ap.add_argument("--quick", action="store_true", help="tiny budgets: the machinery only")
+    ap.add_argument(
+        "--grazing-power",
+        type=float,
+        default=None,
+        help="model.grazing_power of both models (default: each recipe's own, 1)",
+    )
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
+    tag = "" if args.grazing_power is None else f"_gp{args.grazing_power:g}"
     out_path = args.out or RESULTS / (
-        "textured_ceiling_quick.json" if args.quick else "textured_ceiling_dev.json"
+        "textured_ceiling_quick.json" if args.quick else f"textured_ceiling{tag}_dev.json"
     )
     import torch
 
@@ -118,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"textured_ceiling: --only: {unknown[0]!r} is not one of {', '.join(TEACHERS)}")
         return 2
     settings = {**bench.SETTINGS, "resolution": 1, "starts": 1}
+    overrides = []  # the compact file's config changes
+    if args.grazing_power is not None:
+        settings["grazing_power"] = args.grazing_power
+        overrides.append(f"model.grazing_power={args.grazing_power:g}")
     if args.quick:
         settings.update(steps=20, pool=1 << 14, batch=1024)
     pairs_n = 4096 if args.quick else PAIRS
@@ -138,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
             t1 = time.perf_counter()
             (folder / "compact").mkdir()
             compact_path, compact_fig = bench.train_homogeneous_file(
-                xml, folder / "compact", args.quick
+                xml, folder / "compact", args.quick, overrides
             )
             t2 = time.perf_counter()
             rows[name] = {
@@ -184,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             "pairs": {"n": pairs_n, "seed": SEED, "draw": "textured.validation_pairs"},
             "lobes_settings": settings,
             "compact": "the pipeline's defaults (compact), target: {mitsuba: teacher.xml}",
+            "compact_overrides": overrides,
             "rows": rows,
         },
     )

@@ -78,6 +78,10 @@ VARIANTS = {
     # against the texels' bound (texel), one start each (results/textured_bound_dev.json)
     "scale_1start": {"lobe_bound": "scale", "starts": 1},
     "texel_1start": {"lobe_bound": "texel", "starts": 1},
+    # the lobes' grazing factor (model.grazing_power, 1 in the compact recipe): a sharp GGX
+    # texel grows like 1 / (cos_i cos_o) near the grazing mirror direction, where Smith's
+    # masking is still about 1 (results/textured_grazing_dev.json)
+    "gp1.5_1start": {"grazing_power": 1.5, "starts": 1},
     "r256_l3_fresh": {
         "resolution": 256,
         "field_levels": 3,

@@ -1683,6 +1683,31 @@ def textured_bound_section(d: dict) -> list[str]:
     return out + _sweep_table(d["runs"])
 
 
+def textured_grazing_section(d: dict) -> list[str]:
+    """issue 30: the lobes' model.grazing_power 1.5, textured_sweep.py's pairs."""
+    out = [
+        "## Textured materials: the lobes' grazing factor (development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_grazing_dev.json",
+            "python benchmarks/textured_sweep.py --only gp1.5_1start --seeds 0 1 --jobs 2 "
+            "--threads 1 --out benchmarks/results/textured_grazing_dev.json",
+        ),
+        _recorded(
+            d["date"],
+            f"{d['cpus']} cores, {d['jobs']} jobs of {d['threads_per_job']} torch thread(s), "
+            f"{d['variant']}",
+            f"{_load(d['loadavg'])} at the end (the jobs included)",
+        ),
+        f"Teacher: {d['teacher']} (development). The benchmark's recipe with one start and "
+        "the lobes' `model.grazing_power` 1.5 (the compact recipe's 1: the `texel_1start` "
+        "rows of the lobes' bound section above, on the same "
+        f"{d['pairs']:,} pairs). Not chosen: no gain over those rows.",
+        "",
+    ]
+    return out + _sweep_table(d["runs"])
+
+
 def textured_floor_section(d: dict) -> list[str]:
     """issue 30: the teacher block-averaged to R x R against itself (an R x R field's cost)."""
     out = [
@@ -1711,16 +1736,25 @@ def textured_floor_section(d: dict) -> list[str]:
     return out + _table(["teacher (set)", "R", "200k pairs", "1M pairs"], rows)
 
 
-def textured_ceiling_section(d: dict) -> list[str]:
-    """issue 30: the textured recipe's lobes at one texel against the compact file."""
+def _albedo(v: float) -> str:
+    """An albedo: two decimals, or whole numbers from 100 on (a raw lobe's can be huge)."""
+    return f"{v:,.0f}" if v >= 100 else f"{v:.2f}"
+
+
+def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -> list[str]:
+    """issue 30: the textured recipe's lobes at one texel against the compact file (with
+    ``--grazing-power``: both models' model.grazing_power changed, the run's own file)."""
     m = d["machine"]
+    power = d["lobes_settings"].get("grazing_power")
+    title = "## Textured materials: what the lobes reach at one texel (development set)"
+    command = "python benchmarks/textured_ceiling.py"
+    if power is not None:
+        title = title.replace(" (development", f", grazing_power {power:g} (development")
+        command += f" --grazing-power {power:g}" + "".join(f" --only {n}" for n in d["rows"])
     out = [
-        "## Textured materials: what the lobes reach at one texel (development set)",
+        title,
         "",
-        _source(
-            "benchmarks/results/textured_ceiling_dev.json",
-            "python benchmarks/textured_ceiling.py",
-        ),
+        _source(f"benchmarks/results/{name}", command),
         _recorded(
             d["date"],
             f"{m['platform']}, {m['cores']} cores",
@@ -1754,12 +1788,22 @@ def textured_ceiling_section(d: dict) -> list[str]:
                     f"`{model}`",
                     _pct(x["rel_rmse"], 2),
                     *bands,
+                    _albedo(max(x["raw_max_albedo"])) if x.get("raw_max_albedo") else "-",
                     f"{x['seconds']:.0f} s",
                 ]
             )
     bands = [f"cos θi {k} (share)" for k in next(iter(d["rows"].values()))["lobes"]["cos_i"]]
     return out + _table(
-        ["roughness", "metallic", "model", "f·cos rel. RMSE", *bands, "training"], rows
+        [
+            "roughness",
+            "metallic",
+            "model",
+            "f·cos rel. RMSE",
+            *bands,
+            "raw lobes' largest albedo",
+            "training",
+        ],
+        rows,
     )
 
 
@@ -2046,7 +2090,12 @@ SECTIONS = (
     (RESULTS / "textured_sweep_dev.json", textured_sweep_section),
     (RESULTS / "textured_floor.json", textured_floor_section),
     (RESULTS / "textured_ceiling_dev.json", textured_ceiling_section),
+    (
+        RESULTS / "textured_ceiling_gp2_dev.json",
+        partial(textured_ceiling_section, name="textured_ceiling_gp2_dev.json"),
+    ),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
+    (RESULTS / "textured_grazing_dev.json", textured_grazing_section),
     (SWEEP_TIMING, sweep_timing_section),
     (
         RESULTS / "cuda" / "bsdf_bound.json",
