@@ -1763,9 +1763,13 @@ def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -
         f"Teachers: {d['teacher']}. `lobes`: the test set's textured recipe at the run (K = "
         f"{d['lobes_settings']['lobes']} shared lobes, weights {d['lobes_settings']['weights']}, "
         f"latent {d['lobes_settings']['latent']}, {d['lobes_settings']['steps']} steps, "
-        f"lobe_bound {d['lobes_settings']['lobe_bound']}) with a "
+        f"lobe_bound {d['lobes_settings']['lobe_bound']}"
+        + ("" if power is None else f", grazing_power {power:g}")
+        + ") with a "
         "field of one texel and one start; `compact`: the homogeneous pipeline's file of the "
-        f"same teacher. Both scored by onnxruntime on {d['pairs']['n']:,} pairs drawn as "
+        "same teacher"
+        + "".join(f", `{o}`" for o in d.get("compact_overrides", []))
+        + f". Both scored by onnxruntime on {d['pairs']['n']:,} pairs drawn as "
         "benchmarks/textured.py draws them (seed "
         f"{d['pairs']['seed']}): relative RMSE of f·cos, and per band of cos θi its value and "
         "its share of the squared error. A textured file is no closer to a texel's material "
