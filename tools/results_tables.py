@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from functools import partial
 from pathlib import Path
@@ -1541,6 +1542,29 @@ def textured_section(d: dict) -> list[str]:
             f"{x(r['textured_principled_vs_mitsuba_nested'])}).",
             "",
         ]
+        medians = _round_ratios(c.get("render_wall_s") or {})
+        if medians:
+            out += [
+                "The median over the rounds of each round's own ratio (every round renders "
+                "each BSDF once, interleaved; less sensitive to one lucky render than a "
+                "ratio of bests): " + "; ".join(f"{k} {x(v)}" for k, v in medians.items()) + ".",
+                "",
+            ]
+    return out
+
+
+def _round_ratios(walls: dict[str, list[float]]) -> dict[str, float]:
+    """The textured files' per-round times over the compact file's (the homogeneous
+    principled's, else the roughplastic's, as textured.py's cost_ratios), median over rounds."""
+    compact = walls.get("neural principled_plain") or walls.get("neural roughplastic_plain")
+    if not compact:
+        return {}
+    out = {}
+    for name in ("neural principled_textured", "neural roughplastic_textured"):
+        if name in walls:
+            ratios = [a / b for a, b in zip(walls[name], compact, strict=True)]
+            key = name.removeprefix("neural ").replace("_", " ") + " over the compact file"
+            out[key] = float(statistics.median(ratios))
     return out
 
 
