@@ -1680,15 +1680,16 @@ def _sweep_table(runs: list[dict]) -> list[str]:
     )
 
 
-def textured_bound_section(d: dict) -> list[str]:
-    """issue 30: texture.lobe_bound scale against texel, textured_sweep.py's pairs."""
+def _sweep_out_section(d: dict, name: str, title: str, only: str, what: str) -> list[str]:
+    """A ``textured_sweep.py --out results/NAME`` run of its own (one start, two seeds on
+    the sweep's fixed pairs): ``only``, its --only arguments; ``what``, what it compared."""
     out = [
-        "## Textured materials: the lobes' bound, one constant or the texels (development set)",
+        f"## Textured materials: {title} (development set)",
         "",
         _source(
-            "benchmarks/results/textured_bound_dev.json",
-            "python benchmarks/textured_sweep.py --only scale_1start --only texel_1start "
-            "--seeds 0 1 --jobs 2 --threads 1 --out benchmarks/results/textured_bound_dev.json",
+            f"benchmarks/results/{name}",
+            f"python benchmarks/textured_sweep.py {only} --seeds 0 1 --jobs 2 --threads 1 "
+            f"--out benchmarks/results/{name}",
         ),
         _recorded(
             d["date"],
@@ -1696,40 +1697,40 @@ def textured_bound_section(d: dict) -> list[str]:
             f"{d['variant']}",
             f"{_load(d['loadavg'])} at the end (the jobs included)",
         ),
-        f"Teacher: {d['teacher']} (development). The benchmark's recipe "
+        f"Teacher: {d['teacher']} (development). {what}",
+        "",
+    ]
+    return out + _sweep_table(d["runs"])
+
+
+def textured_bound_section(d: dict) -> list[str]:
+    """issue 30: texture.lobe_bound scale against texel, textured_sweep.py's pairs."""
+    return _sweep_out_section(
+        d,
+        "textured_bound_dev.json",
+        "the lobes' bound, one constant or the texels",
+        "--only scale_1start --only texel_1start",
+        "The benchmark's recipe "
         "(benchmarks/textured.py SETTINGS) with one start, `texture.lobe_bound` scale (one "
         "constant per lobe) against texel (the texels' weights bounded by the lobes' "
         "tables, docs/model.md), scored as in the section above on the same "
         f"{d['pairs']:,} pairs. These figures chose `lobe_bound: texel` for the test set's "
         "recipe.",
-        "",
-    ]
-    return out + _sweep_table(d["runs"])
+    )
 
 
 def textured_grazing_section(d: dict) -> list[str]:
     """issue 30: the lobes' model.grazing_power 1.5, textured_sweep.py's pairs."""
-    out = [
-        "## Textured materials: the lobes' grazing factor (development set)",
-        "",
-        _source(
-            "benchmarks/results/textured_grazing_dev.json",
-            "python benchmarks/textured_sweep.py --only gp1.5_1start --seeds 0 1 --jobs 2 "
-            "--threads 1 --out benchmarks/results/textured_grazing_dev.json",
-        ),
-        _recorded(
-            d["date"],
-            f"{d['cpus']} cores, {d['jobs']} jobs of {d['threads_per_job']} torch thread(s), "
-            f"{d['variant']}",
-            f"{_load(d['loadavg'])} at the end (the jobs included)",
-        ),
-        f"Teacher: {d['teacher']} (development). The benchmark's recipe with one start and "
+    return _sweep_out_section(
+        d,
+        "textured_grazing_dev.json",
+        "the lobes' grazing factor",
+        "--only gp1.5_1start",
+        "The benchmark's recipe with one start and "
         "the lobes' `model.grazing_power` 1.5 (the compact recipe's 1: the `texel_1start` "
         "rows of the lobes' bound section above, on the same "
         f"{d['pairs']:,} pairs). Not chosen: no gain over those rows.",
-        "",
-    ]
-    return out + _sweep_table(d["runs"])
+    )
 
 
 def textured_floor_section(d: dict) -> list[str]:
