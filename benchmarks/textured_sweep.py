@@ -82,6 +82,11 @@ VARIANTS = {
     # texel grows like 1 / (cos_i cos_o) near the grazing mirror direction, where Smith's
     # masking is still about 1 (results/textured_grazing_dev.json)
     "gp1.5_1start": {"grazing_power": 1.5, "starts": 1},
+    # grey lobes (texture.lobe_color: grey): one output per lobe, coloured by the rgb
+    # weights; the network's last layer and softplus a third as wide (the render cost)
+    "grey_1start": {"lobe_color": "grey", "starts": 1},
+    # grey lobes leave room for more lobes at the same render cost: K = 6
+    "grey_k6_1start": {"lobe_color": "grey", "lobes": 6, "starts": 1},
     "r256_l3_fresh": {
         "resolution": 256,
         "field_levels": 3,
@@ -92,7 +97,6 @@ VARIANTS = {
 
 
 def _job(name: str, changes: dict, seed: int, args: dict) -> dict:
-    import numpy as np
     import torch
 
     torch.set_num_threads(args["threads"])
@@ -110,7 +114,7 @@ def _job(name: str, changes: dict, seed: int, args: dict) -> dict:
     t0 = time.perf_counter()
     path, fig = bench.train_textured_file(teacher, folder, settings)
     f = bench.OnnxFile(path, threads=args["threads"])
-    rough = np.asarray(_roughness(Path(args["xml"]).parent), np.float64)
+    rough = _roughness(Path(args["xml"]).parent)  # None for a teacher without the map
     sets = [where_error(f, teacher, args["pairs"], s, rough) for s in EVAL_SEEDS]
     return {
         "variant": name,
@@ -135,7 +139,7 @@ def _roughness(folder: Path):
     if not p.is_file():
         return None
     a = np.asarray(mi.Bitmap(str(p)), np.float64)
-    return a[..., 0] if a.ndim == 3 else a
+    return a[..., 0] if a.ndim == 3 else a  # (H, W) float64
 
 
 def error_share(mask, d2, r2) -> dict:
@@ -208,6 +212,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=RESULTS / "textured_sweep_dev.json")
     ap.add_argument("--smoke", action="store_true", help="tiny budgets: the machinery only")
+    ap.add_argument(
+        "--cost",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="after training: each file's render cost in textured.py's BSDF-bound scene, "
+        "best of ROUNDS interleaved rounds (0: none)",
+    )
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import mitsuba as mi
@@ -275,9 +287,28 @@ def main(argv: list[str] | None = None) -> int:
                 f"{n} seed {s}: {figs or run.get('error')} ({run.get('train_seconds') or 0:.0f} s)",
                 flush=True,
             )
+    if args.cost > 0:  # the files' render cost, measured alone after the jobs
+        result["render_cost"] = render_cost(result["runs"], args.work, args.cost, args.smoke)
+        write_json(args.out, result)
+        print("render cost (best, s):", result["render_cost"]["best_s"], flush=True)
     if tmp is not None:
         tmp.cleanup()
     return 0
+
+
+def render_cost(runs: list[dict], work: Path, rounds: int, smoke: bool) -> dict:
+    """Every scored run's file in benchmarks/textured.py's render-cost scene (its COST;
+    bsdf_bound.render_cost: interleaved rounds, best of), keyed ``VARIANT_sSEED``, with
+    the machine's load before and after."""
+    import textured as bench
+
+    cost = dict(bench.COST, resolution=64, spp=4) if smoke else dict(bench.COST)
+    bsdfs: dict[str, object] = {}
+    for r in sorted(runs, key=lambda r: (r["variant"], r["seed"])):
+        if "rel_rmse_fixed_sets" in r:
+            path = work / f"{r['variant']}_s{r['seed']}" / "model.onnx"
+            bsdfs[f"{r['variant']}_s{r['seed']}"] = {"type": "neural_brdf", "filename": str(path)}
+    return bench.bsdf_bound.render_cost(bsdfs, cost["resolution"], cost["spp"], rounds)
 
 
 if __name__ == "__main__":

@@ -376,6 +376,11 @@ class Texture(_Section):
     # (conditioned lobes: a head can follow a roughness map; normalised by a table over
     # (s, theta): docs/model.md, "Conditioned lobes"); isotropic encodings only
     latent: int = Field(0, ge=0, le=1)
+    # rgb: each lobe's network has an RGB output; grey: one output per lobe, its colour
+    # the field's per-channel weights (needs weights: rgb).  The network's last layer and
+    # its softplus are a third as wide, the largest part of a textured file's extra
+    # render cost (docs/mitsuba.md, "Textured materials")
+    lobe_color: Literal["rgb", "grey"] = "rgb"
     # how each lobe's albedo is bounded in the file (docs/model.md, "The lobes' bound"):
     # table, A+ looked up per evaluation (a constant instead when its largest node is at
     # most 1.02); scale, always one constant per head, 1 / max(1, its largest A+), and
@@ -407,6 +412,17 @@ class Texture(_Section):
     validation_uv: int = Field(
         64, ge=1
     )  # random uv of the furnace (validate); pairs' uv: all random
+
+    @model_validator(mode="after")
+    def _grey_lobes(self):
+        # a grey lobe's colour is the field's per-channel weights: with one weight per
+        # lobe the whole model would be grey
+        if self.lobe_color == "grey" and self.weights != "rgb":
+            raise ValueError(
+                "lobe_color: grey lobes take their colour from per-channel weights, "
+                f"so they need weights: rgb, not {self.weights}"
+            )
+        return self
 
     def pool(self, pool_size: int) -> int:
         """The pairs of a textured fit's pool, given ``data.pool_size``."""

@@ -95,6 +95,7 @@ from neural_brdf.train.textured_model import (
     ScaledBRDF,
     TexturedBRDF,
     exportable,
+    raw_of,
 )
 from neural_brdf.version import __version__
 
@@ -531,9 +532,16 @@ def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) 
         # 1: one more column of the table, s(uv) in [0, 1], an input of every lobe
         # (conditioned lobes, docs/model.md), its albedo table over (s, theta)
         "latent": int(getattr(field, "latent", 0)),
+        # grey: each lobe has one output, repeated to RGB (texture.lobe_color); rgb: three
+        "lobe_color": "grey" if _grey_lobes(model) else "rgb",
         "normal_field": normal_json(model),
         "lobe_tables": plain(info) if info is not None else None,
     }
+
+
+def _grey_lobes(model: TexturedBRDF) -> bool:
+    """Whether the lobes' networks have one grey output per lobe (RawBRDF.colors 1)."""
+    return all(int(getattr(raw_of(g), "colors", 3)) == 1 for g in model.lobes)
 
 
 def normal_json(model: TexturedBRDF) -> dict[str, Any] | None:
@@ -659,12 +667,15 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     # the checkpoint's own layout decides (a run of separate lobes has lobes.1.*)
     state = ckpt["model"]
     separate = any(k.startswith("lobes.1.") for k in state)
+    shared = not separate and tx.lobes > 1
+    # and its lobes' colour: a grey lobe's last layer has one row per head, not three
+    colors = int(state["lobes.0.mlp.head.weight"].shape[0]) // (tx.lobes if shared else 1)
     # and so does its latent (conditioned lobes have field.latent_logits)
     latent = int(state["field.latent_logits"].shape[1]) if "field.latent_logits" in state else 0
     # and its field's levels (field.coarse.<l - 1> for each coarser level)
     levels = 1 + len({k.split(".")[2] for k in state if k.startswith("field.coarse.")})
     model = TexturedBRDF(
-        lobe_networks(cfg.model, tx.lobes, not separate and tx.lobes > 1, latent=latent),
+        lobe_networks(cfg.model, tx.lobes, shared, latent=latent, colors=colors),
         WeightField(
             tx.resolution,
             tx.lobes,

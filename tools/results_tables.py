@@ -1424,7 +1424,8 @@ def textured_section(d: dict) -> list[str]:
         ),
         f"Test set: {d['sets']['test']}. Development set: {d['sets']['dev']}. Textured "
         f"recipe: K = {st['lobes']} lobes (hidden {st['hidden']}, weights "
-        f"{st.get('weights', 'scalar')}, latent {st.get('latent', 0)}), a weight field of "
+        f"{st.get('weights', 'scalar')}, latent {st.get('latent', 0)}, lobe colour "
+        f"{st.get('lobe_color', 'rgb')}), a weight field of "
         f"{st['resolution']}² texels, {st['steps']} steps of {st['batch']} pairs from a pool of "
         f"{st['pool']}"
         + (
@@ -1641,8 +1642,9 @@ def textured_sweep_section(d: dict) -> list[str]:
     return out + _sweep_table(d["runs"])
 
 
-def _sweep_table(runs: list[dict]) -> list[str]:
-    """textured_sweep.py's scored runs, one row per variant (textured_sweep_section)."""
+def _sweep_table(runs: list[dict], digits: int = 1) -> list[str]:
+    """textured_sweep.py's scored runs, one row per variant (textured_sweep_section);
+    ``digits``: the errors' decimals."""
     by: dict[str, list[dict]] = {}
     for r in runs:
         if "rel_rmse_fixed_sets" in r:
@@ -1658,9 +1660,11 @@ def _sweep_table(runs: list[dict]) -> list[str]:
         rows.append(
             [
                 f"`{name}` ({changes})",
-                ", ".join(f"{r['seed']}: {_pct(e, 1)}" for r, e in zip(runs, per, strict=True)),
-                _pct(sum(per) / len(per), 1),
-                f"seed {best['seed']}: {_pct(sum(best['rel_rmse_fixed_sets']) / 2, 1)}",
+                ", ".join(
+                    f"{r['seed']}: {_pct(e, digits)}" for r, e in zip(runs, per, strict=True)
+                ),
+                _pct(sum(per) / len(per), digits),
+                f"seed {best['seed']}: {_pct(sum(best['rel_rmse_fixed_sets']) / 2, digits)}",
                 f"{100 * min(graze):.0f}-{100 * max(graze):.0f} %",
                 f"{100 * min(edge):.0f}-{100 * max(edge):.0f} %",
                 f"{max(r['train_seconds'] for r in runs):.0f} s",
@@ -1680,9 +1684,12 @@ def _sweep_table(runs: list[dict]) -> list[str]:
     )
 
 
-def _sweep_out_section(d: dict, name: str, title: str, only: str, what: str) -> list[str]:
+def _sweep_out_section(
+    d: dict, name: str, title: str, only: str, what: str, digits: int = 1
+) -> list[str]:
     """A ``textured_sweep.py --out results/NAME`` run of its own (one start, two seeds on
-    the sweep's fixed pairs): ``only``, its --only arguments; ``what``, what it compared."""
+    the sweep's fixed pairs): ``only``, its --only arguments; ``what``, what it compared;
+    ``digits``, the errors' decimals."""
     out = [
         f"## Textured materials: {title} (development set)",
         "",
@@ -1700,7 +1707,7 @@ def _sweep_out_section(d: dict, name: str, title: str, only: str, what: str) -> 
         f"Teacher: {d['teacher']} (development). {what}",
         "",
     ]
-    return out + _sweep_table(d["runs"])
+    return out + _sweep_table(d["runs"], digits)
 
 
 def textured_bound_section(d: dict) -> list[str]:
@@ -1731,6 +1738,66 @@ def textured_grazing_section(d: dict) -> list[str]:
         "rows of the lobes' bound section above, on the same "
         f"{d['pairs']:,} pairs). Not chosen: no gain over those rows.",
     )
+
+
+def _sweep_cost_table(d: dict, base: str, label: str) -> list[str]:
+    """A textured_sweep.py run's render cost (``--cost``): each file's best time and its
+    ratio to the ``base`` variant's file of the same seed."""
+    c = d.get("render_cost")
+    if not c:
+        return []
+    best = c["best_s"]
+    rows = []
+    for key in sorted(best):
+        variant, _, seed = key.rpartition("_s")
+        ref = best.get(f"{base}_s{seed}")
+        rows.append(
+            [
+                f"`{variant}`, seed {seed}",
+                f"{best[key]:.3f} s",
+                f"{best[key] / ref:.2f}x" if ref else "-",
+            ]
+        )
+    return [
+        f"Render cost: the files in benchmarks/textured.py's BSDF-bound scene "
+        f"({c['resolution']}², {c['spp']} spp), best of {c['repeats']} interleaved rounds, "
+        f"after the jobs; load {_load(c['loadavg_before'])} before, "
+        f"{_load(c['loadavg_after'])} after.",
+        "",
+    ] + _table(["file", "render (best)", f"vs {label}, same seed"], rows)
+
+
+def textured_grey_section(d: dict, name: str, kind: str) -> list[str]:
+    """issue 30: texture.lobe_color grey against rgb, textured_sweep.py's pairs, and the
+    files' render cost (``--cost``)."""
+    kind_arg = "" if kind == "principled" else f"--kind {kind} "
+    out = _sweep_out_section(
+        d,
+        name,
+        f"grey lobes, {kind}",
+        f"{kind_arg}--only grey_1start --only texel_1start --cost 10",
+        "The benchmark's recipe with one start, `texture.lobe_color` grey (one output per "
+        "lobe, coloured by the rgb weights) against rgb (`texel_1start`: the recipe's), both "
+        f"trained in this run and scored on the same {d['pairs']:,} pairs. With the other "
+        "development teacher's run, these figures chose `lobe_color: grey` for the test "
+        "set's recipe.",
+        digits=1 if kind == "principled" else 2,
+    )
+    return out + _sweep_cost_table(d, "texel_1start", "rgb lobes")
+
+
+def textured_grey_k6_section(d: dict) -> list[str]:
+    """issue 30: grey lobes with K = 6 against K = 4, textured_sweep.py's pairs."""
+    out = _sweep_out_section(
+        d,
+        "textured_grey_k6_dev.json",
+        "six grey lobes",
+        "--only grey_k6_1start --only grey_1start --cost 10",
+        "Grey lobes leave room for more lobes at the rgb lobes' render cost: K = 6 against "
+        f"the recipe's 4, one start, both trained in this run, the same {d['pairs']:,} pairs. "
+        "Not chosen: no gain in error, and a dearer file.",
+    )
+    return out + _sweep_cost_table(d, "grey_1start", "4 grey lobes")
 
 
 def textured_floor_section(d: dict) -> list[str]:
@@ -2125,6 +2192,17 @@ SECTIONS = (
     ),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (RESULTS / "textured_grazing_dev.json", textured_grazing_section),
+    (
+        RESULTS / "textured_grey_dev.json",
+        partial(textured_grey_section, name="textured_grey_dev.json", kind="principled"),
+    ),
+    (
+        RESULTS / "textured_grey_dev_roughplastic.json",
+        partial(
+            textured_grey_section, name="textured_grey_dev_roughplastic.json", kind="roughplastic"
+        ),
+    ),
+    (RESULTS / "textured_grey_k6_dev.json", textured_grey_k6_section),
     (SWEEP_TIMING, sweep_timing_section),
     (
         RESULTS / "cuda" / "bsdf_bound.json",

@@ -191,6 +191,7 @@ texture:
   resolution: 32
   latent: 1      # conditioned lobes: a lobe can follow a roughness map (docs/model.md)
   weights: rgb   # a weight per lobe and RGB channel
+  lobe_color: grey  # one output per lobe, coloured by those weights (cheaper to render)
   # the pool: texture.pool_per_texel (2048) pairs per texel, 2M at 32 x 32, drawn once
   # (against data.pool_size's 262144: the held-out principled 19.4 -> 14.1 %, docs/mitsuba.md)
 train:

@@ -213,11 +213,27 @@ class RawBRDF(nn.Module):
         peak_coordinate: str = "u_h",
         heads: int = 1,
         latent: int = 0,
+        colors: int = 3,
     ):
         super().__init__()
         # heads > 1: the same features and hidden layers, ``heads`` RGB outputs side by
         # side, (N, 3 * heads) (a textured model's shared lobes: docs/model.md)
         self.heads = int(heads)
+        # colors 1: each head has one grey output, repeated to its three RGB columns (a
+        # textured model's grey lobes, coloured by the field's per-channel weights:
+        # texture.lobe_color, docs/model.md); the network's last layer and its softplus
+        # are a third as wide.  3: an RGB output per head
+        if colors not in (1, 3):
+            raise ValueError(f"RawBRDF: colors 1 or 3, got {colors}")
+        self.colors = int(colors)
+        # head k's grey column repeated to columns 3k .. 3k + 2 (a Gather at constant
+        # indices in the graph: no arithmetic); not saved (rebuilt from colors)
+        self.rgb_index: torch.Tensor | None
+        self.register_buffer(
+            "rgb_index",
+            torch.arange(self.heads).repeat_interleave(3) if colors == 1 else None,
+            persistent=False,
+        )
         # latent > 0: ``latent`` more inputs s in [0, 1] appended to the features, the
         # same for (wi, wo) and (wo, wi) (a textured model's conditioned lobes: s
         # depends on uv only, so reciprocity stays exact; docs/model.md)
@@ -261,7 +277,7 @@ class RawBRDF(nn.Module):
             activation,
             init_value=init_value,
             output_scale=output_scale,
-            outputs=3 * self.heads,
+            outputs=self.colors * self.heads,
         )
 
     @staticmethod
@@ -277,6 +293,7 @@ class RawBRDF(nn.Module):
         init_value: float = 0.3,
         heads: int = 1,
         latent: int = 0,
+        colors: int = 3,
     ) -> RawBRDF:
         """From the ``model`` section of a config (:class:`neural_brdf.config.Model`)."""
         return cls(
@@ -297,6 +314,7 @@ class RawBRDF(nn.Module):
             peak_coordinate=m.peak_coordinate,
             heads=heads,
             latent=latent,
+            colors=colors,
         )
 
     def forward(
@@ -326,7 +344,10 @@ class RawBRDF(nn.Module):
             c = c.clamp_min(MIN_MEAN_COS)
             f = f / (c if self.grazing_power == 1.0 else c**self.grazing_power)
         valid = (wi[..., 2:3] > 0) & (wo[..., 2:3] > 0)
-        return torch.where(valid, f, torch.zeros_like(f))
+        f = torch.where(valid, f, torch.zeros_like(f))
+        if self.rgb_index is not None:  # grey heads: each one's column three times
+            f = f.index_select(-1, self.rgb_index)
+        return f
 
 
 # ------------------------------------------------------------------- albedo table

@@ -60,6 +60,7 @@ POOL = 131072
 VAL_PAIRS = 16384  # held-out pairs
 CHOOSE_SEED = 202  # several starts: the choice's own VAL_PAIRS pairs draw from seed + this
 CHANNELS = {"scalar": 1, "rgb": 3}  # texture.weights: one weight per lobe, or per RGB channel
+COLORS = {"rgb": 3, "grey": 1}  # texture.lobe_color: a lobe's outputs (RawBRDF.colors)
 
 
 def pairs(
@@ -134,6 +135,7 @@ def _model_and_optimizer(
     latent: int = 0,
     latent_init: torch.Tensor | None = None,
     levels: int = 1,
+    colors: int = 3,
 ) -> tuple[TexturedBRDF, torch.optim.Adam]:
     """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field of ``channels`` (1:
     one weight per lobe, 3: one per lobe and RGB channel) sets of weights (from torch's
@@ -142,14 +144,16 @@ def _model_and_optimizer(
     instead of K networks (``texture.lobe_network``), its heads' weights drawn small and
     random so that they start apart.  ``latent`` 1: the lobes take the field's latent s(uv)
     as one more input (``texture.latent``, docs/model.md "Conditioned lobes"), its
-    logits started at ``latent_init``."""
+    logits started at ``latent_init``.  ``colors`` 1: grey lobes (``texture.lobe_color``),
+    coloured by the field's per-channel weights."""
     # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
     init = float(pool_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
     field = WeightField(resolution, lobes, channels=channels, latent=latent, levels=levels)
     if field.latent_logits is not None and latent_init is not None:
         with torch.no_grad():
             field.latent_logits.copy_(latent_init)
-    model = TexturedBRDF(lobe_networks(m, lobes, shared, init_value=init, latent=latent), field)
+    nets = lobe_networks(m, lobes, shared, init_value=init, latent=latent, colors=colors)
+    model = TexturedBRDF(nets, field)
     scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
     groups: dict[float, list[torch.nn.Parameter]] = {}
     for name, p in model.named_parameters():
@@ -308,12 +312,17 @@ def lobe_networks(
     *,
     init_value: float = 0.3,
     latent: int = 0,
+    colors: int = 3,
 ) -> list[RawBRDF]:
     """K raw networks of the ``model`` section, or one with K heads (``shared``), each
-    with ``latent`` more inputs (conditioned lobes)."""
+    with ``latent`` more inputs (conditioned lobes) and ``colors`` outputs per lobe (3:
+    RGB; 1: grey, ``texture.lobe_color``)."""
     if not shared:
-        return [RawBRDF.from_config(m, init_value=init_value, latent=latent) for _ in range(lobes)]
-    net = RawBRDF.from_config(m, init_value=init_value, heads=lobes, latent=latent)
+        return [
+            RawBRDF.from_config(m, init_value=init_value, latent=latent, colors=colors)
+            for _ in range(lobes)
+        ]
+    net = RawBRDF.from_config(m, init_value=init_value, heads=lobes, latent=latent, colors=colors)
     if lobes > 1:
         with torch.no_grad():  # K zero heads would stay equal but for the field's weights
             torch.nn.init.normal_(net.mlp.head.weight, std=1e-2)
@@ -444,6 +453,7 @@ def train_textured(
     weights: str = "scalar",
     lobe_network: str = "separate",
     latent: int = 0,
+    lobe_color: str = "rgb",
     lobe_bound: str = "table",
     peak_weight: float | None = None,
     peak_cap: float | None = None,
@@ -494,6 +504,7 @@ def train_textured(
             latent=latent,
             latent_init=latent_init,
             levels=field_levels,
+            colors=COLORS[lobe_color],
         )
 
     def span(model, opt, gen, run_seed: int, start: int, stop: int) -> float:
@@ -540,6 +551,7 @@ def train_textured(
         "weights": weights,
         "lobe_network": lobe_network,
         "latent": latent,
+        "lobe_color": lobe_color,
         "lobe_bound": lobe_bound,
         **chosen,
     }
@@ -599,6 +611,7 @@ def train(
             latent=tx.latent,
             latent_init=latent_init,
             levels=tx.field_levels,
+            colors=COLORS[tx.lobe_color],
         )
 
     torch.manual_seed(t.seed)
@@ -690,6 +703,7 @@ def train(
         "resolution": tx.resolution,
         "weights": tx.weights,
         "latent": tx.latent,
+        "lobe_color": tx.lobe_color,
         "pool": len(p_f),
         "pool_seconds": pool_seconds,
         "fresh_every": tx.fresh_every,

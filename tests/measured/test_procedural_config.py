@@ -22,6 +22,7 @@ def test_the_written_config_is_valid_trains_and_draws_a_large_pool(tmp_path, cap
     cfg_path = tmp_path / "mat" / "textured.yaml"
     cfg = cfgmod.load(cfg_path)
     assert cfg.texture.latent == 1 and cfg.texture.weights == "rgb"
+    assert cfg.texture.lobe_color == "grey"  # the benchmark recipe's choice (docs/mitsuba.md)
     pool = cfg.texture.pool(cfg.data.pool_size)
     assert pool == cfg.texture.pool_per_texel * cfg.texture.resolution**2 > cfgmod.Data().pool_size
     code, _, err = cli(
@@ -34,3 +35,4 @@ def test_the_written_config_is_valid_trains_and_draws_a_large_pool(tmp_path, cap
     assert code == 0, err
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["training"]["pool"] == pool
+    assert m["training"]["lobe_color"] == "grey"

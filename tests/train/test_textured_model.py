@@ -282,6 +282,56 @@ def test_shared_heads_keep_the_bound_and_reciprocity():
     np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("bound", ["table", "texel"])
+def test_grey_lobes_keep_the_bound_and_reciprocity_and_take_the_weights_colour(bound):
+    """texture.lobe_color: grey: one network with K = 3 heads of one output each, each
+    repeated to its three RGB columns, coloured by per-channel weights; deliberately bright
+    (raw albedos far above 1).  Under either bound the albedo stays <= 1 per channel between
+    texel centres, the graph is reciprocal bit for bit through onnxruntime, and f's colour
+    is the weights' (the lobes themselves are grey)."""
+    torch.manual_seed(8)
+    net = RawBRDF("isotropic", [16], "relu", grid_size=4, heads=3, colors=1)
+    assert net.mlp.head.weight.shape == (3, 16)  # a third as wide as RGB heads
+    with torch.no_grad():
+        for p in net.parameters():
+            p.normal_(0.0, 2.0)
+        net.mlp.head.bias.fill_(3.0)
+    field = WeightField(R_BRIGHT, 3, channels=3, init_std=2.0)
+    with torch.no_grad():
+        field.logits[..., -1] = -12.0
+    raw = TexturedBRDF([net.eval()], field).eval()
+    norm = cfgmod.Normalization(table_size=33, samples=4096)
+    model, info = normalized_textured(raw, norm, seed=3, bound=bound)
+    assert max(i["raw_max_albedo"] for i in info) > 5.0  # the bound has work to do
+    wi_r, wo_r, uv_r = rows(4096, 25)
+    with torch.no_grad():
+        g = raw.lobes[0](torch.from_numpy(wi_r), torch.from_numpy(wo_r)).numpy()
+    for k in range(3):  # each head grey: its three columns equal bit for bit
+        np.testing.assert_array_equal(g[:, 3 * k], g[:, 3 * k + 1])
+        np.testing.assert_array_equal(g[:, 3 * k], g[:, 3 * k + 2])
+    assert np.abs(g[:, 0] - g[:, 3]).max() > 0.05  # distinct lobes
+    uvs = _uv_off_centres(60, 16)
+    theta = np.radians([0.0, 45.0, 80.0, 89.0])
+    wi = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], -1)
+    rho, err = albedos(model, uvs, wi)
+    assert rho.max() <= 1.0 + 1e-3, rho.max()
+    assert rho.max() > 0.3  # not crushed
+    sess = session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
+    a = run(sess, wi_r, wo_r, uv_r)
+    np.testing.assert_array_equal(a, run(sess, wo_r, wi_r, uv_r))
+    with torch.no_grad():
+        ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
+    up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
+    np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
+    ratio = a[up, 0] / np.maximum(a[up, 2], 1e-12)
+    assert np.ptp(ratio) > 0.5  # coloured by the weights, which vary over uv
+
+
+def test_a_lobe_has_one_or_three_colours():
+    with pytest.raises(ValueError, match="colors 1 or 3"):
+        RawBRDF("isotropic", [16], "relu", heads=2, colors=2)
+
+
 # ------------------------------------------------------------------ (b), (d) the graph
 @pytest.fixture(scope="module")
 def exported(bright) -> dict:

@@ -250,6 +250,39 @@ def test_either_lobe_network_trains_exports_and_says_so(teacher, tmp_path, capsy
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
 
 
+def test_grey_lobes_train_export_and_say_so(teacher, tmp_path, capsys):
+    """texture.lobe_color: grey (one output per lobe, coloured by rgb weights) trains,
+    learns, says so in the metadata, and export from the checkpoint rebuilds it (the same
+    f); with one weight per lobe it is one line and exit 2."""
+    cfg = write_config(tmp_path, teacher, steps=100)
+    grey = ("--set", "texture.lobe_color=grey", "--set", "texture.weights=rgb")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "g"), *grey)
+    assert code == 0, err
+    m = json.loads((tmp_path / "g" / "metrics.json").read_text())
+    assert m["training"]["raw_val_rel_rmse"] < 0.8 * m["training"]["init_val_rel_rmse"]
+    assert m["training"]["lobe_color"] == "grey"
+    assert m["checks"]["reciprocity"]["value"] == 0.0 and m["checks"]["max_albedo"]["passed"]
+    proto = onnx.load(str(tmp_path / "g" / "model.onnx"))
+    props = {p.key: p.value for p in proto.metadata_props}
+    assert json.loads(props["texture"])["lobe_color"] == "grey"
+    (head,) = [t for t in proto.graph.initializer if t.name.endswith("mlp.head.weight")]
+    assert tuple(head.dims)[0] == 3  # 3 lobes, one output each
+    code, _, err = cli(capsys, "export", str(tmp_path / "g"), "-o", str(tmp_path / "e.onnx"))
+    assert code == 0, err
+    wi, wo, uv = rows(1024, 29)
+    feeds = {"wi": wi, "wo": wo, "uv": uv}
+    a = session(tmp_path / "g" / "model.onnx").run(["f"], feeds)[0]
+    b = session(tmp_path / "e.onnx").run(["f"], feeds)[0]
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    assert np.ptp(a[:, 0] / np.maximum(a[:, 2], 1e-12)) > 0.05  # not grey: the weights colour
+    code, _, err = cli(
+        capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
+        "texture.lobe_color=grey",
+    )  # fmt: skip
+    assert_one_line_error(code, err, "lobe_color", "weights: rgb")
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_textured_teacher_is_refused_by_train_many(teacher, tmp_path, capsys):
     a = write_config(tmp_path, teacher, name="a")
     b = write_config(tmp_path, teacher, name="b")
