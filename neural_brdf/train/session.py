@@ -102,10 +102,22 @@ def _get(d: Any, dotted: str) -> Any:
     return d
 
 
+def _with_defaults(saved: dict) -> dict:
+    """A checkpoint's config as this version reads it: a key added since it was saved
+    (texture.lobe_color, say) takes its default, as loading that config would give it.
+    The saved dict unchanged where it no longer validates (a key since removed, a target
+    file since moved): then the comparison is of what was saved."""
+    try:
+        return cfgmod.Config.model_validate(saved).model_dump()
+    except Exception:  # pydantic's ValidationError and the validators' own errors
+        return saved
+
+
 def check_resumable(
     saved: dict, cfg: cfgmod.Config, must_match: Sequence[str] = MUST_MATCH
 ) -> None:
     now = cfg.model_dump()
+    saved = _with_defaults(saved)
     for key in must_match:
         if _get(saved, key) != _get(now, key):
             raise cfgmod.ConfigError(

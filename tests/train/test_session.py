@@ -89,3 +89,24 @@ def test_the_loop_called_directly_replaces_its_own_run(tmp_path):
     loop.train(cfg("train.steps=4"), run_dir)
     assert not (run_dir / "model.onnx").exists() and not (run_dir / "viewer.html").exists()
     assert [r["step"] for r in rows(run_dir / "log.csv")] == ["2", "4"]
+
+
+def test_a_checkpoint_saved_before_a_key_existed_still_resumes():
+    """A config saved by an older version lacks keys added since (texture.lobe_color):
+    they take their defaults, as loading that config would, so the run resumes; a key
+    that really differs is still refused."""
+    from neural_brdf.train.session import check_resumable
+
+    cfg = config.Config()
+    saved = cfg.model_dump()
+    del saved["texture"]["lobe_color"]  # as a checkpoint written before it existed
+    check_resumable(saved, cfg, ("texture", "model"))
+    changed = cfg.model_dump()
+    changed["texture"]["lobes"] = cfg.texture.lobes + 1
+    with pytest.raises(config.ConfigError, match="texture: differs"):
+        check_resumable(changed, cfg, ("texture", "model"))
+    grey = cfg.model_copy(
+        update={"texture": cfg.texture.model_copy(update={"weights": "rgb", "lobe_color": "grey"})}
+    )
+    with pytest.raises(config.ConfigError, match="texture: differs"):
+        check_resumable(saved, grey, ("texture",))  # the default rgb there, grey here
