@@ -184,6 +184,7 @@ def test_validate_reference_export_and_report(run, capsys, tmp_path):
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
     html = (run / "report.html").read_text()
     assert "A textured model" in html and "report-render.png" in (run / "report.md").read_text()
+    assert "grey: one output each" not in html  # rgb lobes, the default
 
 
 def test_resume_trains_on_with_per_channel_weights(teacher, tmp_path, capsys):
@@ -265,6 +266,7 @@ def test_grey_lobes_train_export_and_say_so(teacher, tmp_path, capsys):
     proto = onnx.load(str(tmp_path / "g" / "model.onnx"))
     props = {p.key: p.value for p in proto.metadata_props}
     assert json.loads(props["texture"])["lobe_color"] == "grey"
+    assert "grey: one output each" in (tmp_path / "g" / "report.html").read_text()
     (head,) = [t for t in proto.graph.initializer if t.name.endswith("mlp.head.weight")]
     assert tuple(head.dims)[0] == 3  # 3 lobes, one output each
     code, _, err = cli(capsys, "export", str(tmp_path / "g"), "-o", str(tmp_path / "e.onnx"))

@@ -367,6 +367,13 @@ def _at_uv(fn, uv: tuple[float, float]):
     return at
 
 
+def _lobe_colour(tex: dict) -> str:
+    """How the file's lobes get their colour (its ``texture.lobe_color``; older files: rgb)."""
+    if tex.get("lobe_color") == "grey":
+        return " (grey: one output each, coloured by per-channel weights)"
+    return ""
+
+
 def _textured_note(run: Run) -> list:
     """What a textured model's sections show (uv, the teacher's excess, the normal map)."""
     if not run.model.textured:
@@ -375,8 +382,8 @@ def _textured_note(run: Run) -> list:
     res = tex.get("resolution") or ["?", "?"]
     text = (
         f"A textured model: f(wi, wo, uv) = Σk zk(uv) gk(wi, wo), {tex.get('lobes', '?')} "
-        f"shared lobes and a {res[0]} × {res[1]} field of their weights (wrapping, "
-        "bilinear). The physics checks are at random uv (the furnace at "
+        f"shared lobes{_lobe_colour(tex)} and a {res[0]} × {res[1]} field of their weights "
+        "(wrapping, bilinear). The physics checks are at random uv (the furnace at "
         f"{len(run.metrics.get('furnace', {}).get('uv', []))} points, its largest albedo "
         f"at uv {run.metrics.get('checks', {}).get('max_albedo', {}).get('at_uv')}); the "
         "accuracy is at random uv against the teacher's own eval; the figures below are at "
