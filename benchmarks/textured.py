@@ -54,8 +54,8 @@ Then grey lobes (``lobe_color``: grey, one network output per lobe coloured by t
 weights) against rgb, one start, two seeds, both trained in one run on the same fixed
 development pairs (results/textured_grey_dev.json, textured_grey_dev_roughplastic.json):
 the principled's mean error 9.4 % against 10.6 %, the roughplastic's 1.57 % against
-1.58 %, and the files' render cost 0.81x the rgb files' (roughplastic) in the BSDF-bound
-scene.
+1.58 %, and the files' render cost 0.81x the rgb files' on both teachers in the
+BSDF-bound scene; six grey lobes (textured_grey_k6_dev.json) were not chosen.
 
 A textured model is ``train_textured`` (2 torch threads), each lobe normalised
 (``normalized_textured``) and exported with the inputs (wi, wo, uv) (``exportable``,
