@@ -29,7 +29,7 @@ import torch
 from analytic import physics
 from neural_brdf import config as cfgmod
 from neural_brdf import export
-from neural_brdf.fileformat import OUTPUT, SIGNATURES, reader
+from neural_brdf.fileformat import SIGNATURES, reader
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.textured_model import (
     FrozenWeightField,
@@ -210,6 +210,21 @@ def test_albedo_at_most_one_between_texel_centres(bright):
     assert raw_rho.max() > 5.0  # the same lobes and weights, un-normalised
 
 
+def _graph_reciprocal_and_as_torch(model, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``model``'s exported graph through onnxruntime at ``rows(4096, seed)``: reciprocal
+    bit for bit, and torch's values where both directions are above the horizon.
+    Returns (f, those rows' mask)."""
+    wi_r, wo_r, uv_r = rows(4096, seed)
+    sess = session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
+    a = run(sess, wi_r, wo_r, uv_r)
+    np.testing.assert_array_equal(a, run(sess, wo_r, wi_r, uv_r))
+    with torch.no_grad():
+        ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
+    up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
+    np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
+    return a, up
+
+
 def test_per_channel_weights_keep_the_bound_and_reciprocity(bright):
     """texture.weights: rgb: a set of K weights per RGB channel (each >= 0 with sum <= 1
     per channel), over the same normalised lobes: the albedo stays <= 1 per channel
@@ -230,16 +245,7 @@ def test_per_channel_weights_keep_the_bound_and_reciprocity(bright):
     rho, err = albedos(model, uvs, wi)
     assert rho.max() <= 1.0 + 1e-3, rho.max()
     assert rho.max() > 0.6  # not crushed
-    payload = export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS)
-    sess = session(payload)
-    wi_r, wo_r, uv_r = rows(4096, 21)
-    a = sess.run([OUTPUT], {"wi": wi_r, "wo": wo_r, "uv": uv_r})[0]
-    b = sess.run([OUTPUT], {"wi": wo_r, "wo": wi_r, "uv": uv_r})[0]
-    assert np.array_equal(a, b)
-    with torch.no_grad():
-        ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
-    up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
-    np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
+    _graph_reciprocal_and_as_torch(model, 21)
 
 
 def test_shared_heads_keep_the_bound_and_reciprocity():
@@ -273,13 +279,7 @@ def test_shared_heads_keep_the_bound_and_reciprocity():
     with torch.no_grad():
         heads = model.lobes[0](torch.from_numpy(wi_r), torch.from_numpy(wo_r)).numpy()
     assert np.abs(heads[:, 0:3] - heads[:, 3:6]).max() > 0.05  # distinct lobes
-    sess = session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
-    a = run(sess, wi_r, wo_r, uv_r)
-    np.testing.assert_array_equal(a, run(sess, wo_r, wi_r, uv_r))
-    with torch.no_grad():
-        ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
-    up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
-    np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
+    _graph_reciprocal_and_as_torch(model, 23)
 
 
 @pytest.mark.parametrize("bound", ["table", "texel"])
@@ -316,13 +316,7 @@ def test_grey_lobes_keep_the_bound_and_reciprocity_and_take_the_weights_colour(b
     rho, err = albedos(model, uvs, wi)
     assert rho.max() <= 1.0 + 1e-3, rho.max()
     assert rho.max() > 0.3  # not crushed
-    sess = session(export.to_onnx_bytes(exportable(model), 17, inputs=INPUTS))
-    a = run(sess, wi_r, wo_r, uv_r)
-    np.testing.assert_array_equal(a, run(sess, wo_r, wi_r, uv_r))
-    with torch.no_grad():
-        ref = model(torch.from_numpy(wi_r), torch.from_numpy(wo_r), torch.from_numpy(uv_r))
-    up = (wi_r[:, 2] > 0) & (wo_r[:, 2] > 0)
-    np.testing.assert_allclose(a[up], ref.numpy()[up], rtol=1e-4, atol=1e-6)
+    a, up = _graph_reciprocal_and_as_torch(model, 25)
     ratio = a[up, 0] / np.maximum(a[up, 2], 1e-12)
     assert np.ptp(ratio) > 0.5  # coloured by the weights, which vary over uv
 

@@ -82,6 +82,18 @@ def rows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return hemi(n), hemi(n), rng.random((n, 2)).astype(np.float32)
 
 
+def export_matches_the_run(capsys, run_dir: Path, out: Path, seed: int) -> np.ndarray:
+    """``neural-brdf export RUN_DIR -o OUT`` rebuilds the run's model from its checkpoint:
+    the same f as the run's model.onnx at ``rows(1024, seed)`` (returned)."""
+    code, _, err = cli(capsys, "export", str(run_dir), "-o", str(out))
+    assert code == 0, err
+    wi, wo, uv = rows(1024, seed)
+    feeds = {"wi": wi, "wo": wo, "uv": uv}
+    a = session(run_dir / "model.onnx").run(["f"], feeds)[0]
+    np.testing.assert_allclose(a, session(out).run(["f"], feeds)[0], rtol=1e-6, atol=1e-7)
+    return a
+
+
 def test_the_file_is_a_textured_graph_with_its_metadata(run):
     proto = onnx.load(str(run / "model.onnx"))
     assert [i.name for i in proto.graph.input] == ["wi", "wo", "uv"]
@@ -215,13 +227,7 @@ def test_resume_trains_on_with_per_channel_weights(teacher, tmp_path, capsys):
     props = {p.key: p.value for p in proto.metadata_props}
     assert json.loads(props["texture"])["channels"] == 3
     assert any(tuple(t.dims) == (64, 9) for t in proto.graph.initializer)
-    code, _, err = cli(capsys, "export", str(tmp_path / "r"), "-o", str(tmp_path / "e.onnx"))
-    assert code == 0, err
-    wi, wo, uv = rows(1024, 17)
-    feeds = {"wi": wi, "wo": wo, "uv": uv}
-    a = session(tmp_path / "r" / "model.onnx").run(["f"], feeds)[0]
-    b = session(tmp_path / "e.onnx").run(["f"], feeds)[0]
-    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    export_matches_the_run(capsys, tmp_path / "r", tmp_path / "e.onnx", 17)
 
 
 @pytest.mark.parametrize("network", ["shared", "separate"])
@@ -242,13 +248,7 @@ def test_either_lobe_network_trains_exports_and_says_so(teacher, tmp_path, capsy
     heads = [t for t in proto.graph.initializer if tuple(t.dims)[-1:] == (9,)]  # 3 heads x RGB
     assert bool(heads) == (network == "shared")
     assert len(json.loads(props["texture"])["lobe_tables"]) == 3
-    code, _, err = cli(capsys, "export", str(tmp_path / "s"), "-o", str(tmp_path / "e.onnx"))
-    assert code == 0, err
-    wi, wo, uv = rows(1024, 19)
-    feeds = {"wi": wi, "wo": wo, "uv": uv}
-    a = session(tmp_path / "s" / "model.onnx").run(["f"], feeds)[0]
-    b = session(tmp_path / "e.onnx").run(["f"], feeds)[0]
-    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    export_matches_the_run(capsys, tmp_path / "s", tmp_path / "e.onnx", 19)
 
 
 def test_grey_lobes_train_export_and_say_so(teacher, tmp_path, capsys):
@@ -269,13 +269,7 @@ def test_grey_lobes_train_export_and_say_so(teacher, tmp_path, capsys):
     assert "grey: one output each" in (tmp_path / "g" / "report.html").read_text()
     (head,) = [t for t in proto.graph.initializer if t.name.endswith("mlp.head.weight")]
     assert tuple(head.dims)[0] == 3  # 3 lobes, one output each
-    code, _, err = cli(capsys, "export", str(tmp_path / "g"), "-o", str(tmp_path / "e.onnx"))
-    assert code == 0, err
-    wi, wo, uv = rows(1024, 29)
-    feeds = {"wi": wi, "wo": wo, "uv": uv}
-    a = session(tmp_path / "g" / "model.onnx").run(["f"], feeds)[0]
-    b = session(tmp_path / "e.onnx").run(["f"], feeds)[0]
-    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    a = export_matches_the_run(capsys, tmp_path / "g", tmp_path / "e.onnx", 29)
     assert np.ptp(a[:, 0] / np.maximum(a[:, 2], 1e-12)) > 0.05  # not grey: the weights colour
     code, _, err = cli(
         capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
