@@ -10,7 +10,7 @@
     neural-brdf render model.onnx [--reference CONFIG] [--spp N] -o out.png|out.jpg
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
     neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
-    neural-brdf view model.onnx [--compare OTHER.onnx|CONFIG] -o viewer.html
+    neural-brdf view model.onnx [--compare OTHER.onnx|TEACHER.xml|CONFIG] [--uv U,V] -o viewer.html
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -160,8 +160,14 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("model", help="model.onnx")
     vw.add_argument(
         "--compare",
-        help="a second model (.onnx), or a config whose analytic "
-        "target is shown beside it with a difference view",
+        help="a second model (.onnx), a Mitsuba teacher (.xml), or a config whose "
+        "analytic target or Mitsuba teacher is shown beside it with a difference view",
+    )
+    vw.add_argument(
+        "--uv",
+        action="append",
+        metavar="U,V",
+        help="a textured model's plots at this point uv (repeatable; default four points)",
     )
     vw.add_argument("-o", "--out", required=True, help="output .html")
 
@@ -503,10 +509,9 @@ def _view(args) -> int:
     from neural_brdf.runtime import load
     from neural_brdf.viewer import page as viewer
 
-    for path in (args.model, args.compare):
-        if path and str(path).endswith(".onnx") and Path(path).is_file():
-            _homogeneous(load(path), path, "view", "the WebGL2 viewer draws one BRDF")
-
+    probes = viewer.parse_probes(args.uv)
+    if args.uv and Path(args.model).is_file() and not load(args.model).textured:
+        raise InputError(f"--uv: {args.model} is not a textured model (its plots have no uv)")
     _not_an_input(
         args.out,
         {"model": args.model, "compared model": args.compare},
@@ -515,11 +520,12 @@ def _view(args) -> int:
     )
 
     if args.out == STDOUT:
-        models = viewer.models_for(args.model, args.compare)
+        models = viewer.models_for(args.model, args.compare, probes=probes)
         title = f"neural-brdf viewer: {Path(args.model).name}"  # as write_viewer's
-        _write_text(STDOUT, viewer.page(models, title=title))
+        _write_text(STDOUT, viewer.page(models, title=title, probes=probes))
         return EXIT_OK
-    print(f"wrote {viewer.write_viewer(args.model, args.out, compare=args.compare)}")
+    written = viewer.write_viewer(args.model, args.out, compare=args.compare, probes=probes)
+    print(f"wrote {written}")
     return EXIT_OK
 
 

@@ -11,6 +11,12 @@ const status = document.getElementById("nb-status");
 // a failure anywhere (no WebGL2, a shader the driver refuses) is shown on the page
 window.addEventListener("error", (e) => { status.textContent = "error: " + e.message; });
 const $ = (id) => document.getElementById(id);
+// A textured model (DATA.textured) is drawn on a textured sphere and its plots are at one
+// of DATA.probes (points uv); a teacher (a model with "tabulated") was evaluated by
+// Mitsuba when the page was written, at DATA.lights ([theta, phi] in degrees) only.
+const PROBES = DATA.probes;
+const LIGHTS = DATA.lights;
+const TEX_WIDTH = 2048;                    // texels per row of a bound texture (R32F)
 
 // ---------------------------------------------------------------- metadata
 // A model read from an ONNX file carries the file itself (base64, DATA.models[k].onnx);
@@ -22,10 +28,27 @@ function b64ToBytes(s) {
   for (let i = 0; i < bin.length; i++) u[i] = bin.charCodeAt(i);
   return u;
 }
-const METADATA = DATA.models.map((m) =>
-  m.onnx ? decodeMetadata(readOnnxMetadata(b64ToBytes(m.onnx))) : null);
-function metadataLine(name, meta) {
-  if (!meta) return name + ": no ONNX metadata (an analytic target)";
+function b64ToF32(s) {
+  const u = b64ToBytes(s);
+  return new Float32Array(u.buffer, 0, u.length >> 2);
+}
+// float16 (little-endian) with a scale, as neural_brdf/viewer/page.py (pack_half) writes it
+function unpackHalf(p) {
+  const u = b64ToBytes(p.data), h = new Uint16Array(u.buffer, 0, u.length >> 1);
+  const out = new Float32Array(h.length);
+  for (let i = 0; i < h.length; i++) {
+    const x = h[i], e = (x >> 10) & 31, f = x & 1023, sign = x & 0x8000 ? -1 : 1;
+    const v = e === 0 ? f * Math.pow(2, -24) : e === 31 ? (f ? NaN : Infinity) :
+      (1 + f / 1024) * Math.pow(2, e - 15);
+    out[i] = sign * v * p.scale;
+  }
+  return out;
+}
+// a textured file's metadata_props come as they are (its bytes would repeat its textures)
+const METADATA = DATA.models.map((m) => m.onnx ? decodeMetadata(readOnnxMetadata(b64ToBytes(m.onnx))) :
+  m.metadata ? decodeMetadata(m.metadata) : null);
+function metadataLine(name, meta, note) {
+  if (!meta) return note || name + ": no ONNX metadata (an analytic target)";
   const t = meta.target;
   const target = t && typeof t === "object" ? (t.kind === "analytic" ?
     t.model + " " + JSON.stringify(t.params) : t.description || t.kind) : String(t || "?");
@@ -37,7 +60,7 @@ function metadataLine(name, meta) {
     `${num("max_albedo")}, reciprocity error ${num("reciprocity_error")}${lobe} ` +
     `(metadata version ${meta.metadata_version}, ${meta.producer || "?"})`;
 }
-$("nb-meta").textContent = DATA.models.map((m, k) => metadataLine(m.name, METADATA[k])).join("\n");
+$("nb-meta").textContent = DATA.models.map((m, k) => metadataLine(m.name, METADATA[k], m.note)).join("\n");
 
 const canvas = $("nb-gl");
 canvas.width = S * (NM > 1 ? 3 : 1);
@@ -56,21 +79,28 @@ const VERT = "#version 300 es\nvoid main() {\n" +
 // direction), y = n x t.  Directional light of irradiance pi at normal incidence, so a
 // white Lambertian surface facing the light has radiance 1.  neural_brdf/viewer/page.py
 // (sphere_directions) repeats this geometry for the tests.
-const SPHERE_MAIN = `
+const SPHERE_FRAME = `
 uniform vec3 uLight;
 uniform float uSize;
 out vec4 nb_out;
-void main() {
+// the pixel's normal n and the light wi and view wo in its frame; false off the sphere
+bool sphereFrame(out vec3 n, out vec3 wi, out vec3 wo) {
   vec2 p = gl_FragCoord.xy / uSize * 2.0 - 1.0;
   float r2 = dot(p, p);
-  if (r2 >= 1.0) { nb_out = vec4(0.0); return; }
-  vec3 n = vec3(p, sqrt(1.0 - r2));
+  if (r2 >= 1.0) return false;
+  n = vec3(p, sqrt(1.0 - r2));
   vec3 t = vec3(n.z, 0.0, -n.x);
   float tl = length(t);
   t = tl > 1e-6 ? t / tl : vec3(1.0, 0.0, 0.0);
   vec3 b = cross(n, t);
-  vec3 wi = vec3(dot(uLight, t), dot(uLight, b), dot(uLight, n));
-  vec3 wo = vec3(t.z, b.z, n.z);
+  wi = vec3(dot(uLight, t), dot(uLight, b), dot(uLight, n));
+  wo = vec3(t.z, b.z, n.z);
+  return true;
+}`;
+const SPHERE_MAIN = SPHERE_FRAME + `
+void main() {
+  vec3 n, wi, wo;
+  if (!sphereFrame(n, wi, wo)) { nb_out = vec4(0.0); return; }
   nb_out = vec4(neural_brdf_eval(wi, wo) * max(wi.z, 0.0) * 3.14159265358979, 1.0);
 }`;
 const PAIRS_MAIN = `
@@ -80,6 +110,35 @@ out vec4 nb_out;
 void main() {
   ivec2 p = ivec2(gl_FragCoord.xy);
   nb_out = vec4(neural_brdf_eval(texelFetch(uWi, p, 0).xyz, texelFetch(uWo, p, 0).xyz), 1.0);
+}`;
+// The textured sphere: the same geometry, uv = uRepeat (phi / pi + 1/2, 1 - theta / pi)
+// with phi = atan(n.x, n.z) and theta = acos(n.y), so the tangent t above is dp/du; a
+// normal field m = neural_brdf_normal(uv) turns the frame as Mitsuba's normalmap does:
+// s = normalize(x - m m.x), t' = m x s (docs/codegen.md, "The normal field").
+// neural_brdf/viewer/page.py (sphere_frames, textured_radiance) repeats it for the tests.
+const sphereTexturedMain = (normal) => SPHERE_FRAME + `
+uniform float uRepeat;
+void main() {
+  vec3 n, wi, wo;
+  if (!sphereFrame(n, wi, wo)) { nb_out = vec4(0.0); return; }
+  if (wi.z <= 0.0) { nb_out = vec4(0.0, 0.0, 0.0, 1.0); return; }
+  vec2 uv = uRepeat * vec2(atan(n.x, n.z) / 3.14159265358979 + 0.5,
+                           1.0 - acos(clamp(n.y, -1.0, 1.0)) / 3.14159265358979);
+${normal ? `  vec3 m = neural_brdf_normal(uv);
+  vec3 s = normalize(vec3(1.0, 0.0, 0.0) - m * m.x);
+  vec3 q = cross(m, s);
+  wi = vec3(dot(wi, s), dot(wi, q), dot(wi, m));
+  wo = vec3(dot(wo, s), dot(wo, q), dot(wo, m));
+` : ""}  nb_out = vec4(neural_brdf_eval(wi, wo, uv) * max(wi.z, 0.0) * 3.14159265358979, 1.0);
+}`;
+const PAIRS_TEXTURED_MAIN = `
+uniform highp sampler2D uWi;
+uniform highp sampler2D uWo;
+uniform vec2 uUv;
+out vec4 nb_out;
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy);
+  nb_out = vec4(neural_brdf_eval(texelFetch(uWi, p, 0).xyz, texelFetch(uWo, p, 0).xyz, uUv), 1.0);
 }`;
 // Display: radiance x 2^EV, clamped, sRGB-encoded; or the relative difference of two
 // radiance images, max over RGB of |A - B| / max(A, B, floor), as a false colour on a
@@ -152,24 +211,87 @@ function floatInput(data, w, h) {          // data: Float32Array w*h*4
   return tex;
 }
 
+// a textured model's bound textures: texture j of model k on unit 4 + 2 k + j, an R32F
+// texture TEX_WIDTH texels wide holding the floats in order (docs/codegen.md)
+function boundTexture(t, unit) {
+  const n = t.rows * t.channels, h = Math.max(1, Math.ceil(n / TEX_WIDTH));
+  const data = new Float32Array(TEX_WIDTH * h);
+  data.set(b64ToF32(t.data).subarray(0, n));
+  gl.activeTexture(gl.TEXTURE0 + unit);
+  const tex = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  for (const k of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+    gl.texParameteri(gl.TEXTURE_2D, k, gl.NEAREST);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, TEX_WIDTH, h, 0, gl.RED, gl.FLOAT, data);
+  gl.activeTexture(gl.TEXTURE0);
+  return tex;
+}
 const models = DATA.models.map((m, k) => {
-  const body = m.glsl.replace(/^\s*#version[^\n]*\n/, "");
+  const base = {name: m.name, albedo: m.albedo, textured: m.textured, target: floatTarget(S, S)};
+  if (m.tabulated) {                       // a teacher: images and slices, no shader
+    const cache = {};
+    return Object.assign(base, {tabulated: m.tabulated, cache,
+      image: (i) => cache[i] || (cache[i] = unpackHalf(m.tabulated.images[i])),
+      slice: (p) => cache["s" + p] || (cache["s" + p] = unpackHalf(m.tabulated.slices[p]))});
+  }
+  const defines = m.textured ? `#define NEURAL_BRDF_TEXTURE_WIDTH ${TEX_WIDTH}\n` : "";
+  const body = defines + m.glsl.replace(/^\s*#version[^\n]*\n/, "");
   const what = `model ${k} (${m.name})`;
-  return {name: m.name, albedo: m.albedo,
-          sphere: program(HEADER + body + SPHERE_MAIN, what),
-          pairs: program(HEADER + body + PAIRS_MAIN, what),
-          target: floatTarget(S, S)};
+  const out = Object.assign(base, {
+    sphere: program(HEADER + body + (m.textured ? sphereTexturedMain(m.normal) : SPHERE_MAIN), what),
+    pairs: program(HEADER + body + (m.textured ? PAIRS_TEXTURED_MAIN : PAIRS_MAIN), what)});
+  m.textures.forEach((t, j) => {
+    const unit = 4 + 2 * k + j;
+    boundTexture(t, unit);
+    for (const p of [out.sphere, out.pairs]) {
+      gl.useProgram(p);
+      gl.uniform1i(gl.getUniformLocation(p, "neural_brdf_texture" + j), unit);
+    }
+  });
+  return out;
 });
 const display = program(DISPLAY, "display");
 
 // ---------------------------------------------------------------- evaluation
+// the index of the teacher's light nearest to a direction
+function nearestLight(light) {
+  let best = 0, bestDot = -2;
+  LIGHTS.forEach(([t, p], i) => {
+    const d = lightOf(t, p), c = d[0] * light[0] + d[1] * light[1] + d[2] * light[2];
+    if (c > bestDot) { bestDot = c; best = i; }
+  });
+  return best;
+}
+function lightOf(thetaDeg, phiDeg) {
+  const t = thetaDeg * PI / 180, p = phiDeg * PI / 180;
+  return [Math.sin(t) * Math.cos(p), Math.sin(t) * Math.sin(p), Math.cos(t)];
+}
+// a teacher's image at its light nearest to ``light``: the pixels inside the sphere in
+// row order (bottom-up), as page.py stored them
+function uploadTeacher(m, light) {
+  const vals = m.image(nearestLight(light)), px = new Float32Array(S * S * 4);
+  let q = 0;
+  for (let j = 0; j < S; j++) {
+    const y = (j + 0.5) / S * 2 - 1;
+    for (let i = 0; i < S; i++) {
+      const x = (i + 0.5) / S * 2 - 1;
+      if (x * x + y * y >= 1) continue;
+      px.set([vals[3 * q], vals[3 * q + 1], vals[3 * q + 2], 1], 4 * (j * S + i));
+      q++;
+    }
+  }
+  gl.bindTexture(gl.TEXTURE_2D, m.target.tex);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, S, S, gl.RGBA, gl.FLOAT, px);
+}
 function renderSphere(k, light) {
   const m = models[k];
+  if (m.tabulated) { uploadTeacher(m, light); return; }
   gl.bindFramebuffer(gl.FRAMEBUFFER, m.target.fb);
   gl.viewport(0, 0, S, S);
   gl.useProgram(m.sphere);
   gl.uniform3fv(gl.getUniformLocation(m.sphere, "uLight"), light);
   gl.uniform1f(gl.getUniformLocation(m.sphere, "uSize"), S);
+  if (m.textured) gl.uniform1f(gl.getUniformLocation(m.sphere, "uRepeat"), DATA.repeat);
   gl.drawArrays(gl.TRIANGLES, 0, 3);
 }
 function readTarget(t) {
@@ -179,7 +301,7 @@ function readTarget(t) {
   return px;
 }
 const PAIR_WIDTH = 1024;
-function evalPairs(k, wi, wo, n) {          // Float32Array n*3 each -> Float32Array n*3
+function evalPairs(k, wi, wo, n, uv) {      // Float32Array n*3 each -> Float32Array n*3
   const w = Math.min(n, PAIR_WIDTH), h = Math.ceil(n / PAIR_WIDTH);
   const pad = (a) => {
     const out = new Float32Array(w * h * 4);
@@ -187,8 +309,10 @@ function evalPairs(k, wi, wo, n) {          // Float32Array n*3 each -> Float32A
     return out;
   };
   const m = models[k];
+  if (m.tabulated) throw new Error(`model ${k} (${m.name}) is tabulated: it has no shader`);
   const t = floatTarget(w, h);
   gl.useProgram(m.pairs);
+  if (m.textured) gl.uniform2fv(gl.getUniformLocation(m.pairs, "uUv"), uv || PROBES[state.probe]);
   const inputs = [floatInput(pad(wi), w, h), floatInput(pad(wo), w, h)];
   inputs.forEach((tex, unit) => {
     gl.activeTexture(gl.TEXTURE0 + unit);
@@ -210,10 +334,14 @@ function evalPairs(k, wi, wo, n) {          // Float32Array n*3 each -> Float32A
 }
 
 // ---------------------------------------------------------------- state and drawing
-const state = {thetaL: 35, phiL: 30, ev: 0, thetaI: 45, log: false};
+const state = {thetaL: 35, phiL: 30, ev: 0, thetaI: 45, log: false, probe: 0};
 function lightDir() {
-  const t = state.thetaL * PI / 180, p = state.phiL * PI / 180;
-  return [Math.sin(t) * Math.cos(p), Math.sin(t) * Math.sin(p), Math.cos(t)];
+  return lightOf(state.thetaL, state.phiL);
+}
+// with a teacher the light is one of its lights: the nearest to the one asked for
+function snapLight() {
+  if (!LIGHTS) return;
+  [state.thetaL, state.phiL] = LIGHTS[nearestLight(lightDir())];
 }
 function drawSpheres() {
   const L = lightDir();
@@ -264,7 +392,8 @@ function slices() {                        // [model] -> {theta: deg[], fc: [n][
     wo.set([Math.sin(to), 0, Math.cos(to)], 3 * j);
   }
   return models.map((m, k) => {
-    const f = evalPairs(k, wi, wo, SLICE_N);
+    const f = m.tabulated ? m.slice(m.textured ? state.probe : 0).subarray(
+      state.thetaI * SLICE_N * 3, (state.thetaI + 1) * SLICE_N * 3) : evalPairs(k, wi, wo, SLICE_N);
     const fc = [];
     for (let j = 0; j < SLICE_N; j++) {
       const c = Math.max(wo[3 * j + 2], 0);
@@ -324,7 +453,7 @@ function drawSlices(sl) {
   for (let i = 0; i <= 4; i++) yt.push(yr[0] + (yr[1] - yr[0]) * i / 4);
   axes(ctx, W, H, box, [-90, 90], yr, {
     xticks: [-90, -60, -30, 0, 30, 60, 90], yticks: yt, xlabel: "θo [deg] (mirror at +θi)",
-    title: `f cos θo in the incidence plane, θi = ${state.thetaI}°` + (state.log ? " (log10)" : ""),
+    title: `f cos θo in the incidence plane, θi = ${state.thetaI}°` + probeText() + (state.log ? " (log10)" : ""),
     ylabelOf: (y) => state.log ? y.toFixed(1) : y.toPrecision(2)});
   sl.forEach((s, k) => {
     for (let c = 0; c < 3; c++)
@@ -365,19 +494,23 @@ function drawPolar(sl) {
   ctx.fillStyle = "#333"; ctx.font = "12px sans-serif"; ctx.textAlign = "center";
   ctx.fillText(`lobe: luminance of f cos θo, θi = ${state.thetaI}° (orange: light)`, W / 2, 14);
 }
+// a textured model's albedo curve is at the plots' point uv
+const curveOf = (m) => Array.isArray(m.albedo) ? m.albedo[state.probe] : m.albedo;
 function drawAlbedo() {
   const cv = $("nb-albedo"), ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
   const box = {x: 44, y: 22, w: W - 56, h: H - 58};
   let hi = 1.05;
-  for (const m of models) for (const v of m.albedo.rho) hi = Math.max(hi, v[0] * 1.05, v[1] * 1.05, v[2] * 1.05);
+  for (const m of models) for (const v of curveOf(m).rho) hi = Math.max(hi, v[0] * 1.05, v[1] * 1.05, v[2] * 1.05);
   const yr = [0, hi];
   axes(ctx, W, H, box, [0, 90], yr, {
     xticks: [0, 15, 30, 45, 60, 75, 90], yticks: [0, 0.25, 0.5, 0.75, 1.0].filter((y) => y <= hi),
-    xlabel: "θi [deg]", title: "directional albedo ρ(θi) (precomputed)",
+    xlabel: "θi [deg]", title: (DATA.textured ? "albedo ρ(θi) (precomputed)" :
+      "directional albedo ρ(θi) (precomputed)") + probeText(),
     ylabelOf: (y) => y.toFixed(2)});
   models.forEach((m, k) => {
+    const a = curveOf(m);
     for (let c = 0; c < 3; c++)
-      line(ctx, box, [0, 90], yr, m.albedo.theta, m.albedo.rho.map((v) => v[c]), CH[c], DASH[k]);
+      line(ctx, box, [0, 90], yr, a.theta, a.rho.map((v) => v[c]), CH[c], DASH[k]);
   });
   const px = box.x + state.thetaI / 90 * box.w;
   ctx.strokeStyle = "#e08000"; ctx.beginPath(); ctx.moveTo(px, box.y); ctx.lineTo(px, box.y + box.h); ctx.stroke();
@@ -386,8 +519,14 @@ function drawAlbedo() {
   ctx.lineTo(box.x + box.w, py); ctx.stroke(); ctx.setLineDash([]);
 }
 
+function probeText() {
+  if (!DATA.textured) return "";
+  const [u, v] = PROBES[state.probe];
+  return `, uv (${u.toPrecision(3)}, ${v.toPrecision(3)})`;
+}
 function redraw(what) {
   try {
+    snapLight();
     if (what !== "plots") drawSpheres();
     if (what !== "spheres") { const sl = slices(); drawSlices(sl); drawPolar(sl); drawAlbedo(); }
     for (const [id, v] of [["nb-thetaL", state.thetaL], ["nb-phiL", state.phiL], ["nb-ev", state.ev],
@@ -396,6 +535,7 @@ function redraw(what) {
       $(id + "-v").textContent = String(v);
     }
     $("nb-log").checked = state.log;
+    if (DATA.textured) $("nb-probe").value = String(state.probe);
   } catch (e) {
     status.textContent = String(e);
     throw e;
@@ -414,6 +554,8 @@ for (const [id, key, what] of [["nb-thetaL", "thetaL", "spheres"], ["nb-phiL", "
   el.addEventListener("input", () => { state[key] = Number(el.value); schedule(what); });
 }
 $("nb-log").addEventListener("change", (e) => { state.log = e.target.checked; schedule("plots"); });
+if (DATA.textured)
+  $("nb-probe").addEventListener("change", (e) => { state.probe = Number(e.target.value); schedule("plots"); });
 // drag on a sphere: the light comes from the direction of the point under the pointer
 function dragLight(ev) {
   if (!(ev.buttons & 1)) return;
@@ -433,11 +575,6 @@ canvas.addEventListener("pointerdown", dragLight);
 canvas.addEventListener("pointermove", dragLight);
 
 // ---------------------------------------------------------------- test mode
-function b64ToF32(s) {
-  const bin = atob(s), u = new Uint8Array(bin.length);
-  for (let i = 0; i < bin.length; i++) u[i] = bin.charCodeAt(i);
-  return new Float32Array(u.buffer);
-}
 function f32ToB64(f) {
   const u = new Uint8Array(f.buffer, f.byteOffset, f.byteLength);
   let s = "";
@@ -446,10 +583,16 @@ function f32ToB64(f) {
 }
 window.nbViewer = {
   size: S, models: models.map((m) => m.name),
-  // f of model k at n (wi, wo) pairs (base64 float32 (n, 3) each) -> base64 float32 (n, 3)
-  evalPairs: (k, wi, wo, n) => f32ToB64(evalPairs(k, b64ToF32(wi), b64ToF32(wo), n)),
+  probes: PROBES, lights: LIGHTS,
+  // f of model k at n (wi, wo) pairs (base64 float32 (n, 3) each) -> base64 float32 (n, 3);
+  // a textured model at uv [u, v] (default: the plots' point)
+  evalPairs: (k, wi, wo, n, uv) => f32ToB64(evalPairs(k, b64ToF32(wi), b64ToF32(wo), n, uv)),
+  // f cos(theta_o) of every model along the current slice (SLICE_N x 3 each, base64)
+  sliceValues: () => slices().map((s) => f32ToB64(new Float32Array(s.fc.flat()))),
   // the float radiance image (S, S, 4), rows bottom-up, of model k lit from light (vec3)
   sphereRadiance: (k, light) => { renderSphere(k, light); return f32ToB64(readTarget(models[k].target)); },
+  // the radiance image model k shows now (as last drawn), rows bottom-up
+  shownRadiance: (k) => f32ToB64(readTarget(models[k].target)),
   setState: (s) => { Object.assign(state, s); redraw("all"); return state; },
   // model k's metadata, read from its ONNX bytes (null for an analytic target)
   metadata: (k) => METADATA[k],

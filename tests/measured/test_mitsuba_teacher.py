@@ -344,6 +344,21 @@ def test_a_short_run_trains_from_a_mitsuba_xml(mi, tmp_path, capsys):
     code, out, err = cli(capsys, "validate", str(run / "model.onnx"), "--reference", str(cfg))
     assert code in (0, 1), err
     assert "rel_rmse" in out
+    # the run's viewer draws the model beside Mitsuba's own eval of the teacher
+    from neural_brdf.measured.mitsuba import MitsubaTarget
+    from neural_brdf.viewer import page as viewer
+
+    text = (run / "viewer.html").read_text()
+    data = json.loads(text.split('id="nb-data">', 1)[1].split("</script>", 1)[0])
+    name, table = data["models"][1]["name"], data["models"][1]["tabulated"]
+    assert name == "teacher: roughplastic.xml"
+    assert len(table["images"]) == len(viewer.TEACHER_LIGHTS)
+    light = viewer.light_of(*viewer.TEACHER_LIGHTS[-1])
+    raw = MitsubaTarget(xml).teacher
+    expect = viewer.textured_radiance(lambda a, b, c: raw(a, b), None, viewer.SPHERE, light)
+    inside = viewer.sphere_frames(viewer.SPHERE, light)[3]
+    got = viewer.unpack_half(table["images"][-1]).reshape(-1, 3)
+    assert np.abs(got - expect[inside]).max() <= 1e-3 * expect.max()
 
 
 @pytest.mark.mitsuba

@@ -271,6 +271,37 @@ def _stored_lobe(path: Path) -> dict | None:
         return None
 
 
+def _textured_viewer(run: Run, reference) -> list:
+    """A textured model's viewer: its textured sphere beside its Mitsuba teacher's
+    (evaluated when the report is written), or alone when the teacher is not at hand."""
+    from neural_brdf.viewer import page as viewer
+
+    try:
+        models = [viewer.onnx_model(run.dir / "model.onnx", "neural")]
+        if getattr(reference, "spatially_varying", False):
+            name = Path(getattr(reference, "source", "teacher")).name
+            models.append(viewer.teacher_model(reference, f"teacher: {name}", textured=True))
+    except InputError as e:
+        return [Text(f"No viewer: {e}.", note=True)]
+    page = viewer.page(models, title=f"neural-brdf viewer: {run.config.name}")
+    vs = " beside its Mitsuba teacher, with a difference view" if len(models) > 1 else ""
+    return [
+        Text(
+            f"{VIEWER_FILE} draws the textured model{vs} in WebGL2 with the GLSL generated "
+            "from its ONNX graph (its textures bound as the generated code expects): a lit "
+            "textured sphere with a draggable light (with the teacher: snapped to the "
+            f"{len(viewer.TEACHER_LIGHTS)} lights it was evaluated at), and the slices, "
+            "the polar lobe and the albedo curve at chosen points uv.  It is written "
+            "beside this report and carried inside it (the link saves it)."
+        ),
+        Attachment(
+            VIEWER_FILE,
+            f"Save {VIEWER_FILE} (interactive viewer, {len(page) // 1024} KiB)",
+            page.encode("utf-8"),
+        ),
+    ]
+
+
 def _viewer(run: Run, reference, curves: dict | None = None) -> list:
     """The interactive WebGL2 viewer (neural_brdf.viewer.page) of the model, beside its analytic
     target when it has one; a note when the GLSL code generator cannot translate it.
@@ -282,13 +313,7 @@ def _viewer(run: Run, reference, curves: dict | None = None) -> list:
     cfg = run.config
     curves = curves or {}
     if run.model.textured:
-        return blocks + [
-            Text(
-                "No viewer: the WebGL2 viewer draws a homogeneous model; a textured one is "
-                "shown by the render above.",
-                note=True,
-            )
-        ]
+        return blocks + _textured_viewer(run, reference)
 
     def page_curve(key: str) -> dict | None:
         theta = curves.get(f"{key}_theta", curves.get("theta"))
@@ -306,10 +331,18 @@ def _viewer(run: Run, reference, curves: dict | None = None) -> list:
                     lobe=_stored_lobe(run.dir / "model.onnx"),  # unused by the page
                 )
             )
+        elif cfg.target.mitsuba is not None and hasattr(reference, "teacher"):
+            name = Path(cfg.target.mitsuba).name  # Mitsuba's eval, evaluated here
+            models.append(viewer.teacher_model(reference, f"teacher: {name}", textured=False))
     except InputError as e:  # no code generator, or an op it does not know
         return blocks + [Text(f"No viewer: {e}.", note=True)]
     page = viewer.page(models, title=f"neural-brdf viewer: {cfg.name}")
     vs = " (beside its target, with a difference view)" if len(models) > 1 else ""
+    if len(models) > 1 and models[1].tabulated is not None:
+        vs = (
+            " (beside its Mitsuba teacher, with a difference view; the teacher was "
+            f"evaluated for {len(viewer.TEACHER_LIGHTS)} lights, to which the light snaps)"
+        )
     return blocks + [
         Text(
             f"{VIEWER_FILE} draws the model{vs} in WebGL2 with the GLSL generated from its "
