@@ -215,6 +215,9 @@ function floatInput(data, w, h) {          // data: Float32Array w*h*4
 // texture TEX_WIDTH texels wide holding the floats in order (docs/codegen.md)
 function boundTexture(t, unit) {
   const n = t.rows * t.channels, h = Math.max(1, Math.ceil(n / TEX_WIDTH));
+  if (h > gl.getParameter(gl.MAX_TEXTURE_SIZE))
+    throw new Error(`a bound texture of ${t.rows} x ${t.channels} floats needs ${h} rows of ` +
+                    `${TEX_WIDTH}: more than this WebGL2's MAX_TEXTURE_SIZE`);
   const data = new Float32Array(TEX_WIDTH * h);
   data.set(b64ToF32(t.data).subarray(0, n));
   gl.activeTexture(gl.TEXTURE0 + unit);

@@ -529,6 +529,11 @@ def models_for(model, compare=None, *, probes=PROBES) -> list[Model]:
         xml = compare
         if compare.suffix != ".xml":  # a config: its analytic target, or its teacher
             cfg = config.load(compare)
+            if cfg.target.images is not None:  # its target.model is the unused default
+                raise InputError(
+                    f"{compare}: target.images: an images fit has no target BRDF to compare "
+                    "with; compare its model.onnx with another file or a teacher"
+                )
             if cfg.target.data is not None:
                 raise InputError(
                     f"{compare}: target.data: the viewer compares analytic targets and "

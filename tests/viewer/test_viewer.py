@@ -315,6 +315,7 @@ def cli_capture(args):
         ("garbage", "not a loadable ONNX model"),
         ("compare_suffix", "--compare"),
         ("compare_data", "target.data"),
+        ("compare_images", "target.images"),
         ("out_suffix", ".html"),
         ("out_dir", "cannot write"),
     ],
@@ -324,6 +325,8 @@ def test_bad_input_exits_2_with_one_line(case, needle, model_path, tmp_path, cap
     garbage.write_bytes(b"not a model")
     data_cfg = tmp_path / "data.yaml"
     data_cfg.write_text("target:\n  data: nowhere.binary\n")
+    images_cfg = tmp_path / "images.yaml"  # an images fit: no target BRDF (not a Lambertian)
+    images_cfg.write_text("target:\n  images: [{scene: s.xml, image: a.exr}]\n")
     out = str(tmp_path / "v.html")
     args = {
         "missing": [str(tmp_path / "nope.onnx"), "-o", out],
@@ -331,6 +334,7 @@ def test_bad_input_exits_2_with_one_line(case, needle, model_path, tmp_path, cap
         "garbage": [str(garbage), "-o", out],
         "compare_suffix": [str(model_path), "--compare", str(tmp_path / "x.txt"), "-o", out],
         "compare_data": [str(model_path), "--compare", str(data_cfg), "-o", out],
+        "compare_images": [str(model_path), "--compare", str(images_cfg), "-o", out],
         "out_suffix": [str(model_path), "-o", str(tmp_path / "v.png")],
         "out_dir": [str(model_path), "-o", str(tmp_path / "no" / "such" / "v.html")],
     }[case]
