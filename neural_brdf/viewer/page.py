@@ -67,7 +67,7 @@ TANGENT_EPS = 1e-6  # |(n.z, 0, -n.x)| below this: the tangent falls back to +x
 REPEAT = 2.0
 # where a textured model's plots are drawn (``--uv`` replaces them)
 PROBES = ((0.5, 0.5), (0.25, 0.25), (0.75, 0.6), (0.1, 0.85))
-# a teacher is rendered at these lights (theta from the view axis, phi), degrees
+# a teacher is evaluated at these lights (theta from the view axis, phi), degrees
 TEACHER_LIGHTS = tuple([(0, 30)] + [(t, p) for t in (35, 70) for p in (30, 120, 210, 300)])
 SLICE_THETA_I = np.arange(90)  # a teacher's slices: theta_i in degrees (the page's slider)
 SLICE_N = 181  # theta_o samples of a slice, -90 to 90 degrees (page.js)
@@ -144,7 +144,7 @@ def sphere_frames(size: int, light, repeat: float = REPEAT):
     :func:`sphere_directions` (whose tangent (n.z, 0, -n.x) is dp/du of this
     parametrisation) with uv = repeat (phi / pi + 1/2, 1 - theta / pi), phi = atan2(n.x,
     n.z) the longitude about the view's y axis and theta = acos(n.y) the angle from its
-    pole (page.js, SPHERE_MAIN)."""
+    pole (page.js, sphereTexturedMain)."""
     wi, wo, inside = sphere_directions(size, light)
     c = (np.arange(size) + 0.5) / size * 2.0 - 1.0
     x, y = np.meshgrid(c, c)
