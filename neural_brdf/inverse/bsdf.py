@@ -100,7 +100,7 @@ PLUGIN = "neural_brdf_ad"
 EVALUATORS = ("auto", "graph", "torch")  # images.evaluator's choices (config.Images)
 # "auto" per variant, from benchmarks/image_step.py (the primal pass of three 96² views
 # at 16 spp, results/image_step.json and results/cuda/image_step.json): llvm_ad_rgb on 2
-# cores, graph 0.166 s against torch 0.241 s; cuda_ad_rgb on an H200, graph 0.054 s
+# cores, graph 0.165 s against torch 0.251 s; cuda_ad_rgb on an H200, graph 0.054 s
 # against torch 0.030 s (torch's GPU matrix products beat the per-weight loads that the
 # lowered graph makes in every lane).
 AUTO = {"llvm_ad_rgb": "graph", "cuda_ad_rgb": "torch"}
@@ -328,8 +328,21 @@ class NeuralBSDFAD(_GraphBSDF):
         valid = active & (mi.Frame3f.cos_theta(wi) > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
         if dr.width(valid) == 0 or not dr.any(valid, axis=None):
             return mi.Color3f(0.0)
-        value = self._torch_f_cos(wi, wo)
-        return dr.select(valid, value, mi.Color3f(0.0))
+        # torch sees the valid lanes only (a quarter of a fit's are below a horizon:
+        # emitter samples behind the surface), gathered and scattered back; the
+        # scatter's adjoint is a gather, so each lane's gradient is where it was
+        n = dr.width(valid)
+        if dr.width(wi) != n or dr.width(wo) != n:  # a broadcast side: evaluate them all
+            return dr.select(valid, self._torch_f_cos(wi, wo), mi.Color3f(0.0))
+        lanes = dr.compress(valid)
+        if dr.width(lanes) == n:
+            return self._torch_f_cos(wi, wo)
+        value = self._torch_f_cos(
+            dr.gather(mi.Vector3f, wi, lanes), dr.gather(mi.Vector3f, wo, lanes)
+        )
+        out = dr.zeros(mi.Color3f, n)
+        dr.scatter(out, value, lanes)
+        return out
 
     def traverse(self, callback):
         for k, v in self.weights.items():

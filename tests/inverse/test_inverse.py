@@ -280,6 +280,55 @@ def test_detached_directions_give_the_same_weight_gradients(mi):
     assert np.any(wx_grad != 0.0)
 
 
+def test_torch_sees_the_valid_lanes_only_with_the_same_values_and_gradients(mi):
+    """The torch path evaluates the lanes with both directions above the horizon only
+    (gathered, then scattered back): f cos and the weights' gradients are torch's own on
+    the full batch, 0 and no gradient on the others, at a third of lanes below."""
+    import drjit as dr
+    import torch
+
+    from neural_brdf.inverse import bsdf as ib
+
+    bsdf = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "evaluator": "torch"})
+    raw = bsdf.torch_model()
+    with torch.no_grad():
+        raw.mlp.head.weight.normal_(0.0, 0.3)
+    bsdf.load_state_dict(raw.state_dict())
+    rng = np.random.default_rng(5)
+    n = 600
+    dirs = rng.normal(size=(2, n, 3))
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    dirs[:, :, 2] = np.abs(dirs[:, :, 2])
+    dirs[0, : n // 6, 2] *= -1.0  # wi below the horizon
+    dirs[1, n // 6 : n // 3, 2] *= -1.0  # wo below
+    active = np.ones(n, bool)
+    active[-20:] = False  # and lanes the caller masks
+    adj = rng.random((n, 3))
+    with ib.evaluated_mode():
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi = mi.Vector3f(*[mi.Float(c) for c in dirs[0].T])
+        wo = mi.Vector3f(*[mi.Float(c) for c in dirs[1].T])
+        dr.enable_grad(bsdf.weights)
+        out = bsdf._f_cos(si, wo, mi.Bool(active))
+        dr.backward(dr.sum(sum(out[c] * mi.Float(adj[:, c]) for c in range(3))))
+        got = np.stack([out[c].numpy() for c in range(3)], -1)
+        grads = {k: dr.grad(v).numpy().reshape(tuple(v.shape)) for k, v in bsdf.weights.items()}
+        dr.disable_grad(bsdf.weights)
+    valid = active & (dirs[0, :, 2] > 0) & (dirs[1, :, 2] > 0)
+    assert 0.5 < valid.mean() < 0.7
+    wi_t, wo_t = (torch.tensor(d, dtype=torch.float32) for d in dirs)
+    fc = raw(wi_t, wo_t) * wo_t[:, 2:3].clamp_min(0.0)
+    fc = fc * torch.from_numpy(valid[:, None])
+    (fc * torch.from_numpy(adj).float()).sum().backward()
+    want = fc.detach().numpy()
+    assert np.all(got[~valid] == 0.0)
+    assert np.allclose(got, want, rtol=1e-5, atol=1e-7)
+    for k, p in raw.named_parameters():
+        ref = p.grad.numpy()
+        assert np.any(ref != 0.0), k
+        assert np.allclose(grads[k], ref, rtol=1e-4, atol=1e-6 * np.abs(ref).max()), k
+
+
 def test_an_unknown_evaluator_is_refused(mi):
     from neural_brdf.inverse import bsdf as ib
 
