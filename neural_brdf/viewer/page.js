@@ -234,7 +234,7 @@ const models = DATA.models.map((m, k) => {
   if (m.tabulated) {                       // a teacher: images and slices, no shader
     const cache = {};
     return Object.assign(base, {tabulated: m.tabulated, cache,
-      image: (i) => cache[i] || (cache[i] = unpackHalf(m.tabulated.images[i])),
+      image: (i) => cache[i] || (cache[i] = teacherPixels(unpackHalf(m.tabulated.images[i]))),
       slice: (p) => cache["s" + p] || (cache["s" + p] = unpackHalf(m.tabulated.slices[p]))});
   }
   const defines = m.textured ? `#define NEURAL_BRDF_TEXTURE_WIDTH ${TEX_WIDTH}\n` : "";
@@ -269,10 +269,10 @@ function lightOf(thetaDeg, phiDeg) {
   const t = thetaDeg * PI / 180, p = phiDeg * PI / 180;
   return [Math.sin(t) * Math.cos(p), Math.sin(t) * Math.sin(p), Math.cos(t)];
 }
-// a teacher's image at its light nearest to ``light``: the pixels inside the sphere in
-// row order (bottom-up), as page.py stored them
-function uploadTeacher(m, light) {
-  const vals = m.image(nearestLight(light)), px = new Float32Array(S * S * 4);
+// a teacher's image as RGBA pixels from its values inside the sphere in row order
+// (bottom-up), as page.py stored them
+function teacherPixels(vals) {
+  const px = new Float32Array(S * S * 4);
   let q = 0;
   for (let j = 0; j < S; j++) {
     const y = (j + 0.5) / S * 2 - 1;
@@ -283,8 +283,13 @@ function uploadTeacher(m, light) {
       q++;
     }
   }
+  return px;
+}
+// the teacher's image at its light nearest to ``light``
+function uploadTeacher(m, light) {
   gl.bindTexture(gl.TEXTURE_2D, m.target.tex);
-  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, S, S, gl.RGBA, gl.FLOAT, px);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, S, S, gl.RGBA, gl.FLOAT,
+                   m.image(nearestLight(light)));
 }
 function renderSphere(k, light) {
   const m = models[k];

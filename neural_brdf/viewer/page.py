@@ -121,14 +121,21 @@ def albedo_curve(fn, theta_deg=ALBEDO_THETA, *, samples: int = ALBEDO_SAMPLES) -
     return curve(theta_deg, quadrature.albedo_at(fn, theta_deg, samples))
 
 
-def sphere_directions(size: int, light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(wi, wo, on_sphere) of every pixel (size, size, 3), rows bottom-up like readPixels:
-    the page's geometry (page.js, SPHERE_MAIN) in float64."""
+def _sphere_normals(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, on_sphere): the unit sphere's normal (size, size, 3) at each pixel, rows
+    bottom-up, (x, y, 0) off the sphere."""
     c = (np.arange(size) + 0.5) / size * 2.0 - 1.0
     x, y = np.meshgrid(c, c)  # [row = y, column = x]
     r2 = x * x + y * y
-    inside = r2 < 1.0
     n = np.stack([x, y, np.sqrt(np.clip(1.0 - r2, 0.0, None))], -1)
+    return n, r2 < 1.0
+
+
+def sphere_directions(size: int, light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(wi, wo, on_sphere) of every pixel (size, size, 3), rows bottom-up like readPixels:
+    the page's geometry (page.js, SPHERE_MAIN) in float64."""
+    n, inside = _sphere_normals(size)
+    x = n[..., 0]
     t = np.stack([n[..., 2], np.zeros_like(x), -n[..., 0]], -1)
     tl = np.linalg.norm(t, axis=-1, keepdims=True)
     t = np.where(tl > TANGENT_EPS, t / np.maximum(tl, TANGENT_EPS), [1.0, 0.0, 0.0])
@@ -146,11 +153,9 @@ def sphere_frames(size: int, light, repeat: float = REPEAT):
     n.z) the longitude about the view's y axis and theta = acos(n.y) the angle from its
     pole (page.js, sphereTexturedMain)."""
     wi, wo, inside = sphere_directions(size, light)
-    c = (np.arange(size) + 0.5) / size * 2.0 - 1.0
-    x, y = np.meshgrid(c, c)
-    z = np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))
-    u = np.arctan2(x, z) / np.pi + 0.5
-    v = 1.0 - np.arccos(np.clip(y, -1.0, 1.0)) / np.pi
+    n, _ = _sphere_normals(size)
+    u = np.arctan2(n[..., 0], n[..., 2]) / np.pi + 0.5
+    v = 1.0 - np.arccos(np.clip(n[..., 1], -1.0, 1.0)) / np.pi
     return wi, wo, repeat * np.stack([u, v], -1), inside
 
 
@@ -391,11 +396,12 @@ def onnx_model(path, label: str, *, albedo: dict | None = None, probes=PROBES) -
 
 
 def at_uv(fn, uv):
-    """A textured ``fn(wi, wo, uv)`` as a ``fn(wi, wo)`` at one point uv."""
+    """A textured ``fn(wi, wo, uv)`` as a ``fn(wi, wo)`` at one point uv (float32, as a
+    shader's uv): the page's plots and the report's figures."""
 
     def at(wi, wo):
         shape = np.broadcast_shapes(np.shape(wi)[:-1], np.shape(wo)[:-1])
-        return fn(wi, wo, np.broadcast_to(np.asarray(uv, np.float64), shape + (2,)))
+        return fn(wi, wo, np.broadcast_to(np.asarray(uv, np.float32), shape + (2,)))
 
     return at
 
@@ -441,18 +447,17 @@ def teacher_model(
 
         normal = None
     points = probes if textured else [(0.5, 0.5)]
-    lights = [light_of(t, p_) for t, p_ in TEACHER_LIGHTS]
-    images = []
-    for light in lights:
-        image = textured_radiance(fn, normal if textured else None, SPHERE, light, repeat)
-        _, _, _, inside = sphere_frames(SPHERE, light, repeat)
-        images.append(pack_half(image[inside]))
+    _, inside = _sphere_normals(SPHERE)  # the same pixels at every light
+    images = [
+        pack_half(textured_radiance(fn, normal, SPHERE, light_of(*tp), repeat)[inside])
+        for tp in TEACHER_LIGHTS
+    ]
+    pairs = [slice_pairs(float(t)) for t in SLICE_THETA_I]
+    wi = np.concatenate([a for a, _ in pairs]).astype(np.float64)
+    wo = np.concatenate([b for _, b in pairs]).astype(np.float64)
     slices, curves = [], []
     for uv in points:
         at = at_uv(fn, uv)
-        pairs = [slice_pairs(float(t)) for t in SLICE_THETA_I]
-        wi = np.concatenate([a for a, _ in pairs]).astype(np.float64)
-        wo = np.concatenate([b for _, b in pairs]).astype(np.float64)
         slices.append(pack_half(at(wi, wo)))
         curves.append(albedo_curve(at))
     return Model(

@@ -8,11 +8,10 @@ import json
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
 from neural_brdf.viewer import plots
+from neural_brdf.viewer.page import at_uv
 from neural_brdf.viewer.report import images
 from neural_brdf.viewer.report.blocks import (
     Attachment,
@@ -390,16 +389,6 @@ def _training(run: Run) -> list:
 TEXTURED_UV = (0.5, 0.5)  # where a textured model's figures are drawn
 
 
-def _at_uv(fn, uv: tuple[float, float]):
-    """A textured ``fn(wi, wo, uv)`` as the (wi, wo) callable of the plots, at ``uv``."""
-
-    def at(wi, wo):
-        shape = np.broadcast_shapes(np.shape(wi)[:-1], np.shape(wo)[:-1])
-        return fn(wi, wo, np.broadcast_to(np.asarray(uv, np.float32), shape + (2,)))
-
-    return at
-
-
 def _lobe_colour(tex: dict) -> str:
     """How the file's lobes get their colour (its ``texture.lobe_color``; older files: rgb)."""
     if tex.get("lobe_color") == "grey":
@@ -452,8 +441,8 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
     ref = reference.eval if reference is not None else None
     sampler = reference if hasattr(reference, "sample_t") else None
     if run.model.textured:  # the figures at one uv; the teacher's sampler depends on uv
-        neural = _at_uv(neural, TEXTURED_UV)
-        ref = _at_uv(ref, TEXTURED_UV) if ref is not None else None
+        neural = at_uv(neural, TEXTURED_UV)
+        ref = at_uv(ref, TEXTURED_UV) if ref is not None else None
         sampler = None
     m, path = run.metrics, run.dir / "metrics.json"
     theta = _number(m, "checks.max_albedo.at_theta_deg", path, optional=True)
