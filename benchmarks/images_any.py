@@ -406,6 +406,9 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         },
         "images": images,
         "brdf": {"cap_0.5": cap, "observed": observed},
+        # the network's grid as trained (the run's config.yaml: images.anisotropic_grid
+        # moves it over the half vector's disc after an anisotropic start)
+        "grid_coords": config.load(run_dir / "config.yaml").model.grid.coords,
         "coverage": float(cov.figure),
         "validation": {
             k: val.get(k)
@@ -534,6 +537,10 @@ def main(argv: list[str] | None = None) -> int:
         done = work / name / "result.json"
         if args.resume and done.is_file():
             entry = json.loads(done.read_text())
+            # measured by an earlier run in --work: said in the file and its table
+            result.setdefault("kept", {})[name] = time.strftime(
+                "%Y-%m-%dT%H:%M:%S", time.localtime(done.stat().st_mtime)
+            )
         else:
             entry = measure(name, spec, args, work, envs)
             write_json(done, entry)

@@ -270,6 +270,11 @@ class Images(_Section):
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
+    # after an anisotropic start (ANISOTROPIC_FAMILIES): half_disc puts the network's grid
+    # over the half vector's disc (model.grid.coords: half_disc), where a brushed lobe
+    # varies; model: model.grid.coords as set (docs/inverse.md, "The grid after an
+    # anisotropic start"; chosen on the development set)
+    anisotropic_grid: Literal["half_disc", "model"] = "half_disc"
     # auto's choice: a family with more free scalars is taken over a simpler one only when
     # its held-out loss is lower by more than max(start_tie_tol x the least,
     # min(start_tie_sigmas standard errors of the paired difference, start_tie_max x the

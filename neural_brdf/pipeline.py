@@ -58,7 +58,7 @@ def run(
         if cfg.target.images is not None:
             from neural_brdf.inverse import fit as inverse  # Mitsuba: only for an images fit
 
-            raw, training, t0 = inverse.fit(
+            raw, training, t0, cfg = inverse.fit(  # cfg: its grid as the start chose it
                 cfg, run_dir, resume=resume, overwrite=overwrite, folder=folder
             )
             return finish(cfg, run_dir, raw, training, t0=t0, report=True)

@@ -1216,6 +1216,22 @@ def _grid_coords(d: dict) -> str:
     return "half_disc" if "coords: half_disc" in d.get("config", "") else "theta"
 
 
+def _kept_line(d: dict) -> str:
+    """Which materials an images_any run took from an earlier run's results (--resume)."""
+    kept = d.get("kept") or {}
+    if not kept:
+        return ""
+    fresh = [k for k in d["materials"] if k not in kept]
+    return (
+        " Kept from an earlier run's results in the same work folder (`--resume`, the "
+        "same views and renders; the date it measured each): "
+        + ", ".join(f"{k} ({v[:10]})" for k, v in kept.items())
+        + "; measured in this run: "
+        + (", ".join(fresh) or "none")
+        + "."
+    )
+
+
 def _set_line(d: dict, which: str) -> str:
     e = d["sets"][which]["environments"]
     names = ", ".join(d["sets"][which]["materials"])
@@ -1233,8 +1249,11 @@ def _steps_cell(e: dict) -> str:
     return text + (f", {per:.1f}x" if per is not None else "")
 
 
-def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
-    """issue 29: images of materials the project never saw; one table per file."""
+def images_any_section(
+    d: dict, name: str = "images_any.json", title: str | None = None
+) -> list[str]:
+    """issue 29: images of materials the project never saw; one table per file
+    (``title``: the heading's end for a development file, else its settings)."""
     which = d["set"]
     envs = d["sets"][which]["environments"]
     goals = d["goals"]
@@ -1243,7 +1262,7 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
     title = (
         "## Images of any material: held out, relit (the test set)"
         if which == "test"
-        else f"## Images of any material: the development set, {settings}"
+        else f"## Images of any material: the development set, {title or settings}"
     )
     out = [
         title,
@@ -1262,7 +1281,13 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
         + f"({_set_line(d, 'dev')}; {_set_line(d, 'test')}). "
         f"Three {d['views']['resolution']}² views at {d['views']['target_spp']} spp; "
         f"one config for every material (compact network, anisotropic encoding, grid "
-        f"over `{_grid_coords(d)}`, `images.start: auto`), {d['steps']} image-stage steps"
+        f"over `{_grid_coords(d)}`"
+        + (
+            ", over the half vector's disc after an anisotropic start (`images.anisotropic_grid`)"
+            if any(e.get("grid_coords") == "half_disc" for e in d["materials"].values())
+            else ""
+        )
+        + f", `images.start: auto`), {d['steps']} image-stage steps"
         + (f", overrides {', '.join(f'`{o}`' for o in d['overrides'])}" if d["overrides"] else "")
         + f". Held-out camera at {d['heldout_spp']} spp against the truth at as many; PSNR: "
         f"{d['psnr_definition']}. BRDF: relative RMSE of f·cos against Mitsuba's `eval` of the "
@@ -1270,7 +1295,7 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
         "(the coverage's observed bins, both cosines > 0.1). Goals: "
         f"≥ {goals['psnr_db']:g} dB and ≤ {100 * goals['image_rel_rmse']:g} % relit, "
         f"BRDF ≤ {100 * goals['brdf_rel_rmse']:g} %. Each cell: network / its start "
-        "(the chosen family rendered by Mitsuba).",
+        "(the chosen family rendered by Mitsuba)." + _kept_line(d),
         "",
     ]
     rows = []
@@ -1302,7 +1327,12 @@ def images_any_section(d: dict, name: str = "images_any.json") -> list[str]:
             [
                 key,
                 e["what"],
-                f"`{e['start']['family']}`",
+                f"`{e['start']['family']}`"
+                + (
+                    ", grid over the half vector's disc"
+                    if e.get("grid_coords") == "half_disc"
+                    else ""
+                ),
                 pair(held, "psnr_db", db) + " dB",
                 pair(relit, "psnr_db", db) + " dB",
                 pair(relit, "image_rel_rmse", _pct) + f" (floor {_pct(floor)})",
@@ -2177,6 +2207,14 @@ SECTIONS = (
     (
         RESULTS / "images_any_dev_half_disc.json",
         partial(images_any_section, name="images_any_dev_half_disc.json"),
+    ),
+    (
+        RESULTS / "images_any_dev_aniso_grid.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_aniso_grid.json",
+            title="the grid after an anisotropic start",
+        ),
     ),
     (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "image_step.json", image_step_section),

@@ -880,11 +880,13 @@ def fit(
     resume: bool = False,
     overwrite: bool = False,
     folder: runfolder.Folder | None = None,
-) -> tuple[RawBRDF, dict[str, Any], float]:
+) -> tuple[RawBRDF, dict[str, Any], float, cfgmod.Config]:
     """The training stage of ``neural-brdf train`` for a config with ``target.images``:
     check the folder and the images, assess the coverage of the fitted views
     (``coverage.png``, ``training["coverage"]``, a warning when thin), fit (a GGX start
-    first, by default; ``cfg.images``); returns (network, figures, the start time).
+    first, by default; ``cfg.images``); returns (network, figures, the start time, the
+    config it trained: ``cfg``, its grid as the start chose it,
+    :func:`neural_brdf.inverse.starts.grid_for_start`).
     :func:`neural_brdf.pipeline.run` then exports and validates it like any run (no
     reference: the physics checks only).  ``folder``: ``run_dir`` as the caller opened
     it (:func:`neural_brdf.runfolder.hold`)."""
@@ -894,14 +896,14 @@ def fit(
     use_variant(variant_name(cfg))
     views = read_views(cfg)
     try:
-        raw, training = _fit_views(cfg, run_dir, views, folder, resume=resume)
+        raw, training, cfg = _fit_views(cfg, run_dir, views, folder, resume=resume)
     finally:
         release(views)
     init = training.get("init")
     training["start_seconds"] = float(init["seconds"]) if isinstance(init, dict) else 0.0
     # the whole fit (start, image stage, the checks before them); a resumed run: this part
     training["fit_seconds"] = time.perf_counter() - t0
-    return raw, training, t0
+    return raw, training, t0, cfg
 
 
 def _fit_views(
@@ -911,7 +913,7 @@ def _fit_views(
     folder: runfolder.Folder,
     *,
     resume: bool,
-) -> tuple[RawBRDF, dict[str, Any]]:
+) -> tuple[RawBRDF, dict[str, Any], cfgmod.Config]:
     from neural_brdf.inverse import coverage, starts
 
     images = cfg.images
@@ -919,6 +921,8 @@ def _fit_views(
     check_render_sizes(views, images)
     split_views(views, images, cfg.train.seed)
     columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
+    if resume:  # the grid its start chose (starts.grid_for_start), as the run trained it
+        cfg = _resumed_grid(cfg, folder)
     sess = Session.one(cfg, folder, resume=resume, kind=KIND, columns=columns)
     # a checkpoint that cannot be resumed: refused before any write
     sess.resumed(must_match=RESUME_MUST_MATCH)
@@ -935,9 +939,12 @@ def _fit_views(
     if images.start not in ("ggx", "constant"):  # auto, or a family
         lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
         if not resume:
-            init_state, init_info = starts.network_start(
+            init_state, init_info, trained = starts.network_start(
                 cfg, views, folder.init, report=_reporter(cfg)
             )
+            if trained is not cfg:  # the start's grid: config.yaml says what is trained
+                cfg = trained
+                sess.reconfigure(cfg)
             poor_start(init_info, images.poor_start_loss)
     elif images.start == "ggx":
         lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
@@ -969,7 +976,23 @@ def _fit_views(
         session=sess,
     )
     training["coverage"] = covered
-    return raw, training
+    return raw, training, cfg
+
+
+def _resumed_grid(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:
+    """``cfg`` with the grid of the start the checkpoint being resumed was trained from
+    (:func:`neural_brdf.inverse.starts.grid_for_start` of its family); ``cfg`` itself
+    when there is no readable checkpoint (the resume check then says why)."""
+    from neural_brdf.inverse import starts
+    from neural_brdf.train.session import load_checkpoint
+
+    if not folder.ckpt.is_file():
+        return cfg
+    try:
+        family = load_checkpoint(folder.ckpt)["init"]["start"]["family"]
+    except (InputError, KeyError, TypeError):  # unreadable, or no start (ggx, constant)
+        return cfg
+    return starts.grid_for_start(cfg, str(family))
 
 
 def _reporter(cfg: cfgmod.Config):

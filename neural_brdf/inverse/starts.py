@@ -1066,6 +1066,30 @@ def candidates(cfg: cfgmod.Config) -> tuple[list[str], dict[str, str]]:
     return [n for n in names if n not in left], left
 
 
+def grid_for_start(cfg: cfgmod.Config, family: str) -> cfgmod.Config:
+    """``cfg`` as the network of a start of ``family`` is trained: with
+    ``images.anisotropic_grid: half_disc`` and an anisotropic family
+    (:data:`neural_brdf.config.ANISOTROPIC_FAMILIES`), the grid over the half vector's
+    disc (``model.grid.coords: half_disc``, where a brushed lobe varies; the grid over
+    (theta_h, theta_d) cannot follow it), when the model has a grid and its encoding
+    offers that grid; otherwise ``cfg`` itself (docs/inverse.md, "The grid after an
+    anisotropic start")."""
+    from neural_brdf import encodings
+
+    grid = cfg.model.grid
+    if (
+        cfg.images.anisotropic_grid != "half_disc"
+        or family not in cfgmod.ANISOTROPIC_FAMILIES
+        or not grid.size
+        or grid.coords == "half_disc"
+        or "half_disc" not in encodings.get(cfg.model.encoding).grid_axes
+    ):
+        return cfg
+    d = cfg.model_dump()
+    d["model"]["grid"]["coords"] = "half_disc"
+    return cfgmod.from_dict(d, source="images.anisotropic_grid")
+
+
 def run_masks(views: Sequence[inverse.View]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """(train, held-out) masks of the run's own validation split (:func:`~neural_brdf.
     inverse.fit.split_views`) within the object's pixels (``view.object``, else
@@ -1087,13 +1111,14 @@ def network_start(
     init_dir: Path,
     *,
     report: Callable[[str], None] | None = None,
-) -> tuple[dict[str, Any], dict[str, Any]]:
+) -> tuple[dict[str, Any], dict[str, Any], cfgmod.Config]:
     """The start of an images fit whose ``images.start`` is ``auto`` or a family: the
     candidates (:func:`candidates`) fitted on the run's training pixels, the one the
     validation split prefers (:func:`choose_start`; a family named alone is taken as
     it is), distilled into the network (:func:`distill`, ``images.start_train_steps``
     steps in ``init_dir``).  Returns (the network's state_dict, figures: the distillation's,
-    with ``start``, every candidate and the choice).  ``report``: called with a line per
+    with ``start``, every candidate and the choice, the config the network is trained
+    with: ``cfg`` after :func:`grid_for_start`).  ``report``: called with a line per
     candidate fitted and one for the choice."""
     images = cfg.images
     names, left = candidates(cfg)
@@ -1175,10 +1200,17 @@ def network_start(
     if report is not None:
         shown = ", ".join(f"{k} {_short(v)}" for k, v in summary["params"].items())
         report(f"start: {summary['family']} ({shown})")
+    moved = grid_for_start(cfg, str(summary["family"]))
+    summary["grid_coords"] = moved.model.grid.coords  # the network's, as distilled
+    if moved is not cfg and report is not None:
+        report(
+            "grid: over the half vector's disc after an anisotropic start (images.anisotropic_grid)"
+        )
+    cfg = moved
     state, info = distill(cfg, element, init_dir, images.start_train_steps)
     info["start"] = summary
     info["seconds"] = float(info["seconds"]) + float(summary["seconds"])
-    return state, info
+    return state, info, cfg
 
 
 def _short(v: Any) -> str:

@@ -391,6 +391,18 @@ class Session:
             folder = runfolder.Folder.open(folder, resume=resume, overwrite=True)
         return cls([RunFiles(cfg, folder, kind=kind, columns=columns)], resume=resume, desc=desc)
 
+    def reconfigure(self, cfg: cfgmod.Config) -> None:
+        """The one run trains ``cfg`` from now on (an images fit's grid after its start:
+        :func:`neural_brdf.inverse.starts.grid_for_start`): its checkpoints record it and
+        its config.yaml is written again (atomically), so that ``export``, ``report`` and
+        ``--resume`` rebuild the network that was trained."""
+        if len(self.runs) != 1:
+            raise ValueError("reconfigure: a session of one run only")
+        files = self.runs[0]
+        files.cfg = cfg
+        self.train = cfg.train
+        files.folder.start(cfg.to_yaml())
+
     # the one run's files (a session of one run)
     @property
     def files(self) -> RunFiles:

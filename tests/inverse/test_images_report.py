@@ -265,6 +265,14 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     assert "diffuse 0.0412 0.0398 7.5 s" in text and "blend 0.00209 0.0018 21.0 s" in text
     assert "diffuse 0.0412 0.0398 7.5 s chosen" not in text
     assert "roughconductor_aniso left out: model.encoding 'isotropic' is isotropic" in text
+    assert "half vector" not in text
+    # an anisotropic start's network has its grid over the half vector's disc: said
+    aniso = {**start, "family": "roughconductor_aniso", "grid_coords": "half_disc"}
+    moved = make_images_run(tiny_run, tmp_path / "aniso", extra={"init": {**init, "start": aniso}})
+    text = " ".join(
+        visible_text(report.write_report(moved, render=False)["html"].read_text()).split()
+    )
+    assert "distilled into the network (its grid over the half vector's disc)" in text
     # a run with no fitted start says so, and lists no candidates
     plain = make_images_run(tiny_run, tmp_path / "plain")
     text = visible_text(report.write_report(plain, render=False)["html"].read_text())
@@ -332,7 +340,7 @@ def test_train_names_report_html_only_when_written(
         write_log(run_dir)
         (run_dir / "coverage.png").write_bytes(png_of("coverage"))
         raw = export.raw_from_checkpoint(load_checkpoint(tiny_run / "ckpt.pt"), cfg)
-        return raw, training_figures(views), t0
+        return raw, training_figures(views), t0, cfg
 
     monkeypatch.setattr(inverse, "fit", fake_fit)
     monkeypatch.setattr(plots, "mitsuba_unavailable", lambda: "Mitsuba 3 is switched off")

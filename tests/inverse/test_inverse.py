@@ -844,6 +844,51 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         assert again["lr_factor"] == 1.0 and again["steps"] == 6
 
 
+def test_an_anisotropic_start_trains_exports_and_resumes_its_half_disc_grid(
+    mi, example, tmp_path, capsys
+):
+    """An anisotropic start puts the network's grid over the half vector's disc
+    (inverse.starts.grid_for_start): the run's config.yaml, its checkpoint and its
+    start's distillation say so; ``neural-brdf export`` of the run rebuilds the same f
+    as its model.onnx (with config.yaml still saying theta, the grid's weights would load
+    into the other grid: the same shapes, another function); ``--resume`` trains on."""
+    import neural_brdf
+    from analytic import physics
+    from neural_brdf.train.session import load_checkpoint
+
+    run_dir = tmp_path / "run"
+    sets = [
+        *FIT_OVERRIDES,
+        "train.steps=4",
+        "model.encoding=anisotropic",
+        "images.start=roughconductor_aniso",
+        "images.start_steps=5",
+        "images.start_refine_steps=0",
+        "images.start_train_steps=20",
+    ]
+    code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
+    assert code == 0, err
+    assert config.load(example / "fit.yaml").model.grid.coords == "theta"  # as given
+    assert config.load(run_dir / "config.yaml").model.grid.coords == "half_disc"
+    assert config.load(run_dir / "init" / "config.yaml").model.grid.coords == "half_disc"
+    ckpt = load_checkpoint(run_dir / "ckpt.pt")
+    assert ckpt["config"]["model"]["grid"]["coords"] == "half_disc"
+    training = json.loads((run_dir / "metrics.json").read_text())["training"]
+    assert training["init"]["start"]["grid_coords"] == "half_disc"
+    out = tmp_path / "again.onnx"
+    code, err = run_cli(["export", str(run_dir), "-o", str(out)], capsys)
+    assert code == 0, err
+    wi = physics.random_directions(2000, 3).astype(np.float32)
+    wo = physics.random_directions(2000, 4).astype(np.float32)
+    a = neural_brdf.load(run_dir / "model.onnx")(wi, wo)
+    np.testing.assert_allclose(neural_brdf.load(out)(wi, wo), a, rtol=1e-6, atol=1e-7)
+    more = train_args(example / "fit.yaml", run_dir, [*sets, "train.steps=6"])
+    code, err = run_cli([*more, "--resume"], capsys)
+    assert code == 0, err
+    assert json.loads((run_dir / "metrics.json").read_text())["training"]["steps"] == 6
+    assert config.load(run_dir / "config.yaml").model.grid.coords == "half_disc"
+
+
 def test_the_albedo_penalty_follows_the_images_section(mi):
     """images.albedo_incidences, albedo_side and albedo_weight set the penalty's
     directions and weight: K x side^2 pairs at those incidences, the penalty linear in

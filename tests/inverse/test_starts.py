@@ -596,3 +596,50 @@ def test_the_start_schedules_come_from_the_config():
         steps=13, spp=6, primal_spp=12, val_spp=11, lr=0.04, lr_end=0.5
     )
     assert starts.Schedule.of(config.Images()).steps == starts.Schedule().steps  # null: 80
+
+
+# ------------------------------------------------------------------ the grid after the start
+@pytest.mark.parametrize(
+    "family, images, coords",
+    [
+        ("roughconductor_aniso", {}, "half_disc"),
+        ("roughconductor", {}, "theta"),
+        ("blend", {}, "theta"),
+        ("roughconductor_aniso", {"anisotropic_grid": "model"}, "theta"),
+    ],
+)
+def test_an_anisotropic_start_moves_the_grid_to_the_half_vector_disc(family, images, coords):
+    """grid_for_start: after an anisotropic family (and images.anisotropic_grid:
+    half_disc) the network's grid is over the half vector's disc; any other family, or
+    anisotropic_grid: model, keeps model.grid.coords, and nothing else changes."""
+    from neural_brdf.inverse import starts
+
+    cfg = config.from_dict(
+        {
+            "target": {"images": [{"scene": "v.xml", "image": "v.exr"}]},
+            "model": {"encoding": "anisotropic", "grid": {"size": 16, "coords": "theta"}},
+            "images": images,
+        }
+    )
+    out = starts.grid_for_start(cfg, family)
+    assert out.model.grid.coords == coords
+    a, b = cfg.model_dump(), out.model_dump()
+    b["model"]["grid"]["coords"] = a["model"]["grid"]["coords"]
+    assert a == b
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        {"encoding": "isotropic", "grid": {"size": 16}},  # no half_disc grid for it
+        {"encoding": "anisotropic", "grid": {"size": 0}},  # no grid
+        {"encoding": "anisotropic", "grid": {"size": 16, "coords": "half_disc"}},
+    ],
+)
+def test_the_grid_is_left_alone_where_it_cannot_or_need_not_move(model):
+    from neural_brdf.inverse import starts
+
+    cfg = config.from_dict(
+        {"target": {"images": [{"scene": "v.xml", "image": "v.exr"}]}, "model": model}
+    )
+    assert starts.grid_for_start(cfg, "roughconductor_aniso") is cfg

@@ -208,7 +208,12 @@ def _fit_figures(run: Run) -> list[Block]:
     if isinstance(chosen, dict) and isinstance(chosen.get("family"), str):
         n = len(chosen.get("candidates") or [])
         how = f"chosen of {n} by the held-out pixels" if n > 1 else "named in the config"
-        rows.append(["start", f"{chosen['family']} ({how}), distilled into the network"])
+        grid = (  # images.anisotropic_grid (inverse.starts.grid_for_start)
+            " (its grid over the half vector's disc)"
+            if chosen.get("grid_coords") == "half_disc"
+            else ""
+        )
+        rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{grid}"])
     elif isinstance(init, dict) and isinstance(init.get("target"), str):
         rows.append(["start", init["target"]])
     elif "init" in training and init is None:
