@@ -84,11 +84,12 @@ from neural_brdf.fileformat.metadata import Metadata, plain
 from neural_brdf.fileformat.portable import portable_graph
 from neural_brdf.fileio import atomic_write
 from neural_brdf.physics import lobe_fit
-from neural_brdf.target import Described, spatially_varying
+from neural_brdf.target import Described, check_textured, spatially_varying
 from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.loop import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
+from neural_brdf.train.session import check_resumable
 from neural_brdf.train.textured_model import (
     FOLD_LIMIT,
     NORMALIZED,
@@ -723,6 +724,24 @@ def _export_textured(
     return info
 
 
+# What ``export RUN`` reads from config.yaml that the checkpoint's weights were trained
+# with: the network (model, key by key), and a textured run's field and lobes (texture)
+EXPORT_MUST_MATCH = tuple(f"model.{k}" for k in cfgmod.Model.model_fields)
+TEXTURED_EXPORT_MUST_MATCH = tuple(
+    f"texture.{k}"
+    for k in (
+        "lobes",
+        "resolution",
+        "weights",
+        "lobe_network",
+        "latent",
+        "lobe_color",
+        "lobe_bound",
+        "field_levels",
+    )
+)
+
+
 def export_run(
     run_dir: str | Path,
     out: str | Path | None = None,
@@ -744,8 +763,19 @@ def export_run(
     # an images fit has no target to build (not the default target.model, a Lambertian):
     # the metadata says {"kind": "images", "views": N} and physics is measured alone
     images = cfg.target.images is not None
+    textured = ckpt.get("kind") == "textured"
+    if not images and isinstance(ckpt.get("config"), dict):
+        # the network the weights were trained as: an edited config.yaml would load them
+        # into another network (a traceback) or compute another function (no word)
+        check_resumable(
+            ckpt["config"],
+            cfg,
+            EXPORT_MUST_MATCH + (TEXTURED_EXPORT_MUST_MATCH if textured else ()),
+            what=f"the checkpoint that {cfg_path} goes with",
+        )
     target = None if images else data.build_target(cfg.target)
-    if ckpt.get("kind") == "textured":
+    check_textured(target, textured=textured, where=str(run_dir / "ckpt.pt"))
+    if textured:
         return _export_textured(ckpt, cfg, run_dir, out, measure_textured, target)
     raw = raw_from_checkpoint(ckpt, cfg)
     model, table_info = normalized_model(raw, cfg, target)

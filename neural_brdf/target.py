@@ -129,6 +129,22 @@ def spatially_varying(target: Described | None) -> bool:
     return bool(getattr(target, "spatially_varying", False))
 
 
+def check_textured(target: Described | None, *, textured: bool, where: str) -> None:
+    """InputError naming ``where`` when a textured model's ``target`` is uniform, or a
+    uniform model's varies over the surface: a run whose ``target.mitsuba`` file was
+    changed since it trained (no target: nothing to check)."""
+    if target is None or spatially_varying(target) == textured:
+        return
+    from neural_brdf.errors import InputError
+
+    model = "a textured model" if textured else "a uniform model"
+    does = "does not vary" if textured else "varies"
+    raise InputError(
+        f"{where}: {model}, and its teacher ({target.describe()}) {does} over the "
+        "surface: was the file changed since the run trained? Train anew (--overwrite)"
+    )
+
+
 def sampler(target: Described | None) -> Sampled | None:
     """``target`` if it has its own importance sampler, else None."""
     return target if isinstance(target, Sampled) else None

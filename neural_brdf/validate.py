@@ -393,6 +393,11 @@ def reference_from(path: str | Path) -> Any:
 
     if formats.find(path) is not None:
         return data.MeasuredTarget.from_file(path, key="--reference")
+    if Path(path).suffix.lower() == ".xml":  # else read as YAML: "expected a mapping"
+        raise InputError(
+            f"--reference {path}: a Mitsuba teacher is named by a config "
+            f"(target: {{mitsuba: {Path(path).name}}}); give that config"
+        )
     return data.build_target(cfgmod.load(path).target)
 
 

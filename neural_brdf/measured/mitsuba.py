@@ -21,7 +21,8 @@ Refused, with one line naming the file (exit 2): a file Mitsuba cannot load (a s
 table in an RGB variant included), a BSDF that transmits (dielectrics, masks, the
 principled's ``spec_trans``), one with a delta (perfectly smooth) lobe, alone or beside
 rough ones (a network of finite values cannot hold it, and Mitsuba's ``eval`` leaves
-it out, so the file would silently lose it), and one whose value depends on the position
+it out, so the file would silently lose it), one with negative or non-finite values (at
+a probed uv, or a bitmap texel of NaN or inf), and one whose value depends on the position
 on the surface (a texture, a normal or bump map): :class:`VariesOverSurface`, which
 ``train.data.build_target`` answers with a spatially varying teacher
 (:mod:`neural_brdf.measured.textured`).  Spatial variation is probed, not guessed from
@@ -86,6 +87,10 @@ PROBE_PAIRS = 256
 PROBE_UV = 64
 SPATIAL_TOL = 1e-6  # relative RMS change over uv; a uniform BSDF gives exactly 0
 ANISO_TOL = 1e-3  # relative RMS change under a turn about the normal (float32 noise ~1e-6)
+# f cos above this at the probe pairs (half from the teacher's sampler) is a delta lobe in
+# all but name: a rough plugin at roughness ~0 (Mitsuba clamps alpha near 1e-4: 7e7 to
+# 9e7 for roughplastic and roughconductor; alpha 1e-3 reaches 1e6, 0.01 about 1e4)
+MAX_F_COS = 1e7
 # The energy bound's table (module doc)
 THETA_NODES = 46  # polar angles, 2 degrees apart, the last (90) moved to LAST_THETA_DEG
 LAST_THETA_DEG = 89.9
@@ -126,11 +131,35 @@ def _mitsuba(variant: str, key: str) -> Any:
 
 
 def _first(e: BaseException) -> str:
-    """Mitsuba's message on one line, without its ``[parser.cpp:123]`` prefix."""
+    """Mitsuba's message on one line, without its ``[parser.cpp:123]`` prefix, and an
+    object's dump in it (``BitmapTexture[ name = ..., transform = ... ]``, 12 lines)
+    shortened to ``[...]``, so that the sentence after it is kept."""
     text = " ".join(str(e).split())
     if text.startswith("[") and "] " in text:
         text = text.split("] ", 1)[1]
-    return bounded(text, 240)
+    return bounded(_without_dumps(text), 240)
+
+
+def _without_dumps(text: str, longest: int = 40) -> str:
+    """``text`` with each outermost ``[...]`` block longer than ``longest`` characters
+    replaced by ``[...]`` (unbalanced brackets: ``text`` as it is)."""
+    out, depth, start = [], 0, 0
+    for i, c in enumerate(text):
+        if c == "[":
+            if depth == 0:
+                out.append(text[start:i])
+                start = i
+            depth += 1
+        elif c == "]" and depth:
+            depth -= 1
+            if depth == 0:
+                block = text[start : i + 1]
+                out.append(block if len(block) <= longest else "[...]")
+                start = i + 1
+    if depth:
+        return text
+    out.append(text[start:])
+    return "".join(out)
 
 
 def _children(mi: Any, obj: Any) -> list[tuple[str, Any]]:
@@ -338,13 +367,20 @@ class MitsubaTarget:
         return wi, wo
 
     def _probe(self, where: str) -> None:
-        wi, wo = self._probe_pairs(7)
-        try:
+        varying_bitmap = self._varying_bitmap(where)  # first: names a texture of NaN or inf
+        try:  # the sampler first (half the pairs), then eval
+            wi, wo = self._probe_pairs(7)
             base = self._eval_cos(wi, wo)
         except Exception as e:  # a plugin that needs what a bare interaction lacks
             raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
         if not np.all(np.isfinite(base)) or base.min() < 0:
             raise InputError(f"{where}: {self.plugin} gives negative or non-finite values")
+        if base.max() > MAX_F_COS:  # else trained as is: a 100 % error and no word why
+            raise InputError(
+                f"{where}: {self.plugin} reaches f cos = {base.max():.3g} (a nearly delta "
+                "lobe: a roughness of 0, or negative?), which a BRDF of finite values cannot "
+                "hold: give a larger roughness"
+            )
         scale = max(float(np.sqrt(np.mean(base**2))), 1e-30)
         # spatial variation: the same pairs at PROBE_UV random (uv, position)s
         rng = np.random.default_rng(8)
@@ -355,8 +391,10 @@ class MitsubaTarget:
             )
         except Exception as e:
             raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
+        if not np.all(np.isfinite(at)) or at.min() < 0:  # else a NaN reads as "no change"
+            raise InputError(f"{where}: {self.plugin} gives negative or non-finite values")
         change = float(np.sqrt(np.mean((at - np.tile(base, (PROBE_UV, 1))) ** 2))) / scale
-        if change > SPATIAL_TOL or self._varying_bitmap():
+        if change > SPATIAL_TOL or varying_bitmap:
             raise VariesOverSurface(
                 f"{where}: {self.plugin} varies over the surface (a texture, normal or "
                 "bump map): a spatially varying teacher (measured.textured)"
@@ -370,14 +408,22 @@ class MitsubaTarget:
         diff = max(float(np.sqrt(np.mean((t - base) ** 2))) for t in turned)
         self.anisotropic = diff / scale > ANISO_TOL
 
-    def _varying_bitmap(self) -> bool:
-        """A bitmap texture (a tensor parameter) with more than one distinct texel."""
+    def _varying_bitmap(self, where: str) -> bool:
+        """A bitmap texture (a tensor parameter) with more than one distinct texel;
+        InputError naming ``where`` and the texture if one holds a NaN or an inf (a
+        texel the probes may miss, and a NaN would read as no variation)."""
         mi = self._mi
         params = mi.traverse(self.bsdf)
         for k in params.keys():
             value = params[k]
             if isinstance(value, mi.TensorXf) and k.endswith(".data"):
                 arr = np.asarray(value.numpy(), dtype=np.float64)
+                if not np.all(np.isfinite(arr)):
+                    bad = int(np.count_nonzero(~np.isfinite(arr)))
+                    raise InputError(
+                        f"{where}: the texture {k.removesuffix('.data')} holds {bad} "
+                        "non-finite values (NaN or inf)"
+                    )
                 flat = arr.reshape(-1, arr.shape[-1]) if arr.ndim > 1 else arr.reshape(-1, 1)
                 if len(flat) > 1 and np.ptp(flat, axis=0).max() > 0:
                     return True

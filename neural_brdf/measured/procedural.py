@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neural_brdf import limits
 from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_write
 
@@ -138,6 +139,8 @@ def write_teacher(folder: str | Path, kind: str, size: int = 512, seed: int = 0)
         raise InputError(f"procedural kind: {kind!r}: one of {', '.join(KINDS)}")
     if size < 2:
         raise InputError(f"procedural size: {size}: at least 2 texels per side")
+    # the noise and its temporaries: a few float64 RGB images at once (~256 bytes a texel)
+    limits.check_bytes(f"procedural size: {size}", 256.0 * size * size, hint="give a smaller size")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -204,19 +207,35 @@ def main(argv: list[str] | None = None) -> int:
     procedural teacher (:func:`write_teacher`) and ``DIR/textured.yaml``, its config."""
     import argparse
 
-    ap = argparse.ArgumentParser(description="Write a procedural textured Mitsuba teacher.")
+    class Parser(argparse.ArgumentParser):
+        def error(self, message):  # one line instead of usage + message (as neural-brdf's)
+            self.exit(2, f"error: {self.prog}: {message} (see --help)\n")
+
+    ap = Parser(
+        prog="python -m neural_brdf.measured.procedural",
+        description="Write a procedural textured Mitsuba teacher.",
+    )
     ap.add_argument("out", help="folder to write into")
     ap.add_argument("--kind", choices=KINDS, default="roughplastic", help="the BSDF")
     ap.add_argument("--size", type=int, default=512, help="texels per side of each texture")
     ap.add_argument("--steps", type=int, default=1500, help="train.steps of textured.yaml")
     args = ap.parse_args(argv)
-    import mitsuba as mi
+    try:  # bad input: one line and exit code 2, as the neural-brdf command's
+        if args.steps < 0:
+            raise InputError(f"--steps {args.steps}: train.steps must be >= 0")
+        import mitsuba as mi
 
-    mi.set_variant("llvm_ad_rgb")
-    xml = write_teacher(args.out, args.kind, size=args.size)
-    cfg = Path(args.out) / "textured.yaml"
-    name = "textured_" + args.kind
-    atomic_write(cfg, CONFIG.format(config=cfg, name=name, steps=args.steps))
+        mi.set_variant("llvm_ad_rgb")
+        xml = write_teacher(args.out, args.kind, size=args.size)
+        cfg = Path(args.out) / "textured.yaml"
+        name = "textured_" + args.kind
+        atomic_write(cfg, CONFIG.format(config=cfg, name=name, steps=args.steps))
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # OUT is a file, a read-only folder, a full disk
+        print(f"error: {e.filename or args.out}: {e.strerror or e}", file=sys.stderr)
+        return 2
     print(f"wrote {xml} and its textures; train with: neural-brdf train {cfg}")
     return 0
 

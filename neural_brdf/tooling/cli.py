@@ -414,6 +414,11 @@ def _analytic_target(config_path: str):
     import analytic
     from neural_brdf import config
 
+    if Path(config_path).suffix.lower() == ".xml":  # else read as YAML: "expected a mapping"
+        raise InputError(
+            f"{config_path}: a Mitsuba file; give a config of an analytic target here (a "
+            "Mitsuba teacher is compared with neural-brdf view MODEL --compare FILE.xml)"
+        )
     cfg = config.load(config_path)
     for key in ("data", "mitsuba"):
         if getattr(cfg.target, key) is not None:

@@ -114,15 +114,20 @@ def _with_defaults(saved: dict) -> dict:
 
 
 def check_resumable(
-    saved: dict, cfg: cfgmod.Config, must_match: Sequence[str] = MUST_MATCH
+    saved: dict,
+    cfg: cfgmod.Config,
+    must_match: Sequence[str] = MUST_MATCH,
+    *,
+    what: str = "the checkpoint being resumed",
 ) -> None:
+    """ConfigError naming the first key of ``must_match`` on which ``cfg`` differs from
+    the ``saved`` config of a checkpoint (``what``, in the message)."""
     now = cfg.model_dump()
     saved = _with_defaults(saved)
     for key in must_match:
         if _get(saved, key) != _get(now, key):
             raise cfgmod.ConfigError(
-                f"{key}: differs from the checkpoint being resumed "
-                f"({_get(saved, key)!r} there, {_get(now, key)!r} here)"
+                f"{key}: differs from {what} ({_get(saved, key)!r} there, {_get(now, key)!r} here)"
             )
 
 

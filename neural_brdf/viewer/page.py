@@ -67,6 +67,9 @@ TANGENT_EPS = 1e-6  # |(n.z, 0, -n.x)| below this: the tangent falls back to +x
 REPEAT = 2.0
 # where a textured model's plots are drawn (``--uv`` replaces them)
 PROBES = ((0.5, 0.5), (0.25, 0.25), (0.75, 0.6), (0.1, 0.85))
+# --uv's largest |U| and |V|: uv wraps by repeat, and the file and the page read it as
+# float32, whose fraction beyond this is coarser than 2^-13 (at 2^24 it is gone)
+MAX_UV = 1024.0
 # a teacher is evaluated at these lights (theta from the view axis, phi), degrees
 TEACHER_LIGHTS = tuple([(0, 30)] + [(t, p) for t in (35, 70) for p in (30, 120, 210, 300)])
 SLICE_THETA_I = np.arange(90)  # a teacher's slices: theta_i in degrees (the page's slider)
@@ -579,6 +582,11 @@ def parse_probes(texts) -> tuple[tuple[float, float], ...]:
             ) from None
         if not (np.isfinite(u) and np.isfinite(v)):
             raise InputError(f"--uv {text}: U and V must be finite")
+        if max(abs(u), abs(v)) > MAX_UV:
+            raise InputError(
+                f"--uv {text}: U and V must be within +-{MAX_UV:g} (uv wraps: give its "
+                "fraction; a float32 uv this large loses it)"
+            )
         out.append((u, v))
     return tuple(out)
 

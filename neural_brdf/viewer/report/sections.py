@@ -10,6 +10,7 @@ from pathlib import Path
 
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
+from neural_brdf.target import check_textured
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.page import at_uv
 from neural_brdf.viewer.report import images
@@ -437,6 +438,7 @@ def _textured_note(run: Run) -> list:
 
 def _blocks(run: Run, out_dir: Path, render: bool) -> list:
     reference, note = reference_of(run.config)
+    check_textured(reference, textured=run.model.textured, where=str(run.dir / "model.onnx"))
     neural = run.model.eval
     ref = reference.eval if reference is not None else None
     sampler = reference if hasattr(reference, "sample_t") else None
