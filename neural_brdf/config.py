@@ -414,9 +414,9 @@ class Texture(_Section):
     # logits see many texels' pairs (docs/mitsuba.md, "The pool and the field's
     # resolution"); R must be divisible by 2^(field_levels - 1)
     field_levels: int = Field(1, ge=1, le=8)
-    validation_uv: int = Field(
-        64, ge=1
-    )  # random uv of the furnace (validate); pairs' uv: all random
+    # random uv of the furnace (validate; a quadrature each, so bounded); pairs' uv: all
+    # random
+    validation_uv: int = Field(64, ge=1, le=4096)
 
     @model_validator(mode="after")
     def _grey_lobes(self):

@@ -309,3 +309,14 @@ def test_export_takes_an_edited_validation_setting(textured_run, tmp_path, capsy
     (run / "config.yaml").write_text(text.replace("  validation_uv: 4\n", "  validation_uv: 6\n"))
     code, _, err = cli(capsys, "export", str(run))
     assert code == 0, err
+
+
+@pytest.mark.parametrize("value", [0, 4097, 10**12])
+def test_a_furnace_of_too_few_or_too_many_uv_is_refused_naming_the_key(value):
+    """texture.validation_uv is a furnace quadrature per uv: 10^12 of them ran out of
+    memory at export without naming the key, 10^5 would run for hours."""
+    from neural_brdf import config as cfgmod
+
+    with pytest.raises(cfgmod.ConfigError, match=r"texture\.validation_uv"):
+        cfgmod.from_dict({"texture": {"validation_uv": value}})
+    assert cfgmod.from_dict({"texture": {"validation_uv": 4096}}).texture.validation_uv == 4096
