@@ -2216,6 +2216,14 @@ SECTIONS = (
             title="the grid after an anisotropic start",
         ),
     ),
+    (
+        RESULTS / "images_any_dev_metallic.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_metallic.json",
+            title="the principled's metallic reaching 0 and 1",
+        ),
+    ),
     (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "image_step.json", image_step_section),
     (RESULTS / "training_speed.json", training_speed_section),

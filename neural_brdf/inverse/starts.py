@@ -9,8 +9,9 @@ held-out split of the user's own pixels (issue 29, item 1; docs/inverse.md).
 A *family* (:data:`FAMILIES`) is one Mitsuba 3 BSDF plugin with its differentiable
 parameters, each kept in its range by construction: a free variable z (what
 ``mi.ad.Adam`` steps) maps to ``lo + (hi - lo) s(z)``, or to its log-space analogue for a
-roughness, with s(z) = (1 + tanh(z / 2)) / 2 the logistic function, so no step of Adam can
-leave the valid domain and every reflectance is at most 1 (the albedo at most 1, but
+roughness, with s(z) = (1 + tanh(z / 2)) / 2 the logistic function (for the principled's
+metallic s(z) = sin^2 z, which reaches 0 and 1: a dielectric or a metal), so no step of
+Adam can leave the valid domain and every reflectance is at most 1 (the albedo at most 1, but
 for Mitsuba's ``principled``, which reaches 1.04 to 1.19 at base colour 1: its
 distillation through :class:`neural_brdf.measured.mitsuba.MitsubaTarget` learns the
 energy-bounded version, f / max(1, A+(wi), A+(wo))):
@@ -116,18 +117,28 @@ def _logistic(z: Any, xp: Any) -> Any:
     return 0.5 * (1.0 + xp.tanh(0.5 * z))
 
 
+SIN_Z_MAX = 1e4  # Bound(ends=True)'s free variable is clamped here (Adam never goes near)
+
+
 @dataclass(frozen=True)
 class Bound:
-    """A parameter's range [lo, hi], linear or (``log``) in log space."""
+    """A parameter's range [lo, hi], linear or (``log``) in log space; with ``ends``,
+    mapped by sin^2 instead of the logistic, so that either end is reached at a finite
+    free variable (a metallic of 0: the logistic needs z -> -inf, which Adam's steps of
+    a fixed size approach only slowly)."""
 
     lo: float
     hi: float
     log: bool = False
+    ends: bool = False
 
     def value(self, z: Any, xp: Any) -> Any:
         """The parameter of free variable ``z`` (numpy or Dr.Jit: ``xp`` is np or dr),
         within [lo, hi] for every z."""
-        s = _logistic(z, xp)
+        if self.ends:  # (Dr.Jit's float32 sin is NaN far out: |z| <= 1e4 first)
+            s = xp.square(xp.sin(xp.minimum(xp.maximum(z, -SIN_Z_MAX), SIN_Z_MAX)))
+        else:
+            s = _logistic(z, xp)
         if self.log:
             a, b = math.log(self.lo), math.log(self.hi)
             v = xp.exp(a + (b - a) * s)
@@ -142,8 +153,8 @@ class Bound:
             s = (np.log(v) - math.log(self.lo)) / (math.log(self.hi) - math.log(self.lo))
         else:
             s = (v - self.lo) / (self.hi - self.lo)
-        s = np.clip(s, 1e-4, 1.0 - 1e-4)
-        return np.log(s / (1.0 - s))
+        s = np.clip(s, 1e-4, 1.0 - 1e-4)  # (sin^2: off the ends, where its slope is 0)
+        return np.arcsin(np.sqrt(s)) if self.ends else np.log(s / (1.0 - s))
 
 
 @dataclass(frozen=True)
@@ -255,6 +266,8 @@ WEIGHT_START = 0.5  # the blend's conductor weight, without a warm start
 # principled: roughness (alpha = roughness^2 in Mitsuba), metallic; specular fixed
 ROUGHNESS = Bound(0.05, 1.0)
 ROUGHNESS_START = 0.5
+# a real material's metallic is mostly 0 or 1 (a dielectric or a metal): reachable ends
+METALLIC = Bound(0.0, 1.0, ends=True)
 METALLIC_START = 0.3
 PRINCIPLED_SPECULAR = 0.5
 
@@ -348,7 +361,7 @@ FAMILIES: dict[str, Family] = {
             {
                 "base_color": Param(3, REFLECTANCE, 0.5, brightness=True),
                 "roughness": Param(1, ROUGHNESS, ROUGHNESS_START),
-                "metallic": Param(1, WEIGHT, METALLIC_START),
+                "metallic": Param(1, METALLIC, METALLIC_START),
             },
             lambda v, xp: {
                 "base_color.value": v["base_color"],
