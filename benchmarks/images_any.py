@@ -17,8 +17,7 @@ aluminium against 4.9, 5.8 and 5.9 % with the grid over the half vector's disc,
 anisotropic start the grid moves over the half vector's disc (``images.anisotropic_grid``,
 chosen on the development set's brushed aluminium, images_any_dev_aniso_grid.json against
 images_any_dev_refine.json: 3.2 to 1.3 % where both cosines exceed 0.5; reported on the
-test set's brushed gold, the only test material rerun for it, the others kept with
-``--resume``: their starts are isotropic), the default
+test set's brushed gold), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on
