@@ -115,11 +115,30 @@ class FeatureGrid(nn.Module):
 
     def forward(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:  # (N,), (N,) -> (N, C)
         k = self.size
+        if u.dim() == 1 and not torch.onnx.is_in_onnx_export():
+            return self._sampled(u, v)
         tu, tv = u * (k - 1), v * (k - 1)
         i0 = torch.floor(tu).clamp(0, k - 2)
         j0 = torch.floor(tv).clamp(0, k - 2)
         au, av = (tu - i0)[..., None], (tv - j0)[..., None]
         return bilinear_corners(self.table, i0.long() * k + j0.long(), k, au, av)
+
+    def _sampled(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """The same bilinear look-up through ``grid_sample`` (torch only, never exported):
+        one fused kernel and its backward, about 3x faster on the CPU than the four
+        gathers, their products and index_add (55k lanes, forward and backward: 1.8
+        against 5.4 ms on one thread).  Node (i, j) is the table's row i (u) and column j
+        (v): grid_sample's y and x, with align_corners so that -1 and 1 are the first and
+        last nodes.  Inside [0, 1]^2 it is the gather path's function to float32 rounding
+        (tests/train/test_grid_lookup.py); the exported graph, which every back end runs,
+        is traced from the gather path.  Outside [0, 1]^2 (no encoding's coordinates go
+        there) it holds the border value where the gather path extrapolates the edge
+        cell."""
+        k, c = self.size, self.table.shape[1]
+        image = self.table.t().reshape(1, c, k, k)  # (1, C, H = u, W = v)
+        at = torch.stack([2.0 * v - 1.0, 2.0 * u - 1.0], -1).reshape(1, -1, 1, 2)
+        out = F.grid_sample(image, at, mode="bilinear", padding_mode="border", align_corners=True)
+        return out.reshape(c, -1).t()
 
 
 def bilinear_corners(
