@@ -32,10 +32,11 @@ interleave the variants, each built afresh in its round (one variant's scenes al
 time: a symbolic virtual call traces every BSDF instance alive) and warmed up by one
 untimed step; each figure is the best of ``--rounds``.  Nothing here is tuned: there is
 no setting to choose, so no development set and no test set; the plastic is the issue's
-hard case.  The run of 2026-11-28 measured the plugin handing torch its valid lanes
-only (a change of work, not of any setting, kept for its timings and checked by
-tests/inverse/test_inverse.py); it changed no choice (:data:`AUTO`'s primal passes still
-name the graph).  The JSON records the load average before and after.
+hard case.  The run of 2026-11-28 (evening) measured the grids' look-up in torch
+through ``grid_sample`` (before it, the plugin handing torch its valid lanes only): each a
+change of work, not of any setting, checked by tests (tests/train/test_grid_lookup.py,
+tests/inverse/test_inverse.py); neither changed a choice (:data:`AUTO`'s primal passes
+still name the graph).  The JSON records the load average before and after.
 """
 
 from __future__ import annotations

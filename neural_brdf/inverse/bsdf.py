@@ -100,7 +100,7 @@ PLUGIN = "neural_brdf_ad"
 EVALUATORS = ("auto", "graph", "torch")  # images.evaluator's choices (config.Images)
 # "auto" per variant, from benchmarks/image_step.py (the primal pass of three 96² views
 # at 16 spp, results/image_step.json and results/cuda/image_step.json): llvm_ad_rgb on 2
-# cores, graph 0.165 s against torch 0.251 s; cuda_ad_rgb on an H200, graph 0.054 s
+# cores, graph 0.086 s against torch 0.141 s; cuda_ad_rgb on an H200, graph 0.054 s
 # against torch 0.030 s (torch's GPU matrix products beat the per-weight loads that the
 # lowered graph makes in every lane).
 AUTO = {"llvm_ad_rgb": "graph", "cuda_ad_rgb": "torch"}
