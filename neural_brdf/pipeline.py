@@ -144,6 +144,8 @@ def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[
             return {**done, "already_finished": cfg.train.steps}
     if target is None:
         target = data.build_target(cfg.target)
+    for line in teacher_warnings(cfg, target, textured=textured):
+        print(f"{cfg.name}: warning: {line}", file=sys.stderr)
     if textured:
         from neural_brdf.train import textured_loop
 
@@ -157,6 +159,26 @@ def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[
         cfg, run_dir, resume=resume, target=target, checkpoint=ckpt, folder=folder
     )
     return finish(cfg, run_dir, raw, training, t0=t0, target=target)
+
+
+def teacher_warnings(cfg: cfgmod.Config, target: Any, *, textured: bool) -> list[str]:
+    """What the run will do that the config did not say: a legitimate input whose file
+    differs from what the user may assume (one line each; the run goes on)."""
+    from neural_brdf.train.encoding import is_anisotropic
+
+    out = list(getattr(target, "warnings", ()))
+    if getattr(target, "anisotropic", False) and not is_anisotropic(cfg.model.encoding):
+        out.append(
+            f"model.encoding: {cfg.model.encoding} cannot depend on the azimuth, but the "
+            "teacher changes when turned about the normal (anisotropic): the file learns "
+            "its average over the azimuth; set model.encoding: anisotropic"
+        )
+    if cfg.target.mitsuba is not None and not textured and cfg.texture != cfgmod.Texture():
+        out.append(
+            f"texture: ignored: {cfg.target.mitsuba} does not vary over the surface, so "
+            "the file is a homogeneous BRDF"
+        )
+    return out
 
 
 def finish_textured(

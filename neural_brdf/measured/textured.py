@@ -107,6 +107,7 @@ class TexturedMitsubaTarget:
             raise InputError(f"{where}: no such file")
         mi = self._mi = _mitsuba(self.variant, key)
         self.normal_map: dict[str, Any] | None = None
+        self.warnings: list[str] = []  # printed once by the run (pipeline.teacher_warnings)
         self.excess: dict[str, Any] | None = None  # measure_excess()
         self._normal_tex: Any = None
         self._bump_scale = 0.0
@@ -165,6 +166,19 @@ class TexturedMitsubaTarget:
                 raise InputError(
                     f"{where}: texture file {value!r} not found (relative names are "
                     f"resolved against {self.path.resolve().parent})"
+                )
+        for el in root.iter("texture"):  # the file's textures wrap by repeat (docs/mitsuba.md)
+            modes = [m for m in el.findall("string") if m.get("name") == "wrap_mode"]
+            mode = modes[0].get("value", "repeat") if modes else "repeat"
+            if el.get("type") == "bitmap" and mode != "repeat":
+                files = [
+                    f.get("value") for f in el.findall("string") if f.get("name") == "filename"
+                ]
+                name = el.get("name") or el.get("id") or "bitmap"
+                self.warnings.append(
+                    f"{where}: the texture {name!r} ({', '.join(map(str, files))}) has "
+                    f"wrap_mode {mode}, but the file's textures wrap by repeat: within half "
+                    "a texel of its borders (and at uv outside [0, 1)) the file differs"
                 )
         for el in root.iter("bsdf"):
             if el.get("type") in ("normalmap", "bumpmap"):
