@@ -67,6 +67,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
+import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -179,6 +180,49 @@ def _children(mi: Any, obj: Any) -> list[tuple[str, Any]]:
     return cb.found
 
 
+def load(mi: Any, path: Path, where: str) -> Any:
+    """``mi.load_file(path)``; InputError naming ``where`` when Mitsuba cannot load it,
+    and naming the image when that is why (a bitmap file that is not an image: Mitsuba
+    says only "read 6 out of 8 bytes" inside its plugin error)."""
+    try:
+        return mi.load_file(str(path))
+    except Exception as e:  # Mitsuba's parser and plugins raise RuntimeError & co.
+        bad = _unreadable_image(mi, path)
+        if bad is not None:
+            name, why = bad
+            raise InputError(
+                f"{where}: the texture file {name!r} cannot be read as an image ({why})"
+            ) from None
+        raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
+
+
+def _unreadable_image(mi: Any, path: Path) -> tuple[str, str] | None:
+    """(filename as written, Mitsuba's reason) of the first bitmap texture of the XML
+    at ``path`` that exists but ``mi.Bitmap`` cannot read; None if there is none (only
+    called when loading failed, so the images are read twice only then)."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return None
+    resolver = mi.FileResolver(mi.file_resolver())  # a copy: the global one is untouched
+    resolver.prepend(str(path.resolve().parent))
+    for tex in root.iter("texture"):
+        if tex.get("type") != "bitmap":
+            continue
+        for el in tex.findall("string"):
+            value = el.get("value", "")
+            if el.get("name") != "filename" or "$" in value:
+                continue
+            found = Path(str(resolver.resolve(value)))
+            if not found.is_file():
+                continue
+            try:
+                mi.Bitmap(str(found))
+            except Exception as e:
+                return value, _first(e)
+    return None
+
+
 def one_bsdf(mi: Any, obj: Any, where: str) -> Any:
     """The BSDF a loaded Mitsuba file holds: ``obj`` itself, or a scene's one top-level
     ``<bsdf>``; InputError naming ``where`` otherwise."""
@@ -269,10 +313,7 @@ class MitsubaTarget:
             raise InputError(f"{where}: no such file")
         mi = self._mi = _mitsuba(self.variant, key)
         with self._scope():
-            try:
-                obj = mi.load_file(str(self.path))
-            except Exception as e:  # Mitsuba's parser and plugins raise RuntimeError & co.
-                raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
+            obj = load(mi, self.path, where)
             self.bsdf, self.plugin = self._the_bsdf(obj, where)
             check_reflective(self.bsdf, self.plugin, where)
             self.anisotropic = False  # probed below (the sampler needs none of it)

@@ -67,6 +67,7 @@ from neural_brdf.measured.mitsuba import (
     _tensor,
     check_reflective,
     interaction,
+    load,
     one_bsdf,
 )
 
@@ -113,10 +114,7 @@ class TexturedMitsubaTarget:
         self._bump_scale = 0.0
         with self._scope():
             self._check_files(where)
-            try:
-                obj = mi.load_file(str(self.path))
-            except Exception as e:  # Mitsuba's parser and plugins raise several types
-                raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
+            obj = load(mi, self.path, where)
             self.whole_bsdf = obj  # wrappers included: what a scene of the teacher renders
             self.bsdf, self.plugin = self._unwrap(obj, where)
             check_reflective(self.bsdf, self.plugin, where)

@@ -8,7 +8,8 @@ suggests: one warning line each, and the run goes on (docs/mitsuba.md).
 * a bitmap with ``wrap_mode`` clamp or mirror (the file's textures wrap by repeat).
 
 Each has its quiet twin: the same teacher where the file is what the config says gets
-no warning.
+no warning.  And one refusal: a bitmap file that is not an image is named as such (one
+line, exit 2).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import SETS, cli
+from cli_helpers import SETS, assert_one_line_error, cli
 from neural_brdf import config as cfgmod
 from neural_brdf.pipeline import teacher_warnings
 from neural_brdf.target import spatially_varying
@@ -92,3 +93,17 @@ def test_the_run_prints_the_warning_once_and_trains(mi, tmp_path, capsys):
     warned = [x for x in err.splitlines() if "warning" in x]
     assert warned == [warned[0]] and warned[0].startswith("aniso: warning: model.encoding")
     assert (tmp_path / "run" / "model.onnx").is_file()
+
+
+# ------------------------------------------------------------------ and one refusal
+def test_a_bitmap_that_is_not_an_image_is_named(mi, tmp_path, capsys):
+    """Mitsuba's own message was its plugin error ending in "read 6 out of 8 bytes"."""
+    (tmp_path / "albedo.png").write_text("hello")
+    xml = _bitmap(mi, tmp_path, None).replace("albedo.exr", "albedo.png")
+    (tmp_path / "teacher.xml").write_text(xml)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("target: {mitsuba: teacher.xml}\n")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"), *SETS)
+    assert_one_line_error(
+        code, err, "target.mitsuba", "teacher.xml", "'albedo.png' cannot be read as an image"
+    )
