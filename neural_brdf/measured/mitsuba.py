@@ -196,6 +196,14 @@ def load(mi: Any, path: Path, where: str) -> Any:
         raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
 
 
+def resolver_for(mi: Any, path: Path) -> Any:
+    """Mitsuba's file resolver as its loader uses it for the XML at ``path`` (that
+    folder first), as a copy: the global one is untouched."""
+    resolver = mi.FileResolver(mi.file_resolver())
+    resolver.prepend(str(path.resolve().parent))
+    return resolver
+
+
 def _unreadable_image(mi: Any, path: Path) -> tuple[str, str] | None:
     """(filename as written, Mitsuba's reason) of the first bitmap texture of the XML
     at ``path`` that exists but ``mi.Bitmap`` cannot read; None if there is none (only
@@ -204,8 +212,7 @@ def _unreadable_image(mi: Any, path: Path) -> tuple[str, str] | None:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError):
         return None
-    resolver = mi.FileResolver(mi.file_resolver())  # a copy: the global one is untouched
-    resolver.prepend(str(path.resolve().parent))
+    resolver = resolver_for(mi, path)
     for tex in root.iter("texture"):
         if tex.get("type") != "bitmap":
             continue

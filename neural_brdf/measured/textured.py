@@ -69,6 +69,7 @@ from neural_brdf.measured.mitsuba import (
     interaction,
     load,
     one_bsdf,
+    resolver_for,
 )
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -152,8 +153,7 @@ class TexturedMitsubaTarget:
         one is named.  Also reads the normal/bump map's flags (module doc)."""
         mi = self._mi
         root = self._xml(where)
-        resolver = mi.FileResolver(mi.file_resolver())  # a copy: the global one is untouched
-        resolver.prepend(str(self.path.resolve().parent))
+        resolver = resolver_for(mi, self.path)
         for el in root.iter("string"):
             if el.get("name") != "filename":
                 continue
