@@ -1963,6 +1963,47 @@ def images_patience_section(d: dict) -> list[str]:
     return out + _table(head, rows)
 
 
+def images_cadence_section(d: dict) -> list[str]:
+    """issue 29: images.validation_every replayed on recorded development fits."""
+    timing = d.get("score_steps") or {}
+    cost = (
+        f"A scoring costs {timing['median']:.2f} steps (median over "
+        f"{len(timing['per_run'])} development fits' logs: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in timing["per_run"].items())
+        + ")."
+        if timing
+        else "A scoring's cost was not measured (no --timing)."
+    )
+    out = [
+        "## Images of any material: how often the held-out split is scored "
+        "(development set)",
+        "",
+        _source(
+            "benchmarks/results/images_cadence_dev.json",
+            "python benchmarks/images_cadence.py --timing W",
+        ),
+        _recorded(d["date"], f"none (a replay of `{d['recorded']}`)", None),
+        f"Definition: {d['definition']}. {cost} Chosen: every "
+        f"{d['chosen']['validation_every']} steps, patience {d['chosen']['patience']} "
+        f"({d['why']}). Runs: {', '.join(d['runs'])}.",
+        "",
+    ]
+    rows = [
+        [
+            str(r["every"]),
+            f"{r['patience']} ({r['patience_steps']} steps)",
+            f"{100 * r['excess_max']:.2f} %",
+            f"{100 * r['excess_mean']:.2f} %",
+            str(r["steps"]),
+            str(r["scorings"]),
+            "-" if r["cost_steps"] is None else f"{r['cost_steps']:.0f}",
+        ]
+        for r in d["rows"]
+    ]
+    head = ["every", "patience", "excess, worst", "excess, mean", "steps", "scorings"]
+    return out + _table(head + ["cost (steps)"], rows)
+
+
 def packet_gathers_section(d: dict) -> list[str]:
     """The Dr.Jit back end's packet gathers on and off, in the BSDF-bound scene."""
     models = d["models"]
@@ -2225,6 +2266,7 @@ SECTIONS = (
         ),
     ),
     (RESULTS / "images_patience_dev.json", images_patience_section),
+    (RESULTS / "images_cadence_dev.json", images_cadence_section),
     (RESULTS / "image_step.json", image_step_section),
     (RESULTS / "training_speed.json", training_speed_section),
     (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
