@@ -1975,8 +1975,7 @@ def images_cadence_section(d: dict) -> list[str]:
         else "A scoring's cost was not measured (no --timing)."
     )
     out = [
-        "## Images of any material: how often the held-out split is scored "
-        "(development set)",
+        "## Images of any material: how often the held-out split is scored (development set)",
         "",
         _source(
             "benchmarks/results/images_cadence_dev.json",
