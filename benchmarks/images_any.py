@@ -30,7 +30,9 @@ Oren-Nayar outside every family, was added to choose ``images.poor_start_loss``;
 benchmarks/images_patience.py; ``images.start_refine_steps`` by the start's figures before
 and after its refinement, both recorded in one run, images_any_dev_refine.json; the
 principled family's metallic through sin^2, reaching 0 and 1, by the blue principled's
-figures, images_any_dev_metallic.json against images_any_dev_refine.json);
+figures, images_any_dev_metallic.json against images_any_dev_refine.json;
+``images.validation_spp`` kept at 64 against 16, images_any_dev_validation_spp16.json
+against images_any_dev_metallic.json);
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two

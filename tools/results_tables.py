@@ -2264,6 +2264,14 @@ SECTIONS = (
             title="the principled's metallic reaching 0 and 1",
         ),
     ),
+    (
+        RESULTS / "images_any_dev_validation_spp16.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_validation_spp16.json",
+            title="the held-out renders at 16 spp (images.validation_spp, not chosen)",
+        ),
+    ),
     (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "images_cadence_dev.json", images_cadence_section),
     (RESULTS / "image_step.json", image_step_section),
