@@ -71,19 +71,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.recorded}: not a development-set file", file=sys.stderr)
         return 2
     runs = recorded["runs"]
+    if any(r["every"] != CADENCES[0] for r in runs.values()):  # the cadences are multiples
+        print(f"{args.recorded}: a run not scored every 10 steps", file=sys.stderr)
+        return 2
+    # each run's recorded held-out losses by step, and its train.steps
+    recorded_losses = [
+        ({int(s): float(x) for s, x in r["scorings"]}, int(r["steps"])) for r in runs.values()
+    ]
     timing = score_steps(args.timing)
     cost = timing.get("median")
     rows = []
     for every in CADENCES:
         for p in PATIENCES:
             excess, steps, scorings = [], 0, 0
-            for r in runs.values():
-                losses = dict((int(s), float(x)) for s, x in r["scorings"])
-                if r["every"] != CADENCES[0] or every % r["every"]:
-                    print(f"{args.recorded}: a run not scored every 10 steps", file=sys.stderr)
-                    return 2
+            for losses, run_steps in recorded_losses:
                 seq = [(s, x) for s, x in losses.items() if s % every == 0]
-                stop, best = replay(seq, every, int(r["steps"]), p)
+                stop, best = replay(seq, every, run_steps, p)
                 excess.append(losses[best] / min(losses.values()) - 1.0)
                 steps += stop
                 scorings += stop // every

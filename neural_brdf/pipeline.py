@@ -30,6 +30,7 @@ from neural_brdf import runfolder, validate
 from neural_brdf.errors import InputError
 from neural_brdf.target import Target, spatially_varying
 from neural_brdf.train import data, loop
+from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.session import MUST_MATCH, TEXTURED_MUST_MATCH
 
 
@@ -164,8 +165,6 @@ def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[
 def teacher_warnings(cfg: cfgmod.Config, target: Any, *, textured: bool) -> list[str]:
     """What the run will do that the config did not say: a legitimate input whose file
     differs from what the user may assume (one line each; the run goes on)."""
-    from neural_brdf.train.encoding import is_anisotropic
-
     out = list(getattr(target, "warnings", ()))
     if getattr(target, "anisotropic", False) and not is_anisotropic(cfg.model.encoding):
         out.append(
