@@ -107,6 +107,9 @@ def run_many(
                 f"{src}: target.mitsuba: {target.describe()}: a textured teacher trains "
                 "alone (neural-brdf train), not in a batch"
             )
+    for c, target in zip(cfgs, targets):  # as a run alone prints them (:func:`_run`)
+        for line in teacher_warnings(c, target, textured=False):
+            print(f"{c.name}: warning: {line}", file=sys.stderr)
     run_dirs = [Path(out) / n for n in names]
     for run_dir in run_dirs:  # a folder of the user's: refused before any lock file
         runfolder.check_writable(run_dir)

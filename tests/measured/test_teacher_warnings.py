@@ -8,8 +8,8 @@ suggests: one warning line each, and the run goes on (docs/mitsuba.md).
 * a bitmap with ``wrap_mode`` clamp or mirror (the file's textures wrap by repeat).
 
 Each has its quiet twin: the same teacher where the file is what the config says gets
-no warning.  And one refusal: a bitmap file that is not an image is named as such (one
-line, exit 2).
+no warning.  A batch (``train-many``) prints the same lines as a run alone.  And one
+refusal: a bitmap file that is not an image is named as such (one line, exit 2).
 """
 
 from __future__ import annotations
@@ -93,6 +93,25 @@ def test_the_run_prints_the_warning_once_and_trains(mi, tmp_path, capsys):
     warned = [x for x in err.splitlines() if "warning" in x]
     assert warned == [warned[0]] and warned[0].startswith("aniso: warning: model.encoding")
     assert (tmp_path / "run" / "model.onnx").is_file()
+
+
+def test_a_batch_prints_each_configs_warning(mi, tmp_path, capsys):
+    """train-many builds its targets in its own path: the same lines, named by config."""
+    (tmp_path / "aniso.xml").write_text(ANISO)
+    (tmp_path / "iso.xml").write_text(ISO)
+    files = []
+    for name in ("aniso", "iso"):
+        f = tmp_path / f"{name}.yaml"
+        f.write_text(
+            f"name: {name}\ntarget: {{mitsuba: {name}.xml}}\nmodel: {{encoding: isotropic}}\n"
+        )
+        files.append(str(f))
+    code, _, err = cli(capsys, "train-many", *files, "--out", str(tmp_path / "o"), *SETS)
+    assert code in (0, 1), err
+    assert "Traceback" not in err
+    warned = [x for x in err.splitlines() if "warning" in x]
+    assert len(warned) == 1 and warned[0].startswith("aniso: warning: model.encoding")
+    assert (tmp_path / "o" / "iso" / "model.onnx").is_file()
 
 
 # ------------------------------------------------------------------ and one refusal
