@@ -575,13 +575,29 @@ def sizes(cfg: Config) -> list[tuple[str, float]]:
         ("normalization.samples", float(n.samples) * max(n.table_size, n.grid_size**2) * 12),
         ("export.parity_pairs", float(cfg.export.parity_pairs) * PAIR_BYTES),
     ]
-    if cfg.target.mitsuba is not None and cfg.texture.pool_per_texel is not None:
+    if (
+        cfg.target.mitsuba is not None
+        and cfg.texture.pool_per_texel is not None
+        and may_vary(cfg.target.mitsuba)
+    ):
         # a textured teacher's pool (a homogeneous one reads data.pool_size alone)
         pool = cfg.texture.pool(d.pool_size)
         out.append(("texture.pool_per_texel", float(pool) * PAIR_BYTES))
     for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
         out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))
     return out
+
+
+def may_vary(teacher: str) -> bool:
+    """Whether the Mitsuba file ``teacher`` may vary over the surface, read as text before
+    Mitsuba loads it: only a texture (a bitmap, a procedural one, the map of a
+    ``normalmap`` or ``bumpmap``) or an included file can make it vary, so a readable
+    file naming neither is homogeneous.  Unreadable: True (counted; the load refuses it)."""
+    try:
+        text = Path(teacher).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return True
+    return "texture" in text or "include" in text
 
 
 def check_sizes(cfg: Config, *, source: str = "config", overrides: Sequence[str] = ()) -> None:

@@ -1,7 +1,8 @@
 """The pool of a textured fit grows with its field (``texture.pool_per_texel``,
 docs/mitsuba.md "The pool and the field's resolution"): at least that many pairs per
 texel of the R x R field, never fewer than ``data.pool_size``; null leaves
-``data.pool_size`` alone; the memory check names the key before anything is drawn."""
+``data.pool_size`` alone; the memory check names the key before anything is drawn, and
+counts it only for a teacher that may vary over the surface."""
 
 from __future__ import annotations
 
@@ -47,3 +48,28 @@ def test_the_memory_check_names_pool_per_texel_for_a_textured_teacher(monkeypatc
 def test_a_bad_pool_per_texel_is_refused(value):
     with pytest.raises(cfgmod.ConfigError, match="texture.pool_per_texel"):
         cfgmod.load(None, ["target.mitsuba=t.xml", f"texture.pool_per_texel={value}"])
+
+
+def test_a_homogeneous_teacher_is_not_refused_for_a_pool_it_never_draws(tmp_path, monkeypatch):
+    """A teacher without a texture reads data.pool_size alone, so the memory check does
+    not count (nor refuse) the textured pool for it."""
+    plain = tmp_path / "plain.xml"
+    plain.write_text('<bsdf version="3.0.0" type="roughplastic"/>')
+    mapped = tmp_path / "mapped.xml"
+    mapped.write_text(
+        '<bsdf version="3.0.0" type="diffuse"><texture type="checkerboard" name="reflectance"/>'
+        "</bsdf>"
+    )
+    texture = {"resolution": 1024}
+    homogeneous = cfgmod.Config.model_validate(
+        {"target": {"mitsuba": str(plain)}, "texture": texture}
+    )
+    textured = cfgmod.Config.model_validate(
+        {"target": {"mitsuba": str(mapped)}, "texture": texture}
+    )
+    assert "texture.pool_per_texel" not in dict(cfgmod.sizes(homogeneous))
+    assert "texture.pool_per_texel" in dict(cfgmod.sizes(textured))
+    monkeypatch.setenv(limits.ENV_LIMIT, "64G")
+    cfgmod.check_sizes(homogeneous)
+    with pytest.raises(limits.TooLarge, match=r"texture\.pool_per_texel"):
+        cfgmod.check_sizes(textured)
