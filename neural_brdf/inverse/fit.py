@@ -243,6 +243,22 @@ def read_image(path: Path, key: str) -> np.ndarray:
     return arr
 
 
+def negative_pixels(img: np.ndarray, key: str, path: Path) -> str | None:
+    """A warning (one line) for an image with negative pixels, or None.  A radiance is
+    never negative, but noise about 0 is (a denoiser's output, a frame with the ambient
+    light subtracted); the relative loss takes such pixels as they are, so the fit goes on
+    and the user is told how many there are and how far below 0 they go."""
+    below = (img < 0).any(-1)
+    if not below.any():
+        return None
+    n, share = int(below.sum()), 100.0 * float(below.mean())
+    return (
+        f"{key}: {path}: {n} pixels ({share:.2g} %) have a negative channel, down to "
+        f"{float(img.min()):.3g} (the image's largest value is {float(img.max()):.3g}); "
+        "fitted as they are, as noise about 0 (a radiance is never negative)"
+    )
+
+
 def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
     """Parse a scene file and check it: (tree, integrator type the fit uses)."""
     if not path.is_file():
@@ -359,6 +375,9 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
         scene_path, image_path = Path(item.scene), Path(item.image)
         tree, integrator = read_scene(scene_path, key + ".scene")
         target = read_image(image_path, key + ".image")
+        warning = negative_pixels(target, key + ".image", image_path)
+        if warning:
+            print(f"warning: {warning}", file=sys.stderr)
         views.append(View(scene_path, image_path, tree, target, integrator))
     if not views:
         raise InputError("target.images: empty; give at least one {scene, image} pair")

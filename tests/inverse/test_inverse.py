@@ -722,6 +722,31 @@ def test_one_channel_exr_exits_2(mi, copy_of, capsys):
     _expect_exit_2(path, copy_of / "run", capsys, "grey.exr", "expected linear RGB")
 
 
+def test_negative_pixels_are_warned_in_one_line_and_fitted(mi, copy_of, capsys):
+    """A radiance is never negative, but noise about 0 is (a subtracted ambient frame):
+    the run goes on, saying how many pixels and how far; a clean image says nothing."""
+    from neural_brdf import config as cfgmod
+    from neural_brdf.inverse import fit as inverse
+
+    img = np.array(mi.Bitmap(str(copy_of / "view1.exr")), np.float32)[..., :3]
+    noisy = img - 0.02 * float(img.max())  # the darkest pixels go below 0
+    mi.Bitmap(np.ascontiguousarray(noisy)).write(str(copy_of / "noisy.exr"))
+    expected = int((noisy < 0).any(-1).sum())
+    assert 0 < expected < noisy.shape[0] * noisy.shape[1]
+    for name, warned in (("view1.exr", False), ("noisy.exr", True)):
+        cfg = cfgmod.load(_config(copy_of, [("view1.xml", name)]))
+        capsys.readouterr()
+        (view,) = inverse.read_views(cfg)
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()
+        if not warned:
+            assert lines == [], err
+            continue
+        assert len(lines) == 1 and lines[0].startswith("warning: target.images[0].image:"), err
+        assert "noisy.exr" in lines[0] and f"{expected} pixels" in lines[0]
+        assert np.array_equal(view.target, noisy)  # fitted as it is, not clamped
+
+
 def test_image_of_another_size_exits_2(copy_of, capsys):
     from neural_brdf.inverse import scene as inverse_example
 
