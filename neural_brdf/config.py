@@ -414,9 +414,29 @@ class Texture(_Section):
     # logits see many texels' pairs (docs/mitsuba.md, "The pool and the field's
     # resolution"); R must be divisible by 2^(field_levels - 1)
     field_levels: int = Field(1, ge=1, le=8)
+    # after training, the field replaced by one of project x project texels fitted texel
+    # by texel to the teacher on the frozen lobes (docs/mitsuba.md, "A finer field by
+    # projection onto the lobes"): each texel's weights the exact non-negative least
+    # squares of f cos on project_pairs pairs drawn at its centre, its latent the best of
+    # project_latents values on [0, 1] and the trained one; then bounded as every field
+    # is, so the physics holds as before.  null: the trained field (R x R) is the file's.
+    # Shared lobe networks only; the export does it again from the checkpoint (seeded)
+    project: int | None = Field(None, ge=1, le=2048)
+    project_pairs: int = Field(128, ge=8)
+    project_latents: int = Field(5, ge=2, le=64)
     # random uv of the furnace (validate; a quadrature each, so bounded); pairs' uv: all
     # random
     validation_uv: int = Field(64, ge=1, le=4096)
+
+    @model_validator(mode="after")
+    def _projected_field(self):
+        # the projection fits the K heads of one network (textured_project.project_field)
+        if self.project is not None and self.lobe_network != "shared":
+            raise ValueError(
+                "project: the field is projected onto one shared lobe network; "
+                f"set lobe_network: shared (got {self.lobe_network})"
+            )
+        return self
 
     @model_validator(mode="after")
     def _grey_lobes(self):
@@ -583,6 +603,9 @@ def sizes(cfg: Config) -> list[tuple[str, float]]:
         # a textured teacher's pool (a homogeneous one reads data.pool_size alone)
         pool = cfg.texture.pool(d.pool_size)
         out.append(("texture.pool_per_texel", float(pool) * PAIR_BYTES))
+        if cfg.texture.project is not None:  # the projected table, float32 and float64
+            width = 3 * cfg.texture.lobes + 1
+            out.append(("texture.project", 12.0 * cfg.texture.project**2 * width * 4))
     for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
         out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))
     return out

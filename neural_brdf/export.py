@@ -515,6 +515,21 @@ def with_normal_field(model: TexturedBRDF, target: Any) -> TexturedBRDF:
     return model
 
 
+def _weights_text(field: Any) -> str:
+    """What bounds the field's weights, as the file holds them: a softmax's (sum <= 1)
+    or, for a projected field of raw lobes (texture.project with lobe_bound texel), the
+    lobes' envelope alone (docs/model.md)."""
+    with torch.no_grad():
+        k, c = int(field.lobes), int(getattr(field, "channels", 1))
+        z = field.weights()[:, : c * k].reshape(-1, c, k)
+        if float(z.sum(-1).max()) <= 1.0 + 1e-6:
+            return "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)"
+    return (
+        "z_k >= 0 and, per texel and channel, sum_k z_k A+_k <= 1 at every node of "
+        "incidence (the lobes' albedo bounds; bilinear blends keep it)"
+    )
+
+
 def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """The ``texture`` metadata entry of a textured file: what its uv input means
     (docs/portable.md, "Textured files")."""
@@ -528,7 +543,7 @@ def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) 
         "filter": "bilinear",
         "texel_centres": "((i + 0.5) / R, (j + 0.5) / R), i along u, j along v",
         "layout": "row-major [v, u]: flat index j * R + i; column c * K + k, the latent at C * K",
-        "weights": "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)",
+        "weights": _weights_text(field),
         "channels": int(getattr(field, "channels", 1)),  # 3: a set of weights per RGB channel
         # 1: one more column of the table, s(uv) in [0, 1], an input of every lobe
         # (conditioned lobes, docs/model.md), its albedo table over (s, theta)
@@ -689,6 +704,40 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     return model.eval()
 
 
+def textured_for_export(
+    model: Any, cfg: cfgmod.Config, target: Any
+) -> tuple[Any, list[dict[str, Any]], dict[str, Any] | None]:
+    """A trained textured model as the file holds it: its lobes normalised
+    (``normalized_textured`` under ``cfg``) and, with ``texture.project``, its field
+    replaced by one fitted texel by texel to ``target`` on those lobes
+    (:func:`neural_brdf.train.textured_project.project_field`, seeded by
+    ``train.seed``, bounded by the lobes' envelope).  Returns (model, the lobes' table
+    figures, the projection's figures or None).  The run and ``export RUN`` both call
+    it, so a re-export gives the run's file."""
+    from neural_brdf.train.textured_model import TexturedBRDF, normalized_textured
+
+    model, tables = normalized_textured(
+        model, cfg.normalization, seed=cfg.train.seed, bound=cfg.texture.lobe_bound
+    )
+    tx = cfg.texture
+    if tx.project is None:
+        return model, tables, None
+    from neural_brdf.train.textured_project import project_field
+
+    lobe = model.lobes[0]
+    field, info = project_field(
+        lobe,
+        model.field,
+        target,
+        model.bound_envelope,
+        resolution=tx.project,
+        pairs=tx.project_pairs,
+        latents=tx.project_latents,
+        seed=cfg.train.seed + 23,
+    )
+    return TexturedBRDF([lobe], field, model.normal).eval(), tables, info
+
+
 def _export_textured(
     ckpt: dict,
     cfg: cfgmod.Config,
@@ -699,15 +748,10 @@ def _export_textured(
 ) -> dict[str, Any]:
     """:func:`export_run` of a textured run: its lobes normalised, the (wi, wo, uv)
     graph built, ``measure`` (``validate.physics_textured``) on it, written."""
-    from neural_brdf.train.textured_model import normalized_textured
-
     if measure is None:
         raise TypeError("export_run: a textured run needs measure_textured")
-    model, tables = normalized_textured(
-        textured_from_checkpoint(ckpt, cfg),
-        cfg.normalization,
-        seed=cfg.train.seed,
-        bound=cfg.texture.lobe_bound,
+    model, tables, projection = textured_for_export(
+        textured_from_checkpoint(ckpt, cfg), cfg, target
     )
     built = build_textured(with_normal_field(model, target), cfg)
     phys = measure(
@@ -720,6 +764,8 @@ def _export_textured(
     info = write(built, cfg, path, physics=phys, target=target, texture_info=tables)
     info["physics"] = phys
     info["normalization"] = tables
+    if projection is not None:
+        info["projection"] = projection
     info["target"] = target_json(cfg, target.describe(), target)
     return info
 

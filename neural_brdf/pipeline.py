@@ -194,12 +194,11 @@ def finish_textured(
     report: bool = True,
 ) -> dict[str, Any]:
     """:func:`finish` for a textured model (``train.textured_loop.train``'s): each lobe
-    normalised (``normalized_textured``), the graph of (wi, wo, uv) built and checked
+    normalised and, with ``texture.project``, the field projected
+    (``export.textured_for_export``), the graph of (wi, wo, uv) built and checked
     (``export.build_textured``), its physics measured at random uv
     (``validate.physics_textured``), ``model.onnx`` written with the ``texture`` entry,
     the accuracy against the teacher at random uv, ``metrics.json`` and the report."""
-    from neural_brdf.train.textured_model import normalized_textured
-
     t1 = time.perf_counter()
     excess = target.measure_excess(seed=cfg.validation.seed + 5, tol=cfg.validation.albedo_tol)
     if excess is not None:
@@ -208,9 +207,9 @@ def finish_textured(
             f"{excess['at_uv']}); the model learns its energy-bounded version",
             file=sys.stderr,
         )
-    normalized, tables = normalized_textured(
-        model, cfg.normalization, seed=cfg.train.seed, bound=cfg.texture.lobe_bound
-    )
+    normalized, tables, projection = exp.textured_for_export(model, cfg, target)
+    if projection is not None:  # texture.project: the field fitted texel by texel
+        training = {**training, "projection": projection}
     built = exp.build_textured(exp.with_normal_field(normalized, target), cfg)
     phys = validate.physics_textured(
         built.eval,

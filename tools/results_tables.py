@@ -1463,6 +1463,13 @@ def textured_section(d: dict) -> list[str]:
             if st.get("starts", 1) > 1
             else ""
         )
+        + (
+            f", then the field projected onto the lobes at {st['project']}² texels "
+            f"(`texture.project`, {st.get('project_pairs', 128)} pairs per texel, "
+            f"{st.get('project_latents', 5)} latents)"
+            if st.get("project")
+            else ""
+        )
         + f", on {d['texture_size']}² maps; homogeneous: {d['homogeneous_recipe']}. "
         "Accuracy: relative RMSE of f·cos against Mitsuba's `eval` at "
         "pairs drawn as the validation draws them (uv uniform, wi uniform, wo half uniform, "
@@ -1861,6 +1868,77 @@ def textured_floor_section(d: dict) -> list[str]:
 def _albedo(v: float) -> str:
     """An albedo: two decimals, or whole numbers from 100 on (a raw lobe's can be huge)."""
     return f"{v:,.0f}" if v >= 100 else f"{v:.2f}"
+
+
+def textured_project_section(d: dict) -> list[str]:
+    """issue 30: the trained 64^2 field against its projections onto the frozen lobes
+    (the development set chose; the test set reports the choice)."""
+    m, st = d["machine"], d["settings"]
+    test = d["set"] == "test"
+    out = [
+        "## Textured materials: a finer field by projection onto the lobes ("
+        + ("test set: held out" if test else "development set")
+        + ")",
+        "",
+        _source(
+            f"benchmarks/results/textured_project_{d['set']}.json",
+            "python benchmarks/textured_project.py" + (" --set test" if test else ""),
+        ),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores",
+            f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
+        ),
+        f"Teachers: {d['teachers']}. `trained`: the test set's textured recipe at the run (K = "
+        f"{st['lobes']} shared {st['lobe_color']} lobes, weights {st['weights']}, latent "
+        f"{st['latent']}, a {st['resolution']}² field, {st['steps']} steps, lobe_bound "
+        f"{st['lobe_bound']}) with one start; `projected`: the same lobes with the field "
+        "replaced by `neural_brdf.train.textured_project.project_field` at R² (each texel's "
+        "weights the exact non-negative least squares of f·cos on its pairs drawn at its "
+        "centre, its latent the best of the listed values and the trained one, then the "
+        "texel bound). Each exported without the normal field and scored by onnxruntime on "
+        f"two draws of {d['pairs']['n']:,} pairs each, drawn as benchmarks/textured.py draws "
+        f"them (seeds {' and '.join(str(x) for x in d['pairs']['seeds'])}, uv uniform): "
+        "relative RMSE of f·cos over both draws (each draw's own); reciprocity and the "
+        f"largest albedo at {d['physics']['uv']} uv between texel centres "
+        f"({d['physics']['furnace_side']}² samples per incidence).",
+        "",
+    ]
+    rows = []
+    for r in d["rows"]:
+        for x in [r["trained"], *r["projected"]]:
+            projected = "pairs_per_texel" in x
+            rows.append(
+                [
+                    r["teacher"],
+                    str(r["seed"]),
+                    "projected" if projected else "trained",
+                    f"{x['resolution']}²",
+                    f"{x['pairs_per_texel']}, {x['latents']}" if projected else "-",
+                    f"{_pct(x['rel_rmse'], 2)} ("
+                    + ", ".join(_pct(e, 2) for e in x["rel_rmse_sets"])
+                    + ")",
+                    f"{x['reciprocity']:.1g}",
+                    f"{x['max_albedo']:.3f}",
+                    f"{x['file_bytes'] / 2**20:.1f} MiB",
+                    f"{x['seconds']:.0f} s" if projected else f"{r['train_seconds']:.0f} s",
+                ]
+            )
+    return out + _table(
+        [
+            "teacher",
+            "seed",
+            "field",
+            "R²",
+            "pairs per texel, latents",
+            "f·cos rel. RMSE",
+            "reciprocity",
+            "largest albedo",
+            "file",
+            "time (training / projection)",
+        ],
+        rows,
+    )
 
 
 def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -> list[str]:
@@ -2286,6 +2364,7 @@ SECTIONS = (
         partial(textured_ceiling_section, name="textured_ceiling_gp2_dev.json"),
     ),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
+    (RESULTS / "textured_project_dev.json", textured_project_section),
     (RESULTS / "textured_grazing_dev.json", textured_grazing_section),
     (
         RESULTS / "textured_grey_dev.json",

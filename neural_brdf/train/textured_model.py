@@ -364,6 +364,8 @@ class TexturedBRDF(nn.Module):
         # bakes its own bound into the frozen table: normalized_textured)
         self.texel_envelope: torch.Tensor | None
         self.register_buffer("texel_envelope", None, persistent=False)
+        # set by normalized_textured: the envelope a texel of its field is bounded by
+        self.bound_envelope: torch.Tensor | None = None
 
     def _lobe(self, k: int, g: torch.Tensor) -> torch.Tensor:
         """Lobe k's (N, 3) values ``g`` times its training-time scale, if any."""
@@ -531,12 +533,18 @@ def normalized_textured(
                 }
             )
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field
-    if envelopes:
-        bounded = texel_bound(field.weights(), torch.cat(envelopes, -1), field)
+    envelope = torch.cat(envelopes, -1) if envelopes else None
+    if envelope is not None:
+        bounded = texel_bound(field.weights(), envelope, field)
         field = FrozenWeightField(
             bounded, field.resolution, channels=field.channels, latent=field.latent
         )
-    return TexturedBRDF(lobes, field, model.normal).eval(), info
+    out = TexturedBRDF(lobes, field, model.normal).eval()
+    # what bounds a texel of this model: with "texel" the envelope above; otherwise every
+    # lobe's albedo is at most 1, so sum_k z_k <= 1 per channel (an envelope of ones).  A
+    # new field for these lobes (train/textured_project.py) is bounded by it; never exported
+    out.bound_envelope = envelope if envelope is not None else torch.ones(1, 3 * field.lobes)
+    return out, info
 
 
 def lobe_envelope(table: torch.Tensor, conditioned: bool) -> torch.Tensor:

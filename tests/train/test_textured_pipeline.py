@@ -301,3 +301,33 @@ def test_bake_refuses_a_textured_file_in_one_line(run, capsys, tmp_path):
     code, _, err = cli(capsys, "bake", str(run / "model.onnx"), "-o", str(out))
     assert_one_line_error(code, err, "a textured model", "bake")
     assert not out.exists()
+
+
+def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_path, capsys):
+    """``texture.project``: the file's field is the projected one (its resolution in the
+    metadata and in the graph's table), its physics still pass, the projection's
+    residual is below the trained field's on the same pairs, and ``export`` of the run
+    projects again to the same f (seeded)."""
+    cfg = write_config(tmp_path, teacher, steps=40, name="proj")
+    run_dir = tmp_path / "run"
+    code, _, err = cli(
+        capsys, "train", str(cfg), "--out", str(run_dir), "--set", "texture.project=12"
+    )
+    assert code == 0, err
+    proto = onnx.load(str(run_dir / "model.onnx"))
+    tex = json.loads({p.key: p.value for p in proto.metadata_props}["texture"])
+    assert tex["resolution"] == [12, 12]
+    assert any(tuple(t.dims) == (144, 3) for t in proto.graph.initializer)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    projection = metrics["training"]["projection"]
+    assert projection["resolution"] == 12 and projection["pairs_per_texel"] == 128
+    assert projection["residual"] < projection["residual_trained_field"]
+    checks = metrics["checks"]
+    assert checks["reciprocity"]["value"] == 0.0 and checks["max_albedo"]["passed"]
+    export_matches_the_run(capsys, run_dir, tmp_path / "again.onnx", seed=5)
+    code, _, err = cli(
+        capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
+        "texture.project=12", "--set", "texture.lobe_network=separate",
+    )  # fmt: skip
+    assert_one_line_error(code, err, "texture.project", "lobe_network: shared")
+    assert not (tmp_path / "bad").exists()

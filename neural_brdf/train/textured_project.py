@@ -1,0 +1,189 @@
+"""A finer weight field by projection, texel by texel, onto frozen lobes.
+
+A textured model's field is trained with its lobes by Adam, and a fine field trains
+worse than a coarse one (docs/mitsuba.md, "The pool and the field's resolution": a
+texel of a 256^2 field is in the footprint of about one pair in two batches).  Once the
+lobes are trained, though, a texel's weights are a linear problem: at the texel centre
+uv_t the model is f(wi, wo) = sum_k z_k g_k(wi, wo; s) per RGB channel, so for fixed
+lobes and latent s the weights that minimise the squared error of f cos against the
+teacher on M pairs drawn at uv_t are a non-negative least-squares problem of K unknowns
+per channel, solved exactly here (:func:`nnls`, every active set: K is small).  The
+latent, the lobes' one non-linear input, is searched over a grid of values and the
+trained field's own value at the centre; the texel keeps the one of least error.
+
+:func:`project_field` does this for every texel of an R x R field (R finer than the
+trained one, or the same), and bounds each texel as ``texture.lobe_bound: texel`` does
+(:func:`~neural_brdf.train.textured_model.texel_bound`): the weights stay >= 0 and
+sum_k z_k,c A+_k,c <= 1 at every node, so the physics argument of docs/model.md holds
+between texel centres unchanged (bilinear blends keep linear constraints), and
+reciprocity is the lobes' own.  The error of f cos is the benchmark's measure
+(relative RMSE over pairs, benchmarks/textured.py), so a least-squares fit per texel
+lowers exactly the sum that figure is made of, at the texel centres.
+"""
+
+from __future__ import annotations
+
+import time
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+import torch
+
+from analytic import frame
+from neural_brdf.train.textured_model import FrozenWeightField, WeightField, texel_bound
+
+MAX_LOBES = 8  # every active set: 2^K - 1 small solves per problem
+
+
+def nnls(
+    gram: torch.Tensor, rhs: torch.Tensor, sq: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched exact non-negative least squares of K <= MAX_LOBES unknowns from the
+    normal equations: min_z ||A z - y||^2 subject to z >= 0, given G = A^T A
+    (..., K, K), b = A^T y (..., K) and ||y||^2 (...).  Returns (z (..., K), the least
+    squared residual (...)).  Every non-empty active set S is solved (G_SS z_S = b_S,
+    with a ridge of 1e-9 of G's mean diagonal); the best one with z_S >= 0 is the
+    solution (the NNLS optimum is the unconstrained optimum on its support).  z = 0 when
+    no set is feasible (a zero column)."""
+    k = rhs.shape[-1]
+    if not 1 <= k <= MAX_LOBES:
+        raise ValueError(f"nnls: 1 to {MAX_LOBES} unknowns, got {k}")
+    best_r = sq.clone()  # z = 0
+    best_z = torch.zeros_like(rhs)
+    scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)[..., None, None]
+    for size in range(1, k + 1):
+        ridge = 1e-9 * scale * torch.eye(size, dtype=gram.dtype)
+        for subset in combinations(range(k), size):
+            idx = torch.tensor(subset)
+            zs = torch.linalg.solve(gram[..., idx[:, None], idx[None, :]] + ridge, rhs[..., idx])
+            z = torch.zeros_like(rhs)
+            z[..., idx] = zs
+            r = sq - 2.0 * (z * rhs).sum(-1) + torch.einsum("...i,...ij,...j->...", z, gram, z)
+            better = (zs >= 0).all(-1) & (r < best_r)
+            best_r = torch.where(better, r, best_r)
+            best_z = torch.where(better[..., None], z, best_z)
+    return best_z, best_r
+
+
+def texel_centres(resolution: int) -> np.ndarray:
+    """(R*R, 2) uv of the texel centres, flat index j * R + i (the field's order)."""
+    c = (np.arange(resolution) + 0.5) / resolution
+    u, v = np.meshgrid(c, c, indexing="xy")
+    return np.stack([u, v], -1).reshape(-1, 2)
+
+
+def draw_pairs(
+    teacher: Any, uv: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(wi, wo, the teacher's f) at ``uv`` (N, 2), drawn as validation draws its pairs:
+    wi uniform on the hemisphere, wo uniform for a random half and from the teacher's
+    sampler for the other (a failed sample stays uniform)."""
+    n = len(uv)
+    wi = frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((n, 2)))).numpy()
+    wo = frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((n, 2)))).numpy()
+    rows = np.flatnonzero(rng.random(n) < 0.5)
+    if len(rows):
+        sampled = np.asarray(teacher.sample(wi[rows], uv[rows], rng.random((len(rows), 2))))
+        good = sampled[:, 2] > 0
+        wo[rows[good]] = sampled[good]
+    f = np.nan_to_num(np.asarray(teacher.eval(wi, wo, uv), np.float64))
+    return wi, wo, f
+
+
+def project_field(
+    lobe: torch.nn.Module,
+    field: WeightField | FrozenWeightField,
+    teacher: Any,
+    envelope: torch.Tensor,
+    *,
+    resolution: int,
+    pairs: int = 128,
+    latents: int = 5,
+    seed: int = 0,
+    jitter: float = 0.0,
+    chunk_pairs: int = 1 << 19,
+) -> tuple[FrozenWeightField, dict[str, Any]]:
+    """The weights (and latent) of every texel of an R x R field (R = ``resolution``)
+    fitted to ``teacher`` at its centre on ``pairs`` pairs (:func:`draw_pairs`), for the
+    frozen shared lobe network ``lobe`` ((wi, wo[, s]) -> (N, 3K)), then bounded by
+    ``envelope`` [J, 3K] (:func:`~neural_brdf.train.textured_model.texel_bound`).  With
+    conditioned lobes (``field.latent``) the latent is chosen per texel among
+    ``latents`` values evenly spaced on [0, 1] and ``field``'s own value at the centre.
+    One weight per lobe (``field.channels`` 1) fits the three channels together.
+    ``jitter`` > 0 draws each pair's uv uniformly on a square of that many texels about
+    the centre instead (the texel's weights then fit its neighbourhood).
+    Returns the frozen field and figures (seconds, the share of texels the bound
+    scaled down, the squared residual's sum over the texels' pairs against that of
+    ``field`` on the same pairs)."""
+    t0 = time.perf_counter()
+    k, channels, latent = field.lobes, field.channels, field.latent
+    rng = np.random.default_rng(seed)
+    centres = texel_centres(resolution)
+    count = len(centres)
+    table = torch.zeros(count, channels * k + latent)
+    now = field.lookup(torch.from_numpy(centres).float())  # the trained field at the centres
+    per = max(1, chunk_pairs // pairs)
+    residual, residual_before, teacher_seconds = 0.0, 0.0, 0.0
+    grid = [float(v) for v in np.linspace(0.0, 1.0, latents)] if latent else []
+    for a in range(0, count, per):
+        t = min(per, count - a)
+        uv = np.repeat(centres[a : a + t], pairs, 0)
+        if jitter > 0:  # pairs spread over a square of jitter texels about the centre
+            uv = (uv + (rng.random(uv.shape) - 0.5) * (jitter / resolution)) % 1.0
+        t1 = time.perf_counter()
+        wi, wo, f = draw_pairs(teacher, uv, rng)
+        teacher_seconds += time.perf_counter() - t1
+        cos = torch.from_numpy(wo[:, 2:3])
+        y = (torch.from_numpy(f) * cos).reshape(t, pairs, 3).permute(0, 2, 1)  # (t, 3, M)
+        x = (torch.from_numpy(wi).float(), torch.from_numpy(wo).float())
+        old_z = now[0][a : a + t].double()
+        old_z = old_z[:, None, :].expand(t, 3, k) if channels == 1 else old_z
+        candidates: list[torch.Tensor | None] = [None]
+        if now[1] is not None:  # conditioned lobes: the trained latent, then the grid
+            candidates = [now[1][a : a + t], *(torch.full((t, latent), v) for v in grid)]
+        best_r = torch.full((t,), float("inf"), dtype=torch.float64)
+        best_z = torch.zeros(t, channels, k, dtype=torch.float64)
+        best_s = torch.zeros(t, latent)
+        for c, s in enumerate(candidates):
+            extra = () if s is None else (s.repeat_interleave(pairs, 0),)
+            with torch.no_grad():
+                g = lobe(*x, *extra).double() * cos  # (t * M, 3K): g cos
+            g = g.reshape(t, pairs, k, 3).permute(0, 3, 1, 2)  # (t, 3, M, K)
+            if c == 0:  # the trained field's own weights and latent on these pairs
+                d = torch.einsum("tcmk,tck->tcm", g, old_z) - y
+                residual_before += float((d * d).sum())
+            gram = torch.einsum("tcmk,tcml->tckl", g, g)
+            rhs = torch.einsum("tcmk,tcm->tck", g, y)
+            sq = (y * y).sum(-1)
+            if channels == 1:  # one weight for all channels: their problems summed
+                gram, rhs, sq = (
+                    gram.sum(1, keepdim=True),
+                    rhs.sum(1, keepdim=True),
+                    sq.sum(1, keepdim=True),
+                )
+            z, r = nnls(gram, rhs, sq)
+            r = r.sum(-1)
+            better = r < best_r
+            best_r = torch.where(better, r, best_r)
+            best_z = torch.where(better[:, None, None], z, best_z)
+            if s is not None:
+                best_s = torch.where(better[:, None], s, best_s)
+        residual += float(best_r.sum())
+        table[a : a + t, : channels * k] = best_z.reshape(t, channels * k).float()
+        if latent:
+            table[a : a + t, channels * k :] = best_s
+    free = FrozenWeightField(table, resolution, channels=channels, latent=latent)
+    bounded = texel_bound(free.weights(), envelope, free)
+    scaled = (bounded[:, : channels * k] < table[:, : channels * k]).any(-1)
+    out = FrozenWeightField(bounded, resolution, channels=channels, latent=latent)
+    return out, {
+        "resolution": resolution,
+        "pairs_per_texel": pairs,
+        "latents": latents if latent else 0,
+        "seconds": time.perf_counter() - t0,
+        "teacher_seconds": teacher_seconds,
+        "bounded_texel_share": float(scaled.float().mean()),
+        "residual": residual,
+        "residual_trained_field": residual_before,
+    }

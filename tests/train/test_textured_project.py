@@ -1,0 +1,134 @@
+"""The projection of a textured field onto frozen lobes, texel by texel
+(``neural_brdf.train.textured_project``, docs/mitsuba.md "A finer field by projection"):
+the exact NNLS against SciPy's and its optimality conditions, a teacher the lobes can
+represent recovered texel by texel (weights and latent), and the texels bounded as
+``texture.lobe_bound: texel`` bounds them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import nnls as scipy_nnls
+
+from neural_brdf import config as cfgmod
+from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.textured_model import FrozenWeightField, bilinear_wrap
+from neural_brdf.train.textured_project import nnls, project_field, texel_centres
+
+K, R = 3, 4
+
+
+@pytest.mark.parametrize("k", [1, 3, 5])
+def test_nnls_equals_scipys_and_meets_the_optimality_conditions(k):
+    rng = np.random.default_rng(k)
+    a = rng.normal(size=(64, 40, k))
+    y = rng.normal(size=(64, 40))  # random signs: many solutions on the boundary
+    gram = torch.from_numpy(np.einsum("bmk,bml->bkl", a, a))
+    rhs = torch.from_numpy(np.einsum("bmk,bm->bk", a, y))
+    z, r = nnls(gram, rhs, torch.from_numpy((y * y).sum(-1)))
+    z = z.numpy()
+    for i in range(64):
+        ref, norm = scipy_nnls(a[i], y[i])
+        assert np.allclose(z[i], ref, atol=1e-7), (i, z[i], ref)
+        assert r[i].item() == pytest.approx(norm**2, rel=1e-9)
+    grad = np.einsum("bkl,bl->bk", gram.numpy(), z) - rhs.numpy()
+    tol = 1e-6 * np.abs(rhs.numpy()).max()  # the solves' ridge is 1e-9 of G's diagonal
+    assert (z >= 0).all()
+    assert np.all(np.abs(grad[z > 0]) < tol) and np.all(grad[z == 0] > -tol)
+    assert (z == 0).any() and (z > 0).any()  # both kinds of constraint were exercised
+
+
+class MixTeacher:
+    """A teacher the lobes represent exactly at texel centres: at uv, the nearest
+    centre's weights z* (3, K) and latent s* mix the lobes' own values; its sampler
+    always fails (the pairs stay uniform)."""
+
+    def __init__(self, lobe, z, s):
+        self.lobe, self.z, self.s = lobe, z, s
+
+    def _texel(self, uv):
+        ij = np.floor(np.asarray(uv) * R).astype(int) % R
+        return ij[:, 1] * R + ij[:, 0]
+
+    def eval(self, wi, wo, uv):
+        t = self._texel(uv)
+        s = torch.from_numpy(self.s[t]).float()
+        with torch.no_grad():
+            g = self.lobe(torch.from_numpy(wi).float(), torch.from_numpy(wo).float(), s)
+        g = g.double().numpy().reshape(len(t), K, 3)
+        return np.einsum("nkc,nck->nc", g, self.z[t])
+
+    def sample(self, wi, uv, u):
+        return np.tile([0.0, 0.0, -1.0], (len(wi), 1))
+
+
+@pytest.fixture(scope="module")
+def lobe():
+    torch.manual_seed(0)
+    net = RawBRDF.from_config(cfgmod.Model(hidden=[8]), heads=K, latent=1).eval()
+    with torch.no_grad():  # heads that differ (a new network's heads start alike)
+        for p in net.parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    return net
+
+
+def _field(rng, channels=3):
+    table = np.concatenate([rng.random((R * R, channels * K)), rng.random((R * R, 1))], -1)
+    return FrozenWeightField(
+        torch.tensor(table, dtype=torch.float32), R, channels=channels, latent=1
+    )
+
+
+def test_a_teacher_the_lobes_represent_is_recovered_texel_by_texel(lobe):
+    rng = np.random.default_rng(1)
+    z = rng.random((R * R, 3, K)) * 0.4
+    z[rng.random(z.shape) < 0.3] = 0.0  # some weights on the constraint
+    latents = 5
+    s = rng.integers(0, latents, (R * R, 1)) / (latents - 1)  # on the search's grid
+    start = _field(rng)  # another field: the search must not keep its latent
+    env = torch.zeros(1, 3 * K)  # no bound
+    out, fig = project_field(
+        lobe, start, MixTeacher(lobe, z, s), env, resolution=R, pairs=64, latents=latents
+    )
+    table = out.weights().numpy()
+    assert np.allclose(table[:, : 3 * K].reshape(-1, 3, K), z, atol=2e-4)
+    assert np.allclose(table[:, 3 * K :], s)
+    assert fig["residual"] < 1e-6 * fig["residual_trained_field"]
+    assert fig["bounded_texel_share"] == 0.0
+    # the order of the table is the field's: a look-up at each centre gives its texel
+    uv = torch.from_numpy(texel_centres(R)).float()
+    assert torch.allclose(bilinear_wrap(out.weights(), uv, R), out.weights(), atol=1e-6)
+
+
+def test_projected_texels_keep_the_albedo_bound_of_every_node(lobe):
+    rng = np.random.default_rng(2)
+    z = rng.random((R * R, 3, K)) * 0.5
+    s = np.full((R * R, 1), 0.5)
+    env = torch.from_numpy(rng.random((6, 3 * K)) * 2.0).float()  # bounds that bind
+    out, fig = project_field(
+        lobe, _field(rng), MixTeacher(lobe, z, s), env, resolution=R, pairs=32, latents=3
+    )
+    w = out.weights()[:, : 3 * K].reshape(-1, 3, K)
+    e = env.reshape(-1, K, 3).permute(0, 2, 1)  # (J, 3, K)
+    assert (w >= 0).all()
+    assert torch.einsum("tck,jck->tjc", w, e).max() <= 1.0 + 1e-5
+    assert fig["bounded_texel_share"] > 0
+
+
+def test_one_weight_per_lobe_fits_the_three_channels_together(lobe):
+    rng = np.random.default_rng(3)
+    z1 = rng.random((R * R, 1, K)) * 0.4
+    s = np.zeros((R * R, 1))
+    teacher = MixTeacher(lobe, np.repeat(z1, 3, 1), s)
+    out, _ = project_field(
+        lobe,
+        _field(rng, channels=1),
+        teacher,
+        torch.zeros(1, 3 * K),
+        resolution=R,
+        pairs=48,
+        latents=2,
+    )
+    assert out.channels == 1
+    assert np.allclose(out.weights()[:, :K].numpy(), z1[:, 0], atol=2e-4)
