@@ -324,6 +324,7 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     assert projection["residual"] < projection["residual_trained_field"]
     checks = metrics["checks"]
     assert checks["reciprocity"]["value"] == 0.0 and checks["max_albedo"]["passed"]
+    assert "projected onto the trained lobes at 12² texels" in (run_dir / "report.html").read_text()
     export_matches_the_run(capsys, run_dir, tmp_path / "again.onnx", seed=5)
     code, _, err = cli(
         capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",

@@ -427,6 +427,16 @@ def _textured_note(run: Run) -> list:
             f" The teacher has a normal map (tilts up to "
             f"{field.get('teacher_max_tilt_deg', 0):.3g}°) that this file does not carry."
         )
+    projection = (run.metrics.get("training") or {}).get("projection")
+    if isinstance(projection, dict):
+        scaled = 100 * projection.get("bounded_texel_share", 0)
+        text += (
+            f" The field was projected onto the trained lobes at {projection.get('resolution')}"
+            f"² texels (texture.project: each texel's weights fitted to the teacher on "
+            f"{projection.get('pairs_per_texel')} pairs at its centre, in "
+            f"{projection.get('seconds', 0):.0f} s; {scaled:.0f} % of the texels scaled down "
+            "by the lobes' bound)."
+        )
     excess = run.metrics.get("teacher_excess")
     if isinstance(excess, dict):
         text += (
