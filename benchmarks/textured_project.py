@@ -1,7 +1,7 @@
 """A finer field by projection onto the trained lobes, texel by texel (issue 30,
-development teachers; nothing in the pipeline uses it yet).
+``texture.project``; the development teachers chose textured.py's setting).
 
-    python benchmarks/textured_project.py              # about 30 minutes on 2 cores
+    python benchmarks/textured_project.py              # about 12 minutes on 2 cores
     python benchmarks/textured_project.py --set test   # the setting chosen, held out
     python benchmarks/textured_project.py --quick      # tiny budgets: the machinery only
 

@@ -603,9 +603,9 @@ def sizes(cfg: Config) -> list[tuple[str, float]]:
         # a textured teacher's pool (a homogeneous one reads data.pool_size alone)
         pool = cfg.texture.pool(d.pool_size)
         out.append(("texture.pool_per_texel", float(pool) * PAIR_BYTES))
-        if cfg.texture.project is not None:  # the projected table, float32 and float64
-            width = 3 * cfg.texture.lobes + 1
-            out.append(("texture.project", 12.0 * cfg.texture.project**2 * width * 4))
+        if cfg.texture.project is not None:  # the projected table: its float64 solutions,
+            width = 3 * cfg.texture.lobes + 1  # the float32 table and its bounded copy
+            out.append(("texture.project", (8.0 + 4.0 + 4.0) * cfg.texture.project**2 * width))
     for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
         out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))
     return out

@@ -516,14 +516,15 @@ def with_normal_field(model: TexturedBRDF, target: Any) -> TexturedBRDF:
 
 
 def _weights_text(field: Any) -> str:
-    """What bounds the field's weights, as the file holds them: a softmax's (sum <= 1)
-    or, for a projected field of raw lobes (texture.project with lobe_bound texel), the
-    lobes' envelope alone (docs/model.md)."""
+    """What bounds the field's weights, as the file holds them: sum <= 1 (a softmax with
+    an empty slot, or a projected field of normalised lobes) or, for a projected field of
+    raw lobes (texture.project with lobe_bound texel), the lobes' envelope alone
+    (docs/model.md)."""
     with torch.no_grad():
         k, c = int(field.lobes), int(getattr(field, "channels", 1))
         z = field.weights()[:, : c * k].reshape(-1, c, k)
         if float(z.sum(-1).max()) <= 1.0 + 1e-6:
-            return "z_k >= 0, sum_k z_k <= 1 at every uv (a softmax with an empty slot)"
+            return "z_k >= 0, sum_k z_k <= 1 at every uv"
     return (
         "z_k >= 0 and, per texel and channel, sum_k z_k A+_k <= 1 at every node of "
         "incidence (the lobes' albedo bounds; bilinear blends keep it)"

@@ -101,7 +101,6 @@ def project_field(
     pairs: int = 128,
     latents: int = 5,
     seed: int = 0,
-    jitter: float = 0.0,
     chunk_pairs: int = 1 << 19,
 ) -> tuple[FrozenWeightField, dict[str, Any]]:
     """The weights (and latent) of every texel of an R x R field (R = ``resolution``)
@@ -111,8 +110,6 @@ def project_field(
     conditioned lobes (``field.latent``) the latent is chosen per texel among
     ``latents`` values evenly spaced on [0, 1] and ``field``'s own value at the centre.
     One weight per lobe (``field.channels`` 1) fits the three channels together.
-    ``jitter`` > 0 draws each pair's uv uniformly on a square of that many texels about
-    the centre instead (the texel's weights then fit its neighbourhood).
     Returns the frozen field and figures (seconds, the share of texels the bound
     scaled down, the squared residual's sum over the texels' pairs against that of
     ``field`` on the same pairs)."""
@@ -129,8 +126,6 @@ def project_field(
     for a in range(0, count, per):
         t = min(per, count - a)
         uv = np.repeat(centres[a : a + t], pairs, 0)
-        if jitter > 0:  # pairs spread over a square of jitter texels about the centre
-            uv = (uv + (rng.random(uv.shape) - 0.5) * (jitter / resolution)) % 1.0
         t1 = time.perf_counter()
         wi, wo, f = draw_pairs(teacher, uv, rng)
         teacher_seconds += time.perf_counter() - t1
