@@ -481,21 +481,16 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
     t1 = time.perf_counter()
     model, tables = normalized_textured(model, bound=settings.get("lobe_bound", "table"))
     if settings.get("project"):  # texture.project: the field fitted texel by texel
-        from neural_brdf.train.textured_model import TexturedBRDF
-        from neural_brdf.train.textured_project import project_field
+        from neural_brdf.train.textured_project import projected
 
-        lobe = model.lobes[0]
-        field, fig["projection"] = project_field(
-            lobe,
-            model.field,
+        model, fig["projection"] = projected(
+            model,
             teacher,
-            model.bound_envelope,
             resolution=settings["project"],
             pairs=settings.get("project_pairs", 128),
             latents=settings.get("project_latents", 5),
             seed=settings.get("seed", 0) + 23,
         )
-        model = TexturedBRDF([lobe], field, model.normal).eval()
     # the same lobes and weights without and with the teacher's normal field
     bare = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1])
     (folder / "bare.onnx").write_bytes(bare)

@@ -109,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from neural_brdf.measured.procedural import write_teacher
     from neural_brdf.measured.textured import TexturedMitsubaTarget
-    from neural_brdf.train.textured_model import TexturedBRDF, normalized_textured, raw_of
-    from neural_brdf.train.textured_project import project_field
+    from neural_brdf.train.textured_model import normalized_textured
+    from neural_brdf.train.textured_project import projected
 
     settings = {**bench.SETTINGS, "starts": 1}
     fields = FIELDS if args.which == "dev" else (CHOSEN,)
@@ -133,8 +133,6 @@ def main(argv: list[str] | None = None) -> int:
             model, fig = bench.trained_model(teacher, {**settings, "seed": seed})
             trained_s = time.perf_counter() - t0
             nmodel, _ = normalized_textured(model, bound="texel")
-            env = nmodel.bound_envelope  # what bounds a texel of these lobes
-            lobe = raw_of(model.lobes[0]).eval()
 
             row = {
                 "teacher": kind,
@@ -147,17 +145,9 @@ def main(argv: list[str] | None = None) -> int:
             }
             print(f"{kind} seed {seed}: trained {row['trained']['rel_rmse']:.2%}", file=sys.stderr)
             for resolution, per, latents in fields:
-                field, info = project_field(
-                    lobe,
-                    nmodel.field,
-                    teacher,
-                    env,
-                    resolution=resolution,
-                    pairs=per,
-                    latents=latents,
-                    seed=seed,
+                m, info = projected(
+                    nmodel, teacher, resolution=resolution, pairs=per, latents=latents, seed=seed
                 )
-                m = TexturedBRDF([lobe], field, None).eval()
                 got = measure(m, folder / f"projected_{resolution}.onnx", resolution, pairs, phys)
                 row["projected"].append({**got, **info})
                 print(

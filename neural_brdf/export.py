@@ -715,7 +715,7 @@ def textured_for_export(
     ``train.seed``, bounded by the lobes' envelope).  Returns (model, the lobes' table
     figures, the projection's figures or None).  The run and ``export RUN`` both call
     it, so a re-export gives the run's file."""
-    from neural_brdf.train.textured_model import TexturedBRDF, normalized_textured
+    from neural_brdf.train.textured_model import normalized_textured
 
     model, tables = normalized_textured(
         model, cfg.normalization, seed=cfg.train.seed, bound=cfg.texture.lobe_bound
@@ -723,20 +723,17 @@ def textured_for_export(
     tx = cfg.texture
     if tx.project is None:
         return model, tables, None
-    from neural_brdf.train.textured_project import project_field
+    from neural_brdf.train.textured_project import projected
 
-    lobe = model.lobes[0]
-    field, info = project_field(
-        lobe,
-        model.field,
+    model, info = projected(
+        model,
         target,
-        model.bound_envelope,
         resolution=tx.project,
         pairs=tx.project_pairs,
         latents=tx.project_latents,
         seed=cfg.train.seed + 23,
     )
-    return TexturedBRDF([lobe], field, model.normal).eval(), tables, info
+    return model, tables, info
 
 
 def _export_textured(

@@ -31,7 +31,12 @@ import numpy as np
 import torch
 
 from analytic import frame
-from neural_brdf.train.textured_model import FrozenWeightField, WeightField, texel_bound
+from neural_brdf.train.textured_model import (
+    FrozenWeightField,
+    TexturedBRDF,
+    WeightField,
+    texel_bound,
+)
 
 MAX_LOBES = 8  # every active set: 2^K - 1 small solves per problem
 
@@ -182,3 +187,25 @@ def project_field(
         "residual": residual,
         "residual_trained_field": residual_before,
     }
+
+
+def projected(
+    model: TexturedBRDF, teacher: Any, *, resolution: int, pairs: int, latents: int, seed: int
+) -> tuple[TexturedBRDF, dict[str, Any]]:
+    """A normalised textured model (``normalized_textured``'s: one shared lobe network,
+    its ``bound_envelope`` set) with its field replaced by :func:`project_field`'s at
+    ``resolution``; the lobes and the normal field are kept.  Returns (model, figures)."""
+    if model.bound_envelope is None:
+        raise ValueError("projected: a model from normalized_textured (bound_envelope set)")
+    lobe = model.lobes[0]
+    field, info = project_field(
+        lobe,
+        model.field,
+        teacher,
+        model.bound_envelope,
+        resolution=resolution,
+        pairs=pairs,
+        latents=latents,
+        seed=seed,
+    )
+    return TexturedBRDF([lobe], field, model.normal).eval(), info
