@@ -731,6 +731,7 @@ def textured_for_export(
         resolution=tx.project,
         pairs=tx.project_pairs,
         latents=tx.project_latents,
+        ridge=tx.project_ridge,
         seed=cfg.train.seed + 23,
     )
     return model, tables, info

@@ -1895,8 +1895,9 @@ def textured_project_section(d: dict) -> list[str]:
         f"{st['lobe_bound']}) with one start; `projected`: the same lobes with the field "
         "replaced by `neural_brdf.train.textured_project.project_field` at R² (each texel's "
         "weights the exact non-negative least squares of f·cos on its pairs drawn at its "
-        "centre, its latent the best of the listed values and the trained one, then the "
-        "texel bound). Each exported without the normal field and scored by onnxruntime on "
+        "centre, shrunk toward the trained field's weights there by the listed ridge, its "
+        "latent the best of the listed values and the trained one, then the texel "
+        "bound). Each exported without the normal field and scored by onnxruntime on "
         f"two draws of {d['pairs']['n']:,} pairs each, drawn as benchmarks/textured.py draws "
         f"them (seeds {' and '.join(str(x) for x in d['pairs']['seeds'])}, uv uniform): "
         "relative RMSE of f·cos over both draws (each draw's own); reciprocity and the "
@@ -1914,7 +1915,9 @@ def textured_project_section(d: dict) -> list[str]:
                     str(r["seed"]),
                     "projected" if projected else "trained",
                     f"{x['resolution']}²",
-                    f"{x['pairs_per_texel']}, {x['latents']}" if projected else "-",
+                    f"{x['pairs_per_texel']}, {x['latents']}, {x.get('ridge', 0.0):g}"
+                    if projected
+                    else "-",
                     f"{_pct(x['rel_rmse'], 2)} ("
                     + ", ".join(_pct(e, 2) for e in x["rel_rmse_sets"])
                     + ")",
@@ -1930,7 +1933,7 @@ def textured_project_section(d: dict) -> list[str]:
             "seed",
             "field",
             "R²",
-            "pairs per texel, latents",
+            "pairs per texel, latents, ridge",
             "f·cos rel. RMSE",
             "reciprocity",
             "largest albedo",

@@ -29,6 +29,7 @@ import onnxruntime as ort
 import pytest
 
 from cli_helpers import assert_one_line_error, cli
+from neural_brdf import config as cfgmod
 
 pytestmark = pytest.mark.mitsuba
 
@@ -322,6 +323,8 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     projection = metrics["training"]["projection"]
     assert projection["resolution"] == 12 and projection["pairs_per_texel"] == 128
     assert projection["residual"] < projection["residual_trained_field"]
+    # the config's ridge reached the projection (the default: none given here)
+    assert projection["ridge"] == cfgmod.Texture().project_ridge > 0
     checks = metrics["checks"]
     assert checks["reciprocity"]["value"] == 0.0 and checks["max_albedo"]["passed"]
     assert "projected onto the trained lobes at 12² texels" in (run_dir / "report.html").read_text()
@@ -331,4 +334,10 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
         "texture.project=12", "--set", "texture.lobe_network=separate",
     )  # fmt: skip
     assert_one_line_error(code, err, "texture.project", "lobe_network: shared")
+    assert not (tmp_path / "bad").exists()
+    code, _, err = cli(
+        capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
+        "texture.project=12", "--set", "texture.project_ridge=-1",
+    )  # fmt: skip
+    assert_one_line_error(code, err, "texture.project_ridge")
     assert not (tmp_path / "bad").exists()

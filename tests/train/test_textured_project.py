@@ -1,8 +1,8 @@
 """The projection of a textured field onto frozen lobes, texel by texel
 (``neural_brdf.train.textured_project``, docs/mitsuba.md "A finer field by projection"):
 the exact NNLS against SciPy's and its optimality conditions, a teacher the lobes can
-represent recovered texel by texel (weights and latent), and the texels bounded as
-``texture.lobe_bound: texel`` bounds them."""
+represent recovered texel by texel (weights and latent), the texels bounded as
+``texture.lobe_bound: texel`` bounds them, and the ridge toward the trained field."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from scipy.optimize import nnls as scipy_nnls
 
 from neural_brdf import config as cfgmod
 from neural_brdf.train.model import RawBRDF
-from neural_brdf.train.textured_model import FrozenWeightField, bilinear_wrap
-from neural_brdf.train.textured_project import nnls, project_field, texel_centres
+from neural_brdf.train.textured_model import FrozenWeightField, TexturedBRDF, bilinear_wrap
+from neural_brdf.train.textured_project import draw_pairs, nnls, project_field, texel_centres
 
 K, R = 3, 4
 
@@ -132,3 +132,42 @@ def test_one_weight_per_lobe_fits_the_three_channels_together(lobe):
     )
     assert out.channels == 1
     assert np.allclose(out.weights()[:, :K].numpy(), z1[:, 0], atol=2e-4)
+
+
+def _data_error(lobe, out, teacher, pairs, seed):
+    """The squared error of f cos of the projected field ``out`` on the pairs
+    project_field drew (the same seed; one chunk: every texel's pairs in one draw)."""
+    uv = np.repeat(texel_centres(R), pairs, 0)
+    wi, wo, f = draw_pairs(teacher, uv, np.random.default_rng(seed))
+    model = TexturedBRDF([lobe], out).eval()
+    with torch.no_grad():
+        got = model(*(torch.from_numpy(a).float() for a in (wi, wo, uv))).double().numpy()
+    return float((((got - f) * wo[:, 2:3]) ** 2).sum())
+
+
+def test_a_ridge_shrinks_each_texel_toward_the_trained_field(lobe):
+    rng = np.random.default_rng(4)
+    z = rng.random((R * R, 3, K)) * 0.4
+    s = np.full((R * R, 1), 0.5)
+    teacher = MixTeacher(lobe, z, s)
+    start = _field(rng)  # the "trained" field: other weights, latent 0.5 at every texel
+    start.table[:, 3 * K :] = 0.5
+    env = torch.zeros(1, 3 * K)  # no bound
+    kw = dict(resolution=R, pairs=32, latents=3, seed=9)
+    free, f0 = project_field(lobe, start, teacher, env, **kw)
+    mid, f1 = project_field(lobe, start, teacher, env, ridge=1.0, **kw)
+    stiff, f2 = project_field(lobe, start, teacher, env, ridge=1e7, **kw)
+    w = [m.weights()[:, : 3 * K].reshape(-1, 3, K).numpy() for m in (free, mid, stiff)]
+    z0 = start.weights()[:, : 3 * K].reshape(-1, 3, K).numpy()
+    assert np.allclose(w[0], z, atol=2e-4)  # no ridge: the teacher's own weights
+    assert np.allclose(w[2], z0, atol=1e-4)  # a stiff ridge: the trained field's
+    d_mid, d_start = np.abs(w[1] - z).sum(), np.abs(z0 - z).sum()
+    assert 0.05 * d_start < d_mid < 0.95 * d_start  # in between
+    # the figure is the error alone (the penalty left out), on the pairs it drew
+    assert f1["residual"] == pytest.approx(_data_error(lobe, mid, teacher, 32, 9), rel=1e-4)
+    assert (
+        f0["residual"]
+        < f1["residual"]
+        < f2["residual"]
+        <= f2["residual_trained_field"] * (1 + 1e-6)
+    )
