@@ -422,12 +422,12 @@ class Texture(_Section):
     # is, so the physics holds as before.  null: the trained field (R x R) is the file's.
     # Shared lobe networks only; the export does it again from the checkpoint (seeded)
     project: int | None = Field(None, ge=1, le=2048)
-    project_pairs: int = Field(128, ge=8)
+    project_pairs: int = Field(512, ge=8)
     project_latents: int = Field(5, ge=2, le=64)
     # each projected texel shrunk toward the trained field's weights at its centre: a
     # ridge of project_ridge times the mean diagonal of its least squares' normal matrix
     # (0: none); chosen on the development teachers (docs/mitsuba.md)
-    project_ridge: float = Field(0.03, ge=0.0, le=100.0)
+    project_ridge: float = Field(0.01, ge=0.0, le=100.0)
     # random uv of the furnace (validate; a quadrature each, so bounded); pairs' uv: all
     # random
     validation_uv: int = Field(64, ge=1, le=4096)

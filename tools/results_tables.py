@@ -1466,7 +1466,7 @@ def textured_section(d: dict) -> list[str]:
         + (
             f", then the field projected onto the lobes at {st['project']}² texels "
             f"(`texture.project`, {st.get('project_pairs', 128)} pairs per texel, "
-            f"{st.get('project_latents', 5)} latents)"
+            f"{st.get('project_latents', 5)} latents, ridge {st.get('project_ridge', 0.0):g})"
             if st.get("project")
             else ""
         )
@@ -1944,6 +1944,73 @@ def textured_project_section(d: dict) -> list[str]:
     )
 
 
+def textured_tour_section(d: dict) -> list[str]:
+    """issue 30: the README tour's textured config, run as a user runs it, with each
+    texture.project (development) or as the tour writes it (test)."""
+    m, c = d["machine"], d["config"]
+    test = d["set"] == "test"
+    tx = c["texture"]
+    out = [
+        "## Textured materials: the README tour's config ("
+        + ("test set: held out, the tour's own teacher" if test else "development set")
+        + ")",
+        "",
+        _source(
+            f"benchmarks/results/textured_tour_{d['set']}.json",
+            "python benchmarks/textured_tour.py" + (" --set test" if test else ""),
+        ),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores",
+            f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
+        ),
+        f"Teachers: {d['teachers']}. The config `python -m neural_brdf.measured.procedural` "
+        f"writes (K = {tx['lobes']} lobes, a {tx['resolution']}² field, latent "
+        f"{tx['latent']}, weights {tx['weights']}, lobe_color {tx['lobe_color']}, "
+        f"{c['train']['steps']} steps"
+        + (f", texture.project {tx['project']}" if tx.get("project") else "")
+        + "), trained, exported and validated by `pipeline.run` with the listed "
+        "`texture.project`; each `model.onnx` scored by onnxruntime on two draws of "
+        f"{d['pairs']['n']:,} pairs each, drawn as benchmarks/textured.py draws them (seeds "
+        f"{' and '.join(str(x) for x in d['pairs']['seeds'])}, uv uniform): relative RMSE "
+        "of f·cos over both draws (each draw's own). Reciprocity and the largest albedo: "
+        "the run's own checks (metrics.json). Time: the whole run (train, projection, "
+        "export, validation, report).",
+        "",
+    ]
+    rows = []
+    for r in d["rows"]:
+        proj = r["project"]
+        rows.append(
+            [
+                r["teacher"],
+                "-" if proj is None else f"{proj}² ({r['project_pairs']}, {r['project_ridge']:g})",
+                f"{_pct(r['rel_rmse'], 2)} ("
+                + ", ".join(_pct(e, 2) for e in r["rel_rmse_sets"])
+                + ")",
+                f"{r['reciprocity']:.1g}",
+                f"{r['max_albedo']:.3f}" + ("" if r["max_albedo_passed"] else " (FAIL)"),
+                f"{r['file_bytes'] / 2**20:.1f} MiB",
+                f"{r['run_seconds']:.0f} s"
+                + (
+                    "" if r["projection_seconds"] is None else f" ({r['projection_seconds']:.0f} s)"
+                ),
+            ]
+        )
+    return out + _table(
+        [
+            "teacher",
+            "texture.project (pairs, ridge)",
+            "f·cos rel. RMSE",
+            "reciprocity",
+            "largest albedo",
+            "file",
+            "run (projection)",
+        ],
+        rows,
+    )
+
+
 def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -> list[str]:
     """issue 30: the textured recipe's lobes at one texel against the compact file (with
     ``--grazing-power``: both models' model.grazing_power changed, the run's own file)."""
@@ -2368,6 +2435,8 @@ SECTIONS = (
     ),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (RESULTS / "textured_project_dev.json", textured_project_section),
+    (RESULTS / "textured_tour_dev.json", textured_tour_section),
+    (RESULTS / "textured_tour_test.json", textured_tour_section),
     (RESULTS / "textured_grazing_dev.json", textured_grazing_section),
     (
         RESULTS / "textured_grey_dev.json",
