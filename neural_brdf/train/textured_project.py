@@ -20,12 +20,13 @@ reciprocity is the lobes' own.  The error of f cos is the benchmark's measure
 (relative RMSE over pairs, benchmarks/textured.py), so a least-squares fit per texel
 lowers exactly the sum that figure is made of, at the texel centres.
 
-A texel's 128 pairs are few for a heavy-tailed teacher: on the development principled
-the fit's error on its own pairs is half of what held-out pairs at the same centres
-show, and 512 or 2048 pairs per texel lower the held-out figure (docs/mitsuba.md).  So
-``ridge`` shrinks each texel toward the trained field's weights there (the trained
-field fitted every pair near the texel): a ridge of the least squares toward z_0, as
-strong as ``ridge`` times the mean diagonal of the texel's normal matrix.
+A texel's pairs are few for a heavy-tailed teacher: on the development principled, with
+128 pairs a texel, the fit's error on its own pairs was about half of what fresh pairs
+at the same centres showed, and more pairs lowered the latter (docs/mitsuba.md, "The
+pairs per texel and the ridge").  So besides more pairs (``texture.project_pairs``),
+``ridge`` shrinks each texel toward the trained field's weights there (the trained field
+fitted every pair near the texel): a ridge of the least squares toward z_0, as strong as
+``ridge`` times the mean diagonal of the texel's normal matrix.
 """
 
 from __future__ import annotations
@@ -126,9 +127,9 @@ def project_field(
     ``ridge`` > 0 shrinks each texel toward ``field``'s weights z_0 at its centre: the
     least squares gains ridge * mean(diag A^T A) * ||z - z_0||^2 (scale-free; every
     latent tried keeps the same z_0), and the texel keeps the candidate of least
-    penalised error.  Returns the frozen field and figures (seconds, the share of texels the bound
-    scaled down, the squared residual's sum over the texels' pairs against that of
-    ``field`` on the same pairs)."""
+    penalised error.  Returns the frozen field and figures (seconds, the share of texels
+    the bound scaled down, the squared residual's sum over the texels' pairs, without
+    the penalty, against that of ``field`` on the same pairs)."""
     t0 = time.perf_counter()
     k, channels, latent = field.lobes, field.channels, field.latent
     rng = np.random.default_rng(seed)
