@@ -52,6 +52,21 @@ def matmul_flops_per_s(repeats: int) -> float:
     return 2.0 * MATMUL_N**3 / best_time(lambda: torch.mm(a, b), repeats)
 
 
+def machine(load_before: list[float], **versions: str) -> dict:
+    """The JSON's ``machine`` entry: platform, cores, the load average (1, 5, 15 min)
+    before the run and now, then ``versions`` (mitsuba=..., torch=...)."""
+    import os
+    import platform
+
+    return {
+        "platform": platform.platform(),
+        "cores": os.cpu_count(),
+        "loadavg_before": load_before,
+        "loadavg_after": [round(x, 2) for x in os.getloadavg()],
+        **versions,
+    }
+
+
 def write_json(path: Path, data) -> None:
     """Write pretty JSON atomically (neural_brdf.fileio: temporary file, fsync, rename)."""
     from neural_brdf.fileio import atomic_write

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -49,7 +48,7 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import write_json  # noqa: E402
+from common import machine, write_json  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 BASE = (0.7, 0.4, 0.2)  # a development base colour (the test's principled_plain: 0.6, 0.35, 0.2)
@@ -183,14 +182,7 @@ def main(argv: list[str] | None = None) -> int:
             "set": "dev",
             "quick": args.quick,
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": {
-                "platform": platform.platform(),
-                "cores": os.cpu_count(),
-                "loadavg_before": load_before,
-                "loadavg_after": [round(x, 2) for x in os.getloadavg()],
-                "mitsuba": mi.__version__,
-                "torch": torch.__version__,
-            },
+            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
             "teacher": "twosided > principled, base_color "
             + ", ".join(f"{c:g}" for c in BASE)
             + ", specular 0.5, sheen 0; roughness and metallic per row (development)",

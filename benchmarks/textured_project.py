@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -41,7 +40,7 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import write_json  # noqa: E402
+from common import machine, write_json  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 # two sets of pairs: f cos is heavy-tailed (docs/mitsuba.md: blocks of 20,000 pairs
@@ -71,11 +70,26 @@ CHOSEN = (256, 512, 5, 0.01)
 TEST_RUNS = (("principled", 0), ("roughplastic", 0))
 
 
+def score(f, pairs) -> dict:
+    """The relative RMSE of f cos of ``f`` (a ``textured.OnnxFile``) on each set of
+    ``pairs`` (wi, wo, uv, ref) and on all of them together."""
+    import numpy as np
+
+    d2, r2 = [], []
+    for wi, wo, uv, ref in pairs:
+        cos = wo[:, 2:3]
+        d2.append(float((((f(wi, wo, uv) - ref) * cos) ** 2).sum()))
+        r2.append(float(((ref * cos) ** 2).sum()))
+    return {
+        "rel_rmse": float(np.sqrt(sum(d2) / sum(r2))),
+        "rel_rmse_sets": [float(np.sqrt(a / b)) for a, b in zip(d2, r2)],
+    }
+
+
 def measure(model, path: Path, resolution: int, pairs, phys: tuple[int, int]) -> dict:
     """Export ``model`` (f alone) to ``path`` and score it: the relative RMSE of f cos on
     each set of ``pairs`` (wi, wo, uv, ref) and on all of them together, reciprocity and
     the furnace (``phys``: uv, side)."""
-    import numpy as np
     import textured as bench
 
     from neural_brdf import export
@@ -84,16 +98,10 @@ def measure(model, path: Path, resolution: int, pairs, phys: tuple[int, int]) ->
     payload = export.to_onnx_bytes(exportable(model), 17, inputs=bench.SIGNATURES[1])
     path.write_bytes(payload)
     f = bench.OnnxFile(path)
-    d2, r2 = [], []
-    for wi, wo, uv, ref in pairs:
-        cos = wo[:, 2:3]
-        d2.append(float((((f(wi, wo, uv) - ref) * cos) ** 2).sum()))
-        r2.append(float(((ref * cos) ** 2).sum()))
     p = bench.physics(f, path, resolution, phys[0], phys[1], seed=11)
     return {
         "resolution": resolution,
-        "rel_rmse": float(np.sqrt(sum(d2) / sum(r2))),
-        "rel_rmse_sets": [float(np.sqrt(a / b)) for a, b in zip(d2, r2)],
+        **score(f, pairs),
         "file_bytes": len(payload),
         "reciprocity": p["reciprocity"],
         "max_albedo": p["max_albedo"],
@@ -180,14 +188,7 @@ def main(argv: list[str] | None = None) -> int:
             "set": args.which,
             "quick": args.quick,
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": {
-                "platform": platform.platform(),
-                "cores": os.cpu_count(),
-                "loadavg_before": load_before,
-                "loadavg_after": [round(x, 2) for x in os.getloadavg()],
-                "mitsuba": mi.__version__,
-                "torch": torch.__version__,
-            },
+            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
             "teachers": f"write_teacher(kind, size 512, seed {bench.SEEDS[args.which]}) "
             + ("(development)" if args.which == "dev" else "(test: held out)"),
             "settings": settings,

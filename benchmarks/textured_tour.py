@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -36,13 +35,13 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import write_json  # noqa: E402
+from common import machine, write_json  # noqa: E402
+from textured_project import PAIRS, SEEDS, score  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 KINDS = ("roughplastic", "principled")  # the tour's default kind first
 PROJECT = (None, 128, 256)  # texture.project on the development teachers
-PAIRS = 500_000  # per draw (textured_project.py: 200,000 are too few for a projection)
-SEEDS = {"dev": (900, 901), "test": (7, 8)}  # textured_project.py's
+# the pairs: textured_project.py's (PAIRS per draw, its SEEDS of each set)
 
 
 def tour_config(folder: Path, steps: int) -> str:
@@ -50,23 +49,6 @@ def tour_config(folder: Path, steps: int) -> str:
     from neural_brdf.measured.procedural import CONFIG
 
     return CONFIG.format(config=folder / "textured.yaml", name="tour", steps=steps)
-
-
-def score(path: Path, pairs) -> dict:
-    """Relative RMSE of f cos of the file at ``path`` on each set of ``pairs`` and on all."""
-    import numpy as np
-    import textured as bench
-
-    f = bench.OnnxFile(path)
-    d2, r2 = [], []
-    for wi, wo, uv, ref in pairs:
-        cos = wo[:, 2:3]
-        d2.append(float((((f(wi, wo, uv) - ref) * cos) ** 2).sum()))
-        r2.append(float(((ref * cos) ** 2).sum()))
-    return {
-        "rel_rmse": float(np.sqrt(sum(d2) / sum(r2))),
-        "rel_rmse_sets": [float(np.sqrt(a / b)) for a, b in zip(d2, r2)],
-    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
                     "reciprocity": checks["reciprocity"]["value"],
                     "max_albedo": checks["max_albedo"]["value"],
                     "max_albedo_passed": checks["max_albedo"]["passed"],
-                    **score(run / "model.onnx", pairs),
+                    **score(bench.OnnxFile(run / "model.onnx"), pairs),
                 }
                 rows.append(row)
                 print(
@@ -142,14 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             "set": args.which,
             "quick": args.quick,
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": {
-                "platform": platform.platform(),
-                "cores": os.cpu_count(),
-                "loadavg_before": load_before,
-                "loadavg_after": [round(x, 2) for x in os.getloadavg()],
-                "mitsuba": mi.__version__,
-                "torch": torch.__version__,
-            },
+            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
             "teachers": f"write_teacher(kind, size {size}, seed {bench.SEEDS[args.which]}) "
             + (
                 "(development)"
