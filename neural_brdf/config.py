@@ -777,12 +777,32 @@ def _images_relative_to(raw: dict, folder: Path) -> None:
                 item[key] = os.path.abspath(folder / value)
 
 
+# Keys added after runs were written whose default is not what the earlier version did:
+# the value that does it again.  A run's config.yaml is resolved (every key of its
+# version written), so a key it lacks was added since, and ``load(..., run=True)``
+# gives it this value, not the default: ``export RUN`` of an older run makes its file
+# again.  A user's config without the key takes the default.
+EARLIER: dict[tuple[str, str], Any] = {
+    ("texture", "project_ridge"): 0.0,  # no ridge before texture.project_ridge
+}
+
+
+def _earlier_defaults(raw: dict) -> None:
+    """A run's resolved config: each :data:`EARLIER` key it lacks (in a section it has)
+    takes the earlier version's value."""
+    for (section, key), value in EARLIER.items():
+        part = raw.get(section)
+        if isinstance(part, dict) and key not in part:
+            part[key] = value
+
+
 def load(
     path: str | Path | None,
     overrides: Sequence[str] = (),
     *,
     name: str | None = None,
     warn: Callable[[str], None] | None = None,
+    run: bool = False,
 ) -> Config:
     """Read a YAML config (or start from the defaults when ``path`` is None), apply
     ``--set`` overrides and validate.  ``name`` defaults to the file's stem.
@@ -790,6 +810,10 @@ def load(
     ``warn`` is called with a one-line message when the file (with the overrides)
     gives no ``target``: an empty file, or one without a ``target:`` section, is valid,
     and trains the default target, but is more likely a mistake.
+
+    ``run``: ``path`` is a run's resolved config.yaml, written by an earlier version
+    perhaps: a key it lacks that did otherwise before it existed takes that value
+    (:data:`EARLIER`).
     """
     raw: dict = {}
     empty = False
@@ -806,6 +830,8 @@ def load(
         if "name" not in raw:
             raw["name"] = name or path.stem
         _images_relative_to(raw, path.parent)
+        if run:
+            _earlier_defaults(raw)
     for item in overrides:
         apply_override(raw, item)
     cfg = from_dict(raw, source=str(path) if path is not None else "config", overrides=overrides)

@@ -803,7 +803,7 @@ def export_run(
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.is_file():
         raise CheckpointError(f"{run_dir}: not a run directory (no config.yaml)")
-    cfg = cfgmod.load(cfg_path)
+    cfg = cfgmod.load(cfg_path, run=True)
     ckpt = load_checkpoint(run_dir / "ckpt.pt")
     # an images fit has no target to build (not the default target.model, a Lambertian):
     # the metadata says {"kind": "images", "views": N} and physics is measured alone

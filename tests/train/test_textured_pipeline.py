@@ -30,6 +30,7 @@ import pytest
 
 from cli_helpers import assert_one_line_error, cli
 from neural_brdf import config as cfgmod
+from neural_brdf import export, validate
 
 pytestmark = pytest.mark.mitsuba
 
@@ -330,6 +331,20 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     assert checks["reciprocity"]["value"] == 0.0 and checks["max_albedo"]["passed"]
     assert "projected onto the trained lobes at 12² texels" in (run_dir / "report.html").read_text()
     export_matches_the_run(capsys, run_dir, tmp_path / "again.onnx", seed=5)
+    # a run written before texture.project_ridge (its resolved config.yaml lacks the key)
+    # exports as that version projected, with no ridge; a user's config takes the default
+    text = (run_dir / "config.yaml").read_text()
+    older = "".join(ln for ln in text.splitlines(True) if "project_ridge" not in ln)
+    assert older != text
+    (run_dir / "config.yaml").write_text(older)
+    info = export.export_run(
+        run_dir,
+        tmp_path / "older.onnx",
+        measure=validate.physics,
+        measure_textured=validate.physics_textured,
+    )
+    assert info["projection"]["ridge"] == 0.0
+    assert cfgmod.load(run_dir / "config.yaml").texture.project_ridge > 0
     code, _, err = cli(
         capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
         "texture.project=12", "--set", "texture.lobe_network=separate",

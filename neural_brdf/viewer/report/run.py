@@ -134,7 +134,7 @@ def load_run(run_dir) -> Run:
             raise InputError(
                 f"{run_dir / name}: missing (a run directory holds {', '.join(RUN_FILES)})"
             )
-    cfg = cfgmod.load(run_dir / "config.yaml")
+    cfg = cfgmod.load(run_dir / "config.yaml", run=True)
     return Run(
         dir=run_dir,
         config=cfg,
