@@ -86,6 +86,19 @@ def score(f, pairs) -> dict:
     }
 
 
+def teacher_and_pairs(folder: Path, kind: str, which: str, n: int):
+    """The procedural teacher ``kind`` of set ``which`` ("dev" or "test") written into
+    ``folder``, and its two draws of ``n`` scoring pairs (seeds :data:`SEEDS`)."""
+    import textured as bench
+
+    from neural_brdf.measured.procedural import write_teacher
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    xml = write_teacher(folder / "teacher", kind, size=512, seed=bench.SEEDS[which])
+    teacher = TexturedMitsubaTarget(str(xml))
+    return teacher, [bench.validation_pairs(teacher, n, k) for k in SEEDS[which]]
+
+
 def measure(model, path: Path, resolution: int, pairs, phys: tuple[int, int]) -> dict:
     """Export ``model`` (f alone) to ``path`` and score it: the relative RMSE of f cos on
     each set of ``pairs`` (wi, wo, uv, ref) and on all of them together, reciprocity and
@@ -123,8 +136,6 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(2)
     import textured as bench
 
-    from neural_brdf.measured.procedural import write_teacher
-    from neural_brdf.measured.textured import TexturedMitsubaTarget
     from neural_brdf.train.textured_model import normalized_textured
     from neural_brdf.train.textured_project import projected
 
@@ -142,9 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for kind, seed in runs[:1] if args.quick else runs:
             folder = Path(tmp) / f"{kind}_{seed}"
-            xml = write_teacher(folder / "teacher", kind, size=512, seed=bench.SEEDS[args.which])
-            teacher = TexturedMitsubaTarget(str(xml))
-            pairs = [bench.validation_pairs(teacher, pairs_n, k) for k in SEEDS[args.which]]
+            teacher, pairs = teacher_and_pairs(folder, kind, args.which, pairs_n)
             t0 = time.perf_counter()
             model, fig = bench.trained_model(teacher, {**settings, "seed": seed})
             trained_s = time.perf_counter() - t0

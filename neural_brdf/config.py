@@ -428,6 +428,12 @@ class Texture(_Section):
     # ridge of project_ridge times the mean diagonal of its least squares' normal matrix
     # (0: none); chosen on the development teachers (docs/mitsuba.md)
     project_ridge: float = Field(0.01, ge=0.0, le=100.0)
+    # after the projection, the shared lobe network trained refit_steps more steps at
+    # refit_lr with the projected field frozen, then normalised and the texels bounded
+    # again (docs/mitsuba.md, "The lobes refitted on the projected field"); 0: none.
+    # Needs project
+    refit_steps: int = Field(0, ge=0, le=100_000)
+    refit_lr: float = Field(0.001, gt=0.0, le=1.0)
     # random uv of the furnace (validate; a quadrature each, so bounded); pairs' uv: all
     # random
     validation_uv: int = Field(64, ge=1, le=4096)
@@ -439,6 +445,11 @@ class Texture(_Section):
             raise ValueError(
                 "project: the field is projected onto one shared lobe network; "
                 f"set lobe_network: shared (got {self.lobe_network})"
+            )
+        if self.refit_steps and self.project is None:
+            raise ValueError(
+                "refit_steps: the lobes are refitted on a projected field; set project "
+                "(or refit_steps: 0)"
             )
         return self
 

@@ -712,8 +712,10 @@ def textured_for_export(
     (``normalized_textured`` under ``cfg``) and, with ``texture.project``, its field
     replaced by one fitted texel by texel to ``target`` on those lobes
     (:func:`neural_brdf.train.textured_project.project_field`, seeded by
-    ``train.seed``, bounded by the lobes' envelope).  Returns (model, the lobes' table
-    figures, the projection's figures or None).  The run and ``export RUN`` both call
+    ``train.seed``, bounded by the lobes' envelope) and, with ``texture.refit_steps``,
+    its lobes trained on against that field (``refit_lobes``) and normalised again.
+    Returns (model, the lobes' table figures, the projection's figures, the refit's
+    under ``refit``, or None).  The run and ``export RUN`` both call
     it, so a re-export gives the run's file."""
     from neural_brdf.train.textured_model import normalized_textured
 
@@ -734,6 +736,26 @@ def textured_for_export(
         ridge=tx.project_ridge,
         seed=cfg.train.seed + 23,
     )
+    if tx.refit_steps:  # the lobes trained on with the projected field frozen, bounded again
+
+        def bound(m: Any) -> tuple[Any, list[dict[str, Any]]]:
+            return normalized_textured(
+                m, cfg.normalization, seed=cfg.train.seed, bound=tx.lobe_bound
+            )
+
+        from neural_brdf.train.textured_project import REFIT_POOL, refit_lobes
+
+        model, info["refit"] = refit_lobes(
+            model,
+            target,
+            steps=tx.refit_steps,
+            lr=tx.refit_lr,
+            batch=cfg.data.batch_size,
+            seed=cfg.train.seed + 29,
+            pool=min(REFIT_POOL, tx.pool(cfg.data.pool_size)),
+            bounded=lambda m: bound(m)[0],
+        )
+        model, tables = bound(model)
     return model, tables, info
 
 

@@ -313,8 +313,9 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     cfg = write_config(tmp_path, teacher, steps=40, name="proj")
     run_dir = tmp_path / "run"
     code, _, err = cli(
-        capsys, "train", str(cfg), "--out", str(run_dir), "--set", "texture.project=12"
-    )
+        capsys, "train", str(cfg), "--out", str(run_dir), "--set", "texture.project=12",
+        "--set", "texture.refit_steps=20",
+    )  # fmt: skip
     assert code == 0, err
     proto = onnx.load(str(run_dir / "model.onnx"))
     tex = json.loads({p.key: p.value for p in proto.metadata_props}["texture"])
@@ -327,9 +328,13 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     # the config's pairs and ridge reached the projection (the defaults: none given here)
     assert projection["pairs_per_texel"] == cfgmod.Texture().project_pairs
     assert projection["ridge"] == cfgmod.Texture().project_ridge > 0
+    # and the lobes were refitted on the projected field (then bounded again: the checks)
+    assert projection["refit"]["steps"] == 20 and projection["refit"]["final_loss"] > 0
     checks = metrics["checks"]
     assert checks["reciprocity"]["value"] == 0.0 and checks["max_albedo"]["passed"]
-    assert "projected onto the trained lobes at 12² texels" in (run_dir / "report.html").read_text()
+    page = (run_dir / "report.html").read_text()
+    assert "projected onto the trained lobes at 12² texels" in page
+    assert "trained 20 more steps on the projected field" in page
     export_matches_the_run(capsys, run_dir, tmp_path / "again.onnx", seed=5)
     # a run written before texture.project_ridge (its resolved config.yaml lacks the key)
     # exports as that version projected, with no ridge; a user's config takes the default
@@ -356,4 +361,10 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
         "texture.project=12", "--set", "texture.project_ridge=-1",
     )  # fmt: skip
     assert_one_line_error(code, err, "texture.project_ridge")
+    assert not (tmp_path / "bad").exists()
+    code, _, err = cli(
+        capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
+        "texture.refit_steps=20",
+    )  # fmt: skip
+    assert_one_line_error(code, err, "refit_steps", "set project")
     assert not (tmp_path / "bad").exists()

@@ -2,19 +2,30 @@
 (``neural_brdf.train.textured_project``, docs/mitsuba.md "A finer field by projection"):
 the exact NNLS against SciPy's and its optimality conditions, a teacher the lobes can
 represent recovered texel by texel (weights and latent), the texels bounded as
-``texture.lobe_bound: texel`` bounds them, and the ridge toward the trained field."""
+``texture.lobe_bound: texel`` bounds them, the ridge toward the trained field, and the
+lobes refitted on a frozen field."""
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 import pytest
 import torch
 from scipy.optimize import nnls as scipy_nnls
 
+from analytic import frame
 from neural_brdf import config as cfgmod
+from neural_brdf.train.loop import rel_rmse
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.textured_model import FrozenWeightField, TexturedBRDF, bilinear_wrap
-from neural_brdf.train.textured_project import draw_pairs, nnls, project_field, texel_centres
+from neural_brdf.train.textured_project import (
+    draw_pairs,
+    nnls,
+    project_field,
+    refit_lobes,
+    texel_centres,
+)
 
 K, R = 3, 4
 
@@ -171,3 +182,88 @@ def test_a_ridge_shrinks_each_texel_toward_the_trained_field(lobe):
         < f2["residual"]
         <= f2["residual_trained_field"] * (1 + 1e-6)
     )
+
+
+class ModelTeacher:
+    """A teacher that is a textured model itself (any uv, between centres included);
+    its sampler always fails (the pairs stay uniform)."""
+
+    def __init__(self, model):
+        self.model = model
+
+    def eval(self, wi, wo, uv):
+        with torch.no_grad():
+            f = self.model(*(torch.from_numpy(np.asarray(x)).float() for x in (wi, wo, uv)))
+        return f.double().numpy()
+
+    def sample(self, wi, uv, u):
+        return np.tile([0.0, 0.0, -1.0], (len(wi), 1))
+
+
+def test_a_refit_trains_the_lobes_toward_the_teacher_and_keeps_the_field(lobe):
+    """``texture.refit_steps``: lobes pushed off the teacher's come back toward them with
+    the field frozen (the same table, bit for bit); the model passed is left as it was."""
+    rng = np.random.default_rng(7)
+    field = _field(rng)
+    teacher = ModelTeacher(TexturedBRDF([lobe], field).eval())
+    wrong = copy.deepcopy(lobe)
+    torch.manual_seed(3)
+    with torch.no_grad():
+        for p in wrong.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    model = TexturedBRDF([wrong], copy.deepcopy(field)).eval()
+    n = 8192
+    wi, wo = (
+        frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((n, 2)))).float()
+        for _ in range(2)
+    )
+    uv = torch.from_numpy(rng.random((n, 2))).float()
+    ref = torch.from_numpy(teacher.eval(wi.numpy(), wo.numpy(), uv.numpy())).float()
+
+    def error(m):
+        with torch.no_grad():
+            return rel_rmse(m(wi, wo, uv), ref, wo[:, 2:3])
+
+    before = error(model)
+    out, fig = refit_lobes(model, teacher, steps=300, lr=0.01, batch=1024, seed=2, pool=1 << 14)
+    assert error(out) < 0.5 * before, (error(out), before)
+    assert torch.equal(out.field.table, field.table)
+    assert error(model) == before  # a copy was trained
+    assert not any(p.requires_grad for p in out.parameters())
+    assert fig["steps"] == 300 and fig["pool"] == 1 << 14 and fig["kept_step"] > 0
+
+
+def test_a_refit_never_ends_worse_than_its_start_on_its_check_pairs(lobe):
+    """Lobes that are already the teacher's, refitted at a learning rate that throws them
+    off: the check pairs keep the start (step 0), the same f bit for bit."""
+    rng = np.random.default_rng(8)
+    field = _field(rng)
+    model = TexturedBRDF([copy.deepcopy(lobe)], field).eval()
+    teacher = ModelTeacher(model)
+    out, fig = refit_lobes(
+        model, teacher, steps=60, lr=0.5, batch=256, seed=4, pool=1 << 12, check_pairs=4096,
+        check_every=20,
+    )  # fmt: skip
+    assert [k for k, _ in fig["check_errors"]] == [0, 20, 40, 60]
+    assert fig["kept_step"] == 0 and fig["check_errors"][0][1] < 1e-6
+    assert all(e > 1e-3 for _, e in fig["check_errors"][1:])  # the steps did throw them off
+    wi = frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((512, 2)))).float()
+    uv = torch.from_numpy(rng.random((512, 2))).float()
+    with torch.no_grad():
+        assert torch.equal(out(wi, wi.flip(0), uv), model(wi, wi.flip(0), uv))
+
+
+def test_a_refit_measures_the_model_as_bounded(lobe):
+    """``bounded``: the check measures the model as the caller will bound it (here one
+    whose weights are all 0: every error is 1, so no step is kept)."""
+    rng = np.random.default_rng(9)
+    field = _field(rng)
+    teacher = ModelTeacher(TexturedBRDF([lobe], field).eval())
+    zero = FrozenWeightField(torch.zeros_like(field.table), R, channels=3, latent=1)
+    model = TexturedBRDF([copy.deepcopy(lobe)], copy.deepcopy(field)).eval()
+    _, fig = refit_lobes(
+        model, teacher, steps=40, lr=0.01, batch=256, seed=5, pool=1 << 12, check_pairs=2048,
+        check_every=20, bounded=lambda m: TexturedBRDF(list(m.lobes), zero).eval(),
+    )  # fmt: skip
+    assert [e for _, e in fig["check_errors"]] == [1.0, 1.0, 1.0]
+    assert fig["kept_step"] == 0

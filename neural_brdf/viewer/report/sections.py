@@ -437,6 +437,13 @@ def _textured_note(run: Run) -> list:
             f"{projection.get('seconds', 0):.0f} s; {scaled:.0f} % of the texels scaled down "
             "by the lobes' bound)."
         )
+        refit = projection.get("refit")
+        if isinstance(refit, dict):
+            text += (
+                f" Then the lobes were trained {refit.get('steps')} more steps on the "
+                f"projected field (texture.refit_steps, in {refit.get('seconds', 0):.0f} s) "
+                "and bounded again."
+            )
     excess = run.metrics.get("teacher_excess")
     if isinstance(excess, dict):
         text += (
