@@ -67,6 +67,22 @@ def machine(load_before: list[float], **versions: str) -> dict:
     }
 
 
+def dev_test_args(argv, doc: str, name: str):
+    """The command line of a benchmark with a development and a test set: ``--quick``,
+    ``--set dev|test`` (``args.which``), ``--out``.  Returns (args, the JSON's path:
+    ``--out``, or ``results/<name>_quick.json`` / ``results/<name>_<set>.json``)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="tiny budgets: the machinery only")
+    ap.add_argument("--set", choices=("dev", "test"), default="dev", dest="which")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args(argv)
+    results = Path(__file__).resolve().parent / "results"
+    tail = "quick" if args.quick else args.which
+    return args, args.out or results / f"{name}_{tail}.json"
+
+
 def write_json(path: Path, data) -> None:
     """Write pretty JSON atomically (neural_brdf.fileio: temporary file, fsync, rename)."""
     from neural_brdf.fileio import atomic_write

@@ -27,7 +27,6 @@ nothing.  Nothing asserts.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
@@ -40,9 +39,8 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import machine, write_json  # noqa: E402
+from common import dev_test_args, machine, write_json  # noqa: E402
 
-RESULTS = REPO / "benchmarks" / "results"
 # two sets of pairs: f cos is heavy-tailed (docs/mitsuba.md: blocks of 20,000 pairs
 # spread from 6.5 to 16 %), and on 200,000 pairs one projection scored 9.4 % on one draw
 # and 7.5 % on another; on 500,000 the two draws agree within about 0.3 point
@@ -123,14 +121,7 @@ def measure(model, path: Path, resolution: int, pairs, phys: tuple[int, int]) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="tiny budgets: the machinery only")
-    ap.add_argument("--set", choices=("dev", "test"), default="dev", dest="which")
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
-    out_path = args.out or RESULTS / (
-        "textured_project_quick.json" if args.quick else f"textured_project_{args.which}.json"
-    )
+    args, out_path = dev_test_args(argv, __doc__, "textured_project")
     import torch
 
     torch.set_num_threads(2)

@@ -19,7 +19,6 @@ chooses nothing.  Nothing asserts.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
@@ -32,7 +31,7 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import machine, write_json  # noqa: E402
+from common import dev_test_args, machine, write_json  # noqa: E402
 from textured_project import (  # noqa: E402
     FURNACE_SIDE,
     PAIRS,
@@ -44,7 +43,6 @@ from textured_project import (  # noqa: E402
     teacher_and_pairs,
 )
 
-RESULTS = REPO / "benchmarks" / "results"
 REFITS = ((1500, 0.001), (3000, 0.001), (3000, 0.0003), (6000, 0.0003))  # (steps, lr)
 # chosen on the development set (textured_refit_dev.json): 3000 steps at 0.001 lowered the
 # principled teachers' error by 0.17 and 0.43 point and the roughplastic's by 0.04 in
@@ -53,14 +51,7 @@ CHOSEN = (3000, 0.001)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="tiny budgets: the machinery only")
-    ap.add_argument("--set", choices=("dev", "test"), default="dev", dest="which")
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
-    out_path = args.out or RESULTS / (
-        "textured_refit_quick.json" if args.quick else f"textured_refit_{args.which}.json"
-    )
+    args, out_path = dev_test_args(argv, __doc__, "textured_refit")
     import torch
 
     torch.set_num_threads(2)

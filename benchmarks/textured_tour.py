@@ -21,7 +21,6 @@ it.  Nothing asserts.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -35,10 +34,9 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import machine, write_json  # noqa: E402
+from common import dev_test_args, machine, write_json  # noqa: E402
 from textured_project import PAIRS, SEEDS, score  # noqa: E402
 
-RESULTS = REPO / "benchmarks" / "results"
 KINDS = ("roughplastic", "principled")  # the tour's default kind first
 PROJECT = (None, 128, 256)  # texture.project on the development teachers
 # the pairs: textured_project.py's (PAIRS per draw, its SEEDS of each set)
@@ -52,14 +50,7 @@ def tour_config(folder: Path, steps: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="tiny budgets: the machinery only")
-    ap.add_argument("--set", choices=("dev", "test"), default="dev", dest="which")
-    ap.add_argument("--out", type=Path, default=None)
-    args = ap.parse_args(argv)
-    out_path = args.out or RESULTS / (
-        "textured_tour_quick.json" if args.quick else f"textured_tour_{args.which}.json"
-    )
+    args, out_path = dev_test_args(argv, __doc__, "textured_tour")
     import torch
 
     torch.set_num_threads(2)
