@@ -501,19 +501,18 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
             seed=settings.get("seed", 0) + 23,
         )
         if settings.get("refit_steps"):  # texture.refit_steps: the lobes on that field
-            from neural_brdf.train.textured_project import REFIT_POOL, refit_lobes
+            from neural_brdf.train.textured_project import REFIT_POOL, refitted
 
-            model, fig["projection"]["refit"] = refit_lobes(
+            model, tables, fig["projection"]["refit"] = refitted(
                 model,
                 teacher,
+                lambda m: normalized_textured(m, bound=settings["lobe_bound"]),
                 steps=settings["refit_steps"],
                 lr=settings["refit_lr"],
                 batch=settings["batch"],
                 seed=settings.get("seed", 0) + 29,
                 pool=min(REFIT_POOL, settings["pool"]),
-                bounded=lambda m: normalized_textured(m, bound=settings["lobe_bound"])[0],
             )
-            model, tables = normalized_textured(model, bound=settings["lobe_bound"])
     # the same lobes and weights without and with the teacher's normal field
     bare = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1])
     (folder / "bare.onnx").write_bytes(bare)

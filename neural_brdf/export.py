@@ -737,25 +737,20 @@ def textured_for_export(
         seed=cfg.train.seed + 23,
     )
     if tx.refit_steps:  # the lobes trained on with the projected field frozen, bounded again
+        from neural_brdf.train.textured_project import REFIT_POOL, refitted
 
-        def bound(m: Any) -> tuple[Any, list[dict[str, Any]]]:
-            return normalized_textured(
-                m, cfg.normalization, seed=cfg.train.seed, bound=tx.lobe_bound
-            )
-
-        from neural_brdf.train.textured_project import REFIT_POOL, refit_lobes
-
-        model, info["refit"] = refit_lobes(
+        model, tables, info["refit"] = refitted(
             model,
             target,
+            lambda m: normalized_textured(
+                m, cfg.normalization, seed=cfg.train.seed, bound=tx.lobe_bound
+            ),
             steps=tx.refit_steps,
             lr=tx.refit_lr,
             batch=cfg.data.batch_size,
             seed=cfg.train.seed + 29,
             pool=min(REFIT_POOL, tx.pool(cfg.data.pool_size)),
-            bounded=lambda m: bound(m)[0],
         )
-        model, tables = bound(model)
     return model, tables, info
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from itertools import combinations
 from typing import Any
 
@@ -259,7 +260,7 @@ def refit_lobes(
     pool: int = REFIT_POOL,
     check_pairs: int = REFIT_CHECK_PAIRS,
     check_every: int = REFIT_CHECK_EVERY,
-    bounded: Any = None,
+    bounded: Callable[[TexturedBRDF], TexturedBRDF] | None = None,
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """A projected model's shared lobe network trained ``steps`` more steps with its
     projected field frozen (``texture.refit_steps``): the lobes were trained beside a
@@ -362,3 +363,31 @@ def refit_lobes(
         "seconds": time.perf_counter() - t0,
         "pool_seconds": drawn.seconds,
     }
+
+
+def refitted(
+    model: TexturedBRDF,
+    teacher: Any,
+    bound: Callable[[TexturedBRDF], tuple[TexturedBRDF, list[dict[str, Any]]]],
+    *,
+    steps: int,
+    lr: float,
+    batch: int,
+    seed: int,
+    pool: int = REFIT_POOL,
+) -> tuple[TexturedBRDF, list[dict[str, Any]], dict[str, Any]]:
+    """:func:`refit_lobes` checked as ``bound`` bounds its lobes (model -> (the bounded
+    model, its lobes' table figures): the caller's ``normalized_textured``), then bound.
+    Returns (the bounded model, the table figures, the refit's figures)."""
+    out, info = refit_lobes(
+        model,
+        teacher,
+        steps=steps,
+        lr=lr,
+        batch=batch,
+        seed=seed,
+        pool=pool,
+        bounded=lambda m: bound(m)[0],
+    )
+    out, tables = bound(out)
+    return out, tables, info
