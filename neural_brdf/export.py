@@ -52,6 +52,7 @@ from __future__ import annotations
 import copy
 import io
 import json
+import sys
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -766,9 +767,28 @@ def _export_textured(
     graph built, ``measure`` (``validate.physics_textured``) on it, written."""
     if measure is None:
         raise TypeError("export_run: a textured run needs measure_textured")
-    model, tables, projection = textured_for_export(
-        textured_from_checkpoint(ckpt, cfg), cfg, target
+    trained = textured_from_checkpoint(ckpt, cfg)
+    kept: tuple[Any, list[dict[str, Any]], dict[str, Any]] | None = None
+    if cfg.texture.project is not None:  # the run's own projection, when it kept it
+        from neural_brdf import runfolder
+        from neural_brdf.train import textured_store
+        from neural_brdf.train.textured_model import normalized_textured
+
+        kept, why = textured_store.load(
+            run_dir / runfolder.TEXTURED,
+            cfg,
+            ckpt["model"],
+            lambda: normalized_textured(
+                trained, cfg.normalization, seed=cfg.train.seed, bound=cfg.texture.lobe_bound
+            )[0],
+        )
+        if kept is None:
+            print(f"{run_dir}: projecting the field again: {why}", file=sys.stderr)
+    model, tables, projection = (
+        kept if kept is not None else textured_for_export(trained, cfg, target)
     )
+    if projection is not None:
+        projection = {**projection, "kept_by_the_run": kept is not None}
     built = build_textured(with_normal_field(model, target), cfg)
     phys = measure(
         built.eval,

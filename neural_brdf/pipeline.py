@@ -210,6 +210,12 @@ def finish_textured(
     normalized, tables, projection = exp.textured_for_export(model, cfg, target)
     if projection is not None:  # texture.project: the field fitted texel by texel
         training = {**training, "projection": projection}
+        # kept for export RUN, which would otherwise project and refit again
+        from neural_brdf.train import textured_store
+
+        textured_store.save(
+            run_dir / runfolder.TEXTURED, normalized, tables, projection, cfg, model.state_dict()
+        )
     built = exp.build_textured(exp.with_normal_field(normalized, target), cfg)
     phys = validate.physics_textured(
         built.eval,

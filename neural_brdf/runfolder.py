@@ -5,8 +5,9 @@
         ... write folder.ckpt, folder.log, folder.model, ...
 
 Every name a run writes is here (``CONFIG``, ``CKPT``, ``LOG``, ``MODEL``, ``METRICS``,
-``REPORT_HTML``, ``REPORT_MD``, ``report-*.png``, ``VIEWER``, an images fit's ``COVERAGE``
-and ``INIT`` folder, ``LOCK`` and ``MARKER``); :func:`own_files` lists those a folder holds.
+``REPORT_HTML``, ``REPORT_MD``, ``report-*.png``, ``VIEWER``, a projected textured run's
+``TEXTURED``, an images fit's ``COVERAGE`` and ``INIT`` folder, ``LOCK`` and ``MARKER``);
+:func:`own_files` lists those a folder holds.
 
 Which folders a run writes into.  A run writes only into a folder that is new, empty,
 or recognised as a run, and never over a file it did not write:
@@ -60,6 +61,7 @@ except ImportError:  # Windows: runs are not locked
 MARKER = ".neural-brdf-run"  # written first: "this folder is a run"
 CONFIG = "config.yaml"  # the resolved config
 CKPT = "ckpt.pt"  # the checkpoint
+TEXTURED = "textured.pt"  # a projected textured run's final model (train/textured_store.py)
 LOG = "log.csv"  # the training log
 MODEL = "model.onnx"  # the exported model
 METRICS = "metrics.json"  # the validation report
@@ -76,6 +78,7 @@ LOCK = ".lock"  # while a run holds the folder: its pid
 # checkpoint first, the marker last
 FILES = (
     CKPT,
+    TEXTURED,
     MODEL,
     METRICS,
     LOG,

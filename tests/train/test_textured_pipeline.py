@@ -84,11 +84,15 @@ def rows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return hemi(n), hemi(n), rng.random((n, 2)).astype(np.float32)
 
 
-def export_matches_the_run(capsys, run_dir: Path, out: Path, seed: int) -> np.ndarray:
+def export_matches_the_run(
+    capsys, run_dir: Path, out: Path, seed: int, says: str = ""
+) -> np.ndarray:
     """``neural-brdf export RUN_DIR -o OUT`` rebuilds the run's model from its checkpoint:
-    the same f as the run's model.onnx at ``rows(1024, seed)`` (returned)."""
+    the same f as the run's model.onnx at ``rows(1024, seed)`` (returned); its stderr
+    holds ``says``."""
     code, _, err = cli(capsys, "export", str(run_dir), "-o", str(out))
     assert code == 0, err
+    assert says in err, err
     wi, wo, uv = rows(1024, seed)
     feeds = {"wi": wi, "wo": wo, "uv": uv}
     a = session(run_dir / "model.onnx").run(["f"], feeds)[0]
@@ -335,7 +339,28 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     page = (run_dir / "report.html").read_text()
     assert "projected onto the trained lobes at 12² texels" in page
     assert "trained 20 more steps on the projected field" in page
-    export_matches_the_run(capsys, run_dir, tmp_path / "again.onnx", seed=5)
+    # export RUN takes the run's kept projection (textured.pt): the run's file, without
+    # projecting and refitting again
+    assert (run_dir / "textured.pt").is_file()
+    code, _, err = cli(capsys, "export", str(run_dir), "-o", str(tmp_path / "kept.onnx"))
+    assert code == 0 and "projecting the field again" not in err, err
+    assert (tmp_path / "kept.onnx").read_bytes() == (run_dir / "model.onnx").read_bytes()
+    # a kept file whose table was changed does not give its probe's f: projected again,
+    # and so is a missing one; both give the run's f
+    import torch
+
+    kept = torch.load(run_dir / "textured.pt", weights_only=True)
+    kept["model"]["field.table"] *= 0.5
+    torch.save(kept, run_dir / "textured.pt")
+    _, _, err = cli(capsys, "export", str(run_dir), "-o", str(tmp_path / "tampered.onnx"))
+    assert "projecting the field again: textured.pt does not give its model's f" in err
+    (run_dir / "textured.pt").write_bytes(b"not a torch file")  # damaged: no traceback
+    code, _, err = cli(capsys, "export", str(run_dir), "-o", str(tmp_path / "damaged.onnx"))
+    assert code == 0 and "projecting the field again: textured.pt unreadable" in err, err
+    (run_dir / "textured.pt").unlink()
+    export_matches_the_run(
+        capsys, run_dir, tmp_path / "again.onnx", seed=5, says="again: no textured.pt"
+    )
     # a run written before texture.project_ridge (its resolved config.yaml lacks the key)
     # exports as that version projected, with no ridge; a user's config takes the default
     text = (run_dir / "config.yaml").read_text()
@@ -348,7 +373,8 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
         measure=validate.physics,
         measure_textured=validate.physics_textured,
     )
-    assert info["projection"]["ridge"] == 0.0
+    assert info["projection"]["ridge"] == 0.0 and not info["projection"]["kept_by_the_run"]
+    capsys.readouterr()  # its line: projected again
     assert cfgmod.load(run_dir / "config.yaml").texture.project_ridge > 0
     code, _, err = cli(
         capsys, "train", str(cfg), "--out", str(tmp_path / "bad"), "--set",
