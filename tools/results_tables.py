@@ -2023,6 +2023,62 @@ def textured_refit_section(d: dict) -> list[str]:
     )
 
 
+def textured_export_section(d: dict) -> list[str]:
+    """issue 30: ``export RUN`` of a projected textured run, from the run's kept model
+    (textured.pt) and projected and refitted again, interleaved."""
+    m = d["machine"]
+    out = [
+        "## Textured materials: `export RUN` of a projected run",
+        "",
+        _source("benchmarks/results/textured_export.json", "python benchmarks/textured_export.py"),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores",
+            f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
+        ),
+        f"The run: {d['run']}, trained once by `pipeline.run` in "
+        f"{d['train_seconds']:.0f} s. Then `export.export_run` of it in {d['rounds']} "
+        "interleaved rounds, with the run's `textured.pt` in place (`kept`) and moved aside "
+        "(`again`: the field projected and the lobes refitted again from the checkpoint, "
+        "seeded); the best round of each. Each file against the run's `model.onnx`: byte "
+        "for byte, and the largest difference of f at 4,096 rows (onnxruntime). Nothing is "
+        "chosen here.",
+        "",
+    ]
+    rows = []
+    for k in ("kept", "again"):
+        same = d["same_as_the_runs_file"][k]
+        rows.append(
+            [
+                k,
+                "yes" if d["kept_by_the_run"][k] else "no",
+                f"{d['export_seconds'][k]:.1f} s",
+                ", ".join(f"{x:.1f}" for x in d["export_seconds_all"][k]),
+                "yes" if same["bytes"] else "no",
+                f"{same['max_abs_f_difference']:.1g}",
+            ]
+        )
+    out += _table(
+        [
+            "export",
+            "run's model kept",
+            "best time",
+            "every round (s)",
+            "same bytes",
+            "largest f difference",
+        ],
+        rows,
+    )
+    ratio = d["export_seconds"]["again"] / d["export_seconds"]["kept"]
+    out += [
+        f"`textured.pt` holds {d['textured_pt_bytes'] / 1024:.0f} KiB beside the "
+        f"{d['model_onnx_bytes'] / 1024:.0f} KiB `model.onnx`; the kept export is "
+        f"{ratio:.1f}x faster.",
+        "",
+    ]
+    return out
+
+
 def textured_tour_section(d: dict) -> list[str]:
     """issue 30: the README tour's textured config, run as a user runs it, with each
     texture.project (development) or as the tour writes it (test)."""
@@ -2516,6 +2572,7 @@ SECTIONS = (
     (RESULTS / "textured_project_dev.json", textured_project_section),
     (RESULTS / "textured_refit_dev.json", textured_refit_section),
     (RESULTS / "textured_refit_test.json", textured_refit_section),
+    (RESULTS / "textured_export.json", textured_export_section),
     (RESULTS / "textured_tour_dev.json", textured_tour_section),
     (RESULTS / "textured_tour_test.json", textured_tour_section),
     (RESULTS / "textured_grazing_dev.json", textured_grazing_section),
