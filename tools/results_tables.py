@@ -2079,6 +2079,67 @@ def textured_export_section(d: dict) -> list[str]:
     return out
 
 
+def textured_anatomy_section(d: dict) -> list[str]:
+    """issue 30: where the textured principled's squared error of f cos is (by the
+    teacher's roughness and metallic at the pair's uv, by cos theta_i, by pair)."""
+    m, r = d["machine"], d["recipe"]
+    out = [
+        "## Textured materials: where the principled's error is (development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_anatomy_dev.json", "python benchmarks/textured_anatomy.py"
+        ),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores",
+            f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
+        ),
+        f"Teacher: {d['teacher']}. The textured recipe with one start (training seed "
+        f"{r['seed']}), its field projected at {r['project']}² ({r['project_pairs']} pairs "
+        f"per texel, ridge {r['project_ridge']:g}) and its lobes refitted ({r['refit_steps']} "
+        f"steps at {r['refit_lr']:g}), exported without the normal field and scored by "
+        f"onnxruntime on two draws of {d['pairs']['n']:,} pairs: relative RMSE of f·cos "
+        f"{_pct(d['rel_rmse'], 2)}. Each pair's squared error grouped by the teacher's "
+        "roughness and metallic maps at its uv, by cos θi, and by rank. `pairs`: the share of "
+        "the pairs; `error`: of the squared error; `reference`: of the teacher's squared f·cos; "
+        "`own error`: the group's own relative RMSE. Nothing is chosen here.",
+        "",
+    ]
+    rows = [
+        [
+            f"{g['roughness'][0]:g}-{g['roughness'][1]:g}",
+            f"{g['metallic'][0]:g}-{g['metallic'][1]:g}",
+            _pct(g["pairs_share"], 1),
+            _pct(g["error_share"], 1),
+            _pct(g["reference_share"], 1),
+            "-" if g["rel_rmse"] is None else _pct(g["rel_rmse"], 1),
+        ]
+        for g in d["by_texel"]
+        if g["pairs_share"] > 0
+    ]
+    out += _table(["roughness", "metallic", "pairs", "error", "reference", "own error"], rows)
+    rows = [
+        [
+            f"{g['cos_theta_i'][0]:g}-{g['cos_theta_i'][1]:g}",
+            _pct(g["pairs_share"], 1),
+            _pct(g["error_share"], 1),
+            _pct(g["rel_rmse"], 1),
+        ]
+        for g in d["by_cos_theta_i"]
+    ]
+    out += _table(["cos θi", "pairs", "error", "own error"], rows)
+    out += [
+        "The worst pairs by squared error: "
+        + "; ".join(
+            f"{_pct(w['pairs_share'], 1)} of the pairs carry {_pct(w['error_share'], 0)} of it"
+            for w in d["worst_pairs"]
+        )
+        + ".",
+        "",
+    ]
+    return out
+
+
 def textured_tour_section(d: dict) -> list[str]:
     """issue 30: the README tour's textured config, run as a user runs it, with each
     texture.project (development) or as the tour writes it (test)."""
@@ -2573,6 +2634,7 @@ SECTIONS = (
     (RESULTS / "textured_refit_dev.json", textured_refit_section),
     (RESULTS / "textured_refit_test.json", textured_refit_section),
     (RESULTS / "textured_export.json", textured_export_section),
+    (RESULTS / "textured_anatomy_dev.json", textured_anatomy_section),
     (RESULTS / "textured_tour_dev.json", textured_tour_section),
     (RESULTS / "textured_tour_test.json", textured_tour_section),
     (RESULTS / "textured_grazing_dev.json", textured_grazing_section),
