@@ -778,8 +778,13 @@ def _export_textured(
             run_dir / runfolder.TEXTURED,
             cfg,
             ckpt["model"],
+            # a model of its own: the state loaded into it must not reach ``trained``,
+            # whose raw lobes normalized_textured shares, in case it is projected again
             lambda: normalized_textured(
-                trained, cfg.normalization, seed=cfg.train.seed, bound=cfg.texture.lobe_bound
+                textured_from_checkpoint(ckpt, cfg),
+                cfg.normalization,
+                seed=cfg.train.seed,
+                bound=cfg.texture.lobe_bound,
             )[0],
         )
         if kept is None:

@@ -354,6 +354,8 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     torch.save(kept, run_dir / "textured.pt")
     _, _, err = cli(capsys, "export", str(run_dir), "-o", str(tmp_path / "tampered.onnx"))
     assert "projecting the field again: textured.pt does not give its model's f" in err
+    # projected again from the checkpoint, not from the lobes the rejected file held
+    assert (tmp_path / "tampered.onnx").read_bytes() == (run_dir / "model.onnx").read_bytes()
     (run_dir / "textured.pt").write_bytes(b"not a torch file")  # damaged: no traceback
     code, _, err = cli(capsys, "export", str(run_dir), "-o", str(tmp_path / "damaged.onnx"))
     assert code == 0 and "projecting the field again: textured.pt unreadable" in err, err
