@@ -488,31 +488,24 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
     model, fig = trained_model(teacher, settings)
     t1 = time.perf_counter()
     model, tables = normalized_textured(model, bound=settings.get("lobe_bound", "table"))
-    if settings.get("project"):  # texture.project: the field fitted texel by texel
-        from neural_brdf.train.textured_project import projected
+    if settings.get("project"):  # texture.project (and refit_steps), as the export does
+        from neural_brdf.train.textured_project import project_and_refit
 
-        model, fig["projection"] = projected(
+        model, refit_tables, fig["projection"] = project_and_refit(
             model,
             teacher,
+            lambda m: normalized_textured(m, bound=settings["lobe_bound"]),
             resolution=settings["project"],
             pairs=settings.get("project_pairs", 128),
             latents=settings.get("project_latents", 5),
             ridge=settings.get("project_ridge", 0.0),
-            seed=settings.get("seed", 0) + 23,
+            refit_steps=settings.get("refit_steps", 0),
+            refit_lr=settings.get("refit_lr", 0.001),
+            batch=settings["batch"],
+            pool=settings["pool"],
+            seed=settings.get("seed", 0),
         )
-        if settings.get("refit_steps"):  # texture.refit_steps: the lobes on that field
-            from neural_brdf.train.textured_project import REFIT_POOL, refitted
-
-            model, tables, fig["projection"]["refit"] = refitted(
-                model,
-                teacher,
-                lambda m: normalized_textured(m, bound=settings["lobe_bound"]),
-                steps=settings["refit_steps"],
-                lr=settings["refit_lr"],
-                batch=settings["batch"],
-                seed=settings.get("seed", 0) + 29,
-                pool=min(REFIT_POOL, settings["pool"]),
-            )
+        tables = refit_tables if refit_tables is not None else tables
     # the same lobes and weights without and with the teacher's normal field
     bare = export.to_onnx_bytes(exportable(model), 17, inputs=SIGNATURES[1])
     (folder / "bare.onnx").write_bytes(bare)

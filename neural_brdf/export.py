@@ -726,33 +726,25 @@ def textured_for_export(
     tx = cfg.texture
     if tx.project is None:
         return model, tables, None
-    from neural_brdf.train.textured_project import projected
+    from neural_brdf.train.textured_project import project_and_refit
 
-    model, info = projected(
+    model, refit_tables, info = project_and_refit(
         model,
         target,
+        lambda m: normalized_textured(
+            m, cfg.normalization, seed=cfg.train.seed, bound=tx.lobe_bound
+        ),
         resolution=tx.project,
         pairs=tx.project_pairs,
         latents=tx.project_latents,
         ridge=tx.project_ridge,
-        seed=cfg.train.seed + 23,
+        refit_steps=tx.refit_steps,
+        refit_lr=tx.refit_lr,
+        batch=cfg.data.batch_size,
+        pool=tx.pool(cfg.data.pool_size),
+        seed=cfg.train.seed,
     )
-    if tx.refit_steps:  # the lobes trained on with the projected field frozen, bounded again
-        from neural_brdf.train.textured_project import REFIT_POOL, refitted
-
-        model, tables, info["refit"] = refitted(
-            model,
-            target,
-            lambda m: normalized_textured(
-                m, cfg.normalization, seed=cfg.train.seed, bound=tx.lobe_bound
-            ),
-            steps=tx.refit_steps,
-            lr=tx.refit_lr,
-            batch=cfg.data.batch_size,
-            seed=cfg.train.seed + 29,
-            pool=min(REFIT_POOL, tx.pool(cfg.data.pool_size)),
-        )
-    return model, tables, info
+    return model, refit_tables if refit_tables is not None else tables, info
 
 
 def _export_textured(

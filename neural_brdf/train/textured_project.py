@@ -391,3 +391,53 @@ def refitted(
     )
     out, tables = bound(out)
     return out, tables, info
+
+
+PROJECT_SEED = 23  # the projection's seed: the run's train.seed plus this
+REFIT_SEED = 29  # the refit's
+
+
+def project_and_refit(
+    model: TexturedBRDF,
+    teacher: Any,
+    bound: Callable[[TexturedBRDF], tuple[TexturedBRDF, list[dict[str, Any]]]],
+    *,
+    resolution: int,
+    pairs: int,
+    latents: int,
+    ridge: float,
+    refit_steps: int,
+    refit_lr: float,
+    batch: int,
+    pool: int,
+    seed: int,
+) -> tuple[TexturedBRDF, list[dict[str, Any]] | None, dict[str, Any]]:
+    """``texture.project`` and ``texture.refit_steps`` after training: a model normalised
+    by ``bound`` (``normalized_textured``) with its field projected (:func:`projected`,
+    seed ``seed`` + :data:`PROJECT_SEED`) and, with ``refit_steps``, its lobes refitted
+    on that field (:func:`refitted`, seed ``seed`` + :data:`REFIT_SEED`, at most
+    :data:`REFIT_POOL` of ``pool`` pairs) and bounded again.  Returns (model, the
+    refitted lobes' table figures or None without a refit, the projection's figures with
+    the refit's under ``refit``).  The export and ``benchmarks/textured.py`` both call it."""
+    model, info = projected(
+        model,
+        teacher,
+        resolution=resolution,
+        pairs=pairs,
+        latents=latents,
+        ridge=ridge,
+        seed=seed + PROJECT_SEED,
+    )
+    tables = None
+    if refit_steps:
+        model, tables, info["refit"] = refitted(
+            model,
+            teacher,
+            bound,
+            steps=refit_steps,
+            lr=refit_lr,
+            batch=batch,
+            seed=seed + REFIT_SEED,
+            pool=min(REFIT_POOL, pool),
+        )
+    return model, tables, info
