@@ -5,12 +5,12 @@ the principled misses the 3 % goal; the development set, which chooses nothing h
     python benchmarks/textured_anatomy.py            # about 4 minutes on 2 cores
     python benchmarks/textured_anatomy.py --quick    # tiny budgets: the machinery only
 
-The recipe of ``textured.py`` (``textured.SETTINGS``) with one start, its field projected
-(``textured_project.CHOSEN``) and its lobes refitted (``textured_refit.CHOSEN``) as the
-export does, on the development principled (``write_teacher(principled, 512,
-textured.SEEDS['dev'])``), exported without the normal field and scored by onnxruntime
-on the development pairs of ``textured_project.py`` (two draws of
-``textured_project.PAIRS``).  Each pair's squared error of f cos is grouped by the
+The recipe of ``textured.py`` (``textured.SETTINGS``: its projected field and refitted
+lobes included) with one start, training seed 1, made by ``textured.train_textured_file``
+(the function that makes ``textured.json``'s files) on the development principled
+(``write_teacher(principled, 512, textured.SEEDS['dev'])``); its file without the normal
+field is scored by onnxruntime on the development pairs of ``textured_project.py`` (two
+draws of ``textured_project.PAIRS``).  Each pair's squared error of f cos is grouped by the
 teacher's roughness and metallic maps at its uv (the texel it falls in), by cos theta_i,
 and ranked: the share of the total carried by the worst 0.1 % and 1 % of the pairs.  The
 held-out teacher is not used.  Nothing asserts and nothing is chosen.
@@ -66,44 +66,19 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(2)
     import textured as bench
     import textured_project as tp
-    import textured_refit as tr
 
-    from neural_brdf.train.textured_model import normalized_textured
-    from neural_brdf.train.textured_project import projected, refitted
-
-    settings = {**bench.SETTINGS, "starts": 1}
-    resolution, per, latents, ridge = tp.CHOSEN
-    steps, lr = tr.CHOSEN
-    pairs_n = tp.PAIRS
-    if args.quick:
-        settings.update(steps=20, pool=1 << 14, batch=1024, resolution=8)
-        resolution, per, latents, ridge, steps, pairs_n = 16, 8, 3, 0.03, 20, 4096
+    # textured.py's recipe (its projection and refit included) with one start, through
+    # the function that makes textured.json's files
+    settings = {**(bench.QUICK if args.quick else bench.SETTINGS), "starts": 1, "seed": 1}
+    pairs_n = 4096 if args.quick else tp.PAIRS
     load_before = [round(x, 2) for x in os.getloadavg()]
-    seed = 1  # one training seed, the first development row of textured_refit.py
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "principled"
         teacher, pairs = tp.teacher_and_pairs(folder, "principled", "dev", pairs_n)
-
-        def bound(m):
-            return normalized_textured(m, bound="texel")
-
-        model, _ = bench.trained_model(teacher, {**settings, "seed": seed})
-        model, _ = bound(model)
-        model, _ = projected(
-            model,
-            teacher,
-            resolution=resolution,
-            pairs=per,
-            latents=latents,
-            seed=seed,
-            ridge=ridge,
-        )
-        model, _, _ = refitted(
-            model, teacher, bound, steps=steps, lr=lr, batch=settings["batch"], seed=seed + 29
-        )
-        got = tp.measure(model, folder / "model.onnx", resolution, pairs, (16, 8))
-        f = bench.OnnxFile(folder / "model.onnx")
+        bench.train_textured_file(teacher, folder, settings)
+        f = bench.OnnxFile(folder / "bare.onnx")  # f alone, without the normal field
+        got = tp.score(f, pairs)
         rough, metal = (
             _map(folder / "teacher" / "roughness.exr"),
             _map(folder / "teacher" / "metallic.exr"),
@@ -158,16 +133,7 @@ def main(argv: list[str] | None = None) -> int:
             "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
             "teacher": f"write_teacher(principled, size 512, seed {bench.SEEDS['dev']}) "
             "(development)",
-            "recipe": {
-                **settings,
-                "seed": seed,
-                "project": resolution,
-                "project_pairs": per,
-                "project_latents": latents,
-                "project_ridge": ridge,
-                "refit_steps": steps,
-                "refit_lr": lr,
-            },
+            "recipe": settings,
             "pairs": {
                 "n": pairs_n,
                 "seeds": list(tp.SEEDS["dev"]),
