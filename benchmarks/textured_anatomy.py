@@ -22,7 +22,6 @@ import os
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,7 +29,7 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import machine, write_json  # noqa: E402
+from common import write_json  # noqa: E402
 
 ROUGHNESS_BANDS = ((0.25, 0.35), (0.35, 0.5), (0.5, 0.65), (0.65, 0.8))
 METALLIC_BANDS = ((0.0, 0.25), (0.25, 0.75), (0.75, 1.0))
@@ -121,24 +120,14 @@ def main(argv: list[str] | None = None) -> int:
         {"pairs_share": s, "error_share": float(order[: max(1, int(s * len(d2)))].sum() / total)}
         for s in WORST
     ]
-    import mitsuba as mi
-
     write_json(
         out_path,
         {
-            "benchmark": "textured_anatomy",
-            "set": "dev",
-            "quick": args.quick,
-            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
+            **tp.header("textured_anatomy", "dev", args.quick, load_before),
             "teacher": f"write_teacher(principled, size 512, seed {bench.SEEDS['dev']}) "
             "(development)",
             "recipe": settings,
-            "pairs": {
-                "n": pairs_n,
-                "seeds": list(tp.SEEDS["dev"]),
-                "draw": "textured.validation_pairs",
-            },
+            "pairs": tp.pairs_entry("dev", pairs_n),
             "rel_rmse": got["rel_rmse"],
             "rel_rmse_sets": got["rel_rmse_sets"],
             "by_texel": by_texel,

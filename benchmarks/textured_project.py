@@ -84,6 +84,26 @@ def score(f, pairs) -> dict:
     }
 
 
+def header(name: str, which: str, quick: bool, load_before: list[float]) -> dict:
+    """The first entries of a textured benchmark's JSON: its name, set, ``--quick``, the
+    date and the machine (with the Mitsuba and torch versions)."""
+    import mitsuba as mi
+    import torch
+
+    return {
+        "benchmark": name,
+        "set": which,
+        "quick": quick,
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
+    }
+
+
+def pairs_entry(which: str, n: int) -> dict:
+    """The JSON's ``pairs``: two draws of ``n`` scoring pairs of set ``which``."""
+    return {"n": n, "seeds": list(SEEDS[which]), "draw": "textured.validation_pairs"}
+
+
 def teacher_and_pairs(folder: Path, kind: str, which: str, n: int):
     """The procedural teacher ``kind`` of set ``which`` ("dev" or "test") written into
     ``folder``, and its two draws of ``n`` scoring pairs (seeds :data:`SEEDS`)."""
@@ -179,24 +199,14 @@ def main(argv: list[str] | None = None) -> int:
                     file=sys.stderr,
                 )
             rows.append(row)
-    import mitsuba as mi
-
     write_json(
         out_path,
         {
-            "benchmark": "textured_project",
-            "set": args.which,
-            "quick": args.quick,
-            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
+            **header("textured_project", args.which, args.quick, load_before),
             "teachers": f"write_teacher(kind, size 512, seed {bench.SEEDS[args.which]}) "
             + ("(development)" if args.which == "dev" else "(test: held out)"),
             "settings": settings,
-            "pairs": {
-                "n": pairs_n,
-                "seeds": list(SEEDS[args.which]),
-                "draw": "textured.validation_pairs",
-            },
+            "pairs": pairs_entry(args.which, pairs_n),
             "physics": {"uv": physics_uv, "furnace_side": side},
             "rows": rows,
         },

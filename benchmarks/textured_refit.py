@@ -23,7 +23,6 @@ import os
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -31,15 +30,16 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import dev_test_args, machine, write_json  # noqa: E402
+from common import dev_test_args, write_json  # noqa: E402
 from textured_project import (  # noqa: E402
     FURNACE_SIDE,
     PAIRS,
     PHYSICS_UV,
     RUNS,
-    SEEDS,
     TEST_RUNS,
+    header,
     measure,
+    pairs_entry,
     teacher_and_pairs,
 )
 
@@ -118,25 +118,15 @@ def main(argv: list[str] | None = None) -> int:
                     file=sys.stderr,
                 )
             rows.append(row)
-    import mitsuba as mi
-
     write_json(
         out_path,
         {
-            "benchmark": "textured_refit",
-            "set": args.which,
-            "quick": args.quick,
-            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
+            **header("textured_refit", args.which, args.quick, load_before),
             "teachers": f"write_teacher(kind, size 512, seed {bench.SEEDS[args.which]}) "
             + ("(development)" if args.which == "dev" else "(test: held out)"),
             "settings": settings,
             "refits": [list(r) for r in refits],
-            "pairs": {
-                "n": pairs_n,
-                "seeds": list(SEEDS[args.which]),
-                "draw": "textured.validation_pairs",
-            },
+            "pairs": pairs_entry(args.which, pairs_n),
             "physics": {"uv": physics_uv, "furnace_side": side},
             "rows": rows,
         },

@@ -26,7 +26,6 @@ import os
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,8 +33,8 @@ for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from common import dev_test_args, machine, write_json  # noqa: E402
-from textured_project import PAIRS, SEEDS, score  # noqa: E402
+from common import dev_test_args, write_json  # noqa: E402
+from textured_project import PAIRS, SEEDS, header, pairs_entry, score  # noqa: E402
 
 KINDS = ("roughplastic", "principled")  # the tour's default kind first
 PROJECT = (None, 128, 256)  # texture.project on the development teachers
@@ -106,16 +105,10 @@ def main(argv: list[str] | None = None) -> int:
                     f"in {seconds:.0f} s",
                     file=sys.stderr,
                 )
-    import mitsuba as mi
-
     write_json(
         out_path,
         {
-            "benchmark": "textured_tour",
-            "set": args.which,
-            "quick": args.quick,
-            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine(load_before, mitsuba=mi.__version__, torch=torch.__version__),
+            **header("textured_tour", args.which, args.quick, load_before),
             "teachers": f"write_teacher(kind, size {size}, seed {bench.SEEDS[args.which]}) "
             + (
                 "(development)"
@@ -123,11 +116,7 @@ def main(argv: list[str] | None = None) -> int:
                 else "(test: held out; the teacher the tour itself writes)"
             ),
             "config": tour,
-            "pairs": {
-                "n": pairs_n,
-                "seeds": list(SEEDS[args.which]),
-                "draw": "textured.validation_pairs",
-            },
+            "pairs": pairs_entry(args.which, pairs_n),
             "rows": rows,
         },
     )
