@@ -23,6 +23,9 @@
   metrics.json and coverage.png;
 * with a split, an image stage that only makes the start worse (a learning rate far too
   high) ends with the start's weights, exported as they were;
+* the same small fit of a multi-light capture (each view lit by its own point or area
+  light, no environment) brings the network's BRDF where both cosines exceed 0.5 within
+  5 % of the truth, which the constant start is not;
 * a capture that observes little of the domain (a co-located flash) warns on stderr;
 * the split: seeded, a given share of each view's pixels, held out of the loss's
   weights; a resumed run cannot change it;
@@ -64,6 +67,11 @@ FIT_IMAGE_ERROR = 0.25
 # learning rate at 0 it stays at 1 x), and move the network by at least NETWORK_CHANGE
 # (relative RMS of f against the start's network).
 HELDOUT_SHARE = 0.2
+# The small fit of a multi-light capture (each view lit by its own light, the images
+# section's defaults): the exported network's BRDF error where both cosines exceed 0.5
+# is below the issue's goal, and the constant start's is not (measured: 0.021 against
+# 0.97).
+LIGHTS_BRDF_ERROR = 0.05
 HELDOUT_GAIN = 0.8
 NETWORK_CHANGE = 0.02
 BLOCK = 4  # images.validation_block's default
@@ -614,6 +622,50 @@ def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):
     coverage = json.loads((run_dir / "metrics.json").read_text())["training"]["coverage"]
     assert coverage["figure"] < 0.25 and len(coverage["per_view"]) == 3
     assert (run_dir / "coverage.png").is_file()
+
+
+def brdf_error_where_both_cosines_exceed_half(f_fn, seed: int = 7) -> float:
+    """Relative RMSE of f cos(theta_o) of ``f_fn(wi, wo) -> f`` against Mitsuba's eval of
+    the example's true copper, over the benchmark's pairs (both cosines > 0.5)."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import scene as inverse_example
+
+    truth = inverse.mitsuba_bsdf(inverse.bsdf_element("roughconductor", **inverse_example.TRUTH))
+    wi, wo = inverse.brdf_pairs(truth, 8192, seed=seed)
+    fc_true = inverse.mitsuba_f_cos(truth, wi, wo)
+    fc = np.asarray(f_fn(wi.astype(np.float32), wo.astype(np.float32)), np.float64) * wo[:, 2:3]
+    return inverse.brdf_rel_rmse(fc, fc_true)
+
+
+@pytest.mark.slow
+def test_a_multi_light_capture_fits_the_brdf_where_both_cosines_exceed_half(mi, tmp_path, capsys):
+    """Three views, each lit by its own point or area light and no environment (the
+    multi-light capture of docs/inverse.md), fitted with the images section's defaults:
+    the run keeps its best held-out weights, and the exported network's BRDF where both
+    cosines exceed 0.5 is within the issue's 5 % of the truth, which the network's
+    constant start is not (issue 29: "with a multi-light capture, <= 5 % over every such
+    pair")."""
+    import neural_brdf
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import scene as inverse_example
+
+    inverse_example.write(
+        tmp_path, resolution=RES, spp=TARGET_SPP, steps=FIT_STEPS, capture="lights"
+    )
+    run_dir = tmp_path / "run"
+    split = [f"images.validation_pixels={HELDOUT_SHARE}"]
+    code, err = run_cli(train_args(tmp_path / "fit.yaml", run_dir, FIT_OVERRIDES + split), capsys)
+    assert code == 0, err
+    training = json.loads((run_dir / "metrics.json").read_text())["training"]
+    assert 0.25 < training["coverage"]["figure"] < 0.6  # three bands of theta_d
+    assert training["init"]["start"]["family"] in ("roughconductor", "blend")
+    val = training["validation"]
+    assert val["best_loss"] <= val["start_loss"]
+    net = brdf_error_where_both_cosines_exceed_half(neural_brdf.load(run_dir / "model.onnx").eval)
+    start = brdf_error_where_both_cosines_exceed_half(
+        lambda wi, wo: np.full(wi.shape, inverse.INIT_VALUE, np.float32)
+    )
+    assert net < LIGHTS_BRDF_ERROR < start, (net, start)
 
 
 def test_the_pixel_split_is_seeded_and_out_of_the_loss(mi, example):
