@@ -25,7 +25,7 @@
   high) ends with the start's weights, exported as they were;
 * the same small fit of a multi-light capture (each view lit by its own point or area
   light, no environment) brings the network's BRDF where both cosines exceed 0.5 within
-  5 % of the truth, which the constant start is not;
+  5 % of the truth;
 * a capture that observes little of the domain (a co-located flash) warns on stderr;
 * the split: seeded, a given share of each view's pixels, held out of the loss's
   weights; a resumed run cannot change it;
@@ -69,8 +69,7 @@ FIT_IMAGE_ERROR = 0.25
 HELDOUT_SHARE = 0.2
 # The small fit of a multi-light capture (each view lit by its own light, the images
 # section's defaults): the exported network's BRDF error where both cosines exceed 0.5
-# is below the issue's goal, and the constant start's is not (measured: 0.021 against
-# 0.97).
+# is below the issue's goal (measured: 0.021; a constant f is 0.97 off).
 LIGHTS_BRDF_ERROR = 0.05
 HELDOUT_GAIN = 0.8
 NETWORK_CHANGE = 0.02
@@ -641,12 +640,12 @@ def brdf_error_where_both_cosines_exceed_half(f_fn, seed: int = 7) -> float:
 def test_a_multi_light_capture_fits_the_brdf_where_both_cosines_exceed_half(mi, tmp_path, capsys):
     """Three views, each lit by its own point or area light and no environment (the
     multi-light capture of docs/inverse.md), fitted with the images section's defaults:
-    the run keeps its best held-out weights, and the exported network's BRDF where both
-    cosines exceed 0.5 is within the issue's 5 % of the truth, which the network's
-    constant start is not (issue 29: "with a multi-light capture, <= 5 % over every such
-    pair")."""
+    the coverage sees the capture's bands, the start is a conductor, and the exported
+    network's BRDF where both cosines exceed 0.5 is within the issue's 5 % of the truth
+    (issue 29: "with a multi-light capture, <= 5 % over every such pair").  It checks the
+    capture, the start and its distillation and the export; the image stage here keeps
+    the start (test_small_fit_reaches_the_stated_error checks that the stage works)."""
     import neural_brdf
-    from neural_brdf.inverse import fit as inverse
     from neural_brdf.inverse import scene as inverse_example
 
     inverse_example.write(
@@ -659,13 +658,8 @@ def test_a_multi_light_capture_fits_the_brdf_where_both_cosines_exceed_half(mi, 
     training = json.loads((run_dir / "metrics.json").read_text())["training"]
     assert 0.25 < training["coverage"]["figure"] < 0.6  # three bands of theta_d
     assert training["init"]["start"]["family"] in ("roughconductor", "blend")
-    val = training["validation"]
-    assert val["best_loss"] <= val["start_loss"]
     net = brdf_error_where_both_cosines_exceed_half(neural_brdf.load(run_dir / "model.onnx").eval)
-    start = brdf_error_where_both_cosines_exceed_half(
-        lambda wi, wo: np.full(wi.shape, inverse.INIT_VALUE, np.float32)
-    )
-    assert net < LIGHTS_BRDF_ERROR < start, (net, start)
+    assert net < LIGHTS_BRDF_ERROR, net
 
 
 def test_the_pixel_split_is_seeded_and_out_of_the_loss(mi, example):
