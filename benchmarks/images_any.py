@@ -32,7 +32,8 @@ and after its refinement, both recorded in one run, images_any_dev_refine.json; 
 principled family's metallic through sin^2, reaching 0 and 1, by the blue principled's
 figures, images_any_dev_metallic.json against images_any_dev_refine.json;
 ``images.validation_spp`` kept at 64 against 16, images_any_dev_validation_spp16.json
-against images_any_dev_metallic.json);
+against images_any_dev_metallic.json; the cap ``train.steps`` kept at 150 against 400,
+images_any_dev_steps400.json against images_any_dev_metallic.json);
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two
