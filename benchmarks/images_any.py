@@ -25,7 +25,11 @@ that split.
 
 **Two sets, disjoint.**  ``dev``: the materials and environments on which the settings
 were chosen (``--set-key`` overrides, compared by their figures here; ``rough_clay``, an
-Oren-Nayar outside every family, was added to choose ``images.poor_start_loss``;
+Oren-Nayar outside every family, was added to choose ``images.poor_start_loss``, a
+limit above the targets' own noise, under both captures, with the blue principled's
+``roughplastic`` start called poor by a lower one under lights,
+images_any_dev_lights_poor_start_0.001.json, and the noise's estimate checked by
+benchmarks/target_noise.py;
 ``images.patience`` was chosen by replaying it on this set's recorded fits,
 benchmarks/images_patience.py; ``images.start_refine_steps`` by the start's figures before
 and after its refinement, both recorded in one run, images_any_dev_refine.json; the
@@ -66,8 +70,10 @@ both images), so one run shows what the refinement did.
 and relighting environment, but each fitted view lit by its own light and no
 environment (:data:`neural_brdf.inverse.scene.LIGHTS`, docs/inverse.md's worked
 example: point, area and point lights at about 34, 62 and 105 degrees from their
-cameras), and the held-out camera lit by the three lights together.  Nothing was chosen
-on it: the settings are the environment capture's, from its development set.
+cameras), and the held-out camera lit by the three lights together.  Its development
+run chose one setting, with the environment's: ``images.poor_start_loss``, once it was a
+limit above the targets' own noise (docs/inverse.md, "A poor start"); the others are the
+environment capture's.
 
 Nothing here asserts anything; the JSON goes to benchmarks/results/images_any.json
 (``--set dev``: images_any_dev.json; ``--capture lights``: images_any_lights.json and
@@ -446,6 +452,11 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "candidates": candidates,
             "left_out": start.get("left_out"),
             "refine": refined or None,
+            # the poor-start rule's inputs (images.poor_start_loss): the chosen start's
+            # held-out loss, the targets' own noise estimated from the images, the verdict
+            "val_loss": start.get("val_loss"),
+            "target_noise": start.get("target_noise"),
+            "poor": start.get("poor"),
         },
         "images": images,
         "brdf": {"cap_0.5": cap, "observed": observed},

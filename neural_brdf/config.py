@@ -283,11 +283,12 @@ class Images(_Section):
     start_tie_sigmas: float = Field(2.0, ge=0.0)
     start_tie_max: float = Field(0.25, ge=0.0)
     ggx_lr: float = Field(0.02, gt=0.0)  # the ggx start's roughconductor fit: Adam's rate
-    # a chosen start whose held-out loss exceeds this fits the views poorly (no family
-    # holds the material): the image stage then runs at train.lr with the grids at their
-    # lr_scale, as from the constant start (null: never; chosen on the development set:
-    # docs/inverse.md, "A poor start")
-    poor_start_loss: float | None = Field(0.004, gt=0.0)
+    # a chosen start whose held-out loss exceeds the targets' own noise (estimated from
+    # the images, inverse.fit.target_noise) by more than this fits the views poorly (no
+    # family holds the material): the image stage then runs at train.lr with the grids
+    # at their lr_scale, as from the constant start (null: never; chosen on the
+    # development set under both captures: docs/inverse.md, "A poor start")
+    poor_start_loss: float | None = Field(0.0015, gt=0.0)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network

@@ -1358,7 +1358,8 @@ def images_any_section(
                     ", grid over the half vector's disc"
                     if e.get("grid_coords") == "half_disc"
                     else ""
-                ),
+                )
+                + _poor_cell(e["start"]),
                 pair(held, "psnr_db", db) + " dB",
                 pair(relit, "psnr_db", db) + " dB",
                 pair(relit, "image_rel_rmse", _pct) + f" (floor {_pct(floor)})",
@@ -1408,6 +1409,19 @@ def images_any_section(
         "",
     ]
     return out + _refine_table(d)
+
+
+def _poor_cell(start: dict) -> str:
+    """A poor start (images.poor_start_loss), where the file records it."""
+    poor = start.get("poor")
+    if not poor:
+        return ""
+    above = poor.get("excess", poor["val_loss"])  # files before the noise: the loss itself
+    return (
+        f", poor ({above:.2g} above the targets' noise)"
+        if "excess" in poor
+        else (f", poor (held-out loss {above:.2g})")
+    )
 
 
 def _refine_table(d: dict) -> list[str]:
@@ -2333,6 +2347,41 @@ def images_patience_section(d: dict) -> list[str]:
     return out + _table(head, rows)
 
 
+def target_noise_section(d: dict) -> list[str]:
+    """issue 29: the targets' noise estimated from the images against a second render."""
+    est, m = d["estimator"], d["machine"]
+    v = d["views"]
+    out = [
+        "## Images of any material: the targets' noise from the images alone (both sets)",
+        "",
+        _source("benchmarks/results/target_noise.json", "python benchmarks/target_noise.py"),
+        _recorded(d["date"], f"{m['platform']}, {m['cpus']} cores", None),
+        f"Each material of benchmarks/images_any.py's sets, its {v['fitted']} fitted views "
+        f"({v['resolution']}² at {v['target_spp']} spp) as that benchmark writes them, under "
+        "each capture. `estimate`: `neural_brdf.inverse.fit.target_noise` of the targets "
+        f"(each object pixel against the mean of its four neighbours, the smallest "
+        f"{100 * est['keep']:.0f} % of the weighted squares averaged, times {est['scale']:g}); "
+        f"`second render`: {d['second_render']}. The scale was chosen on the development "
+        "rows; the test rows are reported. `images.poor_start_loss` is a limit on a start's "
+        "held-out loss above the estimate.",
+        "",
+    ]
+    rows = [
+        [
+            "development" if r["set"] == "dev" else "test",
+            r["capture"],
+            r["material"],
+            f"{r['estimate']:.2g}",
+            f"{r['second_render']:.2g}",
+            f"{r['ratio']:.2f}",
+        ]
+        for r in d["rows"]
+    ]
+    return out + _table(
+        ["set", "capture", "material", "estimate", "second render", "estimate / second"], rows
+    )
+
+
 def images_cadence_section(d: dict) -> list[str]:
     """issue 29: images.validation_every replayed on recorded development fits."""
     timing = d.get("score_steps") or {}
@@ -2659,9 +2708,18 @@ SECTIONS = (
         partial(
             images_any_section,
             name="images_any_dev_lights.json",
-            title="a multi-light capture (nothing chosen)",
+            title="a multi-light capture",
         ),
     ),
+    (
+        RESULTS / "images_any_dev_lights_poor_start_0.001.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_lights_poor_start_0.001.json",
+            title="a multi-light capture, images.poor_start_loss 0.001 (not chosen)",
+        ),
+    ),
+    (RESULTS / "target_noise.json", target_noise_section),
     (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "images_cadence_dev.json", images_cadence_section),
     (RESULTS / "image_step.json", image_step_section),
