@@ -266,6 +266,30 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     assert "diffuse 0.0412 0.0398 7.5 s chosen" not in text
     assert "roughconductor_aniso left out: model.encoding 'isotropic' is isotropic" in text
     assert "half vector" not in text
+    assert "choice's held-out pixels" not in text  # the start holds no val_loss here
+    # the start's held-out loss against the targets' noise, and a poor start's verdict
+    poor = {
+        **start,
+        "val_loss": 0.0024,
+        "target_noise": 0.00011,
+        "poor": {"val_loss": 0.0024, "target_noise": 0.00011, "excess": 0.00229, "limit": 0.0015},
+    }
+    called = make_images_run(tiny_run, tmp_path / "poor", extra={"init": {**init, "start": poor}})
+    text = " ".join(
+        visible_text(report.write_report(called, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "start's loss on the choice's held-out pixels 0.0024 (the targets' own noise" in text
+        and "0.00011" in text
+    )
+    assert "poor: no family fits the views" in text
+    assert "0.0023 above the noise > images.poor_start_loss 0.0015" in text
+    good = {**start, "val_loss": 0.0012, "target_noise": 0.0011}
+    fine = make_images_run(tiny_run, tmp_path / "fine", extra={"init": {**init, "start": good}})
+    text = " ".join(
+        visible_text(report.write_report(fine, render=False)["html"].read_text()).split()
+    )
+    assert "start's loss on the choice's held-out pixels 0.0012" in text and "poor:" not in text
     # an anisotropic start's network has its grid over the half vector's disc: said
     aniso = {**start, "family": "roughconductor_aniso", "grid_coords": "half_disc"}
     moved = make_images_run(tiny_run, tmp_path / "aniso", extra={"init": {**init, "start": aniso}})

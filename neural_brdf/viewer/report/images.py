@@ -214,6 +214,7 @@ def _fit_figures(run: Run) -> list[Block]:
             else ""
         )
         rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{grid}"])
+        rows += _start_noise_rows(chosen)
     elif isinstance(init, dict) and isinstance(init.get("target"), str):
         rows.append(["start", init["target"]])
     elif "init" in training and init is None:
@@ -221,6 +222,26 @@ def _fit_figures(run: Run) -> list[Block]:
     rows += _validation_rows(training.get("validation"))
     out: list[Block] = [Table(["figure", "value"], rows)] if rows else []
     return out + _start_candidates(chosen)
+
+
+def _start_noise_rows(chosen: dict) -> list[list[str]]:
+    """The chosen start's held-out loss against the targets' own noise (estimated from
+    the images: ``target_noise``), and whether images.poor_start_loss called it poor."""
+    loss, noise = _finite(chosen.get("val_loss")), _finite(chosen.get("target_noise"))
+    if loss is None:
+        return []
+    text = f"{loss:.4g}"
+    if noise is not None:
+        text += f" (the targets' own noise, estimated from the images: {noise:.2g})"
+    rows = [["start's loss on the choice's held-out pixels", text]]
+    poor = chosen.get("poor")
+    if isinstance(poor, dict):
+        above, limit = _finite(poor.get("excess")), _finite(poor.get("limit"))
+        said = "poor: no family fits the views; the image stage ran at train.lr"
+        if above is not None and limit is not None:
+            said += f" ({above:.2g} above the noise > images.poor_start_loss {limit:g})"
+        rows.append(["start's fit", said])
+    return rows
 
 
 def _start_candidates(chosen: Any) -> list[Block]:
