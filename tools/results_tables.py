@@ -2317,6 +2317,73 @@ def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -
     )
 
 
+def textured_ggx_heads_section(d: dict) -> list[str]:
+    """issue 30: a prototype, analytic GGX heads beside the lobes at one texel (dev)."""
+    m, rc = d["machine"], d["recipe"]
+    arms = {
+        "lobes": "the lobes alone",
+        "ggx_corr": "+ GGX heads, height-correlated Smith, alpha started at the teacher's",
+        "ggx_sep": "+ GGX heads, separable Smith, alpha started at the teacher's",
+        "ggx_sep_free": "+ GGX heads, separable Smith, alpha started at 0.28",
+    }
+    out = [
+        "## Textured materials: analytic GGX heads beside the lobes, a prototype (development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_ggx_heads_dev.json",
+            "python benchmarks/textured_ggx_heads.py",
+        ),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores",
+            f"{_load(m['loadavg_before'])} at the start, {_load(m['loadavg_after'])} at the end",
+        ),
+        "Teachers: twosided > principled, base_color "
+        + ", ".join(f"{c:g}" for c in d["base_color"])
+        + ", specular 0.5, sheen 0; roughness and metallic per row (development, as "
+        f"textured_ceiling.py's). One texel: K = {rc['lobes']} shared {rc['lobe_color']} lobes "
+        f"(hidden {rc['hidden']}, grazing_power {rc['grazing_power']:g}, weights "
+        f"{rc['weights']}), {rc['steps']} steps of {rc['batch']} pairs at {rc['lr']:g} from a "
+        f"pool of {rc['pool']:,}, no latent and no bound; with the GGX arms, two analytic heads "
+        "added (F = 1 and the Schlick grazing factor, one learned alpha, RGB weights). Scored "
+        f"in torch on {d['pairs']:,} pairs drawn as benchmarks/textured.py draws them (seed "
+        f"{d['seed']}): relative RMSE of f·cos, and per band of cos θi its value and its share "
+        "of the squared error. A prototype of a model change, not the model: nothing is "
+        "chosen here.",
+        "",
+    ]
+    rows = []
+    for r in d["rows"]:
+        bands = [
+            f"{_pct(b['rel_rmse'], 1)} ({_pct(b['share_sq_error'], 0)})"
+            for b in r["cos_i"].values()
+        ]
+        rows.append(
+            [
+                f"{r['roughness']:g}",
+                f"{r['metallic']:g}",
+                arms.get(r["arm"], r["arm"]),
+                _pct(r["rel_rmse"], 2),
+                *bands,
+                f"{r['alpha']:.3f} ({r['alpha_teacher']:.4g})" if "alpha" in r else "-",
+                f"{r['train_seconds']:.0f} s",
+            ]
+        )
+    bands = [f"cos θi {k} (share)" for k in d["rows"][0]["cos_i"]]
+    return out + _table(
+        [
+            "roughness",
+            "metallic",
+            "model",
+            "f·cos rel. RMSE",
+            *bands,
+            "alpha learned (teacher's)",
+            "training",
+        ],
+        rows,
+    )
+
+
 def images_patience_section(d: dict) -> list[str]:
     """issue 29: images.patience replayed on recorded development fits."""
     out = [
@@ -2733,6 +2800,7 @@ SECTIONS = (
         RESULTS / "textured_ceiling_gp2_dev.json",
         partial(textured_ceiling_section, name="textured_ceiling_gp2_dev.json"),
     ),
+    (RESULTS / "textured_ggx_heads_dev.json", textured_ggx_heads_section),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (RESULTS / "textured_project_dev.json", textured_project_section),
     (RESULTS / "textured_refit_dev.json", textured_refit_section),
