@@ -2325,6 +2325,7 @@ def textured_ggx_heads_section(d: dict) -> list[str]:
         "ggx_corr": "+ GGX heads, height-correlated Smith, alpha started at the teacher's",
         "ggx_sep": "+ GGX heads, separable Smith, alpha started at the teacher's",
         "ggx_sep_free": "+ GGX heads, separable Smith, alpha started at 0.28",
+        "ggx_sep_est": "+ GGX heads, separable Smith, alpha started from the teacher's eval",
     }
     out = [
         "## Textured materials: analytic GGX heads beside the lobes, a prototype (development set)",
@@ -2365,7 +2366,10 @@ def textured_ggx_heads_section(d: dict) -> list[str]:
                 arms.get(r["arm"], r["arm"]),
                 _pct(r["rel_rmse"], 2),
                 *bands,
-                f"{r['alpha']:.3f} ({r['alpha_teacher']:.4g})" if "alpha" in r else "-",
+                f"{r['alpha']:.3f} ({r['alpha_teacher']:.4g}"
+                + (f"; started at {r['alpha_start']:.3g})" if "alpha_start" in r else ")")
+                if "alpha" in r
+                else "-",
                 f"{r['train_seconds']:.0f} s",
             ]
         )
@@ -2377,7 +2381,7 @@ def textured_ggx_heads_section(d: dict) -> list[str]:
             "model",
             "f·cos rel. RMSE",
             *bands,
-            "alpha learned (teacher's)",
+            "alpha learned (teacher's; start)",
             "training",
         ],
         rows,
