@@ -130,7 +130,7 @@ def make_model(pool_f, arm: str, alpha_start: float):
     import torch
 
     from neural_brdf import config as cfgmod
-    from neural_brdf.train.textured_loop import FIELD_LR_SCALE, lobe_networks
+    from neural_brdf.train.textured_loop import FIELD_LR_SCALE, lobe_networks, parameter_groups
     from neural_brdf.train.textured_model import TexturedBRDF, WeightField
 
     heads, masking, _ = ARMS[arm]
@@ -158,23 +158,11 @@ def make_model(pool_f, arm: str, alpha_start: float):
             return f + g_a * w[0] + g_b * w[1]
 
     model = WithGGX()
-    # the learning-rate groups of textured_loop (its module doc): the lobes' learned
-    # feature grids at their lr_scale, the field's logits at FIELD_LR_SCALE
-    m = cfgmod.Model(hidden=HIDDEN)
-    scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
-    groups: dict[float, list] = {}
-    for name, p in base.named_parameters():
-        if name.startswith("field."):
-            scale = FIELD_LR_SCALE
-        else:
-            local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
-            scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
-        groups.setdefault(scale, []).append(p)
+    # the learning-rate groups of textured_loop (its module doc); the heads' at 1
+    groups = parameter_groups(base, cfgmod.Model(hidden=HIDDEN), FIELD_LR_SCALE)
     if heads:
-        groups.setdefault(1.0, []).extend([model.a, model.w])
-    return model, torch.optim.Adam(
-        [{"params": ps, "lr_scale": s} for s, ps in groups.items()], lr=LR
-    )
+        groups.append({"params": [model.a, model.w], "lr_scale": 1.0})
+    return model, torch.optim.Adam(groups, lr=LR)
 
 
 def fit(model, opt, pool, steps: int, seed: int) -> float:

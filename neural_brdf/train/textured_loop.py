@@ -154,6 +154,16 @@ def _model_and_optimizer(
             field.latent_logits.copy_(latent_init)
     nets = lobe_networks(m, lobes, shared, init_value=init, latent=latent, colors=colors)
     model = TexturedBRDF(nets, field)
+    opt = torch.optim.Adam(parameter_groups(model, m, field_lr_scale), lr=lr, fused=True)
+    return model, opt
+
+
+def parameter_groups(
+    model: TexturedBRDF, m: cfgmod.Model, field_lr_scale: float = FIELD_LR_SCALE
+) -> list[dict[str, Any]]:
+    """Adam's parameter groups of a textured model (module doc), each with its
+    ``lr_scale``: the field's logits at ``field_lr_scale``, the lobes' learned feature
+    grids at the model section's grid ``lr_scale``, every other weight at 1."""
     scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
     groups: dict[float, list[torch.nn.Parameter]] = {}
     for name, p in model.named_parameters():
@@ -163,10 +173,7 @@ def _model_and_optimizer(
             local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
             scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
         groups.setdefault(scale, []).append(p)
-    opt = torch.optim.Adam(
-        [{"params": ps, "lr_scale": s} for s, ps in groups.items()], lr=lr, fused=True
-    )
-    return model, opt
+    return [{"params": ps, "lr_scale": s} for s, ps in groups.items()]
 
 
 # texture.lobe_bound: scale (bound_scale): the training-time estimate of each raw lobe's
