@@ -39,7 +39,6 @@ Nothing asserts; the JSON goes to results/textured_ggx_heads_dev.json and
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import tempfile
@@ -47,11 +46,13 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch, as the CLI does
 REPO = Path(__file__).resolve().parents[1]
 for p in (REPO, REPO / "benchmarks"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
+import torch  # noqa: E402
 from common import machine, write_json  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
@@ -69,53 +70,50 @@ ALPHA_MIN = 0.01
 
 
 def ggx_heads(wi, wo, alpha, masking: str):
-    """(N, 1) each: the GGX lobe with F = 1 and with the Schlick grazing factor."""
-    import torch
+    """(N, 1) each: the GGX lobe with F = 1 and with the Schlick grazing factor, from the
+    analytic library's microfacet distribution (its D and Smith terms) and Schlick's
+    Fresnel with F0 = 0 (the factor (1 - wi.h)^5)."""
+    from analytic import frame
+    from analytic.fresnel import schlick
+    from analytic.microfacet import Distribution
 
-    ci, co = wi[:, 2:3], wo[:, 2:3]
-    h = wi + wo
-    h = h / h.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    ch = h[:, 2:3]
-    a2 = alpha * alpha
-    d = a2 / (math.pi * (ch * ch * (a2 - 1.0) + 1.0) ** 2)
-
-    def lam(c):  # Smith's Lambda for GGX (Walter et al. 2007)
-        c = c.clamp(1e-6, 1.0)
-        return (-1.0 + torch.sqrt(1.0 + a2 * (1.0 - c * c) / (c * c))) / 2.0
-
+    dist = Distribution("ggx", alpha, alpha)  # alpha: a tensor, so the heads learn it
+    h = frame.normalize(wi + wo)
     if masking == "separable":
-        g = 1.0 / ((1.0 + lam(ci)) * (1.0 + lam(co)))
+        g = dist.G1(wi) * dist.G1(wo)
     else:
-        g = 1.0 / (1.0 + lam(ci) + lam(co))
-    f = d * g / (4.0 * ci.clamp_min(1e-6) * co.clamp_min(1e-6))
-    schlick = (1.0 - (wi * h).sum(1, keepdim=True).clamp(0.0, 1.0)) ** 5
+        g = 1.0 / (1.0 + dist.Lambda(wi) + dist.Lambda(wo))
+    ci, co = wi[:, 2:3], wo[:, 2:3]
+    f = (dist.D(h) * g)[:, None] / (4.0 * ci.clamp_min(frame.EPS_COS) * co.clamp_min(frame.EPS_COS))
+    rise = schlick(0.0, frame.dot(wi, h))[:, :1]  # grey: (1 - wi.h)^5
     ok = (ci > 0) & (co > 0)
-    return torch.where(ok, f, 0.0), torch.where(ok, f * schlick, 0.0)
+    return torch.where(ok, f, 0.0), torch.where(ok, f * rise, 0.0)
 
 
 def alpha_from_eval(teacher, uv=(0.5, 0.5)) -> float:
     """A start for alpha from the teacher's ``eval`` alone, as the latent's start is
     made (textured_loop.latent_from_teacher): f(n, w) with wi at the normal and wo tilted
-    by 0 to 80 degrees, fitted by k_d + k_s D(theta / 2) G1(w) / (4 cos theta) (GGX's D,
-    the separable masking's G1; the half vector is tilted by half the angle) with
-    k_d, k_s >= 0 by least squares relative to f, for each of 60 alphas from 0.01 to 1
-    (log-spaced): the alpha of the least relative error."""
+    by 0 to 80 degrees, fitted by k_d + k_s D(h) G1(w) / (4 cos theta) (the analytic
+    library's GGX D and separable masking; G1 at the normal is 1) with k_d, k_s >= 0 by
+    least squares relative to f, for each of 60 alphas from 0.01 to 1 (log-spaced): the
+    alpha of the least relative error."""
     import numpy as np
+
+    from analytic import frame
+    from analytic.microfacet import Distribution
 
     t = np.radians(np.arange(0.0, 81.0, 2.0))
     wo = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1)
     wi = np.tile([0.0, 0.0, 1.0], (len(t), 1))
     f = np.nan_to_num(np.asarray(teacher.eval(wi, wo, np.tile(uv, (len(t), 1))), np.float64))
     f = f.mean(-1)
+    wo_t = torch.from_numpy(wo)
+    h = frame.normalize(torch.from_numpy(wi) + wo_t)
+    w = 1.0 / np.maximum(f, 1e-9)  # relative
     best, best_err = 1.0, np.inf
     for a in np.geomspace(0.01, 1.0, 60):
-        a2 = a * a
-        ch = np.cos(t / 2)
-        d = a2 / (np.pi * (ch * ch * (a2 - 1.0) + 1.0) ** 2)
-        c = np.cos(t)
-        lam = (-1.0 + np.sqrt(1.0 + a2 * (1.0 - c * c) / (c * c))) / 2.0
-        spec = d / (1.0 + lam) / (4.0 * c)
-        w = 1.0 / np.maximum(f, 1e-9)  # relative
+        dist = Distribution("ggx", float(a), float(a))
+        spec = (dist.D(h) * dist.G1(wo_t)).numpy() / (4.0 * wo[:, 2])
         x = np.stack([np.ones_like(spec), spec], -1) * w[:, None]
         k, *_ = np.linalg.lstsq(x, f * w, rcond=None)
         k = np.maximum(k, 0.0)
@@ -125,10 +123,29 @@ def alpha_from_eval(teacher, uv=(0.5, 0.5)) -> float:
     return best
 
 
+class WithGGX(torch.nn.Module):
+    """``base`` (the lobes) plus the two GGX heads of :func:`ggx_heads`, RGB weights
+    (softplus, started at 0.13) and one alpha in [ALPHA_MIN, 1] (a logistic map)."""
+
+    def __init__(self, base: torch.nn.Module, masking: str, alpha_start: float):
+        super().__init__()
+        self.base = base
+        self.masking = masking
+        a = (alpha_start - ALPHA_MIN) / (1.0 - ALPHA_MIN)
+        self.a = torch.nn.Parameter(torch.logit(torch.tensor(a)))
+        self.w = torch.nn.Parameter(torch.full((2, 3), -2.0))
+
+    def alpha(self) -> torch.Tensor:
+        return ALPHA_MIN + (1.0 - ALPHA_MIN) * torch.sigmoid(self.a)
+
+    def forward(self, wi, wo, uv):
+        g_a, g_b = ggx_heads(wi, wo, self.alpha(), self.masking)
+        w = torch.nn.functional.softplus(self.w)
+        return self.base(wi, wo, uv) + g_a * w[0] + g_b * w[1]
+
+
 def make_model(pool_f, arm: str, alpha_start: float):
     """The recipe's lobes at one texel, with the arm's GGX heads; (model, Adam)."""
-    import torch
-
     from neural_brdf import config as cfgmod
     from neural_brdf.train.textured_loop import FIELD_LR_SCALE, lobe_networks, parameter_groups
     from neural_brdf.train.textured_model import TexturedBRDF, WeightField
@@ -137,37 +154,16 @@ def make_model(pool_f, arm: str, alpha_start: float):
     init = float(pool_f.median().clamp(1e-3, 10.0)) * (K + 1) / K
     nets = lobe_networks(cfgmod.Model(hidden=HIDDEN), K, True, init_value=init, colors=1)
     base = TexturedBRDF(nets, WeightField(1, K, channels=3))
-
-    class WithGGX(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.base = base
-            a = alpha_start - ALPHA_MIN
-            self.a = torch.nn.Parameter(torch.logit(torch.tensor(a / (1.0 - ALPHA_MIN))))
-            self.w = torch.nn.Parameter(torch.full((2, 3), -2.0))  # softplus: 0.13
-
-        def alpha(self):
-            return ALPHA_MIN + (1.0 - ALPHA_MIN) * torch.sigmoid(self.a)
-
-        def forward(self, wi, wo, uv):
-            f = self.base(wi, wo, uv)
-            if not heads:
-                return f
-            g_a, g_b = ggx_heads(wi, wo, self.alpha(), masking)
-            w = torch.nn.functional.softplus(self.w)
-            return f + g_a * w[0] + g_b * w[1]
-
-    model = WithGGX()
     # the learning-rate groups of textured_loop (its module doc); the heads' at 1
     groups = parameter_groups(base, cfgmod.Model(hidden=HIDDEN), FIELD_LR_SCALE)
-    if heads:
-        groups.append({"params": [model.a, model.w], "lr_scale": 1.0})
+    if not heads:
+        return base, torch.optim.Adam(groups, lr=LR)
+    model = WithGGX(base, masking, alpha_start)
+    groups.append({"params": [model.a, model.w], "lr_scale": 1.0})
     return model, torch.optim.Adam(groups, lr=LR)
 
 
 def fit(model, opt, pool, steps: int, seed: int) -> float:
-    import torch
-
     from neural_brdf import config as cfgmod
     from neural_brdf.train.loop import learning_rate, loss_fn
 
@@ -196,13 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="tiny budgets: the machinery only")
     ap.add_argument("--out", type=Path, default=RESULTS / "textured_ggx_heads_dev.json")
     args = ap.parse_args(argv)
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     load_before = [round(x, 2) for x in os.getloadavg()]
 
     import numpy as np
     import textured as bench
     import textured_ceiling as tc
-    import torch
 
     from neural_brdf.measured.textured import TexturedMitsubaTarget
     from neural_brdf.train.textured_loop import pairs

@@ -1416,12 +1416,9 @@ def _poor_cell(start: dict) -> str:
     poor = start.get("poor")
     if not poor:
         return ""
-    above = poor.get("excess", poor["val_loss"])  # files before the noise: the loss itself
-    return (
-        f", poor ({above:.2g} above the targets' noise)"
-        if "excess" in poor
-        else (f", poor (held-out loss {above:.2g})")
-    )
+    if "excess" in poor:
+        return f", poor ({poor['excess']:.2g} above the targets' noise)"
+    return f", poor (held-out loss {poor['val_loss']:.2g})"  # files before the noise
 
 
 def _refine_table(d: dict) -> list[str]:
@@ -2247,6 +2244,15 @@ def textured_tour_section(d: dict) -> list[str]:
     )
 
 
+def _band_cells(cos_i: dict) -> list[str]:
+    """Per band of cos theta_i: its relative RMSE and (its share of the squared error)."""
+    return [f"{_pct(b['rel_rmse'], 1)} ({_pct(b['share_sq_error'], 0)})" for b in cos_i.values()]
+
+
+def _band_heads(cos_i: dict) -> list[str]:
+    return [f"cos θi {k} (share)" for k in cos_i]
+
+
 def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -> list[str]:
     """issue 30: the textured recipe's lobes at one texel against the compact file (with
     ``--grazing-power``: both models' model.grazing_power changed, the run's own file)."""
@@ -2287,10 +2293,7 @@ def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -
     for r in d["rows"].values():
         for model in ("lobes", "compact"):
             x = r[model]
-            bands = [
-                f"{_pct(b['rel_rmse'], 1)} ({_pct(b['share_sq_error'], 0)})"
-                for b in x["cos_i"].values()
-            ]
+            bands = _band_cells(x["cos_i"])
             rows.append(
                 [
                     f"{r['roughness']:g}",
@@ -2302,7 +2305,7 @@ def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -
                     f"{x['seconds']:.0f} s",
                 ]
             )
-    bands = [f"cos θi {k} (share)" for k in next(iter(d["rows"].values()))["lobes"]["cos_i"]]
+    bands = _band_heads(next(iter(d["rows"].values()))["lobes"]["cos_i"])
     return out + _table(
         [
             "roughness",
@@ -2355,10 +2358,7 @@ def textured_ggx_heads_section(d: dict) -> list[str]:
     ]
     rows = []
     for r in d["rows"]:
-        bands = [
-            f"{_pct(b['rel_rmse'], 1)} ({_pct(b['share_sq_error'], 0)})"
-            for b in r["cos_i"].values()
-        ]
+        bands = _band_cells(r["cos_i"])
         rows.append(
             [
                 f"{r['roughness']:g}",
@@ -2373,7 +2373,7 @@ def textured_ggx_heads_section(d: dict) -> list[str]:
                 f"{r['train_seconds']:.0f} s",
             ]
         )
-    bands = [f"cos θi {k} (share)" for k in d["rows"][0]["cos_i"]]
+    bands = _band_heads(d["rows"][0]["cos_i"])
     return out + _table(
         [
             "roughness",
