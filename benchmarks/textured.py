@@ -171,6 +171,7 @@ SETTINGS = {
     # steps at 0.001 on the projected field, the least error for its time)
     "refit_steps": 3000,
     "refit_lr": 0.001,
+    "analytic_heads": "none",
 }
 # (kind, K, R, steps, batch, pool) -> ``train_textured``'s held-out relative RMSE of
 # f cos on the development teacher (seed 1, 512^2), 2 threads
@@ -473,6 +474,7 @@ def trained_model(teacher, settings: dict):
         start_steps=settings.get("start_steps"),
         fresh_every=settings.get("fresh_every"),
         field_levels=settings.get("field_levels", 1),
+        analytic_heads=settings.get("analytic_heads", "none"),
         model_section=_lobe_model(settings),
     )
 
@@ -917,7 +919,16 @@ def main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help="change one SETTINGS value (the development set only: a choice is made there)",
     )
+    ap.add_argument(
+        "--only",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="one teacher (repeat; the development set only): no render cost",
+    )
     args = ap.parse_args(argv)
+    if args.only and args.which != "dev":
+        ap.error("--only: the development set only (the test set is measured whole)")
     torch.set_num_threads(2)
     settings = dict(QUICK if args.quick else SETTINGS)
     for item in args.setting:
@@ -981,10 +992,19 @@ def main(argv: list[str] | None = None) -> int:
     env = environment_exr(work / "lagoon.exr")
     paths = {}
     for name, spec in write_teachers(work, args.which, size).items():
+        if args.only and name not in args.only:
+            continue
         entry = measure_teacher(name, spec, work, env, args, settings)
         paths[name] = Path(entry.pop("_path"))
         result["teachers"][name] = entry
         write_json(out, result)
+    if args.only:  # a part of the development set: no render cost
+        result["only"] = list(args.only)
+        result["machine_end"] = bsdf_bound.machine()
+        result["wall_seconds"] = time.perf_counter() - t_start
+        write_json(out, result)
+        print(f"wrote {out} ({result['wall_seconds']:.0f} s)")
+        return 0
     # the render cost (module doc)
     specs = write_teachers(work, args.which, size)  # the same files again (deterministic)
     bsdfs: dict[str, object] = {

@@ -397,6 +397,12 @@ class Texture(_Section):
     # z, so bilinear blends keep it); looser than one constant per lobe where lobes peak
     # at different incidences, and neither a table nor a multiply in the graph
     lobe_bound: Literal["table", "scale", "texel"] = "table"
+    # ggx: two analytic heads beside the shared network, GGX with F = 1 and with
+    # Schlick's grazing factor (1 - cos theta_d)^5, their alpha one more column of the
+    # field (started from the teacher's eval); reciprocal, and each head's albedo <= 1 in
+    # closed form for any alpha (docs/model.md, "Analytic GGX heads"). Needs
+    # lobe_network: shared and lobe_bound: texel
+    analytic_heads: Literal["none", "ggx"] = "none"
     # several starts (docs/mitsuba.md, "Several starts"): `starts` models from the seeds
     # train.seed, +1, ..., each trained `start_steps` steps (null: all of train.steps), the
     # one with the lowest error on pairs of its own (not the held-out ones) continued
@@ -451,6 +457,19 @@ class Texture(_Section):
             raise ValueError(
                 "refit_steps: the lobes are refitted on a projected field; set project "
                 "(or refit_steps: 0)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _analytic_heads(self):
+        # the heads sit beside one shared network and join the texels' bound (ggx_heads.py)
+        if self.analytic_heads != "none" and (
+            self.lobe_network != "shared" or self.lobe_bound != "texel"
+        ):
+            raise ValueError(
+                "analytic_heads: the heads sit beside one shared lobe network and are "
+                "bounded per texel; set lobe_network: shared and lobe_bound: texel (got "
+                f"{self.lobe_network}, {self.lobe_bound})"
             )
         return self
 
@@ -620,7 +639,8 @@ def sizes(cfg: Config) -> list[tuple[str, float]]:
         pool = cfg.texture.pool(d.pool_size)
         out.append(("texture.pool_per_texel", float(pool) * PAIR_BYTES))
         if cfg.texture.project is not None:  # the projected table: its float64 solutions,
-            width = 3 * cfg.texture.lobes + 1  # the float32 table and its bounded copy
+            heads = 2 if cfg.texture.analytic_heads != "none" else 0  # and alpha's column
+            width = 3 * (cfg.texture.lobes + heads) + 1 + bool(heads)  # float32, bounded copy
             out.append(("texture.project", (8.0 + 4.0 + 4.0) * cfg.texture.project**2 * width))
     for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
         out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))

@@ -263,6 +263,12 @@ def textured_normalization_note(
             f"(MIS quadrature + {n.sigmas:g} standard errors, neighbour maximum, times "
             f"(1 + {n.margin:g})); the constraints are linear in z, so every bilinear "
             "blend of texels keeps them: the albedo is <= 1 + margin at every uv"
+            + (
+                "; the last two lobes are analytic GGX heads (texture.analytic_heads), "
+                "A+ = 1 at every node in closed form"
+                if analytic_json(model) is not None
+                else ""
+            )
         )
     if not lobes:
         return "none: each lobe is its raw network (normalization.enabled: false, an ablation)"
@@ -552,8 +558,30 @@ def texture_json(model: TexturedBRDF, info: list[dict[str, Any]] | None = None) 
         "latent": int(getattr(field, "latent", 0)),
         # grey: each lobe has one output, repeated to RGB (texture.lobe_color); rgb: three
         "lobe_color": "grey" if _grey_lobes(model) else "rgb",
+        # analytic GGX heads: the last two of the lobes, alpha the table's last column
+        "analytic_heads": analytic_json(model),
         "normal_field": normal_json(model),
         "lobe_tables": plain(info) if info is not None else None,
+    }
+
+
+def analytic_json(model: TexturedBRDF) -> dict[str, Any] | None:
+    """The ``texture.analytic_heads`` entry: None, or what the analytic heads are
+    (train/ggx_heads.py, docs/model.md "Analytic GGX heads")."""
+    from neural_brdf.train.ggx_heads import ALPHA_MIN, HEADS, analytic_count
+
+    if not any(analytic_count(g) for g in model.lobes):
+        return None
+    k = int(model.field.lobes)
+    return {
+        "kind": "ggx",
+        "lobes": [k - HEADS, k - 1],
+        "alpha": f"{ALPHA_MIN:g} + {1 - ALPHA_MIN:g} t, t the table's last column",
+        "heads": [
+            "D(h) G1(wi) G1(wo) / (4 cos_i cos_o): GGX, Smith's separable masking, F = 1",
+            "the same times (1 - cos_d)^5 (Schlick's grazing factor)",
+        ],
+        "albedo": "each head's <= 1 for every alpha (closed form), its envelope 1",
     }
 
 
@@ -678,6 +706,7 @@ def export(
 
 def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     """The raw textured model of a textured run's checkpoint (``train.textured_loop``)."""
+    from neural_brdf.train.ggx_heads import HEADS, with_heads
     from neural_brdf.train.textured_loop import lobe_networks
     from neural_brdf.train.textured_model import WeightField
 
@@ -685,20 +714,27 @@ def textured_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> TexturedBRDF:
     # the checkpoint's own layout decides (a run of separate lobes has lobes.1.*)
     state = ckpt["model"]
     separate = any(k.startswith("lobes.1.") for k in state)
-    shared = not separate and tx.lobes > 1
+    # analytic heads wrap the shared network (its weights under lobes.0.net.*)
+    analytic = "ggx" if "lobes.0.net.mlp.head.weight" in state else "none"
+    extra = HEADS if analytic != "none" else 0
+    shared = not separate and (tx.lobes > 1 or bool(extra))
     # and its lobes' colour: a grey lobe's last layer has one row per head, not three
-    colors = int(state["lobes.0.mlp.head.weight"].shape[0]) // (tx.lobes if shared else 1)
-    # and so does its latent (conditioned lobes have field.latent_logits)
-    latent = int(state["field.latent_logits"].shape[1]) if "field.latent_logits" in state else 0
+    head = state["lobes.0.net.mlp.head.weight" if extra else "lobes.0.mlp.head.weight"]
+    colors = int(head.shape[0]) // (tx.lobes if shared else 1)
+    # and so does its latent (conditioned lobes have field.latent_logits; alpha's column
+    # follows the lobes' latent with analytic heads)
+    columns = int(state["field.latent_logits"].shape[1]) if "field.latent_logits" in state else 0
+    latent = columns - bool(extra)
     # and its field's levels (field.coarse.<l - 1> for each coarser level)
     levels = 1 + len({k.split(".")[2] for k in state if k.startswith("field.coarse.")})
+    nets = lobe_networks(cfg.model, tx.lobes, shared, latent=latent, colors=colors)
     model = TexturedBRDF(
-        lobe_networks(cfg.model, tx.lobes, shared, latent=latent, colors=colors),
+        [with_heads(nets[0], analytic)] if extra else nets,
         WeightField(
             tx.resolution,
-            tx.lobes,
+            tx.lobes + extra,
             channels=3 if tx.weights == "rgb" else 1,
-            latent=latent,
+            latent=columns,
             levels=levels,
         ),
     )
@@ -816,6 +852,7 @@ TEXTURED_EXPORT_MUST_MATCH = tuple(
         "latent",
         "lobe_color",
         "lobe_bound",
+        "analytic_heads",
         "field_levels",
     )
 )

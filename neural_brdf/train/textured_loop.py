@@ -48,6 +48,7 @@ import torch
 from analytic import frame
 from neural_brdf import config as cfgmod
 from neural_brdf.runfolder import Folder
+from neural_brdf.train.ggx_heads import alpha_from_teacher, analytic_count, with_heads
 from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
@@ -136,6 +137,7 @@ def _model_and_optimizer(
     latent_init: torch.Tensor | None = None,
     levels: int = 1,
     colors: int = 3,
+    analytic: str = "none",
 ) -> tuple[TexturedBRDF, torch.optim.Adam]:
     """K lobes ``RawBRDF.from_config(m)`` and an R x R weight field of ``channels`` (1:
     one weight per lobe, 3: one per lobe and RGB channel) sets of weights (from torch's
@@ -145,14 +147,26 @@ def _model_and_optimizer(
     random so that they start apart.  ``latent`` 1: the lobes take the field's latent s(uv)
     as one more input (``texture.latent``, docs/model.md "Conditioned lobes"), its
     logits started at ``latent_init``.  ``colors`` 1: grey lobes (``texture.lobe_color``),
-    coloured by the field's per-channel weights."""
+    coloured by the field's per-channel weights.  ``analytic`` "ggx": two analytic GGX
+    heads beside the shared network (``texture.analytic_heads``, train/ggx_heads.py), their
+    alpha one more latent column of the field, started with ``latent_init``'s last column
+    (``latent_init`` then holds the lobes' latent and alpha's start side by side)."""
     # the initial f is sum_k z_k init, and the weights sum to about K / (K + 1) at the start
     init = float(pool_f.median().clamp(1e-3, 10.0)) * (lobes + 1) / lobes
-    field = WeightField(resolution, lobes, channels=channels, latent=latent, levels=levels)
+    nets: list[torch.nn.Module] = list(
+        lobe_networks(m, lobes, shared, init_value=init, latent=latent, colors=colors)
+    )
+    if analytic != "none":
+        if len(nets) != 1:
+            raise ValueError("analytic heads sit beside one shared lobe network")
+        nets = [with_heads(nets[0], analytic)]
+    extra = analytic_count(nets[0])
+    field = WeightField(
+        resolution, lobes + extra, channels=channels, latent=latent + bool(extra), levels=levels
+    )
     if field.latent_logits is not None and latent_init is not None:
         with torch.no_grad():
             field.latent_logits.copy_(latent_init)
-    nets = lobe_networks(m, lobes, shared, init_value=init, latent=latent, colors=colors)
     model = TexturedBRDF(nets, field)
     opt = torch.optim.Adam(parameter_groups(model, m, field_lr_scale), lr=lr, fused=True)
     return model, opt
@@ -171,6 +185,7 @@ def parameter_groups(
             scale = field_lr_scale
         else:
             local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
+            local = local[4:] if local.startswith("net.") else local  # beside GGX heads
             scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
         groups.setdefault(scale, []).append(p)
     return [{"params": ps, "lr_scale": s} for s, ps in groups.items()]
@@ -240,6 +255,7 @@ def bound_scale(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
     export's constant (:class:`~neural_brdf.train.textured_model.ScaledBRDF`) dims them
     only by the two estimates' difference."""
     cols = [a.reshape(-1, a.shape[-1]).amax(0) for a, _ in _coarse_tables(model, seed)]
+    cols += [torch.ones(3 * analytic_count(g)) for g in model.lobes]  # analytic: <= 1
     peak = torch.cat(cols).float().clamp_min(1.0)
     return 1.0 / peak
 
@@ -259,7 +275,11 @@ def bound_envelope(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
     (``texture.lobe_bound: texel``, :func:`~neural_brdf.train.textured_model.
     texel_bound`) as the export does by its own tables."""
     tables = _coarse_tables(model, seed, ENVELOPE_THETA, ENVELOPE_SAMPLES, upper=True)
-    parts = [lobe_envelope(a, cond) for a, cond in tables]
+    parts = []
+    for (a, cond), lobe in zip(tables, model.lobes):
+        env = lobe_envelope(a, cond).float()
+        heads = analytic_count(lobe)  # analytic heads: albedo <= 1 at every node (closed form)
+        parts.append(torch.cat([env, torch.ones(env.shape[0], 3 * heads)], -1) if heads else env)
     return torch.cat(parts, -1).float()
 
 
@@ -310,6 +330,19 @@ def latent_from_teacher(teacher: Any, resolution: int) -> torch.Tensor:
     rank = np.argsort(np.argsort(sharp, kind="stable"), kind="stable")
     s = (rank + 0.5) / (r * r)
     return torch.from_numpy(np.log(s / (1.0 - s))).float()[:, None]
+
+
+def latent_start(teacher: Any, resolution: int, latent: int, analytic: str) -> torch.Tensor | None:
+    """The field's latent logits at the start, [R*R, columns]: the lobes' latent
+    (:func:`latent_from_teacher`, with ``latent``) then alpha's column
+    (:func:`~neural_brdf.train.ggx_heads.alpha_from_teacher`, with analytic heads);
+    None when the field has neither."""
+    parts = []
+    if latent:
+        parts.append(latent_from_teacher(teacher, resolution))
+    if analytic != "none":
+        parts.append(alpha_from_teacher(teacher, resolution))
+    return torch.cat(parts, -1) if parts else None
 
 
 def lobe_networks(
@@ -468,6 +501,7 @@ def train_textured(
     start_steps: int | None = None,
     fresh_every: int | None = None,
     field_levels: int = 1,
+    analytic_heads: str = "none",
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """Fit K = ``lobes`` shared raw lobes and an R x R weight field (R = ``resolution``)
     to ``teacher`` (``eval(wi, wo, uv)``, ``sample(wi, uv, u)``: a
@@ -496,7 +530,7 @@ def train_textured(
     )
     pool_seconds = time.perf_counter() - t0
 
-    latent_init = latent_from_teacher(teacher, resolution) if latent else None
+    latent_init = latent_start(teacher, resolution, latent, analytic_heads)
 
     def make() -> tuple[TexturedBRDF, torch.optim.Adam]:  # from torch's seeded generator
         return _model_and_optimizer(
@@ -512,6 +546,7 @@ def train_textured(
             latent_init=latent_init,
             levels=field_levels,
             colors=COLORS[lobe_color],
+            analytic=analytic_heads,
         )
 
     def span(model, opt, gen, run_seed: int, start: int, stop: int) -> float:
@@ -560,6 +595,7 @@ def train_textured(
         "latent": latent,
         "lobe_color": lobe_color,
         "lobe_bound": lobe_bound,
+        "analytic_heads": analytic_heads,
         **chosen,
     }
 
@@ -603,7 +639,7 @@ def train(
         target, VAL_PAIRS, np.random.default_rng(t.seed + 101), cosine_wi=False
     )
     pool_seconds = time.perf_counter() - t0
-    latent_init = latent_from_teacher(target, tx.resolution) if tx.latent else None
+    latent_init = latent_start(target, tx.resolution, tx.latent, tx.analytic_heads)
 
     def make() -> tuple[TexturedBRDF, torch.optim.Adam]:  # from torch's seeded generator
         return _model_and_optimizer(
@@ -619,6 +655,7 @@ def train(
             latent_init=latent_init,
             levels=tx.field_levels,
             colors=COLORS[tx.lobe_color],
+            analytic=tx.analytic_heads,
         )
 
     torch.manual_seed(t.seed)
@@ -711,6 +748,7 @@ def train(
         "weights": tx.weights,
         "latent": tx.latent,
         "lobe_color": tx.lobe_color,
+        "analytic_heads": tx.analytic_heads,
         "pool": len(p_f),
         "pool_seconds": pool_seconds,
         "fresh_every": tx.fresh_every,

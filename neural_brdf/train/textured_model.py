@@ -49,6 +49,7 @@ from neural_brdf import config as cfgmod
 from neural_brdf.fileformat import SIGNATURES
 from neural_brdf.train.conditioned import ConditionedNormalizedBRDF, normalized_conditioned
 from neural_brdf.train.encoding import is_anisotropic
+from neural_brdf.train.ggx_heads import GGXLobes, analytic_count
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, albedo_table, unit_or_invalid
 
 TEXTURED_INPUTS = SIGNATURES[1]  # ("wi", "wo", "uv")
@@ -137,8 +138,8 @@ class WeightField(nn.Module):
             raise ValueError(f"WeightField: resolution and lobes >= 1, got {resolution}, {lobes}")
         if channels not in (1, 3):
             raise ValueError(f"WeightField: channels 1 or 3, got {channels}")
-        if latent not in (0, 1):
-            raise ValueError(f"WeightField: latent 0 or 1, got {latent}")
+        if latent not in (0, 1, 2):  # the lobes' latent s and/or analytic heads' alpha
+            raise ValueError(f"WeightField: latent 0, 1 or 2, got {latent}")
         if levels < 1 or resolution % (1 << (levels - 1)):
             raise ValueError(
                 f"WeightField: levels >= 1 and resolution divisible by 2^(levels - 1), "
@@ -435,8 +436,10 @@ def heads_of(lobe: nn.Module) -> int:
 
 
 def raw_of(lobe: nn.Module) -> RawBRDF:
-    """A lobe's raw network (a normalised lobe's ``raw``, a raw one itself)."""
+    """A lobe's raw network (a normalised lobe's ``raw``, the network beside analytic
+    heads (:class:`~neural_brdf.train.ggx_heads.GGXLobes`) its ``net``, a raw one itself)."""
     raw = lobe.raw if isinstance(lobe, NORMALIZED) else lobe
+    raw = raw.net if isinstance(raw, GGXLobes) else raw
     if not isinstance(raw, RawBRDF):
         raise TypeError(f"a lobe must be a RawBRDF or a NormalizedBRDF, got {type(lobe)}")
     return raw
@@ -486,8 +489,13 @@ def normalized_textured(
     envelopes: list[torch.Tensor] = []  # bound "texel": each lobe's nodes, side by side
     for k, lobe in enumerate(model.lobes):
         raw = raw_of(lobe).eval()
+        analytic = analytic_count(lobe)  # GGX heads: albedo <= 1 in closed form
+        if analytic and bound != "texel":
+            raise ValueError(
+                f"normalized_textured: analytic heads are bounded per texel, not by {bound!r}"
+            )
         if not n.enabled:
-            lobes.append(raw)
+            lobes.append(lobe.eval() if analytic else raw)
             info.append({"enabled": False})
             continue
         aniso = is_anisotropic(raw.encoding)
@@ -508,8 +516,11 @@ def normalized_textured(
             )
             norm = NormalizedBRDF(raw, table).eval()
         if bound == "texel":  # the lobe stays raw; its nodes join the field's envelope
-            envelopes.append(lobe_envelope(norm.table, bool(raw.latent)))
-            lobes.append(raw)
+            env = lobe_envelope(norm.table, bool(raw.latent))
+            if analytic:  # each analytic head's albedo is <= 1 at every node (ggx_heads)
+                env = torch.cat([env, torch.ones(env.shape[0], 3 * analytic)], -1)
+            envelopes.append(env)
+            lobes.append(lobe.eval() if analytic else raw)
         else:
             if not norm.identity and (bound == "scale" or float(norm.table.max()) <= FOLD_LIMIT):
                 norm = ScaledBRDF(raw, norm.table).eval()  # a constant instead of the table
@@ -530,6 +541,16 @@ def normalized_textured(
                         if isinstance(norm, ScaledBRDF)
                         else "table"
                     ),
+                }
+            )
+        for _ in range(analytic):
+            info.append(
+                {
+                    "enabled": True,
+                    "raw_max_albedo": 1.0,  # a closed-form bound (ggx_heads' module doc)
+                    "raw_max_stderr": 0.0,
+                    "in_graph": False,
+                    "form": "analytic",
                 }
             )
     field = model.field.frozen() if isinstance(model.field, WeightField) else model.field

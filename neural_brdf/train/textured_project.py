@@ -141,7 +141,10 @@ def project_field(
     now = field.lookup(torch.from_numpy(centres).float())  # the trained field at the centres
     per = max(1, chunk_pairs // pairs)
     residual, residual_before, teacher_seconds = 0.0, 0.0, 0.0
-    grid = [float(v) for v in np.linspace(0.0, 1.0, latents)] if latent else []
+    # the latent columns searched: the lobes' s; analytic heads' alpha column (the last,
+    # after s) keeps the trained field's value (train/ggx_heads.py)
+    searched = int(getattr(lobe, "searched_latent", latent))
+    grid = [float(v) for v in np.linspace(0.0, 1.0, latents)] if searched else []
     for a in range(0, count, per):
         t = min(per, count - a)
         uv = np.repeat(centres[a : a + t], pairs, 0)
@@ -155,7 +158,12 @@ def project_field(
         old_z = old_z[:, None, :].expand(t, 3, k) if channels == 1 else old_z
         candidates: list[torch.Tensor | None] = [None]
         if now[1] is not None:  # conditioned lobes: the trained latent, then the grid
-            candidates = [now[1][a : a + t], *(torch.full((t, latent), v) for v in grid)]
+            trained = now[1][a : a + t]
+            candidates = [trained]
+            for v in grid:
+                s_v = trained.clone()
+                s_v[:, :searched] = v
+                candidates.append(s_v)
         best_r = torch.full((t,), float("inf"), dtype=torch.float64)
         best_data = torch.zeros(t, dtype=torch.float64)  # its error without the penalty
         best_z = torch.zeros(t, channels, k, dtype=torch.float64)
@@ -203,7 +211,7 @@ def project_field(
     return out, {
         "resolution": resolution,
         "pairs_per_texel": pairs,
-        "latents": latents if latent else 0,
+        "latents": latents if searched else 0,
         "ridge": ridge,
         "seconds": time.perf_counter() - t0,
         "teacher_seconds": teacher_seconds,

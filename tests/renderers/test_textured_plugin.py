@@ -270,3 +270,37 @@ def test_render_shows_the_two_halves_of_the_texture(mi, halves):
     on = first | second
     assert abs(float(homogeneous[on].mean()) - ALBEDO[0]) < 0.05 * ALBEDO[0]
     assert abs(float(homogeneous[first].mean()) - means[0]) < 5.0 * se[0] + 0.01
+
+
+def test_eval_of_a_file_with_ggx_heads_matches_onnxruntime(mi, tmp_path):
+    """A file with analytic GGX heads (texture.analytic_heads: ggx): the heads' closed
+    form, at alpha(uv) from the field's last column (0.01 to 1), through the plugin as
+    through onnxruntime."""
+    from neural_brdf.train.ggx_heads import GGXLobes
+
+    torch.manual_seed(9)
+    net = RawBRDF("isotropic", [16], "relu", heads=2, latent=1, colors=1)
+    with torch.no_grad():
+        torch.nn.init.normal_(net.mlp.head.weight, std=0.3)
+    field = WeightField(4, 4, channels=3, init_std=2.0, latent=2)
+    with torch.no_grad():
+        field.logits[..., 2:4] += 2.0  # the heads carry much of the weight
+        field.latent_logits.normal_(0.0, 3.0)
+    model = TexturedBRDF([GGXLobes(net.eval())], field).eval()
+    props = {lobe_format.KEY: lobe_format.to_json(lobe_format.complete(STORED_LOBE))}
+    path = _save(
+        export.to_onnx_bytes(exportable(model), 17, inputs=UV_INPUTS), tmp_path / "g.onnx", props
+    )
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(path)})
+    wi, wo, uv = _rows(20_000, 11)
+    got = np.asarray(
+        bsdf.eval(
+            mi.BSDFContext(), _interaction(mi, wi, uv), mi.Vector3f(np.ascontiguousarray(wo.T))
+        ),
+        np.float64,
+    ).T
+    up = (wo[:, 2] > 0)[:, None]
+    ref = np.where(up, _ort(path, wi, wo, uv) * wo[:, 2:3].astype(np.float64), 0.0)
+    assert np.ptp(ref[up[:, 0]]) > 1.0  # sharp heads: not trivial
+    err = export.relative_difference(got, ref)
+    assert err < PARITY_TOL, err

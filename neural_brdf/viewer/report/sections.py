@@ -392,9 +392,14 @@ TEXTURED_UV = (0.5, 0.5)  # where a textured model's figures are drawn
 
 def _lobe_colour(tex: dict) -> str:
     """How the file's lobes get their colour (its ``texture.lobe_color``; older files: rgb)."""
+    text = ""
     if tex.get("lobe_color") == "grey":
-        return " (grey: one output each, coloured by per-channel weights)"
-    return ""
+        text = " (grey: one output each, coloured by per-channel weights)"
+    heads = tex.get("analytic_heads")
+    if isinstance(heads, dict):  # texture.analytic_heads: the last lobes are closed forms
+        text += f", the last {len(heads.get('heads', []))} analytic {heads.get('kind', '')} heads"
+        text += " with a roughness α(uv) in the field"
+    return text
 
 
 def _textured_note(run: Run) -> list:

@@ -1,0 +1,259 @@
+"""Analytic GGX heads beside the shared lobes (``texture.analytic_heads: ggx``;
+neural_brdf/train/ggx_heads.py, docs/model.md "Analytic GGX heads").
+
+* the heads are the analytic library's GGX (its D and Smith G1, written there from
+  Walter et al. 2007) and its Schlick factor, in another form;
+* reciprocal bit for bit in float32, 0 below the horizon, finite at grazing;
+* each head's albedo is at most 1 for every alpha, by importance sampling of the visible
+  normals (the library's sampler), down to alpha 0.01 and 89.5 degrees;
+* alpha's start from the teacher's eval finds a homogeneous principled's alpha;
+* a textured model with the heads, its texels bounded, keeps albedo <= 1 between texel
+  centres with weights as bright as the bound allows, and its file is reciprocal bit for
+  bit and equal to torch's model;
+* the projection keeps each texel's alpha;
+* a run with the heads trains, exports, says so, and a bad combination is one line.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from analytic import frame
+from analytic.fresnel import schlick
+from analytic.microfacet import Distribution
+from neural_brdf import config as cfgmod
+from neural_brdf import export
+from neural_brdf.train.ggx_heads import (
+    ALPHA_MIN,
+    GGXLobes,
+    alpha_from_teacher,
+    alpha_of,
+    ggx_heads,
+)
+from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.textured_model import (
+    TexturedBRDF,
+    WeightField,
+    exportable,
+    normalized_textured,
+)
+from textured_helpers import (
+    albedos,
+    assert_file_matches,
+    incidences,
+    one_torch_thread,  # noqa: F401  (autouse: one torch thread)
+    small_run_config,
+)
+
+ALPHAS = (0.01, 0.03, 0.1, 0.3, 0.6, 1.0)
+
+
+def _hemisphere(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return frame.square_to_uniform_hemisphere(torch.rand(n, 2, generator=g, dtype=dtype))
+
+
+@pytest.mark.parametrize("alpha", ALPHAS)
+def test_the_heads_are_the_analytic_librarys_ggx_and_schlick(alpha):
+    wi, wo = _hemisphere(20000, 1), _hemisphere(20000, 2)
+    got = ggx_heads(wi, wo, torch.full((len(wi), 1), alpha, dtype=torch.float64))
+    d = Distribution("ggx", alpha, alpha)
+    h = frame.normalize(wi + wo)
+    g_a = d.D(h) * d.G1(wi) * d.G1(wo) / (4.0 * wi[:, 2] * wo[:, 2])
+    g_b = g_a * schlick(0.0, frame.dot(wi, h))[:, 0]
+    np.testing.assert_allclose(got[:, 0].numpy(), g_a.numpy(), rtol=1e-9)
+    np.testing.assert_allclose(got[:, 1].numpy(), g_b.numpy(), rtol=1e-9, atol=1e-300)
+
+
+def test_reciprocal_bit_for_bit_zero_below_the_horizon_and_finite():
+    rng = np.random.default_rng(3)
+    n = 50000
+    v = rng.normal(size=(2, n, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    v[:, : n // 10, 2] = np.abs(v[:, : n // 10, 2]) * 1e-4  # within 0.006 degrees of it
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    wi, wo = (torch.from_numpy(x).float() for x in v)
+    alpha = torch.from_numpy(rng.uniform(ALPHA_MIN, 1.0, (n, 1))).float()
+    a, b = ggx_heads(wi, wo, alpha), ggx_heads(wo, wi, alpha)
+    assert torch.equal(a, b)
+    assert bool(torch.isfinite(a).all()) and float(a.min()) >= 0.0
+    below = (wi[:, 2] <= 0) | (wo[:, 2] <= 0)
+    assert bool((a[below] == 0).all()) and bool((a[~below, 0] > 0).all())
+
+
+@pytest.mark.parametrize("alpha", ALPHAS)
+def test_each_heads_albedo_is_at_most_one(alpha):
+    """int g cos dwo by sampling the visible normals (Heitz 2018, the library's sampler):
+    wo = reflect(wi, h), pdf(wo) = G1(wi) (wi . h) D(h) / (4 cos_i (wi . h))."""
+    d = Distribution("ggx", alpha, alpha)
+    n = 200_000
+    g = torch.Generator().manual_seed(7)
+    for deg in (0.0, 30.0, 60.0, 80.0, 87.0, 89.5):
+        wi = torch.from_numpy(incidences(deg)).expand(n, 3).contiguous()
+        h = d.sample_visible(wi, torch.rand(n, 2, generator=g, dtype=torch.float64))
+        cd = frame.dot(wi, h)[:, None]
+        wo = 2.0 * cd * h - wi
+        pdf = d.pdf_visible(wi, h)[:, None] / (4.0 * cd)
+        ok = (wo[:, 2:3] > 0) & (pdf > 0)
+        f = ggx_heads(wi, torch.where(ok, wo, wi), torch.full((n, 1), alpha, dtype=torch.float64))
+        est = torch.where(ok, f * wo[:, 2:3] / torch.where(ok, pdf, 1.0), 0.0)
+        mean, err = est.mean(0), est.std(0) / math.sqrt(n)
+        assert bool((mean <= 1.0 + 4.0 * err + 1e-9).all()), (alpha, deg, mean, err)
+        if deg == 0.0:  # a real lobe: most of the energy at normal incidence
+            assert float(mean[0]) > (0.85 if alpha <= 0.3 else 0.25)
+
+
+def _principled(tmp_path, roughness: float):
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    xml = tmp_path / f"p{roughness}.xml"
+    xml.write_text(
+        '<bsdf version="3.0.0" type="principled">\n'
+        ' <rgb name="base_color" value="0.7, 0.4, 0.2"/>\n'
+        f' <float name="roughness" value="{roughness}"/>\n'
+        ' <float name="metallic" value="1.0"/>\n'
+        "</bsdf>\n"
+    )
+    return TexturedMitsubaTarget(xml)
+
+
+@pytest.mark.parametrize("roughness", [0.25, 0.4, 0.8])
+def test_alpha_starts_at_a_homogeneous_principleds_own(tmp_path, roughness):
+    logits = alpha_from_teacher(_principled(tmp_path, roughness), 2)
+    alpha = alpha_of(torch.sigmoid(logits))
+    assert alpha.shape == (4, 1)
+    assert bool(((alpha - roughness**2).abs() <= 0.2 * roughness**2).all()), alpha.ravel()
+
+
+def _bright_model(resolution: int = 4) -> TexturedBRDF:
+    """Two grey shared heads and the GGX heads, the field's weights almost all on the
+    GGX heads (the 'nothing' slot far below) and alpha spanning [0.01, 1]."""
+    torch.manual_seed(4)
+    net = RawBRDF("isotropic", [16], "relu", heads=2, latent=1, colors=1)
+    with torch.no_grad():
+        net.mlp.head.bias.fill_(1.0)
+        net.mlp.head.weight.normal_(0.0, 0.5)
+        net.mlp.body[0].weight[:, -1].normal_(0.0, 6.0)  # the lobes change a lot with s
+    field = WeightField(resolution, 4, channels=3, init_std=1.0, latent=2)
+    with torch.no_grad():
+        field.logits[..., -1] = -12.0
+        field.logits[..., 2:4] += 3.0
+        field.latent_logits.normal_(0.0, 4.0)
+    return TexturedBRDF([GGXLobes(net.eval())], field).eval()
+
+
+@pytest.fixture(scope="module")
+def bounded():
+    norm = cfgmod.Normalization(table_size=17, samples=1024)
+    model, info = normalized_textured(_bright_model(), norm, seed=2, bound="texel")
+    return model, info
+
+
+def test_the_heads_join_the_texel_bound_with_an_envelope_of_one(bounded):
+    model, info = bounded
+    assert [i["form"] for i in info] == ["texel", "texel", "analytic", "analytic"]
+    env = model.bound_envelope
+    assert env.shape[1] == 12 and bool((env[:, 6:] == 1.0).all())
+    assert float(env[:, :6].max()) > 0.0
+
+
+def test_albedo_at_most_one_between_texel_centres(bounded):
+    model, _ = bounded
+    rng = np.random.default_rng(8)
+    uvs = rng.uniform(-1.0, 2.0, (6, 2))
+    rho, err = albedos(model, uvs, incidences(0.0, 45.0, 75.0, 85.0, 89.0))
+    assert float((rho - 3.0 * err).max()) <= 1.0 + 1e-3, float(rho.max())
+    assert float(rho.max()) > 0.3  # bright: the heads carry the weights
+
+
+def test_the_file_is_reciprocal_and_equals_torch(bounded):
+    model, _ = bounded
+    payload = export.to_onnx_bytes(exportable(model), 17, inputs=("wi", "wo", "uv"))
+    assert_file_matches(model, payload, seed=12)
+
+
+def test_the_projection_keeps_each_texels_alpha(bounded):
+    from neural_brdf.train.textured_model import FrozenWeightField
+    from neural_brdf.train.textured_project import project_field, texel_centres
+
+    model, _ = bounded
+    table = model.field.weights().clone()
+    table[:, -2] = 1.0  # the teacher: the model with s = 1 everywhere (a grid value)
+    other = TexturedBRDF(
+        list(model.lobes), FrozenWeightField(table, model.field.resolution, channels=3, latent=2)
+    ).eval()
+
+    class Teacher:  # sampled uniformly: any finite teacher will do
+        def eval(self, wi, wo, uv):
+            with torch.no_grad():
+                t = [torch.as_tensor(x).float() for x in (wi, wo, uv)]
+                return other(*t).double().numpy()
+
+        def sample(self, wi, uv, u):
+            return frame.square_to_uniform_hemisphere(torch.as_tensor(u)).numpy()
+
+    field, _ = project_field(
+        model.lobes[0], model.field, Teacher(), model.bound_envelope, resolution=8, pairs=32
+    )
+    centres = torch.from_numpy(texel_centres(8)).float()
+    _, before = model.field.lookup(centres)
+    _, after = field.lookup(centres)
+    assert before is not None and after is not None
+    np.testing.assert_array_equal(after[:, 1].numpy(), before[:, 1].numpy())
+    assert float((after[:, 0] == 1.0).float().mean()) > 0.9  # s is searched: the teacher's
+
+
+def test_a_run_with_ggx_heads_trains_exports_and_says_so(tmp_path, capsys):
+    from cli_helpers import cli
+    from neural_brdf.measured.procedural import write_teacher
+
+    xml = write_teacher(tmp_path / "teacher", "principled", size=16)
+    cfg = tmp_path / "c.yaml"
+    small_run_config(
+        cfg,
+        xml,
+        texture="lobes: 2, resolution: 8, validation_uv: 8, latent: 1, weights: rgb, "
+        "lobe_color: grey, lobe_bound: texel, analytic_heads: ggx",
+        train="steps: 150, checkpoint_every: 50, log_every: 10, progress: false",
+        normalization="samples: 2048",
+    )
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
+    assert code == 0, err
+    m = json.loads((tmp_path / "r" / "metrics.json").read_text())
+    assert m["training"]["raw_val_rel_rmse"] < 0.8 * m["training"]["init_val_rel_rmse"]
+    assert m["checks"]["reciprocity"]["value"] == 0.0 and m["checks"]["max_albedo"]["passed"]
+    proto = onnx.load(str(tmp_path / "r" / "model.onnx"))
+    texture = json.loads({p.key: p.value for p in proto.metadata_props}["texture"])
+    assert texture["lobes"] == 4 and texture["analytic_heads"]["lobes"] == [2, 3]
+    report = (tmp_path / "r" / "report.md").read_text()
+    assert "the last 2 analytic ggx heads with a roughness α(uv)" in report
+    state = torch.load(tmp_path / "r" / "ckpt.pt", weights_only=False)["model"]
+    assert state["field.latent_logits"].shape[1] == 2  # s, then alpha's column
+    code, _, err = cli(capsys, "export", str(tmp_path / "r"), "-o", str(tmp_path / "e.onnx"))
+    assert code == 0, err
+    a = onnx.load(str(tmp_path / "r" / "model.onnx")).graph
+    b = onnx.load(str(tmp_path / "e.onnx")).graph
+    assert a.SerializeToString() == b.SerializeToString()
+
+
+def test_ggx_heads_without_the_texel_bound_are_one_line(tmp_path, capsys):
+    from cli_helpers import assert_one_line_error, cli
+    from neural_brdf.measured.procedural import write_teacher
+
+    xml = write_teacher(tmp_path / "teacher", "principled", size=8)
+    cfg = tmp_path / "c.yaml"
+    small_run_config(
+        cfg,
+        xml,
+        texture="lobes: 2, resolution: 4, analytic_heads: ggx, lobe_bound: scale",
+        train="steps: 10, progress: false",
+        normalization="samples: 1024",
+    )
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
+    assert_one_line_error(code, err, "texture.analytic_heads", "lobe_bound: texel")
