@@ -172,6 +172,7 @@ SETTINGS = {
     "refit_steps": 3000,
     "refit_lr": 0.001,
     "analytic_heads": "none",
+    "project_alphas": 1,
 }
 # (kind, K, R, steps, batch, pool) -> ``train_textured``'s held-out relative RMSE of
 # f cos on the development teacher (seed 1, 512^2), 2 threads
@@ -506,6 +507,7 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
             batch=settings["batch"],
             pool=settings["pool"],
             seed=settings.get("seed", 0),
+            alphas=settings.get("project_alphas", 1),
         )
         tables = refit_tables if refit_tables is not None else tables
     # the same lobes and weights without and with the teacher's normal field
@@ -924,7 +926,8 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="NAME",
-        help="one teacher (repeat; the development set only): no render cost",
+        help="one teacher (repeat; the development set only): no render cost; an --out "
+        "of the same settings keeps its other teachers",
     )
     args = ap.parse_args(argv)
     if args.only and args.which != "dev":
@@ -989,6 +992,13 @@ def main(argv: list[str] | None = None) -> int:
         "drjit": dr.__version__,
         "variant": mi.variant(),
     }
+    if args.only and out.exists():  # --only adds to a development run of the same settings
+        before = json.loads(out.read_text())
+        if before.get("set") == args.which and before.get("settings") == settings:
+            result["teachers"] = {
+                k: v for k, v in before.get("teachers", {}).items() if k not in args.only
+            }
+            result["calls"] = before.get("calls", [before.get("only")]) + [list(args.only)]
     env = environment_exr(work / "lagoon.exr")
     paths = {}
     for name, spec in write_teachers(work, args.which, size).items():

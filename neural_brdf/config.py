@@ -435,6 +435,9 @@ class Texture(_Section):
     # ridge of project_ridge times the mean diagonal of its least squares' normal matrix
     # (0: none); chosen on the development teachers (docs/mitsuba.md)
     project_ridge: float = Field(0.01, ge=0.0, le=100.0)
+    # with analytic_heads, the alphas each projected texel tries at its best latent:
+    # geometric from half to twice its trained alpha (1: the trained alpha only)
+    project_alphas: int = Field(1, ge=1, le=15)
     # after the projection, the shared lobe network trained refit_steps more steps at
     # refit_lr with the projected field frozen, then normalised and the texels bounded
     # again (docs/mitsuba.md, "The lobes refitted on the projected field"); 0: none.

@@ -779,6 +779,7 @@ def textured_for_export(
         batch=cfg.data.batch_size,
         pool=tx.pool(cfg.data.pool_size),
         seed=cfg.train.seed,
+        alphas=tx.project_alphas,
     )
     return model, refit_tables if refit_tables is not None else tables, info
 

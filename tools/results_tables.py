@@ -2320,6 +2320,76 @@ def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -
     )
 
 
+def textured_heads_section(d: dict) -> list[str]:
+    """issue 30: the textured recipe with and without analytic GGX heads (development
+    set): textured_heads_dev_ggx.json, beside it textured_heads_dev_none.json."""
+    none_path = RESULTS / "textured_heads_dev_none.json"
+    arms = {"none": json.loads(none_path.read_text()), "ggx": d}
+    st = d["settings"]
+    m0 = d["machine_start"]
+    out = [
+        "## Textured materials: the recipe with and without analytic GGX heads "
+        "(development set)",
+        "",
+        _source(
+            "benchmarks/results/textured_heads_dev_ggx.json and textured_heads_dev_none.json",
+            "python benchmarks/textured.py --set dev --only NAME [--setting "
+            "analytic_heads=ggx] --out ... (one call per teacher; a call keeps the other "
+            "teachers of its file)",
+        ),
+        _recorded(
+            d.get("date") or m0["date"],
+            f"{m0['platform']}, {m0['cores']} cores, `{d['variant']}`",
+            "per teacher below (the two arms ran one after the other, other work on the "
+            "machine at times: the training times are indicative only)",
+        ),
+        f"Teachers: the development set's textured ones ({d['sets']['dev'].split(' and ')[0]}). "
+        "Both arms are the test set's textured recipe of benchmarks/textured.py "
+        f"(K = {st['lobes']} grey lobes, a {st['resolution']}² field, {st['starts']} starts, "
+        f"projection at {st['project']}², a refit of {st['refit_steps']} steps) and differ "
+        "only in `texture.analytic_heads`: none, or ggx (two analytic GGX heads beside "
+        "the shared network, alpha a field column; docs/model.md). Scored as benchmarks/"
+        "textured.py scores (relative RMSE of f·cos on its pairs, in brackets the ten "
+        "blocks' range; max albedo between texel centres; the lagoon sphere's PSNR against "
+        "the whole teacher).",
+        "",
+    ]
+    rows = []
+    names = [n for n in arms["none"]["teachers"] if n in arms["ggx"]["teachers"]]
+    for name in names:
+        for arm, data in arms.items():
+            t = data["teachers"][name]
+            acc, ph, img, tr = t["accuracy"], t["physics"], t["image"], t["training"]
+            blocks = acc.get("rel_rmse_blocks") or [acc["rel_rmse"]]
+            rows.append(
+                [
+                    name,
+                    arm,
+                    f"{_pct(acc['rel_rmse'])} ({_pct(min(blocks))}-{_pct(max(blocks))})",
+                    _pct(acc["rel_rmse_uniform_wo"]),
+                    _pct(acc["rel_rmse_sampled_wo"]),
+                    f"{ph['reciprocity']:.1g}",
+                    f"{ph['max_albedo']:.4f} ± {ph['max_albedo_stderr']:.1g}",
+                    f"{img['psnr_db']:.1f} dB",
+                    f"{tr['total_seconds']:.0f} s (load {_load(t['loadavg']['start'])})",
+                ]
+            )
+    return out + _table(
+        [
+            "teacher",
+            "heads",
+            "f·cos rel. RMSE",
+            "wo uniform",
+            "wo sampled",
+            "reciprocity",
+            "max albedo",
+            "image PSNR",
+            "training",
+        ],
+        rows,
+    )
+
+
 def textured_ggx_heads_section(d: dict) -> list[str]:
     """issue 30: a prototype, analytic GGX heads beside the lobes at one texel (dev)."""
     m, rc = d["machine"], d["recipe"]
@@ -2805,6 +2875,7 @@ SECTIONS = (
         partial(textured_ceiling_section, name="textured_ceiling_gp2_dev.json"),
     ),
     (RESULTS / "textured_ggx_heads_dev.json", textured_ggx_heads_section),
+    (RESULTS / "textured_heads_dev_ggx.json", textured_heads_section),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (RESULTS / "textured_project_dev.json", textured_project_section),
     (RESULTS / "textured_refit_dev.json", textured_refit_section),

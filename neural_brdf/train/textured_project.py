@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from analytic import frame
+from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_of
 from neural_brdf.train.textured_model import (
     FrozenWeightField,
     TexturedBRDF,
@@ -49,6 +50,9 @@ from neural_brdf.train.textured_model import (
 )
 
 MAX_LOBES = 8  # every active set: 2^K - 1 small solves per problem
+# texture.project_alphas: the alphas an analytic head's texel tries, geometric from its
+# trained alpha / ALPHA_SPAN to x ALPHA_SPAN
+ALPHA_SPAN = 2.0
 
 
 def nnls(
@@ -118,6 +122,7 @@ def project_field(
     seed: int = 0,
     ridge: float = 0.0,
     chunk_pairs: int = 1 << 19,
+    alphas: int = 1,
 ) -> tuple[FrozenWeightField, dict[str, Any]]:
     """The weights (and latent) of every texel of an R x R field (R = ``resolution``)
     fitted to ``teacher`` at its centre on ``pairs`` pairs (:func:`draw_pairs`), for the
@@ -145,6 +150,13 @@ def project_field(
     # after s) keeps the trained field's value (train/ggx_heads.py)
     searched = int(getattr(lobe, "searched_latent", latent))
     grid = [float(v) for v in np.linspace(0.0, 1.0, latents)] if searched else []
+    factors: list[float] = []  # alpha's multipliers, the trained one's (1) left out
+    if alphas > 1 and latent > searched:
+        factors = [
+            float(f)
+            for f in np.geomspace(1.0 / ALPHA_SPAN, ALPHA_SPAN, alphas)
+            if abs(f - 1) > 1e-9
+        ]
     for a in range(0, count, per):
         t = min(per, count - a)
         uv = np.repeat(centres[a : a + t], pairs, 0)
@@ -168,7 +180,11 @@ def project_field(
         best_data = torch.zeros(t, dtype=torch.float64)  # its error without the penalty
         best_z = torch.zeros(t, channels, k, dtype=torch.float64)
         best_s = torch.zeros(t, latent)
-        for c, s in enumerate(candidates):
+
+        queue = list(candidates)
+        c = 0
+        while c < len(queue):
+            s = queue[c]
             extra = () if s is None else (s.repeat_interleave(pairs, 0),)
             with torch.no_grad():
                 g = lobe(*x, *extra).double() * cos  # (t * M, 3K): g cos
@@ -200,6 +216,16 @@ def project_field(
             best_z = torch.where(better[:, None, None], z, best_z)
             if s is not None:
                 best_s = torch.where(better[:, None], s, best_s)
+            c += 1
+            if c == len(candidates) and factors:
+                # analytic heads' alpha (its column after s): alphas around the texel's
+                # own at its best s (texture.project_alphas; 1: the trained alpha only)
+                for factor in factors:
+                    s_a = best_s.clone()
+                    alpha = (alpha_of(best_s[:, searched:]) * factor).clamp(ALPHA_MIN, 1.0)
+                    s_a[:, searched:] = (alpha - ALPHA_MIN) / (1.0 - ALPHA_MIN)
+                    queue.append(s_a)
+
         residual += float(best_data.sum())
         table[a : a + t, : channels * k] = best_z.reshape(t, channels * k).float()
         if latent:
@@ -213,6 +239,7 @@ def project_field(
         "pairs_per_texel": pairs,
         "latents": latents if searched else 0,
         "ridge": ridge,
+        "alphas": 1 + len(factors),
         "seconds": time.perf_counter() - t0,
         "teacher_seconds": teacher_seconds,
         "bounded_texel_share": float(scaled.float().mean()),
@@ -230,6 +257,7 @@ def projected(
     latents: int,
     seed: int,
     ridge: float = 0.0,
+    alphas: int = 1,
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """A normalised textured model (``normalized_textured``'s: one shared lobe network,
     its ``bound_envelope`` set) with its field replaced by :func:`project_field`'s at
@@ -247,6 +275,7 @@ def projected(
         latents=latents,
         seed=seed,
         ridge=ridge,
+        alphas=alphas,
     )
     return TexturedBRDF([lobe], field, model.normal).eval(), info
 
@@ -419,6 +448,7 @@ def project_and_refit(
     batch: int,
     pool: int,
     seed: int,
+    alphas: int = 1,
 ) -> tuple[TexturedBRDF, list[dict[str, Any]] | None, dict[str, Any]]:
     """``texture.project`` and ``texture.refit_steps`` after training: a model normalised
     by ``bound`` (``normalized_textured``) with its field projected (:func:`projected`,
@@ -435,6 +465,7 @@ def project_and_refit(
         latents=latents,
         ridge=ridge,
         seed=seed + PROJECT_SEED,
+        alphas=alphas,
     )
     tables = None
     if refit_steps:

@@ -257,3 +257,47 @@ def test_ggx_heads_without_the_texel_bound_are_one_line(tmp_path, capsys):
     )
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"))
     assert_one_line_error(code, err, "texture.analytic_heads", "lobe_bound: texel")
+
+
+def test_the_projection_can_search_alpha_around_each_texels_own(bounded):
+    """texture.project_alphas 3: half, one and twice the trained alpha; a teacher whose
+    alpha is twice the model's everywhere (where that stays <= 1) is found."""
+    from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_of
+    from neural_brdf.train.textured_model import FrozenWeightField
+    from neural_brdf.train.textured_project import project_field, texel_centres
+
+    model, _ = bounded
+    table = model.field.weights().clone()
+    doubled = alpha_of(table[:, -1]) * 2.0
+    table[:, -1] = (doubled.clamp(max=1.0) - ALPHA_MIN) / (1.0 - ALPHA_MIN)
+    other = TexturedBRDF(
+        list(model.lobes), FrozenWeightField(table, model.field.resolution, channels=3, latent=2)
+    ).eval()
+
+    class Teacher:
+        def eval(self, wi, wo, uv):
+            with torch.no_grad():
+                t = [torch.as_tensor(x).float() for x in (wi, wo, uv)]
+                return other(*t).double().numpy()
+
+        def sample(self, wi, uv, u):
+            return frame.square_to_uniform_hemisphere(torch.as_tensor(u)).numpy()
+
+    r = model.field.resolution  # the same texels: each centre's alpha is a texel's own
+    centres = torch.from_numpy(texel_centres(r)).float()
+    _, before = model.field.lookup(centres)
+    for alphas in (1, 3):
+        field, info = project_field(
+            model.lobes[0], model.field, Teacher(), model.bound_envelope,
+            resolution=r, pairs=64, alphas=alphas,
+        )  # fmt: skip
+        assert info["alphas"] == alphas
+        _, after = field.lookup(centres)
+        got, was = alpha_of(after[:, 1]), alpha_of(before[:, 1])
+        if alphas == 1:
+            np.testing.assert_array_equal(got.numpy(), was.numpy())
+        else:
+            free = was * 2.0 <= 1.0  # texels whose doubled alpha was not clipped
+            assert int(free.sum()) >= 4
+            close = (got[free] - 2.0 * was[free]).abs() <= 1e-5 * was[free] + 1e-6
+            assert float(close.float().mean()) >= 0.75, (got[free], was[free])
