@@ -2328,8 +2328,7 @@ def textured_heads_section(d: dict) -> list[str]:
     st = d["settings"]
     m0 = d["machine_start"]
     out = [
-        "## Textured materials: the recipe with and without analytic GGX heads "
-        "(development set)",
+        "## Textured materials: the recipe with and without analytic GGX heads (development set)",
         "",
         _source(
             "benchmarks/results/textured_heads_dev_ggx.json and textured_heads_dev_none.json",
@@ -2875,7 +2874,6 @@ SECTIONS = (
         partial(textured_ceiling_section, name="textured_ceiling_gp2_dev.json"),
     ),
     (RESULTS / "textured_ggx_heads_dev.json", textured_ggx_heads_section),
-    (RESULTS / "textured_heads_dev_ggx.json", textured_heads_section),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (RESULTS / "textured_project_dev.json", textured_project_section),
     (RESULTS / "textured_refit_dev.json", textured_refit_section),
