@@ -1492,7 +1492,13 @@ def textured_section(d: dict) -> list[str]:
         f"Test set: {d['sets']['test']}. Development set: {d['sets']['dev']}. Textured "
         f"recipe: K = {st['lobes']} lobes (hidden {st['hidden']}, weights "
         f"{st.get('weights', 'scalar')}, latent {st.get('latent', 0)}, lobe colour "
-        f"{st.get('lobe_color', 'rgb')}), a weight field of "
+        f"{st.get('lobe_color', 'rgb')})"
+        + (
+            ", two analytic GGX heads beside them (`texture.analytic_heads`, α a field column)"
+            if st.get("analytic_heads", "none") != "none"
+            else ""
+        )
+        + ", a weight field of "
         f"{st['resolution']}² texels, {st['steps']} steps of {st['batch']} pairs from a pool of "
         f"{st['pool']}"
         + (
@@ -2323,15 +2329,20 @@ def textured_ceiling_section(d: dict, name: str = "textured_ceiling_dev.json") -
 def textured_heads_section(d: dict) -> list[str]:
     """issue 30: the textured recipe with and without analytic GGX heads (development
     set): textured_heads_dev_ggx.json, beside it textured_heads_dev_none.json."""
-    none_path = RESULTS / "textured_heads_dev_none.json"
-    arms = {"none": json.loads(none_path.read_text()), "ggx": d}
+    arms = {
+        "none": json.loads((RESULTS / "textured_heads_dev_none.json").read_text()),
+        "ggx": d,
+        "ggx, 5 alphas per projected texel (not chosen)": json.loads(
+            (RESULTS / "textured_heads_dev_alphas5.json").read_text()
+        ),
+    }
     st = d["settings"]
     m0 = d["machine_start"]
     out = [
         "## Textured materials: the recipe with and without analytic GGX heads (development set)",
         "",
         _source(
-            "benchmarks/results/textured_heads_dev_ggx.json and textured_heads_dev_none.json",
+            "benchmarks/results/textured_heads_dev_ggx.json",
             "python benchmarks/textured.py --set dev --only NAME [--setting "
             "analytic_heads=ggx] --out ... (one call per teacher; a call keeps the other "
             "teachers of its file)",
@@ -2342,6 +2353,8 @@ def textured_heads_section(d: dict) -> list[str]:
             "per teacher below (the two arms ran one after the other, other work on the "
             "machine at times: the training times are indicative only)",
         ),
+        "The other arms: textured_heads_dev_none.json and textured_heads_dev_alphas5.json "
+        "(the same folder). "
         f"Teachers: the development set's textured ones ({d['sets']['dev'].split(' and ')[0]}). "
         "Both arms are the test set's textured recipe of benchmarks/textured.py "
         f"(K = {st['lobes']} grey lobes, a {st['resolution']}² field, {st['starts']} starts, "
@@ -2350,21 +2363,28 @@ def textured_heads_section(d: dict) -> list[str]:
         "the shared network, alpha a field column; docs/model.md). Scored as benchmarks/"
         "textured.py scores (relative RMSE of f·cos on its pairs, in brackets the ten "
         "blocks' range; max albedo between texel centres; the lagoon sphere's PSNR against "
-        "the whole teacher).",
+        "the whole teacher). `check pairs`: the refit's own measure on 200,000 fresh pairs "
+        "of the teacher's (before the refit → the kept lobes), a second sample of the same "
+        "error. The third arm adds `texture.project_alphas` 5 (alphas from half to twice "
+        "each texel's trained one).",
         "",
     ]
     rows = []
     names = [n for n in arms["none"]["teachers"] if n in arms["ggx"]["teachers"]]
     for name in names:
         for arm, data in arms.items():
+            if name not in data["teachers"]:
+                continue
             t = data["teachers"][name]
             acc, ph, img, tr = t["accuracy"], t["physics"], t["image"], t["training"]
             blocks = acc.get("rel_rmse_blocks") or [acc["rel_rmse"]]
+            check = tr.get("projection", {}).get("refit", {}).get("check_errors")
             rows.append(
                 [
                     name,
                     arm,
                     f"{_pct(acc['rel_rmse'])} ({_pct(min(blocks))}-{_pct(max(blocks))})",
+                    f"{_pct(check[0][1])} → {_pct(min(e for _, e in check))}" if check else "-",
                     _pct(acc["rel_rmse_uniform_wo"]),
                     _pct(acc["rel_rmse_sampled_wo"]),
                     f"{ph['reciprocity']:.1g}",
@@ -2378,6 +2398,7 @@ def textured_heads_section(d: dict) -> list[str]:
             "teacher",
             "heads",
             "f·cos rel. RMSE",
+            "check pairs",
             "wo uniform",
             "wo sampled",
             "reciprocity",
@@ -2874,6 +2895,7 @@ SECTIONS = (
         partial(textured_ceiling_section, name="textured_ceiling_gp2_dev.json"),
     ),
     (RESULTS / "textured_ggx_heads_dev.json", textured_ggx_heads_section),
+    (RESULTS / "textured_heads_dev_ggx.json", textured_heads_section),
     (RESULTS / "textured_bound_dev.json", textured_bound_section),
     (RESULTS / "textured_project_dev.json", textured_project_section),
     (RESULTS / "textured_refit_dev.json", textured_refit_section),
