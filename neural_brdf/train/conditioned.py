@@ -116,6 +116,12 @@ class ConditionedNormalizedBRDF(nn.Module):
         self.register_buffer("head_table", per_head.contiguous())
         self.identity = bool((self.table <= 1.0).all())
 
+    def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:
+        # a loaded table (a kept textured export, textured_store.load) decides whether the
+        # division is the identity, not the table this module was built with
+        super()._load_from_state_dict(*args, **kwargs)
+        self.identity = bool((self.table <= 1.0).all())
+
     def lookup(self, w: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """(N, 3), (N, 1) -> (N, H): bilinear in (s, x), x = theta / (pi / 2)."""
         ns, k = self.nodes

@@ -35,6 +35,7 @@ The ``raw`` ablation encoding uses the anisotropic table.  With
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 import torch.nn as nn
@@ -438,6 +439,12 @@ class NormalizedBRDF(nn.Module):
         self.raw = raw
         self.anisotropic = table.dim() == 3
         self.register_buffer("table", table.detach().float().clone())  # (K, 3) | (K, K, 3)
+        self.identity = bool((self.table <= 1.0).all())
+
+    def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:
+        # a loaded table (a kept textured export, textured_store.load) decides whether the
+        # division is the identity, not the table this module was built with
+        super()._load_from_state_dict(*args, **kwargs)
         self.identity = bool((self.table <= 1.0).all())
 
     def lookup(self, w: torch.Tensor) -> torch.Tensor:  # (N, 3) -> (N, 3), linear interpolation

@@ -466,3 +466,30 @@ def test_short_fit_to_a_procedural_roughplastic(tmp_path):
     c = wo[:, 2:3]
     err = np.linalg.norm((f - t) * c) / np.linalg.norm(t * c)
     assert err < 0.2, err
+
+
+@pytest.mark.parametrize("conditioned", [False, True])
+def test_a_loaded_table_decides_whether_the_division_is_the_identity(conditioned):
+    """A normalised lobe built with a table <= 1 (the identity) and then given a table
+    above 1 by load_state_dict (a kept textured export: textured_store.load) divides by
+    it, in forward and so in the exported graph; and the other way round."""
+    from neural_brdf.train.conditioned import ConditionedNormalizedBRDF
+    from neural_brdf.train.model import NormalizedBRDF, RawBRDF
+
+    torch.manual_seed(3)
+    raw = RawBRDF("isotropic", [8], "relu", heads=1, latent=int(conditioned)).eval()
+    shape = (3, 5, 3) if conditioned else (5, 3)
+    cls = ConditionedNormalizedBRDF if conditioned else NormalizedBRDF
+    low, high = cls(raw, torch.full(shape, 0.5)), cls(raw, torch.full(shape, 2.0))
+    assert low.identity and not high.identity
+    wi = torch.tensor([[0.3, 0.1, 0.9]]).expand(4, 3)
+    wo = torch.tensor([[-0.2, 0.4, 0.8]]).expand(4, 3)
+    extra = (torch.full((4, 1), 0.5),) if conditioned else ()
+    with torch.no_grad():
+        want = high(wi, wo, *extra)
+        low.load_state_dict(high.state_dict())
+        assert not low.identity
+        torch.testing.assert_close(low(wi, wo, *extra), want)
+        high.load_state_dict(cls(raw, torch.full(shape, 0.5)).state_dict())
+        assert high.identity
+        torch.testing.assert_close(high(wi, wo, *extra), raw(wi, wo, *extra))
