@@ -60,6 +60,11 @@ def alpha_of(t: torch.Tensor) -> torch.Tensor:
     return ALPHA_MIN + (1.0 - ALPHA_MIN) * t
 
 
+def t_of(alpha: torch.Tensor) -> torch.Tensor:
+    """GGX alpha in [ALPHA_MIN, 1] -> the field's column t (the inverse of :func:`alpha_of`)."""
+    return (alpha - ALPHA_MIN) / (1.0 - ALPHA_MIN)
+
+
 def ggx_heads(wi: torch.Tensor, wo: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """(N, 3), (N, 3) unit directions, alpha (N, 1) -> (N, 2): g_a and g_b of the module
     doc, 0 where either direction is at or below the horizon."""
@@ -170,8 +175,8 @@ def alpha_from_teacher(teacher: Any, resolution: int) -> torch.Tensor:
         better = err < best
         best = np.where(better, err, best)
         alpha = np.where(better, a, alpha)
-    t_col = np.clip((alpha - ALPHA_MIN) / (1.0 - ALPHA_MIN), 1e-3, 1.0 - 1e-3)
-    return torch.from_numpy(np.log(t_col / (1.0 - t_col))).float()[:, None]
+    t_col = t_of(torch.from_numpy(alpha)).clamp(1e-3, 1.0 - 1e-3)
+    return torch.logit(t_col).float()[:, None]
 
 
 def _nnls2(x1: np.ndarray, x2: np.ndarray, y: np.ndarray) -> np.ndarray:

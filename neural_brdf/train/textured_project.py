@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from analytic import frame
-from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_of
+from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_of, t_of
 from neural_brdf.train.textured_model import (
     FrozenWeightField,
     TexturedBRDF,
@@ -223,7 +223,7 @@ def project_field(
                 for factor in factors:
                     s_a = best_s.clone()
                     alpha = (alpha_of(best_s[:, searched:]) * factor).clamp(ALPHA_MIN, 1.0)
-                    s_a[:, searched:] = (alpha - ALPHA_MIN) / (1.0 - ALPHA_MIN)
+                    s_a[:, searched:] = t_of(alpha)
                     queue.append(s_a)
 
         residual += float(best_data.sum())

@@ -178,18 +178,16 @@ def test_the_file_is_reciprocal_and_equals_torch(bounded):
     assert_file_matches(model, payload, seed=12)
 
 
-def test_the_projection_keeps_each_texels_alpha(bounded):
+def _teacher_class(model: TexturedBRDF, table: torch.Tensor) -> type:
+    """A teacher: ``model``'s lobes under the field ``table`` (3 channels, latent s and
+    t), sampled uniformly (any finite teacher will do for the projection)."""
     from neural_brdf.train.textured_model import FrozenWeightField
-    from neural_brdf.train.textured_project import project_field, texel_centres
 
-    model, _ = bounded
-    table = model.field.weights().clone()
-    table[:, -2] = 1.0  # the teacher: the model with s = 1 everywhere (a grid value)
     other = TexturedBRDF(
         list(model.lobes), FrozenWeightField(table, model.field.resolution, channels=3, latent=2)
     ).eval()
 
-    class Teacher:  # sampled uniformly: any finite teacher will do
+    class Teacher:
         def eval(self, wi, wo, uv):
             with torch.no_grad():
                 t = [torch.as_tensor(x).float() for x in (wi, wo, uv)]
@@ -197,6 +195,17 @@ def test_the_projection_keeps_each_texels_alpha(bounded):
 
         def sample(self, wi, uv, u):
             return frame.square_to_uniform_hemisphere(torch.as_tensor(u)).numpy()
+
+    return Teacher
+
+
+def test_the_projection_keeps_each_texels_alpha(bounded):
+    from neural_brdf.train.textured_project import project_field, texel_centres
+
+    model, _ = bounded
+    table = model.field.weights().clone()
+    table[:, -2] = 1.0  # the teacher: the model with s = 1 everywhere (a grid value)
+    Teacher = _teacher_class(model, table)
 
     field, _ = project_field(
         model.lobes[0], model.field, Teacher(), model.bound_envelope, resolution=8, pairs=32
@@ -263,25 +272,13 @@ def test_the_projection_can_search_alpha_around_each_texels_own(bounded):
     """texture.project_alphas 3: half, one and twice the trained alpha; a teacher whose
     alpha is twice the model's everywhere (where that stays <= 1) is found."""
     from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_of
-    from neural_brdf.train.textured_model import FrozenWeightField
     from neural_brdf.train.textured_project import project_field, texel_centres
 
     model, _ = bounded
     table = model.field.weights().clone()
     doubled = alpha_of(table[:, -1]) * 2.0
     table[:, -1] = (doubled.clamp(max=1.0) - ALPHA_MIN) / (1.0 - ALPHA_MIN)
-    other = TexturedBRDF(
-        list(model.lobes), FrozenWeightField(table, model.field.resolution, channels=3, latent=2)
-    ).eval()
-
-    class Teacher:
-        def eval(self, wi, wo, uv):
-            with torch.no_grad():
-                t = [torch.as_tensor(x).float() for x in (wi, wo, uv)]
-                return other(*t).double().numpy()
-
-        def sample(self, wi, uv, u):
-            return frame.square_to_uniform_hemisphere(torch.as_tensor(u)).numpy()
+    Teacher = _teacher_class(model, table)
 
     r = model.field.resolution  # the same texels: each centre's alpha is a texel's own
     centres = torch.from_numpy(texel_centres(r)).float()
