@@ -180,6 +180,10 @@ SETTINGS = {
     # (textured_heads_dev_alphas5.json): within the heavy tail's spread, and a choice per
     # texel on its own 512 pairs
     "project_alphas": 1,
+    # not chosen on the development set: each projected texel's alpha the teacher's own
+    # went 3.51 -> 6.60 % (textured_anatomy_dev_{heads,teacher_alpha}.json, one start):
+    # the heads' envelope of 1 caps their weights at grazing (docs/mitsuba.md)
+    "project_alpha": "trained",
 }
 # (kind, K, R, steps, batch, pool) -> ``train_textured``'s held-out relative RMSE of
 # f cos on the development teacher (seed 1, 512^2), 2 threads
@@ -516,6 +520,7 @@ def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, di
             pool=settings["pool"],
             seed=settings.get("seed", 0),
             alphas=settings.get("project_alphas", 1),
+            alpha_source=settings.get("project_alpha", "trained"),
         )
         tables = refit_tables if refit_tables is not None else tables
     # the same lobes and weights without and with the teacher's normal field

@@ -438,6 +438,10 @@ class Texture(_Section):
     # with analytic_heads, the alphas each projected texel tries at its best latent:
     # geometric from half to twice its trained alpha (1: the trained alpha only)
     project_alphas: int = Field(1, ge=1, le=15)
+    # with analytic_heads, where a projected texel's alpha comes from: the trained
+    # field's, the teacher's own GGX fit at the texel (ggx_heads.alpha_from_teacher), or
+    # both tried (the texel keeps the better)
+    project_alpha: Literal["trained", "teacher", "both"] = "trained"
     # after the projection, the shared lobe network trained refit_steps more steps at
     # refit_lr with the projected field frozen, then normalised and the texels bounded
     # again (docs/mitsuba.md, "The lobes refitted on the projected field"); 0: none.
@@ -473,6 +477,14 @@ class Texture(_Section):
                 "analytic_heads: the heads sit beside one shared lobe network and are "
                 "bounded per texel; set lobe_network: shared and lobe_bound: texel (got "
                 f"{self.lobe_network}, {self.lobe_bound})"
+            )
+        if self.project_alpha != "trained" and (
+            self.analytic_heads == "none" or self.project is None
+        ):
+            raise ValueError(
+                "project_alpha: a projected texel's GGX alpha; set analytic_heads: ggx and "
+                f"project (or project_alpha: trained; got {self.analytic_heads}, "
+                f"project {self.project})"
             )
         return self
 

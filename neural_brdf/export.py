@@ -780,6 +780,7 @@ def textured_for_export(
         pool=tx.pool(cfg.data.pool_size),
         seed=cfg.train.seed,
         alphas=tx.project_alphas,
+        alpha_source=tx.project_alpha,
     )
     return model, refit_tables if refit_tables is not None else tables, info
 

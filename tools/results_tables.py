@@ -2122,16 +2122,17 @@ def textured_export_section(d: dict) -> list[str]:
     return out
 
 
-def textured_anatomy_section(d: dict) -> list[str]:
+def textured_anatomy_section(
+    d: dict, name: str = "textured_anatomy_dev.json", title: str = "", command: str = ""
+) -> list[str]:
     """issue 30: where the textured principled's squared error of f cos is (by the
-    teacher's roughness and metallic at the pair's uv, by cos theta_i, by pair)."""
+    teacher's roughness and metallic at the pair's uv, by cos theta_i and theta_d, by the
+    distance to the tiles' edges, by pair)."""
     m, r = d["machine"], d["recipe"]
     out = [
-        "## Textured materials: where the principled's error is (development set)",
+        f"## Textured materials: where the principled's error is{title} (development set)",
         "",
-        _source(
-            "benchmarks/results/textured_anatomy_dev.json", "python benchmarks/textured_anatomy.py"
-        ),
+        _source(f"benchmarks/results/{name}", f"python benchmarks/textured_anatomy.py{command}"),
         _recorded(
             d["date"],
             f"{m['platform']}, {m['cores']} cores",
@@ -2140,12 +2141,35 @@ def textured_anatomy_section(d: dict) -> list[str]:
         f"Teacher: {d['teacher']}. The textured recipe with one start (training seed "
         f"{r['seed']}), its field projected at {r['project']}² ({r['project_pairs']} pairs "
         f"per texel, ridge {r['project_ridge']:g}) and its lobes refitted ({r['refit_steps']} "
-        f"steps at {r['refit_lr']:g}), exported without the normal field and scored by "
+        f"steps at {r['refit_lr']:g}), analytic heads {r.get('analytic_heads', 'none')}"
+        + (
+            f" (projected alpha: {r.get('project_alpha', 'trained')})"
+            if r.get("analytic_heads", "none") != "none"
+            else ""
+        )
+        + ", exported without the normal field and scored by "
         f"onnxruntime on two draws of {d['pairs']['n']:,} pairs: relative RMSE of f·cos "
         f"{_pct(d['rel_rmse'], 2)}. Each pair's squared error grouped by the teacher's "
-        "roughness and metallic maps at its uv, by cos θi, and by rank. `pairs`: the share of "
+        "roughness and metallic maps at its uv, by cos θi, "
+        + (
+            "by cos θd, by the uv distance to the nearest tile edge, "
+            if "by_tile_edge" in d
+            else ""
+        )
+        + "and by rank. `pairs`: the share of "
         "the pairs; `error`: of the squared error; `reference`: of the teacher's squared f·cos; "
-        "`own error`: the group's own relative RMSE. Nothing is chosen here.",
+        "`own error`: the group's own relative RMSE. Nothing is chosen here."
+        + (
+            " The file was kept and scored again (`--rescore`) on the same pairs."
+            if d.get("rescored")
+            else ""
+        )
+        + (
+            f" The file (f alone, without the normal field): {d['file_bytes'] / 2**20:.1f} MiB; "
+            f"the teacher's EXR maps together: {d['teacher_map_bytes'] / 2**20:.1f} MiB."
+            if "file_bytes" in d
+            else ""
+        ),
         "",
     ]
     rows = [
@@ -2171,6 +2195,39 @@ def textured_anatomy_section(d: dict) -> list[str]:
         for g in d["by_cos_theta_i"]
     ]
     out += _table(["cos θi", "pairs", "error", "own error"], rows)
+    for key, label, head in (
+        ("by_cos_theta_d", "cos_theta_d", "cos θd (half the length of wi + wo)"),
+        ("by_tile_edge", "tile_edge_distance", "uv distance to a tile edge"),
+    ):
+        if key in d:
+
+            def edge(x: float) -> str:  # 0, 1 or 1/N
+                return f"{x:g}" if x in (0.0, 1.0) else f"1/{round(1 / x)}"
+
+            rows = [
+                [
+                    "-".join(edge(x) if key == "by_tile_edge" else f"{x:g}" for x in g[label]),
+                    _pct(g["pairs_share"], 1),
+                    _pct(g["error_share"], 1),
+                    _pct(g["reference_share"], 1),
+                    "-" if g["rel_rmse"] is None else _pct(g["rel_rmse"], 1),
+                ]
+                for g in d[key]
+            ]
+            out += _table([head, "pairs", "error", "reference", "own error"], rows)
+    a = d.get("alpha_vs_teacher")
+    if a:
+        out += [
+            f"The heads' α at the {a['resolution']}² field's texel centres against the "
+            "teacher's roughness² there: |log(α / α_teacher)| has median "
+            f"{a['abs_log_ratio_median']:.3f} and 90th percentile {a['abs_log_ratio_p90']:.3f}"
+            + (
+                f"; log(α / α_teacher) has median {a['log_ratio_median']:+.3f}."
+                if "log_ratio_median" in a
+                else "."
+            ),
+            "",
+        ]
     out += [
         "The worst pairs by squared error: "
         + "; ".join(
@@ -2902,6 +2959,33 @@ SECTIONS = (
     (RESULTS / "textured_refit_test.json", textured_refit_section),
     (RESULTS / "textured_export.json", textured_export_section),
     (RESULTS / "textured_anatomy_dev.json", textured_anatomy_section),
+    (
+        RESULTS / "textured_anatomy_dev_heads.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_heads.json",
+            title=" with the GGX heads",
+            command=" --keep DIR, then --keep DIR --rescore --out FILE",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_teacher_alpha.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_teacher_alpha.json",
+            title=", each projected texel's alpha the teacher's",
+            command=" --setting project_alpha=teacher --keep DIR, then --rescore",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_project512.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_project512.json",
+            title=", the field projected at 512²",
+            command=" --setting project=512 --setting project_pairs=256 --keep DIR, then --rescore",
+        ),
+    ),
     (RESULTS / "textured_tour_dev.json", textured_tour_section),
     (RESULTS / "textured_tour_test.json", textured_tour_section),
     (RESULTS / "textured_grazing_dev.json", textured_grazing_section),

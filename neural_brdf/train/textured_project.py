@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from analytic import frame
-from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_of, t_of
+from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_from_teacher, alpha_of, t_of
 from neural_brdf.train.textured_model import (
     FrozenWeightField,
     TexturedBRDF,
@@ -50,6 +50,8 @@ from neural_brdf.train.textured_model import (
 )
 
 MAX_LOBES = 8  # every active set: 2^K - 1 small solves per problem
+# texture.project_alpha: where a projected texel's alpha comes from
+ALPHA_SOURCES = ("trained", "teacher", "both")
 # texture.project_alphas: the alphas an analytic head's texel tries, geometric from its
 # trained alpha / ALPHA_SPAN to x ALPHA_SPAN
 ALPHA_SPAN = 2.0
@@ -123,6 +125,7 @@ def project_field(
     ridge: float = 0.0,
     chunk_pairs: int = 1 << 19,
     alphas: int = 1,
+    alpha_source: str = "trained",
 ) -> tuple[FrozenWeightField, dict[str, Any]]:
     """The weights (and latent) of every texel of an R x R field (R = ``resolution``)
     fitted to ``teacher`` at its centre on ``pairs`` pairs (:func:`draw_pairs`), for the
@@ -136,7 +139,11 @@ def project_field(
     latent tried keeps the same z_0), and the texel keeps the candidate of least
     penalised error.  Returns the frozen field and figures (seconds, the share of texels
     the bound scaled down, the squared residual's sum over the texels' pairs, without
-    the penalty, against that of ``field`` on the same pairs)."""
+    the penalty, against that of ``field`` on the same pairs).  With analytic heads,
+    ``alpha_source`` says where a texel's alpha (before the ``alphas`` search) comes
+    from: "trained" (``field`` at its centre), "teacher" (the teacher's own GGX fit at
+    its centre, :func:`~neural_brdf.train.ggx_heads.alpha_from_teacher`) or "both"
+    (each tried, the texel keeps the better)."""
     t0 = time.perf_counter()
     k, channels, latent = field.lobes, field.channels, field.latent
     rng = np.random.default_rng(seed)
@@ -151,6 +158,11 @@ def project_field(
     searched = int(getattr(lobe, "searched_latent", latent))
     grid = [float(v) for v in np.linspace(0.0, 1.0, latents)] if searched else []
     factors: list[float] = []  # alpha's multipliers, the trained one's (1) left out
+    fitted: torch.Tensor | None = None  # the teacher's alpha at the centres, as t
+    if alpha_source not in ALPHA_SOURCES:
+        raise ValueError(f"alpha_source: {alpha_source!r}: one of {', '.join(ALPHA_SOURCES)}")
+    if alpha_source != "trained" and latent > searched and now[1] is not None:
+        fitted = torch.sigmoid(alpha_from_teacher(teacher, resolution))
     if alphas > 1 and latent > searched:
         factors = [
             float(f)
@@ -172,10 +184,17 @@ def project_field(
         if now[1] is not None:  # conditioned lobes: the trained latent, then the grid
             trained = now[1][a : a + t]
             candidates = [trained]
-            for v in grid:
-                s_v = trained.clone()
-                s_v[:, :searched] = v
-                candidates.append(s_v)
+            bases = [trained]
+            if fitted is not None:  # the teacher's alpha (only it, or beside the trained)
+                teachers = trained.clone()
+                teachers[:, searched:] = fitted[a : a + t]
+                bases = [teachers] if alpha_source == "teacher" else [trained, teachers]
+                candidates += [teachers]
+            for base in bases:
+                for v in grid:
+                    s_v = base.clone()
+                    s_v[:, :searched] = v
+                    candidates.append(s_v)
         best_r = torch.full((t,), float("inf"), dtype=torch.float64)
         best_data = torch.zeros(t, dtype=torch.float64)  # its error without the penalty
         best_z = torch.zeros(t, channels, k, dtype=torch.float64)
@@ -211,6 +230,8 @@ def project_field(
             data = r - lam[..., 0] * ((z - prior) ** 2).sum(-1)  # the error alone
             r, data = r.sum(-1), data.sum(-1)
             better = r < best_r
+            if c == 0 and alpha_source == "teacher" and fitted is not None:
+                better = torch.zeros_like(better)  # the trained alpha is not a candidate
             best_r = torch.where(better, r, best_r)
             best_data = torch.where(better, data, best_data)
             best_z = torch.where(better[:, None, None], z, best_z)
@@ -240,6 +261,7 @@ def project_field(
         "latents": latents if searched else 0,
         "ridge": ridge,
         "alphas": 1 + len(factors),
+        "alpha_source": alpha_source if fitted is not None else "trained",
         "seconds": time.perf_counter() - t0,
         "teacher_seconds": teacher_seconds,
         "bounded_texel_share": float(scaled.float().mean()),
@@ -258,6 +280,7 @@ def projected(
     seed: int,
     ridge: float = 0.0,
     alphas: int = 1,
+    alpha_source: str = "trained",
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """A normalised textured model (``normalized_textured``'s: one shared lobe network,
     its ``bound_envelope`` set) with its field replaced by :func:`project_field`'s at
@@ -276,6 +299,7 @@ def projected(
         seed=seed,
         ridge=ridge,
         alphas=alphas,
+        alpha_source=alpha_source,
     )
     return TexturedBRDF([lobe], field, model.normal).eval(), info
 
@@ -449,6 +473,7 @@ def project_and_refit(
     pool: int,
     seed: int,
     alphas: int = 1,
+    alpha_source: str = "trained",
 ) -> tuple[TexturedBRDF, list[dict[str, Any]] | None, dict[str, Any]]:
     """``texture.project`` and ``texture.refit_steps`` after training: a model normalised
     by ``bound`` (``normalized_textured``) with its field projected (:func:`projected`,
@@ -466,6 +491,7 @@ def project_and_refit(
         ridge=ridge,
         seed=seed + PROJECT_SEED,
         alphas=alphas,
+        alpha_source=alpha_source,
     )
     tables = None
     if refit_steps:
