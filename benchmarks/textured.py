@@ -945,6 +945,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.only and args.which != "dev":
         ap.error("--only: the development set only (the test set is measured whole)")
+    names = [f"{kind}_textured" for kind in KINDS] + ["roughplastic_plain"]  # dev's teachers
+    unknown = [n for n in args.only if n not in names]
+    if unknown:
+        ap.error(f"--only {unknown[0]}: one of {', '.join(names)}")
     torch.set_num_threads(2)
     settings = dict(QUICK if args.quick else SETTINGS)
     for item in args.setting:

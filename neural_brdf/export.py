@@ -581,7 +581,8 @@ def analytic_json(model: TexturedBRDF) -> dict[str, Any] | None:
             "D(h) G1(wi) G1(wo) / (4 cos_i cos_o): GGX, Smith's separable masking, F = 1",
             "the same times (1 - cos_d)^5 (Schlick's grazing factor)",
         ],
-        "albedo": "each head's <= 1 for every alpha (closed form), its envelope 1",
+        "albedo": "each head's <= 1 for every alpha (closed form); in the texels' bound the "
+        "first's envelope is 1, the second's measured per node of incidence",
     }
 
 

@@ -2978,6 +2978,24 @@ SECTIONS = (
         ),
     ),
     (
+        RESULTS / "textured_anatomy_dev_envelope.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_envelope.json",
+            title=" with g_b's measured envelope",
+            command=" --keep DIR",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_envelope_teacher_alpha.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_envelope_teacher_alpha.json",
+            title=" with g_b's measured envelope, each projected texel's alpha the teacher's",
+            command=" --setting project_alpha=teacher --keep DIR",
+        ),
+    ),
+    (
         RESULTS / "textured_anatomy_dev_project512.json",
         partial(
             textured_anatomy_section,

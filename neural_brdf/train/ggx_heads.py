@@ -28,9 +28,13 @@ Physics, in closed form for every alpha (so for any blend of texels):
 * albedo <= 1: int g_a cos theta_o dwo = int D G1(wi) G1(wo) / (4 c_i) dwo
   <= int D(h) G1(wi) max(0, wi . h) / c_i dh = 1 (dwo = 4 (wi . h) dh, and the visible
   normals' density integrates to 1: Heitz 2014, eq. 38), and 0 <= (1 - cos theta_d)^5
-  <= 1, so g_b's albedo is at most g_a's.  Each head's envelope (the ``texel`` bound's
-  E) is 1 at every node: a texel's weights with sum_k z_k E_k <= 1 keep f's albedo <= 1
-  between texel centres as the neural lobes' tables do.
+  <= 1, so g_b's albedo is at most g_a's.  g_a's envelope (the ``texel`` bound's E) is 1
+  at every node.  g_b's is measured (:func:`head_envelope`): its albedo is
+  E_m[G1(wo) (1 - wi . m)^5] over wi's visible normals m, far below 1 except near
+  grazing (about 0.005 at 45 degrees), so E_b at node j is the largest quadrature
+  value over the node's cell of incidences and every alpha, plus a stated margin.  A
+  texel's weights with sum_k z_k E_k <= 1 keep f's albedo <= 1 between texel centres as
+  the neural lobes' tables do.
 
 :class:`GGXLobes` wraps the shared network: (wi, wo, s) -> (N, 3 (K + 2)), the network's
 K heads then the two analytic ones, so the textured model, its bound, the projection and
@@ -41,6 +45,7 @@ Div, Mul and Add only; every back end lowers it as it lowers the network.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -128,8 +133,70 @@ def with_heads(lobe: nn.Module, kind: str) -> nn.Module:
     return GGXLobes(lobe)
 
 
+# g_b's envelope (head_envelope): each node's cell of incidences sampled at
+# ENVELOPE_SUBSTEPS points per node spacing, ENVELOPE_ALPHAS alphas (geometric, ALPHA_MIN
+# to 1), ENVELOPE_STRATA^2 stratified visible normals; the largest value plus
+# ENVELOPE_MARGIN (the quadrature's error is below 2e-3: tests/train/test_ggx_heads.py)
+ENVELOPE_SUBSTEPS = 4
+ENVELOPE_ALPHAS = 24
+ENVELOPE_STRATA = 32
+ENVELOPE_MARGIN = 0.01
+
+
+@functools.lru_cache(maxsize=8)
+def _schlick_head_envelope(size: int) -> tuple[float, ...]:
+    """g_b's envelope at ``size`` isotropic nodes (theta_j = j / (size - 1) x 90 degrees,
+    each node's cell its neighbours' span, as the A+ tables' neighbour maximum)."""
+    from analytic.microfacet import Distribution
+
+    fine = torch.linspace(
+        0.0, 0.5 * math.pi, (size - 1) * ENVELOPE_SUBSTEPS + 1, dtype=torch.float64
+    )
+    cz = torch.cos(fine).clamp_min(1e-4)
+    wi = torch.stack([torch.sqrt(1.0 - cz * cz), torch.zeros_like(cz), cz], -1)
+    n = ENVELOPE_STRATA
+    g = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    u = torch.stack(torch.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)  # (M, 2)
+    w = wi[:, None, :].expand(-1, len(u), 3).reshape(-1, 3)
+    uu = u[None].expand(len(wi), -1, 2).reshape(-1, 2)
+    best = torch.zeros(len(wi), dtype=torch.float64)
+    for a in np.geomspace(ALPHA_MIN, 1.0, ENVELOPE_ALPHAS):
+        dist = Distribution("ggx", float(a), float(a))
+        m = dist.sample_visible(w, uu)
+        c = (w * m).sum(-1)  # wi . m = cos theta_d
+        wo = 2.0 * c[:, None] * m - w
+        up = wo[:, 2] > 0
+        val = torch.where(up, dist.G1(wo) * (1.0 - c).clamp_min(0.0) ** 5, 0.0)
+        best = torch.maximum(best, val.reshape(len(wi), -1).mean(-1))
+    step = ENVELOPE_SUBSTEPS
+    out = []
+    for j in range(size):
+        lo, hi = max(0, (j - 1) * step), min(len(fine) - 1, (j + 1) * step)
+        out.append(min(1.0, float(best[lo : hi + 1].max()) + ENVELOPE_MARGIN))
+    return tuple(out)
+
+
+def head_envelope(size: int, anisotropic: bool = False) -> torch.Tensor:
+    """[J, 3 HEADS]: the analytic heads' columns of the ``texel`` bound's envelope at the
+    nodes of a lobe table of ``size`` nodes (J = size, or size^2 for an anisotropic
+    grid): g_a's 1, then g_b's measured envelope (module doc), each three times (RGB).
+    An anisotropic grid's nodes get 1 for both (the measured one is per theta cell)."""
+    if anisotropic:
+        return torch.ones(size * size, 3 * HEADS)
+    b = torch.tensor(_schlick_head_envelope(int(size)), dtype=torch.float32)[:, None]
+    return torch.cat([torch.ones(size, 3), b.expand(size, 3)], -1)
+
+
+def with_head_envelope(env: torch.Tensor, anisotropic: bool) -> torch.Tensor:
+    """A neural lobe table's envelope [J, C] (``textured_model.lobe_envelope``) with the
+    analytic heads' columns (:func:`head_envelope`) after it: [J, C + 3 HEADS]."""
+    j = int(env.shape[0])
+    size = math.isqrt(j) if anisotropic else j
+    return torch.cat([env, head_envelope(size, anisotropic).to(env.dtype)], -1)
+
+
 def analytic_count(lobe: nn.Module) -> int:
-    """How many of a lobe module's heads are analytic (their envelope is 1)."""
+    """How many of a lobe module's heads are analytic (their envelope: :func:`head_envelope`)."""
     return HEADS if isinstance(lobe, GGXLobes) else 0
 
 

@@ -48,7 +48,12 @@ import torch
 from analytic import frame
 from neural_brdf import config as cfgmod
 from neural_brdf.runfolder import Folder
-from neural_brdf.train.ggx_heads import alpha_from_teacher, analytic_count, with_heads
+from neural_brdf.train.ggx_heads import (
+    alpha_from_teacher,
+    analytic_count,
+    with_head_envelope,
+    with_heads,
+)
 from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
@@ -278,8 +283,9 @@ def bound_envelope(model: TexturedBRDF, seed: int = 0) -> torch.Tensor:
     parts = []
     for (a, cond), lobe in zip(tables, model.lobes):
         env = lobe_envelope(a, cond).float()
-        heads = analytic_count(lobe)  # analytic heads: albedo <= 1 at every node (closed form)
-        parts.append(torch.cat([env, torch.ones(env.shape[0], 3 * heads)], -1) if heads else env)
+        if analytic_count(lobe):  # the analytic heads' envelope at the same nodes
+            env = with_head_envelope(env, bool(getattr(raw_of(lobe), "anisotropic", False)))
+        parts.append(env)
     return torch.cat(parts, -1).float()
 
 

@@ -49,7 +49,7 @@ from neural_brdf import config as cfgmod
 from neural_brdf.fileformat import SIGNATURES
 from neural_brdf.train.conditioned import ConditionedNormalizedBRDF, normalized_conditioned
 from neural_brdf.train.encoding import is_anisotropic
-from neural_brdf.train.ggx_heads import GGXLobes, analytic_count
+from neural_brdf.train.ggx_heads import GGXLobes, analytic_count, with_head_envelope
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, albedo_table, unit_or_invalid
 
 TEXTURED_INPUTS = SIGNATURES[1]  # ("wi", "wo", "uv")
@@ -517,8 +517,8 @@ def normalized_textured(
             norm = NormalizedBRDF(raw, table).eval()
         if bound == "texel":  # the lobe stays raw; its nodes join the field's envelope
             env = lobe_envelope(norm.table, bool(raw.latent))
-            if analytic:  # each analytic head's albedo is <= 1 at every node (ggx_heads)
-                env = torch.cat([env, torch.ones(env.shape[0], 3 * analytic)], -1)
+            if analytic:  # the analytic heads' envelope at the same nodes (ggx_heads)
+                env = with_head_envelope(env, bool(getattr(raw, "anisotropic", False)))
             envelopes.append(env)
             lobes.append(lobe.eval() if analytic else raw)
         else:
