@@ -2392,6 +2392,9 @@ def textured_heads_section(d: dict) -> list[str]:
         "ggx, 5 alphas per projected texel (not chosen)": json.loads(
             (RESULTS / "textured_heads_dev_alphas5.json").read_text()
         ),
+        "ggx, g_b's measured envelope (the code since 3d46231)": json.loads(
+            (RESULTS / "textured_heads_dev_envelope.json").read_text()
+        ),
     }
     st = d["settings"]
     m0 = d["machine_start"]
@@ -2423,7 +2426,9 @@ def textured_heads_section(d: dict) -> list[str]:
         "the whole teacher). `check pairs`: the refit's own measure on 200,000 fresh pairs "
         "of the teacher's (before the refit → the kept lobes), a second sample of the same "
         "error. The third arm adds `texture.project_alphas` 5 (alphas from half to twice "
-        "each texel's trained one).",
+        "each texel's trained one). The fourth is the second's recipe after g_b's column "
+        "of the texels' envelope was measured instead of 1 (docs/model.md, textured_heads_"
+        "dev_envelope.json).",
         "",
     ]
     rows = []
