@@ -988,7 +988,9 @@ def main(argv: list[str] | None = None) -> int:
             "the field projected onto the lobes at 256^2 (textured_project_dev.json), then "
             "the lobes refitted (textured_refit_dev.json), then two analytic GGX heads "
             "beside the lobes (textured_heads_dev_none.json against "
-            "textured_heads_dev_ggx.json) were chosen here; nothing on the test set",
+            "textured_heads_dev_ggx.json), then g_b's measured envelope in the heads' bound "
+            "(a code change: textured_anatomy_dev_envelope.json, textured_heads_dev_envelope"
+            ".json) were chosen here; nothing on the test set",
             "test": "write_teacher(principled | roughplastic, size 512, seed 0) and two "
             "homogeneous teachers written by the benchmark (roughplastic_plain, "
             "principled_plain): measured once, not tuned on",

@@ -61,24 +61,6 @@ def _map(path: Path):
     return a[..., 0] if a.ndim == 3 else a
 
 
-def _bilinear(img, uv):
-    """``img`` (H, W) at ``uv`` (N, 2) as Mitsuba's bitmap filters it: bilinear between
-    texel centres, wrapping (row j: v = (j + 0.5) / H)."""
-    import numpy as np
-
-    h, w = img.shape
-    x, y = uv[:, 0] * w - 0.5, uv[:, 1] * h - 0.5
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    tx, ty = x - x0, y - y0
-
-    def at(j, i):
-        return img[j % h, i % w]
-
-    top = at(y0, x0) * (1 - tx) + at(y0, x0 + 1) * tx
-    bottom = at(y0 + 1, x0) * (1 - tx) + at(y0 + 1, x0 + 1) * tx
-    return top * (1 - ty) + bottom * ty
-
-
 def _field_alpha(path: Path):
     """The GGX heads' alpha at the field's texel centres (its last column) and the
     field's resolution, from the file's field table."""
@@ -136,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     import textured_project as tp
 
     from neural_brdf.measured.procedural import TILES
+    from neural_brdf.train.textured_model import bilinear_wrap
     from neural_brdf.train.textured_project import texel_centres
 
     # textured.py's recipe (its projection and refit included) with one start, through
@@ -188,11 +171,13 @@ def main(argv: list[str] | None = None) -> int:
             # the heads' alpha at the field's texel centres against the teacher's
             # roughness^2 there (Mitsuba's principled: alpha = roughness^2, anisotropic 0)
             a_model, r = _field_alpha(folder / "bare.onnx")
-            truth = _bilinear(rough, texel_centres(r)) ** 2
-            err = np.abs(np.log(a_model / truth))
+            rough_t = torch.from_numpy(np.ascontiguousarray(rough).reshape(-1, 1))
+            at = bilinear_wrap(rough_t, torch.from_numpy(texel_centres(r)), rough.shape[0])
+            log_ratio = np.log(a_model / at[:, 0].numpy() ** 2)  # Mitsuba's filter, as the file's
+            err = np.abs(log_ratio)
             alpha = {
                 "resolution": r,
-                "log_ratio_median": float(np.median(np.log(a_model / truth))),
+                "log_ratio_median": float(np.median(log_ratio)),
                 "abs_log_ratio_median": float(np.median(err)),
                 "abs_log_ratio_p90": float(np.percentile(err, 90)),
             }

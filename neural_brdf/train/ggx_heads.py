@@ -136,7 +136,7 @@ def with_heads(lobe: nn.Module, kind: str) -> nn.Module:
 # g_b's envelope (head_envelope): each node's cell of incidences sampled at
 # ENVELOPE_SUBSTEPS points per node spacing, ENVELOPE_ALPHAS alphas (geometric, ALPHA_MIN
 # to 1), ENVELOPE_STRATA^2 stratified visible normals; the largest value plus
-# ENVELOPE_MARGIN (the quadrature's error is below 2e-3: tests/train/test_ggx_heads.py)
+# ENVELOPE_MARGIN (tests/train/test_ggx_heads.py samples g_b's albedo at random against it)
 ENVELOPE_SUBSTEPS = 4
 ENVELOPE_ALPHAS = 24
 ENVELOPE_STRATA = 32
