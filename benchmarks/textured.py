@@ -492,15 +492,19 @@ def trained_model(teacher, settings: dict):
     )
 
 
-def train_textured_file(teacher, folder: Path, settings: dict) -> tuple[Path, dict]:
+def train_textured_file(
+    teacher, folder: Path, settings: dict, trained: tuple | None = None
+) -> tuple[Path, dict]:
     """``train_textured`` -> normalised (and projected, with ``project``) -> model.onnx;
-    (path, figures with seconds)."""
+    (path, figures with seconds).  ``trained``: :func:`trained_model`'s (model, figures)
+    made earlier with these settings' training keys (a development script's reuse; its
+    seconds are then not this call's)."""
     from neural_brdf import export
     from neural_brdf.fileformat import OUTPUT_SIGNATURES
     from neural_brdf.train.textured_model import exportable, normalized_textured
 
     t0 = time.perf_counter()
-    model, fig = trained_model(teacher, settings)
+    model, fig = trained_model(teacher, settings) if trained is None else trained
     t1 = time.perf_counter()
     model, tables = normalized_textured(model, bound=settings.get("lobe_bound", "table"))
     if settings.get("project"):  # texture.project (and refit_steps), as the export does

@@ -17,8 +17,11 @@ teacher's maps jump), and ranked: the share of the total carried by the worst 0.
 1 % of the pairs.  With analytic heads, the field's alpha at its texel centres is set
 against the teacher's roughness^2 there.  ``--setting KEY=VALUE`` changes one value of
 the recipe (a development question); ``--keep DIR`` keeps the teacher, the files, the
-recipe and the pairs, and ``--keep DIR --rescore`` scores that file again (no
-training).  The held-out teacher is not used.  Nothing asserts and nothing is chosen.
+recipe, the trained model and the pairs, ``--keep DIR --rescore`` scores that file
+again (no training), and ``--keep DIR --reproject --setting project...=V`` projects,
+refits and exports that trained model again (only the projection's and the refit's keys
+may change: a comparison of projections on one training).  The held-out teacher is not
+used.  Nothing asserts and nothing is chosen.
 """
 
 from __future__ import annotations
@@ -51,6 +54,8 @@ EDGE_BANDS = (
     (1 / 32, 1.0),
 )
 WORST = (0.001, 0.01)  # the worst shares of the pairs, by squared error
+# the recipe's keys that --reproject may change (what comes after the training)
+REPROJECT_KEYS = ("project", "refit_")
 
 
 def _map(path: Path):
@@ -104,9 +109,17 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="score the file an earlier --keep DIR kept (its recipe.json) instead of training",
     )
+    ap.add_argument(
+        "--reproject",
+        action="store_true",
+        help="project, refit and export again the trained model an earlier --keep DIR kept "
+        "(trained.pt), with --setting changing only the projection's and refit's keys",
+    )
     args = ap.parse_args(argv)
-    if args.rescore and (args.keep is None or args.setting):
+    if args.rescore and (args.keep is None or args.setting or args.reproject):
         ap.error("--rescore: with --keep DIR (a folder an earlier --keep filled), no --setting")
+    if args.reproject and args.keep is None:
+        ap.error("--reproject: with --keep DIR (a folder an earlier --keep filled)")
     out_path = args.out or Path(__file__).resolve().parent / "results" / (
         "textured_anatomy_quick.json" if args.quick else "textured_anatomy_dev.json"
     )
@@ -135,10 +148,26 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         folder = (args.keep or Path(tmp)) / "principled"
         teacher, pairs = tp.teacher_and_pairs(folder, "principled", "dev", pairs_n)
+        made: dict = {}  # train_textured_file's figures (none when rescored)
         if args.rescore:  # the kept file, as its recipe made it
             settings = json.loads((folder / "recipe.json").read_text())
+        elif args.reproject:  # the kept trained model, projected and refitted again
+            kept = json.loads((folder / "recipe.json").read_text())
+            changed = sorted(
+                k
+                for k in set(kept) | set(settings)
+                if kept.get(k) != settings.get(k) and not k.startswith(REPROJECT_KEYS)
+            )
+            if changed:
+                ap.error(f"--reproject: --setting changes training keys {changed}")
+            trained = torch.load(folder / "trained.pt", weights_only=False)
+            _, made = bench.train_textured_file(teacher, folder, settings, trained=trained)
+            (folder / "recipe.json").write_text(json.dumps(settings))
         else:
-            bench.train_textured_file(teacher, folder, settings)
+            trained = bench.trained_model(teacher, settings)
+            if args.keep is not None:
+                torch.save(trained, folder / "trained.pt")
+            _, made = bench.train_textured_file(teacher, folder, settings, trained=trained)
             (folder / "recipe.json").write_text(json.dumps(settings))
         f = bench.OnnxFile(folder / "bare.onnx")  # f alone, without the normal field
         got = tp.score(f, pairs)
@@ -235,6 +264,9 @@ def main(argv: list[str] | None = None) -> int:
             "file_bytes": file_bytes,  # f alone, without the normal field
             "teacher_map_bytes": teacher_bytes,  # the teacher's EXR maps together
             "rescored": args.rescore,  # then seconds is the scoring's alone
+            "reprojected": args.reproject,  # then seconds leaves the training out
+            "projection": {k: v for k, v in (made.get("projection") or {}).items() if k != "refit"}
+            or None,
             "seconds": time.perf_counter() - t0,
         },
     )

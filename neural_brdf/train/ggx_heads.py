@@ -116,9 +116,23 @@ class GGXLobes(nn.Module):
         if s is None:
             raise ValueError(f"GGXLobes: {self.latent} latent inputs expected, got none")
         lat = self.searched_latent
-        g = self.net(wi, wo, s[:, :lat]) if lat else self.net(wi, wo)
-        h = ggx_heads(wi, wo, alpha_of(s[:, lat : lat + 1]))
-        # each grey head's value three times: RGB columns like a grey neural head's
+        return self.joined(
+            self.network_part(wi, wo, s[:, :lat]), self.head_part(wi, wo, s[:, lat:])
+        )
+
+    def network_part(self, wi: torch.Tensor, wo: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """The network's heads (N, 3K) at its latent ``s`` (N, L) (the searched columns)."""
+        return self.net(wi, wo, s) if self.searched_latent else self.net(wi, wo)
+
+    @staticmethod
+    def head_part(wi: torch.Tensor, wo: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The analytic heads (N, 2) at alpha's column ``t`` (N, 1)."""
+        return ggx_heads(wi, wo, alpha_of(t))
+
+    @staticmethod
+    def joined(g: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward`'s columns from its two parts: each grey head's value three
+        times, RGB columns like a grey neural head's."""
         return torch.cat([g, h[:, 0:1], h[:, 0:1], h[:, 0:1], h[:, 1:2], h[:, 1:2], h[:, 1:2]], -1)
 
 

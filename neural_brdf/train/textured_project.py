@@ -41,7 +41,13 @@ import numpy as np
 import torch
 
 from analytic import frame
-from neural_brdf.train.ggx_heads import ALPHA_MIN, alpha_from_teacher, alpha_of, t_of
+from neural_brdf.train.ggx_heads import (
+    ALPHA_MIN,
+    GGXLobes,
+    alpha_from_teacher,
+    alpha_of,
+    t_of,
+)
 from neural_brdf.train.textured_model import (
     FrozenWeightField,
     TexturedBRDF,
@@ -66,10 +72,40 @@ def nnls(
     squared residual (...)).  Every non-empty active set S is solved (G_SS z_S = b_S,
     with a ridge of 1e-9 of G's mean diagonal); the best one with z_S >= 0 is the
     solution (the NNLS optimum is the unconstrained optimum on its support).  z = 0 when
-    no set is feasible (a zero column)."""
+    no set is feasible (a zero column).
+
+    The full set is solved first: a problem whose solution there is >= 0 has its optimum
+    (the problem is convex, and no subset's residual is below the full set's), so only
+    the others go through the enumeration, the same solves on fewer rows (on the
+    development projection, about nine problems in ten stop at the full set)."""
     k = rhs.shape[-1]
     if not 1 <= k <= MAX_LOBES:
         raise ValueError(f"nnls: 1 to {MAX_LOBES} unknowns, got {k}")
+    batch = rhs.shape[:-1]
+    if k > 1 and rhs.dim() > 1:
+        scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)[..., None, None]
+        full = torch.linalg.solve(gram + 1e-9 * scale * torch.eye(k, dtype=gram.dtype), rhs)
+        done = (full >= 0).all(-1)
+        if bool(done.any()):
+            r_full = sq - 2.0 * (full * rhs).sum(-1)
+            r_full = r_full + torch.einsum("...i,...ij,...j->...", full, gram, full)
+            z_out = torch.where(done[..., None], full, torch.zeros_like(full))
+            r_out = torch.where(done, r_full, sq)
+            rest = (~done).reshape(-1).nonzero().squeeze(-1)
+            if len(rest):
+                flat = (gram.reshape(-1, k, k), rhs.reshape(-1, k), sq.reshape(-1))
+                z_rest, r_rest = _nnls_all_sets(*(x[rest] for x in flat))
+                z_out = z_out.reshape(-1, k).index_copy(0, rest, z_rest).reshape(*batch, k)
+                r_out = r_out.reshape(-1).index_copy(0, rest, r_rest).reshape(batch)
+            return z_out, r_out
+    return _nnls_all_sets(gram, rhs, sq)
+
+
+def _nnls_all_sets(
+    gram: torch.Tensor, rhs: torch.Tensor, sq: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`nnls` by every non-empty active set (its doc)."""
+    k = rhs.shape[-1]
     best_r = sq.clone()  # z = 0
     best_z = torch.zeros_like(rhs)
     scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)[..., None, None]
@@ -110,6 +146,38 @@ def draw_pairs(
         wo[rows[good]] = sampled[good]
     f = np.nan_to_num(np.asarray(teacher.eval(wi, wo, uv), np.float64))
     return wi, wo, f
+
+
+class _Parts:
+    """The lobes' values on one chunk's pairs at a candidate latent (one per texel,
+    repeated over its pairs).  With analytic heads (:class:`GGXLobes`) the network's
+    part depends on the searched columns only and the heads' on alpha's only, and the
+    candidates repeat each (the trained latent with every alpha tried, every latent with
+    the trained alpha): each part is evaluated once per distinct value and reused, the
+    same floats as ``lobe``'s own forward."""
+
+    def __init__(self, lobe: torch.nn.Module, x: tuple[torch.Tensor, ...], pairs: int):
+        self.lobe, self.x, self.pairs = lobe, x, pairs
+        self.split = isinstance(lobe, GGXLobes)
+        self.cache: dict[tuple[str, bytes], torch.Tensor] = {}
+
+    def _part(self, kind: str, s: torch.Tensor, fn: Callable) -> torch.Tensor:
+        key = (kind, s.numpy().tobytes())
+        if key not in self.cache:
+            self.cache[key] = fn(*self.x, s.repeat_interleave(self.pairs, 0))
+        return self.cache[key]
+
+    def __call__(self, s: torch.Tensor | None) -> torch.Tensor:
+        if s is None:
+            return self.lobe(*self.x)
+        if not self.split:
+            return self.lobe(*self.x, s.repeat_interleave(self.pairs, 0))
+        lobe = self.lobe
+        assert isinstance(lobe, GGXLobes)
+        lat = lobe.searched_latent
+        g = self._part("network", s[:, :lat].contiguous(), lobe.network_part)
+        h = self._part("heads", s[:, lat:].contiguous(), lobe.head_part)
+        return GGXLobes.joined(g, h)
 
 
 def project_field(
@@ -201,12 +269,12 @@ def project_field(
         best_s = torch.zeros(t, latent)
 
         queue = list(candidates)
+        parts = _Parts(lobe, x, pairs)
         c = 0
         while c < len(queue):
             s = queue[c]
-            extra = () if s is None else (s.repeat_interleave(pairs, 0),)
             with torch.no_grad():
-                g = lobe(*x, *extra).double() * cos  # (t * M, 3K): g cos
+                g = parts(s).double() * cos  # (t * M, 3K): g cos
             g = g.reshape(t, pairs, k, 3).permute(0, 3, 1, 2)  # (t, 3, M, K)
             if c == 0:  # the trained field's own weights and latent on these pairs
                 d = torch.einsum("tcmk,tck->tcm", g, old_z) - y

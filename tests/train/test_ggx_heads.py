@@ -231,6 +231,26 @@ def _teacher_class(model: TexturedBRDF, table: torch.Tensor) -> type:
     return Teacher
 
 
+def test_the_projections_cached_parts_are_the_lobes_own_values(bounded):
+    """The projection evaluates the network's part once per latent and the heads' once
+    per alpha (textured_project._Parts); what it assembles is the lobes' forward."""
+    from neural_brdf.train.textured_project import _Parts
+
+    model, _ = bounded
+    lobe = model.lobes[0]
+    wi, wo = _hemisphere(24, 1, torch.float32), _hemisphere(24, 2, torch.float32)
+    parts = _Parts(lobe, (wi, wo), 4)  # 6 texels of 4 pairs each
+    base = torch.rand(6, 2, generator=torch.Generator().manual_seed(3)) * 4.0 - 2.0
+    other_alpha, other_s = base.clone(), base.clone()
+    other_alpha[:, 1] += 1.0
+    other_s[:, 0] = 0.25
+    for s in (base, other_alpha, other_s, base.clone()):
+        with torch.no_grad():
+            want = lobe(wi, wo, s.repeat_interleave(4, 0))
+            torch.testing.assert_close(parts(s), want, rtol=0, atol=0)
+    assert len(parts.cache) == 4  # 2 latents x 1 alpha, 1 latent x 2 alphas: 2 + 2 parts
+
+
 def test_the_projection_keeps_each_texels_alpha(bounded):
     from neural_brdf.train.textured_project import project_field, texel_centres
 

@@ -20,6 +20,7 @@ from neural_brdf.train.loop import rel_rmse
 from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.textured_model import FrozenWeightField, TexturedBRDF, bilinear_wrap
 from neural_brdf.train.textured_project import (
+    _nnls_all_sets,
     draw_pairs,
     nnls,
     project_field,
@@ -48,6 +49,24 @@ def test_nnls_equals_scipys_and_meets_the_optimality_conditions(k):
     assert (z >= 0).all()
     assert np.all(np.abs(grad[z > 0]) < tol) and np.all(grad[z == 0] > -tol)
     assert (z == 0).any() and (z > 0).any()  # both kinds of constraint were exercised
+
+
+def test_nnls_stops_at_the_full_set_only_where_it_is_feasible():
+    """The full-set shortcut gives the enumeration's answer on every problem, those whose
+    unconstrained optimum is >= 0 (most of a projection's) and those whose is not."""
+    rng = np.random.default_rng(7)
+    a = rng.random(size=(3, 50, 30, 5)) ** 2
+    z_true = rng.random(size=(3, 50, 5)) - np.where(rng.random((3, 50, 1)) < 0.3, 0.4, 0.0)
+    y = np.einsum("cbmk,cbk->cbm", a, z_true) + 0.01 * rng.normal(size=(3, 50, 30))
+    gram = torch.from_numpy(np.einsum("cbmk,cbml->cbkl", a, a))
+    rhs = torch.from_numpy(np.einsum("cbmk,cbm->cbk", a, y))
+    sq = torch.from_numpy((y * y).sum(-1))
+    z, r = nnls(gram, rhs, sq)
+    z_all, r_all = _nnls_all_sets(gram, rhs, sq)
+    feasible = (torch.linalg.solve(gram, rhs) >= 0).all(-1)
+    assert 0 < int(feasible.sum()) < feasible.numel()  # both paths were taken
+    assert torch.allclose(z, z_all, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(r, r_all, rtol=1e-10, atol=1e-12)
 
 
 class MixTeacher:
