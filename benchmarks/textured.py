@@ -163,8 +163,12 @@ SETTINGS = {
     # chosen on the development set: textured_project_dev.json (the field projected
     # onto the trained lobes at 256^2, 5 latents (11 gained nothing), 512 pairs per texel
     # and a ridge of 0.01 toward the trained field: the least error of the rows)
-    "project": 256,
-    "project_pairs": 512,
+    # then 512^2 with 256 pairs per texel (the teacher's own texel centres: its maps' jumps
+    # at the tiles' edges ramp over one of its texels, which a 256^2 field cannot follow),
+    # with project_alpha both (below): development principled, one start
+    # (textured_anatomy_dev_{base,512,512_both}.json) 2.95 -> 2.54 -> 2.04 %
+    "project": 512,
+    "project_pairs": 256,
     "project_latents": 5,
     "project_ridge": 0.01,
     # chosen on the development set: textured_refit_dev.json (the lobes trained 3000 more
@@ -180,10 +184,12 @@ SETTINGS = {
     # (textured_heads_dev_alphas5.json): within the heavy tail's spread, and a choice per
     # texel on its own 512 pairs
     "project_alphas": 1,
-    # not chosen on the development set: each projected texel's alpha the teacher's own
-    # went 3.51 -> 6.60 % (textured_anatomy_dev_{heads,teacher_alpha}.json, one start):
-    # the heads' envelope of 1 caps their weights at grazing (docs/mitsuba.md)
-    "project_alpha": "trained",
+    # each projected texel's alpha the teacher's own went 3.51 -> 6.60 %
+    # (textured_anatomy_dev_{heads,teacher_alpha}.json, one start: the heads' envelope of
+    # 1 capped their weights at grazing, docs/mitsuba.md); with g_b's measured envelope
+    # 2.95 -> 3.03 % with both at 256^2 (better away from the tiles' edges, worse beside
+    # them, textured_anatomy_dev_both.json), and chosen at 512^2: 2.54 -> 2.04 %
+    "project_alpha": "both",
 }
 # (kind, K, R, steps, batch, pool) -> ``train_textured``'s held-out relative RMSE of
 # f cos on the development teacher (seed 1, 512^2), 2 threads

@@ -2165,6 +2165,17 @@ def textured_anatomy_section(
             else ""
         )
         + (
+            " The trained model an earlier `--keep DIR` run kept was projected, refitted and "
+            "exported again (`--reproject`): the same training as that run's."
+            if d.get("reprojected")
+            else ""
+        )
+        + (
+            f" The projection took {d['projection']['seconds']:.0f} s."
+            if (d.get("projection") or {}).get("seconds") is not None
+            else ""
+        )
+        + (
             f" The file (f alone, without the normal field): {d['file_bytes'] / 2**20:.1f} MiB; "
             f"the teacher's EXR maps together: {d['teacher_map_bytes'] / 2**20:.1f} MiB."
             if "file_bytes" in d
@@ -3007,6 +3018,43 @@ SECTIONS = (
             name="textured_anatomy_dev_project512.json",
             title=", the field projected at 512²",
             command=" --setting project=512 --setting project_pairs=256 --keep DIR, then --rescore",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_base.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_base.json",
+            title=", the projections compared on one training: 256², trained alpha",
+            command=" --keep DIR",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_both.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_both.json",
+            title=", the projections compared on one training: 256², alpha both",
+            command=" --keep DIR --reproject --setting project_alpha=both",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_512.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_512.json",
+            title=", the projections compared on one training: 512², trained alpha",
+            command=" --keep DIR --reproject --setting project=512 --setting project_pairs=256",
+        ),
+    ),
+    (
+        RESULTS / "textured_anatomy_dev_512_both.json",
+        partial(
+            textured_anatomy_section,
+            name="textured_anatomy_dev_512_both.json",
+            title=", the projections compared on one training: 512², alpha both (chosen)",
+            command=" --keep DIR --reproject --setting project=512 --setting project_pairs=256 "
+            "--setting project_alpha=both",
         ),
     ),
     (RESULTS / "textured_tour_dev.json", textured_tour_section),

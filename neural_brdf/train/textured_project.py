@@ -88,7 +88,7 @@ def nnls(
         done = (full >= 0).all(-1)
         if bool(done.any()):
             r_full = sq - 2.0 * (full * rhs).sum(-1)
-            r_full = r_full + torch.einsum("...i,...ij,...j->...", full, gram, full)
+            r_full = r_full + _quadratic(full, gram)
             z_out = torch.where(done[..., None], full, torch.zeros_like(full))
             r_out = torch.where(done, r_full, sq)
             rest = (~done).reshape(-1).nonzero().squeeze(-1)
@@ -99,6 +99,11 @@ def nnls(
                 r_out = r_out.reshape(-1).index_copy(0, rest, r_rest).reshape(batch)
             return z_out, r_out
     return _nnls_all_sets(gram, rhs, sq)
+
+
+def _quadratic(z: torch.Tensor, gram: torch.Tensor) -> torch.Tensor:
+    """z^T G z over the batch: (..., K), (..., K, K) -> (...)."""
+    return (z * (gram @ z[..., None])[..., 0]).sum(-1)
 
 
 def _nnls_all_sets(
@@ -113,13 +118,14 @@ def _nnls_all_sets(
         ridge = 1e-9 * scale * torch.eye(size, dtype=gram.dtype)
         for subset in combinations(range(k), size):
             idx = torch.tensor(subset)
-            zs = torch.linalg.solve(gram[..., idx[:, None], idx[None, :]] + ridge, rhs[..., idx])
-            z = torch.zeros_like(rhs)
-            z[..., idx] = zs
-            r = sq - 2.0 * (z * rhs).sum(-1) + torch.einsum("...i,...ij,...j->...", z, gram, z)
+            g_s, b_s = gram[..., idx[:, None], idx[None, :]], rhs[..., idx]
+            zs = torch.linalg.solve(g_s + ridge, b_s)
+            r = sq - 2.0 * (zs * b_s).sum(-1) + _quadratic(zs, g_s)  # z's residual
             better = (zs >= 0).all(-1) & (r < best_r)
-            best_r = torch.where(better, r, best_r)
-            best_z = torch.where(better[..., None], z, best_z)
+            if bool(better.any()):
+                z = torch.zeros_like(rhs).index_copy_(-1, idx, zs)
+                best_r = torch.where(better, r, best_r)
+                best_z = torch.where(better[..., None], z, best_z)
     return best_z, best_r
 
 
@@ -149,35 +155,78 @@ def draw_pairs(
 
 
 class _Parts:
-    """The lobes' values on one chunk's pairs at a candidate latent (one per texel,
-    repeated over its pairs).  With analytic heads (:class:`GGXLobes`) the network's
-    part depends on the searched columns only and the heads' on alpha's only, and the
-    candidates repeat each (the trained latent with every alpha tried, every latent with
-    the trained alpha): each part is evaluated once per distinct value and reused, the
-    same floats as ``lobe``'s own forward."""
+    """The normal equations of one chunk's texels (t texels of M pairs each) at a
+    candidate latent (one per texel, repeated over its pairs): A^T A and A^T y of
+    g cos against the teacher's f cos, per channel.
 
-    def __init__(self, lobe: torch.nn.Module, x: tuple[torch.Tensor, ...], pairs: int):
+    With analytic heads (:class:`GGXLobes`) the network's columns depend on the searched
+    latent only and the heads' on alpha's column only, and the candidates repeat each
+    (the trained latent with every alpha tried, every latent with the trained alpha):
+    each part's values and its own block of A^T A and A^T y are computed once per
+    distinct value and kept, and a candidate adds only the cross block between its two
+    parts.  The values are ``lobe``'s own forward's (tests/train/test_ggx_heads.py)."""
+
+    def __init__(
+        self,
+        lobe: torch.nn.Module,
+        x: tuple[torch.Tensor, ...],
+        pairs: int,
+        cos: torch.Tensor,
+        y: torch.Tensor,
+    ):
         self.lobe, self.x, self.pairs = lobe, x, pairs
+        self.cos, self.y = cos, y  # (t M, 1) and (t, 3, M), float64
+        self.t = y.shape[0]
         self.split = isinstance(lobe, GGXLobes)
-        self.cache: dict[tuple[str, bytes], torch.Tensor] = {}
+        self.cache: dict[tuple[str, bytes], tuple[torch.Tensor, ...]] = {}
 
-    def _part(self, kind: str, s: torch.Tensor, fn: Callable) -> torch.Tensor:
-        key = (kind, s.numpy().tobytes())
+    def _block(self, kind: str, s: torch.Tensor | None, fn: Callable) -> tuple[torch.Tensor, ...]:
+        """(A (t, 3 or 1, M, C), its A^T A, its A^T y) of one part at ``s``, kept."""
+        key = (kind, b"" if s is None else s.numpy().tobytes())
         if key not in self.cache:
-            self.cache[key] = fn(*self.x, s.repeat_interleave(self.pairs, 0))
+            extra = () if s is None else (s.repeat_interleave(self.pairs, 0),)
+            with torch.no_grad():
+                v = fn(*self.x, *extra).double() * self.cos
+            if kind == "heads":  # (t M, 2): one value for the three channels
+                a = v.reshape(self.t, 1, self.pairs, v.shape[1])
+            else:  # (t M, 3C), columns lobe-major: (t, 3, M, C)
+                a = v.reshape(self.t, self.pairs, v.shape[1] // 3, 3).permute(0, 3, 1, 2)
+                a = a.contiguous()
+            a_t = a.transpose(-1, -2)
+            self.cache[key] = (a, a_t @ a, (a_t @ self.y[..., None])[..., 0])
         return self.cache[key]
 
-    def __call__(self, s: torch.Tensor | None) -> torch.Tensor:
-        if s is None:
-            return self.lobe(*self.x)
-        if not self.split:
-            return self.lobe(*self.x, s.repeat_interleave(self.pairs, 0))
+    def raw(self, s: torch.Tensor | None) -> torch.Tensor:
+        """The lobes' values (t M, 3K) at ``s``, as the projection's product needs them
+        (:class:`GGXLobes.joined`'s columns with heads)."""
+        if not self.split or s is None:
+            extra = () if s is None else (s.repeat_interleave(self.pairs, 0),)
+            return self.lobe(*self.x, *extra)
         lobe = self.lobe
         assert isinstance(lobe, GGXLobes)
         lat = lobe.searched_latent
-        g = self._part("network", s[:, :lat].contiguous(), lobe.network_part)
-        h = self._part("heads", s[:, lat:].contiguous(), lobe.head_part)
-        return GGXLobes.joined(g, h)
+        net = lobe.network_part(*self.x, s[:, :lat].repeat_interleave(self.pairs, 0))
+        heads = lobe.head_part(*self.x, s[:, lat:].repeat_interleave(self.pairs, 0))
+        return GGXLobes.joined(net, heads)
+
+    def __call__(
+        self, s: torch.Tensor | None
+    ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
+        """(the parts' A blocks, A^T A (t, 3, K, K), A^T y (t, 3, K)) at ``s``."""
+        if not self.split or s is None:
+            a, gram, rhs = self._block("lobes", s, self.lobe)
+            return [a], gram, rhs
+        lobe = self.lobe
+        assert isinstance(lobe, GGXLobes)
+        lat = lobe.searched_latent
+        a_n, g_nn, b_n = self._block("network", s[:, :lat].contiguous(), lobe.network_part)
+        a_h, g_hh, b_h = self._block("heads", s[:, lat:].contiguous(), lobe.head_part)
+        g_nh = a_n.transpose(-1, -2) @ a_h  # (t, 3, Kn, 2)
+        g_hh = g_hh.expand(-1, g_nh.shape[1], -1, -1)
+        gram = torch.cat(
+            [torch.cat([g_nn, g_nh], -1), torch.cat([g_nh.transpose(-1, -2), g_hh], -1)], -2
+        )
+        return [a_n, a_h], gram, torch.cat([b_n, b_h], -1)
 
 
 def project_field(
@@ -269,18 +318,18 @@ def project_field(
         best_s = torch.zeros(t, latent)
 
         queue = list(candidates)
-        parts = _Parts(lobe, x, pairs)
+        parts = _Parts(lobe, x, pairs, cos, y)
         c = 0
         while c < len(queue):
             s = queue[c]
-            with torch.no_grad():
-                g = parts(s).double() * cos  # (t * M, 3K): g cos
-            g = g.reshape(t, pairs, k, 3).permute(0, 3, 1, 2)  # (t, 3, M, K)
+            blocks, gram, rhs = parts(s)  # of g cos: A (t, 3, M, K) in blocks of columns
             if c == 0:  # the trained field's own weights and latent on these pairs
-                d = torch.einsum("tcmk,tck->tcm", g, old_z) - y
+                d, at = -y, 0
+                for block in blocks:
+                    width = block.shape[-1]
+                    d = d + (block @ old_z[:, :, at : at + width, None])[..., 0]
+                    at += width
                 residual_before += float((d * d).sum())
-            gram = torch.einsum("tcmk,tcml->tckl", g, g)
-            rhs = torch.einsum("tcmk,tcm->tck", g, y)
             sq = (y * y).sum(-1)
             if channels == 1:  # one weight for all channels: their problems summed
                 gram, rhs, sq = (

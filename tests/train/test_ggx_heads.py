@@ -233,21 +233,31 @@ def _teacher_class(model: TexturedBRDF, table: torch.Tensor) -> type:
 
 def test_the_projections_cached_parts_are_the_lobes_own_values(bounded):
     """The projection evaluates the network's part once per latent and the heads' once
-    per alpha (textured_project._Parts); what it assembles is the lobes' forward."""
+    per alpha (textured_project._Parts): the values it joins are the lobes' forward bit
+    for bit, and its normal equations, assembled from the parts' blocks, are those of
+    the lobes' whole matrix."""
     from neural_brdf.train.textured_project import _Parts
 
     model, _ = bounded
     lobe = model.lobes[0]
-    wi, wo = _hemisphere(24, 1, torch.float32), _hemisphere(24, 2, torch.float32)
-    parts = _Parts(lobe, (wi, wo), 4)  # 6 texels of 4 pairs each
-    base = torch.rand(6, 2, generator=torch.Generator().manual_seed(3)) * 4.0 - 2.0
+    t, m = 6, 4  # 6 texels of 4 pairs each
+    wi, wo = _hemisphere(t * m, 1, torch.float32), _hemisphere(t * m, 2, torch.float32)
+    cos = wo[:, 2:3].double()
+    y = torch.rand(t, 3, m, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    parts = _Parts(lobe, (wi, wo), m, cos, y)
+    base = torch.rand(t, 2, generator=torch.Generator().manual_seed(3)) * 4.0 - 2.0
     other_alpha, other_s = base.clone(), base.clone()
     other_alpha[:, 1] += 1.0
     other_s[:, 0] = 0.25
     for s in (base, other_alpha, other_s, base.clone()):
         with torch.no_grad():
-            want = lobe(wi, wo, s.repeat_interleave(4, 0))
-            torch.testing.assert_close(parts(s), want, rtol=0, atol=0)
+            want = lobe(wi, wo, s.repeat_interleave(m, 0))
+            torch.testing.assert_close(parts.raw(s), want, rtol=0, atol=0)
+        a = (want.double() * cos).reshape(t, m, -1, 3).permute(0, 3, 1, 2)  # (t, 3, M, K)
+        blocks, gram, rhs = parts(s)
+        torch.testing.assert_close(gram, a.transpose(-1, -2) @ a, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(rhs, (a.transpose(-1, -2) @ y[..., None])[..., 0])
+        torch.testing.assert_close(torch.cat([b.expand(t, 3, m, -1) for b in blocks], -1), a)
     assert len(parts.cache) == 4  # 2 latents x 1 alpha, 1 latent x 2 alphas: 2 + 2 parts
 
 
