@@ -59,7 +59,11 @@ BSDF-bound scene; six grey lobes (textured_grey_k6_dev.json) were not chosen.  L
 the field projected onto the trained lobes at 256^2 (``project``, docs/mitsuba.md "A
 finer field by projection onto the lobes"): on the development principled, one start,
 two training seeds, 8.54 and 8.41 % for the trained 64^2 field against 6.14 and 5.56 %
-projected (results/textured_project_dev.json, two draws of 500,000 pairs).
+projected (results/textured_project_dev.json, two draws of 500,000 pairs); later, with
+the analytic heads, at 512^2 with each texel's alpha the better of the trained one and
+the teacher's fit (``project_alpha: both``), chosen on the development principled by
+four projections of one training (results/textured_anatomy_dev_{base,both,512,512_both}
+.json: 2.95, 3.03, 2.54 and 2.04 %).
 
 A textured model is ``train_textured`` (2 torch threads), each lobe normalised
 (``normalized_textured``) and exported with the inputs (wi, wo, uv) (``exportable``,
@@ -1000,7 +1004,10 @@ def main(argv: list[str] | None = None) -> int:
             "beside the lobes (textured_heads_dev_none.json against "
             "textured_heads_dev_ggx.json), then g_b's measured envelope in the heads' bound "
             "(a code change: textured_anatomy_dev_envelope.json, textured_heads_dev_envelope"
-            ".json) were chosen here; nothing on the test set",
+            ".json), then the projection at 512^2 with 256 pairs per texel and each texel's "
+            "alpha the better of the trained one and the teacher's fit (project_alpha both: "
+            "textured_anatomy_dev_{base,both,512,512_both}.json, four projections of one "
+            "training) were chosen here; nothing on the test set",
             "test": "write_teacher(principled | roughplastic, size 512, seed 0) and two "
             "homogeneous teachers written by the benchmark (roughplastic_plain, "
             "principled_plain): measured once, not tuned on",
