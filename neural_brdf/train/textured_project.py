@@ -196,19 +196,6 @@ class _Parts:
             self.cache[key] = (a, a_t @ a, (a_t @ self.y[..., None])[..., 0])
         return self.cache[key]
 
-    def raw(self, s: torch.Tensor | None) -> torch.Tensor:
-        """The lobes' values (t M, 3K) at ``s``, as the projection's product needs them
-        (:class:`GGXLobes.joined`'s columns with heads)."""
-        if not self.split or s is None:
-            extra = () if s is None else (s.repeat_interleave(self.pairs, 0),)
-            return self.lobe(*self.x, *extra)
-        lobe = self.lobe
-        assert isinstance(lobe, GGXLobes)
-        lat = lobe.searched_latent
-        net = lobe.network_part(*self.x, s[:, :lat].repeat_interleave(self.pairs, 0))
-        heads = lobe.head_part(*self.x, s[:, lat:].repeat_interleave(self.pairs, 0))
-        return GGXLobes.joined(net, heads)
-
     def __call__(
         self, s: torch.Tensor | None
     ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:

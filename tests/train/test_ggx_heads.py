@@ -233,9 +233,9 @@ def _teacher_class(model: TexturedBRDF, table: torch.Tensor) -> type:
 
 def test_the_projections_cached_parts_are_the_lobes_own_values(bounded):
     """The projection evaluates the network's part once per latent and the heads' once
-    per alpha (textured_project._Parts): the values it joins are the lobes' forward bit
-    for bit, and its normal equations, assembled from the parts' blocks, are those of
-    the lobes' whole matrix."""
+    per alpha (textured_project._Parts): its blocks hold the lobes' forward values bit
+    for bit, and its normal equations, assembled from the blocks, are those of the
+    lobes' whole matrix."""
     from neural_brdf.train.textured_project import _Parts
 
     model, _ = bounded
@@ -252,12 +252,12 @@ def test_the_projections_cached_parts_are_the_lobes_own_values(bounded):
     for s in (base, other_alpha, other_s, base.clone()):
         with torch.no_grad():
             want = lobe(wi, wo, s.repeat_interleave(m, 0))
-            torch.testing.assert_close(parts.raw(s), want, rtol=0, atol=0)
         a = (want.double() * cos).reshape(t, m, -1, 3).permute(0, 3, 1, 2)  # (t, 3, M, K)
         blocks, gram, rhs = parts(s)
+        joined = torch.cat([b.expand(t, 3, m, -1) for b in blocks], -1)
+        torch.testing.assert_close(joined, a, rtol=0, atol=0)  # the forward's values
         torch.testing.assert_close(gram, a.transpose(-1, -2) @ a, rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(rhs, (a.transpose(-1, -2) @ y[..., None])[..., 0])
-        torch.testing.assert_close(torch.cat([b.expand(t, 3, m, -1) for b in blocks], -1), a)
     assert len(parts.cache) == 4  # 2 latents x 1 alpha, 1 latent x 2 alphas: 2 + 2 parts
 
 
