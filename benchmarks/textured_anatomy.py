@@ -21,7 +21,9 @@ recipe, the trained model and the pairs, ``--keep DIR --rescore`` scores that fi
 again (no training), and ``--keep DIR --reproject --setting project...=V`` projects,
 refits and exports that trained model again (only the projection's and the refit's keys
 may change: a comparison of projections on one training).  The held-out teacher is not
-used.  Nothing asserts and nothing is chosen.
+used.  Nothing asserts.  Its runs are development runs: textured.py's recipe chose its
+projection from four of them (``SETTINGS``, textured_anatomy_dev_{base,both,512,
+512_both}.json); the others chose nothing.
 """
 
 from __future__ import annotations
@@ -117,7 +119,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     if args.rescore and (args.keep is None or args.setting or args.reproject):
-        ap.error("--rescore: with --keep DIR (a folder an earlier --keep filled), no --setting")
+        ap.error(
+            "--rescore: with --keep DIR (a folder an earlier --keep filled), "
+            "no --setting, no --reproject"
+        )
     if args.reproject and args.keep is None:
         ap.error("--reproject: with --keep DIR (a folder an earlier --keep filled)")
     out_path = args.out or Path(__file__).resolve().parent / "results" / (
@@ -151,22 +156,21 @@ def main(argv: list[str] | None = None) -> int:
         made: dict = {}  # train_textured_file's figures (none when rescored)
         if args.rescore:  # the kept file, as its recipe made it
             settings = json.loads((folder / "recipe.json").read_text())
-        elif args.reproject:  # the kept trained model, projected and refitted again
-            kept = json.loads((folder / "recipe.json").read_text())
-            changed = sorted(
-                k
-                for k in set(kept) | set(settings)
-                if kept.get(k) != settings.get(k) and not k.startswith(REPROJECT_KEYS)
-            )
-            if changed:
-                ap.error(f"--reproject: --setting changes training keys {changed}")
-            trained = torch.load(folder / "trained.pt", weights_only=False)
-            _, made = bench.train_textured_file(teacher, folder, settings, trained=trained)
-            (folder / "recipe.json").write_text(json.dumps(settings))
         else:
-            trained = bench.trained_model(teacher, settings)
-            if args.keep is not None:
-                torch.save(trained, folder / "trained.pt")
+            if args.reproject:  # the kept trained model, projected and refitted again
+                kept = json.loads((folder / "recipe.json").read_text())
+                changed = sorted(
+                    k
+                    for k in set(kept) | set(settings)
+                    if kept.get(k) != settings.get(k) and not k.startswith(REPROJECT_KEYS)
+                )
+                if changed:
+                    ap.error(f"--reproject: --setting changes training keys {changed}")
+                trained = torch.load(folder / "trained.pt", weights_only=False)
+            else:
+                trained = bench.trained_model(teacher, settings)
+                if args.keep is not None:
+                    torch.save(trained, folder / "trained.pt")
             _, made = bench.train_textured_file(teacher, folder, settings, trained=trained)
             (folder / "recipe.json").write_text(json.dumps(settings))
         f = bench.OnnxFile(folder / "bare.onnx")  # f alone, without the normal field

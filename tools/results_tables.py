@@ -2123,7 +2123,11 @@ def textured_export_section(d: dict) -> list[str]:
 
 
 def textured_anatomy_section(
-    d: dict, name: str = "textured_anatomy_dev.json", title: str = "", command: str = ""
+    d: dict,
+    name: str = "textured_anatomy_dev.json",
+    title: str = "",
+    command: str = "",
+    chose: str = "Nothing is chosen here.",
 ) -> list[str]:
     """issue 30: where the textured principled's squared error of f cos is (by the
     teacher's roughness and metallic at the pair's uv, by cos theta_i and theta_d, by the
@@ -2158,7 +2162,7 @@ def textured_anatomy_section(
         )
         + "and by rank. `pairs`: the share of "
         "the pairs; `error`: of the squared error; `reference`: of the teacher's squared f·cos; "
-        "`own error`: the group's own relative RMSE. Nothing is chosen here."
+        f"`own error`: the group's own relative RMSE. {chose}"
         + (
             " The file was kept and scored again (`--rescore`) on the same pairs."
             if d.get("rescored")
@@ -3025,6 +3029,8 @@ SECTIONS = (
         partial(
             textured_anatomy_section,
             name="textured_anatomy_dev_base.json",
+            chose="The four projections of one training (256² and 512², alpha trained or "
+            "both) chose `textured.py`'s recipe: 512², 256 pairs per texel, alpha both.",
             title=", the projections compared on one training: 256², trained alpha",
             command=" --keep DIR",
         ),
@@ -3034,6 +3040,8 @@ SECTIONS = (
         partial(
             textured_anatomy_section,
             name="textured_anatomy_dev_both.json",
+            chose="The four projections of one training (256² and 512², alpha trained or "
+            "both) chose `textured.py`'s recipe: 512², 256 pairs per texel, alpha both.",
             title=", the projections compared on one training: 256², alpha both",
             command=" --keep DIR --reproject --setting project_alpha=both",
         ),
@@ -3043,6 +3051,8 @@ SECTIONS = (
         partial(
             textured_anatomy_section,
             name="textured_anatomy_dev_512.json",
+            chose="The four projections of one training (256² and 512², alpha trained or "
+            "both) chose `textured.py`'s recipe: 512², 256 pairs per texel, alpha both.",
             title=", the projections compared on one training: 512², trained alpha",
             command=" --keep DIR --reproject --setting project=512 --setting project_pairs=256",
         ),
@@ -3052,6 +3062,8 @@ SECTIONS = (
         partial(
             textured_anatomy_section,
             name="textured_anatomy_dev_512_both.json",
+            chose="The four projections of one training (256² and 512², alpha trained or "
+            "both) chose `textured.py`'s recipe: 512², 256 pairs per texel, alpha both.",
             title=", the projections compared on one training: 512², alpha both (chosen)",
             command=" --keep DIR --reproject --setting project=512 --setting project_pairs=256 "
             "--setting project_alpha=both",

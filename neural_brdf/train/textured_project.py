@@ -76,19 +76,17 @@ def nnls(
 
     The full set is solved first: a problem whose solution there is >= 0 has its optimum
     (the problem is convex, and no subset's residual is below the full set's), so only
-    the others go through the enumeration, the same solves on fewer rows (on the
-    development projection, about nine problems in ten stop at the full set)."""
+    the others go through the enumeration, the same solves on fewer rows (on a 64^2
+    projection of the development principled, a third of the problems stop at the full
+    set: 36 % with the trained alpha, 31 % with ``both``)."""
     k = rhs.shape[-1]
     if not 1 <= k <= MAX_LOBES:
         raise ValueError(f"nnls: 1 to {MAX_LOBES} unknowns, got {k}")
     batch = rhs.shape[:-1]
     if k > 1 and rhs.dim() > 1:
-        scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)[..., None, None]
-        full = torch.linalg.solve(gram + 1e-9 * scale * torch.eye(k, dtype=gram.dtype), rhs)
+        full, r_full = _solve_set(gram, rhs, sq, _scale(gram))
         done = (full >= 0).all(-1)
         if bool(done.any()):
-            r_full = sq - 2.0 * (full * rhs).sum(-1)
-            r_full = r_full + _quadratic(full, gram)
             z_out = torch.where(done[..., None], full, torch.zeros_like(full))
             r_out = torch.where(done, r_full, sq)
             rest = (~done).reshape(-1).nonzero().squeeze(-1)
@@ -101,9 +99,19 @@ def nnls(
     return _nnls_all_sets(gram, rhs, sq)
 
 
-def _quadratic(z: torch.Tensor, gram: torch.Tensor) -> torch.Tensor:
-    """z^T G z over the batch: (..., K), (..., K, K) -> (...)."""
-    return (z * (gram @ z[..., None])[..., 0]).sum(-1)
+def _scale(gram: torch.Tensor) -> torch.Tensor:
+    """G's mean diagonal (..., 1, 1): the solves' ridge is 1e-9 of it."""
+    return gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)[..., None, None]
+
+
+def _solve_set(
+    gram: torch.Tensor, rhs: torch.Tensor, sq: torch.Tensor, scale: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unconstrained least squares on one active set, (G_SS, b_S): z_S and its
+    squared residual ||y||^2 - 2 z.b + z^T G z."""
+    size = rhs.shape[-1]
+    z = torch.linalg.solve(gram + 1e-9 * scale * torch.eye(size, dtype=gram.dtype), rhs)
+    return z, sq - 2.0 * (z * rhs).sum(-1) + (z * (gram @ z[..., None])[..., 0]).sum(-1)
 
 
 def _nnls_all_sets(
@@ -113,14 +121,11 @@ def _nnls_all_sets(
     k = rhs.shape[-1]
     best_r = sq.clone()  # z = 0
     best_z = torch.zeros_like(rhs)
-    scale = gram.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)[..., None, None]
+    scale = _scale(gram)
     for size in range(1, k + 1):
-        ridge = 1e-9 * scale * torch.eye(size, dtype=gram.dtype)
         for subset in combinations(range(k), size):
             idx = torch.tensor(subset)
-            g_s, b_s = gram[..., idx[:, None], idx[None, :]], rhs[..., idx]
-            zs = torch.linalg.solve(g_s + ridge, b_s)
-            r = sq - 2.0 * (zs * b_s).sum(-1) + _quadratic(zs, g_s)  # z's residual
+            zs, r = _solve_set(gram[..., idx[:, None], idx[None, :]], rhs[..., idx], sq, scale)
             better = (zs >= 0).all(-1) & (r < best_r)
             if bool(better.any()):
                 z = torch.zeros_like(rhs).index_copy_(-1, idx, zs)
@@ -306,6 +311,7 @@ def project_field(
 
         queue = list(candidates)
         parts = _Parts(lobe, x, pairs, cos, y)
+        y_sq = (y * y).sum(-1)  # ||y||^2 per texel and channel, every candidate's
         c = 0
         while c < len(queue):
             s = queue[c]
@@ -317,7 +323,7 @@ def project_field(
                     d = d + (block @ old_z[:, :, at : at + width, None])[..., 0]
                     at += width
                 residual_before += float((d * d).sum())
-            sq = (y * y).sum(-1)
+            sq = y_sq
             if channels == 1:  # one weight for all channels: their problems summed
                 gram, rhs, sq = (
                     gram.sum(1, keepdim=True),
