@@ -1288,7 +1288,12 @@ def images_any_section(
             f"python benchmarks/images_any.py --set {which}"
             + (f" --capture {capture['kind']}" if lights else "")
             + (f" --steps {d['steps']}" if d["steps"] != 150 else "")
-            + "".join(f" --set-key {o}" for o in d["overrides"]),
+            + "".join(f" --set-key {o}" for o in d["overrides"])
+            + (
+                "".join(f" --only {n}" for n in d["materials"])
+                if len(d["materials"]) < len(d["sets"][which]["materials"])
+                else ""
+            ),
         ),
         _recorded(
             d["date"],
@@ -1306,6 +1311,14 @@ def images_any_section(
             else ""
         )
         + f", `images.start: auto`), {d['steps']} image-stage steps"
+        + (
+            " (after a poor start as many as `images.poor_start_steps`)"
+            if any(
+                e["start"].get("poor") and e.get("image_steps", 0) > d["steps"]
+                for e in d["materials"].values()
+            )
+            else ""
+        )
         + (f", overrides {', '.join(f'`{o}`' for o in d['overrides'])}" if d["overrides"] else "")
         + f". Held-out camera at {d['heldout_spp']} spp against the truth at as many; PSNR: "
         f"{d['psnr_definition']}. BRDF: relative RMSE of f·cos against Mitsuba's `eval` of the "
@@ -2955,6 +2968,24 @@ SECTIONS = (
             images_any_section,
             name="images_any_dev_lights_poor_start_0.001.json",
             title="a multi-light capture, images.poor_start_loss 0.001 (not chosen)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_poor_steps450.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_poor_steps450.json",
+            title="the clay's poor start with a cap of 450 image-stage steps "
+            "(images.poor_start_steps)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_lights_poor_steps450.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_lights_poor_steps450.json",
+            title="a multi-light capture, the clay's poor start with a cap of 450 "
+            "image-stage steps (images.poor_start_steps)",
         ),
     ),
     (RESULTS / "target_noise.json", target_noise_section),

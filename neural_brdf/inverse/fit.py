@@ -550,6 +550,20 @@ def poor_start(init_info: dict, limit: float | None, noise: float | None = None)
     return True
 
 
+def poor_start_config(cfg: cfgmod.Config, init_info: dict | None) -> cfgmod.Config:
+    """``cfg`` with ``train.steps`` raised to ``images.poor_start_steps`` when the start of
+    ``init_info`` was marked poor (:func:`poor_start`): the image stage then learns the
+    material rather than refining a start, and the rate's cosine decay spans the longer
+    run.  ``cfg`` itself otherwise (a good start, no limit, or ``train.steps`` already
+    at least that)."""
+    steps = cfg.images.poor_start_steps
+    if steps is None or steps <= cfg.train.steps:
+        return cfg
+    if not (((init_info or {}).get("start") or {}).get("poor")):
+        return cfg
+    return cfg.model_copy(update={"train": cfg.train.model_copy(update={"steps": steps})})
+
+
 def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
     """The relative MSE (module doc) over the validation split, estimated without the
     render's own noise: the mean over the held-out pixels (:meth:`View.validation_mask`,
@@ -1000,8 +1014,8 @@ def _fit_views(
     check_render_sizes(views, images)
     split_views(views, images, cfg.train.seed)
     columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
-    if resume:  # the grid its start chose (starts.grid_for_start), as the run trained it
-        cfg = _resumed_grid(cfg, folder)
+    if resume:  # its start's grid (starts.grid_for_start) and steps, as the run trained
+        cfg = _resumed_config(cfg, folder)
     sess = Session.one(cfg, folder, resume=resume, kind=KIND, columns=columns)
     # a checkpoint that cannot be resumed: refused before any write
     sess.resumed(must_match=RESUME_MUST_MATCH)
@@ -1024,7 +1038,9 @@ def _fit_views(
             if trained is not cfg:  # the start's grid: config.yaml says what is trained
                 cfg = trained
                 sess.reconfigure(cfg)
-            poor_start(init_info, images.poor_start_loss, target_noise(views))
+            if poor_start(init_info, images.poor_start_loss, target_noise(views)):
+                cfg = poor_start_config(cfg, init_info)  # config.yaml: the steps it runs
+                sess.reconfigure(cfg)
     elif images.start == "ggx":
         lr_factor, grid_lr_scale = images.start_lr_scale, images.start_grid_lr_scale
         if not resume:
@@ -1058,20 +1074,22 @@ def _fit_views(
     return raw, training, cfg
 
 
-def _resumed_grid(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:
-    """``cfg`` with the grid of the start the checkpoint being resumed was trained from
-    (:func:`neural_brdf.inverse.starts.grid_for_start` of its family); ``cfg`` itself
-    when there is no readable checkpoint (the resume check then says why)."""
+def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:
+    """``cfg`` as the checkpoint being resumed was trained: the grid of its start's
+    family (:func:`neural_brdf.inverse.starts.grid_for_start`) and, after a poor start,
+    its steps (:func:`poor_start_config`); ``cfg`` itself when there is no readable
+    checkpoint (the resume check then says why)."""
     from neural_brdf.inverse import starts
     from neural_brdf.train.session import load_checkpoint
 
     if not folder.ckpt.is_file():
         return cfg
     try:
-        family = load_checkpoint(folder.ckpt)["init"]["start"]["family"]
+        init = load_checkpoint(folder.ckpt)["init"]
+        family = init["start"]["family"]
     except (InputError, KeyError, TypeError):  # unreadable, or no start (ggx, constant)
         return cfg
-    return starts.grid_for_start(cfg, str(family))
+    return poor_start_config(starts.grid_for_start(cfg, str(family)), init)
 
 
 def _reporter(cfg: cfgmod.Config):

@@ -927,8 +927,9 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     mi, example, tmp_path, capsys, limit, poor
 ):
     """Every start is poor under a limit of 1e-9: the image stage runs at train.lr (the
-    grids at their lr_scale), and a resumed run keeps that rate; no limit keeps
-    images.start_lr_scale."""
+    grids at their lr_scale) for images.poor_start_steps (the run's config.yaml says
+    so), and a resumed run keeps that rate and those steps; no limit keeps
+    images.start_lr_scale and train.steps."""
     run_dir = tmp_path / "run"
     sets = [
         *FIT_OVERRIDES,
@@ -936,6 +937,7 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         "images.start=diffuse",
         "images.start_steps=5",
         "images.start_train_steps=20",
+        "images.poor_start_steps=6",
         f"images.poor_start_loss={limit}",
     ]
     code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
@@ -944,12 +946,32 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     assert tr["lr_factor"] == (1.0 if poor else 0.05)
     assert ("poor" in tr["init"]["start"]) == poor
     assert ("no family fits the views" in err) == poor
-    if poor:  # resumed: the rate comes from the checkpoint's start
-        more = train_args(example / "fit.yaml", run_dir, [*sets, "train.steps=6"])
+    assert tr["steps"] == (6 if poor else 4)
+    assert config.load(run_dir / "config.yaml").train.steps == (6 if poor else 4)
+    if poor:  # resumed: the rate and the steps come from the checkpoint's start
+        more = train_args(example / "fit.yaml", run_dir, [*sets, "images.poor_start_steps=8"])
         code, err = run_cli([*more, "--resume"], capsys)
         assert code == 0, err
         again = json.loads((run_dir / "metrics.json").read_text())["training"]
-        assert again["lr_factor"] == 1.0 and again["steps"] == 6
+        assert again["lr_factor"] == 1.0 and again["steps"] == 8
+
+
+def test_poor_start_config_raises_the_steps_of_a_poor_start_only():
+    from neural_brdf.inverse import fit as inverse
+
+    cfg = config.Config.model_validate({"name": "x", "train": {"steps": 100}})
+    poor = {"start": {"family": "blend", "poor": {"excess": 0.1}}}
+    good = {"start": {"family": "blend"}}
+    assert inverse.poor_start_config(cfg, poor).train.steps == cfg.images.poor_start_steps
+    assert inverse.poor_start_config(cfg, poor).train.lr == cfg.train.lr  # the rest kept
+    assert inverse.poor_start_config(cfg, good) is cfg
+    assert inverse.poor_start_config(cfg, None) is cfg
+    off = cfg.model_copy(
+        update={"images": cfg.images.model_copy(update={"poor_start_steps": None})}
+    )
+    assert inverse.poor_start_config(off, poor) is off
+    longer = cfg.model_copy(update={"train": cfg.train.model_copy(update={"steps": 5000})})
+    assert inverse.poor_start_config(longer, poor) is longer  # never lowered
 
 
 def test_an_anisotropic_start_trains_exports_and_resumes_its_half_disc_grid(
