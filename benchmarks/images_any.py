@@ -37,7 +37,10 @@ principled family's metallic through sin^2, reaching 0 and 1, by the blue princi
 figures, images_any_dev_metallic.json against images_any_dev_refine.json;
 ``images.validation_spp`` kept at 64 against 16, images_any_dev_validation_spp16.json
 against images_any_dev_metallic.json; the cap ``train.steps`` kept at 150 against 400,
-images_any_dev_steps400.json against images_any_dev_metallic.json);
+images_any_dev_steps400.json against images_any_dev_metallic.json; after a poor start
+``images.poor_start_steps`` raised to 450 by the clay's figures under both captures,
+images_any_dev_poor_steps450.json and images_any_dev_lights_poor_steps450.json against
+images_any_dev_rough_clay_full_rate.json and images_any_dev_lights.json);
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two

@@ -518,14 +518,18 @@ def target_noise(views: list[View]) -> float | None:
     return float(NOISE_SCALE * kept.mean())
 
 
-def poor_start(init_info: dict, limit: float | None, noise: float | None = None) -> bool:
+def poor_start(
+    init_info: dict, limit: float | None, noise: float | None = None, steps: int | None = None
+) -> bool:
     """Mark the chosen start poor (``init_info["start"]["poor"]``, kept in the
     checkpoint) when its held-out loss exceeds the targets' own noise (``noise``,
     :func:`target_noise`; 0 when None) by more than ``limit``
     (``images.poor_start_loss``): no family holds the material, and the image stage,
     which :func:`fit_neural` then runs at ``train.lr`` with the grids at their
     ``lr_scale``, must do the work.  The noise estimate is recorded
-    (``start["target_noise"]``) either way.  Says so on stderr.  True when marked."""
+    (``start["target_noise"]``) either way.  ``steps``: what the image stage then runs
+    (:func:`poor_start_config`), recorded and said.  Says so on stderr.  True when
+    marked."""
     start = init_info.get("start") or {}
     if noise is not None:
         start["target_noise"] = float(noise)
@@ -540,11 +544,13 @@ def poor_start(init_info: dict, limit: float | None, noise: float | None = None)
         "target_noise": float(noise or 0.0),
         "excess": excess,
         "limit": float(limit),
+        **({"steps": int(steps)} if steps is not None else {}),
     }
     print(
         f"start {start.get('family')}: held-out loss {loss:.4g}, {excess:.4g} above the "
         f"targets' noise ({noise or 0.0:.2g}) > images.poor_start_loss {limit:g}: no "
-        "family fits the views; the image stage runs at train.lr",
+        "family fits the views; the image stage runs at train.lr"
+        + (f" for up to {steps} steps" if steps is not None else ""),
         file=sys.stderr,
     )
     return True
@@ -1038,7 +1044,8 @@ def _fit_views(
             if trained is not cfg:  # the start's grid: config.yaml says what is trained
                 cfg = trained
                 sess.reconfigure(cfg)
-            if poor_start(init_info, images.poor_start_loss, target_noise(views)):
+            steps = max(cfg.train.steps, images.poor_start_steps or 0)  # if poor
+            if poor_start(init_info, images.poor_start_loss, target_noise(views), steps):
                 cfg = poor_start_config(cfg, init_info)  # config.yaml: the steps it runs
                 sess.reconfigure(cfg)
     elif images.start == "ggx":

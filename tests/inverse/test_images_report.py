@@ -272,7 +272,13 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
         **start,
         "val_loss": 0.0024,
         "target_noise": 0.00011,
-        "poor": {"val_loss": 0.0024, "target_noise": 0.00011, "excess": 0.00229, "limit": 0.0015},
+        "poor": {
+            "val_loss": 0.0024,
+            "target_noise": 0.00011,
+            "excess": 0.00229,
+            "limit": 0.0015,
+            "steps": 450,
+        },
     }
     called = make_images_run(tiny_run, tmp_path / "poor", extra={"init": {**init, "start": poor}})
     text = " ".join(
@@ -284,6 +290,7 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     )
     assert "poor: no family fits the views" in text
     assert "0.0023 above the noise > images.poor_start_loss 0.0015" in text
+    assert "ran at train.lr for up to 450 steps (images.poor_start_steps)" in text
     good = {**start, "val_loss": 0.0012, "target_noise": 0.0011}
     fine = make_images_run(tiny_run, tmp_path / "fine", extra={"init": {**init, "start": good}})
     text = " ".join(

@@ -947,6 +947,8 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     assert ("poor" in tr["init"]["start"]) == poor
     assert ("no family fits the views" in err) == poor
     assert tr["steps"] == (6 if poor else 4)
+    assert ("runs at train.lr for up to 6 steps" in err) == poor
+    assert tr["init"]["start"].get("poor", {}).get("steps") == (6 if poor else None)
     assert config.load(run_dir / "config.yaml").train.steps == (6 if poor else 4)
     if poor:  # resumed: the rate and the steps come from the checkpoint's start
         more = train_args(example / "fit.yaml", run_dir, [*sets, "images.poor_start_steps=8"])

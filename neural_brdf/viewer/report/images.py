@@ -238,6 +238,9 @@ def _start_noise_rows(chosen: dict) -> list[list[str]]:
     if isinstance(poor, dict):
         above, limit = _finite(poor.get("excess")), _finite(poor.get("limit"))
         said = "poor: no family fits the views; the image stage ran at train.lr"
+        steps = poor.get("steps")
+        if isinstance(steps, int):
+            said += f" for up to {steps} steps (images.poor_start_steps)"
         if above is not None and limit is not None:
             said += f" ({above:.2g} above the noise > images.poor_start_loss {limit:g})"
         rows.append(["start's fit", said])
