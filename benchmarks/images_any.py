@@ -40,7 +40,9 @@ against images_any_dev_metallic.json; the cap ``train.steps`` kept at 150 agains
 images_any_dev_steps400.json against images_any_dev_metallic.json; after a poor start
 ``images.poor_start_steps`` raised to 450 by the clay's figures under both captures,
 images_any_dev_poor_steps450.json and images_any_dev_lights_poor_steps450.json against
-images_any_dev_rough_clay_full_rate.json and images_any_dev_lights.json);
+images_any_dev_rough_clay_full_rate.json and images_any_dev_lights.json;
+``images.start_refine_rounds`` kept at 1 against 4, which changed nothing,
+images_any_dev_refine_rounds4.json and images_any_dev_lights_refine_rounds4.json);
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two

@@ -1456,7 +1456,8 @@ def _refine_table(d: dict) -> list[str]:
                 two(e["images"]["relit"], lambda fig: f"{fig['psnr_db']:.1f}") + " dB",
                 two(br["observed"], _pct),
                 two(br["cap_0.5"], _pct),
-                f"{r['seconds']:.0f} s",
+                f"{r['seconds']:.0f} s"
+                + (f", {len(r['rounds'])} rounds" if len(r.get("rounds", ())) > 1 else ""),
             ]
         )
     if r0 is None:
@@ -2986,6 +2987,24 @@ SECTIONS = (
             name="images_any_dev_lights_poor_steps450.json",
             title="a multi-light capture, the clay's poor start with a cap of 450 "
             "image-stage steps (images.poor_start_steps)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_refine_rounds4.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_refine_rounds4.json",
+            title="up to 4 rounds of the start's refinement (images.start_refine_rounds, "
+            "not chosen)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_lights_refine_rounds4.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_lights_refine_rounds4.json",
+            title="a multi-light capture, up to 4 rounds of the start's refinement "
+            "(images.start_refine_rounds, not chosen)",
         ),
     ),
     (RESULTS / "target_noise.json", target_noise_section),

@@ -1058,6 +1058,50 @@ def refine(
     return kept, summary
 
 
+def refine_rounds(
+    views: Sequence[inverse.View],
+    chosen: Candidate,
+    *,
+    rounds: int,
+    gain: float,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    seed: int,
+    schedule: Schedule,
+) -> tuple[Candidate, dict[str, Any]]:
+    """:func:`refine` again from its result while the split says it still gains: a
+    further round runs when the last one was kept and cut the held-out loss by more than
+    the fraction ``gain`` (``images.start_refine_gain``), at most ``rounds`` in all
+    (``images.start_refine_rounds``; 1: :func:`refine` alone).  Every round is scored on
+    the same held-out pixels with the same render seeds.  Returns (the candidate kept,
+    the summary of :func:`refine` over all rounds: the loss and parameters before the
+    first and after the last kept, ``steps`` a round's, the seconds summed, and
+    ``rounds``, the held-out loss after each)."""
+    current, summaries = chosen, []
+    for _ in range(rounds):
+        current, r = refine(
+            views,
+            current,
+            mask_train=mask_train,
+            mask_val=mask_val,
+            seed=seed,
+            schedule=schedule,
+        )
+        summaries.append(r)
+        if not (r["kept"] and r["val_loss_after"] < (1.0 - gain) * r["val_loss_before"]):
+            break
+    first, last = summaries[0], summaries[-1]
+    summary = {
+        **first,
+        "val_loss_after": current.val_loss if current is not chosen else last["val_loss_after"],
+        "kept": current is not chosen,
+        "params_after": current.params if current is not chosen else last["params_after"],
+        "seconds": sum(float(r["seconds"]) for r in summaries),
+        "rounds": [float(r["val_loss_after"]) for r in summaries],
+    }
+    return current, summary
+
+
 # ------------------------------------------------------------------ the run's start
 def candidates(cfg: cfgmod.Config) -> tuple[list[str], dict[str, str]]:
     """The families an images fit of ``cfg`` fits (``images.start``: every one of
@@ -1190,9 +1234,11 @@ def network_start(
             "seconds": c.seconds,
         }
     if images.start_refine_steps > 0:
-        kept, summary["refine"] = refine(
+        kept, summary["refine"] = refine_rounds(
             views,
             chosen,
+            rounds=images.start_refine_rounds,
+            gain=images.start_refine_gain,
             mask_train=train,
             mask_val=held,
             seed=cfg.train.seed,

@@ -663,3 +663,55 @@ def test_the_grid_is_left_alone_where_it_cannot_or_need_not_move(model):
         {"target": {"images": [{"scene": "v.xml", "image": "v.exr"}]}, "model": model}
     )
     assert starts.grid_for_start(cfg, "roughconductor_aniso") is cfg
+
+
+@pytest.mark.parametrize(
+    "losses, rounds, gain, ran, kept_round",
+    [
+        ([0.5, 0.3, 0.2, 0.19, 0.1], 5, 0.1, 4, 4),  # gains 50, 40, 33, 5 %: the 4th the last
+        ([0.5, 0.3, 0.2, 0.1], 2, 0.1, 2, 2),  # the cap
+        ([0.5, 0.3, 0.35], 4, 0.1, 3, 2),  # the third rose: not kept, and the end
+        ([1.2], 4, 0.1, 1, 0),  # the first rose: the choice itself is kept
+        ([0.5, 0.3], 1, 0.1, 1, 1),  # one round: refine() alone
+    ],
+)
+def test_refine_rounds_continue_while_the_split_gains(
+    monkeypatch, losses, rounds, gain, ran, kept_round
+):
+    """Each round starts from the last one kept; another runs only while the last was kept
+    and cut the held-out loss by more than ``gain``; the summary holds the first's
+    'before' and the kept result's 'after'."""
+    from neural_brdf.inverse import starts
+
+    seen: list[dict] = []
+
+    def fake_fit(views, family, *, init, **kw):
+        seen.append(dict(init))
+        k = len(seen)
+        return dataclasses.replace(
+            chosen, params={"round": k}, val_loss=losses[k - 1], seconds=1.0, steps=60
+        )
+
+    chosen = starts.Candidate(
+        family="diffuse",
+        params={"round": 0},
+        train_loss=1.0,
+        val_loss=1.0,
+        val_loss_plain=1.0,
+        seconds=0.0,
+        steps=80,
+        complexity=3,
+        element=ET.Element("bsdf"),
+    )
+    monkeypatch.setattr(starts, "fit_candidate", fake_fit)
+    sched = starts.Schedule(steps=60, spp=16, primal_spp=32, val_spp=64, lr=0.02, lr_end=0.1)
+    kept, summary = starts.refine_rounds(
+        [], chosen, rounds=rounds, gain=gain, mask_train=[], mask_val=[], seed=0, schedule=sched
+    )
+    assert len(seen) == ran and summary["rounds"] == losses[:ran]
+    # each round started from the parameters of the round kept before it
+    assert [s["round"] for s in seen] == [min(k, kept_round) for k in range(ran)]
+    assert kept.params == {"round": kept_round}
+    assert summary["kept"] == (kept_round > 0) and summary["val_loss_before"] == 1.0
+    assert summary["val_loss_after"] == (losses[kept_round - 1] if kept_round else losses[0])
+    assert summary["steps"] == 60 and summary["seconds"] == ran
