@@ -556,16 +556,20 @@ def poor_start(
     return True
 
 
+def poor_start_steps(cfg: cfgmod.Config) -> int:
+    """The image stage's steps after a poor start: ``train.steps`` raised to
+    ``images.poor_start_steps`` (never lowered; null: ``train.steps``)."""
+    return max(cfg.train.steps, cfg.images.poor_start_steps or 0)
+
+
 def poor_start_config(cfg: cfgmod.Config, init_info: dict | None) -> cfgmod.Config:
-    """``cfg`` with ``train.steps`` raised to ``images.poor_start_steps`` when the start of
+    """``cfg`` with ``train.steps`` raised to :func:`poor_start_steps` when the start of
     ``init_info`` was marked poor (:func:`poor_start`): the image stage then learns the
     material rather than refining a start, and the rate's cosine decay spans the longer
     run.  ``cfg`` itself otherwise (a good start, no limit, or ``train.steps`` already
     at least that)."""
-    steps = cfg.images.poor_start_steps
-    if steps is None or steps <= cfg.train.steps:
-        return cfg
-    if not (((init_info or {}).get("start") or {}).get("poor")):
+    steps = poor_start_steps(cfg)
+    if steps == cfg.train.steps or not (((init_info or {}).get("start") or {}).get("poor")):
         return cfg
     return cfg.model_copy(update={"train": cfg.train.model_copy(update={"steps": steps})})
 
@@ -1044,8 +1048,8 @@ def _fit_views(
             if trained is not cfg:  # the start's grid: config.yaml says what is trained
                 cfg = trained
                 sess.reconfigure(cfg)
-            steps = max(cfg.train.steps, images.poor_start_steps or 0)  # if poor
-            if poor_start(init_info, images.poor_start_loss, target_noise(views), steps):
+            noise, steps = target_noise(views), poor_start_steps(cfg)  # the steps, if poor
+            if poor_start(init_info, images.poor_start_loss, noise, steps):
                 cfg = poor_start_config(cfg, init_info)  # config.yaml: the steps it runs
                 sess.reconfigure(cfg)
     elif images.start == "ggx":
