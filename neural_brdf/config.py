@@ -270,7 +270,7 @@ class Images(_Section):
     # a further refinement from the last while the split gains: the last round kept and
     # its held-out loss below (1 - start_refine_gain) x the one before, at most
     # start_refine_rounds rounds in all (docs/inverse.md, "Refining the choice")
-    start_refine_rounds: int = Field(1, ge=1)
+    start_refine_rounds: int = Field(8, ge=1)
     start_refine_gain: float = Field(0.1, ge=0.0, lt=1.0)
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr

@@ -1262,8 +1262,11 @@ def images_any_section(
     lights = capture["kind"] == "lights"
     settings = ", ".join(f"`{o}`" for o in d["overrides"]) or "the benchmark's config"
     if which == "test":
-        title = "## Images of any material: held out, relit (the test set" + (
-            ", a multi-light capture)" if lights else ")"
+        title = (
+            "## Images of any material: held out, relit (the test set"
+            + (", a multi-light capture" if lights else "")
+            + (f"; {title}" if title else "")
+            + ")"
         )
     else:
         title = f"## Images of any material: the development set, {title or settings}"
@@ -2994,8 +2997,7 @@ SECTIONS = (
         partial(
             images_any_section,
             name="images_any_dev_refine_rounds4.json",
-            title="up to 4 rounds of the start's refinement (images.start_refine_rounds, "
-            "not chosen)",
+            title="up to 4 rounds of the start's refinement (images.start_refine_rounds)",
         ),
     ),
     (
@@ -3004,7 +3006,69 @@ SECTIONS = (
             images_any_section,
             name="images_any_dev_lights_refine_rounds4.json",
             title="a multi-light capture, up to 4 rounds of the start's refinement "
-            "(images.start_refine_rounds, not chosen)",
+            "(images.start_refine_rounds)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_lights_brushed_copper.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_lights_brushed_copper.json",
+            title="a multi-light capture, the brushed copper with one round of the start's "
+            "refinement",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_lights_brushed_copper_rounds4.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_lights_brushed_copper_rounds4.json",
+            title="a multi-light capture, the brushed copper with up to 4 rounds of the "
+            "start's refinement",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_lights_brushed_copper_rounds8.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_lights_brushed_copper_rounds8.json",
+            title="a multi-light capture, the brushed copper with up to 8 rounds of the "
+            "start's refinement (images.start_refine_rounds, chosen)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_dev_glazed_blend.json",
+        partial(
+            images_any_section,
+            name="images_any_dev_glazed_blend.json",
+            title="the glazed blend",
+        ),
+    ),
+    (
+        RESULTS / "images_any_rounds4.json",
+        partial(
+            images_any_section,
+            name="images_any_rounds4.json",
+            title="the fits whose start's first round gained a tenth, re-run with up to 4 "
+            "rounds (images.start_refine_rounds)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_lights_rounds4.json",
+        partial(
+            images_any_section,
+            name="images_any_lights_rounds4.json",
+            title="the fits whose start's first round gained a tenth, re-run with up to 4 "
+            "rounds (images.start_refine_rounds)",
+        ),
+    ),
+    (
+        RESULTS / "images_any_lights_rounds8.json",
+        partial(
+            images_any_section,
+            name="images_any_lights_rounds8.json",
+            title="the brushed gold, whose four rounds all gained a tenth, re-run with up to 8 "
+            "rounds (images.start_refine_rounds)",
         ),
     ),
     (RESULTS / "target_noise.json", target_noise_section),
