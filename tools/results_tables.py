@@ -2882,6 +2882,12 @@ def textured_cost_section(d: dict) -> list[str]:
     )
 
 
+def _images_any(name: str, title: str | None = None) -> tuple[Path, partial[list[str]]]:
+    """A SECTIONS entry for one of benchmarks/images_any.py's result files (``title``:
+    :func:`images_any_section`'s heading end)."""
+    return RESULTS / name, partial(images_any_section, name=name, title=title)
+
+
 # ------------------------------------------------------------------ page
 SECTIONS = (
     (RESULTS / "suite.json", suite_section),
@@ -2900,176 +2906,74 @@ SECTIONS = (
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
-    (RESULTS / "images_any.json", images_any_section),
-    (
-        RESULTS / "images_any_lights.json",
-        partial(images_any_section, name="images_any_lights.json"),
+    _images_any("images_any.json"),
+    _images_any("images_any_lights.json"),
+    _images_any("images_any_dev.json"),
+    _images_any("images_any_dev_refine.json"),
+    _images_any("images_any_dev_start6000.json"),
+    _images_any("images_any_dev_rough_clay.json"),
+    _images_any("images_any_dev_rough_clay_full_rate.json"),
+    _images_any("images_any_dev_half_disc.json"),
+    _images_any("images_any_dev_aniso_grid.json", "the grid after an anisotropic start"),
+    _images_any("images_any_dev_metallic.json", "the principled's metallic reaching 0 and 1"),
+    _images_any(
+        "images_any_dev_validation_spp16.json",
+        "the held-out renders at 16 spp (images.validation_spp, not chosen)",
     ),
-    (RESULTS / "images_any_dev.json", partial(images_any_section, name="images_any_dev.json")),
-    (
-        RESULTS / "images_any_dev_refine.json",
-        partial(images_any_section, name="images_any_dev_refine.json"),
+    _images_any(
+        "images_any_dev_steps400.json", "a cap of 400 image-stage steps (train.steps, not chosen)"
     ),
-    (
-        RESULTS / "images_any_dev_start6000.json",
-        partial(images_any_section, name="images_any_dev_start6000.json"),
+    _images_any("images_any_dev_lights.json", "a multi-light capture"),
+    _images_any(
+        "images_any_dev_lights_poor_start_0.001.json",
+        "a multi-light capture, images.poor_start_loss 0.001 (not chosen)",
     ),
-    (
-        RESULTS / "images_any_dev_rough_clay.json",
-        partial(images_any_section, name="images_any_dev_rough_clay.json"),
+    _images_any(
+        "images_any_dev_poor_steps450.json",
+        "the clay's poor start with a cap of 450 image-stage steps (images.poor_start_steps)",
     ),
-    (
-        RESULTS / "images_any_dev_rough_clay_full_rate.json",
-        partial(images_any_section, name="images_any_dev_rough_clay_full_rate.json"),
+    _images_any(
+        "images_any_dev_lights_poor_steps450.json",
+        "a multi-light capture, the clay's poor start with a cap of 450 image-stage steps "
+        "(images.poor_start_steps)",
     ),
-    (
-        RESULTS / "images_any_dev_half_disc.json",
-        partial(images_any_section, name="images_any_dev_half_disc.json"),
+    _images_any(
+        "images_any_dev_refine_rounds4.json",
+        "up to 4 rounds of the start's refinement (images.start_refine_rounds)",
     ),
-    (
-        RESULTS / "images_any_dev_aniso_grid.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_aniso_grid.json",
-            title="the grid after an anisotropic start",
-        ),
+    _images_any(
+        "images_any_dev_lights_refine_rounds4.json",
+        "a multi-light capture, up to 4 rounds of the start's refinement "
+        "(images.start_refine_rounds)",
     ),
-    (
-        RESULTS / "images_any_dev_metallic.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_metallic.json",
-            title="the principled's metallic reaching 0 and 1",
-        ),
+    _images_any(
+        "images_any_dev_lights_brushed_copper.json",
+        "a multi-light capture, the brushed copper with one round of the start's refinement",
     ),
-    (
-        RESULTS / "images_any_dev_validation_spp16.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_validation_spp16.json",
-            title="the held-out renders at 16 spp (images.validation_spp, not chosen)",
-        ),
+    _images_any(
+        "images_any_dev_lights_brushed_copper_rounds4.json",
+        "a multi-light capture, the brushed copper with up to 4 rounds of the start's refinement",
     ),
-    (
-        RESULTS / "images_any_dev_steps400.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_steps400.json",
-            title="a cap of 400 image-stage steps (train.steps, not chosen)",
-        ),
+    _images_any(
+        "images_any_dev_lights_brushed_copper_rounds8.json",
+        "a multi-light capture, the brushed copper with up to 8 rounds of the start's refinement "
+        "(images.start_refine_rounds, chosen)",
     ),
-    (
-        RESULTS / "images_any_dev_lights.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights.json",
-            title="a multi-light capture",
-        ),
+    _images_any("images_any_dev_glazed_blend.json", "the glazed blend"),
+    _images_any(
+        "images_any_rounds4.json",
+        "the fits whose start's first round gained a tenth, re-run with up to 4 rounds "
+        "(images.start_refine_rounds)",
     ),
-    (
-        RESULTS / "images_any_dev_lights_poor_start_0.001.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights_poor_start_0.001.json",
-            title="a multi-light capture, images.poor_start_loss 0.001 (not chosen)",
-        ),
+    _images_any(
+        "images_any_lights_rounds4.json",
+        "the fits whose start's first round gained a tenth, re-run with up to 4 rounds "
+        "(images.start_refine_rounds)",
     ),
-    (
-        RESULTS / "images_any_dev_poor_steps450.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_poor_steps450.json",
-            title="the clay's poor start with a cap of 450 image-stage steps "
-            "(images.poor_start_steps)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_lights_poor_steps450.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights_poor_steps450.json",
-            title="a multi-light capture, the clay's poor start with a cap of 450 "
-            "image-stage steps (images.poor_start_steps)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_refine_rounds4.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_refine_rounds4.json",
-            title="up to 4 rounds of the start's refinement (images.start_refine_rounds)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_lights_refine_rounds4.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights_refine_rounds4.json",
-            title="a multi-light capture, up to 4 rounds of the start's refinement "
-            "(images.start_refine_rounds)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_lights_brushed_copper.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights_brushed_copper.json",
-            title="a multi-light capture, the brushed copper with one round of the start's "
-            "refinement",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_lights_brushed_copper_rounds4.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights_brushed_copper_rounds4.json",
-            title="a multi-light capture, the brushed copper with up to 4 rounds of the "
-            "start's refinement",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_lights_brushed_copper_rounds8.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_lights_brushed_copper_rounds8.json",
-            title="a multi-light capture, the brushed copper with up to 8 rounds of the "
-            "start's refinement (images.start_refine_rounds, chosen)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_dev_glazed_blend.json",
-        partial(
-            images_any_section,
-            name="images_any_dev_glazed_blend.json",
-            title="the glazed blend",
-        ),
-    ),
-    (
-        RESULTS / "images_any_rounds4.json",
-        partial(
-            images_any_section,
-            name="images_any_rounds4.json",
-            title="the fits whose start's first round gained a tenth, re-run with up to 4 "
-            "rounds (images.start_refine_rounds)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_lights_rounds4.json",
-        partial(
-            images_any_section,
-            name="images_any_lights_rounds4.json",
-            title="the fits whose start's first round gained a tenth, re-run with up to 4 "
-            "rounds (images.start_refine_rounds)",
-        ),
-    ),
-    (
-        RESULTS / "images_any_lights_rounds8.json",
-        partial(
-            images_any_section,
-            name="images_any_lights_rounds8.json",
-            title="the brushed gold, whose four rounds all gained a tenth, re-run with up to 8 "
-            "rounds (images.start_refine_rounds)",
-        ),
+    _images_any(
+        "images_any_lights_rounds8.json",
+        "the brushed gold, whose four rounds all gained a tenth, re-run with up to 8 rounds "
+        "(images.start_refine_rounds)",
     ),
     (RESULTS / "target_noise.json", target_noise_section),
     (RESULTS / "images_patience_dev.json", images_patience_section),
