@@ -291,14 +291,17 @@ class Images(_Section):
     # a chosen start whose held-out loss exceeds the targets' own noise (estimated from
     # the images, inverse.fit.target_noise) by more than this fits the views poorly (no
     # family holds the material): the image stage then runs at train.lr with the grids
-    # at their lr_scale, as from the constant start (null: never; chosen on the
-    # development set under both captures: docs/inverse.md, "A poor start")
+    # at poor_start_grid_lr_scale (null: never; chosen on the development set under
+    # both captures: docs/inverse.md, "A poor start")
     poor_start_loss: float | None = Field(0.0015, gt=0.0)
     # after a poor start the image stage learns the material rather than polishing a
     # start, and runs at least this many steps (train.steps raised to it; the rate's
     # cosine spans them; null: train.steps; chosen on the development set:
     # docs/inverse.md, "A poor start")
     poor_start_steps: int | None = Field(450, ge=1)
+    # ... and its grids' learning rate / train.lr (null: model.grid.lr_scale, as from the
+    # constant start; docs/inverse.md, "A poor start")
+    poor_start_grid_lr_scale: float | None = Field(1.0, gt=0.0)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network

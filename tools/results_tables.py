@@ -1424,7 +1424,40 @@ def images_any_section(
         "(as many steps, the same samples per pixel).",
         "",
     ]
-    return out + _refine_table(d)
+    return out + _fitted_table(d) + _refine_table(d)
+
+
+def _fitted_table(d: dict) -> list[str]:
+    """The fitted views against the truth, beside the held-out camera (files that
+    record ``images.fitted_views``): a view matched to its noise floor while the held-out
+    camera is not is a limit of what the images determine, not of the fit."""
+    rows = []
+    for key, e in d["materials"].items():
+        fitted = e["images"].get("fitted_views")
+        if not fitted:
+            continue
+        held = e["images"]["heldout"]
+
+        def cell(fig: dict) -> str:
+            net, floor = fig["network"]["psnr_db"], fig["noise_floor"]["psnr_db"]
+            return f"{net:.1f} dB ({floor:.1f}; {net - floor:+.1f})"
+
+        rows.append([key, *(cell(f) for f in fitted), cell(held)])
+    if not rows:
+        return []
+    views = max(len(r) - 2 for r in rows)
+    return [
+        "The network against the truth on the fitted views themselves, scored as the "
+        "held-out camera (1024 spp against 1024 spp; in brackets the truth against "
+        "itself with another seed, and the difference): a fit whose fitted views reach "
+        "their noise floor while the held-out camera does not has found a material the "
+        "views cannot tell from the truth.",
+        "",
+        *_table(
+            ["material", *(f"fitted view {k + 1}" for k in range(views)), "held-out camera"],
+            rows,
+        ),
+    ]
 
 
 def _poor_cell(start: dict) -> str:
@@ -2882,6 +2915,42 @@ def textured_cost_section(d: dict) -> list[str]:
     )
 
 
+def images_behind_cameras_section(d: dict) -> list[str]:
+    """What a retro-reflective lobe shows each camera of images_any: the light behind it."""
+    rings = [f"{lo:g}-{hi:g}°" for lo, hi in d["rings_degrees"]]
+    rows = []
+    for name, entry in d["views"].items():
+        role = "fitted under" if entry["role"] == "fit" else "relit by"
+        for label, c in entry["cameras"].items():
+            rows.append(
+                [
+                    f"`{name}` ({entry['set']}, {role})",
+                    label,
+                    *(f"{v:.2f}" for v in c["rings"].values()),
+                    f"{c['under_lobe']:.3f}",
+                ]
+            )
+    return [
+        "## Images of any material: the light behind each camera",
+        "",
+        _source(
+            "benchmarks/results/images_behind_cameras.json",
+            "python benchmarks/images_behind_cameras.py",
+        ),
+        _recorded(
+            d["date"], f"{d['machine']['platform']}, Mitsuba {d['machine']['mitsuba']}", None
+        ),
+        "The environments' mean radiance (RGB mean) in rings of angle around the direction "
+        "from the sphere to each camera of `benchmarks/images_any.py` (views 1 to 3 fitted, "
+        "the fourth held out), through Mitsuba's own `envmap`, and its mean under the test "
+        f"set's retroreflector's lobe (cos^{d['exponent']:g} of that angle): what a "
+        "retro-reflective material shows each camera besides its diffuse term "
+        f"({d['directions']} uniform directions).",
+        "",
+        *_table(["environment", "camera", *rings, "under the lobe"], rows),
+    ]
+
+
 def _images_any(name: str, title: str | None = None) -> tuple[Path, partial[list[str]]]:
     """A SECTIONS entry for one of benchmarks/images_any.py's result files (``title``:
     :func:`images_any_section`'s heading end)."""
@@ -2960,6 +3029,35 @@ SECTIONS = (
         "(images.start_refine_rounds, chosen)",
     ),
     _images_any("images_any_dev_glazed_blend.json", "the glazed blend"),
+    (RESULTS / "images_behind_cameras.json", images_behind_cameras_section),
+    _images_any(
+        "images_any_dev_poor_grid10.json",
+        "the clay's poor start, its grids at model.grid.lr_scale (10; "
+        "images.poor_start_grid_lr_scale null, the rule before session 61)",
+    ),
+    _images_any(
+        "images_any_dev_poor_grid3.json",
+        "the clay's poor start, its grids at 3 (images.poor_start_grid_lr_scale, not chosen)",
+    ),
+    _images_any(
+        "images_any_dev_poor_grid1.json",
+        "the clay's poor start, its grids at 1 (images.poor_start_grid_lr_scale, chosen)",
+    ),
+    _images_any(
+        "images_any_dev_lights_poor_grid10.json",
+        "a multi-light capture, the clay's poor start, its grids at model.grid.lr_scale (10; "
+        "images.poor_start_grid_lr_scale null, the rule before session 61)",
+    ),
+    _images_any(
+        "images_any_dev_lights_poor_grid3.json",
+        "a multi-light capture, the clay's poor start, its grids at 3 "
+        "(images.poor_start_grid_lr_scale, not chosen)",
+    ),
+    _images_any(
+        "images_any_dev_lights_poor_grid1.json",
+        "a multi-light capture, the clay's poor start, its grids at 1 "
+        "(images.poor_start_grid_lr_scale, chosen)",
+    ),
     _images_any(
         "images_any_rounds4.json",
         "the fits whose start's first round gained a tenth, re-run with up to 4 rounds "
@@ -2974,6 +3072,25 @@ SECTIONS = (
         "images_any_lights_rounds8.json",
         "the brushed gold, whose four rounds all gained a tenth, re-run with up to 8 rounds "
         "(images.start_refine_rounds)",
+    ),
+    _images_any(
+        "images_any_poor_grid10.json",
+        "the retroreflector re-run with its grids at 10 (images.poor_start_grid_lr_scale null, "
+        "the rule before session 61) to score its fitted views",
+    ),
+    _images_any(
+        "images_any_poor_grid1.json",
+        "the retroreflector, the one poor start, re-run with its grids at 1 "
+        "(images.poor_start_grid_lr_scale, chosen on the development set)",
+    ),
+    _images_any(
+        "images_any_fitted_views.json",
+        "the satin blend re-run to score its fitted views (no setting changed for it)",
+    ),
+    _images_any(
+        "images_any_lights_fitted_views.json",
+        "the retroreflector re-run to score its fitted views (not a poor start here: "
+        "no setting changed for it)",
     ),
     (RESULTS / "target_noise.json", target_noise_section),
     (RESULTS / "images_patience_dev.json", images_patience_section),

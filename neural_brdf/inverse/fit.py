@@ -525,8 +525,8 @@ def poor_start(
     checkpoint) when its held-out loss exceeds the targets' own noise (``noise``,
     :func:`target_noise`; 0 when None) by more than ``limit``
     (``images.poor_start_loss``): no family holds the material, and the image stage,
-    which :func:`fit_neural` then runs at ``train.lr`` with the grids at their
-    ``lr_scale``, must do the work.  The noise estimate is recorded
+    which :func:`fit_neural` then runs at ``train.lr`` with the grids at
+    ``images.poor_start_grid_lr_scale``, must do the work.  The noise estimate is recorded
     (``start["target_noise"]``) either way.  ``steps``: what the image stage then runs
     (:func:`poor_start_config`), recorded and said.  Says so on stderr.  True when
     marked."""
@@ -755,7 +755,7 @@ def fit_neural(
     if ckpt is not None:
         init_info = ckpt.get("init")
     if ((init_info or {}).get("start") or {}).get("poor"):  # a poor start (poor_start)
-        lr_factor, grid_lr_scale = 1.0, None
+        lr_factor, grid_lr_scale = 1.0, images.poor_start_grid_lr_scale
 
     model_text = json.dumps(cfg.model.model_dump())
     bsdf = bsdf_element(

@@ -927,9 +927,9 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     mi, example, tmp_path, capsys, limit, poor
 ):
     """Every start is poor under a limit of 1e-9: the image stage runs at train.lr (the
-    grids at their lr_scale) for images.poor_start_steps (the run's config.yaml says
-    so), and a resumed run keeps that rate and those steps; no limit keeps
-    images.start_lr_scale and train.steps."""
+    grids at images.poor_start_grid_lr_scale) for images.poor_start_steps (the run's
+    config.yaml says so), and a resumed run keeps that rate and those steps; no limit
+    keeps images.start_lr_scale and train.steps."""
     run_dir = tmp_path / "run"
     sets = [
         *FIT_OVERRIDES,
@@ -938,12 +938,16 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         "images.start_steps=5",
         "images.start_train_steps=20",
         "images.poor_start_steps=6",
+        "images.poor_start_grid_lr_scale=2.5",
         f"images.poor_start_loss={limit}",
     ]
     code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
     assert code == 0, err
     tr = json.loads((run_dir / "metrics.json").read_text())["training"]
     assert tr["lr_factor"] == (1.0 if poor else 0.05)
+    # the grids' rate: images.poor_start_grid_lr_scale after a poor start, else
+    # images.start_grid_lr_scale (1.0 by default)
+    assert tr["grid_lr_scales"] == dict.fromkeys(("grid.", "cos_grid."), 2.5 if poor else 1.0)
     assert ("poor" in tr["init"]["start"]) == poor
     assert ("no family fits the views" in err) == poor
     assert tr["steps"] == (6 if poor else 4)
@@ -956,6 +960,7 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         assert code == 0, err
         again = json.loads((run_dir / "metrics.json").read_text())["training"]
         assert again["lr_factor"] == 1.0 and again["steps"] == 8
+        assert again["grid_lr_scales"] == tr["grid_lr_scales"]
 
 
 def test_poor_start_config_raises_the_steps_of_a_poor_start_only():
