@@ -3059,6 +3059,16 @@ SECTIONS = (
         "(images.poor_start_grid_lr_scale, chosen)",
     ),
     _images_any(
+        "images_any_dev_lights_fitted_views.json",
+        "a multi-light capture, the blue principled re-run to score its fitted views (its "
+        "start 396 times the targets' noise, not poor by images.poor_start_loss)",
+    ),
+    _images_any(
+        "images_any_dev_lights_poor_blue_principled.json",
+        "a multi-light capture, the blue principled called poor (images.poor_start_loss "
+        "0.0005, grids at 1: a limit relative to the noise, not chosen)",
+    ),
+    _images_any(
         "images_any_rounds4.json",
         "the fits whose start's first round gained a tenth, re-run with up to 4 rounds "
         "(images.start_refine_rounds)",
