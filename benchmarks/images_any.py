@@ -54,7 +54,13 @@ clay's figures under both captures, images_any_dev_poor_grid{1,3,10}.json and
 images_any_dev_lights_poor_grid{1,3,10}.json; a limit relative to the targets' noise,
 not chosen: the blue principled under lights, at 396 times the noise, worse when called
 poor, images_any_dev_lights_poor_blue_principled.json against
-images_any_dev_lights_fitted_views.json);
+images_any_dev_lights_fitted_views.json; ``images.start_continue_within`` 2, the
+contenders fitted further before the choice is made again, by the blue principled under
+lights, images_any_dev_lights_contenders.json against
+images_any_dev_lights_fitted_views.json, under the sky by the fits it changes,
+images_any_dev_contenders.json, and its exemption of a poor start by the clay's
+figures without it, images_any_dev_contenders_poor_clay.json and
+images_any_dev_lights_contenders_poor_clay.json);
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two
@@ -69,7 +75,10 @@ after ``images.poor_start_grid_lr_scale`` (chosen on the clay) the one test fit 
 changes, the retroreflector under the studio (images_any_poor_grid1.json; at the rule
 before, with its fitted views scored, images_any_poor_grid10.json), and, to score their
 fitted views, the satin blend under the studio and the retroreflector under lights,
-neither changed by it (images_any_fitted_views.json, images_any_lights_fitted_views.json).
+neither changed by it (images_any_fitted_views.json, images_any_lights_fitted_views.json);
+after ``images.start_continue_within`` the test fits it changes, those whose chosen start
+is neither at the targets' noise nor poor and has a contender (images_any_contenders.json:
+the matte blue; images_any_lights_contenders.json: chrome and the retroreflector).
 
 Measured per material, for the network and for its start (the chosen family with its
 fitted parameters, rendered by Mitsuba itself), against the true material:
@@ -504,7 +513,20 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     checks = metrics["checks"]
     val = tr.get("validation") or {}
     candidates = {
-        c["family"]: {k: c.get(k) for k in ("val_loss", "train_loss", "seconds", "tied")}
+        c["family"]: {
+            k: c.get(k)
+            for k in (
+                "val_loss",
+                "train_loss",
+                "seconds",
+                "tied",
+                # images.start_continue_within's contenders, fitted further before the
+                # choice is made again
+                "continued_val_loss",
+                "continue_seconds",
+            )
+            if k in c
+        }
         for c in start.get("candidates", [])
     }
     return {
@@ -517,6 +539,11 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "candidates": candidates,
             "left_out": start.get("left_out"),
             "refine": refined or None,
+            "continue_within": start.get("continue_within"),
+            # why none was: the chosen start at the targets' noise, or poor
+            "uncontested": start.get("uncontested"),
+            # the family the first choice took, where the continued contenders changed it
+            "first_choice": start.get("first_choice"),
             # the poor-start rule's inputs (images.poor_start_loss): the chosen start's
             # held-out loss, the targets' own noise estimated from the images, the verdict
             "val_loss": start.get("val_loss"),

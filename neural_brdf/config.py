@@ -272,6 +272,11 @@ class Images(_Section):
     # start_refine_rounds rounds in all (docs/inverse.md, "Refining the choice")
     start_refine_rounds: int = Field(8, ge=1)
     start_refine_gain: float = Field(0.1, ge=0.0, lt=1.0)
+    # auto's contenders: every family whose held-out loss is within this factor of the
+    # least fits start_steps more steps from where it stopped, and the choice is made
+    # again on the continued losses, unless the chosen one is already within
+    # start_tie_max of the targets' noise (null: never; docs/inverse.md, "The contenders")
+    start_continue_within: float | None = Field(2.0, ge=1.0)
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)

@@ -1424,7 +1424,7 @@ def images_any_section(
         "(as many steps, the same samples per pixel).",
         "",
     ]
-    return out + _fitted_table(d) + _refine_table(d)
+    return out + _fitted_table(d) + _refine_table(d) + _contenders_table(d)
 
 
 def _fitted_table(d: dict) -> list[str]:
@@ -1455,6 +1455,57 @@ def _fitted_table(d: dict) -> list[str]:
         "",
         *_table(
             ["material", *(f"fitted view {k + 1}" for k in range(views)), "held-out camera"],
+            rows,
+        ),
+    ]
+
+
+def _contenders_table(d: dict) -> list[str]:
+    """The contenders fitted further before the choice was made again (files that record
+    ``images.start_continue_within``): each one's held-out loss after the candidates'
+    fits and after its further fit, the targets' noise, the first choice and the new."""
+    rows = []
+    for key, e in d["materials"].items():
+        start = e.get("start") or {}
+        if start.get("continue_within") is None:
+            continue
+        cands = start.get("candidates") or {}
+        further = [
+            f"`{fam}` {c['val_loss']:.3g} → {c['continued_val_loss']:.3g}"
+            for fam, c in cands.items()
+            if c.get("continued_val_loss") is not None
+        ]
+        noise = start.get("target_noise")
+        # the session-63 runs before the poor start was exempted wrote continue_at_floor
+        why = start.get("uncontested") or ("at its floor" if start.get("continue_at_floor") else "")
+        floor = f"none (the chosen start {why})" if why else "none"
+        rows.append(
+            [
+                key,
+                "; ".join(further) or floor,
+                f"{noise:.2g}" if noise is not None else "-",
+                f"`{start.get('first_choice') or start['family']}`",
+                f"`{start['family']}`",
+            ]
+        )
+    if not rows:
+        return []
+    within = next(iter(d["materials"].values()))["start"]["continue_within"]
+    return [
+        f"The contenders (`images.start_continue_within` {within:g}): every family whose "
+        "held-out loss was within that factor of the least, fitted as many steps again "
+        "from where it stopped before the choice was made again by the same rule; none "
+        "when the chosen start's loss was within `images.start_tie_max` of the targets' "
+        "own noise (its floor).",
+        "",
+        *_table(
+            [
+                "material",
+                "held-out loss: first → continued",
+                "targets' noise",
+                "first choice",
+                "choice",
+            ],
             rows,
         ),
     ]
@@ -3067,6 +3118,22 @@ SECTIONS = (
         "images_any_dev_lights_poor_blue_principled.json",
         "a multi-light capture, the blue principled called poor (images.poor_start_loss "
         "0.0005, grids at 1: a limit relative to the noise, not chosen)",
+    ),
+    _images_any(
+        "images_any_dev_contenders.json",
+        "the contenders fitted further (images.start_continue_within 2)",
+    ),
+    _images_any(
+        "images_any_dev_lights_contenders.json",
+        "a multi-light capture, the contenders fitted further (images.start_continue_within 2)",
+    ),
+    _images_any(
+        "images_any_contenders.json",
+        "the fits with a contender, re-run (images.start_continue_within 2)",
+    ),
+    _images_any(
+        "images_any_lights_contenders.json",
+        "the fits with a contender, re-run (images.start_continue_within 2)",
     ),
     _images_any(
         "images_any_rounds4.json",

@@ -242,6 +242,46 @@ def test_report_without_a_coverage_figure_says_so(tiny_run, tmp_path):
     assert COVERAGE_ALT not in embedded_pngs(page)
 
 
+def test_report_shows_the_contenders_and_the_first_choice(tiny_run, tmp_path):
+    # images.start_continue_within: the contenders fitted further, the choice made again
+    # on their continued losses (neural_brdf.inverse.starts.contend); the report gives
+    # each continued loss beside the first and names the family chosen before
+    start = {
+        "family": "principled",
+        "first_choice": "roughplastic",
+        "params": {"roughness": 0.5},
+        "candidates": [
+            {"family": "diffuse", "val_loss": 0.0063, "train_loss": 0.0033, "seconds": 7.0},
+            {
+                "family": "roughplastic",
+                "val_loss": 0.00111,
+                "train_loss": 0.00127,
+                "seconds": 12.8,
+                "continued_val_loss": 0.00111,
+            },
+            {
+                "family": "principled",
+                "val_loss": 0.00143,
+                "train_loss": 0.00056,
+                "seconds": 10.4,
+                "continued_val_loss": 2.34e-06,
+            },
+        ],
+        "seconds": 110.0,
+    }
+    init = {"target": "Mitsuba Principled (teacher.xml)", "seconds": 130.0, "start": start}
+    run_dir = make_images_run(tiny_run, tmp_path, extra={"init": init})
+    text = " ".join(
+        visible_text(report.write_report(run_dir, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "start principled (chosen of 3 by the held-out pixels after the contenders' further "
+        "fits; roughplastic before), distilled" in text
+    )
+    assert "principled 0.00143 0.00056 10.4 s 2.34e-06 chosen" in text
+    assert "roughplastic 0.00111 0.00127 12.8 s 0.00111 principled 0.00143" in text
+
+
 def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     # an auto start (neural_brdf.inverse.starts.network_start): every family fitted, one
     # chosen, one left out; the report names each with its losses and marks the choice

@@ -213,6 +213,9 @@ def _fit_figures(run: Run) -> list[Block]:
             if chosen.get("grid_coords") == "half_disc"
             else ""
         )
+        first = chosen.get("first_choice")
+        if isinstance(first, str):  # images.start_continue_within changed the choice
+            how += f" after the contenders' further fits; {first} before"
         rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{grid}"])
         rows += _start_noise_rows(chosen)
     elif isinstance(init, dict) and isinstance(init.get("target"), str):
@@ -250,7 +253,8 @@ def _start_noise_rows(chosen: dict) -> list[list[str]]:
 def _start_candidates(chosen: Any) -> list[Block]:
     """The families fitted for the start (``training.init.start.candidates``): each one's
     held-out and training loss, its time and whether the choice's rule tied it with the
-    best; the families left out, with why."""
+    best; the held-out loss of each contender after its further fit
+    (``images.start_continue_within``); the families left out, with why."""
     if not isinstance(chosen, dict) or not isinstance(chosen.get("candidates"), list):
         return []
     rows = []
@@ -258,6 +262,8 @@ def _start_candidates(chosen: Any) -> list[Block]:
         if not isinstance(c, dict):
             continue
         val, train, secs = (_finite(c.get(k)) for k in ("val_loss", "train_loss", "seconds"))
+        further = _finite(c.get("continued_val_loss"))
+        after = "" if further is None else f"{further:.4g}"
         mark = "chosen" if c.get("family") == chosen.get("family") else ""
         rows.append(
             [
@@ -265,20 +271,23 @@ def _start_candidates(chosen: Any) -> list[Block]:
                 "" if val is None else f"{val:.4g}",
                 "" if train is None else f"{train:.4g}",
                 "" if secs is None else f"{secs:.1f} s",
+                after,
                 mark,
             ]
         )
     left = chosen.get("left_out")
     if isinstance(left, dict):
-        rows += [[str(k), "", "", "", f"left out: {why}"] for k, why in left.items()]
+        rows += [[str(k), "", "", "", "", f"left out: {why}"] for k, why in left.items()]
     if not rows:
         return []
-    header = ["start family", "held-out loss", "training loss", "fit time", ""]
+    header = ["start family", "held-out loss", "training loss", "fit time", "continued", ""]
     return [
         Text(
             "Start: every family fitted to the training pixels, scored on the held-out "
-            "pixels (relative MSE without the render's noise); the simplest one within "
-            "the noise of the best is distilled into the network."
+            "pixels (relative MSE without the render's noise); the families within "
+            "images.start_continue_within of the best fitted further (continued), and the "
+            "simplest one within the noise of the best refined and distilled into the "
+            "network."
         ),
         Table(header, rows),
     ]
