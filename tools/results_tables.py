@@ -1476,7 +1476,7 @@ def _contenders_table(d: dict) -> list[str]:
             if c.get("continued_val_loss") is not None
         ]
         noise = start.get("target_noise")
-        # the session-63 runs before the poor start was exempted wrote continue_at_floor
+        # session 63's runs, written before the key was named uncontested: continue_at_floor
         why = start.get("uncontested") or ("at its floor" if start.get("continue_at_floor") else "")
         floor = f"none (the chosen start {why})" if why else "none"
         rows.append(
