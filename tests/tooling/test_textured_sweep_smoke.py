@@ -1,5 +1,6 @@
 """benchmarks/textured_sweep.py's machinery, at smoke budgets (``--smoke``: 20 steps, a
-16k pool, 2,000 scoring pairs; the figures mean nothing): a roughplastic teacher (no
+16k pool, a 32^2 projection with 16 pairs per texel, 20 refit steps, 2,000 scoring
+pairs; the figures mean nothing; about a minute): a roughplastic teacher (no
 roughness map: the breakdown by roughness is skipped, not a crash, which it was) with
 grey lobes, and ``--cost`` (each file rendered in the BSDF-bound scene after the jobs).
 The JSON is read back and checked against the files the run left in its work folder."""
