@@ -1019,6 +1019,15 @@ def choose_start(
 # steps (refine(); Schedule.refining).
 
 
+def no_worse(after: float, before: float) -> bool:
+    """Is a continued fit's held-out loss ``after`` to be kept over ``before``: not
+    higher, and not NaN or infinite (a fit that diverged) where ``before`` is finite.
+    Without held-out pixels both are NaN and nothing prefers the earlier fit."""
+    if not math.isfinite(before):
+        return math.isnan(before) or math.isfinite(after)
+    return math.isfinite(after) and after <= before
+
+
 def refine(
     views: Sequence[inverse.View],
     chosen: Candidate,
@@ -1046,7 +1055,7 @@ def refine(
     )
     before = chosen.val_loss
     # without a split (a family named alone, no held-out pixels: NaN) nothing prefers it
-    kept = chosen if r.val_loss > before else r
+    kept = r if no_worse(r.val_loss, before) else chosen
     summary = {
         "steps": schedule.steps,
         "spp": schedule.spp,
@@ -1191,7 +1200,7 @@ def contend(
             schedule=schedule,
             init=c.params,
         )
-        kept = c if r.val_loss > c.val_loss else r
+        kept = r if no_worse(r.val_loss, c.val_loss) else c
         current[c.family] = kept
         done[c.family] = {
             "steps": schedule.steps,

@@ -789,6 +789,36 @@ def test_continuing_the_contenders_lets_a_family_that_stopped_short_win(monkeypa
     assert calls == ["roughplastic", "principled"]
 
 
+def test_a_continued_fit_that_diverged_is_never_kept(monkeypatch):
+    """A contender (or a refinement) whose continued fit ends NaN or infinite keeps its
+    first fit: NaN compares False with anything, and the rule was ``after > before``."""
+    from neural_brdf.inverse import starts
+
+    assert starts.no_worse(1.0, 2.0) and starts.no_worse(2.0, 2.0)
+    assert not starts.no_worse(3.0, 2.0)
+    assert not starts.no_worse(math.nan, 2.0) and not starts.no_worse(math.inf, 2.0)
+    assert starts.no_worse(math.nan, math.nan)  # no held-out pixels: nothing prefers either
+    assert starts.no_worse(1.0, math.inf) and not starts.no_worse(math.inf, math.inf)
+    rng = np.random.default_rng(2)
+    unit = np.repeat(np.arange(12), 16)
+    base = rng.gamma(2.0, 0.0005, unit.size)
+    cands = [_first("roughplastic", base), _first("principled", base * 1.3)]
+    calls: list[str] = []
+    diverged = {"roughplastic": base * 0.9, "principled": np.full(unit.size, np.nan)}
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to(diverged, calls))
+    first, _ = starts.pick(cands, unit)
+    kw = dict(mask_train=[], mask_val=[], seed=0, schedule=starts.Schedule())
+    chosen, pool, done, _ = starts.contend([], cands, first, within=2.0, unit=unit, **kw)
+    assert calls == ["roughplastic", "principled"]
+    assert not done["principled"]["kept"] and pool[1] is cands[1]
+    assert done["roughplastic"]["kept"] and chosen.family == "roughplastic"
+    assert math.isfinite(chosen.val_loss)
+    kept, summary = starts.refine([], cands[1], **kw)  # the principled diverges again
+    assert kept is cands[1] and not summary["kept"]
+    kept, summary = starts.refine([], cands[0], **kw)  # the roughplastic gains
+    assert kept is not cands[0] and summary["kept"] and kept.val_loss < cands[0].val_loss
+
+
 def test_network_start_records_the_contenders_and_the_choice_made_again(mi, materials, monkeypatch):
     """metrics.json's start (training.init.start): each contender's continued held-out
     loss beside its first figures, the first choice where the new one differs, the new
