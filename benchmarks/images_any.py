@@ -117,8 +117,9 @@ environment capture's.
 
 Nothing here asserts anything; the JSON goes to benchmarks/results/images_any.json
 (``--set dev``: images_any_dev.json; ``--capture lights``: images_any_lights.json and
-images_any_dev_lights.json) and ``tools/results_tables.py`` makes the table of
-docs/results.md.  ``--resume`` keeps the materials whose result ``--work`` already holds.
+images_any_dev_lights.json; a full test run whose defaults have since changed is kept
+under its date, images_any_2026-12-02.json) and ``tools/results_tables.py`` makes the
+table of docs/results.md.  ``--resume`` keeps the materials whose result ``--work`` already holds.
 """
 
 from __future__ import annotations

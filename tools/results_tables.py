@@ -3026,8 +3026,16 @@ SECTIONS = (
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
-    _images_any("images_any.json"),
-    _images_any("images_any_lights.json"),
+    _images_any("images_any.json", "the defaults of 2026-12-03"),
+    _images_any("images_any_lights.json", "the defaults of 2026-12-03"),
+    _images_any(
+        "images_any_2026-12-02.json",
+        "the run of 2026-12-02, before the start's refinement in rounds and the contenders",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-02.json",
+        "the run of 2026-12-02, before the start's refinement in rounds and the contenders",
+    ),
     _images_any("images_any_dev.json"),
     _images_any("images_any_dev_refine.json"),
     _images_any("images_any_dev_start6000.json"),
