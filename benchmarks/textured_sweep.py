@@ -110,8 +110,9 @@ def _job(name: str, changes: dict, seed: int, args: dict) -> dict:
     if args["smoke"]:  # a dry run of the machinery: tiny budgets, figures meaningless
         # the projection and refit too: at the recipe's 512^2 x 256 teacher pairs and
         # 3000 refit steps they took 10 of a smoke run's 10.5 minutes
-        settings.update(steps=20, pool=1 << 14, batch=1024)
-        settings.update(project=32, project_pairs=16, refit_steps=20)
+        settings.update(
+            steps=20, pool=1 << 14, batch=1024, project=32, project_pairs=16, refit_steps=20
+        )
     folder = Path(args["work"]) / f"{name}_s{seed}"
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
