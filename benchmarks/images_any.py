@@ -61,6 +61,14 @@ images_any_dev_lights_fitted_views.json, and every other development fit it chan
 the clay under both captures (a poor start, not exempted: it gained under the sky) and
 under the sky the blue principled, gold and red plastic, images_any_dev_contenders.json
 and images_any_dev_lights_contenders.json against the files of the settings before);
+``retro_sign`` (the library's retroreflector, amber and sharper than the test set's) was
+added in session 65, a second material outside every family, sharp where the clay is
+smooth: with it ``images.poor_start_grid_lr_scale`` was chosen again and kept at 1
+(images_any_dev_retro_sign.json, _grid3.json and _grid10.json, the clay at 3 with the
+contenders in images_any_dev_poor_grid3_contenders.json and
+images_any_dev_lights_poor_grid3_contenders.json), and ``images.start_continue_max`` (3)
+from the development set's recorded fits, whose choice made again never fell beyond the
+second by held-out loss;
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two
@@ -79,7 +87,9 @@ neither changed by it (images_any_fitted_views.json, images_any_lights_fitted_vi
 after ``images.start_continue_within`` (chosen on ``dev``) the held-out test fits it
 changes, those whose chosen start is above the targets' noise and has a contender,
 reported and not used to choose (images_any_contenders.json: the matte blue and the
-retroreflector; images_any_lights_contenders.json: chrome and the retroreflector).
+retroreflector; images_any_lights_contenders.json: chrome and the retroreflector);
+after ``images.start_continue_max`` the one test fit with more than three contenders,
+the retroreflector under the studio (images_any.json, its row re-run).
 
 Measured per material, for the network and for its start (the chosen family with its
 fitted parameters, rendered by Mitsuba itself), against the true material:
@@ -281,6 +291,21 @@ def materials() -> dict[str, dict]:
                 _el("roughconductor", distribution="ggx", alpha=0.15, material="Al"),
             ),
             "blendbsdf: 0.5 diffuse + 0.5 aluminium GGX 0.15",
+        ),
+        # added in session 65: a second material outside every family, one that sends
+        # light back towards it (a road sign's amber sheeting), sharp where the clay is
+        # smooth, so that a poor start's settings are not chosen on one smooth material
+        # (docs/inverse.md, A poor start)
+        "retro_sign": (
+            _el(
+                "analytic_brdf",
+                model="retroreflective",
+                params=json.dumps(
+                    {"kd": [0.15, 0.15, 0.2], "kr": [0.5, 0.35, 0.15], "exponent": 40}
+                ),
+            ),
+            "outside every family: the library's retroreflector, amber and sharper "
+            "(exponent 40), through the analytic_brdf plugin",
         ),
     }
     test = {

@@ -277,6 +277,9 @@ class Images(_Section):
     # again on the continued losses, unless the chosen one is already within
     # start_tie_max of the targets' noise (null: never; docs/inverse.md, "The contenders")
     start_continue_within: float | None = Field(2.0, ge=1.0)
+    # ... at most this many of them, the chosen one and the others of least held-out loss
+    # (null: every one within the factor; docs/inverse.md, "The contenders")
+    start_continue_max: int | None = Field(3, ge=2)
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)

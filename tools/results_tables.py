@@ -3118,6 +3118,32 @@ SECTIONS = (
         "(images.poor_start_grid_lr_scale, chosen)",
     ),
     _images_any(
+        "images_any_dev_retro_sign.json",
+        "the amber retroreflector, a second material outside every family (session 65), "
+        "its poor start's grids at 1 (images.poor_start_grid_lr_scale, kept)",
+    ),
+    _images_any(
+        "images_any_dev_retro_sign_grid3.json",
+        "the amber retroreflector's poor start, its grids at 3 (not chosen)",
+    ),
+    _images_any(
+        "images_any_dev_retro_sign_grid10.json",
+        "the amber retroreflector's poor start, its grids at 10 (not chosen)",
+    ),
+    _images_any(
+        "images_any_dev_lights_retro_sign.json",
+        "a multi-light capture, the amber retroreflector (session 65; not a poor start here)",
+    ),
+    _images_any(
+        "images_any_dev_poor_grid3_contenders.json",
+        "the clay's poor start, its grids at 3, with the contenders (session 65, not chosen)",
+    ),
+    _images_any(
+        "images_any_dev_lights_poor_grid3_contenders.json",
+        "a multi-light capture, the clay's poor start, its grids at 3, with the contenders "
+        "(session 65, not chosen)",
+    ),
+    _images_any(
         "images_any_dev_lights_fitted_views.json",
         "a multi-light capture, the blue principled re-run to score its fitted views (its "
         "start 396 times the targets' noise, not poor by images.poor_start_loss)",
@@ -3157,6 +3183,11 @@ SECTIONS = (
         "images_any_lights_rounds8.json",
         "the brushed gold, whose four rounds all gained a tenth, re-run with up to 8 rounds "
         "(images.start_refine_rounds)",
+    ),
+    _images_any(
+        "images_any_retro_contenders6.json",
+        "the retroreflector before images.start_continue_max, its six contenders fitted "
+        "further (the same start as with three; the image stage's spread between runs)",
     ),
     _images_any(
         "images_any_poor_grid10.json",

@@ -1144,20 +1144,27 @@ def contenders(
     chosen: Candidate,
     within: float | None,
     *,
+    most: int | None = None,
     noise: float | None = None,
     tie_max: float = TIE_MAX,
 ) -> list[Candidate]:
     """The candidates fitted further before the choice is made again (in the order
     fitted): with ``within``, every one whose held-out loss is at most ``within`` times
-    the least, ``chosen`` among them; none when ``within`` is None, when there is a
-    single candidate, or when ``chosen`` is :func:`uncontested`."""
+    the least, ``chosen`` among them; with ``most``, ``chosen`` and the others of least
+    held-out loss, ``most`` in all; none when ``within`` is None, when there is a single
+    candidate, or when ``chosen`` is :func:`uncontested`."""
     finite = [c.val_loss for c in cands if math.isfinite(c.val_loss)]
     if within is None or len(cands) < 2 or not finite:
         return []
     if uncontested(chosen, noise, tie_max):
         return []
     limit = within * min(finite)
-    return [c for c in cands if c is chosen or (math.isfinite(c.val_loss) and c.val_loss <= limit)]
+    near = [
+        c for c in cands if c is not chosen and math.isfinite(c.val_loss) and c.val_loss <= limit
+    ]
+    if most is not None:  # stable: of equal losses, the one fitted first
+        near = sorted(near, key=lambda c: c.val_loss)[: most - 1]
+    return [c for c in cands if c is chosen or any(c is n for n in near)]
 
 
 def contend(
@@ -1166,6 +1173,7 @@ def contend(
     chosen: Candidate,
     *,
     within: float | None,
+    most: int | None = None,
     mask_train: Sequence[np.ndarray],
     mask_val: Sequence[np.ndarray],
     seed: int,
@@ -1185,7 +1193,7 @@ def contend(
     per family continued its summary, :func:`pick`'s margins of the new choice; with no
     contender: ``chosen``, ``cands``, none, none).  ``progress``: called with each
     family and its summary when it is continued."""
-    todo = contenders(cands, chosen, within, noise=noise, tie_max=tie_max)
+    todo = contenders(cands, chosen, within, most=most, noise=noise, tie_max=tie_max)
     if not todo:
         return chosen, list(cands), {}, {}
     current = {c.family: c for c in cands}
@@ -1364,6 +1372,7 @@ def network_start(
             cands,
             chosen,
             within=images.start_continue_within,
+            most=images.start_continue_max,
             mask_train=train,
             mask_val=held,
             seed=cfg.train.seed,
@@ -1376,6 +1385,7 @@ def network_start(
             progress=continued,
         )
         summary["continue_within"] = images.start_continue_within
+        summary["continue_max"] = images.start_continue_max
         # why no contender was fitted further: the chosen start at its floor
         summary["uncontested"] = uncontested(first, noise, images.start_tie_max)
         for c in summary["candidates"]:  # each contender's continued loss beside its first

@@ -789,6 +789,63 @@ def test_continuing_the_contenders_lets_a_family_that_stopped_short_win(monkeypa
     assert calls == ["roughplastic", "principled"]
 
 
+def test_the_contenders_are_capped_at_the_least_losses_with_the_chosen_one(monkeypatch):
+    """images.start_continue_max: of the families within the factor, the chosen one and
+    the others of least held-out loss, that many in all, in the order fitted (the test
+    set's retroreflector, a poor start, had all six within it under the studio)."""
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(2)
+    unit = np.repeat(np.arange(12), 16)
+    base = rng.gamma(2.0, 0.0005, unit.size)
+    # every family within a factor of 2 of the least; the simplest, not the least, chosen
+    scale = {
+        "diffuse": 1.01,
+        "roughplastic": 1.3,
+        "principled": 1.1,
+        "roughconductor": 1.5,
+        "roughconductor_aniso": 1.2,
+        "blend": 1.0,
+    }
+    cands = [_first(name, base * k) for name, k in scale.items()]
+    chosen = cands[0]
+    assert starts.contenders(cands, chosen, 2.0) == cands  # no cap: all six
+    three = starts.contenders(cands, chosen, 2.0, most=3)
+    assert [c.family for c in three] == ["diffuse", "principled", "blend"]
+    two = starts.contenders(cands, chosen, 2.0, most=2)
+    assert [c.family for c in two] == ["diffuse", "blend"]
+    # the chosen one is always among them, even where its loss is not among the least
+    worst = cands[3]
+    assert [c.family for c in starts.contenders(cands, worst, 2.0, most=2)] == [
+        "roughconductor",
+        "blend",
+    ]
+    # a cap above the number within the factor changes nothing; the factor still bounds
+    assert starts.contenders(cands, chosen, 2.0, most=10) == cands
+    assert [c.family for c in starts.contenders(cands, chosen, 1.15, most=3)] == [
+        "diffuse",
+        "principled",
+        "blend",
+    ]
+    # contend() fits those alone
+    calls: list[str] = []
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to({}, calls))
+    kw = dict(mask_train=[], mask_val=[], seed=0, schedule=starts.Schedule(), unit=unit)
+    starts.contend([], cands, chosen, within=2.0, most=3, **kw)
+    assert calls == ["diffuse", "principled", "blend"]
+
+
+def test_the_cap_on_the_contenders_is_a_config_key():
+    """images.start_continue_max is validated like every key: null lifts the cap, and
+    below 2 (no contender but the chosen one) is refused with a line naming it."""
+    from neural_brdf.errors import ConfigError
+
+    assert config.load(None, ["images.start_continue_max=null"]).images.start_continue_max is None
+    assert config.load(None, ["images.start_continue_max=4"]).images.start_continue_max == 4
+    with pytest.raises(ConfigError, match="images.start_continue_max"):
+        config.load(None, ["images.start_continue_max=1"])
+
+
 def test_a_continued_fit_that_diverged_is_never_kept(monkeypatch):
     """A contender (or a refinement) whose continued fit ends NaN or infinite keeps its
     first fit: NaN compares False with anything, and the rule was ``after > before``."""

@@ -285,7 +285,8 @@ def _start_candidates(chosen: Any) -> list[Block]:
         Text(
             "Start: every family fitted to the training pixels, scored on the held-out "
             "pixels (relative MSE without the render's noise); the families within "
-            "images.start_continue_within of the best fitted further (continued), and the "
+            "images.start_continue_within of the best, images.start_continue_max at most, "
+            "fitted further (continued), and the "
             "simplest one within the noise of the best refined and distilled into the "
             "network."
         ),
