@@ -64,7 +64,8 @@ and images_any_dev_lights_contenders.json against the files of the settings befo
 ``retro_sign`` (the library's retroreflector, amber and sharper than the test set's) was
 added in session 65, a second material outside every family, sharp where the clay is
 smooth: with it ``images.poor_start_grid_lr_scale`` was chosen again and kept at 1
-(images_any_dev_retro_sign.json, _grid3.json and _grid10.json, the clay at 3 with the
+(images_any_dev_retro_sign.json, _grid3.json and _grid10.json, the first repeated in
+images_any_dev_retro_sign_repeat.json, the clay at 3 with the
 contenders in images_any_dev_poor_grid3_contenders.json and
 images_any_dev_lights_poor_grid3_contenders.json), and ``images.start_continue_max`` (3)
 from the development set's recorded fits, whose choice made again never fell beyond the
@@ -89,7 +90,8 @@ changes, those whose chosen start is above the targets' noise and has a contende
 reported and not used to choose (images_any_contenders.json: the matte blue and the
 retroreflector; images_any_lights_contenders.json: chrome and the retroreflector);
 after ``images.start_continue_max`` the one test fit with more than three contenders,
-the retroreflector under the studio (images_any.json, its row re-run).
+the retroreflector under the studio (images_any.json, its row re-run; without the cap on
+the same host, images_any_retro_contenders6_same_host.json).
 
 Measured per material, for the network and for its start (the chosen family with its
 fitted parameters, rendered by Mitsuba itself), against the true material:
@@ -234,6 +236,11 @@ def _el(kind: str, **props) -> ET.Element:
     return inverse.bsdf_element(kind, **props)
 
 
+def _analytic(model: str, **params) -> ET.Element:
+    """One of the library's analytic models through the project's ``analytic_brdf`` plugin."""
+    return _el("analytic_brdf", model=model, params=json.dumps(params))
+
+
 def _blend(weight: float, a: ET.Element, b: ET.Element) -> ET.Element:
     el = _el("blendbsdf", weight=weight)
     el.extend([a, b])
@@ -270,11 +277,7 @@ def materials() -> dict[str, dict]:
         # outside every family (added with the rule for a poor start, fit.py): a rough
         # diffuse surface with back-scattering, through the analytic_brdf plugin
         "rough_clay": (
-            _el(
-                "analytic_brdf",
-                model="oren_nayar",
-                params=json.dumps({"albedo": [0.7, 0.5, 0.35], "sigma": 0.6}),
-            ),
+            _analytic("oren_nayar", albedo=[0.7, 0.5, 0.35], sigma=0.6),
             "outside every family: the library's Oren-Nayar (sigma 0.6)",
         ),
         # added in session 60, after the test set's brushed gold (a poor start under the
@@ -297,13 +300,7 @@ def materials() -> dict[str, dict]:
         # smooth, so that a poor start's settings are not chosen on one smooth material
         # (docs/inverse.md, A poor start)
         "retro_sign": (
-            _el(
-                "analytic_brdf",
-                model="retroreflective",
-                params=json.dumps(
-                    {"kd": [0.15, 0.15, 0.2], "kr": [0.5, 0.35, 0.15], "exponent": 40}
-                ),
-            ),
+            _analytic("retroreflective", kd=[0.15, 0.15, 0.2], kr=[0.5, 0.35, 0.15], exponent=40),
             "outside every family: the library's retroreflector, amber and sharper "
             "(exponent 40), through the analytic_brdf plugin",
         ),
@@ -347,13 +344,7 @@ def materials() -> dict[str, dict]:
             "blendbsdf: 0.65 diffuse + 0.35 silver GGX 0.1",
         ),
         "retroreflector": (
-            _el(
-                "analytic_brdf",
-                model="retroreflective",
-                params=json.dumps(
-                    {"kd": [0.3, 0.25, 0.2], "kr": [0.45, 0.45, 0.5], "exponent": 20}
-                ),
-            ),
+            _analytic("retroreflective", kd=[0.3, 0.25, 0.2], kr=[0.45, 0.45, 0.5], exponent=20),
             "outside every family: the library's retroreflector through the analytic_brdf plugin",
         ),
     }

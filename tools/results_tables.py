@@ -3123,6 +3123,10 @@ SECTIONS = (
         "its poor start's grids at 1 (images.poor_start_grid_lr_scale, kept)",
     ),
     _images_any(
+        "images_any_dev_retro_sign_repeat.json",
+        "the amber retroreflector's poor start at 1, run again on the same host (repeatability)",
+    ),
+    _images_any(
         "images_any_dev_retro_sign_grid3.json",
         "the amber retroreflector's poor start, its grids at 3 (not chosen)",
     ),
@@ -3187,7 +3191,12 @@ SECTIONS = (
     _images_any(
         "images_any_retro_contenders6.json",
         "the retroreflector before images.start_continue_max, its six contenders fitted "
-        "further (the same start as with three; the image stage's spread between runs)",
+        "further (session 64's host)",
+    ),
+    _images_any(
+        "images_any_retro_contenders6_same_host.json",
+        "the retroreflector with its six contenders (images.start_continue_max null), on "
+        "the host of the cap's run, one after the other",
     ),
     _images_any(
         "images_any_poor_grid10.json",
