@@ -76,8 +76,9 @@ its sums over the split's tiles.  A family with more parameters must earn its pl
 takes the views only: the scenes' own ``<bsdf id="fit">`` is never read (the object's
 pixels are found with a stand-in diffuse), so no truth the user does not have enters the
 choice.  :func:`network_start` then fits the *contenders* (:func:`contend`: the families
-within ``images.start_continue_within`` of the least held-out loss, unless the chosen one
-is already at the targets' noise) as many steps again and chooses once more, and
+within ``images.start_continue_within`` of the least held-out loss, at most
+``images.start_continue_max`` of them, unless the chosen one is already at the targets'
+noise) as many steps again and chooses once more, and
 refines the chosen family (:func:`refine_rounds`).
 
 :func:`teacher_xml` writes the chosen BSDF as a standalone Mitsuba XML file, the teacher
