@@ -69,7 +69,10 @@ images_any_dev_retro_sign_repeat.json, the clay at 3 with the
 contenders in images_any_dev_poor_grid3_contenders.json and
 images_any_dev_lights_poor_grid3_contenders.json), and ``images.start_continue_max`` (3)
 from the development set's recorded fits, whose choice made again never fell beyond the
-second by held-out loss;
+second by held-out loss; ``images.poor_start_early_loss`` (0.03, session 66) from the
+same record, between the largest first choice above its noise that was not far from
+every family (the clay, 0.0041) and the amber retroreflector's (0.21), and run on it
+(images_any_dev_retro_sign_early.json);
 ``test``: other materials (a conductor, ``roughplastic``,
 ``principled`` with metallic 0.5, roughness 0.4, specular 0.5 and no sheen, ``diffuse``, an
 anisotropic conductor, a ``blendbsdf`` of two lobes, and the retroreflector), under two
@@ -90,8 +93,10 @@ changes, those whose chosen start is above the targets' noise and has a contende
 reported and not used to choose (images_any_contenders.json: the matte blue and the
 retroreflector; images_any_lights_contenders.json: chrome and the retroreflector);
 after ``images.start_continue_max`` the one test fit with more than three contenders,
-the retroreflector under the studio (images_any.json, its row re-run; without the cap on
-the same host, images_any_retro_contenders6_same_host.json).
+the retroreflector under the studio (images_any_retro_cap.json; without the cap on
+the same host, images_any_retro_contenders6_same_host.json); after
+``images.poor_start_early_loss`` the one test fit it changes, the same retroreflector
+(images_any.json, its row re-run).
 
 Measured per material, for the network and for its start (the chosen family with its
 fitted parameters, rendered by Mitsuba itself), against the true material:
@@ -558,8 +563,10 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "left_out": start.get("left_out"),
             "refine": refined or None,
             "continue_within": start.get("continue_within"),
-            # why none was: the chosen start at the targets' noise, or poor
+            # why none was: the chosen start at the targets' noise, or so far above it
+            # that it was poor at once (images.poor_start_early_loss, also not refined)
             "uncontested": start.get("uncontested"),
+            "early_loss": start.get("early_loss"),
             # the family the first choice took, where the continued contenders changed it
             "first_choice": start.get("first_choice"),
             # the poor-start rule's inputs (images.poor_start_loss): the chosen start's

@@ -302,6 +302,12 @@ class Images(_Section):
     # at poor_start_grid_lr_scale (null: never; chosen on the development set under
     # both captures: docs/inverse.md, "A poor start")
     poor_start_loss: float | None = Field(0.0015, gt=0.0)
+    # a first choice whose held-out loss exceeds the targets' noise by more than this is
+    # poor at once: no family is near, so no contender is fitted further and the chosen
+    # one is not refined (their time saved; at least poor_start_loss; null, here or
+    # there: never;
+    # chosen on the development set: docs/inverse.md, "A poor start")
+    poor_start_early_loss: float | None = Field(0.03, gt=0.0)
     # after a poor start the image stage learns the material rather than polishing a
     # start, and runs at least this many steps (train.steps raised to it; the rate's
     # cosine spans them; null: train.steps; chosen on the development set:
@@ -337,6 +343,23 @@ class Images(_Section):
     # set: docs/inverse.md, "When the image stage stops")
     patience: int | None = Field(5, ge=1)
     validation_spp: int = Field(64, ge=1)  # samples per pixel of the held-out renders
+
+    @model_validator(mode="after")
+    def _early_poor(self):
+        # a start poor at once (its contenders and refinement skipped) must be poor
+        early, limit = self.poor_start_early_loss, self.poor_start_loss
+        if early is not None and limit is not None and early < limit:
+            raise ValueError(
+                f"poor_start_early_loss: {early:g} calls a start poor that "
+                f"poor_start_loss ({limit:g}) does not; set it at least that, or null"
+            )
+        return self
+
+    @property
+    def early_poor_loss(self) -> float | None:
+        """``poor_start_early_loss``, or None when ``poor_start_loss`` is null (no start
+        is poor, so none is poor at once)."""
+        return None if self.poor_start_loss is None else self.poor_start_early_loss
 
     @field_validator("start")
     @classmethod

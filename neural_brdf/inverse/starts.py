@@ -79,7 +79,9 @@ choice.  :func:`network_start` then fits the *contenders* (:func:`contend`: the 
 within ``images.start_continue_within`` of the least held-out loss, at most
 ``images.start_continue_max`` of them, unless the chosen one is already at the targets'
 noise) as many steps again and chooses once more, and
-refines the chosen family (:func:`refine_rounds`).
+refines the chosen family (:func:`refine_rounds`); neither, when the first choice is so
+far above the targets' noise (``images.poor_start_early_loss``, :func:`far_above_floor`)
+that no family is near the material.
 
 :func:`teacher_xml` writes the chosen BSDF as a standalone Mitsuba XML file, the teacher
 of ``target: {mitsuba: FILE.xml}`` (:class:`neural_brdf.measured.mitsuba.MitsubaTarget`),
@@ -1134,10 +1136,29 @@ def at_floor(chosen: Candidate, noise: float | None, tie_max: float = TIE_MAX) -
     return noise is not None and chosen.val_loss <= (1.0 + tie_max) * noise
 
 
-def uncontested(chosen: Candidate, noise: float | None, tie_max: float = TIE_MAX) -> str | None:
+def far_above_floor(chosen: Candidate, noise: float | None, early: float | None) -> bool:
+    """Does ``chosen``'s held-out loss exceed the targets' own noise (``noise``; None:
+    unknown, taken as 0) by more than ``early`` (``images.poor_start_early_loss``;
+    None: never)?  Such a start is poor at once: no family is near the material, and
+    fitting the contenders further or refining the chosen one would not bring it near
+    (the most the contenders and the refinement took off a first choice on the
+    development set was 0.003, the brushed copper under lights; docs/inverse.md,
+    "A poor start")."""
+    return early is not None and chosen.val_loss - (noise or 0.0) > early
+
+
+def uncontested(
+    chosen: Candidate,
+    noise: float | None,
+    tie_max: float = TIE_MAX,
+    early: float | None = None,
+) -> str | None:
     """Why no contender is fitted further (:func:`contenders`), or None: ``"at its
-    floor"`` (:func:`at_floor`)."""
-    return "at its floor" if at_floor(chosen, noise, tie_max) else None
+    floor"`` (:func:`at_floor`) or ``"far above its floor"``
+    (:func:`far_above_floor`, with ``early``)."""
+    if at_floor(chosen, noise, tie_max):
+        return "at its floor"
+    return "far above its floor" if far_above_floor(chosen, noise, early) else None
 
 
 def contenders(
@@ -1148,16 +1169,18 @@ def contenders(
     most: int | None = None,
     noise: float | None = None,
     tie_max: float = TIE_MAX,
+    early: float | None = None,
 ) -> list[Candidate]:
     """The candidates fitted further before the choice is made again (in the order
     fitted): with ``within``, every one whose held-out loss is at most ``within`` times
     the least, ``chosen`` among them; with ``most``, ``chosen`` and the others of least
     held-out loss, ``most`` in all; none when ``within`` is None, when there is a single
-    candidate, or when ``chosen`` is :func:`uncontested`."""
+    candidate, or when ``chosen`` is :func:`uncontested` (``early``: its limit above the
+    floor)."""
     finite = [c.val_loss for c in cands if math.isfinite(c.val_loss)]
     if within is None or len(cands) < 2 or not finite:
         return []
-    if uncontested(chosen, noise, tie_max):
+    if uncontested(chosen, noise, tie_max, early):
         return []
     limit = within * min(finite)
     near = [
@@ -1184,6 +1207,7 @@ def contend(
     sigmas: float = TIE_SIGMAS,
     tie_max: float = TIE_MAX,
     noise: float | None = None,
+    early: float | None = None,
     progress: Callable[[str, dict[str, Any]], None] | None = None,
 ) -> tuple[Candidate, list[Candidate], dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
     """Fit each of the :func:`contenders` ``schedule.steps`` more steps from its
@@ -1194,7 +1218,7 @@ def contend(
     per family continued its summary, :func:`pick`'s margins of the new choice; with no
     contender: ``chosen``, ``cands``, none, none).  ``progress``: called with each
     family and its summary when it is continued."""
-    todo = contenders(cands, chosen, within, most=most, noise=noise, tie_max=tie_max)
+    todo = contenders(cands, chosen, within, most=most, noise=noise, tie_max=tie_max, early=early)
     if not todo:
         return chosen, list(cands), {}, {}
     current = {c.family: c for c in cands}
@@ -1309,6 +1333,7 @@ def network_start(
         )
     train, held = run_masks(views)
     sched = Schedule.of(images)
+    early = False  # poor at once (far_above_floor): no contenders, no refinement
 
     def said(c: Candidate) -> None:
         if report is not None:
@@ -1383,12 +1408,25 @@ def network_start(
             sigmas=images.start_tie_sigmas,
             tie_max=images.start_tie_max,
             noise=noise,
+            early=images.early_poor_loss,
             progress=continued,
         )
         summary["continue_within"] = images.start_continue_within
         summary["continue_max"] = images.start_continue_max
-        # why no contender was fitted further: the chosen start at its floor
-        summary["uncontested"] = uncontested(first, noise, images.start_tie_max)
+        summary["early_loss"] = images.early_poor_loss
+        # why no contender was fitted further: the chosen start at its floor, or so far
+        # above it that it is poor at once (nor is it refined)
+        summary["uncontested"] = uncontested(
+            first, noise, images.start_tie_max, images.early_poor_loss
+        )
+        early = far_above_floor(first, noise, images.early_poor_loss)
+        if early and report is not None:
+            report(
+                f"start {first.family}: held-out loss {first.val_loss - (noise or 0.0):.2g} "
+                f"above the targets' noise > images.poor_start_early_loss "
+                f"{images.poor_start_early_loss:g}: poor at once, no contender fitted "
+                "further, not refined"
+            )
         for c in summary["candidates"]:  # each contender's continued loss beside its first
             r = done.get(c["family"])
             if r is not None:
@@ -1405,7 +1443,7 @@ def network_start(
         summary["seconds"] = float(summary["seconds"]) + sum(
             float(r["seconds"]) for r in done.values()
         )
-    if images.start_refine_steps > 0:
+    if images.start_refine_steps > 0 and not early:
         kept, summary["refine"] = refine_rounds(
             views,
             chosen,

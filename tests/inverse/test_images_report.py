@@ -331,6 +331,17 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     assert "poor: no family fits the views" in text
     assert "0.0023 above the noise > images.poor_start_loss 0.0015" in text
     assert "ran at train.lr for up to 450 steps (images.poor_start_steps)" in text
+    assert "poor at once" not in text  # its contenders and refinement ran
+    # poor at once (images.poor_start_early_loss): no contender, no refinement, said
+    far = {**poor, "uncontested": "far above its floor", "early_loss": 0.03}
+    at_once = make_images_run(tiny_run, tmp_path / "far", extra={"init": {**init, "start": far}})
+    text = " ".join(
+        visible_text(report.write_report(at_once, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "poor at once, its first choice above the noise by more than "
+        "images.poor_start_early_loss 0.03: no contender fitted further, not refined" in text
+    )
     good = {**start, "val_loss": 0.0012, "target_noise": 0.0011}
     fine = make_images_run(tiny_run, tmp_path / "fine", extra={"init": {**init, "start": good}})
     text = " ".join(

@@ -876,28 +876,13 @@ def test_a_continued_fit_that_diverged_is_never_kept(monkeypatch):
     assert kept is not cands[0] and summary["kept"] and kept.val_loss < cands[0].val_loss
 
 
-def test_network_start_records_the_contenders_and_the_choice_made_again(mi, materials, monkeypatch):
-    """metrics.json's start (training.init.start): each contender's continued held-out
-    loss beside its first figures, the first choice where the new one differs, the new
-    choice's refinement under ``refine`` (from its continued fit), and every fit's time
-    in the start's; at the targets' noise, no contender."""
+def _network_start_fakes(monkeypatch, cands, continued, noise):
+    """network_start's stages replaced: the choice picks among ``cands``, a contender's
+    further fit scores ``continued[family]`` (its own losses otherwise), a refinement
+    keeps its start (3 s), the distillation returns at once, and the targets' noise is
+    ``noise["value"]``.  Returns (the families fitted further, the candidates refined)."""
     from neural_brdf.inverse import fit as inverse
     from neural_brdf.inverse import starts
-
-    rng = np.random.default_rng(3)
-    path = materials["diffuse"]
-    cfg = config.load(path, ["images.start=auto", "images.start_continue_within=2"])
-    views = views_of(path)
-    inverse.split_views(views, cfg.images, cfg.train.seed)
-    for v in views:
-        v.object = starts.object_mask(v)
-    n = int(sum(m.sum() for m in starts.run_masks(views)[1]))
-    base = rng.gamma(2.0, 0.001, n)
-    cands = [
-        _first("diffuse", base * 5.0),
-        _first("roughplastic", base),
-        _first("principled", base * 1.5),
-    ]
 
     def choose(views, names, **kw):
         chosen, margins = starts.pick(cands)
@@ -929,19 +914,50 @@ def test_network_start_records_the_contenders_and_the_choice_made_again(mi, mate
             "seconds": 3.0,
         }
 
-    seen = {}
-
     def distill(cfg, element, folder, steps):
-        seen["element"] = element
         return {}, {"seconds": 0.5}
 
     calls: list[str] = []
-    noise = {"value": float(base.mean()) / 100.0}  # far below the chosen start's loss
     monkeypatch.setattr(starts, "choose_start", choose)
-    monkeypatch.setattr(starts, "fit_candidate", _continued_to({"principled": base * 0.01}, calls))
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to(continued, calls))
     monkeypatch.setattr(starts, "refine_rounds", refine_rounds)
     monkeypatch.setattr(starts, "distill", distill)
     monkeypatch.setattr(inverse, "target_noise", lambda views: noise["value"])
+    return calls, refined
+
+
+def _split_views(path, cfg):
+    """The example's views of ``path`` with ``cfg``'s split and their object masks."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    views = views_of(path)
+    inverse.split_views(views, cfg.images, cfg.train.seed)
+    for v in views:
+        v.object = starts.object_mask(v)
+    return views
+
+
+def test_network_start_records_the_contenders_and_the_choice_made_again(mi, materials, monkeypatch):
+    """metrics.json's start (training.init.start): each contender's continued held-out
+    loss beside its first figures, the first choice where the new one differs, the new
+    choice's refinement under ``refine`` (from its continued fit), and every fit's time
+    in the start's; at the targets' noise, no contender."""
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(3)
+    path = materials["diffuse"]
+    cfg = config.load(path, ["images.start=auto", "images.start_continue_within=2"])
+    views = _split_views(path, cfg)
+    n = int(sum(m.sum() for m in starts.run_masks(views)[1]))
+    base = rng.gamma(2.0, 0.001, n)
+    cands = [
+        _first("diffuse", base * 5.0),
+        _first("roughplastic", base),
+        _first("principled", base * 1.5),
+    ]
+    noise = {"value": float(base.mean()) / 100.0}  # far below the chosen start's loss
+    calls, refined = _network_start_fakes(monkeypatch, cands, {"principled": base * 0.01}, noise)
     _, info, _ = starts.network_start(cfg, views, path.parent / "init")
     s = info["start"]
     assert calls == ["roughplastic", "principled"]
@@ -967,3 +983,66 @@ def test_network_start_records_the_contenders_and_the_choice_made_again(mi, mate
     assert s["family"] == "roughplastic" and s["uncontested"] == "at its floor"
     assert "first_choice" not in s
     assert not any("continued_val_loss" in c for c in s["candidates"])
+
+
+def test_a_first_choice_far_above_the_noise_is_poor_at_once(mi, materials, monkeypatch, capsys):
+    """images.poor_start_early_loss: a first choice whose held-out loss exceeds the
+    targets' noise by more than the limit fits no contender further and is not refined
+    (the development set's amber retroreflector: 0.21 above its noise, where the most the
+    contenders and the refinement took off a first choice was 0.003); metrics.json says
+    why, stderr says so, the start's time holds neither, and the fit then calls the start
+    poor.  Just below the limit both run as before; null never skips them."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(4)
+    path = materials["diffuse"]
+    views = _split_views(path, config.load(path, ["images.start=auto"]))
+    n = int(sum(m.sum() for m in starts.run_masks(views)[1]))
+    base = rng.gamma(2.0, 0.01, n)  # a mean loss about 0.02
+    cands = [_first("diffuse", base), _first("blend", base * 1.2)]
+    least = float(base.mean())
+    noise = {"value": 0.001}
+    calls, refined = _network_start_fakes(monkeypatch, cands, {}, noise)
+
+    def run(limit, folder, poor_off=False):
+        sets = ["images.start=auto", f"images.poor_start_early_loss={limit}"]
+        cfg = config.load(path, [*sets, *(["images.poor_start_loss=null"] if poor_off else [])])
+        calls.clear()
+        refined.clear()
+        return starts.network_start(cfg, views, path.parent / folder, report=print)[1]
+
+    info = run(least - 0.001 - 1e-4, "init_far")  # the excess just above the limit
+    s = info["start"]
+    assert calls == [] and refined == []
+    assert s["uncontested"] == "far above its floor" and "refine" not in s
+    assert s["family"] == "diffuse" and s["val_loss"] == cands[0].val_loss
+    assert s["seconds"] == pytest.approx(1.0)  # the choice alone
+    out = capsys.readouterr().out
+    assert "images.poor_start_early_loss" in out and "poor at once" in out
+    # the fit's rule then calls it poor (the limit is at least images.poor_start_loss)
+    assert inverse.poor_start(info, 0.0015, noise["value"], 450)
+    # just below the limit, with null, and with no start poor: the contenders and the
+    # refinement as before
+    for limit, more in ((least - 0.001 + 1e-4, []), ("null", []), (0.0015, [None])):
+        s = run(limit, f"init_{limit}_{len(more)}", poor_off=bool(more))["start"]
+        assert calls == ["diffuse", "blend"] and [c.family for c in refined] == ["diffuse"]
+        assert s["uncontested"] is None and "refine" in s
+
+
+def test_poor_at_once_is_a_config_key_no_lower_than_the_poor_limit():
+    """images.poor_start_early_loss is validated like every key: a start poor at once
+    must be poor, so it is refused below images.poor_start_loss by a line naming it;
+    null, here or in images.poor_start_loss (no start poor), never skips."""
+    from neural_brdf.errors import ConfigError
+
+    assert config.load(None, []).images.poor_start_early_loss == 0.03
+    off = config.load(None, ["images.poor_start_early_loss=null"])
+    assert off.images.poor_start_early_loss is None
+    same = config.load(None, ["images.poor_start_early_loss=0.0015"])
+    assert same.images.poor_start_early_loss == same.images.poor_start_loss
+    assert same.images.early_poor_loss == 0.0015
+    assert config.load(None, ["images.poor_start_loss=null"]).images.early_poor_loss is None
+    for bad in (["images.poor_start_early_loss=0.001"], ["images.poor_start_early_loss=0"]):
+        with pytest.raises(ConfigError, match="images.poor_start_early_loss"):
+            config.load(None, bad)

@@ -229,7 +229,8 @@ def _fit_figures(run: Run) -> list[Block]:
 
 def _start_noise_rows(chosen: dict) -> list[list[str]]:
     """The chosen start's held-out loss against the targets' own noise (estimated from
-    the images: ``target_noise``), and whether images.poor_start_loss called it poor."""
+    the images: ``target_noise``), and whether images.poor_start_loss called it poor
+    (at once, by images.poor_start_early_loss)."""
     loss, noise = _finite(chosen.get("val_loss")), _finite(chosen.get("target_noise"))
     if loss is None:
         return []
@@ -246,6 +247,13 @@ def _start_noise_rows(chosen: dict) -> list[list[str]]:
             said += f" for up to {steps} steps (images.poor_start_steps)"
         if above is not None and limit is not None:
             said += f" ({above:.2g} above the noise > images.poor_start_loss {limit:g})"
+        early = _finite(chosen.get("early_loss"))
+        if chosen.get("uncontested") == "far above its floor" and early is not None:
+            said += (
+                f"; poor at once, its first choice above the noise by more than "
+                f"images.poor_start_early_loss {early:g}: no contender fitted further, "
+                "not refined"
+            )
         rows.append(["start's fit", said])
     return rows
 
