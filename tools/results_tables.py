@@ -3123,6 +3123,11 @@ SECTIONS = (
         "its poor start's grids at 1 (images.poor_start_grid_lr_scale, kept)",
     ),
     _images_any(
+        "images_any_dev_retro_sign_early.json",
+        "the amber retroreflector poor at once (images.poor_start_early_loss 0.03, session "
+        "66): no contender fitted further, not refined",
+    ),
+    _images_any(
         "images_any_dev_retro_sign_repeat.json",
         "the amber retroreflector's poor start at 1, run again on the same host (repeatability)",
     ),
@@ -3192,6 +3197,11 @@ SECTIONS = (
         "images_any_retro_contenders6.json",
         "the retroreflector before images.start_continue_max, its six contenders fitted "
         "further (session 64's host)",
+    ),
+    _images_any(
+        "images_any_retro_cap.json",
+        "the retroreflector with at most three contenders (images.start_continue_max, "
+        "session 65), before images.poor_start_early_loss",
     ),
     _images_any(
         "images_any_retro_contenders6_same_host.json",
