@@ -1419,7 +1419,8 @@ def network_start(
         summary["uncontested"] = uncontested(
             first, noise, images.start_tie_max, images.early_poor_loss
         )
-        early = far_above_floor(first, noise, images.early_poor_loss)
+        # (a noise estimate so high that the start is also at its floor: not poor at once)
+        early = summary["uncontested"] == "far above its floor"
         if early and report is not None:
             report(
                 f"start {first.family}: held-out loss {first.val_loss - (noise or 0.0):.2g} "

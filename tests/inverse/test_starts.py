@@ -1028,6 +1028,12 @@ def test_a_first_choice_far_above_the_noise_is_poor_at_once(mi, materials, monke
         s = run(limit, f"init_{limit}_{len(more)}", poor_off=bool(more))["start"]
         assert calls == ["diffuse", "blend"] and [c.family for c in refined] == ["diffuse"]
         assert s["uncontested"] is None and "refine" in s
+    # a start at its floor is not poor at once, however far above a noise that high it is
+    noise["value"] = least / 1.2
+    s = run(0.0015, "init_floor")["start"]
+    assert least - noise["value"] > 0.0015  # above the limit, but within TIE_MAX of the noise
+    assert s["uncontested"] == "at its floor" and calls == []
+    assert [c.family for c in refined] == ["diffuse"] and "refine" in s
 
 
 def test_poor_at_once_is_a_config_key_no_lower_than_the_poor_limit():
