@@ -305,8 +305,7 @@ class Images(_Section):
     # a first choice whose held-out loss exceeds the targets' noise by more than this is
     # poor at once: no family is near, so no contender is fitted further and the chosen
     # one is not refined (their time saved; at least poor_start_loss; null, here or
-    # there: never;
-    # chosen on the development set: docs/inverse.md, "A poor start")
+    # there: never; chosen on the development set: docs/inverse.md, "A poor start")
     poor_start_early_loss: float | None = Field(0.03, gt=0.0)
     # after a poor start the image stage learns the material rather than polishing a
     # start, and runs at least this many steps (train.steps raised to it; the rate's
