@@ -132,6 +132,14 @@ run chose one setting, with the environment's: ``images.poor_start_loss``, once 
 limit above the targets' own noise (docs/inverse.md, "A poor start"); the others are the
 environment capture's.
 
+**A flash beside the environment** (``--capture environment_flash``; session 67): the
+set's environment in every fitted view and, in the first, a point light at its camera
+(:data:`neural_brdf.inverse.scene.FLASH_INTENSITY`), the held-out camera under the
+environment alone: what a flash adds to an environment capture (docs/inverse.md, "A
+flash beside the environment"); run on the development and the test set's
+retroreflectors, no setting chosen with it (images_any_dev_environment_flash.json,
+images_any_environment_flash.json).
+
 Nothing here asserts anything; the JSON goes to benchmarks/results/images_any.json
 (``--set dev``: images_any_dev.json; ``--capture lights``: images_any_lights.json and
 images_any_dev_lights.json; a full test run whose defaults have since changed is kept
@@ -163,7 +171,7 @@ from common import write_json  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 RESOLUTION, TARGET_SPP, HELDOUT_SPP = 96, 256, 1024
-CAPTURES = ("environment", "lights")  # --capture: the fitted views' lighting
+CAPTURES = ("environment", "lights", "environment_flash")  # --capture: the fitted views' lighting
 PAIRS = 1 << 16
 PSNR_GOAL_DB, IMAGE_GOAL, BRDF_GOAL = 35.0, 0.05, 0.05
 ENV_HEIGHT = 128
@@ -375,10 +383,11 @@ def loadavg() -> list[float]:
 def fitting_emitters(capture: str, view: int | None) -> str | None:
     """The emitters (XML) of fitted view ``view`` (0-based) of a ``capture``, or of the
     held-out camera (``view`` None: every view's lights at once, the capture's lights
-    together); None for the environment capture (the set's fitting environment)."""
+    together); None for the environment captures (the set's fitting environment;
+    :func:`write_views` adds environment_flash's flash)."""
     from neural_brdf.inverse import scene
 
-    if capture == "environment":
+    if capture in ("environment", "environment_flash"):
         return None
     views = range(len(scene.LIGHTS)) if view is None else (view,)
     return "\n    ".join(str(scene.capture_emitters(capture, k)) for k in views)
@@ -403,6 +412,13 @@ def write_views(
     folder.mkdir(parents=True, exist_ok=True)
 
     def xml(az: float, el: float, env: Path, emitters: str | None = None) -> str:
+        if capture == "environment_flash" and (az, el) == scene.VIEWS[0] and env == env_fit:
+            # the fitting environment and, in the first view, a flash at its camera (a
+            # point light at its eye: one photograph taken with the camera's flash)
+            emitters = (
+                f'<emitter type="envmap"><string name="filename" value="{env}"/></emitter>\n'
+                f"    {scene.point_light(scene.camera_origin(az, el), scene.FLASH_INTENSITY)}"
+            )
         text = scene.scene_xml(az, el, resolution=RESOLUTION, envmap=str(env), emitters=emitters)
         tree = ET.ElementTree(ET.fromstring(text))
         return inverse.scene_text(tree, truth)
@@ -624,6 +640,14 @@ def capture_entry(capture: str) -> dict:
 
     if capture == "environment":
         return {"kind": capture}
+    if capture == "environment_flash":
+        return {
+            "kind": capture,
+            "flash_intensity": scene.FLASH_INTENSITY,
+            "fitted": "the set's fitting environment, and in the first view a point light "
+            "at its camera",
+            "heldout": "the held-out camera under the fitting environment",
+        }
     return {
         "kind": capture,
         # per fitted view: (kind, azimuth, elevation) of its lights, LIGHT_DISTANCE away
@@ -666,7 +690,8 @@ def main(argv: list[str] | None = None) -> int:
         choices=CAPTURES,
         default="environment",
         help="the fitted views' lighting: the set's environment (default), or a light per "
-        "view (neural_brdf.inverse.scene.LIGHTS, docs/inverse.md's multi-light example)",
+        "view (neural_brdf.inverse.scene.LIGHTS, docs/inverse.md's multi-light example), "
+        "or the environment with a flash at the first camera (environment_flash)",
     )
     ap.add_argument(
         "--set-key",

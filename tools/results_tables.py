@@ -1260,11 +1260,13 @@ def images_any_section(
     m = d["machine"]
     capture = d.get("capture") or {"kind": "environment"}
     lights = capture["kind"] == "lights"
+    flash = capture["kind"] == "environment_flash"
     settings = ", ".join(f"`{o}`" for o in d["overrides"]) or "the benchmark's config"
     if which == "test":
         title = (
             "## Images of any material: held out, relit (the test set"
             + (", a multi-light capture" if lights else "")
+            + (", the environment and a flash in the first view" if flash else "")
             + (f"; {title}" if title else "")
             + ")"
         )
@@ -1283,13 +1285,19 @@ def images_any_section(
             + f", {capture['distance']:g} units from the sphere's centre; the held-out camera "
             "lit by the three together)"
         )
+    if flash:
+        fitted_under = (
+            f"`{envs['fit']}`, and in the first view a flash: a point light of "
+            f"{capture['flash_intensity']:g} W/sr at its camera (the held-out camera under "
+            f"`{envs['fit']}` alone)"
+        )
     out = [
         title,
         "",
         _source(
             f"benchmarks/results/{name}",
             f"python benchmarks/images_any.py --set {which}"
-            + (f" --capture {capture['kind']}" if lights else "")
+            + (f" --capture {capture['kind']}" if lights or flash else "")
             + (f" --steps {d['steps']}" if d["steps"] != 150 else "")
             + "".join(f" --set-key {o}" for o in d["overrides"])
             + (
@@ -3221,6 +3229,14 @@ SECTIONS = (
     _images_any(
         "images_any_fitted_views.json",
         "the satin blend re-run to score its fitted views (no setting changed for it)",
+    ),
+    _images_any(
+        "images_any_environment_flash.json",
+        "the retroreflector alone, session 67: what a flash adds (no setting changed)",
+    ),
+    _images_any(
+        "images_any_dev_environment_flash.json",
+        "the amber retroreflector under the sky and a flash in the first view (session 67)",
     ),
     _images_any(
         "images_any_lights_fitted_views.json",
