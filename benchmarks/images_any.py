@@ -111,7 +111,11 @@ fitted parameters, rendered by Mitsuba itself), against the true material:
 * the BRDF's relative RMSE of f cos(theta_o) (Mitsuba's ``eval`` of the truth) over pairs
   with both cosines > 0.5 (:func:`neural_brdf.inverse.fit.brdf_pairs`), and over the
   observed part of the domain (:func:`neural_brdf.inverse.coverage.observed_mask` of the
-  fitted views' coverage, pairs with both cosines > 0.1 drawn the same way);
+  fitted views' coverage, pairs with both cosines > 0.1 drawn the same way), and over
+  each the share of pairs where the network's f cos is over 3 times the truth's
+  (``network_over``, since session 67: spurious bumps that a render reflects);
+* the image stage's held-out loss at every scoring (``validation.trajectory``, since
+  session 67);
 * reciprocity, the furnace (max albedo) and the physics verdict of ``validate``;
 * the fit's time: the start (every family's fit and the choice), its distillation, the
   image stage, and the whole (wall-clock, with the load average); and, as the yardstick
@@ -440,6 +444,30 @@ def write_views(
     return held
 
 
+OVER = 3.0  # brdf's network_over: pairs where the network's f exceeds OVER x the truth's
+
+
+def overshoot(fc_fit: np.ndarray, fc_true: np.ndarray) -> float:
+    """The share of pairs whose f cos (the mean of RGB) is over :data:`OVER` times the
+    truth's: a fit's spurious bumps, which a relative RMSE over the whole domain hides
+    and a render reflects as highlights (docs/inverse.md, "A flash beside the
+    environment")."""
+    fit, true = fc_fit.mean(axis=-1), fc_true.mean(axis=-1)
+    return float(np.mean(fit > OVER * true)) if len(fit) else 0.0
+
+
+def heldout_trajectory(run_dir: Path) -> list[list[float]]:
+    """[step, held-out loss] at every scoring of the image stage (the run's log.csv)."""
+    import csv
+
+    with open(run_dir / "log.csv", newline="") as fh:
+        return [
+            [int(row["step"]), float(row["heldout_loss"])]
+            for row in csv.DictReader(fh)
+            if row.get("heldout_loss")
+        ]
+
+
 def image_figures(view, ref: np.ndarray, mask: np.ndarray, bsdf_el: ET.Element, seed: int) -> dict:
     from neural_brdf.inverse import fit as inverse
 
@@ -485,7 +513,12 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     def brdf_errors(wi: np.ndarray, wo: np.ndarray) -> dict:
         fc_true = inverse.mitsuba_f_cos(truth_bsdf, wi, wo)
         fc_net = np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3]
-        out = {"pairs": int(len(wi)), "network": inverse.brdf_rel_rmse(fc_net, fc_true)}
+        out = {
+            "pairs": int(len(wi)),
+            "network": inverse.brdf_rel_rmse(fc_net, fc_true),
+            # spurious bumps: the share of pairs where the network is over OVER x the truth
+            "network_over": overshoot(fc_net, fc_true),
+        }
         for key, el in (("start", start_el), ("start_unrefined", before_el)):
             if el is not None:
                 fc = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(el), wi, wo)
@@ -608,7 +641,8 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
                 "patience",
                 "stopped_at",
             )
-        },
+        }
+        | {"trajectory": heldout_trajectory(run_dir)},
         "image_steps": tr["steps"],
         "physics": {
             "reciprocity": checks["reciprocity"]["value"],
