@@ -415,10 +415,10 @@ def write_views(
 
     folder.mkdir(parents=True, exist_ok=True)
 
-    def xml(az: float, el: float, env: Path, emitters: str | None = None) -> str:
-        if capture == "environment_flash" and (az, el) == scene.VIEWS[0] and env == env_fit:
-            # the fitting environment and, in the first view, a flash at its camera (a
-            # point light at its eye: one photograph taken with the camera's flash)
+    def xml(
+        az: float, el: float, env: Path, emitters: str | None = None, flash: bool = False
+    ) -> str:
+        if flash:  # the environment and a flash at this camera (a point light at its eye)
             emitters = (
                 f'<emitter type="envmap"><string name="filename" value="{env}"/></emitter>\n'
                 f"    {scene.point_light(scene.camera_origin(az, el), scene.FLASH_INTENSITY)}"
@@ -429,7 +429,9 @@ def write_views(
 
     for k, (az, el) in enumerate(scene.VIEWS[:3], start=1):
         path = folder / f"view{k}.xml"
-        atomic_write(path, xml(az, el, env_fit, fitting_emitters(capture, k - 1)))
+        # environment_flash: the first view is a photograph taken with the camera's flash
+        flash = capture == "environment_flash" and k == 1
+        atomic_write(path, xml(az, el, env_fit, fitting_emitters(capture, k - 1), flash))
         scene.write_exr(folder / f"view{k}.exr", scene.render_file(path, TARGET_SPP, seed=k))
     held = []
     for label, env, emitters in (
