@@ -140,9 +140,10 @@ environment capture's.
 set's environment in every fitted view and, in the first, a point light at its camera
 (:data:`neural_brdf.inverse.scene.FLASH_INTENSITY`), the held-out camera under the
 environment alone: what a flash adds to an environment capture (docs/inverse.md, "A
-flash beside the environment"); run on the development and the test set's
-retroreflectors, no setting chosen with it (images_any_dev_environment_flash.json,
-images_any_environment_flash.json).
+flash beside the environment"). A capture, not a setting: nothing was chosen with it.
+It ran first on the development set's amber retroreflector
+(images_any_dev_environment_flash.json), then once on the test set's retroreflector to
+report it (images_any_environment_flash.json), with every setting as chosen on ``dev``.
 
 Nothing here asserts anything; the JSON goes to benchmarks/results/images_any.json
 (``--set dev``: images_any_dev.json; ``--capture lights``: images_any_lights.json and
@@ -416,14 +417,11 @@ def write_views(
     folder.mkdir(parents=True, exist_ok=True)
 
     def xml(
-        az: float, el: float, env: Path, emitters: str | None = None, flash: bool = False
+        az: float, el: float, env: Path, emitters: str | None = None, beside: str | None = None
     ) -> str:
-        if flash:  # the environment and a flash at this camera (a point light at its eye)
-            emitters = (
-                f'<emitter type="envmap"><string name="filename" value="{env}"/></emitter>\n'
-                f"    {scene.point_light(scene.camera_origin(az, el), scene.FLASH_INTENSITY)}"
-            )
-        text = scene.scene_xml(az, el, resolution=RESOLUTION, envmap=str(env), emitters=emitters)
+        text = scene.scene_xml(
+            az, el, resolution=RESOLUTION, envmap=str(env), emitters=emitters, beside=beside
+        )
         tree = ET.ElementTree(ET.fromstring(text))
         return inverse.scene_text(tree, truth)
 
@@ -431,7 +429,8 @@ def write_views(
         path = folder / f"view{k}.xml"
         # environment_flash: the first view is a photograph taken with the camera's flash
         flash = capture == "environment_flash" and k == 1
-        atomic_write(path, xml(az, el, env_fit, fitting_emitters(capture, k - 1), flash))
+        beside = scene.capture_emitters("flash", k - 1) if flash else None
+        atomic_write(path, xml(az, el, env_fit, fitting_emitters(capture, k - 1), beside))
         scene.write_exr(folder / f"view{k}.exr", scene.render_file(path, TARGET_SPP, seed=k))
     held = []
     for label, env, emitters in (
@@ -454,20 +453,7 @@ def overshoot(fc_fit: np.ndarray, fc_true: np.ndarray) -> float:
     truth's: a fit's spurious bumps, which a relative RMSE over the whole domain hides
     and a render reflects as highlights (docs/inverse.md, "A flash beside the
     environment")."""
-    fit, true = fc_fit.mean(axis=-1), fc_true.mean(axis=-1)
-    return float(np.mean(fit > OVER * true)) if len(fit) else 0.0
-
-
-def heldout_trajectory(run_dir: Path) -> list[list[float]]:
-    """[step, held-out loss] at every scoring of the image stage (the run's log.csv)."""
-    import csv
-
-    with open(run_dir / "log.csv", newline="") as fh:
-        return [
-            [int(row["step"]), float(row["heldout_loss"])]
-            for row in csv.DictReader(fh)
-            if row.get("heldout_loss")
-        ]
+    return float(np.mean(fc_fit.mean(axis=-1) > OVER * fc_true.mean(axis=-1)))
 
 
 def image_figures(view, ref: np.ndarray, mask: np.ndarray, bsdf_el: ET.Element, seed: int) -> dict:
@@ -481,6 +467,8 @@ def image_figures(view, ref: np.ndarray, mask: np.ndarray, bsdf_el: ET.Element, 
 
 
 def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> dict:
+    from images_patience import scorings
+
     from neural_brdf import config, pipeline, runtime
     from neural_brdf.inverse import coverage, starts
     from neural_brdf.inverse import fit as inverse
@@ -644,7 +632,8 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
                 "stopped_at",
             )
         }
-        | {"trajectory": heldout_trajectory(run_dir)},
+        # [step, held-out loss] at every scoring, the start's at step 0
+        | {"trajectory": [list(x) for x in scorings(run_dir)[0]]},
         "image_steps": tr["steps"],
         "physics": {
             "reciprocity": checks["reciprocity"]["value"],

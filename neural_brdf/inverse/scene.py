@@ -193,11 +193,13 @@ def scene_xml(
     bsdf: dict | None = None,
     max_depth: int = 3,
     emitters: str | None = None,
+    beside: str | None = None,
 ) -> str:
     """A Mitsuba 3 scene: the unit sphere with ``<bsdf id="fit">`` (``bsdf``: the
     roughconductor parameters, :data:`TRUTH` by default) under ``envmap``, or, when
     ``emitters`` (XML: :func:`point_light`, :func:`area_light`) is given, lit by those
-    instead of an environment."""
+    instead of an environment; ``beside``: emitters added to the environment (a flash
+    in a lit room)."""
     o = camera_origin(azimuth, elevation)
     p = bsdf or TRUTH
     light = (
@@ -207,6 +209,8 @@ def scene_xml(
         if emitters is None
         else emitters
     )
+    if beside is not None:
+        light = f"{light}\n    {beside}"
     return f"""<scene version="3.0.0">
     <integrator type="path">
         <integer name="max_depth" value="{max_depth}"/>

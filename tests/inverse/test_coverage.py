@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,24 @@ def test_flash_observes_only_theta_d_zero_and_an_environment_far_more(scenes, tm
     assert len(info["per_view"]) == 3
     png = coverage.write_picture(env, tmp_path / "coverage.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_flash_beside_the_environment_lights_with_both(mi, scenes):
+    # scene_xml's ``beside``: the environment stays and the flash is added, so the view
+    # observes the flash's theta_d = 0 row and the environment's many rows
+    from neural_brdf.inverse import scene as example
+
+    env_view = scenes["environment"][0]
+    az, el = example.VIEWS[0]
+    path = env_view.with_name("environment_flash1.xml")
+    flash = example.capture_emitters("flash", 0)
+    path.write_text(example.scene_xml(az, el, resolution=RES, beside=flash))
+    kinds = [e.get("type") for e in ET.parse(path).getroot().iter("emitter")]
+    assert kinds == ["envmap", "point"], kinds
+    assert len(mi.load_file(str(path)).emitters()) == 2
+    both, alone = _coverage([path]), _coverage([scenes["flash"][0]])
+    assert both.observed[:, 0].any() and both.observed.any(0).sum() > 20
+    assert not alone.observed[:, 1:].any()
 
 
 # ------------------------------------------------------------------ views added
