@@ -145,6 +145,14 @@ It ran first on the development set's amber retroreflector
 (images_any_dev_environment_flash.json), then once on the test set's retroreflector to
 report it (images_any_environment_flash.json), with every setting as chosen on ``dev``.
 
+**A flash/no-flash pair** (``--capture flash_pair``; session 68): the environment
+capture's three views and a fourth fitted view, the first camera's photograph with the
+flash minus view 1 (the one without), fitted with a scene lit by the flash alone
+(:func:`neural_brdf.inverse.scene.write_flash_pair`; docs/inverse.md, "A flash/no-flash
+pair").  A capture, not a setting, run as the flash above: the development set's amber
+retroreflector first (images_any_dev_flash_pair.json), then once the test set's
+retroreflector (images_any_flash_pair.json).
+
 Nothing here asserts anything; the JSON goes to benchmarks/results/images_any.json
 (``--set dev``: images_any_dev.json; ``--capture lights``: images_any_lights.json and
 images_any_dev_lights.json; a full test run whose defaults have since changed is kept
@@ -176,7 +184,8 @@ from common import write_json  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 RESOLUTION, TARGET_SPP, HELDOUT_SPP = 96, 256, 1024
-CAPTURES = ("environment", "lights", "environment_flash")  # --capture: the fitted views' lighting
+# --capture: the fitted views' lighting
+CAPTURES = ("environment", "lights", "environment_flash", "flash_pair")
 PAIRS = 1 << 16
 PSNR_GOAL_DB, IMAGE_GOAL, BRDF_GOAL = 35.0, 0.05, 0.05
 ENV_HEIGHT = 128
@@ -189,7 +198,7 @@ target:
   images:
     - {{scene: view1.xml, image: view1.exr}}
     - {{scene: view2.xml, image: view2.exr}}
-    - {{scene: view3.xml, image: view3.exr}}
+    - {{scene: view3.xml, image: view3.exr}}{extra}
 model:
   encoding: anisotropic
   hidden: [32]
@@ -392,7 +401,7 @@ def fitting_emitters(capture: str, view: int | None) -> str | None:
     :func:`write_views` adds environment_flash's flash)."""
     from neural_brdf.inverse import scene
 
-    if capture in ("environment", "environment_flash"):
+    if capture in ("environment", "environment_flash", "flash_pair"):
         return None
     views = range(len(scene.LIGHTS)) if view is None else (view,)
     return "\n    ".join(str(scene.capture_emitters(capture, k)) for k in views)
@@ -432,6 +441,16 @@ def write_views(
         beside = scene.capture_emitters("flash", k - 1) if flash else None
         atomic_write(path, xml(az, el, env_fit, fitting_emitters(capture, k - 1), beside))
         scene.write_exr(folder / f"view{k}.exr", scene.render_file(path, TARGET_SPP, seed=k))
+    extra = ""
+    if capture == "flash_pair":
+        # a flash/no-flash pair at the first camera: view1 is the photograph without the
+        # flash, and the fourth fitted view (pair1) the flash's light alone, its target
+        # the photograph with the flash minus view1's
+        flash_el = scene.capture_emitters("flash", 0)
+        az, el = scene.VIEWS[0]
+        both, alone = xml(az, el, env_fit, None, flash_el), xml(az, el, env_fit, flash_el)
+        scene.write_flash_pair(folder, both, alone, TARGET_SPP, seed=4)
+        extra = scene.PAIR_ENTRY
     held = []
     for label, env, emitters in (
         ("heldout", env_fit, fitting_emitters(capture, None)),
@@ -441,7 +460,8 @@ def write_views(
         atomic_write(path, xml(*scene.VIEWS[3], env, emitters))
         tree, integrator = inverse.read_scene(path, label)
         held.append(inverse.View(path, path, tree, None, integrator))
-    atomic_write(folder / "fit.yaml", CONFIG.format(name="images_" + folder.name, steps=steps))
+    text = CONFIG.format(name="images_" + folder.name, steps=steps, extra=extra)
+    atomic_write(folder / "fit.yaml", text)
     return held
 
 
@@ -673,6 +693,15 @@ def capture_entry(capture: str) -> dict:
             "at its camera",
             "heldout": "the held-out camera under the fitting environment",
         }
+    if capture == "flash_pair":
+        return {
+            "kind": capture,
+            "flash_intensity": scene.FLASH_INTENSITY,
+            "fitted": "the set's fitting environment in the three views, and a fourth: "
+            "the first camera's photograph with its flash minus the one without (view1), "
+            "fitted with a scene lit by the flash alone",
+            "heldout": "the held-out camera under the fitting environment",
+        }
     return {
         "kind": capture,
         # per fitted view: (kind, azimuth, elevation) of its lights, LIGHT_DISTANCE away
@@ -716,7 +745,8 @@ def main(argv: list[str] | None = None) -> int:
         default="environment",
         help="the fitted views' lighting: the set's environment (default), or a light per "
         "view (neural_brdf.inverse.scene.LIGHTS, docs/inverse.md's multi-light example), "
-        "or the environment with a flash at the first camera (environment_flash)",
+        "or the environment with a flash at the first camera (environment_flash), or "
+        "the environment and a flash/no-flash pair there as a fourth view (flash_pair)",
     )
     ap.add_argument(
         "--set-key",
@@ -767,12 +797,16 @@ def main(argv: list[str] | None = None) -> int:
             }
             for w in SETS
         },
-        "views": {"fitted": 3, "resolution": RESOLUTION, "target_spp": TARGET_SPP},
+        "views": {
+            "fitted": 4 if args.capture == "flash_pair" else 3,
+            "resolution": RESOLUTION,
+            "target_spp": TARGET_SPP,
+        },
         "capture": capture_entry(args.capture),
         "heldout_spp": HELDOUT_SPP,
         "steps": args.steps,
         "overrides": args.set_key,
-        "config": CONFIG.format(name="images_<material>", steps=args.steps),
+        "config": CONFIG.format(name="images_<material>", steps=args.steps, extra=""),
         "goals": {
             "psnr_db": PSNR_GOAL_DB,
             "image_rel_rmse": IMAGE_GOAL,

@@ -42,6 +42,14 @@ class ImageView(_Section):
     # one entry of target.images (docs/inverse.md); paths relative to the config file
     scene: str  # a Mitsuba 3 XML scene whose <bsdf id="fit"> is the BSDF to fit
     image: str  # its target: a linear RGB EXR of the scene's film size
+    # a flash/no-flash pair (docs/inverse.md): the photograph without the flash, of the
+    # same size; the target is image - subtract, the scene lit by the flash alone
+    subtract: str | None = None
+
+    def label(self) -> str:
+        """The target's file name, or the pair's difference ("a.exr - b.exr")."""
+        name = Path(self.image).name
+        return name if self.subtract is None else f"{name} - {Path(self.subtract).name}"
 
 
 class Target(_Section):
@@ -861,7 +869,7 @@ def _images_relative_to(raw: dict, folder: Path) -> None:
             target["mitsuba"] = os.path.abspath(folder / teacher)
     images = target.get("images") if isinstance(target, dict) else None
     for item in images if isinstance(images, list) else ():
-        for key in ("scene", "image") if isinstance(item, dict) else ():
+        for key in ("scene", "image", "subtract") if isinstance(item, dict) else ():
             value = item.get(key)
             if isinstance(value, str) and value.strip() and not Path(value).is_absolute():
                 item[key] = os.path.abspath(folder / value)

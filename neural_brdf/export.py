@@ -917,7 +917,7 @@ def _images_description(cfg: cfgmod.Config, run_dir: Path) -> str:
     if isinstance(said, str) and said:
         return said
     views = cfg.target.images or []
-    names = ", ".join(Path(v.image).name for v in views)
+    names = ", ".join(v.label() for v in views)
     return f"{len(views)} images ({names}) by inverse rendering"
 
 

@@ -1249,6 +1249,11 @@ def _steps_cell(e: dict) -> str:
     return text + (f", {per:.1f}x" if per is not None else "")
 
 
+def _count(n: int) -> str:
+    """A small count in words, capitalised (a sentence's start)."""
+    return {3: "Three", 4: "Four"}.get(n, str(n))
+
+
 def images_any_section(
     d: dict, name: str = "images_any.json", title: str | None = None
 ) -> list[str]:
@@ -1261,12 +1266,18 @@ def images_any_section(
     capture = d.get("capture") or {"kind": "environment"}
     lights = capture["kind"] == "lights"
     flash = capture["kind"] == "environment_flash"
+    flash_pair = capture["kind"] == "flash_pair"
     settings = ", ".join(f"`{o}`" for o in d["overrides"]) or "the benchmark's config"
     if which == "test":
         title = (
             "## Images of any material: held out, relit (the test set"
             + (", a multi-light capture" if lights else "")
             + (", the environment and a flash in the first view" if flash else "")
+            + (
+                ", the environment and a flash/no-flash pair at the first camera"
+                if flash_pair
+                else ""
+            )
             + (f"; {title}" if title else "")
             + ")"
         )
@@ -1291,13 +1302,21 @@ def images_any_section(
             f"{capture['flash_intensity']:g} W/sr at its camera (the held-out camera under "
             f"`{envs['fit']}` alone)"
         )
+    if flash_pair:
+        fitted_under = (
+            f"`{envs['fit']}` in the three views, and a fourth fitted view: the first "
+            f"camera's photograph with a flash (a point light of "
+            f"{capture['flash_intensity']:g} W/sr at the camera) minus the one without, "
+            f"fitted with a scene lit by the flash alone (the held-out camera under "
+            f"`{envs['fit']}` alone)"
+        )
     out = [
         title,
         "",
         _source(
             f"benchmarks/results/{name}",
             f"python benchmarks/images_any.py --set {which}"
-            + (f" --capture {capture['kind']}" if lights or flash else "")
+            + (f" --capture {capture['kind']}" if capture["kind"] != "environment" else "")
             + (f" --steps {d['steps']}" if d["steps"] != 150 else "")
             + "".join(f" --set-key {o}" for o in d["overrides"])
             + (
@@ -1313,7 +1332,8 @@ def images_any_section(
         ),
         f"Set `{which}`: fitted under {fitted_under}, relit under `{envs['relit']}` "
         + f"({_set_line(d, 'dev')}; {_set_line(d, 'test')}). "
-        f"Three {d['views']['resolution']}² views at {d['views']['target_spp']} spp; "
+        f"{_count(d['views']['fitted'])} {d['views']['resolution']}² views at "
+        f"{d['views']['target_spp']} spp; "
         f"one config for every material (compact network, anisotropic encoding, grid "
         f"over `{_grid_coords(d)}`"
         + (
@@ -3237,6 +3257,14 @@ SECTIONS = (
     _images_any(
         "images_any_dev_environment_flash.json",
         "the amber retroreflector under the sky and a flash in the first view (session 67)",
+    ),
+    _images_any(
+        "images_any_flash_pair.json",
+        "the retroreflector alone, session 68: a flash/no-flash pair (no setting changed)",
+    ),
+    _images_any(
+        "images_any_dev_flash_pair.json",
+        "the amber retroreflector under the sky and a flash/no-flash pair (session 68)",
     ),
     _images_any(
         "images_any_lights_fitted_views.json",

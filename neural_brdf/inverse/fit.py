@@ -58,7 +58,9 @@ Loss.  With x the render, y the target and y_bar the target's channel mean at a 
 the relative MSE that Lehtinen et al. 2018 ("Noise2Noise: Learning Image Restoration
 without Clean Data", ICML) use for HDR Monte Carlo renders, with the denominator from the
 clean target rather than from the estimate, so that a dark rim counts as much as a
-highlight.  Energy: the fit adds
+highlight.  For a flash/no-flash pair (an entry's ``subtract``: y is the flash
+photograph minus the other) y_bar is the flash photograph's, whose light sets the
+difference's noise (:meth:`View.rel_weight`).  Energy: the fit adds
 
     L_albedo = images.albedo_weight * sum over K incidences and RGB of max(0, A(wi) - 1)^2,
 
@@ -147,6 +149,9 @@ class View:
     held_out: bool = False  # the whole view is held out (images.validation_views)
     held_out_pixels: np.ndarray | None = None  # (H, W) bool: ... these of its pixels
     object: np.ndarray | None = None  # (H, W) bool: the object's pixels (None: not found yet)
+    # (H, W, 3): the photograph whose light sets the target's noise, a flash/no-flash
+    # pair's flash photograph (the target is it minus the other); None: the target
+    photograph: np.ndarray | None = None
 
     def validation_mask(self) -> np.ndarray | None:
         """(H, W) bool: the view's pixels in the validation split (None: none)."""
@@ -154,11 +159,17 @@ class View:
             return np.ones(self.target.shape[:2], bool)
         return self.held_out_pixels
 
+    def rel_weight(self) -> np.ndarray:
+        """The relative MSE's per-pixel weight (:func:`rel_weight`), from the light the
+        pixel's noise follows: the photograph's (a pair's flash photograph, whose noise
+        its difference carries even where the flash adds little), else the target's."""
+        return rel_weight(self.target if self.photograph is None else self.photograph)
+
     def fit_weight(self) -> np.ndarray:
-        """The relative MSE's per-pixel weight (:func:`rel_weight`) over the pixels the
+        """The relative MSE's per-pixel weight (:meth:`rel_weight`) over the pixels the
         fit sees: held-out pixels weigh 0, the others n / (n - held out), so that the
         loss stays the mean over the fitted pixels."""
-        w = rel_weight(self.target)
+        w = self.rel_weight()
         if self.held_out_pixels is None:
             return w
         keep = ~self.held_out_pixels
@@ -378,7 +389,22 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
         warning = negative_pixels(target, key + ".image", image_path)
         if warning:
             print(f"warning: {warning}", file=sys.stderr)
-        views.append(View(scene_path, image_path, tree, target, integrator))
+        photograph = None
+        if item.subtract is not None:  # a flash/no-flash pair: the flash's light alone
+            other = Path(item.subtract)
+            ambient = read_image(other, key + ".subtract")
+            if ambient.shape != target.shape:
+                raise InputError(
+                    f"{key}.subtract: {other}: {ambient.shape[1]}x{ambient.shape[0]} pixels, "
+                    f"but its image {image_path.name} is {target.shape[1]}x{target.shape[0]}"
+                )
+            warning = negative_pixels(ambient, key + ".subtract", other)
+            if warning:
+                print(f"warning: {warning}", file=sys.stderr)
+            photograph, target = target, target - ambient
+        view = View(scene_path, image_path, tree, target, integrator)
+        view.photograph = photograph
+        views.append(view)
     if not views:
         raise InputError("target.images: empty; give at least one {scene, image} pair")
     return views
@@ -509,7 +535,7 @@ def target_noise(views: list[View]) -> float | None:
         pad = np.pad(y, ((1, 1), (1, 1), (0, 0)), mode="edge")
         for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
             mean4 += pad[dy : dy + y.shape[0], dx : dx + y.shape[1]] / 4.0
-        q = rel_weight(v.target) * (y - mean4) ** 2 / 1.25
+        q = v.rel_weight() * (y - mean4) ** 2 / 1.25
         terms.append(q[inner].ravel())
     if not terms:
         return None
@@ -604,7 +630,7 @@ def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
             with dr.suspend_grad():
                 img = mi.render(v.scene, spp=each, seed=fixed)  # type: ignore[arg-type]  # stub: mi.UInt32
             renders.append(np.asarray(img, dtype=np.float64)[..., :3] - v.target)
-        term = renders[0] * renders[1] * rel_weight(v.target)
+        term = renders[0] * renders[1] * v.rel_weight()
         total += float(np.sum(term[mask]))
         count += 3 * int(mask.sum())
     return total / count if count else None
@@ -947,7 +973,8 @@ def validation_figures(
         ),
         "spp": images.validation_spp,
         "every": images.validation_every,
-        "loss_definition": "relative MSE (x - y)^2 / (y_bar^2 + 0.01), mean over the held-out "
+        "loss_definition": "relative MSE (x - y)^2 / (y_bar^2 + 0.01), y_bar the target's "
+        "channel mean (a flash/no-flash pair's: the flash photograph's), mean over the held-out "
         "pixels of the object and RGB, estimated without the render's noise as "
         "(x1 - y)(x2 - y) / (y_bar^2 + 0.01), x1 and x2 two renders of spp / 2 samples with "
         "fixed independent seeds (the same at every scoring)",

@@ -7,13 +7,16 @@ writes ``OUT_DIR/sky.exr`` (a procedural environment), ``view1.xml`` .. ``view3.
 directions), their target images ``view1.exr`` .. ``view3.exr`` rendered by Mitsuba at
 ``--spp``, and ``fit.yaml``, a config that fits a compact neural BRDF to them
 (``neural-brdf train OUT_DIR/fit.yaml``).  ``--heldout`` adds ``view4.xml`` and
-``view4.exr``, a fourth direction the fit does not see.  The shipped example
-``configs/images/`` was written by this command with its defaults.
+``view4.exr``, a fourth direction the fit does not see.
 
 ``--capture`` picks the lighting (docs/inverse.md, "What the images determine"):
 ``environment`` (the default: the sky above, the same in every view), ``lights`` (a
 multi-light capture: no environment, each view lit by its own point or area light,
-:data:`LIGHTS`) or ``flash`` (a co-located flash: a point light at each camera).
+:data:`LIGHTS`), ``flash`` (a co-located flash: a point light at each camera) or
+``flash_pair`` (the sky's three views and a flash/no-flash pair at the first camera:
+``flash1.xml`` and ``flash1.exr``, the photograph with the flash, and a fourth fitted
+view, ``pair1.xml``, lit by the flash alone, whose target is the difference
+``flash1.exr`` - ``view1.exr``: ``subtract`` in fit.yaml).
 
 The environment (:func:`sky`) is not the one the material preview uses
 (:func:`neural_brdf.renderers.render.sky_bitmap`): a sky gradient over a dark ground plus a few
@@ -61,16 +64,16 @@ AREA_HALF_SIZE = 0.75
 POINT_INTENSITY = 30.0  # W/sr: about 1 W/m^2 at the sphere from LIGHT_DISTANCE
 AREA_RADIANCE = 12.0  # W/(m^2 sr) of the area light: about as bright at the sphere
 FLASH_INTENSITY = 15.0  # W/sr of the co-located flash (DISTANCE - 1 from the surface)
-CAPTURES = ("environment", "lights", "flash")
+CAPTURES = ("environment", "lights", "flash", "flash_pair")
 FIT_CONFIG = """\
-# Fit a compact neural BRDF to three images of a copper sphere (docs/inverse.md).
+# Fit a compact neural BRDF to {count} images of a copper sphere (docs/inverse.md).
 # Written by: python -m neural_brdf.inverse.scene {folder}
 name: {name}
 target:
   images:
     - {{scene: view1.xml, image: view1.exr}}
     - {{scene: view2.xml, image: view2.exr}}
-    - {{scene: view3.xml, image: view3.exr}}
+    - {{scene: view3.xml, image: view3.exr}}{extra}
 model:
   hidden: [32]
   activation: relu
@@ -167,8 +170,9 @@ def area_light(position: list[float] | tuple[float, ...], half_size: float, radi
 
 def capture_emitters(capture: str, view: int) -> str | None:
     """The emitters of view ``view`` (0-based) of a ``capture`` (:data:`CAPTURES`) as
-    XML, or None for ``environment`` (the sky of :func:`scene_xml`)."""
-    if capture == "environment":
+    XML, or None for ``environment`` and ``flash_pair`` (the sky of :func:`scene_xml`;
+    :func:`write` adds the pair's flash)."""
+    if capture in ("environment", "flash_pair"):
         return None
     if capture == "flash":
         return point_light(camera_origin(*VIEWS[view]), FLASH_INTENSITY)
@@ -256,6 +260,24 @@ def render_file(scene_path: Path, spp: int, seed: int = 0) -> np.ndarray:
     return np.asarray(img, dtype=np.float32)[..., :3]
 
 
+# fit.yaml's entry of a flash/no-flash pair's fitted view (:func:`write_flash_pair`): its
+# target is the flash photograph minus view 1's, the photograph without the flash
+PAIR_ENTRY = "\n    - {scene: pair1.xml, image: flash1.exr, subtract: view1.exr}"
+
+
+def write_flash_pair(folder: Path, both: str, alone: str, spp: int, seed: int) -> list[Path]:
+    """A flash/no-flash pair at view 1's camera (docs/inverse.md, "A flash/no-flash
+    pair"): ``flash1.xml`` (``both``: view 1's scene with the flash beside its light) and
+    its photograph ``flash1.exr``, rendered at ``spp`` with its own ``seed``, and the
+    scene ``pair1.xml`` (``alone``: lit by the flash alone) that fits the difference
+    ``flash1.exr`` - ``view1.exr`` (:data:`PAIR_ENTRY`).  Returns the three files."""
+    files = [folder / "flash1.xml", folder / "flash1.exr", folder / "pair1.xml"]
+    atomic_write(files[0], both)
+    write_exr(files[1], render_file(files[0], spp, seed=seed))
+    atomic_write(files[2], alone)
+    return files
+
+
 def write(
     folder: str | Path,
     *,
@@ -268,7 +290,7 @@ def write(
 ) -> list[Path]:
     """Write the example into ``folder`` (see the module doc); returns the files written.
     ``capture``: the lighting, one of :data:`CAPTURES` (:func:`capture_emitters`); only
-    ``environment`` writes ``sky.exr``.
+    ``environment`` and ``flash_pair`` write ``sky.exr``.
 
     Needs a Mitsuba variant set (any RGB one renders the targets)."""
     if capture not in CAPTURES:
@@ -276,7 +298,7 @@ def write(
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     written = []
-    if capture == "environment":
+    if capture in ("environment", "flash_pair"):
         written.append(folder / "sky.exr")
         write_exr(written[0], sky())
     views = VIEWS if heldout else VIEWS[:3]
@@ -286,8 +308,22 @@ def write(
         atomic_write(xml, scene_xml(az, el, resolution=resolution, emitters=emitters))
         write_exr(exr, render_file(xml, spp, seed=seed + k))
         written += [xml, exr]
+    extra = ""
+    if capture == "flash_pair":
+        flash = capture_emitters("flash", 0)
+        written += write_flash_pair(
+            folder,
+            scene_xml(*VIEWS[0], resolution=resolution, beside=flash),
+            scene_xml(*VIEWS[0], resolution=resolution, emitters=flash),
+            spp,
+            seed=seed + len(VIEWS) + 1,
+        )
+        extra = PAIR_ENTRY
     cfg = folder / "fit.yaml"
-    atomic_write(cfg, FIT_CONFIG.format(folder=folder, name="images_" + folder.name, steps=steps))
+    count = "four" if extra else "three"
+    name = "images_" + folder.name
+    text = FIT_CONFIG.format(folder=folder, name=name, steps=steps, extra=extra, count=count)
+    atomic_write(cfg, text)
     return written + [cfg]
 
 
@@ -302,7 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         "--capture",
         choices=CAPTURES,
         default="environment",
-        help="the lighting: the sky (default), a light per view, or a flash at each camera",
+        help="the lighting: the sky (default), a light per view, a flash at each camera, "
+        "or the sky and a flash/no-flash pair at the first camera (flash_pair)",
     )
     args = ap.parse_args(argv)
     import mitsuba as mi

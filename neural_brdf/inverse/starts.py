@@ -504,7 +504,7 @@ def pixel_losses(
     (x1 - y)(x2 - y) w, whose expectation is the term of the noise-free render (module
     doc)."""
     y = view.target[mask].astype(np.float64)
-    w = inverse.rel_weight(view.target)[mask].astype(np.float64)
+    w = view.rel_weight()[mask].astype(np.float64)
     d1 = x1[mask].astype(np.float64) - y
     d2 = d1 if x2 is None else x2[mask].astype(np.float64) - y
     return (d1 * d2 * w).mean(-1)
@@ -742,7 +742,7 @@ def fit_candidate(
         v = views[i]
         h, w = v.target.shape[:2]
         m = mask_train[i][..., None].astype(np.float32)
-        weights[i] = mi.TensorXf(inverse.rel_weight(v.target) * m * (h * w / n_train))
+        weights[i] = mi.TensorXf(v.rel_weight() * m * (h * w / n_train))
     sums: dict[str, np.ndarray] = {}
     n_sum = 0
     for step in range(sched.steps):
@@ -937,7 +937,7 @@ def warm_start(
         a, b, m = diff.images[i], cond.images[i], mask_train[i]
         if a is None or b is None or not m.any():
             continue
-        wgt = inverse.rel_weight(v.target)[m].astype(np.float64)
+        wgt = v.rel_weight()[m].astype(np.float64)
         r = (b[m] - a[m]).astype(np.float64)
         e = (v.target[m] - a[m]).astype(np.float64)
         num += float(np.sum(wgt * r * e))

@@ -43,6 +43,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -623,6 +624,63 @@ def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):
     assert (run_dir / "coverage.png").is_file()
 
 
+def test_a_flash_no_flash_pair_is_fitted_as_the_flash_alone(mi, tmp_path, capsys):
+    """The example's flash_pair capture (docs/inverse.md, "A flash/no-flash pair"): the
+    sky's three views and a fourth, the first camera's photograph with its flash minus
+    the one without (``subtract``), fitted with a scene lit by the flash alone.  The
+    difference is the flash's light: a render of that scene agrees with it, the
+    photograph without the flash does not; the loss weighs the pair by the flash
+    photograph's light, whose noise it carries; a fit of the four views observes the
+    flash's theta_d = 0 row beside the sky's many."""
+    from neural_brdf.inverse import fit as inverse
+    from neural_brdf.inverse import scene as inverse_example
+
+    inverse_example.write(tmp_path, resolution=RES, spp=TARGET_SPP, steps=1, capture="flash_pair")
+    cfg = config.load(tmp_path / "fit.yaml")
+    entries = [
+        (Path(v.scene).name, Path(v.image).name, v.subtract and Path(v.subtract).name)
+        for v in cfg.target.images
+    ]
+    assert entries == [
+        ("view1.xml", "view1.exr", None),
+        ("view2.xml", "view2.exr", None),
+        ("view3.xml", "view3.exr", None),
+        ("pair1.xml", "flash1.exr", "view1.exr"),
+    ]
+    assert cfg.target.images[3].label() == "flash1.exr - view1.exr"
+    kinds = {
+        name: [e.get("type") for e in ET.parse(tmp_path / name).getroot().iter("emitter")]
+        for name in ("view1.xml", "flash1.xml", "pair1.xml")
+    }
+    assert kinds == {
+        "view1.xml": ["envmap"],
+        "flash1.xml": ["envmap", "point"],
+        "pair1.xml": ["point"],
+    }, kinds
+    views = inverse.read_views(cfg)
+    lit = inverse.read_image(tmp_path / "flash1.exr", "flash1")
+    assert np.array_equal(views[3].target, lit - views[0].target)
+    assert np.array_equal(views[3].rel_weight(), inverse.rel_weight(lit))
+    assert views[0].photograph is None
+    assert np.array_equal(views[0].rel_weight(), inverse.rel_weight(views[0].target))
+    # the pair's expectation is the flash's light: a render of pair1.xml, not view1
+    mask = inverse.sphere_mask(views[3])
+    assert mask.sum() > 50
+    alone = inverse_example.render_file(tmp_path / "pair1.xml", 1024, seed=99)
+    total = views[3].target[mask].sum()
+    assert abs(alone[mask].sum() - total) < 0.03 * total
+    assert abs(views[0].target[mask].sum() - total) > 0.3 * total
+
+    run_dir = tmp_path / "run"
+    quick = FIT_OVERRIDES + ["train.steps=1", "train.warmup=0", "images.start=constant"]
+    code, err = run_cli(train_args(tmp_path / "fit.yaml", run_dir, quick), capsys)
+    assert code == 0, err
+    per_view = json.loads((run_dir / "metrics.json").read_text())["training"]["coverage"]
+    per_view = {Path(v["scene"]).name: v["figure"] for v in per_view["per_view"]}
+    assert set(per_view) == {"view1.xml", "view2.xml", "view3.xml", "pair1.xml"}
+    assert per_view["pair1.xml"] < 0.02 < 0.5 < per_view["view1.xml"]  # theta_d = 0 alone
+
+
 def brdf_error_where_both_cosines_exceed_half(f_fn, seed: int = 7) -> float:
     """Relative RMSE of f cos(theta_o) of ``f_fn(wi, wo) -> f`` against Mitsuba's eval of
     the example's true copper, over the benchmark's pairs (both cosines > 0.5)."""
@@ -793,6 +851,20 @@ def test_negative_pixels_are_warned_in_one_line_and_fitted(mi, copy_of, capsys):
         assert np.array_equal(view.target, noisy)  # fitted as it is, not clamped
 
 
+def test_a_pair_whose_subtracted_photograph_is_missing_or_another_size_exits_2(copy_of, capsys):
+    from neural_brdf.inverse import scene as inverse_example
+
+    path = _config(copy_of, [("view1.xml", "view1.exr")])
+    text = path.read_text().replace("image: view1.exr}", "image: view1.exr, subtract: gone.exr}")
+    path.write_text(text)
+    _expect_exit_2(path, copy_of / "run", capsys, "target.images[0].subtract", "gone.exr")
+    inverse_example.write_exr(copy_of / "small.exr", np.ones((RES // 2, RES, 3), np.float32))
+    path.write_text(text.replace("gone.exr", "small.exr"))
+    _expect_exit_2(
+        path, copy_of / "run", capsys, "target.images[0].subtract", f"{RES}x{RES // 2}", "view1.exr"
+    )
+
+
 def test_image_of_another_size_exits_2(copy_of, capsys):
     from neural_brdf.inverse import scene as inverse_example
 
@@ -841,8 +913,6 @@ def test_samples_beyond_the_memory_budget_exit_2(copy_of, capsys, key):
 
 
 def test_a_fit_bsdf_is_used_by_reference_or_nested():
-    import xml.etree.ElementTree as ET
-
     from neural_brdf.inverse import fit as inverse
 
     def used(body: str) -> bool:

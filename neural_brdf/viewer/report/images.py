@@ -138,7 +138,7 @@ def _views(run: Run) -> list[Block]:
     for k, view in enumerate(views):
         scene, image = Path(view.scene), Path(view.image)
         entry = given[k] if isinstance(given, list) and k < len(given) else None
-        row = [str(k + 1), scene.name, image.name, _film(entry, image)]
+        row = [str(k + 1), scene.name, view.label(), _film(entry, image)]
         if held:
             row.append("held out" if image.name in held else "fitted")
         if cov is not None:
@@ -452,5 +452,5 @@ def section(run: Run) -> list[Block]:
 def target_text(run: Run) -> str:
     """The summary's target line: the views, by their image file names."""
     views = run.config.target.images or []
-    names = ", ".join(Path(v.image).name for v in views)
+    names = ", ".join(v.label() for v in views)
     return f"images: {_plural(len(views), 'view')} ({names}), fitted by inverse rendering"
