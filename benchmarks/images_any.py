@@ -806,7 +806,11 @@ def main(argv: list[str] | None = None) -> int:
         "heldout_spp": HELDOUT_SPP,
         "steps": args.steps,
         "overrides": args.set_key,
-        "config": CONFIG.format(name="images_<material>", steps=args.steps, extra=""),
+        "config": CONFIG.format(
+            name="images_<material>",
+            steps=args.steps,
+            extra=scene.PAIR_ENTRY if args.capture == "flash_pair" else "",
+        ),
         "goals": {
             "psnr_db": PSNR_GOAL_DB,
             "image_rel_rmse": IMAGE_GOAL,

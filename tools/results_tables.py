@@ -1479,7 +1479,13 @@ def _fitted_table(d: dict) -> list[str]:
         "held-out camera (1024 spp against 1024 spp; in brackets the truth against "
         "itself with another seed, and the difference): a fit whose fitted views reach "
         "their noise floor while the held-out camera does not has found a material the "
-        "views cannot tell from the truth.",
+        "views cannot tell from the truth."
+        + (
+            " The fourth view's floor is that of a render of the flash alone, not of its "
+            "target, the difference of two photographs, which carries both one's noise."
+            if (d.get("capture") or {}).get("kind") == "flash_pair"
+            else ""
+        ),
         "",
         *_table(
             ["material", *(f"fitted view {k + 1}" for k in range(views)), "held-out camera"],

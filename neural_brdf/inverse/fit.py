@@ -152,6 +152,11 @@ class View:
     # (H, W, 3): the photograph whose light sets the target's noise, a flash/no-flash
     # pair's flash photograph (the target is it minus the other); None: the target
     photograph: np.ndarray | None = None
+    label: str = ""  # the target's name in metrics.json ("a.exr - b.exr" for a pair)
+
+    def name(self) -> str:
+        """The target's name: ``label``, else the image file's."""
+        return self.label or self.image_path.name
 
     def validation_mask(self) -> np.ndarray | None:
         """(H, W) bool: the view's pixels in the validation split (None: none)."""
@@ -402,8 +407,14 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
             if warning:
                 print(f"warning: {warning}", file=sys.stderr)
             photograph, target = target, target - ambient
+            if not float(target.mean()) > 0.0:  # swapped, or the same photograph twice
+                raise InputError(
+                    f"{key}.subtract: {other}: {image_path.name} - {other.name} holds no "
+                    f"light (mean {float(target.mean()):.3g}); image is the photograph "
+                    "with the flash, subtract the one without"
+                )
         view = View(scene_path, image_path, tree, target, integrator)
-        view.photograph = photograph
+        view.photograph, view.label = photograph, item.label()
         views.append(view)
     if not views:
         raise InputError("target.images: empty; give at least one {scene, image} pair")
@@ -967,7 +978,7 @@ def validation_figures(
     best = int(val["best_step"])
     return {
         "pixels": images.validation_pixels,
-        "views": [str(v.image_path.name) for v in views if v.held_out],
+        "views": [v.name() for v in views if v.held_out],
         "heldout_pixels": sum(
             int(m.sum()) for v in views if (m := v.validation_mask()) is not None
         ),
@@ -996,8 +1007,8 @@ def variant_of() -> str:
 
 
 def describe(views: list[View]) -> str:
-    names = ", ".join(v.image_path.name for v in fitted_views(views))
-    held = [v.image_path.name for v in views if v.held_out]
+    names = ", ".join(v.name() for v in fitted_views(views))
+    held = [v.name() for v in views if v.held_out]
     out = f"{len(views) - len(held)} images ({names}) by inverse rendering"
     return out + (f", {len(held)} held out ({', '.join(held)})" if held else "")
 

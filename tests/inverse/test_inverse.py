@@ -632,8 +632,11 @@ def test_a_flash_no_flash_pair_is_fitted_as_the_flash_alone(mi, tmp_path, capsys
     photograph without the flash does not; the loss weighs the pair by the flash
     photograph's light, whose noise it carries; a fit of the four views observes the
     flash's theta_d = 0 row beside the sky's many."""
+    import dataclasses
+
     from neural_brdf.inverse import fit as inverse
     from neural_brdf.inverse import scene as inverse_example
+    from neural_brdf.inverse import starts
 
     inverse_example.write(tmp_path, resolution=RES, spp=TARGET_SPP, steps=1, capture="flash_pair")
     cfg = config.load(tmp_path / "fit.yaml")
@@ -660,9 +663,21 @@ def test_a_flash_no_flash_pair_is_fitted_as_the_flash_alone(mi, tmp_path, capsys
     views = inverse.read_views(cfg)
     lit = inverse.read_image(tmp_path / "flash1.exr", "flash1")
     assert np.array_equal(views[3].target, lit - views[0].target)
-    assert np.array_equal(views[3].rel_weight(), inverse.rel_weight(lit))
+    assert views[3].name() == "flash1.exr - view1.exr" and views[0].name() == "view1.exr"
+    # every loss of the fit (the image stage's, the split's, the starts') weighs the pair
+    # by the flash photograph: fit_weight, and the targets' noise estimate from it
+    inverse.split_views(views, cfg.images, seed=0)
+    keep = ~views[3].held_out_pixels
+    share = keep.size / keep.sum()
+    assert np.allclose(views[3].fit_weight(), inverse.rel_weight(lit) * keep[..., None] * share)
+    assert not np.allclose(inverse.rel_weight(lit), inverse.rel_weight(views[3].target))
     assert views[0].photograph is None
     assert np.array_equal(views[0].rel_weight(), inverse.rel_weight(views[0].target))
+    for v in views:
+        v.object = starts.object_mask(v)
+    as_difference = dataclasses.replace(views[3], photograph=None)
+    pair_noise = inverse.target_noise(views[3:])
+    assert pair_noise is not None and pair_noise != inverse.target_noise([as_difference])
     # the pair's expectation is the flash's light: a render of pair1.xml, not view1
     mask = inverse.sphere_mask(views[3])
     assert mask.sum() > 50
@@ -678,7 +693,8 @@ def test_a_flash_no_flash_pair_is_fitted_as_the_flash_alone(mi, tmp_path, capsys
     per_view = json.loads((run_dir / "metrics.json").read_text())["training"]["coverage"]
     per_view = {Path(v["scene"]).name: v["figure"] for v in per_view["per_view"]}
     assert set(per_view) == {"view1.xml", "view2.xml", "view3.xml", "pair1.xml"}
-    assert per_view["pair1.xml"] < 0.02 < 0.5 < per_view["view1.xml"]  # theta_d = 0 alone
+    assert 0 < per_view["pair1.xml"] < 0.02  # theta_d = 0 alone
+    assert per_view["view1.xml"] > 0.5
 
 
 def brdf_error_where_both_cosines_exceed_half(f_fn, seed: int = 7) -> float:
@@ -851,7 +867,9 @@ def test_negative_pixels_are_warned_in_one_line_and_fitted(mi, copy_of, capsys):
         assert np.array_equal(view.target, noisy)  # fitted as it is, not clamped
 
 
-def test_a_pair_whose_subtracted_photograph_is_missing_or_another_size_exits_2(copy_of, capsys):
+def test_a_pair_whose_subtracted_photograph_is_missing_of_another_size_or_no_darker_exits_2(
+    mi, copy_of, capsys
+):
     from neural_brdf.inverse import scene as inverse_example
 
     path = _config(copy_of, [("view1.xml", "view1.exr")])
@@ -863,6 +881,14 @@ def test_a_pair_whose_subtracted_photograph_is_missing_or_another_size_exits_2(c
     _expect_exit_2(
         path, copy_of / "run", capsys, "target.images[0].subtract", f"{RES}x{RES // 2}", "view1.exr"
     )
+    # the same photograph twice, or the two swapped: no light left, not fitted as it is
+    img = np.array(mi.Bitmap(str(copy_of / "view1.exr")), np.float32)[..., :3]
+    inverse_example.write_exr(copy_of / "bright.exr", 2.0 * img)
+    for other in ("view1.exr", "bright.exr"):
+        path.write_text(text.replace("gone.exr", other))
+        _expect_exit_2(
+            path, copy_of / "run", capsys, "target.images[0].subtract", other, "holds no light"
+        )
 
 
 def test_image_of_another_size_exits_2(copy_of, capsys):

@@ -140,7 +140,7 @@ def _views(run: Run) -> list[Block]:
         entry = given[k] if isinstance(given, list) and k < len(given) else None
         row = [str(k + 1), scene.name, view.label(), _film(entry, image)]
         if held:
-            row.append("held out" if image.name in held else "fitted")
+            row.append("held out" if view.label() in held else "fitted")
         if cov is not None:
             pv = _per_view(cov, view.scene)
             lit = _finite(pv.get("pixels_lit"))
