@@ -398,10 +398,10 @@ def fitting_emitters(capture: str, view: int | None) -> str | None:
     """The emitters (XML) of fitted view ``view`` (0-based) of a ``capture``, or of the
     held-out camera (``view`` None: every view's lights at once, the capture's lights
     together); None for the environment captures (the set's fitting environment;
-    :func:`write_views` adds environment_flash's flash)."""
+    :func:`write_views` adds environment_flash's flash and flash_pair's pair)."""
     from neural_brdf.inverse import scene
 
-    if capture in ("environment", "environment_flash", "flash_pair"):
+    if capture != "lights":  # the environment captures
         return None
     views = range(len(scene.LIGHTS)) if view is None else (view,)
     return "\n    ".join(str(scene.capture_emitters(capture, k)) for k in views)

@@ -383,6 +383,16 @@ def film_size(scene) -> tuple[int, int]:
     return int(h), int(w)
 
 
+def read_photograph(path: Path, key: str) -> np.ndarray:
+    """:func:`read_image`, and a one-line warning on stderr when it has negative pixels
+    (:func:`negative_pixels`)."""
+    img = read_image(path, key)
+    warning = negative_pixels(img, key, path)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
+    return img
+
+
 def read_views(cfg: cfgmod.Config) -> list[View]:
     """Parse and check every ``target.images`` entry (scenes are loaded later)."""
     views = []
@@ -390,28 +400,23 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
         key = f"target.images[{k}]"
         scene_path, image_path = Path(item.scene), Path(item.image)
         tree, integrator = read_scene(scene_path, key + ".scene")
-        target = read_image(image_path, key + ".image")
-        warning = negative_pixels(target, key + ".image", image_path)
-        if warning:
-            print(f"warning: {warning}", file=sys.stderr)
+        target = read_photograph(image_path, key + ".image")
         photograph = None
         if item.subtract is not None:  # a flash/no-flash pair: the flash's light alone
             other = Path(item.subtract)
-            ambient = read_image(other, key + ".subtract")
+            ambient = read_photograph(other, key + ".subtract")
             if ambient.shape != target.shape:
                 raise InputError(
                     f"{key}.subtract: {other}: {ambient.shape[1]}x{ambient.shape[0]} pixels, "
                     f"but its image {image_path.name} is {target.shape[1]}x{target.shape[0]}"
                 )
-            warning = negative_pixels(ambient, key + ".subtract", other)
-            if warning:
-                print(f"warning: {warning}", file=sys.stderr)
             photograph, target = target, target - ambient
-            if not float(target.mean()) > 0.0:  # swapped, or the same photograph twice
+            mean = float(target.mean())
+            if not mean > 0.0:  # swapped, or the same photograph twice
                 raise InputError(
                     f"{key}.subtract: {other}: {image_path.name} - {other.name} holds no "
-                    f"light (mean {float(target.mean()):.3g}); image is the photograph "
-                    "with the flash, subtract the one without"
+                    f"light (mean {mean:.3g}); image is the photograph with the flash, "
+                    "subtract the one without"
                 )
         view = View(scene_path, image_path, tree, target, integrator)
         view.photograph, view.label = photograph, item.label()
