@@ -503,6 +503,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     t0 = time.perf_counter()
     metrics = pipeline.run(cfg, run_dir, overwrite=True)
     wall = time.perf_counter() - t0
+    trained = config.load(run_dir / "config.yaml")  # the grid and encoding the start chose
     tr = metrics["training"]
     init = tr.get("init") or {}
     start = init.get("start") or {}
@@ -636,9 +637,11 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         },
         "images": images,
         "brdf": {"cap_0.5": cap, "observed": observed},
-        # the network's grid as trained (the run's config.yaml: images.anisotropic_grid
-        # moves it over the half vector's disc after an anisotropic start)
-        "grid_coords": config.load(run_dir / "config.yaml").model.grid.coords,
+        # the network's grid and encoding as trained (the run's config.yaml:
+        # images.anisotropic_grid moves the grid over the half vector's disc after an
+        # anisotropic start, images.isotropic_encoding the encoding after another one)
+        "grid_coords": trained.model.grid.coords,
+        "encoding": trained.model.encoding,
         "coverage": float(cov.figure),
         "validation": {
             k: val.get(k)

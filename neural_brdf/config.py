@@ -296,6 +296,12 @@ class Images(_Section):
     # varies; model: model.grid.coords as set (docs/inverse.md, "The grid after an
     # anisotropic start"; chosen on the development set)
     anisotropic_grid: Literal["half_disc", "model"] = "half_disc"
+    # after an isotropic start (any other family): isotropic trains the network with the
+    # isotropic encoding (model.encoding: isotropic, when model.encoding is anisotropic),
+    # so that no dependence on the half vector's azimuth the views cannot pin is learned;
+    # model: model.encoding as set (docs/inverse.md, "The encoding after an isotropic
+    # start"; chosen on the development set)
+    isotropic_encoding: Literal["isotropic", "model"] = "isotropic"
     # auto's choice: a family with more free scalars is taken over a simpler one only when
     # its held-out loss is lower by more than max(start_tie_tol x the least,
     # min(start_tie_sigmas standard errors of the paired difference, start_tie_max x the

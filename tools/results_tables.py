@@ -1341,6 +1341,11 @@ def images_any_section(
             if any(e.get("grid_coords") == "half_disc" for e in d["materials"].values())
             else ""
         )
+        + (
+            ", the isotropic encoding after an isotropic start (`images.isotropic_encoding`)"
+            if any(e.get("encoding") == "isotropic" for e in d["materials"].values())
+            else ""
+        )
         + f", `images.start: auto`), {d['steps']} image-stage steps"
         + (
             " (after a poor start as many as `images.poor_start_steps`)"
@@ -1403,6 +1408,7 @@ def images_any_section(
                     if e.get("grid_coords") == "half_disc"
                     else ""
                 )
+                + (", isotropic encoding" if e.get("encoding") == "isotropic" else "")
                 + _poor_cell(e["start"]),
                 pair(held, "psnr_db", db) + " dB",
                 pair(relit, "psnr_db", db) + " dB",

@@ -1031,8 +1031,8 @@ def fit(
     check the folder and the images, assess the coverage of the fitted views
     (``coverage.png``, ``training["coverage"]``, a warning when thin), fit (a GGX start
     first, by default; ``cfg.images``); returns (network, figures, the start time, the
-    config it trained: ``cfg``, its grid as the start chose it,
-    :func:`neural_brdf.inverse.starts.grid_for_start`).
+    config it trained: ``cfg``, its grid and encoding as the start chose them,
+    :func:`neural_brdf.inverse.starts.model_for_start`).
     :func:`neural_brdf.pipeline.run` then exports and validates it like any run (no
     reference: the physics checks only).  ``folder``: ``run_dir`` as the caller opened
     it (:func:`neural_brdf.runfolder.hold`)."""
@@ -1067,7 +1067,9 @@ def _fit_views(
     check_render_sizes(views, images)
     split_views(views, images, cfg.train.seed)
     columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
-    if resume:  # its start's grid (starts.grid_for_start) and steps, as the run trained
+    if (
+        resume
+    ):  # its start's grid and encoding (starts.model_for_start) and steps, as the run trained
         cfg = _resumed_config(cfg, folder)
     sess = Session.one(cfg, folder, resume=resume, kind=KIND, columns=columns)
     # a checkpoint that cannot be resumed: refused before any write
@@ -1129,8 +1131,8 @@ def _fit_views(
 
 
 def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:
-    """``cfg`` as the checkpoint being resumed was trained: the grid of its start's
-    family (:func:`neural_brdf.inverse.starts.grid_for_start`) and, after a poor start,
+    """``cfg`` as the checkpoint being resumed was trained: the grid and encoding of its
+    start's family (:func:`neural_brdf.inverse.starts.model_for_start`) and, after a poor start,
     its steps (:func:`poor_start_config`); ``cfg`` itself when there is no readable
     checkpoint (the resume check then says why)."""
     from neural_brdf.inverse import starts
@@ -1143,7 +1145,7 @@ def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Conf
         family = init["start"]["family"]
     except (InputError, KeyError, TypeError):  # unreadable, or no start (ggx, constant)
         return cfg
-    return poor_start_config(starts.grid_for_start(cfg, str(family)), init)
+    return poor_start_config(starts.model_for_start(cfg, str(family)), init)
 
 
 def _reporter(cfg: cfgmod.Config):

@@ -1270,28 +1270,46 @@ def candidates(cfg: cfgmod.Config) -> tuple[list[str], dict[str, str]]:
     return [n for n in names if n not in left], left
 
 
-def grid_for_start(cfg: cfgmod.Config, family: str) -> cfgmod.Config:
-    """``cfg`` as the network of a start of ``family`` is trained: with
-    ``images.anisotropic_grid: half_disc`` and an anisotropic family
-    (:data:`neural_brdf.config.ANISOTROPIC_FAMILIES`), the grid over the half vector's
-    disc (``model.grid.coords: half_disc``, where a brushed lobe varies; the grid over
-    (theta_h, theta_d) cannot follow it), when the model has a grid and its encoding
-    offers that grid; otherwise ``cfg`` itself (docs/inverse.md, "The grid after an
-    anisotropic start")."""
+def model_for_start(cfg: cfgmod.Config, family: str) -> cfgmod.Config:
+    """``cfg`` as the network of a start of ``family`` is trained; ``cfg`` itself when
+    nothing changes.
+
+    - After an anisotropic family (:data:`neural_brdf.config.ANISOTROPIC_FAMILIES`) with
+      ``images.anisotropic_grid: half_disc``: the grid over the half vector's disc
+      (``model.grid.coords: half_disc``, where a brushed lobe varies; the grid over
+      (theta_h, theta_d) cannot follow it), when the model has a grid and its encoding
+      offers that grid (docs/inverse.md, "The grid after an anisotropic start").
+    - After any other family with ``images.isotropic_encoding: isotropic``: the
+      isotropic encoding, when ``model.encoding`` is an anisotropic reciprocal one and the
+      isotropic encoding offers the model's grid.  The validation split preferred a
+      family without the half vector's azimuth, so the network is not given one to learn
+      from views that see few of its values (docs/inverse.md, "The encoding after an
+      isotropic start")."""
     from neural_brdf import encodings
 
-    grid = cfg.model.grid
-    if (
-        cfg.images.anisotropic_grid != "half_disc"
-        or family not in cfgmod.ANISOTROPIC_FAMILIES
-        or not grid.size
-        or grid.coords == "half_disc"
-        or "half_disc" not in encodings.get(cfg.model.encoding).grid_axes
+    model = cfg.model
+    spec = encodings.get(model.encoding)
+    d: dict[str, Any] | None = None
+    if family in cfgmod.ANISOTROPIC_FAMILIES:
+        if (
+            cfg.images.anisotropic_grid == "half_disc"
+            and model.grid.size
+            and model.grid.coords != "half_disc"
+            and "half_disc" in spec.grid_axes
+        ):
+            d = cfg.model_dump()
+            d["model"]["grid"]["coords"] = "half_disc"
+            source = "images.anisotropic_grid"
+    elif (
+        cfg.images.isotropic_encoding == "isotropic"
+        and spec.anisotropic
+        and spec.reciprocal
+        and (not model.grid.size or model.grid.coords in encodings.ISOTROPIC.grid_axes)
     ):
-        return cfg
-    d = cfg.model_dump()
-    d["model"]["grid"]["coords"] = "half_disc"
-    return cfgmod.from_dict(d, source="images.anisotropic_grid")
+        d = cfg.model_dump()
+        d["model"]["encoding"] = encodings.ISOTROPIC.name
+        source = "images.isotropic_encoding"
+    return cfg if d is None else cfgmod.from_dict(d, source=source)
 
 
 def run_masks(views: Sequence[inverse.View]) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -1322,7 +1340,7 @@ def network_start(
     it is), distilled into the network (:func:`distill`, ``images.start_train_steps``
     steps in ``init_dir``).  Returns (the network's state_dict, figures: the distillation's,
     with ``start``, every candidate and the choice, the config the network is trained
-    with: ``cfg`` after :func:`grid_for_start`).  ``report``: called with a line per
+    with: ``cfg`` after :func:`model_for_start`).  ``report``: called with a line per
     candidate fitted and one for the choice."""
     images = cfg.images
     names, left = candidates(cfg)
@@ -1470,11 +1488,17 @@ def network_start(
     if report is not None:
         shown = ", ".join(f"{k} {_short(v)}" for k, v in summary["params"].items())
         report(f"start: {summary['family']} ({shown})")
-    moved = grid_for_start(cfg, str(summary["family"]))
+    moved = model_for_start(cfg, str(summary["family"]))
     summary["grid_coords"] = moved.model.grid.coords  # the network's, as distilled
-    if moved is not cfg and report is not None:
+    summary["encoding"] = moved.model.encoding
+    summary["encoding_moved"] = moved.model.encoding != cfg.model.encoding
+    if report is not None and moved.model.grid.coords != cfg.model.grid.coords:
         report(
             "grid: over the half vector's disc after an anisotropic start (images.anisotropic_grid)"
+        )
+    if report is not None and moved.model.encoding != cfg.model.encoding:
+        report(
+            f"encoding: {moved.model.encoding} after an isotropic start (images.isotropic_encoding)"
         )
     cfg = moved
     state, info = distill(cfg, element, init_dir, images.start_train_steps)

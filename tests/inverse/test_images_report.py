@@ -355,6 +355,14 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
         visible_text(report.write_report(moved, render=False)["html"].read_text()).split()
     )
     assert "distilled into the network (its grid over the half vector's disc)" in text
+    assert "after an isotropic start" not in text
+    # an isotropic start's network has the isotropic encoding (images.isotropic_encoding)
+    iso = {**start, "encoding": "isotropic", "encoding_moved": True}
+    moved = make_images_run(tiny_run, tmp_path / "iso", extra={"init": {**init, "start": iso}})
+    text = " ".join(
+        visible_text(report.write_report(moved, render=False)["html"].read_text()).split()
+    )
+    assert "distilled into the network (the isotropic encoding, after an isotropic start)" in text
     # a run with no fitted start says so, and lists no candidates
     plain = make_images_run(tiny_run, tmp_path / "plain")
     text = visible_text(report.write_report(plain, render=False)["html"].read_text())

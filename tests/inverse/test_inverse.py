@@ -1077,37 +1077,51 @@ def test_poor_start_config_raises_the_steps_of_a_poor_start_only():
     assert inverse.poor_start_config(longer, poor) is longer  # never lowered
 
 
-def test_an_anisotropic_start_trains_exports_and_resumes_its_half_disc_grid(
-    mi, example, tmp_path, capsys
+@pytest.mark.parametrize(
+    "family, given, trained",
+    [
+        # an anisotropic start: the grid over the half vector's disc (same shapes: a
+        # config.yaml still saying theta would load the weights into the other grid)
+        ("roughconductor_aniso", ("anisotropic", "theta"), ("anisotropic", "half_disc")),
+        # an isotropic start: the isotropic encoding (images.isotropic_encoding)
+        ("diffuse", ("anisotropic", "theta"), ("isotropic", "theta")),
+        ("diffuse", ("isotropic", "theta"), ("isotropic", "theta")),
+    ],
+)
+def test_the_start_s_grid_and_encoding_are_trained_exported_and_resumed(
+    mi, example, tmp_path, capsys, family, given, trained
 ):
-    """An anisotropic start puts the network's grid over the half vector's disc
-    (inverse.starts.grid_for_start): the run's config.yaml, its checkpoint and its
-    start's distillation say so; ``neural-brdf export`` of the run rebuilds the same f
-    as its model.onnx (with config.yaml still saying theta, the grid's weights would load
-    into the other grid: the same shapes, another function); ``--resume`` trains on."""
+    """The start sets the network's grid and encoding (inverse.starts.model_for_start):
+    the run's config.yaml, its checkpoint and its start's distillation say so;
+    ``neural-brdf export`` of the run rebuilds the same f as its model.onnx;
+    ``--resume`` trains on with them."""
     import neural_brdf
     from analytic import physics
     from neural_brdf.train.session import load_checkpoint
+
+    def model_of(cfg):
+        return (cfg.model.encoding, cfg.model.grid.coords)
 
     run_dir = tmp_path / "run"
     sets = [
         *FIT_OVERRIDES,
         "train.steps=4",
-        "model.encoding=anisotropic",
-        "images.start=roughconductor_aniso",
+        f"model.encoding={given[0]}",
+        f"images.start={family}",
         "images.start_steps=5",
         "images.start_refine_steps=0",
         "images.start_train_steps=20",
     ]
     code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
     assert code == 0, err
-    assert config.load(example / "fit.yaml").model.grid.coords == "theta"  # as given
-    assert config.load(run_dir / "config.yaml").model.grid.coords == "half_disc"
-    assert config.load(run_dir / "init" / "config.yaml").model.grid.coords == "half_disc"
-    ckpt = load_checkpoint(run_dir / "ckpt.pt")
-    assert ckpt["config"]["model"]["grid"]["coords"] == "half_disc"
-    training = json.loads((run_dir / "metrics.json").read_text())["training"]
-    assert training["init"]["start"]["grid_coords"] == "half_disc"
+    assert config.load(example / "fit.yaml").model.grid.coords == given[1]  # as given
+    assert model_of(config.load(run_dir / "config.yaml")) == trained
+    assert model_of(config.load(run_dir / "init" / "config.yaml")) == trained
+    ckpt = load_checkpoint(run_dir / "ckpt.pt")["config"]["model"]
+    assert (ckpt["encoding"], ckpt["grid"]["coords"]) == trained
+    start = json.loads((run_dir / "metrics.json").read_text())["training"]["init"]["start"]
+    assert (start["encoding"], start["grid_coords"]) == trained
+    assert start["encoding_moved"] is (trained[0] != given[0])
     out = tmp_path / "again.onnx"
     code, err = run_cli(["export", str(run_dir), "-o", str(out)], capsys)
     assert code == 0, err
@@ -1119,7 +1133,7 @@ def test_an_anisotropic_start_trains_exports_and_resumes_its_half_disc_grid(
     code, err = run_cli([*more, "--resume"], capsys)
     assert code == 0, err
     assert json.loads((run_dir / "metrics.json").read_text())["training"]["steps"] == 6
-    assert config.load(run_dir / "config.yaml").model.grid.coords == "half_disc"
+    assert model_of(config.load(run_dir / "config.yaml")) == trained
 
 
 def test_the_albedo_penalty_follows_the_images_section(mi):

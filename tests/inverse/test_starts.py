@@ -618,51 +618,85 @@ def test_the_start_schedules_come_from_the_config():
     assert starts.Schedule.of(config.Images()).steps == starts.Schedule().steps  # null: 80
 
 
-# ------------------------------------------------------------------ the grid after the start
+# ------------------------------------------------------------------ the model after the start
+def _images_cfg(model, images=None):
+    d = {"target": {"images": [{"scene": "v.xml", "image": "v.exr"}]}, "model": model}
+    return config.from_dict(d | ({"images": images} if images else {}))
+
+
 @pytest.mark.parametrize(
-    "family, images, coords",
+    "family, images, coords, encoding",
     [
-        ("roughconductor_aniso", {}, "half_disc"),
-        ("roughconductor", {}, "theta"),
-        ("blend", {}, "theta"),
-        ("roughconductor_aniso", {"anisotropic_grid": "model"}, "theta"),
+        ("roughconductor_aniso", {}, "half_disc", "anisotropic"),
+        ("roughconductor", {}, "theta", "isotropic"),
+        ("blend", {}, "theta", "isotropic"),
+        ("diffuse", {"isotropic_encoding": "model"}, "theta", "anisotropic"),
+        ("roughconductor_aniso", {"anisotropic_grid": "model"}, "theta", "anisotropic"),
     ],
 )
-def test_an_anisotropic_start_moves_the_grid_to_the_half_vector_disc(family, images, coords):
-    """grid_for_start: after an anisotropic family (and images.anisotropic_grid:
-    half_disc) the network's grid is over the half vector's disc; any other family, or
-    anisotropic_grid: model, keeps model.grid.coords, and nothing else changes."""
+def test_the_start_sets_the_network_grid_and_encoding(family, images, coords, encoding):
+    """model_for_start: after an anisotropic family (and images.anisotropic_grid:
+    half_disc) the network's grid is over the half vector's disc; after any other family
+    (and images.isotropic_encoding: isotropic) the network's encoding is isotropic;
+    with either set to model, model's keys are kept; nothing else changes."""
     from neural_brdf.inverse import starts
 
-    cfg = config.from_dict(
-        {
-            "target": {"images": [{"scene": "v.xml", "image": "v.exr"}]},
-            "model": {"encoding": "anisotropic", "grid": {"size": 16, "coords": "theta"}},
-            "images": images,
-        }
-    )
-    out = starts.grid_for_start(cfg, family)
-    assert out.model.grid.coords == coords
+    cfg = _images_cfg({"encoding": "anisotropic", "grid": {"size": 16, "coords": "theta"}}, images)
+    out = starts.model_for_start(cfg, family)
+    assert (out.model.grid.coords, out.model.encoding) == (coords, encoding)
     a, b = cfg.model_dump(), out.model_dump()
     b["model"]["grid"]["coords"] = a["model"]["grid"]["coords"]
+    b["model"]["encoding"] = a["model"]["encoding"]
     assert a == b
 
 
 @pytest.mark.parametrize(
-    "model",
+    "model, family",
     [
-        {"encoding": "isotropic", "grid": {"size": 16}},  # no half_disc grid for it
-        {"encoding": "anisotropic", "grid": {"size": 0}},  # no grid
-        {"encoding": "anisotropic", "grid": {"size": 16, "coords": "half_disc"}},
+        ({"encoding": "isotropic", "grid": {"size": 16}}, "roughconductor_aniso"),  # no disc
+        ({"encoding": "anisotropic", "grid": {"size": 0}}, "roughconductor_aniso"),  # no grid
+        (
+            {"encoding": "anisotropic", "grid": {"size": 16, "coords": "half_disc"}},
+            "roughconductor_aniso",
+        ),
+        ({"encoding": "isotropic", "grid": {"size": 16}}, "diffuse"),  # isotropic already
+        # the isotropic encoding has no grid over the half vector's disc
+        ({"encoding": "anisotropic", "grid": {"size": 16, "coords": "half_disc"}}, "diffuse"),
+        ({"encoding": "raw"}, "diffuse"),  # not reciprocal: an ablation, left as it is
     ],
 )
-def test_the_grid_is_left_alone_where_it_cannot_or_need_not_move(model):
+def test_the_model_is_left_alone_where_it_cannot_or_need_not_change(model, family):
     from neural_brdf.inverse import starts
 
-    cfg = config.from_dict(
-        {"target": {"images": [{"scene": "v.xml", "image": "v.exr"}]}, "model": model}
-    )
-    assert starts.grid_for_start(cfg, "roughconductor_aniso") is cfg
+    cfg = _images_cfg(model)
+    assert starts.model_for_start(cfg, family) is cfg
+
+
+def test_a_network_of_the_isotropic_encoding_after_an_isotropic_start_cannot_vary_in_phi_h():
+    """The point of images.isotropic_encoding: the network built from the config
+    model_for_start returns gives the same value for a pair rotated about the normal
+    (the half vector's azimuth), whatever its weights; the anisotropic one does not."""
+    import torch
+
+    from neural_brdf.inverse import starts
+    from neural_brdf.train.model import RawBRDF
+
+    cfg = _images_cfg({"encoding": "anisotropic", "grid": {"size": 8, "coords": "theta"}})
+    torch.manual_seed(0)
+    wi = torch.nn.functional.normalize(torch.rand(64, 3) + torch.tensor([0.0, 0.0, 0.3]), dim=-1)
+    wo = torch.nn.functional.normalize(torch.rand(64, 3) + torch.tensor([0.0, 0.0, 0.3]), dim=-1)
+    c, s = math.cos(1.1), math.sin(1.1)
+    rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    spread = {}
+    for family in ("diffuse", "roughconductor_aniso"):
+        net = RawBRDF.from_config(starts.model_for_start(cfg, family).model)
+        with torch.no_grad():
+            for p in net.parameters():  # any weights, not a trained (possibly flat) net
+                p.normal_(0.0, 0.5)
+            a, b = net(wi, wo), net(wi @ rot.T, wo @ rot.T)
+        spread[family] = float((a - b).abs().max() / a.abs().max())
+    assert spread["diffuse"] < 1e-5
+    assert spread["roughconductor_aniso"] > 1e-3
 
 
 @pytest.mark.parametrize(

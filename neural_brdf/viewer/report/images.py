@@ -208,11 +208,13 @@ def _fit_figures(run: Run) -> list[Block]:
     if isinstance(chosen, dict) and isinstance(chosen.get("family"), str):
         n = len(chosen.get("candidates") or [])
         how = f"chosen of {n} by the held-out pixels" if n > 1 else "named in the config"
-        grid = (  # images.anisotropic_grid (inverse.starts.grid_for_start)
+        grid = (  # images.anisotropic_grid (inverse.starts.model_for_start)
             " (its grid over the half vector's disc)"
             if chosen.get("grid_coords") == "half_disc"
             else ""
         )
+        if chosen.get("encoding_moved") is True:  # images.isotropic_encoding
+            grid += f" (the {chosen.get('encoding')} encoding, after an isotropic start)"
         first = chosen.get("first_choice")
         if isinstance(first, str):  # images.start_continue_within changed the choice
             how += f" after the contenders' further fits; {first} before"
