@@ -188,8 +188,13 @@ def doc_string(
 
 
 def raw_from_checkpoint(ckpt: dict, cfg: cfgmod.Config) -> RawBRDF:
+    """The network a run exported: an images fit with held-out views keeps the weights of
+    its best held-out scoring (``validation.best``, what the run's own model.onnx holds,
+    :func:`neural_brdf.inverse.fit.fit_neural`), while ``model`` holds the last step's
+    (with the optimiser's state, for ``--resume``); any other run, ``model``."""
+    kept = (ckpt.get("validation") or {}).get("best")
     raw = RawBRDF.from_config(cfg.model)
-    raw.load_state_dict(ckpt["model"])
+    raw.load_state_dict(kept if isinstance(kept, dict) else ckpt["model"])
     return raw.eval()
 
 

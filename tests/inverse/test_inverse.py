@@ -569,6 +569,17 @@ def test_the_start_is_kept_when_the_image_stage_only_makes_it_worse(mi, example,
     assert val["best_step"] == 0 and val["kept"] == "the start"
     assert val["best_loss"] == val["start_loss"]
     assert start_network_change(run_dir) < 1e-4  # the export's own float32 parity
+    # ``neural-brdf export RUN`` exports the kept weights too, not the checkpoint's last
+    # step (which --resume trains on from)
+    import neural_brdf
+    from analytic import physics
+
+    out = tmp_path / "again.onnx"
+    assert cli.main(["export", str(run_dir), "-o", str(out)]) == 0
+    wi = physics.random_directions(2000, 5).astype(np.float32)
+    wo = physics.random_directions(2000, 6).astype(np.float32)
+    own = neural_brdf.load(run_dir / "model.onnx")(wi, wo)
+    np.testing.assert_allclose(neural_brdf.load(out)(wi, wo), own, rtol=1e-6, atol=1e-7)
 
 
 @pytest.mark.slow
@@ -1111,6 +1122,7 @@ def test_the_start_s_grid_and_encoding_are_trained_exported_and_resumed(
         "images.start_steps=5",
         "images.start_refine_steps=0",
         "images.start_train_steps=20",
+        "images.poor_start_steps=null",  # a diffuse start is poor here: keep train.steps
     ]
     code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
     assert code == 0, err
