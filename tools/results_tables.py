@@ -3066,8 +3066,12 @@ SECTIONS = (
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
-    _images_any("images_any.json", "the defaults of 2026-12-03"),
+    _images_any("images_any.json", "the defaults of 2026-12-04"),
     _images_any("images_any_lights.json", "the defaults of 2026-12-03"),
+    _images_any(
+        "images_any_2026-12-03.json",
+        "the defaults of 2026-12-03, before the isotropic encoding after an isotropic start",
+    ),
     _images_any(
         "images_any_2026-12-02.json",
         "the run of 2026-12-02, before the start's refinement in rounds and the contenders",
