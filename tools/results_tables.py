@@ -3087,6 +3087,15 @@ SECTIONS = (
     _images_any("images_any_dev_rough_clay_full_rate.json"),
     _images_any("images_any_dev_half_disc.json"),
     _images_any("images_any_dev_aniso_grid.json", "the grid after an anisotropic start"),
+    _images_any(
+        "images_any_dev_isotropic_encoding.json",
+        "the isotropic encoding after an isotropic start (images.isotropic_encoding)",
+    ),
+    _images_any(
+        "images_any_dev_lights_isotropic_encoding.json",
+        "a multi-light capture, the isotropic encoding after an isotropic start "
+        "(images.isotropic_encoding, chosen under the sky)",
+    ),
     _images_any("images_any_dev_metallic.json", "the principled's metallic reaching 0 and 1"),
     _images_any(
         "images_any_dev_validation_spp16.json",

@@ -1067,9 +1067,7 @@ def _fit_views(
     check_render_sizes(views, images)
     split_views(views, images, cfg.train.seed)
     columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
-    if (
-        resume
-    ):  # its start's grid and encoding (starts.model_for_start) and steps, as the run trained
+    if resume:  # its start's grid, encoding (starts.model_for_start) and steps, as trained
         cfg = _resumed_config(cfg, folder)
     sess = Session.one(cfg, folder, resume=resume, kind=KIND, columns=columns)
     # a checkpoint that cannot be resumed: refused before any write
@@ -1132,8 +1130,8 @@ def _fit_views(
 
 def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:
     """``cfg`` as the checkpoint being resumed was trained: the grid and encoding of its
-    start's family (:func:`neural_brdf.inverse.starts.model_for_start`) and, after a poor start,
-    its steps (:func:`poor_start_config`); ``cfg`` itself when there is no readable
+    start's family (:func:`neural_brdf.inverse.starts.model_for_start`) and, after a poor
+    start, its steps (:func:`poor_start_config`); ``cfg`` itself when there is no readable
     checkpoint (the resume check then says why)."""
     from neural_brdf.inverse import starts
     from neural_brdf.train.session import load_checkpoint

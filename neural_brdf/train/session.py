@@ -397,8 +397,8 @@ class Session:
         return cls([RunFiles(cfg, folder, kind=kind, columns=columns)], resume=resume, desc=desc)
 
     def reconfigure(self, cfg: cfgmod.Config) -> None:
-        """The one run trains ``cfg`` from now on (an images fit's grid or encoding after its start:
-        :func:`neural_brdf.inverse.starts.model_for_start`): its checkpoints record it and
+        """The one run trains ``cfg`` from now on (an images fit's grid or encoding after its
+        start: :func:`neural_brdf.inverse.starts.model_for_start`): its checkpoints record it and
         its config.yaml is written again (atomically), so that ``export``, ``report`` and
         ``--resume`` rebuild the network that was trained."""
         if len(self.runs) != 1:
