@@ -3067,9 +3067,16 @@ SECTIONS = (
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
     _images_any("images_any.json", "the defaults of 2026-12-04"),
-    _images_any("images_any_lights.json", "the defaults of 2026-12-03"),
+    _images_any(
+        "images_any_lights.json",
+        "the defaults of 2026-12-04 (the brushed gold run alone right after the six)",
+    ),
     _images_any(
         "images_any_2026-12-03.json",
+        "the defaults of 2026-12-03, before the isotropic encoding after an isotropic start",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-03.json",
         "the defaults of 2026-12-03, before the isotropic encoding after an isotropic start",
     ),
     _images_any(
