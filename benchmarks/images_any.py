@@ -17,7 +17,12 @@ aluminium against 4.9, 5.8 and 5.9 % with the grid over the half vector's disc,
 anisotropic start the grid moves over the half vector's disc (``images.anisotropic_grid``,
 chosen on the development set's brushed aluminium, images_any_dev_aniso_grid.json against
 images_any_dev_refine.json: 3.2 to 1.3 % where both cosines exceed 0.5; reported on the
-test set's brushed gold), the default
+test set's brushed gold); after any other start the network takes the isotropic
+encoding (``images.isotropic_encoding``, chosen on the development set under the sky,
+images_any_dev_isotropic_encoding.json against images_any_dev_contenders.json,
+images_any_dev_glazed_blend.json and images_any_dev_retro_sign_early.json; checked under
+its lights, images_any_dev_lights_isotropic_encoding.json; reported once on the test
+set, images_any.json and images_any_lights.json against their 2026-12-03 files), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

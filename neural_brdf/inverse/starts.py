@@ -1496,7 +1496,7 @@ def network_start(
         report(
             "grid: over the half vector's disc after an anisotropic start (images.anisotropic_grid)"
         )
-    if report is not None and moved.model.encoding != cfg.model.encoding:
+    if report is not None and summary["encoding_moved"]:
         report(
             f"encoding: {moved.model.encoding} after an isotropic start (images.isotropic_encoding)"
         )

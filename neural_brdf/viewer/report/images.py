@@ -208,17 +208,18 @@ def _fit_figures(run: Run) -> list[Block]:
     if isinstance(chosen, dict) and isinstance(chosen.get("family"), str):
         n = len(chosen.get("candidates") or [])
         how = f"chosen of {n} by the held-out pixels" if n > 1 else "named in the config"
-        grid = (  # images.anisotropic_grid (inverse.starts.model_for_start)
+        # the network as the start moved it (inverse.starts.model_for_start)
+        moved = (  # images.anisotropic_grid
             " (its grid over the half vector's disc)"
             if chosen.get("grid_coords") == "half_disc"
             else ""
         )
         if chosen.get("encoding_moved") is True:  # images.isotropic_encoding
-            grid += f" (the {chosen.get('encoding')} encoding, after an isotropic start)"
+            moved += f" (the {chosen.get('encoding')} encoding, after an isotropic start)"
         first = chosen.get("first_choice")
         if isinstance(first, str):  # images.start_continue_within changed the choice
             how += f" after the contenders' further fits; {first} before"
-        rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{grid}"])
+        rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{moved}"])
         rows += _start_noise_rows(chosen)
     elif isinstance(init, dict) and isinstance(init.get("target"), str):
         rows.append(["start", init["target"]])
