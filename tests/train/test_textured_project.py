@@ -253,19 +253,29 @@ def test_a_refit_trains_the_lobes_toward_the_teacher_and_keeps_the_field(lobe):
 
 
 def test_a_refit_never_ends_worse_than_its_start_on_its_check_pairs(lobe):
-    """Lobes that are already the teacher's, refitted at a learning rate that throws them
-    off: the check pairs keep the start (step 0), the same f bit for bit."""
+    """Lobes a hair off the teacher's, refitted at a learning rate that throws them off:
+    the check pairs keep the start (step 0), the same f bit for bit.  (The teacher is not
+    the start itself: there the loss and every gradient can be exactly 0, and Adam then
+    leaves the lobes where they are, on a CPU whose matrix products round alike at every
+    batch size.)"""
     rng = np.random.default_rng(8)
     field = _field(rng)
     model = TexturedBRDF([copy.deepcopy(lobe)], field).eval()
-    teacher = ModelTeacher(model)
+    taught = TexturedBRDF([copy.deepcopy(lobe)], field).eval()
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(8)
+        for p in taught.lobes.parameters():
+            p.add_(1e-3 * torch.randn(p.shape, generator=g))
+    teacher = ModelTeacher(taught)
     out, fig = refit_lobes(
         model, teacher, steps=60, lr=0.5, batch=256, seed=4, pool=1 << 12, check_pairs=4096,
         check_every=20,
     )  # fmt: skip
     assert [k for k, _ in fig["check_errors"]] == [0, 20, 40, 60]
-    assert fig["kept_step"] == 0 and fig["check_errors"][0][1] < 1e-6
-    assert all(e > 1e-3 for _, e in fig["check_errors"][1:])  # the steps did throw them off
+    start = fig["check_errors"][0][1]
+    assert fig["kept_step"] == 0 and 0 < start < 1e-2, fig["check_errors"]
+    # the steps did throw them off
+    assert all(e > 10 * start for _, e in fig["check_errors"][1:]), fig["check_errors"]
     wi = frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((512, 2)))).float()
     uv = torch.from_numpy(rng.random((512, 2))).float()
     with torch.no_grad():
