@@ -33,10 +33,12 @@ time: a symbolic virtual call traces every BSDF instance alive) and warmed up by
 untimed step; each figure is the best of ``--rounds``.  Nothing here is tuned: there is
 no setting to choose, so no development set and no test set; the plastic is the issue's
 hard case.  The run of 2026-11-28 (evening) measured the grids' look-up in torch
-through ``grid_sample`` (before it, the plugin handing torch its valid lanes only): each a
-change of work, not of any setting, checked by tests (tests/train/test_grid_lookup.py,
-tests/inverse/test_inverse.py); neither changed a choice (:data:`AUTO`'s primal passes
-still name the graph).  The JSON records the load average before and after.
+through ``grid_sample`` (before it, the plugin handing torch its valid lanes only), and
+the run of 2026-12-04 the encodings' column-major features: each a change of work, not of
+any setting, checked by tests (tests/train/test_grid_lookup.py,
+tests/inverse/test_inverse.py, tests/train/test_encodings.py); none changed a choice
+(:data:`AUTO`'s primal passes still name the graph).  The JSON records the load average
+before and after.
 """
 
 from __future__ import annotations

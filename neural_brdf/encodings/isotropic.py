@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import torch
 
-from .angles import EPS_NORM, HALF_PI, half_angle, peak_coordinate
+from .angles import EPS_NORM, HALF_PI, columns, half_angle, peak_coordinate
 
 
 class HalfDifference(NamedTuple):
@@ -68,4 +68,4 @@ def half_difference(wi: torch.Tensor, wo: torch.Tensor, peak: str = "u_h") -> Ha
 
 def features(wi: torch.Tensor, wo: torch.Tensor, peak: str = "u_h") -> torch.Tensor:
     """(..., 3), (..., 3) -> (..., 8), bit-exactly invariant under wi <-> wo."""
-    return torch.stack(half_difference(wi, wo, peak).features, -1)
+    return columns(half_difference(wi, wo, peak).features)

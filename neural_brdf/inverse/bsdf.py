@@ -100,7 +100,7 @@ PLUGIN = "neural_brdf_ad"
 EVALUATORS = ("auto", "graph", "torch")  # images.evaluator's choices (config.Images)
 # "auto" per variant, from benchmarks/image_step.py (the primal pass of three 96² views
 # at 16 spp, results/image_step.json and results/cuda/image_step.json): llvm_ad_rgb on 2
-# cores, graph 0.086 s against torch 0.141 s; cuda_ad_rgb on an H200, graph 0.054 s
+# cores, graph 0.081 s against torch 0.146 s; cuda_ad_rgb on an H200, graph 0.054 s
 # against torch 0.030 s (torch's GPU matrix products beat the per-weight loads that the
 # lowered graph makes in every lane).
 AUTO = {"llvm_ad_rgb": "graph", "cuda_ad_rgb": "torch"}
@@ -161,8 +161,8 @@ def _eval_torch(raw: RawBRDF, directions_grad: bool = True):
     def f_cos(wx, wy, wz, ox, oy, oz, weights):
         if not directions_grad:
             wx, wy, wz, ox, oy, oz = (t.detach() for t in (wx, wy, wz, ox, oy, oz))
-        wi = torch.stack([wx, wy, wz], -1)
-        wo = torch.stack([ox, oy, oz], -1)
+        wi = torch.stack([wx, wy, wz], 0).t()  # (N, 3), column-major (encodings.angles.columns)
+        wo = torch.stack([ox, oy, oz], 0).t()
         f = torch.func.functional_call(raw, weights, (wi, wo))
         fc = f * oz.clamp_min(0.0)[:, None]
         return fc[:, 0], fc[:, 1], fc[:, 2]

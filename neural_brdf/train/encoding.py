@@ -20,6 +20,7 @@ from neural_brdf.encodings.angles import (  # noqa: F401  (re-exported: enc.PEAK
     HALF_PI,
     PEAK_EPS,
     PEAK_LOG_SCALE,
+    cat_columns,
     half_angle,
     peak_coordinate,
 )

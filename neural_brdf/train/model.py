@@ -137,7 +137,7 @@ class FeatureGrid(nn.Module):
         cell."""
         k, c = self.size, self.table.shape[1]
         image = self.table.t().reshape(1, c, k, k)  # (1, C, H = u, W = v)
-        at = torch.stack([2.0 * v - 1.0, 2.0 * u - 1.0], -1).reshape(1, -1, 1, 2)
+        at = torch.stack([2.0 * v - 1.0, 2.0 * u - 1.0], 0).t()[None, :, None, :]  # (1, N, 1, 2)
         out = F.grid_sample(image, at, mode="bilinear", padding_mode="border", align_corners=True)
         return out.reshape(c, -1).t()
 
@@ -346,12 +346,12 @@ class RawBRDF(nn.Module):
             u, v = x[..., i], x[..., j]
             if self.grid_coords == "half_disc":  # the unit disc onto the grid's [0, 1]^2
                 u, v = 0.5 * (u + 1.0), 0.5 * (v + 1.0)
-            x = torch.cat([x, self.grid(u, v)], -1)
+            x = enc.cat_columns([x, self.grid(u, v)])
         if self.cos_grid is not None:
             ci, co = wi[..., 2], wo[..., 2]
             total = ci + co
             ratio = (ci - co).abs() / total.clamp_min(MIN_MEAN_COS)
-            x = torch.cat([x, self.cos_grid(0.5 * total, ratio.clamp_max(1.0))], -1)
+            x = enc.cat_columns([x, self.cos_grid(0.5 * total, ratio.clamp_max(1.0))])
         if self.latent:
             if s is None:
                 raise ValueError(f"RawBRDF: {self.latent} latent inputs expected, got none")

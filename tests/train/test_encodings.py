@@ -8,16 +8,18 @@ from __future__ import annotations
 import json
 import math
 import sys
+import unittest.mock
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
 import neural_brdf
 from analytic import physics
-from neural_brdf import config, encodings
+from neural_brdf import config, encodings, export
 from neural_brdf.encodings import Encoding
 from neural_brdf.tooling import cli
 from neural_brdf.train import encoding
@@ -85,6 +87,28 @@ def test_an_encoding_computes_what_it_declares(name):
     rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     moved = (spec.features(wi @ rot.T, wo @ rot.T) - x).abs().max()
     assert (moved > 0.1) if spec.anisotropic else (moved < 2e-4)
+
+
+@pytest.mark.parametrize("name", ["isotropic", "anisotropic"])
+def test_torch_lays_the_features_out_by_column_and_the_export_traces_the_stack(name):
+    """encodings.angles.columns: in torch the feature columns are copied whole (a
+    column-major result, a faster copy than interleaving them), while an export traces
+    the plain stack, so the file's graph has no transpose; both are the same values, bit
+    for bit, and so is the model's input with its grid's columns (cat_columns)."""
+    spec = encodings.get(name)
+    wi, wo = _pairs(3000, 5)
+    x = spec.features(wi, wo)
+    with unittest.mock.patch("torch.onnx.is_in_onnx_export", return_value=True):
+        stacked = spec.features(wi, wo)
+        joined = encoding.cat_columns([stacked, stacked[:, :4]])
+    assert stacked.is_contiguous() and x.stride() == (1, 3000)
+    assert torch.equal(x, stacked)
+    both = encoding.cat_columns([x, x[:, :4]])
+    assert both.stride() == (1, 3000) and torch.equal(both, joined)
+    torch.manual_seed(3)
+    raw = RawBRDF(name, [16], "relu", grid_size=8, grid_channels=4).eval()
+    ops = {n.op_type for n in onnx.load_from_string(export.to_onnx_bytes(raw, 17)).graph.node}
+    assert "Transpose" not in ops and "Concat" in ops
 
 
 def test_a_registered_toy_is_a_config_value_and_a_reciprocal_model(toy):
