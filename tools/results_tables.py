@@ -3103,6 +3103,15 @@ SECTIONS = (
         "a multi-light capture, the isotropic encoding after an isotropic start "
         "(images.isotropic_encoding, chosen under the sky)",
     ),
+    _images_any(
+        "images_any_dev_lights_clay_seed1.json",
+        "a multi-light capture, the clay at a second seed (train.seed=1), the isotropic encoding",
+    ),
+    _images_any(
+        "images_any_dev_lights_clay_seed1_model_encoding.json",
+        "a multi-light capture, the clay at a second seed (train.seed=1), the model's "
+        "encoding (images.isotropic_encoding=model)",
+    ),
     _images_any("images_any_dev_metallic.json", "the principled's metallic reaching 0 and 1"),
     _images_any(
         "images_any_dev_validation_spp16.json",
