@@ -21,8 +21,11 @@ test set's brushed gold); after any other start the network takes the isotropic
 encoding (``images.isotropic_encoding``, chosen on the development set under the sky,
 images_any_dev_isotropic_encoding.json against images_any_dev_contenders.json,
 images_any_dev_glazed_blend.json and images_any_dev_retro_sign_early.json; checked under
-its lights, images_any_dev_lights_isotropic_encoding.json; reported once on the test
-set, images_any.json and images_any_lights.json against their 2026-12-03 files), the default
+its lights, images_any_dev_lights_isotropic_encoding.json, and on the clay there at a
+second seed, images_any_dev_lights_clay_seed1.json against
+images_any_dev_lights_clay_seed1_model_encoding.json, which chose nothing; reported once
+on the test set, images_any.json and images_any_lights.json against their 2026-12-03
+files), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

@@ -75,6 +75,7 @@ import yaml
 
 from neural_brdf import config as cfgmod
 from neural_brdf import graph
+from neural_brdf.encodings.angles import columns
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.physics import lobe_fit
@@ -161,8 +162,8 @@ def _eval_torch(raw: RawBRDF, directions_grad: bool = True):
     def f_cos(wx, wy, wz, ox, oy, oz, weights):
         if not directions_grad:
             wx, wy, wz, ox, oy, oz = (t.detach() for t in (wx, wy, wz, ox, oy, oz))
-        wi = torch.stack([wx, wy, wz], 0).t()  # (N, 3), column-major (encodings.angles.columns)
-        wo = torch.stack([ox, oy, oz], 0).t()
+        wi = columns([wx, wy, wz])  # (N, 3), column-major as the encodings' features
+        wo = columns([ox, oy, oz])
         f = torch.func.functional_call(raw, weights, (wi, wo))
         fc = f * oz.clamp_min(0.0)[:, None]
         return fc[:, 0], fc[:, 1], fc[:, 2]

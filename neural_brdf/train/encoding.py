@@ -21,6 +21,7 @@ from neural_brdf.encodings.angles import (  # noqa: F401  (re-exported: enc.PEAK
     PEAK_EPS,
     PEAK_LOG_SCALE,
     cat_columns,
+    columns,
     half_angle,
     peak_coordinate,
 )

@@ -137,7 +137,7 @@ class FeatureGrid(nn.Module):
         cell."""
         k, c = self.size, self.table.shape[1]
         image = self.table.t().reshape(1, c, k, k)  # (1, C, H = u, W = v)
-        at = torch.stack([2.0 * v - 1.0, 2.0 * u - 1.0], 0).t()[None, :, None, :]  # (1, N, 1, 2)
+        at = enc.columns([2.0 * v - 1.0, 2.0 * u - 1.0])[None, :, None, :]  # (1, N, 1, 2)
         out = F.grid_sample(image, at, mode="bilinear", padding_mode="border", align_corners=True)
         return out.reshape(c, -1).t()
 
