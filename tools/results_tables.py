@@ -2894,6 +2894,52 @@ def image_step_section(d: dict) -> list[str]:
     )
 
 
+def lobe_refit_section(d: dict) -> list[str]:
+    """The sampling lobe's fit: its two routes, and the image stage's share of it."""
+    m = d["machine"]
+    out = [
+        "## The sampling lobe's fit: what an image fit pays every `images.lobe_every` steps",
+        "",
+        _source("benchmarks/results/lobe_refit.json", "python benchmarks/lobe_refit.py"),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores, torch on {m['torch_threads']} thread",
+            f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
+        ),
+        "`neural_brdf.physics.lobe_fit.fit` on each case; route `pool`: a candidate's "
+        "density with what no roughness changes computed once per pool (since 2026-12-04), "
+        "`general`: the file format's densities on every sample (before it). Best of "
+        f"{d['rounds']} interleaved rounds in one process; the two routes' lobes are the "
+        "same to the last bit at every round's seed"
+        + (" (checked)." if d["same_lobes"] else " (**they differ**)."),
+        "",
+    ]
+    rows = [
+        [
+            f"`{c}`",
+            f"{b['pool']:.2f} s",
+            f"{b['general']:.2f} s",
+            f"{d['general_over_pool'][c]:.2f}x",
+            _lobe_text(d["lobes"][c]),
+        ]
+        for c, b in d["seconds"].items()
+    ]
+    out += _table(["case", "`pool`", "`general`", "`general` / `pool`", "lobe"], rows)
+    st = d.get("image_stage")
+    if st:
+        per, vs = st["refit_per_step_s"], st["step_with_refit_vs_roughconductor"]
+        out += [
+            f"The image stage refits the compact network's lobe every {d['lobe_every']} "
+            f"steps: {per['pool'] * 1e3:.1f} ms a step (`general`: {per['general'] * 1e3:.1f} "
+            f"ms). With one step of the stage from `{st['step_file']}` ({st['step_date'][:10]}: "
+            f"`neural_graph` {st['neural_graph_step_s']:.3f} s, `roughconductor` "
+            f"{st['roughconductor_step_s']:.3f} s, which refits nothing), a step and its share "
+            f"of a refit over `roughconductor`'s step: {vs['pool']:.2f}x (`general`: "
+            f"{vs['general']:.2f}x).",
+        ]
+    return out + [""]
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -3316,6 +3362,7 @@ SECTIONS = (
     (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "images_cadence_dev.json", images_cadence_section),
     (RESULTS / "image_step.json", image_step_section),
+    (RESULTS / "lobe_refit.json", lobe_refit_section),
     (RESULTS / "training_speed.json", training_speed_section),
     (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
     (RESULTS / "textured.json", textured_section),

@@ -149,6 +149,29 @@ def test_beckmann_target_gets_a_beckmann_lobe(alpha, material):
     assert fresh_second_moment(brdf, got) - 1 < 0.5 * (fresh_second_moment(brdf, ggx) - 1)
 
 
+@pytest.mark.parametrize("theta", lobe_fit.THETA_DEG[::2])
+def test_the_pools_lobe_densities_are_the_file_formats_bit_for_bit(theta):
+    """The fit scores a lobe with the parts no alpha changes computed once per pool
+    (``_Pool._density``); every value must be the file format's density
+    (``lobe.ggx_pdf`` / ``lobe.beckmann_pdf``, what samplers are tested against) to the
+    last bit, or the stored second moments, and so the lobes chosen, would move."""
+    brdf = analytic.create("microfacet", distribution="beckmann", alpha=0.3)
+    pool = lobe_fit._Pool(brdf.eval, lobe_fit._incident(theta, 0.4), np.random.default_rng(3))
+    assert len(pool.wo) > 1000
+    n = len(lobe_fit.ALPHAS)
+    pairs = [(i, i) for i in range(n)] + [(i, n - 1 - i) for i in range(0, n, 3)]
+    for dist, pdf in (("ggx", lobe_format.ggx_pdf), ("beckmann", lobe_format.beckmann_pdf)):
+        extra = {"erf": lobe_fit._torch_erf} if dist == "beckmann" else {}
+        for retro in (False, True):
+            wo = lobe_format.turn(pool.wo) if retro else pool.wo
+            for ia, ib in pairs:
+                ax, ay = float(lobe_fit.ALPHAS[ia]), float(lobe_fit.ALPHAS[ib])
+                want = pdf(pool.wi, wo, ax, ay, **extra)
+                got = pool._density(ax, ay, retro, dist)
+                assert got.shape == want.shape, (dist, retro, ax, ay)
+                assert np.array_equal(got, want), (theta, dist, retro, ax, ay)
+
+
 def test_fit_is_deterministic():
     brdf = analytic.create("phong")
     assert lobe_fit.fit(brdf.eval) == lobe_fit.fit(brdf.eval)
