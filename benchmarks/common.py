@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import platform
 import time
 from pathlib import Path
 
@@ -52,17 +54,14 @@ def matmul_flops_per_s(repeats: int) -> float:
     return 2.0 * MATMUL_N**3 / best_time(lambda: torch.mm(a, b), repeats)
 
 
-def machine(load_before: list[float], **versions: str) -> dict:
+def machine(load_before: list[float], **versions) -> dict:
     """The JSON's ``machine`` entry: platform, cores, the load average (1, 5, 15 min)
     before the run and now, then ``versions`` (mitsuba=..., torch=...)."""
-    import os
-    import platform
-
     return {
         "platform": platform.platform(),
         "cores": os.cpu_count(),
         "loadavg_before": load_before,
-        "loadavg_after": [round(x, 2) for x in os.getloadavg()],
+        "loadavg_after": loadavg(),
         **versions,
     }
 
@@ -120,3 +119,8 @@ def add_fit_arguments(p, *, work: str, data: Path, out: Path, resume: str, data_
     p.add_argument("--data", type=Path, default=data, help=f"holds {data_holds}")
     p.add_argument("--out", type=Path, default=out)
     p.add_argument("--resume", action="store_true", help=f"keep {resume} in --out")
+
+
+def loadavg() -> list[float]:
+    """The 1-, 5- and 15-minute load averages, rounded."""
+    return [round(x, 2) for x in os.getloadavg()]

@@ -47,8 +47,6 @@ import argparse
 import contextlib
 import gc
 import math
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -57,15 +55,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_json  # noqa: E402
+from common import loadavg, machine, write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 RESOLUTION = 96
 TARGET_SPP = 64
-
-
-def loadavg() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
 
 
 def sync(dr) -> None:
@@ -198,17 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     base = best["roughconductor"]["step_s"]
     out = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {
-            "platform": platform.platform(),
-            "cores": os.cpu_count(),
-            "loadavg_before": load_before,
-            "loadavg_after": loadavg(),
-            "mitsuba": mi.__version__,
-            "drjit": dr.__version__,
-            "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(),
+        "machine": machine(
+            load_before,
+            mitsuba=mi.__version__,
+            drjit=dr.__version__,
+            torch=torch.__version__,
+            torch_threads=torch.get_num_threads(),
             **({"gpu": torch.cuda.get_device_name(0)} if args.variant.startswith("cuda") else {}),
-        },
+        ),
         "variant": args.variant,
         "views": len(trees),
         "resolution": RESOLUTION,

@@ -37,21 +37,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_json  # noqa: E402
+from common import loadavg, machine, write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def loadavg() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
 
 
 def general_density(pool, ax: float, ay: float, retro: bool, dist: str):
@@ -132,14 +126,9 @@ def main(argv: list[str] | None = None) -> int:
     every = cfgmod.Images().lobe_every
     out: dict = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "machine": {
-            "platform": platform.platform(),
-            "cores": os.cpu_count(),
-            "loadavg_before": load_before,
-            "loadavg_after": loadavg(),
-            "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(),
-        },
+        "machine": machine(
+            load_before, torch=torch.__version__, torch_threads=torch.get_num_threads()
+        ),
         "rounds": args.rounds,
         "seconds": best,
         "general_over_pool": {c: b["general"] / b["pool"] for c, b in best.items()},
