@@ -1455,7 +1455,9 @@ def images_any_section(
         "seconds on the machine above, the start (every family's fit and the choice), its "
         "distillation into the network and the image stage; the image stage's time over "
         "a stand-alone fit of Mitsuba's `roughconductor` parameters to the same views "
-        "(as many steps, the same samples per pixel).",
+        "(the benchmark's `train.steps`, which the stage after a poor start exceeds, up to "
+        "`images.poor_start_steps`: the per-step column compares like with like; the same "
+        "samples per pixel).",
         "",
     ]
     return out + _fitted_table(d) + _refine_table(d) + _contenders_table(d)
@@ -3307,6 +3309,11 @@ SECTIONS = (
         "images_any_lights_rounds8.json",
         "the brushed gold, whose four rounds all gained a tenth, re-run with up to 8 rounds "
         "(images.start_refine_rounds)",
+    ),
+    _images_any(
+        "images_any_lights_retro_poor.json",
+        "the retroreflector called poor (images.poor_start_loss 0.0003): a diagnostic, "
+        "session 72, not chosen",
     ),
     _images_any(
         "images_any_retro_contenders6.json",

@@ -125,6 +125,11 @@ RESUME_MUST_MATCH = (
     "images.validation_views",
 )
 HELDOUT_COLUMN = "heldout_loss"  # log.csv's column of the held-out loss (with a split)
+# A start not called poor (images.poor_start_loss, an excess of relative MSE) whose
+# held-out loss is this many times the targets' noise or more gets a warning
+# (far_above_noise): two orders of magnitude, where no start of the development set
+# that fits its views stands (0.2 to 2.3 times; docs/inverse.md, "A poor start")
+FAR_ABOVE_NOISE = 100.0
 VALIDATION_STEP = 999_983  # the held-out renders' seeds: _rng_seed(train.seed, this, view)
 # Bytes a render holds per sample in flight (path state, the AD graph of the gradient
 # pass), from above: 1.2 to 1.8 KiB measured (16 x 16 film, 256 and 1024 spp, the
@@ -580,6 +585,7 @@ def poor_start(
         return False
     excess = float(loss) - (noise or 0.0)
     if not excess > limit:
+        far_above_noise(start, float(loss), noise, excess, limit)
         return False
     start["poor"] = {
         "val_loss": float(loss),
@@ -593,6 +599,30 @@ def poor_start(
         f"targets' noise ({noise or 0.0:.2g}) > images.poor_start_loss {limit:g}: no "
         "family fits the views; the image stage runs at train.lr"
         + (f" for up to {steps} steps" if steps is not None else ""),
+        file=sys.stderr,
+    )
+    return True
+
+
+def far_above_noise(
+    start: dict, loss: float, noise: float | None, excess: float, limit: float
+) -> bool:
+    """Warn (one line on stderr, ``start["far_above_noise"]`` in metrics.json) when a
+    start that ``images.poor_start_loss`` does not call poor still has a held-out loss
+    :data:`FAR_ABOVE_NOISE` times the targets' noise or more: the limit is an excess of
+    relative MSE, and under point lights, whose renders are nearly noise-free and mostly
+    dark, a start that fits its views badly can stay under it (docs/inverse.md, "A poor
+    start").  Changes nothing.  True when it warned."""
+    if not noise or noise <= 0.0 or not loss >= FAR_ABOVE_NOISE * noise:  # NaN: no
+        return False
+    ratio = loss / noise
+    start["far_above_noise"] = {"ratio": ratio, "excess": excess, "limit": float(limit)}
+    print(
+        f"warning: start {start.get('family')}: held-out loss {loss:.4g}, {ratio:.0f} times "
+        f"the targets' noise ({noise:.2g}), is not poor by images.poor_start_loss {limit:g} "
+        f"(an excess of {excess:.2g} over the noise); if the fitted views stay far from "
+        "their images (training.validation in metrics.json), set images.poor_start_loss "
+        f"below {excess:.2g} so that the image stage learns the material at train.lr",
         file=sys.stderr,
     )
     return True

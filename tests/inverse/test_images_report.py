@@ -348,6 +348,23 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
         visible_text(report.write_report(fine, render=False)["html"].read_text()).split()
     )
     assert "start's loss on the choice's held-out pixels 0.0012" in text and "poor:" not in text
+    assert "warned" not in text
+    # far above its noise but not poor (inverse.fit.far_above_noise): the warning, repeated
+    above = {
+        **start,
+        "val_loss": 0.00053,
+        "target_noise": 8.8e-7,
+        "far_above_noise": {"ratio": 602.3, "excess": 0.000529, "limit": 0.0015},
+    }
+    warned = make_images_run(tiny_run, tmp_path / "w", extra={"init": {**init, "start": above}})
+    text = " ".join(
+        visible_text(report.write_report(warned, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "warned: 602 times the targets' noise, not poor by images.poor_start_loss 0.0015 "
+        "(0.00053 above the noise); if the fitted views stay far from their images, set it "
+        "below 0.00053" in text
+    )
     # an anisotropic start's network has its grid over the half vector's disc: said
     aniso = {**start, "family": "roughconductor_aniso", "grid_coords": "half_disc"}
     moved = make_images_run(tiny_run, tmp_path / "aniso", extra={"init": {**init, "start": aniso}})

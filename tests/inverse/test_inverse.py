@@ -997,6 +997,35 @@ def test_poor_start_marks_only_a_start_whose_loss_exceeds_the_noise_by_the_limit
     assert "images.poor_start_loss" in err and "diffuse" in err and "noise" in err
 
 
+def test_a_start_far_above_its_noise_but_not_poor_is_warned_of(capsys):
+    """Under point lights a start can be hundreds of times the targets' noise and still
+    under images.poor_start_loss (an excess): it is warned of, once, with the value to
+    set, and recorded; a start near its noise, or a poor one, is not."""
+    from neural_brdf.inverse import fit as inverse
+
+    noise = 1e-6
+    far = {"start": {"family": "diffuse", "val_loss": 600 * noise}}
+    assert not inverse.poor_start(far, 0.0015, noise)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("warning: start diffuse")
+    assert "600 times" in err and "images.poor_start_loss" in err and "below 0.0006" in err
+    rec = far["start"]["far_above_noise"]
+    assert rec["ratio"] == pytest.approx(600) and rec["limit"] == 0.0015
+    assert rec["excess"] == pytest.approx(599 * noise)
+    near = {"start": {"family": "roughplastic", "val_loss": 0.9 * inverse.FAR_ABOVE_NOISE * noise}}
+    assert not inverse.poor_start(near, 0.0015, noise)
+    assert capsys.readouterr().err == "" and "far_above_noise" not in near["start"]
+    poor = {"start": {"family": "diffuse", "val_loss": 0.01}}
+    assert inverse.poor_start(poor, 0.0015, noise)
+    assert "far_above_noise" not in poor["start"] and "warning" not in capsys.readouterr().err
+    unknown = {"start": {"family": "diffuse", "val_loss": 600 * noise}}
+    assert not inverse.poor_start(unknown, 0.0015, None)
+    assert "far_above_noise" not in unknown["start"]
+    broken = {"start": {"family": "diffuse", "val_loss": float("nan")}}
+    assert not inverse.poor_start(broken, 0.0015, noise)
+    assert "far_above_noise" not in broken["start"] and capsys.readouterr().err == ""
+
+
 @pytest.mark.parametrize("capture", ["environment", "lights"])
 def test_target_noise_estimates_the_targets_own_noise_from_one_image(mi, tmp_path, capture):
     """The estimate from each target alone (inverse.fit.target_noise) against the noise

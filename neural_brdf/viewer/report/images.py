@@ -258,6 +258,19 @@ def _start_noise_rows(chosen: dict) -> list[list[str]]:
                 "not refined"
             )
         rows.append(["start's fit", said])
+    far = chosen.get("far_above_noise")
+    if isinstance(far, dict) and not isinstance(poor, dict):
+        ratio, above = _finite(far.get("ratio")), _finite(far.get("excess"))
+        limit = _finite(far.get("limit"))
+        if ratio is not None and above is not None and limit is not None:
+            rows.append(
+                [
+                    "start's fit",
+                    f"warned: {ratio:.0f} times the targets' noise, not poor by "
+                    f"images.poor_start_loss {limit:g} ({above:.2g} above the noise); if the "
+                    f"fitted views stay far from their images, set it below {above:.2g}",
+                ]
+            )
     return rows
 
 
