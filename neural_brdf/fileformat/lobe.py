@@ -63,22 +63,42 @@ def at(lobe: dict, cos_theta_i) -> tuple:
     return tuple(np.interp(c, t["cos_theta"], t[k]) for k in ("alpha_x", "alpha_y", "weight"))
 
 
+def half_parts(wi: np.ndarray, wo: np.ndarray) -> dict[str, np.ndarray]:
+    """What the densities need of the half vector h = normalize(wi + wo), (N, 3) each:
+    its squared x and y, its z, and the clamped cosines wi.h and wo.h, each (N,).  A
+    caller scoring many roughnesses on the same directions computes them once
+    (:mod:`neural_brdf.physics.lobe_fit`)."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    return {
+        "hxx": hx * hx,
+        "hyy": hy * hy,
+        "hz": hz,
+        "cos_ih": np.maximum(np.sum(wi * h, -1), 0.0),
+        "cos_oh": np.maximum(np.sum(wo * h, -1), 1e-12),
+    }
+
+
 def ggx_pdf(
     wi: np.ndarray, wo: np.ndarray, ax: float | np.ndarray, ay: float | np.ndarray
 ) -> np.ndarray:
     """Density of wo = reflect(wi, m), m a GGX(ax, ay) visible normal seen from wi
     (Heitz 2018, eq. 1; GGX D and Smith G1 as in analytic.microfacet).  wi, wo: (N, 3);
     ax, ay: floats or (C, 1) arrays, giving (N,) or (C, N)."""
-    h = wi + wo
-    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
-    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
-    t = hx * hx / (ax * ax) + hy * hy / (ay * ay) + hz * hz
-    d = np.where(hz > 0, 1.0 / (math.pi * ax * ay * t * t), 0.0)
+    return ggx_pdf_half(half_parts(wi, wo), wi, ax, ay)
+
+
+def ggx_pdf_half(
+    h: dict[str, np.ndarray], wi: np.ndarray, ax: float | np.ndarray, ay: float | np.ndarray
+) -> np.ndarray:
+    """:func:`ggx_pdf` from :func:`half_parts` of (wi, wo).  ``wi``: (N, 3), or (1, 3)
+    where every row shares one incident direction (the same values, Smith's term once)."""
+    t = h["hxx"] / (ax * ax) + h["hyy"] / (ay * ay) + h["hz"] * h["hz"]
+    d = np.where(h["hz"] > 0, 1.0 / (math.pi * ax * ay * t * t), 0.0)
     wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
     g1 = 2.0 * wz / (wz + np.sqrt(ax * ax * wx * wx + ay * ay * wy * wy + wz * wz))
-    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
-    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
-    return g1 * cos_ih * d / (wz * 4.0 * cos_oh)
+    return g1 * h["cos_ih"] * d / (wz * 4.0 * h["cos_oh"])
 
 
 def beckmann_pdf(
@@ -93,19 +113,28 @@ def beckmann_pdf(
     anisotropic slopes) and Smith Lambda(a) = (erf(a) - 1) / 2 + exp(-a^2) / (2 a
     sqrt(pi)), a = 1 / (alpha tan theta) (Walter et al. 2007, eq. 27).  ``erf``: a
     vectorised erf (default :func:`math.erf` per element)."""
-    h = wi + wo
-    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
-    hx, hy, hz = h[:, 0], h[:, 1], h[:, 2]
+    return beckmann_pdf_half(half_parts(wi, wo), wi, ax, ay, erf=erf)
+
+
+def beckmann_pdf_half(
+    h: dict[str, np.ndarray],
+    wi: np.ndarray,
+    ax: float | np.ndarray,
+    ay: float | np.ndarray,
+    *,
+    erf: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """:func:`beckmann_pdf` from :func:`half_parts` of (wi, wo); ``wi`` as for
+    :func:`ggx_pdf_half`."""
+    hz = h["hz"]
     hz_safe = np.maximum(hz, 1e-6)
-    e = (hx * hx / (ax * ax) + hy * hy / (ay * ay)) / (hz_safe * hz_safe)
+    e = (h["hxx"] / (ax * ax) + h["hyy"] / (ay * ay)) / (hz_safe * hz_safe)
     d = np.where(hz > 1e-6, np.exp(-e) / (math.pi * ax * ay * hz_safe**4), 0.0)
     wx, wy, wz = wi[:, 0], wi[:, 1], wi[:, 2]
     a = 1.0 / np.sqrt(np.maximum((ax * ax * wx * wx + ay * ay * wy * wy) / (wz * wz), 1e-30))
     erf_a = (erf or _erf)(a)
     lam = 0.5 * (erf_a - 1.0) + np.exp(-a * a) / (2.0 * a * math.sqrt(math.pi))
-    cos_ih = np.maximum(np.sum(wi * h, -1), 0.0)
-    cos_oh = np.maximum(np.sum(wo * h, -1), 1e-12)
-    return cos_ih * d / ((1.0 + lam) * wz * 4.0 * cos_oh)
+    return h["cos_ih"] * d / ((1.0 + lam) * wz * 4.0 * h["cos_oh"])
 
 
 def _erf(a: np.ndarray) -> np.ndarray:
