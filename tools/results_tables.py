@@ -2930,15 +2930,18 @@ def lobe_refit_section(d: dict) -> list[str]:
     st = d.get("image_stage")
     if st:
         per, vs = st["refit_per_step_s"], st["step_with_refit_vs_roughconductor"]
-        out += [
-            f"The image stage refits the compact network's lobe every {d['lobe_every']} "
-            f"steps: {per['pool'] * 1e3:.1f} ms a step (`general`: {per['general'] * 1e3:.1f} "
-            f"ms). With one step of the stage from `{st['step_file']}` ({st['step_date'][:10]}: "
+        ms = {route: f"{per[route] * 1e3:.1f} ms" for route in per}
+        step = (
             f"`neural_graph` {st['neural_graph_step_s']:.3f} s, `roughconductor` "
-            f"{st['roughconductor_step_s']:.3f} s, which refits nothing), a step and its share "
-            f"of a refit over `roughconductor`'s step: {vs['pool']:.2f}x (`general`: "
-            f"{vs['general']:.2f}x).",
-        ]
+            f"{st['roughconductor_step_s']:.3f} s, which refits nothing"
+        )
+        out.append(
+            f"The image stage refits the compact network's lobe every {d['lobe_every']} "
+            f"steps: {ms['pool']} a step (`general`: {ms['general']}). With one step of the "
+            f"stage from `{st['step_file']}` ({st['step_date'][:10]}: {step}), a step and its "
+            f"share of a refit over `roughconductor`'s step: {vs['pool']:.2f}x (`general`: "
+            f"{vs['general']:.2f}x)."
+        )
     return out + [""]
 
 
