@@ -7,12 +7,13 @@
 :func:`neural_brdf.physics.lobe_fit.fit` scores about a hundred candidate lobes (GGX and
 Beckmann, mirror and retro, 25 roughnesses, each at 14 shares) on one pooled set of
 samples per incident direction.  Since 2026-12-04 a pool computes a candidate's density
-with what no roughness changes (the half vectors, their cosines) computed once per lobe
-shape and the Smith term once (every sample of a pool shares its incident direction):
-route ``pool``.  Route ``general`` scores the same candidates through the file format's
-densities, :func:`neural_brdf.fileformat.lobe.ggx_pdf` and ``beckmann_pdf``, on every
-sample, as before that change.  The two routes give the same lobe to the last bit (the
-JSON records the check; tests/physics/test_sampling_lobe.py checks the densities).
+from the half vectors' parts computed once per lobe shape and the Smith term once (every
+sample of a pool shares its incident direction), and sums its 14 shares in place with
+the cosine lobe's part of each computed once: route ``pool``.  Route ``general`` is the
+fit before that change: the file format's densities,
+:func:`neural_brdf.fileformat.lobe.ggx_pdf` and ``beckmann_pdf``, on every sample, and
+each share's mixture formed anew.  The two routes give the same lobe to the last bit
+(the JSON records the check; tests/physics/test_sampling_lobe.py checks the densities).
 
 Cases, each the function an image fit or an export fits its lobe to:
 
@@ -60,6 +61,27 @@ def general_density(pool, ax: float, ay: float, retro: bool, dist: str):
     return lobe_format.beckmann_pdf(pool.wi, wo, ax, ay, erf=lobe_fit._torch_erf)
 
 
+def general_second_moments(pool, ia: int, ib: int, retro: bool, dist: str = "ggx"):
+    """A candidate's second moments at every share, each share's mixture formed anew:
+    the route before 2026-12-04."""
+    import numpy as np
+
+    from neural_brdf.physics import lobe_fit
+
+    if pool.black:
+        return np.zeros(len(lobe_fit.WEIGHTS))
+    if ia == ib and dist == "ggx":
+        p = pool.p_iso[retro][ia]
+    else:
+        ax, ay = float(lobe_fit.ALPHAS[ia]), float(lobe_fit.ALPHAS[ib])
+        p = general_density(pool, ax, ay, retro, dist).astype(np.float32)
+    m2 = np.empty(len(lobe_fit.WEIGHTS))
+    with np.errstate(divide="ignore"):
+        for j, w in enumerate(lobe_fit.WEIGHTS.astype(np.float32)):
+            m2[j] = np.sum(pool.c / ((1 - w) * pool.p_cos + w * p), dtype=np.float64)
+    return m2 / pool.norm
+
+
 def cases() -> dict:
     import torch
     import yaml
@@ -99,16 +121,16 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)  # as the image stage runs torch (inverse.fit.TORCH_THREADS)
     load_before = loadavg()
-    pool_route = lobe_fit._Pool._density
-    routes = {"pool": pool_route, "general": general_density}
+    pool_route = lobe_fit._Pool.second_moments
+    routes = {"pool": pool_route, "general": general_second_moments}
     todo = cases()
     best = {c: dict.fromkeys(routes, math.inf) for c in todo}
     lobes: dict[str, dict[str, dict]] = {c: {} for c in todo}
     try:
         for r in range(args.rounds):
             for c, (fn, aniso) in todo.items():
-                for route, density in routes.items():
-                    lobe_fit._Pool._density = density  # type: ignore[method-assign]
+                for route, moments in routes.items():
+                    lobe_fit._Pool.second_moments = moments  # type: ignore[method-assign]
                     t0 = time.perf_counter()
                     lobes[c][route] = lobe_fit.fit(fn, seed=r, anisotropic=aniso)
                     best[c][route] = min(best[c][route], time.perf_counter() - t0)
@@ -122,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
     finally:
-        lobe_fit._Pool._density = pool_route  # type: ignore[method-assign]
+        lobe_fit._Pool.second_moments = pool_route  # type: ignore[method-assign]
     every = cfgmod.Images().lobe_every
     out: dict = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),

@@ -2909,8 +2909,9 @@ def lobe_refit_section(d: dict) -> list[str]:
             f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
         ),
         "`neural_brdf.physics.lobe_fit.fit` on each case; route `pool`: a candidate's "
-        "density with what no roughness changes computed once per pool (since 2026-12-04), "
-        "`general`: the file format's densities on every sample (before it). Best of "
+        "density from what no roughness changes, computed once per pool, and its shares "
+        "summed in place (since 2026-12-04); `general`: the file format's densities on "
+        "every sample, each share's mixture formed anew (before it). Best of "
         f"{d['rounds']} interleaved rounds in one process; the two routes' lobes are the "
         "same to the last bit at every round's seed"
         + (" (checked)." if d["same_lobes"] else " (**they differ**)."),
