@@ -172,6 +172,35 @@ def test_the_pools_lobe_densities_are_the_file_formats_bit_for_bit(theta):
                 assert np.array_equal(got, want), (theta, dist, retro, ax, ay)
 
 
+def test_the_pools_second_moments_are_the_plain_sum_bit_for_bit():
+    """``_Pool.second_moments`` sums each share's c / ((1 - w) p_cos + w p) in place, the
+    cosine part computed once; the values must be the plain expression's to the last bit
+    (the lobes chosen depend on them)."""
+    brdf = analytic.create("microfacet", distribution="beckmann", alpha=0.2)
+    pool = lobe_fit._Pool(brdf.eval, lobe_fit._incident(35.0, 0.4), np.random.default_rng(5))
+    n = len(lobe_fit.ALPHAS)
+    for ia, ib, retro, dist in [
+        (3, 3, False, "ggx"),
+        (9, 9, True, "beckmann"),
+        (2, n - 3, False, "ggx"),
+    ]:
+        got = pool.second_moments(ia, ib, retro, dist)
+        if ia == ib and dist == "ggx":
+            p = pool.p_iso[retro][ia]
+        else:
+            ax, ay = float(lobe_fit.ALPHAS[ia]), float(lobe_fit.ALPHAS[ib])
+            p = pool._density(ax, ay, retro, dist).astype(np.float32)
+        with np.errstate(divide="ignore"):
+            want = np.array(
+                [
+                    np.sum(pool.c / ((1 - w) * pool.p_cos + w * p), dtype=np.float64)
+                    for w in lobe_fit.WEIGHTS.astype(np.float32)
+                ]
+            )
+        assert np.array_equal(got, want / pool.norm), (ia, ib, retro, dist)
+        assert np.all(np.isfinite(got[1:])), got
+
+
 def test_fit_is_deterministic():
     brdf = analytic.create("phong")
     assert lobe_fit.fit(brdf.eval) == lobe_fit.fit(brdf.eval)
