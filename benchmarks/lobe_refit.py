@@ -12,7 +12,9 @@ sample of a pool shares its incident direction), and sums its 14 shares in place
 the cosine lobe's part of each computed once: route ``pool``.  Route ``general`` is the
 fit before that change: the file format's densities,
 :func:`neural_brdf.fileformat.lobe.ggx_pdf` and ``beckmann_pdf``, on every sample, and
-each share's mixture formed anew.  The two routes give the same lobe to the last bit
+each share's mixture formed anew (the pools themselves are built alike, with the
+isotropic GGX densities from their half vectors' parts, so ``general`` is a little
+faster than the fit was).  The two routes give the same lobe to the last bit
 (the JSON records the check; tests/physics/test_sampling_lobe.py checks the densities).
 
 Cases, each the function an image fit or an export fits its lobe to:

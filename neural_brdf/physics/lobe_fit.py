@@ -49,7 +49,6 @@ from neural_brdf.fileformat.lobe import (
     MAX_WEIGHT,
     MIN_ALPHA,
     beckmann_pdf_half,
-    ggx_pdf,
     ggx_pdf_half,
     half_parts,
     turn,
@@ -208,7 +207,9 @@ class _Pool:
         wi = np.broadcast_to(wi1.numpy(), wo.shape)
         p_cos = np.where(wo[:, 2] > 0, np.clip(wo[:, 2], 0.0, None) / math.pi, 0.0)
         a = ALPHAS[:, None]
-        p_iso = {False: ggx_pdf(wi, wo, a, a), True: ggx_pdf(wi, turn(wo), a, a)}  # (A, N)
+        # the half vectors' parts of both lobe shapes, once (wi is one direction: its row)
+        half = {r: half_parts(wi, turn(wo) if r else wo) for r in (False, True)}
+        p_iso = {r: ggx_pdf_half(h, wi[:1], a, a) for r, h in half.items()}  # (A, N)
         # The pooled samples' density over the whole sphere: a visible normal may reflect
         # wi below the horizon; such samples count, with f cos = 0.
         q = (p_cos + p_iso[False].sum(0) + p_iso[True].sum(0)) / (2 * k + 1)
@@ -223,7 +224,8 @@ class _Pool:
         self.c = (fc[live] ** 2 / q[live]).astype(np.float32)
         self.p_cos = p_cos[live].astype(np.float32)
         self.norm = len(wo) * albedo * albedo
-        self._half: dict[bool, dict[str, np.ndarray]] = {}  # _density's parts that no alpha changes
+        # _density's parts that no alpha changes, at the live samples
+        self._half = {r: {name: v[live] for name, v in h.items()} for r, h in half.items()}
         # the cosine lobe's part of every share's mixture, (1 - w) p_cos, the same for every
         # candidate, and the buffer second_moments works in
         self._cos_part = [(1 - w) * self.p_cos for w in WEIGHTS.astype(np.float32)]
@@ -237,8 +239,6 @@ class _Pool:
         ``beckmann_pdf`` on every sample, bit for bit (tests/physics/test_sampling_lobe.py);
         with the shares summed in place (:meth:`second_moments`) the fit takes 0.55 of
         its former time (benchmarks/lobe_refit.py)."""
-        if retro not in self._half:
-            self._half[retro] = half_parts(self.wi, turn(self.wo) if retro else self.wo)
         h, w1 = self._half[retro], self.wi[:1]  # the pool's one incident direction
         if dist == "ggx":
             return ggx_pdf_half(h, w1, ax, ay)
