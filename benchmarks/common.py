@@ -54,6 +54,11 @@ def matmul_flops_per_s(repeats: int) -> float:
     return 2.0 * MATMUL_N**3 / best_time(lambda: torch.mm(a, b), repeats)
 
 
+def loadavg() -> list[float]:
+    """The 1-, 5- and 15-minute load averages, rounded."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
 def machine(load_before: list[float], **versions) -> dict:
     """The JSON's ``machine`` entry: platform, cores, the load average (1, 5, 15 min)
     before the run and now, then ``versions`` (mitsuba=..., torch=...)."""
@@ -119,8 +124,3 @@ def add_fit_arguments(p, *, work: str, data: Path, out: Path, resume: str, data_
     p.add_argument("--data", type=Path, default=data, help=f"holds {data_holds}")
     p.add_argument("--out", type=Path, default=out)
     p.add_argument("--resume", action="store_true", help=f"keep {resume} in --out")
-
-
-def loadavg() -> list[float]:
-    """The 1-, 5- and 15-minute load averages, rounded."""
-    return [round(x, 2) for x in os.getloadavg()]

@@ -104,7 +104,10 @@ after ``images.start_continue_max`` the one test fit with more than three conten
 the retroreflector under the studio (images_any_retro_cap.json; without the cap on
 the same host, images_any_retro_contenders6_same_host.json); after
 ``images.poor_start_early_loss`` the one test fit it changes, the same retroreflector
-(images_any.json, its row re-run).
+(images_any.json, its row re-run); and, as a diagnostic that chose nothing (session 72),
+the retroreflector under lights called poor by a lower ``images.poor_start_loss``
+(0.0003), images_any_lights_retro_poor.json: what the warning for a start far above its
+noise (``inverse.fit.far_above_noise``) advises, measured once; the default is unchanged.
 
 Measured per material, for the network and for its start (the chosen family with its
 fitted parameters, rendered by Mitsuba itself), against the true material:
@@ -188,7 +191,7 @@ for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip instal
         sys.path.insert(0, str(p))
 
 import numpy as np  # noqa: E402
-from common import write_json  # noqa: E402
+from common import loadavg, write_json  # noqa: E402
 
 RESULTS = REPO / "benchmarks" / "results"
 RESOLUTION, TARGET_SPP, HELDOUT_SPP = 96, 256, 1024
@@ -398,10 +401,6 @@ SETS = {
 
 
 # ------------------------------------------------------------------ one material
-def loadavg() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
-
-
 def fitting_emitters(capture: str, view: int | None) -> str | None:
     """The emitters (XML) of fitted view ``view`` (0-based) of a ``capture``, or of the
     held-out camera (``view`` None: every view's lights at once, the capture's lights

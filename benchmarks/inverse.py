@@ -60,16 +60,12 @@ for p in (REPO, REPO / "benchmarks"):  # run from a checkout without `pip instal
         sys.path.insert(0, str(p))
 
 import numpy as np  # noqa: E402
-from common import write_json  # noqa: E402
+from common import loadavg, write_json  # noqa: E402
 
 OUT = REPO / "benchmarks" / "results" / "inverse.json"
 RESOLUTION, TARGET_SPP, HELDOUT_SPP = 96, 256, 1024
 PAIRS = 1 << 17
 PSNR_GOAL_DB, BRDF_GOAL = 35.0, 0.05
-
-
-def loadavg() -> list[float]:
-    return [round(x, 2) for x in os.getloadavg()]
 
 
 def main(argv: list[str] | None = None) -> int:

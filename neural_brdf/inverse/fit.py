@@ -606,15 +606,15 @@ def poor_start(
 
 def far_above_noise(
     start: dict, loss: float, noise: float | None, excess: float, limit: float
-) -> bool:
+) -> None:
     """Warn (one line on stderr, ``start["far_above_noise"]`` in metrics.json) when a
     start that ``images.poor_start_loss`` does not call poor still has a held-out loss
     :data:`FAR_ABOVE_NOISE` times the targets' noise or more: the limit is an excess of
     relative MSE, and under point lights, whose renders are nearly noise-free and mostly
     dark, a start that fits its views badly can stay under it (docs/inverse.md, "A poor
-    start").  Changes nothing.  True when it warned."""
+    start").  Changes nothing."""
     if not noise or noise <= 0.0 or not loss >= FAR_ABOVE_NOISE * noise:  # NaN: no
-        return False
+        return
     ratio = loss / noise
     start["far_above_noise"] = {"ratio": ratio, "excess": excess, "limit": float(limit)}
     print(
@@ -625,7 +625,6 @@ def far_above_noise(
         f"below {excess:.2g} so that the image stage learns the material at train.lr",
         file=sys.stderr,
     )
-    return True
 
 
 def poor_start_steps(cfg: cfgmod.Config) -> int:
