@@ -268,6 +268,9 @@ class Images(_Section):
     start_lr_end: float = Field(0.05, gt=0.0, le=1.0)  # ... (cosine) to this fraction of it
     start_spp: int = Field(4, ge=1)  # ... samples per pixel of its gradient pass
     start_primal_spp: int = Field(16, ge=1)  # ... and of its primal pass
+    # ... its step recorded once per view and replayed (drjit.freeze; false: traced
+    # anew every step; the same fit to float rounding: docs/inverse.md, "Frozen steps")
+    start_freeze: bool = True
     # the chosen family's fit continued from its parameters, its second half's iterates
     # averaged; kept unless the validation split prefers the unrefined parameters
     # (0 steps: off; chosen on the development set: docs/inverse.md, "Refining the choice")

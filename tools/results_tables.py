@@ -2945,6 +2945,54 @@ def lobe_refit_section(d: dict) -> list[str]:
     return out + [""]
 
 
+def start_fit_section(d: dict) -> list[str]:
+    """A start's fit: each family's, its steps frozen or traced."""
+    m, sc = d["machine"], d["schedule"]
+    out = [
+        "## A start's fit: each family's steps recorded once per view and replayed, or traced",
+        "",
+        _source("benchmarks/results/start_fit.json", "python benchmarks/start_fit.py"),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores, Mitsuba {m['mitsuba']}, Dr.Jit {m['drjit']}",
+            f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
+        ),
+        "`neural_brdf.inverse.starts.fit_candidate` of each family to the example's "
+        f"{d['views']} views at {d['resolution']}² ({d['target']} as the truth), "
+        f"{sc['steps']} steps of {sc['spp']} spp (gradient) and {sc['primal_spp']} spp "
+        f"(primal), then two held-out renders of {sc['val_spp']} spp; route `frozen`: "
+        "each step's render, loss and gradient under `drjit.freeze`, recorded at a view's "
+        "first steps and replayed after (`images.start_freeze`, the default since "
+        "2026-12-04); `traced`: traced anew every step (before). Best of "
+        f"{d['rounds']} interleaved rounds in one process; the last column is the largest "
+        "relative difference between the two routes' fitted parameters over the rounds "
+        f"(the benchmark fails above {d['tolerance']:g}).",
+        "",
+    ]
+    rows = [
+        [
+            f"`{f}`",
+            f"{s['frozen']:.2f} s",
+            f"{s['traced']:.2f} s",
+            f"{d['traced_over_frozen'][f]:.2f}x",
+            f"{d['largest_relative_difference'][f]['params']:.1e}",
+        ]
+        for f, s in d["seconds"].items()
+    ]
+    t = d["total_s"]
+    rows.append(
+        [
+            "all six",
+            f"{t['frozen']:.1f} s",
+            f"{t['traced']:.1f} s",
+            f"{d['total_traced_over_frozen']:.2f}x",
+            "",
+        ]
+    )
+    out += _table(["family", "`frozen`", "`traced`", "`traced` / `frozen`", "parameters"], rows)
+    return out + [""]
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -3373,6 +3421,7 @@ SECTIONS = (
     (RESULTS / "images_cadence_dev.json", images_cadence_section),
     (RESULTS / "image_step.json", image_step_section),
     (RESULTS / "lobe_refit.json", lobe_refit_section),
+    (RESULTS / "start_fit.json", start_fit_section),
     (RESULTS / "training_speed.json", training_speed_section),
     (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
     (RESULTS / "textured.json", textured_section),

@@ -58,6 +58,23 @@ brightness of the training pixels matches (each channel; clamped inside its rang
 (:func:`warm_start`): the anisotropic conductor from the isotropic one, the blend from
 the diffuse and the conductor with the least-squares weight of their renders.
 
+Frozen steps.  A step renders every view (``mi.render``, primal and gradient passes),
+and Dr.Jit would trace Mitsuba's integrator and BSDF again each time, the same kernels
+every step.  With ``images.start_freeze`` (:attr:`Schedule.freeze`, the default) the
+step's render, loss and gradient (:func:`render_loss_backward`) run under
+:func:`drjit.freeze`: recorded at a view's first step, replayed after.  A recording
+reads only its arguments' arrays, so the parameters enter it as arguments: the family's
+map from the free variables and ``params.update()`` run outside (Mitsuba's
+``roughplastic`` reads alpha on the host when it updates, which a recording refuses),
+the parameters go in as fresh leaves, and their gradients are pulled back through the
+map afterwards (``dr.backward`` of sum(value x its leaf's gradient)).  The leaves and
+the seed are opaque arrays (a literal would key the recording by its value), so a view
+records at its first two steps (the first render adds state to the scene, which Dr.Jit
+counts as more inputs) and replays at every step after.  The fit is the traced one to float
+rounding (tests/inverse/test_starts.py: 1e-4 relative after 6 steps, every family);
+on three 96 x 96 views a family's fit took about half the time
+(benchmarks/start_fit.py).
+
 The loss reported for a candidate, on the held-out pixels (and on the training pixels,
 for comparison), is the same relative MSE estimated without the render's own noise: two
 renders of ``val_spp`` samples with independent seeds, x1 and x2, give
@@ -606,6 +623,7 @@ class Schedule:
     val_spp: int = 64
     lr: float = 0.2
     lr_end: float = 0.05
+    freeze: bool = True  # record a step once per view and replay it (module doc)
 
     def rate(self, step: int) -> float:
         c = 0.5 * (1.0 + math.cos(math.pi * step / max(1, self.steps)))
@@ -621,6 +639,7 @@ class Schedule:
             val_spp=images.validation_spp,
             lr=images.start_lr,
             lr_end=images.start_lr_end,
+            freeze=images.start_freeze,
         )
 
     @classmethod
@@ -634,6 +653,7 @@ class Schedule:
             val_spp=images.validation_spp,
             lr=images.start_refine_lr,
             lr_end=images.start_refine_lr_end,
+            freeze=images.start_freeze,
         )
 
 
@@ -666,6 +686,32 @@ def fit_start(
         init=init,
     )
     return c.element, c.params, c.train_loss, c.val_loss
+
+
+class Fixed:
+    """A value handed to a frozen function (:func:`drjit.freeze`) as it is: compared by
+    identity, never traversed for Dr.Jit arrays, so it keys the recording."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: Any) -> None:
+        self.value = value
+
+
+def render_loss_backward(scene, params, spp, leaves, target, weight, seed) -> None:
+    """One view's share of a family's step: ``mi.render`` of ``scene`` (``params``: a
+    :class:`Fixed` of its ``mi.traverse``; ``spp``: one of (primal, gradient) samples per
+    pixel) at ``seed`` (``mi.UInt32``), the relative MSE against ``target`` and
+    ``dr.backward``, which leaves the gradients on ``leaves`` (the parameters the scene
+    holds, by key).  The unit :func:`fit_candidate` freezes (module doc, Frozen steps):
+    every Dr.Jit array it reads is an argument, ``leaves`` included, so a replay reads
+    the step's values."""
+    import drjit as dr
+    import mitsuba as mi
+
+    primal, grad = spp.value
+    img = mi.render(scene, params.value, spp=primal, spp_grad=grad, seed=seed)  # type: ignore[arg-type]  # stub: mi.UInt32
+    dr.backward(inverse.relative_mse(img, target, weight))
 
 
 def fit_candidate(
@@ -745,22 +791,34 @@ def fit_candidate(
         weights[i] = mi.TensorXf(v.rel_weight() * m * (h * w / n_train))
     sums: dict[str, np.ndarray] = {}
     n_sum = 0
+    # a step's render, loss and gradient, recorded once per view and replayed after
+    # (module doc, Frozen steps); the family's map and the parameters' update run outside
+    step_fn = dr.freeze(render_loss_backward) if sched.freeze else render_loss_backward
+    spp_of = Fixed((sched.primal_spp, sched.spp))
+    fixed_params = {i: Fixed(views[i].params) for i in fitted}
     for step in range(sched.steps):
         opt.set_learning_rate(sched.rate(step))
         for i in fitted:
             v = views[i]
             # the parameters from the free variables, per view: dr.backward frees the graph
-            for k, x in fam.to_mitsuba(fam.values({n: opt[n] for n in fam.params}, dr), dr).items():
+            values = fam.to_mitsuba(fam.values({n: opt[n] for n in fam.params}, dr), dr)
+            leaves = {k: dr.detach(x) for k, x in values.items()}
+            dr.make_opaque(leaves)
+            for k, x in leaves.items():
+                dr.enable_grad(x)
                 v.params[k] = x
             v.params.update()
-            render = mi.render(
+            step_fn(
                 v.scene,
-                v.params,
-                spp=sched.primal_spp,
-                spp_grad=sched.spp,
-                seed=_seed(seed, 100 + step, i),  # type: ignore[arg-type]  # stub: mi.UInt32
+                fixed_params[i],
+                spp_of,
+                leaves,
+                v.target_tensor,
+                weights[i],
+                dr.opaque(mi.UInt32, _seed(seed, 100 + step, i)),
             )
-            dr.backward(inverse.relative_mse(render, v.target_tensor, weights[i]))
+            # the chain rule through the family's map: the leaves' gradients pulled back
+            dr.backward(sum(dr.sum(values[k] * dr.grad(x), axis=None) for k, x in leaves.items()))
         opt.step()
         if average_from is not None and step >= average_from:
             for n in fam.params:
