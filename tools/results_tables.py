@@ -3165,10 +3165,16 @@ SECTIONS = (
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
-    _images_any("images_any.json", "the defaults of 2026-12-04"),
+    _images_any("images_any.json", "the defaults of 2026-12-04, the start's steps frozen"),
+    _images_any("images_any_lights.json", "the defaults of 2026-12-04, the start's steps frozen"),
     _images_any(
-        "images_any_lights.json",
-        "the defaults of 2026-12-04 (the brushed gold run alone right after the six)",
+        "images_any_2026-12-04.json",
+        "the defaults of 2026-12-04, before the start's frozen steps (images.start_freeze)",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-04.json",
+        "the defaults of 2026-12-04, before the start's frozen steps (images.start_freeze; "
+        "the brushed gold run alone right after the six)",
     ),
     _images_any(
         "images_any_2026-12-03.json",

@@ -662,13 +662,15 @@ def test_the_start_schedules_come_from_the_config():
         start_refine_lr=0.04,
         start_refine_lr_end=0.5,
         start_refine_spp=6,
+        start_freeze=False,
     )
     assert starts.Schedule.of(images) == starts.Schedule(
-        steps=7, spp=5, primal_spp=9, val_spp=11, lr=0.3, lr_end=0.2
+        steps=7, spp=5, primal_spp=9, val_spp=11, lr=0.3, lr_end=0.2, freeze=False
     )
     assert starts.Schedule.refining(images) == starts.Schedule(
-        steps=13, spp=6, primal_spp=12, val_spp=11, lr=0.04, lr_end=0.5
+        steps=13, spp=6, primal_spp=12, val_spp=11, lr=0.04, lr_end=0.5, freeze=False
     )
+    assert starts.Schedule.of(config.Images()).freeze and starts.Schedule().freeze
     assert starts.Schedule.of(config.Images()).steps == starts.Schedule().steps  # null: 80
 
 
