@@ -105,6 +105,7 @@ INTEGRATORS = {
     "direct_projective": "direct_projective",
 }
 VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # 1.18e-38: xml_float
 REL_EPS = 1e-2  # the relative MSE's offset (Lehtinen et al. 2018 use 0.01)
 TORCH_THREADS = 1  # see fit_neural
 # The network's start: a constant f = INIT_VALUE / ((cos_i + cos_o) / 2) (model.py), whose
@@ -354,13 +355,20 @@ def bsdf_element(kind: str, **props) -> ET.Element:
         elif isinstance(value, int):
             ET.SubElement(el, "integer", {"name": name, "value": str(value)})
         elif isinstance(value, float):
-            ET.SubElement(el, "float", {"name": name, "value": repr(value)})
+            ET.SubElement(el, "float", {"name": name, "value": xml_float(value)})
         elif isinstance(value, str):
             ET.SubElement(el, "string", {"name": name, "value": value})
         else:
-            text = ", ".join(repr(float(v)) for v in value)
+            text = ", ".join(xml_float(float(v)) for v in value)
             ET.SubElement(el, "rgb", {"name": name, "value": text})
     return el
+
+
+def xml_float(x: float) -> str:
+    """``x`` as Mitsuba's XML parser reads it: its float32 ``stof`` throws on a value
+    below float32's smallest normal (a fitted principled's metallic, sin^2 of a tiny
+    free variable, reached 1.6e-134), which float32 holds as 0 anyway."""
+    return repr(0.0 if abs(x) < FLOAT32_TINY else x)
 
 
 def load_scene(path: Path, text: str):

@@ -62,7 +62,7 @@ Frozen steps.  A step renders every view (``mi.render``, primal and gradient pas
 and Dr.Jit would trace Mitsuba's integrator and BSDF again each time, the same kernels
 every step.  With ``images.start_freeze`` (:attr:`Schedule.freeze`, the default) the
 step's render, loss and gradient (:func:`render_loss_backward`) run under
-:func:`drjit.freeze`: recorded at a view's first step, replayed after.  A recording
+:func:`drjit.freeze`: recorded at a view's first steps, replayed after.  A recording
 reads only its arguments' arrays, so the parameters enter it as arguments: the family's
 map from the free variables and ``params.update()`` run outside (Mitsuba's
 ``roughplastic`` reads alpha on the host when it updates, which a recording refuses),
@@ -70,10 +70,12 @@ the parameters go in as fresh leaves, and their gradients are pulled back throug
 map afterwards (``dr.backward`` of sum(value x its leaf's gradient)).  The leaves and
 the seed are opaque arrays (a literal would key the recording by its value), so a view
 records at its first two steps (the first render adds state to the scene, which Dr.Jit
-counts as more inputs) and replays at every step after.  The fit is the traced one to float
-rounding (tests/inverse/test_starts.py: 1e-4 relative after 6 steps, every family);
-on three 96 x 96 views a family's fit took about half the time
-(benchmarks/start_fit.py).
+counts as more inputs) and replays at every step after.  Where Dr.Jit cannot record a
+step (Mitsuba's ``direct_projective`` refuses) the fit says so once per integrator
+(:data:`UNFREEZABLE`) and traces its steps; :attr:`Candidate.frozen` records which.
+The fit is the traced one to float rounding (tests/inverse/test_starts.py: 1e-4
+relative after 6 steps, every family); on three 96 x 96 views the six families' fits
+took 28.9 s against 50.8 s traced (benchmarks/start_fit.py).
 
 The loss reported for a candidate, on the held-out pixels (and on the training pixels,
 for comparison), is the same relative MSE estimated without the render's own noise: two
@@ -112,6 +114,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import sys
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping, Sequence
@@ -595,6 +598,7 @@ class Candidate:
     val_pixels: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     # the fitted family's render of each view (2 x val_spp samples; None: not rendered)
     images: list[np.ndarray | None] = field(default_factory=list, repr=False)
+    frozen: bool = False  # whether its steps were recorded and replayed (Frozen steps)
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready (metrics.json)."""
@@ -608,6 +612,7 @@ class Candidate:
             "free_scalars": self.complexity,
             "steps": self.steps,
             "seconds": self.seconds,
+            "frozen_steps": self.frozen,
         }
 
 
@@ -791,9 +796,11 @@ def fit_candidate(
         weights[i] = mi.TensorXf(v.rel_weight() * m * (h * w / n_train))
     sums: dict[str, np.ndarray] = {}
     n_sum = 0
-    # a step's render, loss and gradient, recorded once per view and replayed after
-    # (module doc, Frozen steps); the family's map and the parameters' update run outside
-    step_fn = dr.freeze(render_loss_backward) if sched.freeze else render_loss_backward
+    # a step's render, loss and gradient, recorded at each view's first steps and
+    # replayed after (module doc, Frozen steps); the family's map and the parameters'
+    # update run outside; traced where Dr.Jit could not record a scene's integrator
+    frozen = sched.freeze and not any(views[i].integrator in UNFREEZABLE for i in fitted)
+    step_fn = dr.freeze(render_loss_backward) if frozen else render_loss_backward
     spp_of = Fixed((sched.primal_spp, sched.spp))
     fixed_params = {i: Fixed(views[i].params) for i in fitted}
     for step in range(sched.steps):
@@ -808,7 +815,7 @@ def fit_candidate(
                 dr.enable_grad(x)
                 v.params[k] = x
             v.params.update()
-            step_fn(
+            args = (
                 v.scene,
                 fixed_params[i],
                 spp_of,
@@ -817,6 +824,16 @@ def fit_candidate(
                 weights[i],
                 dr.opaque(mi.UInt32, _seed(seed, 100 + step, i)),
             )
+            try:
+                step_fn(*args)
+            except RuntimeError as e:
+                if not frozen:
+                    raise
+                _cannot_record(v, e)
+                frozen, step_fn = False, render_loss_backward
+                for x in leaves.values():  # what the failed recording may have left
+                    dr.clear_grad(x)
+                step_fn(*args)
             # the chain rule through the family's map: the leaves' gradients pulled back
             dr.backward(sum(dr.sum(values[k] * dr.grad(x), axis=None) for k, x in leaves.items()))
         opt.step()
@@ -858,6 +875,28 @@ def fit_candidate(
         element=fam.element(params),
         val_pixels=held,
         images=images,
+        frozen=frozen,
+    )
+
+
+# Integrator types (a view's ``integrator``) whose step Dr.Jit could not record in this
+# process (Mitsuba's direct_projective reads arrays on the host): their fits trace every
+# step (fit_candidate), said once per type on stderr.
+UNFREEZABLE: set[str] = set()
+
+
+def _cannot_record(view: inverse.View, error: BaseException) -> None:
+    if view.integrator in UNFREEZABLE:
+        return
+    UNFREEZABLE.add(view.integrator)
+    while error.__cause__ is not None:  # Dr.Jit chains the reason under its summary
+        error = error.__cause__
+    first = str(error).splitlines()[0] if str(error) else type(error).__name__
+    print(
+        f"images.start_freeze: Dr.Jit cannot record a step of integrator "
+        f"{view.integrator!r} ({view.scene_path.name}: {first[:160]}); the start's fits "
+        "trace every step instead (slower, the same fit)",
+        file=sys.stderr,
     )
 
 

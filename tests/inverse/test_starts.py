@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
+import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -347,6 +348,21 @@ def test_mitsuba_gets_valid_parameters_for_any_free_variable(mi, data):
     assert np.all(np.isfinite(f)) and np.all(f >= 0)
 
 
+def test_a_parameter_below_float32s_range_reaches_mitsuba_as_zero(mi):
+    """A fitted value Mitsuba's float32 parser cannot read (hypothesis found a
+    principled's metallic of 1.6e-134, sin^2 of a tiny free variable) is written as 0,
+    which float32 holds it as, in floats and in RGB; the BSDF loads and reads back 0."""
+    from neural_brdf.inverse import fit as inverse
+
+    el = inverse.bsdf_element(
+        "principled", metallic=1.5530573483512763e-134, base_color=(1e-50, 0.5, -1e-45)
+    )
+    params = mi.traverse(inverse.mitsuba_bsdf(el))
+    assert float(np.asarray(params["metallic.value"]).reshape(-1)[0]) == 0.0
+    assert np.asarray(params["base_color.value"]).reshape(-1).tolist() == [0.0, 0.5, 0.0]
+    assert inverse.xml_float(2e-38) == "2e-38" and inverse.xml_float(0.25) == "0.25"
+
+
 # ------------------------------------------------------------------ the teacher
 @pytest.mark.parametrize("name", ["diffuse", "roughplastic", "roughconductor_aniso", "blend"])
 def test_teacher_xml_round_trips_through_mitsuba_target(mi, tmp_path, name):
@@ -614,6 +630,52 @@ def test_a_frozen_step_fits_what_a_traced_one_does(mi, materials, name, monkeypa
     # a view records at its first step and again at its second (the first render adds
     # state to the scene: Dr.Jit counts more variables in it), then replays
     assert len(made) == 1 and made[0].n_recordings == 2 * len(views)
+
+
+def test_a_scene_dr_jit_cannot_record_has_its_steps_traced(
+    mi, materials, tmp_path, monkeypatch, capsys
+):
+    """Mitsuba refuses to record direct_projective in a frozen function: the fit says so
+    on one stderr line (once per integrator), traces its steps, lands where a traced fit
+    lands, and its candidate records that its steps were not frozen; a path scene's
+    candidate records that they were."""
+    from neural_brdf.inverse import starts
+
+    monkeypatch.setattr(starts, "UNFREEZABLE", set())
+    folder = tmp_path / "projective"
+    shutil.copytree(materials["roughplastic"].parent, folder)
+    for k in (1, 2, 3):
+        xml = folder / f"view{k}.xml"
+        tree = ET.parse(xml)
+        integrator = tree.getroot().find("integrator")
+        assert integrator is not None
+        integrator.attrib["type"] = "direct_projective"
+        for child in list(integrator):  # max_depth: not a property of this one
+            integrator.remove(child)
+        tree.write(xml)
+    views = views_of(folder / "fit.yaml")
+    train, held = starts.split_pixels(views, 0.3, seed=2)
+    kw = {"mask_train": train, "mask_val": held, "seed": 2}
+    fits = [
+        starts.fit_candidate(
+            views, "diffuse", schedule=starts.Schedule(steps=3, val_spp=8, freeze=freeze), **kw
+        )
+        for freeze in (True, False, True)
+    ]
+    err = capsys.readouterr().err
+    assert err.count("images.start_freeze: Dr.Jit cannot record") == 1, err
+    assert "'direct_projective'" in err and "\n" not in err.strip()
+    assert starts.UNFREEZABLE == {"direct_projective"}
+    assert not any(c.frozen for c in fits)
+    # to float rounding: the failed step was retried traced, the later ones traced
+    for c in (fits[0], fits[2]):
+        assert np.allclose(c.params["reflectance"], fits[1].params["reflectance"], rtol=1e-5)
+    assert fits[0].summary()["frozen_steps"] is False
+    path_views = views_of(materials["roughplastic"])
+    c = starts.fit_candidate(
+        path_views, "diffuse", schedule=starts.Schedule(steps=2, val_spp=8), **kw
+    )
+    assert c.frozen and c.summary()["frozen_steps"] is True
 
 
 def test_the_choice_rule_comes_from_the_config(mi, materials, monkeypatch):
