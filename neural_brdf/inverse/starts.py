@@ -880,8 +880,9 @@ def fit_candidate(
 
 
 # Integrator types (a view's ``integrator``) whose step Dr.Jit could not record in this
-# process (Mitsuba's direct_projective reads arrays on the host): their fits trace every
-# step (fit_candidate), said once per type on stderr.
+# process (Mitsuba 3.9's direct_projective refuses: "Projective Integrators are not yet
+# supported inside of frozen functions"): their fits trace every step (fit_candidate),
+# said once per type on stderr.
 UNFREEZABLE: set[str] = set()
 
 
