@@ -703,10 +703,10 @@ class Fixed:
         self.value = value
 
 
-def render_loss_backward(scene, params, spp, leaves, target, weight, seed) -> None:
+def render_loss_backward(scene, params, primal, grad, leaves, target, weight, seed) -> None:
     """One view's share of a family's step: ``mi.render`` of ``scene`` (``params``: a
-    :class:`Fixed` of its ``mi.traverse``; ``spp``: one of (primal, gradient) samples per
-    pixel) at ``seed`` (``mi.UInt32``), the relative MSE against ``target`` and
+    :class:`Fixed` of its ``mi.traverse``; ``primal``, ``grad``: the two passes' samples
+    per pixel) at ``seed`` (``mi.UInt32``), the relative MSE against ``target`` and
     ``dr.backward``, which leaves the gradients on ``leaves`` (the parameters the scene
     holds, by key).  The unit :func:`fit_candidate` freezes (module doc, Frozen steps):
     every Dr.Jit array it reads is an argument, ``leaves`` included, so a replay reads
@@ -714,7 +714,6 @@ def render_loss_backward(scene, params, spp, leaves, target, weight, seed) -> No
     import drjit as dr
     import mitsuba as mi
 
-    primal, grad = spp.value
     img = mi.render(scene, params.value, spp=primal, spp_grad=grad, seed=seed)  # type: ignore[arg-type]  # stub: mi.UInt32
     dr.backward(inverse.relative_mse(img, target, weight))
 
@@ -801,7 +800,6 @@ def fit_candidate(
     # update run outside; traced where Dr.Jit could not record a scene's integrator
     frozen = sched.freeze and not any(views[i].integrator in UNFREEZABLE for i in fitted)
     step_fn = dr.freeze(render_loss_backward) if frozen else render_loss_backward
-    spp_of = Fixed((sched.primal_spp, sched.spp))
     fixed_params = {i: Fixed(views[i].params) for i in fitted}
     for step in range(sched.steps):
         opt.set_learning_rate(sched.rate(step))
@@ -818,7 +816,8 @@ def fit_candidate(
             args = (
                 v.scene,
                 fixed_params[i],
-                spp_of,
+                sched.primal_spp,
+                sched.spp,
                 leaves,
                 v.target_tensor,
                 weights[i],
