@@ -22,6 +22,11 @@ work.  Timed, each in its own scenes:
   RawBRDF's lowered ONNX graph in Dr.Jit with the live weights bound, the gradient pass
   torch, as before.
 
+Where torch runs, it runs since 2026-12-05 the RawBRDF's network alone (the grids and
+the MLP: ``RawBRDF.network``), and Dr.Jit its weight-free parts (``RawBRDF.encode``,
+``RawBRDF.finish``) from their own lowered graphs (the JSON's ``torch_runs``:
+"network"; before, torch ran the whole RawBRDF).
+
 The plugin's default, ``evaluator: auto``, is whichever of the two the variant's entry
 of ``neural_brdf.inverse.bsdf.AUTO`` names (chosen from this benchmark's primal passes;
 the JSON records it).
@@ -212,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
         "primal_s": {n: b["primal_s"] for n, b in best.items()},
         "step_vs_roughconductor": {n: b["step_s"] / base for n, b in best.items()},
         "auto": ib.AUTO[args.variant],
+        # since 2026-12-05 torch runs the RawBRDF's network alone where wi and wo track no
+        # gradient (its weight-free parts in Dr.Jit, from their own lowered graphs)
+        "torch_runs": "network",
         "graph_over_torch": {
             "step": best["neural_graph"]["step_s"] / best["neural_torch"]["step_s"],
             "primal": best["neural_graph"]["primal_s"] / best["neural_torch"]["primal_s"],

@@ -306,14 +306,17 @@ def to_onnx_bytes(
     portable: bool = True,
     inputs: tuple[str, ...] = INPUTS,
     outputs: tuple[str, ...] = (OUTPUT,),
+    widths: dict[str, int] | None = None,
 ) -> bytes:
     """``model`` (forward(wi, wo) -> f, or forward(wi, wo, uv) -> f with ``inputs`` =
     ``fileformat.SIGNATURES[1]``: a textured model; -> (f, n) with ``outputs`` =
     ``fileformat.OUTPUT_SIGNATURES[1]``: one with its normal field) as ONNX bytes:
     torch's legacy exporter, then :func:`portable_graph` (``portable=False``: torch's
-    graph as it is, for comparison).  Each input is float32 [N, its width], N dynamic."""
+    graph as it is, for comparison).  Each input is float32 [N, its width], N dynamic;
+    the widths are the file format's (``INPUT_WIDTHS``) unless ``widths`` names them."""
     buf = io.BytesIO()
-    example = tuple(torch.zeros(4, INPUT_WIDTHS[name]) for name in inputs)
+    width = {**INPUT_WIDTHS, **(widths or {})}
+    example = tuple(torch.zeros(4, width[name]) for name in inputs)
     with warnings.catch_warnings():
         # The TorchScript exporter (dynamo=False) warns that it is deprecated.  It is
         # used on purpose: it writes one self-contained file and needs no onnxscript,

@@ -2870,8 +2870,14 @@ def image_step_section(d: dict) -> list[str]:
         f"{d['spp']} spp gradient pass, relative MSE, `dr.backward`, one Adam step; target "
         f"{d['target']}. Best of {d['rounds']} interleaved rounds in one process. "
         "`neural_graph`: the primal pass through the lowered graph with the live weights "
-        "bound, the gradient pass through torch; `neural_torch`: torch in both; "
-        "`roughconductor`: Mitsuba's own BSDF in symbolic mode (the issue's 2x yardstick). "
+        "bound, the gradient pass through torch; `neural_torch`: torch in both"
+        + (
+            " (torch runs the network alone, the grids and the MLP; the encoding and the "
+            "grazing factor, free of weights, run in Dr.Jit from their own lowered graphs); "
+            if d.get("torch_runs") == "network"
+            else " (torch runs the whole RawBRDF); "
+        )
+        + "`roughconductor`: Mitsuba's own BSDF in symbolic mode (the issue's 2x yardstick). "
         f"The plugin's default (`evaluator: auto`) in `{d['variant']}` is "
         f"`{d['auto']}` (`neural_brdf.inverse.bsdf.AUTO`, chosen from these primal passes).",
         "",

@@ -31,11 +31,17 @@ trained parameter, and the Dr.Jit back end binds the live tensors at each evalua
 (:func:`neural_brdf.backends.drjit.run`, ``params``), so
 the primal pass traces into Mitsuba's kernels like the ``neural_brdf`` plugin's, in
 symbolic or evaluated mode.  Where a gradient is tracked (the gradient pass) torch
-evaluates the RawBRDF through ``dr.wrap`` as above: differentiating the lowered graph in
+evaluates the network through ``dr.wrap`` as above: differentiating the lowered graph in
 Dr.Jit turned every weight's adjoint into a scatter or a reduction over the lanes, slower
-than torch's matrix products (module doc of :mod:`neural_brdf.backends.drjit`).  Both
-evaluate the same function to float32 rounding (tests/backends/test_trained_params.py,
-tests/inverse/test_inverse.py); ``'evaluator': 'torch'`` uses torch for both passes,
+than torch's matrix products (module doc of :mod:`neural_brdf.backends.drjit`).  Torch
+runs only the part the weights set, :meth:`RawBRDF.network` (the grids' look-ups and the
+MLP); the parts free of weights, :meth:`RawBRDF.encode` (the features and the grids'
+coordinates) and :meth:`RawBRDF.finish` (the grazing factor, zero below the horizon),
+run in Dr.Jit from their own exported graphs, lowered like the whole one, fused into the
+kernels around torch's call (where wi or wo track a gradient, torch runs all of it, so
+that they get their adjoints).  All of these evaluate the same function to float32
+rounding (tests/backends/test_trained_params.py, tests/inverse/test_inverse.py);
+``'evaluator': 'torch'`` uses torch for both passes,
 and is what ``auto`` picks in ``cuda_ad_rgb``, where torch's matrix products on the GPU
 measured faster than the lowered graph's per-weight loads (:data:`AUTO`).
 In a symbolic scope the graph is used whatever the evaluator: a symbolic virtual call
@@ -147,21 +153,14 @@ def _to_dr(t: torch.Tensor) -> mi.TensorXf:
     return mi.TensorXf(np.ascontiguousarray(t.detach().cpu().float().numpy()))
 
 
-def _eval_torch(raw: RawBRDF, directions_grad: bool = True):
-    """The torch side: (wi, wo components, weights) -> f cos(theta_o), RGB columns.
-
-    :func:`drjit.wrap` hands torch every floating-point input with ``requires_grad``
-    set, so torch's backward would also differentiate the encoding with respect to the
-    six direction columns (about as much work again as the weights' gradients: the
-    features' trigonometry, the first layer's full input adjoint).  With
-    ``directions_grad=False`` the columns are detached: for directions that track no
-    gradient in Dr.Jit (those adjoints would be dropped), the weights' gradients are the
-    same, bit for bit."""
+def _eval_torch(raw: RawBRDF):
+    """The torch side where wi or wo track a gradient: (wi, wo components, weights) ->
+    f cos(theta_o), RGB columns, the whole RawBRDF in torch (:func:`drjit.wrap` hands
+    it every floating-point input with ``requires_grad`` set: the directions' adjoints
+    flow back to Dr.Jit)."""
 
     @dr.wrap(source="drjit", target="torch")
     def f_cos(wx, wy, wz, ox, oy, oz, weights):
-        if not directions_grad:
-            wx, wy, wz, ox, oy, oz = (t.detach() for t in (wx, wy, wz, ox, oy, oz))
         wi = columns([wx, wy, wz])  # (N, 3), column-major as the encodings' features
         wo = columns([ox, oy, oz])
         f = torch.func.functional_call(raw, weights, (wi, wo))
@@ -169,6 +168,58 @@ def _eval_torch(raw: RawBRDF, directions_grad: bool = True):
         return fc[:, 0], fc[:, 1], fc[:, 2]
 
     return f_cos
+
+
+class _Encode(torch.nn.Module):
+    """:meth:`RawBRDF.encode` as one (N, K) output ``e`` (its columns in the order of
+    :meth:`RawBRDF.encoded_columns`): the graph the plugin lowers for Dr.Jit."""
+
+    def __init__(self, raw: RawBRDF):
+        super().__init__()
+        self.raw = raw
+
+    def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        return columns(self.raw.encoded_columns(self.raw.encode(wi, wo)))
+
+
+class _Finish(torch.nn.Module):
+    """:meth:`RawBRDF.finish` of the network's output ``y``: the other weight-free part."""
+
+    def __init__(self, raw: RawBRDF):
+        super().__init__()
+        self.raw = raw
+
+    def forward(self, y: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        return self.raw.finish(y, wi, wo)
+
+
+class _Network(torch.nn.Module):
+    """:meth:`RawBRDF.network` of :meth:`RawBRDF.encode`'s columns: the part torch runs
+    (its parameters are the RawBRDF's, under ``raw.``)."""
+
+    def __init__(self, raw: RawBRDF):
+        super().__init__()
+        self.raw = raw
+
+    def forward(self, cols: list[torch.Tensor]) -> torch.Tensor:
+        return self.raw.network(self.raw.encoded_from_columns(cols))
+
+
+def _network_torch(raw: RawBRDF):
+    """(encoded columns, weights) -> the network's output columns, in torch through
+    :func:`drjit.wrap`: the weights' gradients are torch's; the columns, free of
+    weights and computed in Dr.Jit from directions that track no gradient, are
+    detached (torch would otherwise differentiate them too, adjoints Dr.Jit drops)."""
+    net = _Network(raw)
+
+    @dr.wrap(source="drjit", target="torch")
+    def network(cols, weights):
+        y = torch.func.functional_call(
+            net, {"raw." + k: v for k, v in weights.items()}, ([c.detach() for c in cols],)
+        )
+        return tuple(y[:, k] for k in range(y.shape[-1]))
+
+    return network
 
 
 def primal_evaluator(evaluator: str, variant: str) -> str:
@@ -185,6 +236,7 @@ def primal_evaluator(evaluator: str, variant: str) -> str:
 # time, so one program serves every plugin instance of a section (a fit makes 3 or 4;
 # an export and lowering took about 0.36 s each on 2 cores).
 _PROGRAMS: dict[str, graph.Program] = {}
+_PIECES: dict[str, tuple[graph.Program, graph.Program]] = {}
 
 
 def _trained_program(raw: RawBRDF, section: cfgmod.Model) -> graph.Program:
@@ -197,6 +249,22 @@ def _trained_program(raw: RawBRDF, section: cfgmod.Model) -> graph.Program:
         onnx_bytes = to_onnx_bytes(raw, cfgmod.Export().opset)
         _PROGRAMS[key] = graph.lower(onnx_bytes, ("f",), params=tuple(raw.state_dict()))
     return _PROGRAMS[key]
+
+
+def _weight_free_programs(
+    raw: RawBRDF, section: cfgmod.Model
+) -> tuple[graph.Program, graph.Program]:
+    """The graphs of :meth:`RawBRDF.encode` (wi, wo -> e) and :meth:`RawBRDF.finish`
+    (y, wi, wo -> f), exported and lowered as :func:`_trained_program` is, once per
+    section: the gradient pass runs them in Dr.Jit around torch's network."""
+    key = "weight-free " + section.model_dump_json()
+    if key not in _PIECES:
+        opset = cfgmod.Export().opset
+        outputs = raw.colors * raw.heads
+        encode = to_onnx_bytes(_Encode(raw), opset, outputs=("e",))
+        finish = to_onnx_bytes(_Finish(raw), opset, inputs=("y", "wi", "wo"), widths={"y": outputs})
+        _PIECES[key] = (graph.lower(encode, ("e",)), graph.lower(finish, ("f",)))
+    return _PIECES[key]
 
 
 class NeuralBSDFAD(_GraphBSDF):
@@ -217,9 +285,11 @@ class NeuralBSDFAD(_GraphBSDF):
             torch.manual_seed(seed)
             self.raw = RawBRDF.from_config(section, init_value=init_value).eval()
         self.weights = {k: _to_dr(v) for k, v in self.raw.state_dict().items()}
-        # the direction columns' adjoints only where wi or wo track a gradient
-        self._f_cos_torch = _eval_torch(self.raw, directions_grad=False)
-        self._f_cos_torch_directions = _eval_torch(self.raw, directions_grad=True)
+        # torch runs the network alone (the weight-free parts in Dr.Jit) unless wi or wo
+        # track a gradient: then all of it (_torch_f_cos)
+        self._network_torch = _network_torch(self.raw)
+        self._f_cos_torch_directions = _eval_torch(self.raw)
+        self.encode_program, self.finish_program = _weight_free_programs(self.raw, section)
         self.evaluator = str(props["evaluator"]) if "evaluator" in props else EVALUATORS[0]
         self.primal = primal_evaluator(self.evaluator, mi.variant())
         self.program = _trained_program(self.raw, section)
@@ -314,13 +384,18 @@ class NeuralBSDFAD(_GraphBSDF):
                 f"{PLUGIN}: render inside neural_brdf.inverse.bsdf.evaluated_mode() "
                 "(torch needs evaluated loops and calls)"
             )
-        fn = (
-            self._f_cos_torch_directions
-            if dr.grad_enabled(wi) or dr.grad_enabled(wo)
-            else self._f_cos_torch
-        )
-        r, g, b = fn(wi.x, wi.y, wi.z, wo.x, wo.y, wo.z, self.weights)
-        return mi.Color3f(r, g, b)
+        if dr.grad_enabled(wi) or dr.grad_enabled(wo):
+            fc = self._f_cos_torch_directions(wi.x, wi.y, wi.z, wo.x, wo.y, wo.z, self.weights)
+            return mi.Color3f(*fc)
+        # the encoding and the finish (grazing factor, horizon) in Dr.Jit from their own
+        # graphs, fused into the kernel that gathers the lanes; torch runs the grids and
+        # the MLP, which the weights set (module doc, Speed)
+        dirs = {"wi": [wi.x, wi.y, wi.z], "wo": [wo.x, wo.y, wo.z]}
+        e = drjit_backend.run(self.encode_program, dirs)["e"]
+        y = self._network_torch(e, self.weights)
+        f = drjit_backend.run(self.finish_program, {"y": list(y), **dirs})["f"]
+        cos_o = dr.maximum(mi.Frame3f.cos_theta(wo), 0.0)
+        return mi.Color3f(f[0], f[1], f[2]) * cos_o
 
     def _f_cos(self, si, wo, active):
         if self._graph_uses_program():  # the parent's conditional, symbolic or not

@@ -35,7 +35,7 @@ The ``raw`` ablation encoding uses the anisotropic table.  With
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn as nn
@@ -178,6 +178,14 @@ def neighbour_max_2d(upper: torch.Tensor) -> torch.Tensor:
     table bound of docs/model.md, "Energy conservation that stays reciprocal")."""
     pooled = F.max_pool2d(upper.permute(2, 0, 1)[None], 3, stride=1, padding=1)
     return pooled[0].permute(1, 2, 0)
+
+
+class Encoded(NamedTuple):
+    """:meth:`RawBRDF.encode`'s result: what the network reads that no weight sets."""
+
+    x: torch.Tensor  # (N, F): the encoding's features
+    grid_uv: tuple[torch.Tensor, torch.Tensor] | None  # the grid's coordinates, (N,) each
+    cos_uv: tuple[torch.Tensor, torch.Tensor] | None  # the cosine grid's
 
 
 class RawBRDF(nn.Module):
@@ -340,23 +348,68 @@ class RawBRDF(nn.Module):
     def forward(
         self, wi: torch.Tensor, wo: torch.Tensor, s: torch.Tensor | None = None
     ) -> torch.Tensor:  # (N,3),(N,3)[,(N,latent)] -> (N,3 * heads)
+        return self.finish(self.network(self.encode(wi, wo), s), wi, wo)
+
+    # The forward pass in three parts: what no weight sets (encode, finish) around what
+    # the weights do (network).  The differentiable Mitsuba plugin evaluates the two
+    # weight-free parts in Dr.Jit, each from its own exported graph, and hands torch only
+    # the network (neural_brdf.inverse.bsdf); everything else calls forward.
+    def encode(self, wi: torch.Tensor, wo: torch.Tensor) -> Encoded:
+        """(N,3),(N,3) -> the encoding's features and the grids' coordinates (those it
+        has), all free of weights."""
         x = self.spec.features(wi, wo, self.peak_coordinate)
+        grid_uv = cos_uv = None
         if self.grid is not None:
             i, j = self.grid_features
             u, v = x[..., i], x[..., j]
             if self.grid_coords == "half_disc":  # the unit disc onto the grid's [0, 1]^2
                 u, v = 0.5 * (u + 1.0), 0.5 * (v + 1.0)
-            x = enc.cat_columns([x, self.grid(u, v)])
+            grid_uv = (u, v)
         if self.cos_grid is not None:
             ci, co = wi[..., 2], wo[..., 2]
             total = ci + co
             ratio = (ci - co).abs() / total.clamp_min(MIN_MEAN_COS)
-            x = enc.cat_columns([x, self.cos_grid(0.5 * total, ratio.clamp_max(1.0))])
+            cos_uv = (0.5 * total, ratio.clamp_max(1.0))
+        return Encoded(x, grid_uv, cos_uv)
+
+    def network(self, e: Encoded, s: torch.Tensor | None = None) -> torch.Tensor:
+        """:meth:`encode`'s result [, (N, latent)] -> the MLP's output, (N, colors *
+        heads): the grids' look-ups and the MLP, the part the weights set."""
+        x = e.x
+        if self.grid is not None:
+            assert e.grid_uv is not None, "RawBRDF.network: no grid coordinates"
+            x = enc.cat_columns([x, self.grid(*e.grid_uv)])
+        if self.cos_grid is not None:
+            assert e.cos_uv is not None, "RawBRDF.network: no cosine grid coordinates"
+            x = enc.cat_columns([x, self.cos_grid(*e.cos_uv)])
         if self.latent:
             if s is None:
                 raise ValueError(f"RawBRDF: {self.latent} latent inputs expected, got none")
             x = torch.cat([x, s], -1)
-        f = self.mlp(x)
+        return self.mlp(x)
+
+    def encoded_columns(self, e: Encoded) -> list[torch.Tensor]:
+        """:meth:`encode`'s result as (N,) columns: the features, then the grids'
+        coordinates (:meth:`encoded_from_columns` is the inverse)."""
+        cols = [e.x[..., k] for k in range(e.x.shape[-1])]
+        for uv in (e.grid_uv, e.cos_uv):
+            cols += list(uv) if uv is not None else []
+        return cols
+
+    def encoded_from_columns(self, cols) -> Encoded:
+        w = self.spec.width
+        x = enc.columns(list(cols[:w]))
+        k = w
+        grid_uv = cos_uv = None
+        if self.grid is not None:
+            grid_uv, k = (cols[k], cols[k + 1]), k + 2
+        if self.cos_grid is not None:
+            cos_uv = (cols[k], cols[k + 1])
+        return Encoded(x, grid_uv, cos_uv)
+
+    def finish(self, f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        """The MLP's output -> f: the grazing factor, zero below the horizon, grey heads
+        to RGB.  Free of weights."""
         if self.grazing_power != 0.0:
             ci, co = wi[..., 2:3], wo[..., 2:3]
             # both forms are symmetric in (ci, co) bit for bit: reciprocity stays exact

@@ -230,13 +230,13 @@ def test_a_primal_render_runs_the_lowered_graph_and_equals_torchs(mi, example):
         inverse.prepare_views(views, el)
         v = views[0]
         v.bsdf.load_state_dict(_random_state(v.bsdf, 3))
-        torch_f_cos, count = v.bsdf._f_cos_torch, [0]
+        torch_network, count = v.bsdf._network_torch, [0]
 
-        def counted(*args, _f=torch_f_cos, _n=count):
+        def counted(*args, _f=torch_network, _n=count):
             _n[0] += 1
             return _f(*args)
 
-        v.bsdf._f_cos_torch = counted
+        v.bsdf._network_torch = counted
         with ib.evaluated_mode():
             images[evaluator] = np.asarray(mi.render(v.scene, spp=4, seed=5).numpy())
         calls[evaluator] = count[0]
@@ -252,40 +252,85 @@ def test_a_primal_render_runs_the_lowered_graph_and_equals_torchs(mi, example):
         np.testing.assert_allclose(images[ev], ref, rtol=1e-4, atol=1e-5 * float(ref.max()))
 
 
-def test_detached_directions_give_the_same_weight_gradients(mi):
-    """The gradient pass detaches the direction columns where wi and wo track no
-    gradient (bsdf._eval_torch): the weights' gradients are the same bit for bit, and
-    where a direction does track one it still gets its adjoint."""
+@pytest.mark.parametrize(
+    "model",
+    [
+        None,  # the compact recipe, isotropic encoding as after an isotropic start
+        "{encoding: anisotropic, hidden: [16], activation: relu, "
+        "grid: {size: 8, coords: half_disc}, grazing_cos: max}",
+        "{encoding: anisotropic, hidden: [16, 8], activation: relu, grid: {size: 8}, "
+        "cosine_grid: {size: 8}, grazing_power: 0.5}",
+    ],
+)
+def test_the_network_alone_in_torch_gives_the_whole_forwards_values_and_gradients(mi, model):
+    """Where wi and wo track no gradient, torch runs the RawBRDF's network alone and
+    Dr.Jit its weight-free parts (encode, finish) from their own lowered graphs
+    (bsdf._torch_f_cos): f cos and the weights' gradients are those of the whole
+    RawBRDF in torch (the path taken where a direction tracks a gradient, which still
+    gets its adjoint) to float32 rounding, for the grids' coordinates of either kind,
+    the cosine grid, both grazing forms."""
     import drjit as dr
     import torch
 
     from neural_brdf.inverse import bsdf as ib
 
-    bsdf = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT})
-    raw = bsdf.torch_model()
-    with torch.no_grad():
-        raw.mlp.head.weight.normal_(0.0, 0.3)
+    section = ib.model_section(ib.COMPACT if model is None else model)
+    if model is None:
+        section = section.model_copy(update={"encoding": "isotropic"})
+    model_text = json.dumps(section.model_dump())
+    bsdf = mi.load_dict({"type": ib.PLUGIN, "model": model_text, "seed": 2})
+    bsdf.load_state_dict(_random_state(bsdf, 4))
     rng = np.random.default_rng(3)
-    dirs = rng.normal(size=(2, 3, 500))
+    n = 700
+    dirs = rng.normal(size=(2, 3, n))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     dirs[:, 2] = np.abs(dirs[:, 2])
-    adj = [mi.Float(a) for a in rng.random((3, 500))]
+    dirs[0, :, :20] = [[0.0], [0.0], [1.0]]  # at the normal and the mirror direction
+    dirs[1, :, :20] = [[0.0], [0.0], [1.0]]
+    adj = [mi.Float(a) for a in rng.random((3, n))]
 
-    def grads(directions_grad: bool):
-        cols = [mi.Float(c) for c in dirs.reshape(6, 500)]
-        if directions_grad:
-            dr.enable_grad(cols[0])
-        w = {k: ib._to_dr(v) for k, v in raw.state_dict().items()}
-        dr.enable_grad(w)
-        r, g, b = ib._eval_torch(raw, directions_grad=directions_grad)(*cols, w)
-        dr.backward(dr.sum(r * adj[0] + g * adj[1] + b * adj[2]))
-        return {k: dr.grad(v).numpy() for k, v in w.items()}, dr.grad(cols[0]).numpy()
+    def run(track: bool):
+        wi = mi.Vector3f(*[mi.Float(c) for c in dirs[0]])
+        wo = mi.Vector3f(*[mi.Float(c) for c in dirs[1]])
+        if track:
+            dr.enable_grad(wi)
+        dr.enable_grad(bsdf.weights)
+        with ib.evaluated_mode():
+            calls = [0]
+            net = bsdf._network_torch
 
-    (detached, _), (tracked, wx_grad) = grads(False), grads(True)
-    for k in detached:
-        assert np.array_equal(detached[k], tracked[k]), k
-        assert np.any(detached[k] != 0.0), k
+            def counted(*args):
+                calls[0] += 1
+                return net(*args)
+
+            bsdf._network_torch = counted
+            try:
+                fc = bsdf._torch_f_cos(wi, wo)
+            finally:
+                bsdf._network_torch = net
+            dr.backward(dr.sum(fc[0] * adj[0] + fc[1] * adj[1] + fc[2] * adj[2]))
+        out = np.stack([fc[c].numpy() for c in range(3)], -1)
+        grads = {k: dr.grad(v).numpy() for k, v in bsdf.weights.items()}
+        dr.disable_grad(bsdf.weights)
+        return out, grads, calls[0], dr.grad(wi.x).numpy() if track else None
+
+    split, split_grads, split_calls, _ = run(False)
+    whole, whole_grads, whole_calls, wx_grad = run(True)
+    assert (split_calls, whole_calls) == (1, 0)
+    assert np.abs(whole).max() > 0.01
+    np.testing.assert_allclose(split, whole, rtol=1e-5, atol=1e-7 * np.abs(whole).max())
+    for k, ref in whole_grads.items():
+        assert np.any(ref != 0.0), k
+        np.testing.assert_allclose(
+            split_grads[k], ref, rtol=1e-4, atol=1e-6 * np.abs(ref).max(), err_msg=k
+        )
     assert np.any(wx_grad != 0.0)
+    # and torch's own RawBRDF agrees (the plugin holds the same weights)
+    raw = bsdf.torch_model()
+    wi_t, wo_t = (torch.tensor(d.T, dtype=torch.float32) for d in dirs)
+    with torch.no_grad():
+        ref = (raw(wi_t, wo_t) * wo_t[:, 2:3].clamp_min(0.0)).numpy()
+    np.testing.assert_allclose(split, ref, rtol=1e-5, atol=1e-7 * np.abs(ref).max())
 
 
 def test_torch_sees_the_valid_lanes_only_with_the_same_values_and_gradients(mi):
