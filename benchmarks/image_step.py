@@ -4,9 +4,12 @@
     python benchmarks/image_step.py                        # about a minute on 2 cores
     python benchmarks/image_step.py --rounds 3 --out /tmp/step.json
     python benchmarks/image_step.py --variant cuda_ad_rgb --out results/cuda/image_step.json
+    python benchmarks/image_step.py --capture lights --out results/image_step_lights.json
 
 A step is what the image stage does per step, less its bookkeeping: for each of three
-96 x 96 views of the unit sphere (``neural_brdf.inverse.scene``, its sky environment)
+96 x 96 views of the unit sphere (``neural_brdf.inverse.scene``, its sky environment,
+or with ``--capture lights`` the multi-light capture of ``benchmarks/images_any.py``: a
+point or area light per view and no environment)
 ``mi.render`` with ``--primal-spp`` samples per pixel in the primal pass and ``--spp``
 in the gradient pass, the fit's relative MSE against a target, ``dr.backward``; then one
 ``mi.ad.Adam`` step.  The target is Mitsuba's ``roughplastic`` (GGX alpha 0.15, the
@@ -129,6 +132,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=("llvm_ad_rgb", "cuda_ad_rgb"),
         help="Mitsuba's variant (cuda_ad_rgb: torch runs the gradient pass on the GPU)",
     )
+    ap.add_argument(
+        "--capture",
+        default="environment",
+        choices=("environment", "lights"),
+        help="the views' light: the sky, or a light per view (neural_brdf.inverse.scene)",
+    )
     args = ap.parse_args(argv)
 
     import drjit as dr
@@ -147,9 +156,17 @@ def main(argv: list[str] | None = None) -> int:
         scene.write_exr(env, scene.sky(64))
         trees = [
             ET.ElementTree(
-                ET.fromstring(scene.scene_xml(az, el, resolution=RESOLUTION, envmap=str(env)))
+                ET.fromstring(
+                    scene.scene_xml(
+                        az,
+                        el,
+                        resolution=RESOLUTION,
+                        envmap=str(env),
+                        emitters=scene.capture_emitters(args.capture, k),
+                    )
+                )
             )
-            for az, el in scene.VIEWS[:3]
+            for k, (az, el) in enumerate(scene.VIEWS[:3])
         ]
         truth = inverse.bsdf_element("roughplastic", distribution="ggx", alpha=0.15)
         targets = [
@@ -207,6 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         ),
         "variant": args.variant,
         "views": len(trees),
+        "capture": args.capture,
         "resolution": RESOLUTION,
         "spp": args.spp,
         "primal_spp": args.primal_spp,

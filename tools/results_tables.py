@@ -2866,7 +2866,13 @@ def image_step_section(d: dict) -> list[str]:
             + f", `{d['variant']}`, torch on {m['torch_threads']} thread",
             f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
         ),
-        f"{d['views']} views of {d['resolution']}², {d['primal_spp']} spp primal + "
+        f"{d['views']} views of {d['resolution']}²"
+        + (
+            " under the multi-light capture (a point or area light per view, no environment)"
+            if d.get("capture") == "lights"
+            else ""
+        )
+        + f", {d['primal_spp']} spp primal + "
         f"{d['spp']} spp gradient pass, relative MSE, `dr.backward`, one Adam step; target "
         f"{d['target']}. Best of {d['rounds']} interleaved rounds in one process. "
         "`neural_graph`: the primal pass through the lowered graph with the live weights "
@@ -3432,6 +3438,17 @@ SECTIONS = (
     (RESULTS / "images_patience_dev.json", images_patience_section),
     (RESULTS / "images_cadence_dev.json", images_cadence_section),
     (RESULTS / "image_step.json", image_step_section),
+    (
+        RESULTS / "image_step_lights.json",
+        _elsewhere(
+            image_step_section,
+            "benchmarks/results/image_step_lights.json",
+            "One step of an image fit under the multi-light capture: the plugin's evaluators "
+            "against roughconductor",
+            "python benchmarks/image_step.py --capture lights --out "
+            "benchmarks/results/image_step_lights.json",
+        ),
+    ),
     (RESULTS / "lobe_refit.json", lobe_refit_section),
     (RESULTS / "start_fit.json", start_fit_section),
     (RESULTS / "training_speed.json", training_speed_section),
