@@ -3177,8 +3177,16 @@ SECTIONS = (
     (RESULTS / "sampling_noise.json", sampling_noise_section),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
-    _images_any("images_any.json", "the defaults of 2026-12-04, the start's steps frozen"),
+    _images_any(
+        "images_any.json",
+        "the defaults of 2026-12-04, the start's steps frozen, run on 2026-12-05 with torch "
+        "running the network alone",
+    ),
     _images_any("images_any_lights.json", "the defaults of 2026-12-04, the start's steps frozen"),
+    _images_any(
+        "images_any_2026-12-04_frozen.json",
+        "the defaults of 2026-12-04, the start's steps frozen, before torch ran the network alone",
+    ),
     _images_any(
         "images_any_2026-12-04.json",
         "the defaults of 2026-12-04, before the start's frozen steps (images.start_freeze)",
