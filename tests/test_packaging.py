@@ -423,6 +423,104 @@ def test_the_layer_test_sees_a_climb_back(text):
     assert _imported_parts(fake, text) & set(LAYERS[LAYERS.index("train") + 1 :])
 
 
+def _module_name(path: Path) -> str:
+    parts = ("neural_brdf",) + path.relative_to(PACKAGE).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _module_imports(path: Path, modules: set[str], text: str | None = None) -> set[str]:
+    """The modules of the package that ``path`` imports, anywhere in it: ``from a.b
+    import c`` is a.b.c where that is a module, else a.b (its package's face)."""
+    import ast
+
+    me = _module_name(path)
+    package = me.split(".") if path.name == "__init__.py" else me.split(".")[:-1]
+    out: set[str] = set()
+    source = path.read_text(encoding="utf-8") if text is None else text
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package[: len(package) - (node.level - 1)]
+                base = ".".join(up + ([node.module] if node.module else []))
+            for a in node.names:
+                name = f"{base}.{a.name}"
+                out.add(name if name in modules else base)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                name = a.name
+                while name and name not in modules:
+                    name = name.rpartition(".")[0]
+                out.add(name)
+    return (out & modules) - {me}
+
+
+def _circles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The import graph's strongly connected parts of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(edges.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = []
+            while True:
+                w = stack.pop()
+                part.append(w)
+                if w == v:
+                    break
+            if len(part) > 1:
+                found.append(sorted(part))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_two_modules_import_each_other_even_within_a_part():
+    """The layers keep parts in order; within a part (inverse/, train/, ...) no module
+    reaches back to one that imports it, directly or round a longer loop, at the top
+    or inside a function (docs/architecture.md)."""
+    paths = _modules()
+    modules = {_module_name(p) for p in paths}
+    edges = {_module_name(p): _module_imports(p, modules) for p in paths}
+    assert sum(len(e) for e in edges.values()) > 100  # the graph was read
+    assert _circles(edges) == []
+
+
+def test_the_circle_test_sees_a_loop_through_a_function_level_import():
+    # inverse/fit.py, starts.py and coverage.py before session 74: a loop of three
+    modules = {f"neural_brdf.inverse.{m}" for m in ("fit", "starts", "coverage", "views")}
+    texts = {
+        "fit": "from neural_brdf.inverse.views import View\n"
+        "def f():\n    from neural_brdf.inverse import coverage, starts\n",
+        "starts": "from neural_brdf.inverse import fit as inverse\n",
+        "coverage": "from . import views\ndef g():\n    from .fit import fit_bsdf\n",
+        "views": "import numpy\n",
+    }
+    edges = {
+        f"neural_brdf.inverse.{m}": _module_imports(PACKAGE / "inverse" / f"{m}.py", modules, t)
+        for m, t in texts.items()
+    }
+    assert edges["neural_brdf.inverse.coverage"] == {
+        "neural_brdf.inverse.views",
+        "neural_brdf.inverse.fit",
+    }
+    assert _circles(edges) == [
+        ["neural_brdf.inverse.coverage", "neural_brdf.inverse.fit", "neural_brdf.inverse.starts"]
+    ]
+
+
 def test_the_pipeline_runs_every_stage_and_the_cli_calls_it():
     assert {"train", "export", "validate", "viewer", "inverse"} <= _imported_parts(
         PACKAGE / "pipeline.py"

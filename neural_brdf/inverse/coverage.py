@@ -74,7 +74,7 @@ from typing import Any
 import numpy as np
 
 from neural_brdf.errors import InputError
-from neural_brdf.inverse import fit as inverse_fit
+from neural_brdf.inverse import views as inverse_views
 
 BINS = 32  # theta_h and theta_d bins over [0, pi/2] each
 MIN_COS = 0.1  # the domain: both cosines above this
@@ -162,8 +162,8 @@ def view_samples(scene, *, spp: int = MIN_SPP, seed: int = 0, jitter: bool = Tru
     the current variant (:func:`load`)."""
     import mitsuba as mi
 
-    fit = inverse_fit.fit_bsdf(scene)
-    h, w = inverse_fit.film_size(scene)
+    fit = inverse_views.fit_bsdf(scene)
+    h, w = inverse_views.film_size(scene)
     sensor = scene.sensors()[0]
     rng = np.random.default_rng(seed)
     n = h * w * spp
@@ -255,15 +255,15 @@ def _scene_of(item, k: int) -> tuple[str, Any, Any]:
     if hasattr(item, "tree") and hasattr(item, "scene_path"):
         return str(item.scene_path), Path(item.scene_path), item.tree
     path = Path(item)
-    tree, _ = inverse_fit.read_scene(path, f"coverage: view {k + 1}")
+    tree, _ = inverse_views.read_scene(path, f"coverage: view {k + 1}")
     return str(path), path, tree
 
 
 def load(path: Path, tree) -> Any:
     """The scene of ``path`` (parsed as ``tree``) with a ``diffuse`` as ``<bsdf id="fit">``
     (everything else as it is; its integrator is not used here)."""
-    text = inverse_fit.scene_text(tree, inverse_fit.bsdf_element("diffuse"))
-    return inverse_fit.load_scene(path, text)
+    text = inverse_views.scene_text(tree, inverse_views.bsdf_element("diffuse"))
+    return inverse_views.load_scene(path, text)
 
 
 def _use_variant(variant: str | None) -> None:
@@ -359,7 +359,7 @@ def compute(
     for k, item in enumerate(views):
         name, path, tree = _scene_of(item, k)
         scene = load(path, tree)
-        h, w = inverse_fit.film_size(scene)
+        h, w = inverse_views.film_size(scene)
         spp = max(MIN_SPP, -(-rays // (h * w)))
         s = view_samples(scene, spp=spp, seed=seed * 1_000_003 + k)
         view, share = _view_coverage(name, s, spp, measure, bins, min_cos, threshold)

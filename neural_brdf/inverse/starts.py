@@ -127,7 +127,7 @@ import numpy as np
 from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
 from neural_brdf.errors import InputError
-from neural_brdf.inverse import fit as inverse
+from neural_brdf.inverse import views as inverse
 
 TEACHER_XML = runfolder.TEACHER  # the file distill() writes into its run folder
 # A stand-in for the scene's own <bsdf id="fit"> where only the geometry matters (the

@@ -1074,6 +1074,8 @@ def _network_start_fakes(monkeypatch, cands, continued, noise):
     monkeypatch.setattr(starts, "fit_candidate", _continued_to(continued, calls))
     monkeypatch.setattr(starts, "refine_rounds", refine_rounds)
     monkeypatch.setattr(starts, "distill", distill)
+    # the starts read the targets' noise through the views' layer, the fit through its own name
+    monkeypatch.setattr(starts.inverse, "target_noise", lambda views: noise["value"])
     monkeypatch.setattr(inverse, "target_noise", lambda views: noise["value"])
     return calls, refined
 
