@@ -26,10 +26,11 @@ second seed, images_any_dev_lights_clay_seed1.json against
 images_any_dev_lights_clay_seed1_model_encoding.json, which chose nothing; reported once
 on the test set, images_any_2026-12-04.json and images_any_lights_2026-12-04.json
 against their 2026-12-03 files; images_any_2026-12-04_frozen.json and
-images_any_lights.json are the same defaults with the start's steps frozen,
-``images.start_freeze``, an execution change that chose nothing and was run once on the
-test set for its time; images_any.json the same again on 2026-12-05, with the plugin's
-torch call running the network alone, another such change), the default
+images_any_lights_2026-12-04_frozen.json are the same defaults with the start's steps
+frozen, ``images.start_freeze``, an execution change that chose nothing and was run once
+on the test set for its time; images_any.json and images_any_lights.json the same again
+on 2026-12-05, with the plugin's torch call running the network alone, another such
+change), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

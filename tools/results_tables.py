@@ -3182,9 +3182,17 @@ SECTIONS = (
         "the defaults of 2026-12-04, the start's steps frozen, run on 2026-12-05 with torch "
         "running the network alone",
     ),
-    _images_any("images_any_lights.json", "the defaults of 2026-12-04, the start's steps frozen"),
+    _images_any(
+        "images_any_lights.json",
+        "the defaults of 2026-12-04, the start's steps frozen, run on 2026-12-05 with torch "
+        "running the network alone",
+    ),
     _images_any(
         "images_any_2026-12-04_frozen.json",
+        "the defaults of 2026-12-04, the start's steps frozen, before torch ran the network alone",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-04_frozen.json",
         "the defaults of 2026-12-04, the start's steps frozen, before torch ran the network alone",
     ),
     _images_any(
