@@ -336,7 +336,11 @@ def test_the_network_alone_in_torch_gives_the_whole_forwards_values_and_gradient
 def test_torch_sees_the_valid_lanes_only_with_the_same_values_and_gradients(mi):
     """The torch path evaluates the lanes with both directions above the horizon only
     (gathered, then scattered back): f cos and the weights' gradients are torch's own on
-    the full batch, 0 and no gradient on the others, at a third of lanes below."""
+    the full batch, 0 and no gradient on the others, at a third of lanes below.  The
+    plugin's features come from the encoding's lowered graph in Dr.Jit, a few ulps from
+    torch's where they take an atan or a log; the grid's bilinear weights scale a
+    coordinate 31-fold, so its table's gradients are compared to 1e-5 of their largest
+    (3e-6 was the most seen over 20 draws of the head), the others as tightly as ever."""
     import drjit as dr
     import torch
 
@@ -345,7 +349,8 @@ def test_torch_sees_the_valid_lanes_only_with_the_same_values_and_gradients(mi):
     bsdf = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "evaluator": "torch"})
     raw = bsdf.torch_model()
     with torch.no_grad():
-        raw.mlp.head.weight.normal_(0.0, 0.3)
+        head = torch.randn(raw.mlp.head.weight.shape, generator=torch.Generator().manual_seed(7))
+        raw.mlp.head.weight.copy_(0.3 * head)
     bsdf.load_state_dict(raw.state_dict())
     rng = np.random.default_rng(5)
     n = 600
@@ -379,7 +384,8 @@ def test_torch_sees_the_valid_lanes_only_with_the_same_values_and_gradients(mi):
     for k, p in raw.named_parameters():
         ref = p.grad.numpy()
         assert np.any(ref != 0.0), k
-        assert np.allclose(grads[k], ref, rtol=1e-4, atol=1e-6 * np.abs(ref).max()), k
+        atol = (1e-5 if k.endswith("grid.table") else 1e-6) * np.abs(ref).max()
+        assert np.allclose(grads[k], ref, rtol=1e-4, atol=atol), k
 
 
 def test_an_unknown_evaluator_is_refused(mi):
