@@ -6,6 +6,7 @@ folder) is .ci/wheel_check.sh; these tests check the same contracts from the sou
 
 from __future__ import annotations
 
+import functools
 import inspect
 import json
 import os
@@ -362,31 +363,12 @@ def _part(path: Path) -> str:
 
 def _imported_parts(path: Path, text: str | None = None) -> set[str]:
     """The parts of neural_brdf a module imports (absolute or relative, anywhere in it)."""
-    import ast
+    return {m.split(".")[1] for m in _module_imports(path, _module_set(), text) if "." in m}
 
-    module = ".".join(("neural_brdf",) + path.relative_to(PACKAGE).with_suffix("").parts)
-    if path.name == "__init__.py":
-        module += ".__init__"  # its relative imports start at its own package
-    names: set[str] = set()
-    source = path.read_text(encoding="utf-8") if text is None else text
-    for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:  # relative: resolve against this module's package
-                pkg = module.split(".")[: -node.level]
-                base = ".".join(pkg + ([node.module] if node.module else []))
-            parts = base.split(".")
-            if parts[0] != "neural_brdf":
-                continue
-            if len(parts) > 1:
-                names.add(parts[1])
-            else:  # from neural_brdf import a, b
-                names.update(a.name for a in node.names)
-        elif isinstance(node, ast.Import):
-            names.update(
-                a.name.split(".")[1] for a in node.names if a.name.startswith("neural_brdf.")
-            )
-    return names
+
+@functools.cache
+def _module_set() -> frozenset[str]:
+    return frozenset(_module_name(p) for p in _modules())
 
 
 def _modules() -> list[Path]:
@@ -428,7 +410,7 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _module_imports(path: Path, modules: set[str], text: str | None = None) -> set[str]:
+def _module_imports(path: Path, modules: frozenset[str], text: str | None = None) -> set[str]:
     """The modules of the package that ``path`` imports, anywhere in it: ``from a.b
     import c`` is a.b.c where that is a module, else a.b (its package's face)."""
     import ast
@@ -491,16 +473,14 @@ def test_no_two_modules_import_each_other_even_within_a_part():
     """The layers keep parts in order; within a part (inverse/, train/, ...) no module
     reaches back to one that imports it, directly or round a longer loop, at the top
     or inside a function (docs/architecture.md)."""
-    paths = _modules()
-    modules = {_module_name(p) for p in paths}
-    edges = {_module_name(p): _module_imports(p, modules) for p in paths}
+    edges = {_module_name(p): _module_imports(p, _module_set()) for p in _modules()}
     assert sum(len(e) for e in edges.values()) > 100  # the graph was read
     assert _circles(edges) == []
 
 
 def test_the_circle_test_sees_a_loop_through_a_function_level_import():
     # inverse/fit.py, starts.py and coverage.py before session 74: a loop of three
-    modules = {f"neural_brdf.inverse.{m}" for m in ("fit", "starts", "coverage", "views")}
+    modules = frozenset(f"neural_brdf.inverse.{m}" for m in ("fit", "starts", "coverage", "views"))
     texts = {
         "fit": "from neural_brdf.inverse.views import View\n"
         "def f():\n    from neural_brdf.inverse import coverage, starts\n",

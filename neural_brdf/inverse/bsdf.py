@@ -170,39 +170,28 @@ def _eval_torch(raw: RawBRDF):
     return f_cos
 
 
-class _Encode(torch.nn.Module):
-    """:meth:`RawBRDF.encode` as one (N, K) output ``e`` (its columns in the order of
-    :meth:`RawBRDF.encoded_columns`): the graph the plugin lowers for Dr.Jit."""
+class _Part(torch.nn.Module):
+    """One part of the RawBRDF's forward pass, ``part(raw, *inputs)``, as a module: what
+    ``torch.onnx.export`` traces and ``torch.func.functional_call`` runs (the parameters
+    are the RawBRDF's, under ``raw.``)."""
 
-    def __init__(self, raw: RawBRDF):
+    def __init__(self, raw: RawBRDF, part):
         super().__init__()
         self.raw = raw
+        self.part = part
 
-    def forward(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-        return columns(self.raw.encoded_columns(self.raw.encode(wi, wo)))
-
-
-class _Finish(torch.nn.Module):
-    """:meth:`RawBRDF.finish` of the network's output ``y``: the other weight-free part."""
-
-    def __init__(self, raw: RawBRDF):
-        super().__init__()
-        self.raw = raw
-
-    def forward(self, y: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-        return self.raw.finish(y, wi, wo)
+    def forward(self, *inputs):
+        return self.part(self.raw, *inputs)
 
 
-class _Network(torch.nn.Module):
-    """:meth:`RawBRDF.network` of :meth:`RawBRDF.encode`'s columns: the part torch runs
-    (its parameters are the RawBRDF's, under ``raw.``)."""
+def _encode_columns(raw: RawBRDF, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """:meth:`RawBRDF.encode` as one (N, K) output, its columns in the order of
+    :meth:`RawBRDF.encoded_columns`."""
+    return columns(raw.encoded_columns(raw.encode(wi, wo)))
 
-    def __init__(self, raw: RawBRDF):
-        super().__init__()
-        self.raw = raw
 
-    def forward(self, cols: list[torch.Tensor]) -> torch.Tensor:
-        return self.raw.network(self.raw.encoded_from_columns(cols))
+def _network_of_columns(raw: RawBRDF, cols: list[torch.Tensor]) -> torch.Tensor:
+    return raw.network(raw.encoded_from_columns(cols))
 
 
 def _network_torch(raw: RawBRDF):
@@ -210,7 +199,7 @@ def _network_torch(raw: RawBRDF):
     :func:`drjit.wrap`: the weights' gradients are torch's; the columns, free of
     weights and computed in Dr.Jit from directions that track no gradient, are
     detached (torch would otherwise differentiate them too, adjoints Dr.Jit drops)."""
-    net = _Network(raw)
+    net = _Part(raw, _network_of_columns)
 
     @dr.wrap(source="drjit", target="torch")
     def network(cols, weights):
@@ -232,39 +221,38 @@ def primal_evaluator(evaluator: str, variant: str) -> str:
     return AUTO.get(variant, "graph") if evaluator == "auto" else evaluator
 
 
-# Lowered programs by model section (JSON): every weight is a parameter bound at run
-# time, so one program serves every plugin instance of a section (a fit makes 3 or 4;
-# an export and lowering took about 0.36 s each on 2 cores).
-_PROGRAMS: dict[str, graph.Program] = {}
-_PIECES: dict[str, tuple[graph.Program, graph.Program]] = {}
+# Lowered parts by (model section as JSON, part), each with its packet plan: every
+# weight is a parameter bound at run time, so one program serves every plugin instance
+# of a section (a fit makes 3 or 4; an export and lowering took about 0.06 s each)
+_LOWERED: dict[tuple[str, str], tuple[graph.Program, drjit_backend.PacketPlan]] = {}
 
 
-def _trained_program(raw: RawBRDF, section: cfgmod.Model) -> graph.Program:
-    """The RawBRDF's ONNX graph (the exporter every file goes through, no normalisation)
-    lowered with every ``state_dict`` entry kept as a trained parameter: what
-    :func:`drjit_backend.run` evaluates with the plugin's live weights bound to those.
-    ``raw`` is built from ``section``; the program is lowered once per section."""
-    key = section.model_dump_json()
-    if key not in _PROGRAMS:
-        onnx_bytes = to_onnx_bytes(raw, cfgmod.Export().opset)
-        _PROGRAMS[key] = graph.lower(onnx_bytes, ("f",), params=tuple(raw.state_dict()))
-    return _PROGRAMS[key]
-
-
-def _weight_free_programs(
-    raw: RawBRDF, section: cfgmod.Model
-) -> tuple[graph.Program, graph.Program]:
-    """The graphs of :meth:`RawBRDF.encode` (wi, wo -> e) and :meth:`RawBRDF.finish`
-    (y, wi, wo -> f), exported and lowered as :func:`_trained_program` is, once per
-    section: the gradient pass runs them in Dr.Jit around torch's network."""
-    key = "weight-free " + section.model_dump_json()
-    if key not in _PIECES:
+def _lowered(
+    raw: RawBRDF, section: cfgmod.Model, part: str
+) -> tuple[graph.Program, drjit_backend.PacketPlan]:
+    """A part of the RawBRDF's graph (the exporter every file goes through, no
+    normalisation), lowered once per section, and its packet plan: ``whole`` (wi, wo ->
+    f, every ``state_dict`` entry kept as a trained parameter, which
+    :func:`drjit_backend.run` binds to the plugin's live weights), and the weight-free
+    parts the gradient pass runs around torch's network, ``encode`` (wi, wo -> e:
+    :meth:`RawBRDF.encode`) and ``finish`` (y, wi, wo -> f: :meth:`RawBRDF.finish`).
+    ``raw`` is built from ``section``."""
+    key = (section.model_dump_json(), part)
+    if key not in _LOWERED:
         opset = cfgmod.Export().opset
-        outputs = raw.colors * raw.heads
-        encode = to_onnx_bytes(_Encode(raw), opset, outputs=("e",))
-        finish = to_onnx_bytes(_Finish(raw), opset, inputs=("y", "wi", "wo"), widths={"y": outputs})
-        _PIECES[key] = (graph.lower(encode, ("e",)), graph.lower(finish, ("f",)))
-    return _PIECES[key]
+        if part == "whole":
+            onnx_bytes = to_onnx_bytes(raw, opset)
+            program = graph.lower(onnx_bytes, ("f",), params=tuple(raw.state_dict()))
+        elif part == "encode":
+            onnx_bytes = to_onnx_bytes(_Part(raw, _encode_columns), opset, outputs=("e",))
+            program = graph.lower(onnx_bytes, ("e",))
+        else:
+            widths = {"y": raw.colors * raw.heads}
+            finish = _Part(raw, RawBRDF.finish)
+            onnx_bytes = to_onnx_bytes(finish, opset, inputs=("y", "wi", "wo"), widths=widths)
+            program = graph.lower(onnx_bytes, ("f",))
+        _LOWERED[key] = (program, drjit_backend.PacketPlan(program))
+    return _LOWERED[key]
 
 
 class NeuralBSDFAD(_GraphBSDF):
@@ -289,11 +277,11 @@ class NeuralBSDFAD(_GraphBSDF):
         # track a gradient: then all of it (_torch_f_cos)
         self._network_torch = _network_torch(self.raw)
         self._f_cos_torch_directions = _eval_torch(self.raw)
-        self.encode_program, self.finish_program = _weight_free_programs(self.raw, section)
+        self.encoder = _lowered(self.raw, section, "encode")
+        self.finisher = _lowered(self.raw, section, "finish")
         self.evaluator = str(props["evaluator"]) if "evaluator" in props else EVALUATORS[0]
         self.primal = primal_evaluator(self.evaluator, mi.variant())
-        self.program = _trained_program(self.raw, section)
-        self.plan = drjit_backend.PacketPlan(self.program)
+        self.program, self.plan = _lowered(self.raw, section, "whole")
         self.textured = False  # the parent's _f_cos: a homogeneous graph (wi, wo)
         self.label = "trainable RawBRDF"
         self.lobe_source = "default"
@@ -391,9 +379,9 @@ class NeuralBSDFAD(_GraphBSDF):
         # graphs, fused into the kernel that gathers the lanes; torch runs the grids and
         # the MLP, which the weights set (module doc, Speed)
         dirs = {"wi": [wi.x, wi.y, wi.z], "wo": [wo.x, wo.y, wo.z]}
-        e = drjit_backend.run(self.encode_program, dirs)["e"]
+        e = drjit_backend.run(self.encoder[0], dirs, self.encoder[1])["e"]
         y = self._network_torch(e, self.weights)
-        f = drjit_backend.run(self.finish_program, {"y": list(y), **dirs})["f"]
+        f = drjit_backend.run(self.finisher[0], {"y": list(y), **dirs}, self.finisher[1])["f"]
         cos_o = dr.maximum(mi.Frame3f.cos_theta(wo), 0.0)
         return mi.Color3f(f[0], f[1], f[2]) * cos_o
 
