@@ -502,7 +502,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     from images_patience import scorings
 
     from neural_brdf import config, pipeline, runtime
-    from neural_brdf.inverse import coverage, starts
+    from neural_brdf.inverse import coverage, determined, starts
     from neural_brdf.inverse import fit as inverse
 
     folder = work / name
@@ -555,6 +555,14 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     wi, wo = inverse.brdf_pairs(truth_bsdf, 4 * PAIRS, seed=8, min_cos=coverage.MIN_COS)
     seen = coverage.observed_mask(cov, wi, wo)
     observed = brdf_errors(wi[seen], wo[seen]) if seen.any() else {"pairs": 0}
+    # where the views determine f near the start (the run's training.determined), and
+    # the rest of the domain: what images can and cannot fix (docs/inverse.md)
+    det_info = tr.get("determined") or None
+    split: dict[str, dict] = {}
+    if det_info:
+        fixed = determined.summary_mask(det_info, wi, wo)
+        for key, m in (("determined", fixed), ("undetermined", ~fixed)):
+            split[key] = brdf_errors(wi[m], wo[m]) if m.any() else {"pairs": 0}
 
     images = {}
     for label, view in (("heldout", held[0]), ("relit", held[1])):
@@ -648,13 +656,21 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "poor": start.get("poor"),
         },
         "images": images,
-        "brdf": {"cap_0.5": cap, "observed": observed},
+        "brdf": {"cap_0.5": cap, "observed": observed, **split},
         # the network's grid and encoding as trained (the run's config.yaml:
         # images.anisotropic_grid moves the grid over the half vector's disc after an
         # anisotropic start, images.isotropic_encoding the encoding after another one)
         "grid_coords": trained.model.grid.coords,
         "encoding": trained.model.encoding,
         "coverage": float(cov.figure),
+        "determined": (
+            {
+                k: det_info.get(k)
+                for k in ("figure", "energy_figure", "by_bin_width_deg", "tol", "noise")
+            }
+            if det_info
+            else None
+        ),
         "validation": {
             k: val.get(k)
             for k in (

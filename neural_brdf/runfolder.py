@@ -6,7 +6,8 @@
 
 Every name a run writes is here (``CONFIG``, ``CKPT``, ``LOG``, ``MODEL``, ``METRICS``,
 ``REPORT_HTML``, ``REPORT_MD``, ``report-*.png``, ``VIEWER``, a projected textured run's
-``TEXTURED``, an images fit's ``COVERAGE`` and ``INIT`` folder, ``LOCK`` and ``MARKER``);
+``TEXTURED``, an images fit's ``COVERAGE``, ``DETERMINED`` and ``INIT`` folder, ``LOCK``
+and ``MARKER``);
 :func:`own_files` lists those a folder holds.
 
 Which folders a run writes into.  A run writes only into a folder that is new, empty,
@@ -66,6 +67,7 @@ LOG = "log.csv"  # the training log
 MODEL = "model.onnx"  # the exported model
 METRICS = "metrics.json"  # the validation report
 COVERAGE = "coverage.png"  # an images fit's map of the observed (wi, wo) domain
+DETERMINED = "determined.png"  # ... and of where the views determine f near its start
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
 REPORT_PNG = "report-*.png"  # the markdown report's images (a glob)
@@ -83,6 +85,7 @@ FILES = (
     METRICS,
     LOG,
     COVERAGE,
+    DETERMINED,
     REPORT_HTML,
     REPORT_MD,
     VIEWER,

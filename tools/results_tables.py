@@ -1460,7 +1460,61 @@ def images_any_section(
         "samples per pixel).",
         "",
     ]
-    return out + _fitted_table(d) + _refine_table(d) + _contenders_table(d)
+    return out + _fitted_table(d) + _determined_table(d) + _refine_table(d) + _contenders_table(d)
+
+
+def _determined_table(d: dict) -> list[str]:
+    """What the views determine near the start (files that record ``determined``): the
+    share of the domain, of the start's light, and the BRDF's error there and elsewhere
+    (neural_brdf/inverse/determined.py).  Information beside the goals, which stay
+    scored over the observed part."""
+    rows = []
+    tol = None
+    for key, e in d["materials"].items():
+        det, br = e.get("determined"), e["brdf"]
+        if not det or "determined" not in br:
+            continue
+        tol = det.get("tol", tol)
+
+        def two(fig: dict) -> str:
+            if not fig.get("pairs"):
+                return "-"
+            return " / ".join(_pct(fig[k]) for k in ("network", "start") if k in fig)
+
+        rows.append(
+            [
+                key,
+                f"{100 * det['figure']:.0f} %",
+                f"{100 * det['energy_figure']:.0f} %",
+                two(br["determined"]),
+                two(br["undetermined"]),
+                two(br["observed"]),
+            ]
+        )
+    if not rows:
+        return []
+    return [
+        "What the views determine near the start (`neural_brdf/inverse/determined.py`): "
+        "the share of the domain (both cosines > 0.1) in 11.25° (θh, θd) bins whose "
+        f"level the views fix to {100 * (tol or 0.05):g} % (the posterior standard "
+        "deviation of f / f_start − 1, every bin free at once, the targets' noise), the "
+        "share of the start's reflected light there, and the BRDF's relative RMSE of "
+        "f·cos (network / start) over those bins and over the rest of the domain; the "
+        "observed part's, the goal's, for comparison.",
+        "",
+        *_table(
+            [
+                "material",
+                "determined",
+                "start's light there",
+                "BRDF, determined",
+                "BRDF, the rest",
+                "BRDF, observed",
+            ],
+            rows,
+        ),
+        "",
+    ]
 
 
 def _fitted_table(d: dict) -> list[str]:

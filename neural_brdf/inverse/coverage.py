@@ -155,21 +155,30 @@ def _np3(v) -> np.ndarray:
     return np.stack([np.asarray(v[j].numpy(), np.float64) for j in range(3)], -1)
 
 
-def view_samples(scene, *, spp: int = MIN_SPP, seed: int = 0, jitter: bool = True) -> Samples:
+def view_samples(
+    scene,
+    *,
+    spp: int = MIN_SPP,
+    seed: int = 0,
+    jitter: bool = True,
+    pixels: np.ndarray | None = None,
+) -> Samples:
     """Trace ``spp`` camera rays per pixel of the first sensor's film (``jitter``: at
     random positions in the pixel, else at its centre) and draw one emitter sample
-    where each ray hits a shape with ``<bsdf id="fit">``.  Needs the scene loaded in
-    the current variant (:func:`load`)."""
+    where each ray hits a shape with ``<bsdf id="fit">``.  ``pixels``: only these
+    (y * width + x), else every pixel.  Needs the scene loaded in the current variant
+    (:func:`load`)."""
     import mitsuba as mi
 
     fit = inverse_views.fit_bsdf(scene)
     h, w = inverse_views.film_size(scene)
     sensor = scene.sensors()[0]
     rng = np.random.default_rng(seed)
-    n = h * w * spp
+    chosen = np.arange(h * w) if pixels is None else np.asarray(pixels, np.int64)
+    n = len(chosen) * spp
     parts: list[tuple[np.ndarray, ...]] = []
     for start in range(0, n if fit is not None else 0, CHUNK):
-        idx = np.arange(start, min(n, start + CHUNK)) // spp
+        idx = chosen[np.arange(start, min(n, start + CHUNK)) // spp]
         m = len(idx)
         off = rng.random((m, 2)) if jitter else np.full((m, 2), 0.5)
         u = rng.random((m, 4))

@@ -104,6 +104,8 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     fit_is_used,
     fitted_views,
     load_scene,
+    mitsuba_bsdf,
+    mitsuba_f_cos,
     prepare_views,
     read_image,
     read_scene,
@@ -703,6 +705,9 @@ def _fit_views(
             )
             init_info["roughconductor"] = rough
             init_info["seconds"] += rough["seconds"]
+    # what the views determine near the start (a resumed run: its checkpoint's start)
+    start_info = init_info if init_info is not None else _saved_init(folder)
+    determined_info = _determined(views, run_dir, start_info, cfg.train.seed)
     raw, training = fit_neural(
         cfg,
         views,
@@ -715,7 +720,50 @@ def _fit_views(
         session=sess,
     )
     training["coverage"] = covered
+    training["determined"] = determined_info
     return raw, training, cfg
+
+
+def _saved_init(folder: runfolder.Folder) -> dict[str, Any] | None:
+    """The ``init`` record of the checkpoint a run resumes (its start), or None."""
+    from neural_brdf.train.session import load_checkpoint
+
+    if not folder.ckpt.is_file():
+        return None
+    try:
+        init = load_checkpoint(folder.ckpt).get("init")
+    except (InputError, AttributeError):
+        return None
+    return init if isinstance(init, dict) else None
+
+
+def _determined(
+    views: list[View], run_dir: Path, init: Any, seed: int | None
+) -> dict[str, Any] | None:
+    """How well the fitted views determine f near the start
+    (:mod:`neural_brdf.inverse.determined`): ``determined.png`` in the run folder, the
+    summary for ``training["determined"]``, a warning when the start's light is thin
+    there; None when the start is unknown (the constant start: a grey diffuse stands
+    in, as before any fit)."""
+    from neural_brdf.inverse import determined, starts
+
+    reference = None
+    if isinstance(init, dict):
+        start, rough = init.get("start"), init.get("roughconductor")
+        if isinstance(start, dict) and start.get("family") and start.get("params"):
+            reference = starts.family(str(start["family"])).element(start["params"])
+        elif isinstance(rough, dict) and "alpha" in rough:
+            reference = roughconductor_element(rough)
+    info, warning = determined.assess(
+        fitted_views(views),
+        reference,
+        target_noise(views),
+        picture=run_dir / runfolder.DETERMINED,
+        seed=seed or 0,
+    )
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
+    return info
 
 
 def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:
@@ -902,30 +950,6 @@ def image_rel_rmse(reference: np.ndarray, image: np.ndarray, mask: np.ndarray) -
     """sqrt(sum (image - reference)^2 / sum reference^2) over ``mask``'s pixels."""
     ref, img = reference[mask].astype(np.float64), image[mask].astype(np.float64)
     return float(np.sqrt(np.sum((img - ref) ** 2) / np.sum(ref**2)))
-
-
-def mitsuba_bsdf(bsdf: ET.Element):
-    """A standalone Mitsuba BSDF from its XML element."""
-    import mitsuba as mi
-
-    el = copy.deepcopy(bsdf)
-    el.attrib.pop("id", None)
-    return mi.load_string(
-        '<bsdf version="3.0.0"' + ET.tostring(el, encoding="unicode")[len("<bsdf") :]
-    )
-
-
-def mitsuba_f_cos(bsdf, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-    """f cos(theta_o) of a Mitsuba BSDF at local directions (N, 3) -> (N, 3)."""
-    import drjit as dr
-    import mitsuba as mi
-
-    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
-    si.wi = mi.Vector3f(*(np.ascontiguousarray(wi[:, j], np.float32) for j in range(3)))
-    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
-    wo_ = mi.Vector3f(*(np.ascontiguousarray(wo[:, j], np.float32) for j in range(3)))
-    value = bsdf.eval(mi.BSDFContext(), si, wo_)
-    return np.stack([np.asarray(value[j].numpy(), np.float64) for j in range(3)], -1)
 
 
 def brdf_pairs(bsdf, n: int, seed: int, min_cos: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

@@ -549,3 +549,27 @@ def sphere_mask(view: View, erode: int = 2) -> np.ndarray:
             shifted[yd, xd] = mask[ys, xs]
             out &= shifted
     return out
+
+
+def mitsuba_bsdf(bsdf: ET.Element):
+    """A standalone Mitsuba BSDF from its XML element."""
+    import mitsuba as mi
+
+    el = copy.deepcopy(bsdf)
+    el.attrib.pop("id", None)
+    return mi.load_string(
+        '<bsdf version="3.0.0"' + ET.tostring(el, encoding="unicode")[len("<bsdf") :]
+    )
+
+
+def mitsuba_f_cos(bsdf, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """f cos(theta_o) of a Mitsuba BSDF at local directions (N, 3) -> (N, 3)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.wi = mi.Vector3f(*(np.ascontiguousarray(wi[:, j], np.float32) for j in range(3)))
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    wo_ = mi.Vector3f(*(np.ascontiguousarray(wo[:, j], np.float32) for j in range(3)))
+    value = bsdf.eval(mi.BSDFContext(), si, wo_)
+    return np.stack([np.asarray(value[j].numpy(), np.float64) for j in range(3)], -1)

@@ -562,6 +562,16 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert training["coverage"]["figure"] > 0.9
     assert training["coverage"]["picture"] == "coverage.png"
     assert (run_dir / "coverage.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # what the views determine, near the chosen start, with the targets' own noise
+    determined = training["determined"]
+    assert determined["reference"] == ET.fromstring(
+        (run_dir / "init" / "teacher.xml").read_text()
+    ).get("type")
+    assert determined["noise_source"] == "targets" and determined["noise"] > 0
+    assert determined["figure"] <= determined["by_bin_width_deg"]["22.5"]["figure"], determined
+    assert determined["by_bin_width_deg"]["22.5"]["figure"] > 0, determined  # 16² views: little
+    assert (run_dir / "determined.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "report-determined.png" in (run_dir / "report.md").read_text()
     cfg = config.load(example / "fit.yaml")
     view = inverse.read_views(cfg)[0]
     mask = inverse.sphere_mask(view, erode=1)

@@ -460,9 +460,83 @@ def _coverage(run: Run) -> list[Block]:
     return blocks
 
 
+def _determined(run: Run) -> list[Block]:
+    training = run.metrics.get("training")
+    det = training.get("determined") if isinstance(training, dict) else None
+    if not isinstance(det, dict):
+        return [
+            Text(
+                "No map of what the views determine in metrics.json (training.determined): "
+                "`python -m neural_brdf.inverse.determined config.yaml -o determined.png` "
+                "computes it from the scenes and images.",
+                note=True,
+            )
+        ]
+    rows = [
+        ["determined (the domain)", _pct(det.get("figure"))],
+        [f"… of the {det.get('reference', 'start')} start's light", _pct(det.get("energy_figure"))],
+    ]
+    by = det.get("by_bin_width_deg")
+    if isinstance(by, dict):
+        for width, entry in by.items():
+            if isinstance(entry, dict):
+                rows.append([f"in {width}° bins", _pct(entry.get("figure"))])
+    definition = det.get("definition")
+    blocks: list[Block] = [
+        Text(
+            "Where the views determine f near the start, from the same scenes and the "
+            "targets' noise (neural_brdf/inverse/determined.py): the "
+            + (f"{definition}." if isinstance(definition, str) else "see docs/inverse.md.")
+            + "  A bin every pixel mixes in the same proportion is observed but not "
+            "determined."
+        ),
+        Table(["", ""], rows),
+    ]
+    energy, below = _finite(det.get("energy_figure")), _finite(det.get("warn_energy_below"))
+    if energy is not None and below is not None and energy < below:
+        blocks.append(
+            Text(
+                f"Warning: the views determine only {100 * energy:.1f} % of the start's "
+                "reflected light: the rest of the fitted BRDF is the start's family and "
+                "the network's prior.",
+                note=True,
+            )
+        )
+    name = Path(str(det.get("picture") or runfolder.DETERMINED)).name
+    path = run.dir / name
+    try:
+        png = path.read_bytes() if path.is_file() else None
+    except OSError:
+        png = None
+    if png is not None and png.startswith(PNG_SIGNATURE) and len(png) > 24:
+        blocks.append(
+            Image(
+                "determined",
+                "What the views determine in the (θh, θd) domain",
+                f"{name}: the width of the finest bin whose level the views fix to the "
+                "tolerance, black where none does, white beyond the domain; grey contours: "
+                "the start's reflected light.",
+                png,
+            )
+        )
+    else:
+        blocks.append(
+            Text(f"No determination map: {name} is not a PNG in the run folder.", note=True)
+        )
+    return blocks
+
+
 def section(run: Run) -> list[Block]:
-    """The "Images fit" section: the views, the fit's figures and losses, the coverage."""
-    return [Heading("Images fit")] + _views(run) + _fit_figures(run) + _losses(run) + _coverage(run)
+    """The "Images fit" section: the views, the fit's figures and losses, the coverage
+    and what the views determine."""
+    return (
+        [Heading("Images fit")]
+        + _views(run)
+        + _fit_figures(run)
+        + _losses(run)
+        + _coverage(run)
+        + _determined(run)
+    )
 
 
 def target_text(run: Run) -> str:
