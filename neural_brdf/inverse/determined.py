@@ -8,25 +8,29 @@ constant sky a flat face's pixels all mix the same pairs, so the images give the
 f over them and nothing about its shape (a highlight no pixel sees is not known, though
 every bin is "observed").  This module asks how well the views *determine* f there.
 
-**The model.**  Around a reference material f0 (the fit's chosen start; before a fit, a
-``diffuse``), let f = f0 (1 + delta_b) for pairs in bin b of the coverage's 32 x 32
-(theta_h, theta_d) bins over [0, pi/2]^2.  Pixel p's value (direct light) is then
-I_p = sum_b S_pb (1 + delta_b), S_pb the part of the pixel that f0 makes from its pairs in
-bin b.  The fit's loss weighs a pixel's residual by 1 / (y_p^2 + REL_EPS) (its relative
-MSE, :mod:`neural_brdf.inverse.views`), where the targets' noise has variance sigma^2
-(:func:`~neural_brdf.inverse.views.target_noise`).  With a prior delta_b ~ N(0, 1) (a
-bin's level unknown to within a factor of about e), the posterior covariance of delta
-after the images is (the linear-Gaussian posterior; e.g. Tarantola 2005, eq. 3.37)
+**The model.** Around a reference material f0 (the fit's chosen start; before a fit, a
+``diffuse``), let f = f0 (1 + delta_b) for pairs in bin b of (theta_h, theta_d) bins
+over [0, pi/2]^2: the coverage's 32 x 32 and coarser, :data:`LEVELS`. Pixel p's value
+(direct light) is then I_p = sum_b S_pb (1 + delta_b), S_pb the part of the pixel that
+f0 makes from its pairs in bin b. The fit's loss weighs a pixel's residual by 1 / (y_p^2
++ REL_EPS) (its relative MSE, :mod:`neural_brdf.inverse.views`), where the targets'
+noise has variance sigma^2 (:func:`~neural_brdf.inverse.views.target_noise`). With a
+prior delta_b ~ N(0, 1) (a bin's level unknown to within a factor of about e), the
+posterior covariance of delta after the images is (the posterior of Bayesian linear
+regression, Bishop 2006, Pattern Recognition and Machine Learning, eq. 3.54 with alpha =
+1, beta = 1 / sigma^2)
 
     C = (J^T J / sigma^2 + I)^-1,        J_pb = S_pb / sqrt(I_p^2 + REL_EPS),
 
-and a bin is **determined** when sqrt(C_bb) <= ``tol`` (:data:`TOL`, 0.1: the images
-fix f there to 10 %, one standard deviation, whatever the other bins do: two bins that
-every pixel mixes in the same proportion are each free, though their sum is known).
-The figure is the share of the domain (both cosines > 0.1, by solid-angle measure, the
-coverage's) in determined bins, and **the reference's determined energy** the share of
-its f cos cos over that domain that lies there (a highlight no view resolves: a small
-share for a glossy reference).
+and a bin is **determined** when sqrt(C_bb) <= ``tol`` (:data:`TOL`, 0.05, the
+benchmark's BRDF goal: the images fix f there to 5 %, one standard deviation, whatever
+the other bins do: two bins that every pixel mixes in the same proportion are each free,
+though their sum is known).  Finer bins are harder to fix (each pixel mixes more of
+them); the coarse levels' J^T J are block sums of the finest's.  The figure is the share
+of the domain (both cosines > 0.1, by solid-angle measure, the coverage's) in
+determined bins of :data:`BINS` (11.25 degrees), and **the reference's determined
+energy** the share of its f cos cos over that domain that lies there (a highlight no
+view resolves: a small share for a glossy reference).
 
 **The estimate.**  :data:`PIXELS` of each view's pixels that see the fit BSDF (evenly
 strided), :data:`SPP` camera rays each with one emitter sample
@@ -37,7 +41,8 @@ make pixels look more different than they are); the sum over pairs of distinct s
 (a U-statistic, as :func:`~neural_brdf.inverse.coverage.mixing`) removes the bias:
 [spp / (spp - 1)] (S_p S_p^T - diag(Q_p)), Q_pb the mean of c^2 / spp over its rays in
 b.  Negative eigenvalues of the estimate are clipped to 0, and the sum over the sampled
-pixels is scaled by the view's pixels on the BSDF over those sampled.
+pixels is scaled by the view's pixels on the BSDF over those sampled.  A pixel's weight
+1 / (I_p^2 + REL_EPS) takes I_p from the same samples.
 
 **Limits.**  Linear around f0 (a start far from the truth gives the map of a material
 near it); isotropic bins (an anisotropic material's azimuth is not resolved here: the
@@ -52,7 +57,7 @@ import math
 import sys
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,7 +102,7 @@ class Determined:
     tol: float
     noise: float  # sigma^2: the targets' relative noise variance used
     noise_source: str  # "targets" or "nominal"
-    reference: str  # the reference material's type (its XML element's)
+    reference: str  # the reference material's name (brdf_of)
     pixels: list[int]  # per view: its pixels on the fit BSDF (before sampling)
     sampled: list[int]  # per view: the pixels sampled
     spp: int
@@ -125,8 +130,28 @@ class Determined:
         return out
 
 
-def reference_energy(bsdf, bins: int, min_cos: float, quad: int = QUAD) -> np.ndarray:
-    """(bins, bins): a Mitsuba BSDF's luminance of f cos(theta_i) cos(theta_o) integrated
+# f(wi, wo) in 1/sr without a cosine: (N, 3) local directions (wi towards the light, wo
+# towards the camera) -> (N, 3) RGB
+BRDF = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def brdf_of(reference: ET.Element | BRDF | None) -> tuple[BRDF, str]:
+    """(f, its name) of a reference: a ``<bsdf>`` element (through Mitsuba: its type),
+    a function f(wi, wo) ("network"), or None (a grey ``diffuse``)."""
+    if callable(reference):
+        return reference, "network"
+    el = reference if reference is not None else inverse_views.bsdf_element("diffuse")
+    bsdf = inverse_views.mitsuba_bsdf(el)
+
+    def f(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        fc = inverse_views.mitsuba_f_cos(bsdf, wo, wi)  # f cos(theta_i): camera side first
+        return fc / np.maximum(np.asarray(wi, np.float64)[:, 2:3], 1e-12)
+
+    return f, str(el.get("type"))
+
+
+def reference_energy(f: BRDF, bins: int, min_cos: float, quad: int = QUAD) -> np.ndarray:
+    """(bins, bins): the luminance of f cos(theta_i) cos(theta_o) integrated
     over each bin's pairs with both cosines > ``min_cos`` (dwi dwo = 4 cos theta_d
     sin theta_h sin theta_d dtheta_h dphi_h dtheta_d dphi_d; phi_h = 0: isotropic),
     normalised to sum 1 (zeros when it is 0 everywhere)."""
@@ -141,8 +166,8 @@ def reference_energy(bsdf, bins: int, min_cos: float, quad: int = QUAD) -> np.nd
     inside = (wi[:, 2] > min_cos) & (wo[:, 2] > min_cos)
     value = np.zeros(len(wi))
     if inside.any():
-        fc = inverse_views.mitsuba_f_cos(bsdf, wo[inside], wi[inside])  # f cos(theta_i)
-        value[inside] = _luminance(fc) * wo[inside, 2]
+        fi = np.asarray(f(wi[inside], wo[inside]), np.float64)
+        value[inside] = _luminance(fi) * wi[inside, 2] * wo[inside, 2]
     dens = 4.0 * np.cos(td) * np.sin(th) * np.sin(td)
     e = (value.reshape(th.shape) * dens).sum(-1)
     e = e.reshape(bins, quad, bins, quad).sum(axis=(1, 3))
@@ -155,7 +180,7 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 
 
 def _view_information(
-    scene, bsdf, *, pixels: int, spp: int, seed: int
+    scene, f: BRDF, *, pixels: int, spp: int, seed: int
 ) -> tuple[np.ndarray, int, int]:
     """(J^T J at the FINE level, estimated for the view and scaled to all its pixels
     on the BSDF; those pixels; the pixels sampled)."""
@@ -170,9 +195,8 @@ def _view_information(
     keep = s.weight > 0
     wi, wo, w, pix = s.wi[keep], s.wo[keep], s.weight[keep], s.pixel[keep]
     c = np.zeros(len(w))
-    if len(w):  # f cos(theta_i) (the camera's side first), w = lum(L / pdf) cos(theta_i)
-        fc = _luminance(inverse_views.mitsuba_f_cos(bsdf, wo, wi))
-        c = np.maximum(fc, 0.0) * w / np.maximum(wi[:, 2], 1e-12)
+    if len(w):  # f w, w = lum(L / pdf) cos(theta_i)
+        c = np.maximum(_luminance(np.asarray(f(wi, wo), np.float64)), 0.0) * w
     th, td, _ = coverage.half_diff(wi, wo)
     col = coverage.bin_index(th, FINE) * FINE + coverage.bin_index(td, FINE)
     row = np.searchsorted(chosen, pix)
@@ -228,7 +252,7 @@ def _level(F: np.ndarray, sigma2: float, bins: int, tol: float, min_cos: float, 
 
 def compute(
     views: Sequence[Any],
-    reference: ET.Element | None = None,
+    reference: ET.Element | BRDF | None = None,
     noise: float | None = None,
     *,
     pixels: int = PIXELS,
@@ -240,7 +264,8 @@ def compute(
     variant: str | None = None,
 ) -> Determined:
     """How well ``views`` (View objects or scene paths, as :func:`coverage.compute`)
-    determine f near ``reference`` (a ``<bsdf>`` element; None: a grey ``diffuse``),
+    determine f near ``reference`` (:func:`brdf_of`: a ``<bsdf>`` element, a function
+    f(wi, wo), or None: a grey ``diffuse``),
     given the targets' relative noise variance ``noise`` (None: :data:`NOMINAL_NOISE`),
     at every level of :data:`LEVELS`; ``bins`` (one of them) is the figure's."""
     if not views:
@@ -250,22 +275,21 @@ def compute(
     if bins not in LEVELS:
         raise InputError(f"determined: bins must be one of {list(LEVELS)}, got {bins}")
     coverage._use_variant(variant)
-    el = reference if reference is not None else inverse_views.bsdf_element("diffuse")
-    bsdf = inverse_views.mitsuba_bsdf(el)
+    f, name = brdf_of(reference)
     F = np.zeros((FINE * FINE, FINE * FINE))
     on, sampled = [], []
     for k, item in enumerate(views):
         _, path, tree = coverage._scene_of(item, k)
         scene = coverage.load(path, tree)
         Fv, n_on, n_k = _view_information(
-            scene, bsdf, pixels=pixels, spp=spp, seed=seed * 1_000_003 + 2 * k
+            scene, f, pixels=pixels, spp=spp, seed=seed * 1_000_003 + 2 * k
         )
         F += Fv
         on.append(n_on)
         sampled.append(n_k)
     known = noise is not None and noise > 0
     sigma2 = float(noise) if known else NOMINAL_NOISE  # type: ignore[arg-type]
-    energy = reference_energy(bsdf, FINE, min_cos)
+    energy = reference_energy(f, FINE, min_cos)
     return Determined(
         levels={b: _level(F, sigma2, b, tol, min_cos, energy) for b in LEVELS},
         bins=bins,
@@ -273,7 +297,7 @@ def compute(
         tol=tol,
         noise=sigma2,
         noise_source="targets" if known else "nominal",
-        reference=str(el.get("type")),
+        reference=name,
         pixels=on,
         sampled=sampled,
         spp=spp,
@@ -430,7 +454,7 @@ def write_picture(det: Determined, path: str | Path) -> Path:
 
 def assess(
     views: Sequence[Any],
-    reference: ET.Element | None = None,
+    reference: ET.Element | BRDF | None = None,
     noise: float | None = None,
     *,
     picture: str | Path | None = None,

@@ -637,6 +637,13 @@ def fit(
         raw, training, cfg = _fit_views(cfg, run_dir, views, folder, resume=resume)
     finally:
         release(views)
+    # what the views determine near the fitted network (the report's map; the warning
+    # came after the start): its scenes loaded anew, the fit's plugins released
+    training["determined"], warning = _determined(
+        views, run_dir, _network_brdf(raw), cfg.train.seed, picture=True, role="fit"
+    )
+    if warning and not training["determined_start"].get("warned"):
+        print(f"warning: {warning}", file=sys.stderr)
     init = training.get("init")
     training["start_seconds"] = float(init["seconds"]) if isinstance(init, dict) else 0.0
     # the whole fit (start, image stage, the checks before them); a resumed run: this part
@@ -707,7 +714,12 @@ def _fit_views(
             init_info["seconds"] += rough["seconds"]
     # what the views determine near the start (a resumed run: its checkpoint's start)
     start_info = init_info if init_info is not None else _saved_init(folder)
-    determined_info = _determined(views, run_dir, start_info, cfg.train.seed)
+    determined_start, warning = _determined(
+        views, run_dir, _start_element(start_info), cfg.train.seed, picture=False
+    )
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
+    determined_start["warned"] = warning is not None
     raw, training = fit_neural(
         cfg,
         views,
@@ -720,7 +732,10 @@ def _fit_views(
         session=sess,
     )
     training["coverage"] = covered
-    training["determined"] = determined_info
+    training["determined_start"] = {
+        k: determined_start[k]
+        for k in ("figure", "energy_figure", "by_bin_width_deg", "reference", "warned")
+    }
     return raw, training, cfg
 
 
@@ -737,33 +752,62 @@ def _saved_init(folder: runfolder.Folder) -> dict[str, Any] | None:
     return init if isinstance(init, dict) else None
 
 
-def _determined(
-    views: list[View], run_dir: Path, init: Any, seed: int | None
-) -> dict[str, Any] | None:
-    """How well the fitted views determine f near the start
-    (:mod:`neural_brdf.inverse.determined`): ``determined.png`` in the run folder, the
-    summary for ``training["determined"]``, a warning when the start's light is thin
-    there; None when the start is unknown (the constant start: a grey diffuse stands
-    in, as before any fit)."""
-    from neural_brdf.inverse import determined, starts
+def _start_element(init: Any) -> ET.Element | None:
+    """The ``<bsdf>`` of a fit's start (its ``init`` record): the chosen family's, the
+    ``ggx`` start's fitted ``roughconductor``; None for the constant start."""
+    from neural_brdf.inverse import starts
 
-    reference = None
-    if isinstance(init, dict):
-        start, rough = init.get("start"), init.get("roughconductor")
-        if isinstance(start, dict) and start.get("family") and start.get("params"):
-            reference = starts.family(str(start["family"])).element(start["params"])
-        elif isinstance(rough, dict) and "alpha" in rough:
-            reference = roughconductor_element(rough)
-    info, warning = determined.assess(
+    if not isinstance(init, dict):
+        return None
+    start, rough = init.get("start"), init.get("roughconductor")
+    if isinstance(start, dict) and start.get("family") and start.get("params"):
+        return starts.family(str(start["family"])).element(start["params"])
+    if isinstance(rough, dict) and "alpha" in rough:
+        return roughconductor_element(rough)
+    return None
+
+
+def _network_brdf(raw: RawBRDF):
+    """f(wi, wo) of the trained network, numpy in and out (RGB, 1/sr)."""
+    device = next(raw.parameters()).device
+
+    def f(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        out = [np.zeros((0, 3), np.float32)]
+        with torch.no_grad():
+            for a in range(0, len(wi), 1 << 16):
+                t = [
+                    torch.as_tensor(np.asarray(x[a : a + (1 << 16)]), dtype=torch.float32)
+                    for x in (wi, wo)
+                ]
+                out.append(raw(t[0].to(device), t[1].to(device))[:, :3].cpu().numpy())
+        return np.concatenate(out)
+
+    return f
+
+
+def _determined(
+    views: list[View],
+    run_dir: Path,
+    reference: Any,
+    seed: int | None,
+    *,
+    picture: bool,
+    role: str = "start",
+) -> tuple[dict[str, Any], str | None]:
+    """How well the fitted views determine f near ``reference`` (the start's
+    ``<bsdf>``, the network's f, or None: a grey diffuse;
+    :mod:`neural_brdf.inverse.determined`): its summary and warning, the map
+    ``determined.png`` in the run folder when ``picture``."""
+    from neural_brdf.inverse import determined
+
+    return determined.assess(
         fitted_views(views),
         reference,
         target_noise(views),
-        picture=run_dir / runfolder.DETERMINED,
+        picture=run_dir / runfolder.DETERMINED if picture else None,
+        role=role,
         seed=seed or 0,
     )
-    if warning:
-        print(f"warning: {warning}", file=sys.stderr)
-    return info
 
 
 def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Config:

@@ -564,7 +564,8 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert (run_dir / "coverage.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # what the views determine, near the chosen start, with the targets' own noise
     determined = training["determined"]
-    assert determined["reference"] == ET.fromstring(
+    assert determined["reference"] == "network"  # near the fitted network; first the start's
+    assert training["determined_start"]["reference"] == ET.fromstring(
         (run_dir / "init" / "teacher.xml").read_text()
     ).get("type")
     assert determined["noise_source"] == "targets" and determined["noise"] > 0

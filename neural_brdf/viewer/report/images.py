@@ -474,7 +474,7 @@ def _determined(run: Run) -> list[Block]:
         ]
     rows = [
         ["determined (the domain)", _pct(det.get("figure"))],
-        [f"… of the {det.get('reference', 'start')} start's light", _pct(det.get("energy_figure"))],
+        [f"… of the {det.get('reference', 'start')}'s light", _pct(det.get("energy_figure"))],
     ]
     by = det.get("by_bin_width_deg")
     if isinstance(by, dict):
@@ -484,7 +484,7 @@ def _determined(run: Run) -> list[Block]:
     definition = det.get("definition")
     blocks: list[Block] = [
         Text(
-            "Where the views determine f near the start, from the same scenes and the "
+            "Where the views determine f near the fitted material, from the same scenes and the "
             "targets' noise (neural_brdf/inverse/determined.py): the "
             + (f"{definition}." if isinstance(definition, str) else "see docs/inverse.md.")
             + "  A bin every pixel mixes in the same proportion is observed but not "
@@ -496,9 +496,9 @@ def _determined(run: Run) -> list[Block]:
     if energy is not None and below is not None and energy < below:
         blocks.append(
             Text(
-                f"Warning: the views determine only {100 * energy:.1f} % of the start's "
-                "reflected light: the rest of the fitted BRDF is the start's family and "
-                "the network's prior.",
+                f"Warning: the views determine only {100 * energy:.1f} % of the fitted "
+                "material's reflected light: the rest of the fitted BRDF is the start's "
+                "family and the network's prior.",
                 note=True,
             )
         )
@@ -515,7 +515,7 @@ def _determined(run: Run) -> list[Block]:
                 "What the views determine in the (θh, θd) domain",
                 f"{name}: the width of the finest bin whose level the views fix to the "
                 "tolerance, black where none does, white beyond the domain; grey contours: "
-                "the start's reflected light.",
+                "the fitted material's reflected light.",
                 png,
             )
         )
