@@ -477,6 +477,40 @@ def write_views(
     return held
 
 
+def bin_mean_errors(det_info: dict, wi, wo, truth_bsdf, model, start_el) -> dict:
+    """The relative RMSE of the luminance of f cos, averaged over the pairs of each
+    determined bin (the map's own bins, ``det_info``'s; pairs weighted by count), of the
+    network and the start against the truth: what the map says the views fix, while the
+    pointwise figure also holds the shape within a bin, which they need not fix."""
+    from neural_brdf.inverse import coverage, determined
+    from neural_brdf.inverse import fit as inverse
+
+    b = len(det_info["determined_bins"])
+    th, td, _ = coverage.half_diff(wi, wo)
+    key = coverage.bin_index(th, b) * b + coverage.bin_index(td, b)
+    n = np.bincount(key, minlength=b * b)
+    ok = n > 0
+
+    def means(fc: np.ndarray) -> np.ndarray:
+        lum = determined._luminance(np.asarray(fc, np.float64))
+        return np.bincount(key, weights=lum, minlength=b * b)[ok] / n[ok]
+
+    truth = means(inverse.mitsuba_f_cos(truth_bsdf, wi, wo))
+
+    def err(fc: np.ndarray) -> float:
+        m = means(fc)
+        return float(np.sqrt(np.sum(n[ok] * (m - truth) ** 2) / np.sum(n[ok] * truth**2)))
+
+    out = {
+        "bins": b,
+        "pairs": int(len(wi)),
+        "network": err(np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3]),
+    }
+    if start_el is not None:
+        out["start"] = err(inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(start_el), wi, wo))
+    return out
+
+
 OVER = 3.0  # brdf's network_over: pairs where the network's f exceeds OVER x the truth's
 
 
@@ -563,6 +597,10 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         fixed = determined.summary_mask(det_info, wi, wo)
         for key, m in (("determined", fixed), ("undetermined", ~fixed)):
             split[key] = brdf_errors(wi[m], wo[m]) if m.any() else {"pairs": 0}
+        if fixed.any():  # what the map promises: each determined bin's mean of f cos
+            split["determined_bin_means"] = bin_mean_errors(
+                det_info, wi[fixed], wo[fixed], truth_bsdf, model, start_el
+            )
 
     images = {}
     for label, view in (("heldout", held[0]), ("relit", held[1])):

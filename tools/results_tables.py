@@ -1487,6 +1487,7 @@ def _determined_table(d: dict) -> list[str]:
                 f"{100 * det['figure']:.0f} %",
                 f"{100 * det['energy_figure']:.0f} %",
                 two(br["determined"]),
+                two(br["determined_bin_means"]) if "determined_bin_means" in br else "-",
                 two(br["undetermined"]),
                 two(br["observed"]),
             ]
@@ -1499,8 +1500,9 @@ def _determined_table(d: dict) -> list[str]:
         f"level the views fix to {100 * (tol or 0.05):g} % (the posterior standard "
         "deviation of f / f_start − 1, every bin free at once, the targets' noise), the "
         "share of the start's reflected light there, and the BRDF's relative RMSE of "
-        "f·cos (network / start) over those bins and over the rest of the domain; the "
-        "observed part's, the goal's, for comparison.",
+        "f·cos (network / start) over those bins, of each such bin's mean of it (what the "
+        "map says the views fix: the shape within a bin they need not), and over the rest "
+        "of the domain; the observed part's, the goal's, for comparison.",
         "",
         *_table(
             [
@@ -1508,6 +1510,7 @@ def _determined_table(d: dict) -> list[str]:
                 "determined",
                 "start's light there",
                 "BRDF, determined",
+                "its bins' means",
                 "BRDF, the rest",
                 "BRDF, observed",
             ],
