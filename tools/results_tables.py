@@ -1464,10 +1464,10 @@ def images_any_section(
 
 
 def _determined_table(d: dict) -> list[str]:
-    """What the views determine near the start (files that record ``determined``): the
-    share of the domain, of the start's light, and the BRDF's error there and elsewhere
-    (neural_brdf/inverse/determined.py).  Information beside the goals, which stay
-    scored over the observed part."""
+    """What the views determine near the fitted network (files that record
+    ``determined``): the share of the domain, of the network's light, and the BRDF's
+    error there and elsewhere (neural_brdf/inverse/determined.py).  Information beside
+    the goals, which stay scored over the observed part."""
     rows = []
     tol = None
     for key, e in d["materials"].items():
@@ -1495,11 +1495,12 @@ def _determined_table(d: dict) -> list[str]:
     if not rows:
         return []
     return [
-        "What the views determine near the start (`neural_brdf/inverse/determined.py`): "
-        "the share of the domain (both cosines > 0.1) in 11.25° (θh, θd) bins whose "
-        f"level the views fix to {100 * (tol or 0.05):g} % (the posterior standard "
-        "deviation of f / f_start − 1, every bin free at once, the targets' noise), the "
-        "share of the start's reflected light there, and the BRDF's relative RMSE of "
+        "What the views determine near the fitted network "
+        "(`neural_brdf/inverse/determined.py`, the run's `training.determined`): the share "
+        "of the domain (both cosines > 0.1) in 11.25° (θh, θd) bins whose level the views "
+        f"fix to {100 * (tol or 0.05):g} % (the posterior standard deviation of "
+        "f / f_network − 1, every bin free at once, the targets' noise), the share of the "
+        "network's reflected light there, and the BRDF's relative RMSE of "
         "f·cos (network / start) over those bins, of each such bin's mean of it (what the "
         "map says the views fix: the shape within a bin they need not), and over the rest "
         "of the domain; the observed part's, the goal's, for comparison.",
@@ -1508,7 +1509,7 @@ def _determined_table(d: dict) -> list[str]:
             [
                 "material",
                 "determined",
-                "start's light there",
+                "its light there",
                 "BRDF, determined",
                 "its bins' means",
                 "BRDF, the rest",
@@ -3236,11 +3237,21 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
+        "the defaults of 2026-12-04, the start's steps frozen, run again on 2026-12-05 with "
+        "the map of what the views determine",
+    ),
+    _images_any(
+        "images_any_lights.json",
+        "the defaults of 2026-12-04, the start's steps frozen, run again on 2026-12-05 with "
+        "the map of what the views determine",
+    ),
+    _images_any(
+        "images_any_2026-12-05.json",
         "the defaults of 2026-12-04, the start's steps frozen, run on 2026-12-05 with torch "
         "running the network alone",
     ),
     _images_any(
-        "images_any_lights.json",
+        "images_any_lights_2026-12-05.json",
         "the defaults of 2026-12-04, the start's steps frozen, run on 2026-12-05 with torch "
         "running the network alone",
     ),

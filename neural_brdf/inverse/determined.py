@@ -438,10 +438,10 @@ def write_picture(det: Determined, path: str | Path) -> Path:
     ax.set_xlim(0, 90)
     ax.set_ylim(0, 90)
     ax.set_title(
-        f"determined to {100 * det.tol:.0f} % in {90.0 / det.bins:g}-degree bins: "
-        f"{100 * det.figure:.1f} % of the domain,\n{100 * det.energy_figure:.1f} % of "
-        f"the {det.reference} reference's light (grey: its 1, 10, 50 % contours); "
-        "black: not determined",
+        f"determined to {100 * det.tol:.0f} % in {90.0 / det.bins:g}° bins: "
+        f"{100 * det.figure:.1f} % of the domain, {100 * det.energy_figure:.1f} % of the light"
+        f"\nreference: {det.reference} (grey: its light, 1, 10, 50 % of the peak); "
+        "black: none",
         fontsize=8.5,
     )
     bar = fig.colorbar(img, ax=ax, ticks=range(len(widths)))
