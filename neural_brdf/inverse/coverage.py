@@ -588,7 +588,6 @@ def _scenes(paths: list[str]) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import json
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("inputs", nargs="+", help="scene XML files, or a config with target.images")
@@ -618,12 +617,20 @@ def main(argv: list[str] | None = None) -> int:
         f"coverage: {100 * info['figure']:.1f} % ({info['definition']}); "
         f"{info['bins_mixed_per_pixel']} bins mixed per pixel"
     )
+    return cli_outputs(info, message, args.json)
+
+
+def cli_outputs(info: dict[str, Any], message: str | None, json_path: str | None) -> int:
+    """The end of this and determined's command line: the warning on stderr, the
+    summary as JSON when asked; exit code 0."""
+    import json
+
     if message:
         print(f"warning: {message}", file=sys.stderr)
-    if args.json:
+    if json_path:
         from neural_brdf.fileio import atomic_write
 
-        atomic_write(args.json, json.dumps(info, indent=2) + "\n")
+        atomic_write(json_path, json.dumps(info, indent=2) + "\n")
     return 0
 
 

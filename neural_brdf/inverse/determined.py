@@ -494,7 +494,6 @@ def _inputs(paths: list[str]) -> tuple[list[Any], float | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import json
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("inputs", nargs="+", help="scene XML files, or a config with target.images")
@@ -542,13 +541,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{100 * info['energy_figure']:.1f} % of the {info['reference']} reference's "
         f"light ({info['definition']})"
     )
-    if message:
-        print(f"warning: {message}", file=sys.stderr)
-    if args.json:
-        from neural_brdf.fileio import atomic_write
-
-        atomic_write(args.json, json.dumps(info, indent=2) + "\n")
-    return 0
+    return coverage.cli_outputs(info, message, args.json)
 
 
 if __name__ == "__main__":

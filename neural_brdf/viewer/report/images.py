@@ -439,12 +439,8 @@ def _coverage(run: Run) -> list[Block]:
     if warning:
         blocks.append(Text(f"Warning: {warning}", note=True))
     name = Path(str(cov.get("picture") or COVERAGE_PICTURE)).name  # in the run folder only
-    path = run.dir / name
-    try:
-        png = path.read_bytes() if path.is_file() else None
-    except OSError:
-        png = None
-    if png is not None and png.startswith(PNG_SIGNATURE) and len(png) > 24:
+    png = _run_png(run, name)
+    if png is not None:
         blocks.append(
             Image(
                 "coverage",
@@ -458,6 +454,17 @@ def _coverage(run: Run) -> list[Block]:
     else:
         blocks.append(Text(f"No coverage map: {name} is not a PNG in the run folder.", note=True))
     return blocks
+
+
+def _run_png(run: Run, name: str) -> bytes | None:
+    """The bytes of the PNG ``name`` in the run folder, or None (missing, unreadable, or
+    not a PNG)."""
+    path = run.dir / name
+    try:
+        png = path.read_bytes() if path.is_file() else None
+    except OSError:
+        return None
+    return png if png is not None and png.startswith(PNG_SIGNATURE) and len(png) > 24 else None
 
 
 def _determined(run: Run) -> list[Block]:
@@ -503,12 +510,8 @@ def _determined(run: Run) -> list[Block]:
             )
         )
     name = Path(str(det.get("picture") or runfolder.DETERMINED)).name
-    path = run.dir / name
-    try:
-        png = path.read_bytes() if path.is_file() else None
-    except OSError:
-        png = None
-    if png is not None and png.startswith(PNG_SIGNATURE) and len(png) > 24:
+    png = _run_png(run, name)
+    if png is not None:
         blocks.append(
             Image(
                 "determined",
