@@ -420,13 +420,21 @@ def mixing(cov: Coverage, view: int | None = None) -> float:
 def observed_mask(cov: Coverage, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     """(N,) bool: which local pairs (N, 3), (N, 3) lie in the domain (both cosines >
     ``cov.min_cos``) and in a bin ``cov`` observes: "the observed part of the domain"."""
+    return in_bins(cov.observed, cov.min_cos, wi, wo)
+
+
+def in_bins(chosen: np.ndarray, min_cos: float, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """(N,) bool: which local pairs (N, 3), (N, 3) (normalised here) have both cosines >
+    ``min_cos`` and fall in a (theta_h, theta_d) bin that ``chosen`` (bins x bins bool)
+    marks."""
     wi = np.asarray(wi, np.float64).reshape(-1, 3)
     wo = np.asarray(wo, np.float64).reshape(-1, 3)
     wi = wi / np.linalg.norm(wi, axis=-1, keepdims=True)
     wo = wo / np.linalg.norm(wo, axis=-1, keepdims=True)
-    in_d = (wi[:, 2] > cov.min_cos) & (wo[:, 2] > cov.min_cos)
+    in_d = (wi[:, 2] > min_cos) & (wo[:, 2] > min_cos)
     th, td, _ = half_diff(wi, wo)
-    return in_d & cov.observed[bin_index(th, cov.bins), bin_index(td, cov.bins)]
+    b = chosen.shape[0]
+    return in_d & chosen[bin_index(th, b), bin_index(td, b)]
 
 
 # ------------------------------------------------------------------ reporting
@@ -588,7 +596,6 @@ def _scenes(paths: list[str]) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("inputs", nargs="+", help="scene XML files, or a config with target.images")
     ap.add_argument("-o", "--picture", help="write the (theta_h, theta_d) map as a PNG")

@@ -67,6 +67,7 @@ import numpy as np
 from neural_brdf.errors import InputError
 from neural_brdf.inverse import coverage
 from neural_brdf.inverse import views as inverse_views
+from neural_brdf.measured.rgl.layout import Y_WEIGHTS
 
 TOL = 0.05  # a bin is determined when the posterior std of its relative level <= TOL
 FINE = 32  # the finest bins per axis (the coverage's); coarser levels halve it
@@ -167,7 +168,7 @@ def reference_energy(f: BRDF, bins: int, min_cos: float, quad: int = QUAD) -> np
     value = np.zeros(len(wi))
     if inside.any():
         fi = np.asarray(f(wi[inside], wo[inside]), np.float64)
-        value[inside] = _luminance(fi) * wi[inside, 2] * wo[inside, 2]
+        value[inside] = luminance(fi) * wi[inside, 2] * wo[inside, 2]
     dens = 4.0 * np.cos(td) * np.sin(th) * np.sin(td)
     e = (value.reshape(th.shape) * dens).sum(-1)
     e = e.reshape(bins, quad, bins, quad).sum(axis=(1, 3))
@@ -175,8 +176,9 @@ def reference_energy(f: BRDF, bins: int, min_cos: float, quad: int = QUAD) -> np
     return e / total if total > 0 else e
 
 
-def _luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array([0.212671, 0.715160, 0.072169])
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) linear RGB -> (N,) luminance (Rec. 709, the measured files' weights)."""
+    return np.asarray(rgb, np.float64) @ Y_WEIGHTS
 
 
 def _view_information(
@@ -196,7 +198,7 @@ def _view_information(
     wi, wo, w, pix = s.wi[keep], s.wo[keep], s.weight[keep], s.pixel[keep]
     c = np.zeros(len(w))
     if len(w):  # f w, w = lum(L / pdf) cos(theta_i)
-        c = np.maximum(_luminance(np.asarray(f(wi, wo), np.float64)), 0.0) * w
+        c = np.maximum(luminance(f(wi, wo)), 0.0) * w
     th, td, _ = coverage.half_diff(wi, wo)
     col = coverage.bin_index(th, FINE) * FINE + coverage.bin_index(td, FINE)
     row = np.searchsorted(chosen, pix)
@@ -314,16 +316,8 @@ def determined_mask(det: Determined, wi: np.ndarray, wo: np.ndarray) -> np.ndarr
 def summary_mask(info: dict[str, Any], wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     """:func:`determined_mask` from a :func:`summary` (metrics.json's
     ``training.determined``)."""
-    det = np.asarray(info["determined_bins"], bool)
-    b = det.shape[0]
-    wi = np.asarray(wi, np.float64).reshape(-1, 3)
-    wo = np.asarray(wo, np.float64).reshape(-1, 3)
-    wi = wi / np.linalg.norm(wi, axis=-1, keepdims=True)
-    wo = wo / np.linalg.norm(wo, axis=-1, keepdims=True)
-    min_cos = float(info.get("min_cos", coverage.MIN_COS))
-    in_d = (wi[:, 2] > min_cos) & (wo[:, 2] > min_cos)
-    th, td, _ = coverage.half_diff(wi, wo)
-    return in_d & det[coverage.bin_index(th, b), coverage.bin_index(td, b)]
+    bins = np.asarray(info["determined_bins"], bool)
+    return coverage.in_bins(bins, float(info.get("min_cos", coverage.MIN_COS)), wi, wo)
 
 
 # ------------------------------------------------------------------ reporting
@@ -404,7 +398,7 @@ def write_picture(det: Determined, path: str | Path) -> Path:
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     extent = (0.0, 90.0, 0.0, 90.0)
-    domain = coverage.bin_measure(FINE, det.min_cos) > 0
+    domain = det.levels[FINE].measure > 0
     ax.imshow(
         np.where(domain, 1.0, 0.0).T,
         origin="lower",

@@ -816,16 +816,12 @@ def _resumed_config(cfg: cfgmod.Config, folder: runfolder.Folder) -> cfgmod.Conf
     start, its steps (:func:`poor_start_config`); ``cfg`` itself when there is no readable
     checkpoint (the resume check then says why)."""
     from neural_brdf.inverse import starts
-    from neural_brdf.train.session import load_checkpoint
 
-    if not folder.ckpt.is_file():
+    init = _saved_init(folder)
+    start = init.get("start") if init is not None else None
+    if not isinstance(start, dict) or "family" not in start:  # unreadable; ggx, constant
         return cfg
-    try:
-        init = load_checkpoint(folder.ckpt)["init"]
-        family = init["start"]["family"]
-    except (InputError, KeyError, TypeError):  # unreadable, or no start (ggx, constant)
-        return cfg
-    return poor_start_config(starts.model_for_start(cfg, str(family)), init)
+    return poor_start_config(starts.model_for_start(cfg, str(start["family"])), init)
 
 
 def _reporter(cfg: cfgmod.Config):
