@@ -719,7 +719,15 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         "determined": (
             {
                 k: det_info.get(k)
-                for k in ("figure", "energy_figure", "by_bin_width_deg", "tol", "noise")
+                for k in (
+                    "figure",
+                    "energy_figure",
+                    "by_bin_width_deg",
+                    "tol",
+                    "noise",
+                    "observed_figure",
+                    "definition",
+                )
             }
             if det_info
             else None

@@ -1494,13 +1494,23 @@ def _determined_table(d: dict) -> list[str]:
         )
     if not rows:
         return []
+    within = any(
+        "coverage observes" in str((e.get("determined") or {}).get("definition", ""))
+        for e in d["materials"].values()
+    )
+    parts = (
+        ", counted over their parts the coverage observes (its 2.8° bins: never more than "
+        "the coverage)"
+        if within
+        else " (whole bins: this run predates counting only their observed parts)"
+    )
     return [
         "What the views determine near the fitted network "
         "(`neural_brdf/inverse/determined.py`, the run's `training.determined`): the share "
         "of the domain (both cosines > 0.1) in 11.25° (θh, θd) bins whose level the views "
         f"fix to {100 * (tol or 0.05):g} % (the posterior standard deviation of "
-        "f / f_network − 1, every bin free at once, the targets' noise), the share of the "
-        "network's reflected light there, and the BRDF's relative RMSE of "
+        f"f / f_network − 1, every bin free at once, the targets' noise){parts}, the share "
+        "of the network's reflected light there, and the BRDF's relative RMSE of "
         "f·cos (network / start) over those bins, of each such bin's mean of it (what the "
         "map says the views fix: the shape within a bin they need not), and over the rest "
         "of the domain; the observed part's, the goal's, for comparison.",

@@ -477,6 +477,8 @@ def summary(cov: Coverage) -> dict[str, Any]:
         "theta_d_rows_observed": int(len(rows)),
         "bins_mixed_per_pixel": _round(mixing(cov), 2),
         "phi_h_shares": [round(float(x), 4) for x in phi],
+        # [theta_h][theta_d]: the observed bins (the determined map counts within them)
+        "observed_bins": [[int(x) for x in r] for r in cov.observed],
         "per_view": [
             {
                 "scene": v.scene,

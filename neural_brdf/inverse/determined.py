@@ -26,11 +26,15 @@ and a bin is **determined** when sqrt(C_bb) <= ``tol`` (:data:`TOL`, 0.05, the
 benchmark's BRDF goal: the images fix f there to 5 %, one standard deviation, whatever
 the other bins do: two bins that every pixel mixes in the same proportion are each free,
 though their sum is known).  Finer bins are harder to fix (each pixel mixes more of
-them); the coarse levels' J^T J are block sums of the finest's.  The figure is the share
-of the domain (both cosines > 0.1, by solid-angle measure, the coverage's) in
-determined bins of :data:`BINS` (11.25 degrees), and **the reference's determined
-energy** the share of its f cos cos over that domain that lies there (a highlight no
-view resolves: a small share for a glossy reference).
+them); the coarse levels' J^T J are block sums of the finest's.  A bin's level is fixed
+by the pixels that see part of it; the part of it that no view observes (the coverage's
+32 x 32 bins, :func:`~neural_brdf.inverse.coverage.compute`) holds only the reference's
+shape there, so it does not count: a bin determined is counted over its observed fine
+bins (``Level.fine``), never more than the coverage.  The figure is the share of the
+domain (both cosines > 0.1, by solid-angle measure, the coverage's) in those bins of
+:data:`BINS` (11.25 degrees), and **the reference's determined energy** the share of
+its f cos cos over that domain that lies there (a highlight no view resolves: a small
+share for a glossy reference).
 
 **The estimate.**  :data:`PIXELS` of each view's pixels that see the fit BSDF (evenly
 strided), :data:`SPP` camera rays each with one emitter sample
@@ -89,8 +93,9 @@ class Level:
     std: np.ndarray  # (bins, bins): sqrt(C_bb), the posterior std of delta_b
     determined: np.ndarray  # (bins, bins) bool: std <= tol, in the domain
     energy: np.ndarray  # (bins, bins): the reference's f cos cos over the domain (sums to 1)
-    figure: float  # the domain's share in determined bins
-    energy_figure: float  # the reference's energy share in determined bins
+    fine: np.ndarray  # (FINE, FINE) bool: the observed fine bins of determined bins
+    figure: float  # the domain's share in ``fine``
+    energy_figure: float  # the reference's energy share in ``fine``
 
 
 @dataclass
@@ -107,6 +112,7 @@ class Determined:
     pixels: list[int]  # per view: its pixels on the fit BSDF (before sampling)
     sampled: list[int]  # per view: the pixels sampled
     spp: int
+    observed: np.ndarray  # (FINE, FINE) bool: the coverage's observed bins
 
     @property
     def level(self) -> Level:
@@ -125,9 +131,7 @@ class Determined:
         bin that is determined there (NaN: none; outside the domain too)."""
         out = np.full((FINE, FINE), np.nan)
         for bins in sorted(self.levels, reverse=True):  # coarse after fine
-            lv = self.levels[bins]
-            up = np.kron(lv.determined, np.ones((FINE // bins, FINE // bins), bool))
-            out = np.where(np.isnan(out) & up, 90.0 / bins, out)
+            out = np.where(np.isnan(out) & self.levels[bins].fine, 90.0 / bins, out)
         return out
 
 
@@ -228,8 +232,17 @@ def _coarsen(a: np.ndarray, bins: int) -> np.ndarray:
     return a.reshape(bins, f, bins, f).sum(axis=(1, 3))
 
 
-def _level(F: np.ndarray, sigma2: float, bins: int, tol: float, min_cos: float, energy) -> Level:
-    """The posterior at ``bins`` per axis from the FINE level's J^T J."""
+def _level(
+    F: np.ndarray,
+    sigma2: float,
+    bins: int,
+    tol: float,
+    min_cos: float,
+    energy: np.ndarray,
+    observed: np.ndarray,
+) -> Level:
+    """The posterior at ``bins`` per axis from the FINE level's J^T J; its figures
+    over the ``observed`` (FINE, FINE) bins of the determined ones."""
     f = FINE // bins
     cell = (np.arange(FINE)[:, None] // f) * bins + np.arange(FINE)[None, :] // f
     A = np.zeros((FINE * FINE, bins * bins))
@@ -240,15 +253,20 @@ def _level(F: np.ndarray, sigma2: float, bins: int, tol: float, min_cos: float, 
     std = np.sqrt((vec**2) @ (1.0 / (lam + 1.0))).reshape(bins, bins)
     measure = coverage.bin_measure(bins, min_cos)
     determined = (std <= tol) & (measure > 0)
-    e = _coarsen(energy, bins)
+    # a bin's level is fixed by the pixels that see part of it; the rest of it (no view
+    # observes it) holds only the reference's shape, so it is not counted (the retro
+    # lobe below theta_d 17 degrees under lights 34 degrees from their cameras)
+    fine_measure = coverage.bin_measure(FINE, min_cos)
+    fine = np.kron(determined, np.ones((f, f), bool)) & observed & (fine_measure > 0)
     return Level(
         bins=bins,
         measure=measure,
         std=std,
         determined=determined,
-        energy=e,
-        figure=float(measure[determined].sum()),
-        energy_figure=float(e[determined].sum()),
+        energy=_coarsen(energy, bins),
+        fine=fine,
+        figure=float(fine_measure[fine].sum()),
+        energy_figure=float(energy[fine].sum()),
     )
 
 
@@ -264,12 +282,15 @@ def compute(
     min_cos: float = coverage.MIN_COS,
     tol: float = TOL,
     variant: str | None = None,
+    observed: np.ndarray | None = None,
 ) -> Determined:
     """How well ``views`` (View objects or scene paths, as :func:`coverage.compute`)
     determine f near ``reference`` (:func:`brdf_of`: a ``<bsdf>`` element, a function
     f(wi, wo), or None: a grey ``diffuse``),
     given the targets' relative noise variance ``noise`` (None: :data:`NOMINAL_NOISE`),
-    at every level of :data:`LEVELS`; ``bins`` (one of them) is the figure's."""
+    at every level of :data:`LEVELS`; ``bins`` (one of them) is the figure's.
+    ``observed``: the coverage's observed (FINE, FINE) bins of the same views (a fit's
+    ``training.coverage.observed_bins``); None: computed here (``seed``)."""
     if not views:
         raise InputError("determined: no views")
     if spp < 2:
@@ -277,6 +298,11 @@ def compute(
     if bins not in LEVELS:
         raise InputError(f"determined: bins must be one of {list(LEVELS)}, got {bins}")
     coverage._use_variant(variant)
+    if observed is None:
+        observed = coverage.compute(views, seed=seed, bins=FINE, min_cos=min_cos).observed
+    observed = np.asarray(observed, bool)
+    if observed.shape != (FINE, FINE):
+        raise InputError(f"determined: observed bins must be {FINE} x {FINE}, got {observed.shape}")
     f, name = brdf_of(reference)
     F = np.zeros((FINE * FINE, FINE * FINE))
     on, sampled = [], []
@@ -293,7 +319,7 @@ def compute(
     sigma2 = float(noise) if known else NOMINAL_NOISE  # type: ignore[arg-type]
     energy = reference_energy(f, FINE, min_cos)
     return Determined(
-        levels={b: _level(F, sigma2, b, tol, min_cos, energy) for b in LEVELS},
+        levels={b: _level(F, sigma2, b, tol, min_cos, energy, observed) for b in LEVELS},
         bins=bins,
         min_cos=min_cos,
         tol=tol,
@@ -303,20 +329,21 @@ def compute(
         pixels=on,
         sampled=sampled,
         spp=spp,
+        observed=observed,
     )
 
 
 def determined_mask(det: Determined, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-    """(N,) bool: which local pairs lie in the domain and in a determined bin of the
-    figure's level."""
-    info = {"determined_bins": det.level.determined, "min_cos": det.min_cos}
-    return summary_mask(info, wi, wo)
+    """(N,) bool: which local pairs lie in the domain and in an observed fine bin of a
+    determined bin of the figure's level."""
+    return coverage.in_bins(det.level.fine, det.min_cos, wi, wo)
 
 
 def summary_mask(info: dict[str, Any], wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     """:func:`determined_mask` from a :func:`summary` (metrics.json's
-    ``training.determined``)."""
-    bins = np.asarray(info["determined_bins"], bool)
+    ``training.determined``; a summary from before ``determined_fine``: its
+    ``determined_bins``)."""
+    bins = np.asarray(info.get("determined_fine", info["determined_bins"]), bool)
     return coverage.in_bins(bins, float(info.get("min_cos", coverage.MIN_COS)), wi, wo)
 
 
@@ -326,21 +353,22 @@ DEFINITION = (
     "measure) in {bins} x {bins} (theta_h, theta_d) bins ({width:g} degrees) where the "
     "views fix f's level to {tol:g} (the posterior standard deviation of f / f0 - 1 in "
     "the bin, every bin free at once, a N(0, 1) prior, the targets' noise; f0 the "
-    "reference material)"
+    "reference material), over those bins' parts the coverage observes ({fine} x "
+    "{fine} bins)"
 )
 
 
 def summary(det: Determined) -> dict[str, Any]:
     """The figures for metrics.json (JSON types only)."""
     lv = det.level
-    step = 90.0 / det.bins
-    th = np.flatnonzero(lv.determined.any(1))
+    step = 90.0 / FINE
+    th = np.flatnonzero(lv.fine.any(1))
     return {
         "figure": round(det.figure, 4),
         "energy_figure": round(det.energy_figure, 4),
         "bins": [det.bins, det.bins],
         "definition": DEFINITION.format(
-            min_cos=det.min_cos, bins=det.bins, width=90.0 / det.bins, tol=det.tol
+            min_cos=det.min_cos, bins=det.bins, width=90.0 / det.bins, tol=det.tol, fine=FINE
         ),
         "by_bin_width_deg": {
             f"{90.0 / b:g}": {
@@ -358,13 +386,15 @@ def summary(det: Determined) -> dict[str, Any]:
         "theta_h_determined_deg": (
             [float(th[0] * step), float((th[-1] + 1) * step)] if len(th) else None
         ),
+        "observed_figure": round(float(det.levels[FINE].measure[det.observed].sum()), 4),
         "pixels_on_bsdf": det.pixels,
         "pixels_sampled": det.sampled,
         "spp": det.spp,
         # the figure's level, [theta_h][theta_d]: each bin's posterior std (3 digits) and
-        # whether it is determined (summary_mask reads it)
+        # whether it is determined; the FINE bins counted (summary_mask reads them)
         "std": [[round(float(x), 3) for x in r] for r in lv.std],
         "determined_bins": [[int(x) for x in r] for r in lv.determined],
+        "determined_fine": [[int(x) for x in r] for r in lv.fine],
     }
 
 

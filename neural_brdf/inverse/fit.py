@@ -640,7 +640,13 @@ def fit(
     # what the views determine near the fitted network (the report's map; the warning
     # came after the start): its scenes loaded anew, the fit's plugins released
     training["determined"], warning = _determined(
-        views, run_dir, _network_brdf(raw), cfg.train.seed, picture=True, role="fit"
+        views,
+        run_dir,
+        _network_brdf(raw),
+        cfg.train.seed,
+        training["coverage"],
+        picture=True,
+        role="fit",
     )
     if warning and not training["determined_start"].get("warned"):
         print(f"warning: {warning}", file=sys.stderr)
@@ -715,7 +721,7 @@ def _fit_views(
     # what the views determine near the start (a resumed run: its checkpoint's start)
     start_info = init_info if init_info is not None else _saved_init(folder)
     determined_start, warning = _determined(
-        views, run_dir, _start_element(start_info), cfg.train.seed, picture=False
+        views, run_dir, _start_element(start_info), cfg.train.seed, covered, picture=False
     )
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
@@ -734,7 +740,14 @@ def _fit_views(
     training["coverage"] = covered
     training["determined_start"] = {
         k: determined_start[k]
-        for k in ("figure", "energy_figure", "by_bin_width_deg", "reference", "warned")
+        for k in (
+            "figure",
+            "energy_figure",
+            "by_bin_width_deg",
+            "observed_figure",
+            "reference",
+            "warned",
+        )
     }
     return raw, training, cfg
 
@@ -790,13 +803,15 @@ def _determined(
     run_dir: Path,
     reference: Any,
     seed: int | None,
+    covered: dict[str, Any],
     *,
     picture: bool,
     role: str = "start",
 ) -> tuple[dict[str, Any], str | None]:
     """How well the fitted views determine f near ``reference`` (the start's
     ``<bsdf>``, the network's f, or None: a grey diffuse;
-    :mod:`neural_brdf.inverse.determined`): its summary and warning, the map
+    :mod:`neural_brdf.inverse.determined`) within the bins that their coverage
+    (``covered``, its summary) observes: its summary and warning, the map
     ``determined.png`` in the run folder when ``picture``."""
     from neural_brdf.inverse import determined
 
@@ -807,6 +822,7 @@ def _determined(
         picture=run_dir / runfolder.DETERMINED if picture else None,
         role=role,
         seed=seed or 0,
+        observed=np.asarray(covered["observed_bins"], bool),
     )
 
 

@@ -2,7 +2,8 @@
 
 * the posterior: each level's std is the diagonal of (J^T J / sigma^2 + I)^-1 computed
   here by a plain matrix inverse, the coarse levels' J^T J the block sums of the fine
-  one's;
+  one's; the figures count a determined bin's observed fine bins only, so never more
+  than the coverage;
 * the estimate of J^T J from samples is unbiased: over many draws of simulated pixels
   that all mix the same bins in the same proportions (a rank-one truth), its mean is
   sum_p J_p^T J_p, while the plain product of the sampled rows is biased upwards;
@@ -10,7 +11,8 @@
   domain, but every pixel mixes it the same way, so no bin is determined at any
   resolution (the estimate without the correction would call some determined); the
   example's sphere under its sky determines far more than under a flash at the camera;
-* the mask of determined pairs agrees with the map at the bins' centres;
+* the mask of determined pairs agrees with the map at the fine bins' centres, from the
+  map and from its metrics.json summary;
 * the command line: a config's images give the targets' noise; a bad reference file is
   one line and exit 2.
 """
@@ -45,6 +47,8 @@ def test_each_levels_std_is_the_posterior_covariances_diagonal():
     F = X.T @ X
     sigma2 = 0.001
     energy = np.ones((D.FINE, D.FINE)) / n
+    observed = rng.random((D.FINE, D.FINE)) < 0.7  # what the coverage observes
+    fine_measure = D.coverage.bin_measure(D.FINE, 0.1)
     for bins in (D.FINE, 8):
         f = D.FINE // bins
         idx = np.arange(D.FINE)
@@ -53,10 +57,19 @@ def test_each_levels_std_is_the_posterior_covariances_diagonal():
         for a in range(n):  # the block sums, element by element
             G[coarse[a]] += np.bincount(coarse, weights=F[a], minlength=bins * bins)
         want = np.sqrt(np.diag(np.linalg.inv(G / sigma2 + np.eye(bins * bins))))
-        lv = D._level(F, sigma2, bins, D.TOL, 0.1, energy)
+        lv = D._level(F, sigma2, bins, D.TOL, 0.1, energy, observed)
         assert np.allclose(lv.std.ravel(), want, rtol=1e-6, atol=1e-9)
         assert lv.determined.any() and not lv.determined.all()
-        assert lv.figure == pytest.approx(float(lv.measure[lv.std <= D.TOL].sum()))
+        # counted over the observed fine bins of the determined ones, element by element
+        counted = np.zeros((D.FINE, D.FINE), bool)
+        for i in range(D.FINE):
+            for j in range(D.FINE):
+                counted[i, j] = observed[i, j] and want[coarse[i * D.FINE + j]] <= D.TOL
+        counted &= fine_measure > 0
+        assert np.array_equal(lv.fine, counted)
+        assert lv.figure == pytest.approx(float(fine_measure[counted].sum()))
+        assert lv.figure < float(lv.measure[lv.std <= D.TOL].sum())  # the unobserved parts
+        assert lv.energy_figure == pytest.approx(float(energy[counted].sum()))
 
 
 def test_the_information_estimate_is_unbiased_and_the_plain_product_is_not():
@@ -113,6 +126,7 @@ def test_a_plane_under_a_constant_sky_is_observed_but_determines_nothing(plane):
 
 
 def test_a_sky_determines_more_than_a_flash(mi, tmp_path):
+    from neural_brdf.inverse import coverage
     from neural_brdf.inverse import determined as D
     from neural_brdf.inverse import scene as example
 
@@ -127,17 +141,24 @@ def test_a_sky_determines_more_than_a_flash(mi, tmp_path):
             paths.append(path)
         det = D.compute(paths, None, None, spp=64)
         figures[capture] = {b: lv.figure for b, lv in det.levels.items()}
-        # the mask agrees with the map at the bins' centres (phi_d = pi / 2: in the domain)
+        # within what the coverage observes (computed here: the same views and seed)
+        cov = coverage.compute(paths, seed=0)
+        assert np.array_equal(det.observed, cov.observed)
+        for lv in det.levels.values():
+            assert not (lv.fine & ~cov.observed).any() and lv.figure <= cov.figure + 1e-12
+        # the mask agrees with the map at the fine bins' centres (phi_d = pi / 2: in the
+        # domain)
         from neural_brdf.measured import merl
 
-        b = det.bins
+        b = D.FINE
         centre = (np.arange(b) + 0.5) * (0.5 * math.pi / b)
         th, td = np.meshgrid(centre, centre, indexing="ij")
         wi, wo = merl.directions(th.ravel(), 0.0, td.ravel(), 0.5 * math.pi)
         wi, wo = np.asarray(wi), np.asarray(wo)
         inside = (wi[:, 2] > det.min_cos) & (wo[:, 2] > det.min_cos)
         mask = D.determined_mask(det, wi, wo)
-        assert np.array_equal(mask, inside & det.level.determined.ravel())
+        assert np.array_equal(mask, inside & det.level.fine.ravel())
+        assert np.array_equal(D.summary_mask(D.summary(det), wi, wo), mask)
     assert figures["environment"][8] > 2 * figures["flash"][8] > 0, figures
     assert figures["environment"][4] > 0.5, figures
 

@@ -560,6 +560,7 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert len(held) == FIT_STEPS // 10 and min(held) == pytest.approx(val["best_loss"], rel=1e-5)
     # the coverage, computed before the start
     assert training["coverage"]["figure"] > 0.9
+    covered = training["coverage"]["observed_bins"]
     assert training["coverage"]["picture"] == "coverage.png"
     assert (run_dir / "coverage.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # what the views determine, near the chosen start, with the targets' own noise
@@ -571,6 +572,12 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert determined["noise_source"] == "targets" and determined["noise"] > 0
     assert determined["figure"] <= determined["by_bin_width_deg"]["22.5"]["figure"], determined
     assert determined["by_bin_width_deg"]["22.5"]["figure"] > 0, determined  # 16² views: little
+    # counted only within the bins the fit's coverage observes: never more than it
+    fine, seen = (np.asarray(x, bool) for x in (determined["determined_fine"], covered))
+    assert not (fine & ~seen).any()
+    for det in (determined, training["determined_start"]):
+        assert det["observed_figure"] == training["coverage"]["figure"], det
+        assert det["by_bin_width_deg"]["22.5"]["figure"] <= det["observed_figure"], det
     assert (run_dir / "determined.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "report-determined.png" in (run_dir / "report.md").read_text()
     cfg = config.load(example / "fit.yaml")
