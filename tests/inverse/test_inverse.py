@@ -579,7 +579,8 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
         assert det["observed_figure"] == training["coverage"]["figure"], det
         assert det["by_bin_width_deg"]["22.5"]["figure"] <= det["observed_figure"], det
     assert (run_dir / "determined.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "report-determined.png" in (run_dir / "report.md").read_text()
+    report = (run_dir / "report.md").read_text()
+    assert "report-determined.png" in report and "observed (the coverage, at most)" in report
     cfg = config.load(example / "fit.yaml")
     view = inverse.read_views(cfg)[0]
     mask = inverse.sphere_mask(view, erode=1)

@@ -483,6 +483,8 @@ def _determined(run: Run) -> list[Block]:
         ["determined (the domain)", _pct(det.get("figure"))],
         [f"… of the {det.get('reference', 'start')}'s light", _pct(det.get("energy_figure"))],
     ]
+    if "observed_figure" in det:  # the coverage, the most the map can count
+        rows.append(["observed (the coverage, at most)", _pct(det.get("observed_figure"))])
     by = det.get("by_bin_width_deg")
     if isinstance(by, dict):
         for width, entry in by.items():
