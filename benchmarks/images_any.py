@@ -757,6 +757,9 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "distillation": (init.get("seconds") or 0.0) - (start.get("seconds") or 0.0),
             "image_stage": tr["train_seconds"],
             "render": tr.get("render_seconds"),
+            # the rest of the stage (runs from 2026-12-05 on): its held-out scorings,
+            # albedo penalties and lobe refits
+            **{k: tr.get(f"{k}_seconds") for k in ("validation", "albedo", "lobe")},
             "fit": tr.get("fit_seconds"),
             "pipeline_wall": wall,
             "roughconductor_fit": rough["seconds"],

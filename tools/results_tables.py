@@ -1244,9 +1244,15 @@ def _steps_cell(e: dict) -> str:
     if "image_steps" not in e:
         return "-"
     stop = e["validation"].get("stopped_at")
-    per = e["seconds"].get("image_step_vs_roughconductor")
+    sec = e["seconds"]
+    per = sec.get("image_step_vs_roughconductor")
     text = f"{e['image_steps']}" + (" (stopped)" if stop is not None else "")
-    return text + (f", {per:.1f}x" if per is not None else "")
+    text += f", {per:.1f}x" if per is not None else ""
+    if per is not None and sec.get("render") and sec.get("image_stage"):
+        # the renders and their gradients alone (the stage's render_seconds), without
+        # the held-out scorings, the albedo penalty and the lobe refits
+        text += f" (renders {per * sec['render'] / sec['image_stage']:.1f}x)"
+    return text
 
 
 def _count(n: int) -> str:
@@ -1457,7 +1463,9 @@ def images_any_section(
         "a stand-alone fit of Mitsuba's `roughconductor` parameters to the same views "
         "(the benchmark's `train.steps`, which the stage after a poor start exceeds, up to "
         "`images.poor_start_steps`: the per-step column compares like with like; the same "
-        "samples per pixel).",
+        "samples per pixel; in brackets the stage's renders and their gradients alone, "
+        "without its held-out scorings, albedo penalty and lobe refits, over the "
+        "`roughconductor` fit's whole steps).",
         "",
     ]
     return out + _fitted_table(d) + _determined_table(d) + _refine_table(d) + _contenders_table(d)

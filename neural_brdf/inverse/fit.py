@@ -417,6 +417,8 @@ def fit_neural(
     penalty = albedo_penalty_fn(raw_template, cfg.images)
 
     render_seconds = 0.0
+    # where the rest of the stage's time goes (this process's part of a resumed run)
+    parts = {"validation": 0.0, "albedo": 0.0, "lobe": 0.0}
     lobe = None
     # the split's record: the start's held-out loss, the best one, its step and weights,
     # the last one scored and its step (kept in the checkpoint)
@@ -448,6 +450,7 @@ def fit_neural(
     def score(step: int) -> float:
         """The held-out loss of the weights now, recorded in ``val``."""
         nonlocal val
+        t0 = time.perf_counter()
         for v in views:
             if v.validation_mask() is not None:
                 for n in names:
@@ -460,6 +463,7 @@ def fit_neural(
         if loss < val["best_loss"]:
             val.update(best_loss=loss, best_step=step, best=weights_now())
         val.update(last_loss=loss, last_step=step)
+        parts["validation"] += time.perf_counter() - t0
         return loss
 
     def stalled() -> bool:
@@ -479,8 +483,10 @@ def fit_neural(
             lr = loop.learning_rate(t, step) * lr_factor
             opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
             if step > 0 and step % images.lobe_every == 0:
+                t0 = time.perf_counter()
                 lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
                 set_lobe(lobe)
+                parts["lobe"] += time.perf_counter() - t0
             total = 0.0
             t_render = time.perf_counter()
             for i, v in enumerate(fitted):
@@ -498,6 +504,7 @@ def fit_neural(
                 dr.backward(loss)
                 total += float(loss.array[0])
             render_seconds += time.perf_counter() - t_render
+            t0 = time.perf_counter()
             wi, wo = albedo_directions(t.seed * 7919 + step, cfg.images)
             pen, amax = penalty(
                 {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
@@ -505,9 +512,10 @@ def fit_neural(
             dr.backward(pen)
             last = {
                 "image": total,
-                "albedo": float(pen.array[0]),
+                "albedo": float(pen.array[0]),  # (evaluates the penalty: timed with it)
                 "max_albedo": float(amax.array[0]),
             }
+            parts["albedo"] += time.perf_counter() - t0
             last["loss"] = last["image"] + last["albedo"]
             if not math.isfinite(last["loss"]):
                 raise s.diverged(last["loss"], step)
@@ -537,6 +545,8 @@ def fit_neural(
         "device": variant_of(),
         "train_seconds": sess.seconds,
         "render_seconds": render_seconds,
+        # this process's scorings of the held-out pixels, albedo penalties and lobe refits
+        **{f"{k}_seconds": v for k, v in parts.items()},
         "final_loss": last["loss"],
         "final_image_loss": last["image"],
         "final_albedo_penalty": last["albedo"],

@@ -544,6 +544,11 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert list(start["left_out"]) == ["roughconductor_aniso"]
     assert start["family"] in ("roughconductor", "blend"), start
     assert training["fit_seconds"] >= training["start_seconds"] > 0
+    # where the stage's time goes: its renders, held-out scorings, albedo penalties and
+    # lobe refits, each timed apart within it
+    parts = [training[f"{k}_seconds"] for k in ("render", "validation", "albedo", "lobe")]
+    assert min(parts[:3]) > 0 and parts[3] >= 0, parts
+    assert sum(parts) <= training["train_seconds"], (parts, training["train_seconds"])
     assert all(math.isfinite(x) for x in losses)
     # the image stage did something: the held-out pixels' loss fell clearly below the
     # start's, and the network moved away from the start's
