@@ -3256,7 +3256,7 @@ SECTIONS = (
     _images_any(
         "images_any.json",
         "the defaults of 2026-12-04, the start's steps frozen, run again on 2026-12-05 with "
-        "the map of what the views determine",
+        "the map of what the views determine counted within the coverage",
     ),
     _images_any(
         "images_any_lights.json",
