@@ -40,7 +40,9 @@ run once more that day after the map began to count a determined bin only over t
 parts the coverage observes, a change to the diagnostic alone, found on the test set's
 multi-light retroreflector, which reads more determined than observed otherwise, and
 choosing no fit setting; the stage's own timers, recorded from that run on, choose
-nothing either), the default
+nothing either; images_any_dev_2026-12-05.json is the development set at those
+defaults, run to compare with the held-out pixels traced alone, which changed the kept
+steps and was not landed: it chose nothing), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

@@ -3307,6 +3307,11 @@ SECTIONS = (
         "the run of 2026-12-02, before the start's refinement in rounds and the contenders",
     ),
     _images_any("images_any_dev.json"),
+    _images_any(
+        "images_any_dev_2026-12-05.json",
+        "the defaults of 2026-12-05 (the comparison run for the held-out pixels traced "
+        "alone, not landed)",
+    ),
     _images_any("images_any_dev_refine.json"),
     _images_any("images_any_dev_start6000.json"),
     _images_any("images_any_dev_rough_clay.json"),
