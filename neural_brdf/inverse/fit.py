@@ -72,6 +72,7 @@ bound itself comes from the normalisation, not the penalty.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import math
@@ -419,6 +420,16 @@ def fit_neural(
     render_seconds = 0.0
     # where the rest of the stage's time goes (this process's part of a resumed run)
     parts = {"validation": 0.0, "albedo": 0.0, "lobe": 0.0}
+
+    @contextlib.contextmanager
+    def timed(part: str):
+        """Add the block's wall-clock seconds to ``parts[part]``."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            parts[part] += time.perf_counter() - t0
+
     lobe = None
     # the split's record: the start's held-out loss, the best one, its step and weights,
     # the last one scored and its step (kept in the checkpoint)
@@ -450,20 +461,19 @@ def fit_neural(
     def score(step: int) -> float:
         """The held-out loss of the weights now, recorded in ``val``."""
         nonlocal val
-        t0 = time.perf_counter()
-        for v in views:
-            if v.validation_mask() is not None:
-                for n in names:
-                    v.params["raw." + n] = opt[n]
-                v.params.update()
-        loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
-        assert loss is not None
-        if val is None:  # the start's
-            val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
-        if loss < val["best_loss"]:
-            val.update(best_loss=loss, best_step=step, best=weights_now())
-        val.update(last_loss=loss, last_step=step)
-        parts["validation"] += time.perf_counter() - t0
+        with timed("validation"):
+            for v in views:
+                if v.validation_mask() is not None:
+                    for n in names:
+                        v.params["raw." + n] = opt[n]
+                    v.params.update()
+            loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
+            assert loss is not None
+            if val is None:  # the start's
+                val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
+            if loss < val["best_loss"]:
+                val.update(best_loss=loss, best_step=step, best=weights_now())
+            val.update(last_loss=loss, last_step=step)
         return loss
 
     def stalled() -> bool:
@@ -483,10 +493,9 @@ def fit_neural(
             lr = loop.learning_rate(t, step) * lr_factor
             opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
             if step > 0 and step % images.lobe_every == 0:
-                t0 = time.perf_counter()
-                lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
-                set_lobe(lobe)
-                parts["lobe"] += time.perf_counter() - t0
+                with timed("lobe"):
+                    lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
+                    set_lobe(lobe)
             total = 0.0
             t_render = time.perf_counter()
             for i, v in enumerate(fitted):
@@ -504,18 +513,17 @@ def fit_neural(
                 dr.backward(loss)
                 total += float(loss.array[0])
             render_seconds += time.perf_counter() - t_render
-            t0 = time.perf_counter()
-            wi, wo = albedo_directions(t.seed * 7919 + step, cfg.images)
-            pen, amax = penalty(
-                {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
-            )
-            dr.backward(pen)
-            last = {
-                "image": total,
-                "albedo": float(pen.array[0]),  # (evaluates the penalty: timed with it)
-                "max_albedo": float(amax.array[0]),
-            }
-            parts["albedo"] += time.perf_counter() - t0
+            with timed("albedo"):
+                wi, wo = albedo_directions(t.seed * 7919 + step, cfg.images)
+                pen, amax = penalty(
+                    {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
+                )
+                dr.backward(pen)
+                last = {
+                    "image": total,
+                    "albedo": float(pen.array[0]),  # (evaluates the penalty: timed with it)
+                    "max_albedo": float(amax.array[0]),
+                }
             last["loss"] = last["image"] + last["albedo"]
             if not math.isfinite(last["loss"]):
                 raise s.diverged(last["loss"], step)
