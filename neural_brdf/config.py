@@ -292,6 +292,9 @@ class Images(_Section):
     # (null: every one within the factor; docs/inverse.md, "The contenders")
     start_continue_max: int | None = Field(3, ge=2)
     start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
+    # their learning rate (null: train.lr, the image stage's); sample-based training's own
+    # default rate, chosen on the development set's brushed starts (docs/inverse.md)
+    start_train_lr: float | None = Field(0.03, gt=0.0)
     start_lr_scale: float = Field(0.05, gt=0.0)  # after a fitted start: image stage lr / train.lr
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
     # after an anisotropic start (ANISOTROPIC_FAMILIES): half_disc puts the network's grid

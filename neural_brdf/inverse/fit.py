@@ -117,6 +117,7 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     scene_text,
     sphere_mask,
     split_views,
+    start_training,
     target_noise,
     tiles,
     use_variant,
@@ -999,8 +1000,7 @@ def ggx_initial_state(
         },
     }
     d["name"] = f"{cfg.name}: GGX start, network"
-    d["train"].update(steps=steps, threads=TORCH_THREADS, eval_every=0)
-    d["train"]["checkpoint_every"] = max(1, steps)
+    d["train"] = start_training(cfg, steps)
     icfg = cfgmod.from_dict(d, source="ggx initialisation")
     raw, info = loop.train(icfg, run_dir)
     return raw.state_dict(), {

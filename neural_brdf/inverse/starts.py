@@ -1648,8 +1648,7 @@ def distill(
     d = cfg.model_dump()
     d["target"] = {"mitsuba": str(xml), "variant": variant}
     d["name"] = f"{cfg.name}: {element.get('type')} start, network"
-    d["train"].update(steps=steps, threads=inverse.TORCH_THREADS, eval_every=0)
-    d["train"]["checkpoint_every"] = max(1, steps)
+    d["train"] = inverse.start_training(cfg, steps)
     icfg = cfgmod.from_dict(d, source="images start")
     # the folder becomes a run (its marker) before the teacher is written into it: a
     # folder holding a file no run wrote is refused (neural_brdf.runfolder)

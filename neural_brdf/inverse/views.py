@@ -110,6 +110,22 @@ def variant_name(cfg: cfgmod.Config) -> str:
     return "cuda_ad_rgb" if device == "cuda" else "llvm_ad_rgb"
 
 
+def start_training(cfg: cfgmod.Config, steps: int) -> dict[str, Any]:
+    """The ``train`` section of a start's distillation into the network (sample-based
+    training on the start, :func:`neural_brdf.inverse.starts.distill` and the ``ggx``
+    start's): ``steps`` steps at ``images.start_train_lr`` (else ``train.lr``) on
+    :data:`TORCH_THREADS` threads, one checkpoint, no held-out errors."""
+    lr = cfg.images.start_train_lr
+    return {
+        **cfg.train.model_dump(),
+        "steps": steps,
+        "lr": cfg.train.lr if lr is None else lr,
+        "threads": TORCH_THREADS,
+        "eval_every": 0,
+        "checkpoint_every": max(1, steps),
+    }
+
+
 def use_variant(name: str):
     """Set Mitsuba's variant ``name`` (a JIT AD RGB one) and register ``neural_brdf_ad``;
     returns the ``mitsuba`` module.  A variant this process cannot switch to raises

@@ -486,10 +486,12 @@ def fitted(mi, example, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("fit") / "run"
     # a short distillation leaves the start about 20 % off, and the image stage runs at
     # train.lr, so that it has something to do in 30 steps (a full distillation of the
-    # chosen roughconductor is already within the targets' noise at 16 x 16)
+    # chosen roughconductor is already within the targets' noise at 16 x 16); the short
+    # distillation runs at train.lr too (null), as the constants above were measured
     split = [
         f"images.validation_pixels={HELDOUT_SHARE}",
         "images.start_train_steps=30",
+        "images.start_train_lr=null",
         "images.start_lr_scale=1",
     ]
     code = cli.main(train_args(example / "fit.yaml", run_dir, FIT_OVERRIDES + split))
@@ -543,6 +545,10 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     ]
     assert list(start["left_out"]) == ["roughconductor_aniso"]
     assert start["family"] in ("roughconductor", "blend"), start
+    # the start was distilled at the stage's rate (images.start_train_lr: null)
+    distilled = config.load(run_dir / "init" / "config.yaml").train
+    stage = config.load(run_dir / "config.yaml").train
+    assert distilled.steps == 30 and distilled.lr == stage.lr
     assert training["fit_seconds"] >= training["start_seconds"] > 0
     # where the stage's time goes: its renders, held-out scorings, albedo penalties and
     # lobe refits, each timed apart within it
@@ -644,6 +650,11 @@ def test_the_start_is_kept_when_the_image_stage_only_makes_it_worse(mi, example,
     assert val["best_step"] == 0 and val["kept"] == "the start"
     assert val["best_loss"] == val["start_loss"]
     assert start_network_change(run_dir) < 1e-4  # the export's own float32 parity
+    # the start was distilled at its own rate (images.start_train_lr), not the stage's
+    distilled = config.load(run_dir / "init" / "config.yaml").train
+    stage = config.load(run_dir / "config.yaml").train
+    assert distilled.steps == 300 and distilled.lr == config.Images().start_train_lr
+    assert distilled.lr != stage.lr and distilled.warmup == stage.warmup
     # ``neural-brdf export RUN`` exports the kept weights too, not the checkpoint's last
     # step (which --resume trains on from)
     import neural_brdf
