@@ -185,6 +185,10 @@ class Normalization(_Section):
     samples: int = Field(8192, ge=256)  # quadrature points per table node
     sigmas: float = Field(3.0, ge=0.0)  # quadrature standard errors added to A
     margin: float = Field(1e-3, ge=0.0, le=0.5)  # relative headroom on the tabulated A
+    # a node whose A +- sigmas x stderr straddles 1 while sigmas x stderr exceeds the
+    # margin is estimated again with refine x samples (its noise, not A, may be what
+    # passes 1: docs/model.md); 1: never
+    refine: int = Field(16, ge=1, le=256)
 
 
 class Data(_Section):

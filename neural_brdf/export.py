@@ -211,6 +211,7 @@ def normalized_model(
     if not n.enabled:
         return raw.eval(), {"enabled": False}
     aniso = is_anisotropic(cfg.model.encoding)
+    stats: dict[str, int] = {}
     table, a, err = albedo_table(
         raw,
         size=n.grid_size if aniso else n.table_size,
@@ -220,12 +221,15 @@ def normalized_model(
         sigmas=n.sigmas,
         margin=n.margin,
         target=target,
+        refine=n.refine,
+        stats=stats,
     )
     info = {
         "enabled": True,
         "raw_max_albedo": float(a.max()),
         "raw_max_stderr": float(err.max()),
         "nodes": int(a.shape[0]),
+        "refined_nodes": stats["refined"],
         "nodes_above_1": int((table.reshape(-1, 3) > 1).any(-1).sum()),
     }
     model = NormalizedBRDF(raw, table).eval()

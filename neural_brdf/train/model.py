@@ -462,11 +462,30 @@ def albedo_table(
     sigmas: float,
     margin: float,
     target=None,
+    refine: int = 1,
+    stats: dict | None = None,
 ):
-    """A+ at the nodes: (K, 3) or (K, K, 3), plus the raw estimate and its error."""
+    """A+ at the nodes: (K, 3) or (K, K, 3), plus the raw estimate and its error.
+
+    A node whose A +- ``sigmas`` stderr straddles 1 while ``sigmas`` stderr exceeds the
+    margin may pass 1 through its quadrature noise alone (a sharp lobe at grazing wi, where
+    the fixed proposals fit it poorly), and the division would then darken the model where
+    it conserves energy: such nodes are estimated again, from ``refine`` x ``samples``
+    points of other scramblings, and that independent estimate replaces the first
+    (``stats["refined"]``: how many)."""
     dirs = node_directions(size, anisotropic)
     with torch.no_grad():
         a, err = quadrature.albedo(raw, dirs, samples, seed=seed, target=target)
+        noise = sigmas * err
+        again = ((a - noise < 1.0) & (a + noise > 1.0) & (noise > margin)).any(-1)
+        if refine > 1 and bool(again.any()):
+            a2, err2 = quadrature.albedo(
+                raw, dirs[again], refine * samples, seed=seed + 1, target=target
+            )
+            a, err = a.clone(), err.clone()
+            a[again], err[again] = a2, err2
+        if stats is not None:
+            stats["refined"] = int(again.sum()) if refine > 1 else 0
     upper = a + sigmas * err
     if anisotropic:
         upper = neighbour_max_2d(upper.reshape(size, size, -1))  # (K, K, C)

@@ -130,6 +130,37 @@ def test_normalisation_fixes_a_bad_network(enc, kind):
         assert rho.min() > 0.98
 
 
+@pytest.mark.slow
+def test_a_node_over_1_by_its_noise_alone_is_estimated_again():
+    # a brushed GGX lobe with F = 1 (alpha 0.2 by 0.03): its albedo is at most 1 (Smith's
+    # masking loses energy), but the fixed isotropic proposals fit it poorly, so 4096
+    # points leave nodes whose A +- 3 stderr straddles 1; those are estimated again from
+    # 16 x the points of other scramblings, the others are left as they were
+    lobe = analytic.create("microfacet", distribution="ggx", alpha_x=0.2, alpha_y=0.03)
+
+    def f(wi, wo):
+        return lobe.f(wi.double(), wo.double())
+
+    kw = dict(size=9, anisotropic=True, samples=4096, seed=17, sigmas=3.0, margin=1e-3)
+    once: dict = {}
+    t1, a1, e1 = albedo_table(f, refine=1, stats=once, **kw)
+    again: dict = {}
+    t16, a16, e16 = albedo_table(f, refine=16, stats=again, **kw)
+    assert once["refined"] == 0
+    straddle = ((a1 - 3 * e1 < 1) & (a1 + 3 * e1 > 1) & (3 * e1 > 1e-3)).any(-1)
+    assert again["refined"] == int(straddle.sum()) > 5
+    assert torch.equal(a16[~straddle], a1[~straddle]) and torch.equal(e16[~straddle], e1[~straddle])
+    # the new estimates' errors are about sqrt(16) = 4 x smaller, and their bounds nearer 1
+    ratio = (e16[straddle] / e1[straddle]).max(-1).values
+    assert float(ratio.median()) < 0.5, ratio
+    excess = lambda t: float((t.reshape(-1, 3) - 1).clamp_min(0).sum())  # noqa: E731
+    assert excess(t16) < 0.7 * excess(t1), (excess(t16), excess(t1))
+    # and they agree with the first within its noise (another estimate, not another A;
+    # a heavy tail of the first's noise leaves a few far out: the median)
+    z = (a16[straddle] - a1[straddle]) / torch.sqrt(e1[straddle] ** 2 + e16[straddle] ** 2)
+    assert float(z.abs().median()) < 2.0, z
+
+
 def test_lookup_reproduces_table_at_nodes_and_interpolates_between():
     k = 9
     torch.manual_seed(0)
