@@ -3081,6 +3081,62 @@ def start_fit_section(d: dict) -> list[str]:
     return out + [""]
 
 
+def start_distill_section(d: dict) -> list[str]:
+    """A start's distillation into the network: its rate and length (development set)."""
+    m = d["machine"]
+    out = [
+        "## A start's distillation into the network: its learning rate and length "
+        "(development set)",
+        "",
+        _source("benchmarks/results/start_distill_dev.json", "python benchmarks/start_distill.py"),
+        _recorded(
+            d["date"],
+            f"{m['platform']}, {m['cores']} cores, Mitsuba {m['mitsuba']}, torch {m['torch']}",
+            f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after",
+        ),
+        "Each development material's chosen start (`images_any_dev_2026-12-05.json`) "
+        "distilled into the benchmark's network (`images.start_train_lr` × "
+        "`images.start_train_steps`; one torch thread), the mean over seeds "
+        f"{', '.join(str(x) for x in d['seeds'])}: the relative RMSE of f·cos of the "
+        "network against its start and against the truth (Mitsuba's `eval`), over "
+        f"{d['pairs']} pairs whose cosines both exceed {d['caps']['observed']} (the "
+        f"observed domain's bound) and {d['pairs']} whose both exceed "
+        f"{d['caps']['cos_0.5']}; the start's own error against the truth beside it. "
+        "0.01 is the rate the distillation ran at before (`train.lr`, the image stage's).",
+        "",
+    ]
+    rows = []
+    for name, r in d["materials"].items():
+        st = r["start_vs_truth"]
+        for v in r["mean_over_seeds"]:
+            rows.append(
+                [
+                    name,
+                    f"`{r['family']}`",
+                    f"{v['lr']:g} × {v['steps']}",
+                    f"{100 * v['observed_network_vs_start']:.2f} % / "
+                    f"{100 * v['cos_0.5_network_vs_start']:.2f} %",
+                    f"{100 * v['observed_network_vs_truth']:.2f} % / "
+                    f"{100 * v['cos_0.5_network_vs_truth']:.2f} %",
+                    f"{100 * st['observed']:.2f} % / {100 * st['cos_0.5']:.2f} %",
+                    f"{v['seconds']:.0f} s",
+                ]
+            )
+    out += _table(
+        [
+            "material",
+            "start",
+            "rate × steps",
+            "network vs start (cos > 0.1 / 0.5)",
+            "network vs truth",
+            "start vs truth",
+            "distillation",
+        ],
+        rows,
+    )
+    return out + [""]
+
+
 def _elsewhere(section, path: str, title: str, script: str):
     """``section`` for a file recorded on another machine (benchmarks/results/cuda/):
     its title and source line say so."""
@@ -3558,6 +3614,7 @@ SECTIONS = (
     ),
     (RESULTS / "lobe_refit.json", lobe_refit_section),
     (RESULTS / "start_fit.json", start_fit_section),
+    (RESULTS / "start_distill_dev.json", start_distill_section),
     (RESULTS / "training_speed.json", training_speed_section),
     (RESULTS / "textured_lobes_dev.json", textured_lobes_section),
     (RESULTS / "textured.json", textured_section),
