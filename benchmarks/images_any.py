@@ -42,7 +42,12 @@ multi-light retroreflector, which reads more determined than observed otherwise,
 choosing no fit setting; the stage's own timers, recorded from that run on, choose
 nothing either; images_any_dev_2026-12-05.json is the development set at those
 defaults, run to compare with the held-out pixels traced alone, which changed the kept
-steps and was not landed: it chose nothing), the default
+steps and was not landed: it chose nothing; images_any_dev_start_lr.json is the
+development set with the start distilled at images.start_train_lr 0.03, the rate
+benchmarks/start_distill.py chose on the development set's starts, and
+images_any_dev_refine_norm.json the same with the albedo bound's noisy nodes estimated
+again, normalization.refine, found on its brushed copper: for the other seven a repeat,
+which shows the run-to-run spread), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

@@ -3368,6 +3368,17 @@ SECTIONS = (
         "the defaults of 2026-12-05 (the comparison run for the held-out pixels traced "
         "alone, not landed)",
     ),
+    _images_any(
+        "images_any_dev_refine_norm.json",
+        "the start distilled at images.start_train_lr 0.03 and the albedo bound's noisy "
+        "nodes estimated again (normalization.refine), the defaults since 2026-12-05",
+    ),
+    _images_any(
+        "images_any_dev_start_lr.json",
+        "the start distilled at images.start_train_lr 0.03, before normalization.refine "
+        "(for all but the brushed copper, whose export alone it changes, a repeat of the "
+        "run above)",
+    ),
     _images_any("images_any_dev_refine.json"),
     _images_any("images_any_dev_start6000.json"),
     _images_any("images_any_dev_rough_clay.json"),
