@@ -194,6 +194,19 @@ def test_a_target_without_reference_gets_a_note(tiny_run, tmp_path):
     assert set(FIGURES) <= set(paths)
 
 
+def test_the_albedo_bound_says_how_many_nodes_it_estimated_again(tiny_run, tmp_path):
+    run_dir = copy_run(tiny_run, tmp_path)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    norm = metrics["export"]["normalization"]
+    assert "refined_nodes" in norm  # the export records the count, 0 or more
+    for count, said in ((3, True), (0, False)):
+        norm["refined_nodes"] = count
+        (run_dir / "metrics.json").write_text(json.dumps(metrics))
+        page = report.write_report(run_dir, render=False)["html"].read_text()
+        assert ("3 estimated again with more points" in page) is said
+        assert "table nodes needed scaling" in page
+
+
 def copy_run(run_dir, tmp_path):
     dst = tmp_path / "copy"
     dst.mkdir()

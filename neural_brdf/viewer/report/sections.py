@@ -120,8 +120,14 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
                 f"{raw_max:.4f}; {n.get('nodes_above_1', '?')} of "
                 f"{n.get('nodes', '?')} table nodes needed scaling"
                 + (
-                    " (none: the division is the identity and the graph omits it)."
+                    " (none: the division is the identity and the graph omits it)"
                     if n.get("in_graph") is False
+                    else ""
+                )
+                + (
+                    f"; {n['refined_nodes']} estimated again with more points "
+                    "(normalization.refine)."
+                    if isinstance(n.get("refined_nodes"), int) and n["refined_nodes"] > 0
                     else "."
                 )
             )
