@@ -31,8 +31,9 @@ frozen, ``images.start_freeze``, an execution change that chose nothing and was 
 on the test set for its time; images_any_2026-12-05.json and
 images_any_lights_2026-12-05.json the same again on 2026-12-05, with the plugin's torch
 call running the network alone, another such change; images_any_2026-12-05_map.json
-and images_any_lights.json the same again that day with each fit's map of what its views
-determine (neural_brdf/inverse/determined.py) and the BRDF scored over its bins: a
+and images_any_lights_2026-12-05_map.json the same again that day with each fit's map
+of what its views determine (neural_brdf/inverse/determined.py) and the BRDF scored
+over its bins: a
 diagnostic that chose nothing, its 11.25-degree level chosen on the example's copper
 under the development sky and on a cube outside both sets, its 5 % tolerance the
 benchmark's own BRDF goal, and the goals still scored over the observed domain; both
@@ -47,8 +48,8 @@ development set with the start distilled at images.start_train_lr 0.03, the rate
 benchmarks/start_distill.py chose on the development set's starts, and
 images_any_dev_refine_norm.json the same with the albedo bound's noisy nodes estimated
 again, normalization.refine, found on its brushed copper: for the other seven a repeat,
-which shows the run-to-run spread; images_any.json is the test set at those defaults,
-run once to report, the multi-light capture not run again), the default
+which shows the run-to-run spread; images_any.json and images_any_lights.json are the
+test set at those defaults, run once each to report), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

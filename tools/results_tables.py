@@ -3321,6 +3321,11 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
+        "the defaults since 2026-12-05: the start distilled at images.start_train_lr 0.03, "
+        "the albedo bound's noisy nodes estimated again (normalization.refine)",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-05_map.json",
         "the defaults of 2026-12-04, the start's steps frozen, run again on 2026-12-05 with "
         "the map of what the views determine counted within the coverage",
     ),
