@@ -187,8 +187,9 @@ class Normalization(_Section):
     margin: float = Field(1e-3, ge=0.0, le=0.5)  # relative headroom on the tabulated A
     # a node whose A +- sigmas x stderr straddles 1 while sigmas x stderr exceeds the
     # margin is estimated again with refine x samples (its noise, not A, may be what
-    # passes 1: docs/model.md); 1: never
-    refine: int = Field(16, ge=1, le=256)
+    # passes 1: docs/model.md); 1, the default: never (a tighter bound at the last node
+    # left a measured GGX's albedo above 1 beyond it, toward the horizon)
+    refine: int = Field(1, ge=1, le=256)
 
 
 class Data(_Section):
