@@ -187,9 +187,8 @@ class Normalization(_Section):
     margin: float = Field(1e-3, ge=0.0, le=0.5)  # relative headroom on the tabulated A
     # a node whose A +- sigmas x stderr straddles 1 while sigmas x stderr exceeds the
     # margin is estimated again with refine x samples (its noise, not A, may be what
-    # passes 1: docs/model.md); 1, the default: never (a tighter bound at the last node
-    # left a measured GGX's albedo above 1 beyond it, toward the horizon)
-    refine: int = Field(1, ge=1, le=256)
+    # passes 1: docs/model.md; 1: never)
+    refine: int = Field(16, ge=1, le=256)
 
 
 class Data(_Section):
@@ -233,6 +232,9 @@ class Validation(_Section):
     pairs: int = Field(20000, ge=100)  # random pairs for reciprocity / min value
     furnace_dirs: int = Field(91, ge=2)  # furnace polar angles (aniso: half, x16 azimuths)
     furnace_samples: int = Field(8192, ge=256)  # quadrature points per incoming direction
+    # a direction over 1 + albedo_tol is measured again with furnace_refine x
+    # furnace_samples points, which decide (1: never; docs/model.md)
+    furnace_refine: int = Field(16, ge=1, le=256)
     accuracy_samples: int = Field(131072, ge=1024)  # importance-sampled pairs for the error
     reciprocity_tol: float = Field(1e-6, ge=0.0)  # max relative |f(a,b) - f(b,a)|
     albedo_tol: float = Field(1e-3, ge=0.0)  # max albedo allowed: 1 + albedo_tol

@@ -78,6 +78,8 @@ PEAK_THETAS = (10.0, 45.0, 70.0)
 PEAK_OFFSETS = (0.0, 0.01, 0.1, 0.3, 1.0)
 # offset directions: towards the normal, towards the horizon, out of the plane of incidence
 PEAK_DIRECTIONS = ("normal", "horizon", "across")
+# The furnace's second measurement of a direction over the limit draws other scramblings.
+REMEASURE_SEED = 1_000_003
 PEAK_FLOOR = 1e-3  # relative floor of the target in the ratio (of the probe's largest value)
 
 
@@ -113,11 +115,46 @@ def physics(
     recip = analytic.reciprocity_error(fn, n=s.pairs, seed=s.seed)
     min_val = analytic.min_value(fn, n=s.pairs, seed=s.seed + 1)
     dirs = furnace_directions(s.furnace_dirs, anisotropic, s.seed + 2)
+    rho, err, again = furnace(quadrature.from_numpy(fn), dirs, s, s.seed + 3, target=target)
+    out = _physics_report(rho.numpy(), err.numpy(), dirs, anisotropic, recip, min_val, s)
+    return remeasured(out, again, s)
 
-    rho, err = quadrature.albedo(
-        quadrature.from_numpy(fn), dirs, s.furnace_samples, seed=s.seed + 3, target=target
+
+def furnace(
+    fn: Callable, dirs: torch.Tensor, s: cfgmod.Validation, seed: int, target=None
+) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The white furnace of a torch ``fn`` at ``dirs`` (M, 3) -> (rho, stderr (M, C),
+    how many directions were measured again).
+
+    A direction whose first estimate is over 1 + ``albedo_tol`` is measured again with
+    ``furnace_refine`` x ``furnace_samples`` points of other scramblings, and that
+    estimate decides: at grazing incidence the fixed proposals fit a lobe worst, and
+    their standard error from a few replicas understates the spread.  A 600-step
+    network whose albedo at 89.99 deg was 0.992 (2^20 points, two seeds) read
+    1.031 +- 0.006 from 4,096 points and 0.986 to 0.994 from 2^16 (docs/model.md).  A
+    model truly over the limit stays over it, measured four times more precisely."""
+    rho, err = quadrature.albedo(fn, dirs, s.furnace_samples, seed=seed, target=target)
+    over = ~(rho <= 1.0 + s.albedo_tol).all(-1)  # NaN counts as over
+    if s.furnace_refine == 1 or not bool(over.any()):
+        return rho, err, 0
+    r2, e2 = quadrature.albedo(
+        fn,
+        dirs[over],
+        s.furnace_refine * s.furnace_samples,
+        seed=seed + REMEASURE_SEED,
+        target=target,
     )
-    return _physics_report(rho.numpy(), err.numpy(), dirs, anisotropic, recip, min_val, s)
+    rho, err = rho.clone(), err.clone()
+    rho[over], err[over] = r2, e2
+    return rho, err, int(over.sum())
+
+
+def remeasured(report: dict[str, Any], count: int, s: cfgmod.Validation) -> dict[str, Any]:
+    """``report`` with :func:`furnace`'s count of directions measured again."""
+    report["checks"]["max_albedo"]["remeasured"] = count
+    report["furnace"]["remeasured"] = count
+    report["furnace"]["refine"] = s.furnace_refine
+    return report
 
 
 def _physics_report(
@@ -269,14 +306,14 @@ def physics_textured(
     points = uv_points(uv_count, s.seed + 41)
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     per_uv = []
+    again = 0  # directions measured again, over every uv
     for k, p in enumerate(points):
 
         def at_point(a: np.ndarray, b: np.ndarray, p: np.ndarray = p) -> np.ndarray:
             return fn(a, b, np.broadcast_to(p, a.shape[:-1] + (2,)))
 
-        rho, err = quadrature.albedo(
-            quadrature.from_numpy(at_point), dirs, s.furnace_samples, seed=s.seed + 3 + k
-        )
+        rho, err, n = furnace(quadrature.from_numpy(at_point), dirs, s, s.seed + 3 + k)
+        again += n
         r = rho.numpy()
         top = float(r.max()) if np.all(np.isfinite(r)) else math.inf
         per_uv.append(top)
@@ -288,7 +325,7 @@ def physics_textured(
     out["checks"]["max_albedo"]["at_uv"] = points[worst].round(6).tolist()
     out["furnace"]["uv"] = points.round(6).tolist()
     out["furnace"]["uv_max_albedo"] = per_uv
-    return out
+    return remeasured(out, again, s)
 
 
 def accuracy_textured(fn: Callable, target: Any, *, n: int, seed: int) -> dict[str, Any]:

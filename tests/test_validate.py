@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
+import torch
 
 from cli_helpers import ROOT, TINY, cli
 from neural_brdf import config, export, validate
@@ -68,3 +70,50 @@ def test_physics_measured_before_writing_is_what_the_file_gives(dim_model):
     again = validate.report(path)
     for key in ("checks", "hemispherical_albedo", "furnace"):
         assert again[key] == phys[key], key
+
+
+# ------------------------------------------------ the furnace's second measurement
+def sharp_grazing(true_albedo: float):
+    """A GGX mirror (alpha 0.05, no Fresnel) scaled so that its largest directional
+    albedo, reached at grazing incidence, is ``true_albedo``: the lobe the furnace's
+    fixed proposals fit worst there.  The scale comes from a 2^18-point quadrature."""
+    import analytic
+    from neural_brdf.physics import quadrature
+
+    brdf = analytic.create("microfacet", alpha=0.05)
+    theta = np.radians(90.0 - 0.01)
+    wi = torch.tensor([[np.sin(theta), 0.0, np.cos(theta)]], dtype=torch.float64)
+    top = quadrature.albedo(quadrature.from_numpy(brdf.eval), wi, 1 << 18, seed=99)[0].max()
+    scale = true_albedo / float(top)
+    return lambda a, b: scale * brdf.eval(a, b)
+
+
+def furnace_verdicts(fn, refine: int) -> list[tuple[float, int]]:
+    """(max albedo, directions measured again) of 256-point furnaces, eight seeds."""
+    out = []
+    for seed in range(8):
+        s = config.Validation(
+            furnace_samples=256, furnace_dirs=16, pairs=200, furnace_refine=refine, seed=seed
+        )
+        c = validate.physics(fn, anisotropic=False, settings=s)["checks"]["max_albedo"]
+        out.append((c["value"], c["remeasured"]))
+    return out
+
+
+def test_a_furnace_over_the_limit_by_its_noise_alone_is_measured_again_and_passes():
+    fn = sharp_grazing(0.95)
+    once = furnace_verdicts(fn, refine=1)
+    # the noise this guards against: a model at 0.95 read over 1 + 1e-3 by some seed
+    assert any(v > 1.001 for v, _ in once), once
+    assert all(n == 0 for _, n in once)
+    again = furnace_verdicts(fn, refine=16)
+    assert all(v <= 1.001 for v, _ in again), again
+    for (v1, _), (v16, n) in zip(once, again):
+        assert (n > 0) == (v1 > 1.001)  # only directions over the limit are measured again
+        if n:
+            assert abs(v16 - 0.95) < 0.02, v16  # ... and the second measurement is closer
+
+
+def test_a_furnace_truly_over_the_limit_stays_over_it_measured_again():
+    verdicts = furnace_verdicts(sharp_grazing(1.03), refine=16)
+    assert all(v > 1.01 and n > 0 for v, n in verdicts), verdicts

@@ -3311,8 +3311,8 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the start distilled at images.start_train_lr 0.03 (the default since 2026-12-05), "
-        "with normalization.refine 16 (not a default: docs/model.md)",
+        "the start distilled at images.start_train_lr 0.03 with normalization.refine 16, "
+        "the defaults since 2026-12-05",
     ),
     _images_any(
         "images_any_2026-12-05_map.json",
@@ -3321,8 +3321,8 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the start distilled at images.start_train_lr 0.03 (the default since 2026-12-05), "
-        "with normalization.refine 16 (not a default: docs/model.md)",
+        "the start distilled at images.start_train_lr 0.03 with normalization.refine 16, "
+        "the defaults since 2026-12-05",
     ),
     _images_any(
         "images_any_lights_2026-12-05_map.json",
@@ -3381,7 +3381,7 @@ SECTIONS = (
     _images_any(
         "images_any_dev_refine_norm.json",
         "the start distilled at images.start_train_lr 0.03 and the albedo bound's noisy "
-        "nodes estimated again (normalization.refine 16, not a default)",
+        "nodes estimated again (normalization.refine 16): the defaults since 2026-12-05",
     ),
     _images_any(
         "images_any_dev_start_lr.json",

@@ -207,6 +207,18 @@ def test_the_albedo_bound_says_how_many_nodes_it_estimated_again(tiny_run, tmp_p
         assert "table nodes needed scaling" in page
 
 
+def test_the_furnace_says_how_many_directions_it_measured_again(tiny_run, tmp_path):
+    run_dir = copy_run(tiny_run, tmp_path)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    check = metrics["checks"]["max_albedo"]
+    assert "remeasured" in check  # the validator records the count, 0 or more
+    for count, said in ((2, True), (0, False)):
+        check["remeasured"] = count
+        (run_dir / "metrics.json").write_text(json.dumps(metrics))
+        page = report.write_report(run_dir, render=False)["html"].read_text()
+        assert ("2 directions over the limit measured again" in page) is said
+
+
 def copy_run(run_dir, tmp_path):
     dst = tmp_path / "copy"
     dst.mkdir()

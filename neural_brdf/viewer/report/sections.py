@@ -88,6 +88,9 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
             shown += f" at θi = {theta:.2f}°"
         if stderr is not None:
             shown += f" (± {stderr:.1g})"
+        again = c.get("remeasured")
+        if isinstance(again, int) and again > 0:  # validate.furnace's second measurement
+            shown += f"; {again} direction{'s' if again > 1 else ''} over the limit measured again"
         rows.append([name, shown, f"{op} {limit:.6g}", Verdict(c["passed"])])
     parity = _number(m, "export.parity_rel_error", path, optional=True)
     if parity is not None:
