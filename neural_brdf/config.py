@@ -342,6 +342,11 @@ class Images(_Section):
     # ... and its grids' learning rate / train.lr (null: model.grid.lr_scale, as from the
     # constant start; docs/inverse.md, "A poor start")
     poor_start_grid_lr_scale: float | None = Field(1.0, gt=0.0)
+    # ... and the start's distillation into the network runs at this rate instead of
+    # start_train_lr: the image stage reshapes such a start's network rather than
+    # polishing it (null: train.lr; chosen on the development set: docs/inverse.md,
+    # "A poor start")
+    poor_start_train_lr: float | None = Field(None, gt=0.0)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network

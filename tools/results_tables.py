@@ -3379,6 +3379,11 @@ SECTIONS = (
         "alone, not landed)",
     ),
     _images_any(
+        "images_any_dev_poor_start_lr.json",
+        "its two poor starts distilled at train.lr 0.01 (images.start_train_lr=0.01 for "
+        "these two alone, what images.poor_start_train_lr: null does; else as the run below)",
+    ),
+    _images_any(
         "images_any_dev_refine_norm.json",
         "the start distilled at images.start_train_lr 0.03 and the albedo bound's noisy "
         "nodes estimated again (normalization.refine 16): the defaults since 2026-12-05",

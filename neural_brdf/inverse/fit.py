@@ -104,6 +104,7 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     fit_element,
     fit_is_used,
     fitted_views,
+    is_poor,
     load_scene,
     mitsuba_bsdf,
     mitsuba_f_cos,
@@ -173,7 +174,7 @@ def poor_start(
     if limit is None or loss is None:
         return False
     excess = float(loss) - (noise or 0.0)
-    if not excess > limit:
+    if not is_poor(loss, limit, noise):
         far_above_noise(start, float(loss), noise, excess, limit)
         return False
     start["poor"] = {

@@ -1598,7 +1598,11 @@ def network_start(
             f"encoding: {moved.model.encoding} after an isotropic start (images.isotropic_encoding)"
         )
     cfg = moved
-    state, info = distill(cfg, element, init_dir, images.start_train_steps)
+    # the verdict the image stage takes (inverse.fit.poor_start), made before distilling
+    poor = inverse.is_poor(
+        summary.get("val_loss"), images.poor_start_loss, inverse.target_noise(list(views))
+    )
+    state, info = distill(cfg, element, init_dir, images.start_train_steps, poor=poor)
     info["start"] = summary
     info["seconds"] = float(info["seconds"]) + float(summary["seconds"])
     return state, info, cfg
@@ -1629,11 +1633,12 @@ def teacher_xml(element: ET.Element) -> str:
 
 
 def distill(
-    cfg: cfgmod.Config, element: ET.Element, run_dir: Path, steps: int
+    cfg: cfgmod.Config, element: ET.Element, run_dir: Path, steps: int, *, poor: bool = False
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The network of ``cfg.model`` trained on BRDF samples of ``element`` (sample-based
     training, :func:`neural_brdf.train.loop.train`, ``steps`` steps, on one torch
-    thread) in the run folder ``run_dir`` (an images fit's ``init/``), whose
+    thread, at a ``poor`` start's rate when it is one: :func:`neural_brdf.inverse.views.
+    start_training`) in the run folder ``run_dir`` (an images fit's ``init/``), whose
     :data:`TEACHER_XML` holds the teacher (:func:`teacher_xml`) and whose config's
     target is ``{mitsuba: that file}``.  Returns (the network's state_dict, figures),
     as :func:`neural_brdf.inverse.fit.ggx_initial_state` does."""
@@ -1648,7 +1653,7 @@ def distill(
     d = cfg.model_dump()
     d["target"] = {"mitsuba": str(xml), "variant": variant}
     d["name"] = f"{cfg.name}: {element.get('type')} start, network"
-    d["train"] = inverse.start_training(cfg, steps)
+    d["train"] = inverse.start_training(cfg, steps, poor=poor)
     icfg = cfgmod.from_dict(d, source="images start")
     # the folder becomes a run (its marker) before the teacher is written into it: a
     # folder holding a file no run wrote is refused (neural_brdf.runfolder)
@@ -1661,6 +1666,7 @@ def distill(
         "target": info["target"],
         "teacher": str(xml),
         "steps": steps,
+        "lr": icfg.train.lr,
         "seconds": info["train_seconds"],
         "raw_val_rel_rmse": info["raw_val_rel_rmse"],
     }

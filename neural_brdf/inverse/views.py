@@ -110,12 +110,13 @@ def variant_name(cfg: cfgmod.Config) -> str:
     return "cuda_ad_rgb" if device == "cuda" else "llvm_ad_rgb"
 
 
-def start_training(cfg: cfgmod.Config, steps: int) -> dict[str, Any]:
+def start_training(cfg: cfgmod.Config, steps: int, *, poor: bool = False) -> dict[str, Any]:
     """The ``train`` section of a start's distillation into the network (sample-based
     training on the start, :func:`neural_brdf.inverse.starts.distill` and the ``ggx``
-    start's): ``steps`` steps at ``images.start_train_lr`` (else ``train.lr``) on
-    :data:`TORCH_THREADS` threads, one checkpoint, no held-out errors."""
-    lr = cfg.images.start_train_lr
+    start's): ``steps`` steps at ``images.start_train_lr`` (a ``poor`` start's:
+    ``images.poor_start_train_lr``; either null: ``train.lr``) on :data:`TORCH_THREADS`
+    threads, one checkpoint, no held-out errors."""
+    lr = cfg.images.poor_start_train_lr if poor else cfg.images.start_train_lr
     return {
         **cfg.train.model_dump(),
         "steps": steps,
@@ -469,6 +470,14 @@ def rel_weight(target: np.ndarray) -> np.ndarray:
 NOISE_KEEP = 0.95
 
 NOISE_SCALE = 3.0
+
+
+def is_poor(loss: float | None, limit: float | None, noise: float | None) -> bool:
+    """:func:`poor_start`'s verdict alone: a held-out ``loss`` above the targets' ``noise``
+    (0 when None) by more than ``limit`` (None: never poor)."""
+    if limit is None or loss is None:
+        return False
+    return bool(float(loss) - (noise or 0.0) > limit)
 
 
 def target_noise(views: list[View]) -> float | None:

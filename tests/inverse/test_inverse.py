@@ -1148,10 +1148,11 @@ def test_target_noise_estimates_the_targets_own_noise_from_one_image(mi, tmp_pat
 def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     mi, example, tmp_path, capsys, limit, poor
 ):
-    """Every start is poor under a limit of 1e-9: the image stage runs at train.lr (the
-    grids at images.poor_start_grid_lr_scale) for images.poor_start_steps (the run's
-    config.yaml says so), and a resumed run keeps that rate and those steps; no limit
-    keeps images.start_lr_scale and train.steps."""
+    """Every start is poor under a limit of 1e-9: it is distilled at
+    images.poor_start_train_lr, and the image stage runs at train.lr (the grids at
+    images.poor_start_grid_lr_scale) for images.poor_start_steps (the run's config.yaml
+    says so), and a resumed run keeps that rate and those steps; no limit keeps
+    images.start_train_lr, images.start_lr_scale and train.steps."""
     run_dir = tmp_path / "run"
     sets = [
         *FIT_OVERRIDES,
@@ -1161,6 +1162,7 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         "images.start_train_steps=20",
         "images.poor_start_steps=6",
         "images.poor_start_grid_lr_scale=2.5",
+        "images.poor_start_train_lr=0.007",
         f"images.poor_start_loss={limit}",
     ]
     code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
@@ -1176,6 +1178,9 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     assert ("runs at train.lr for up to 6 steps" in err) == poor
     assert tr["init"]["start"].get("poor", {}).get("steps") == (6 if poor else None)
     assert config.load(run_dir / "config.yaml").train.steps == (6 if poor else 4)
+    # the distillation's rate, decided before it ran by the verdict the stage then took
+    distilled = config.load(run_dir / "init" / "config.yaml").train
+    assert distilled.lr == tr["init"]["lr"] == (0.007 if poor else config.Images().start_train_lr)
     if poor:  # resumed: the rate and the steps come from the checkpoint's start
         more = train_args(example / "fit.yaml", run_dir, [*sets, "images.poor_start_steps=8"])
         code, err = run_cli([*more, "--resume"], capsys)
@@ -1183,6 +1188,23 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         again = json.loads((run_dir / "metrics.json").read_text())["training"]
         assert again["lr_factor"] == 1.0 and again["steps"] == 8
         assert again["grid_lr_scales"] == tr["grid_lr_scales"]
+
+
+def test_a_poor_start_is_distilled_at_its_own_rate_else_train_lr():
+    from neural_brdf.inverse import views
+
+    cfg = config.Config.model_validate({"name": "x", "train": {"lr": 0.004}})
+    assert views.start_training(cfg, 5)["lr"] == cfg.images.start_train_lr != cfg.train.lr
+    assert cfg.images.poor_start_train_lr is None  # the default: train.lr
+    assert views.start_training(cfg, 5, poor=True)["lr"] == 0.004
+    own = cfg.model_copy(
+        update={"images": cfg.images.model_copy(update={"poor_start_train_lr": 0.02})}
+    )
+    assert views.start_training(own, 5, poor=True)["lr"] == 0.02
+    # the verdict: a loss above the noise by more than the limit (None: never poor)
+    assert views.is_poor(0.25, 0.04, 0.2) and not views.is_poor(0.25, 0.06, 0.2)
+    assert not views.is_poor(0.25, None, 0.2) and not views.is_poor(None, 0.04, 0.2)
+    assert views.is_poor(0.05, 0.04, None)
 
 
 def test_poor_start_config_raises_the_steps_of_a_poor_start_only():
