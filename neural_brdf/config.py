@@ -298,7 +298,7 @@ class Images(_Section):
     # ... at most this many of them, the chosen one and the others of least held-out loss
     # (null: every one within the factor; docs/inverse.md, "The contenders")
     start_continue_max: int | None = Field(3, ge=2)
-    start_train_steps: int = Field(6000, ge=1)  # training steps on the start (docs/inverse.md)
+    start_train_steps: int = Field(12000, ge=1)  # training steps on the start (docs/inverse.md)
     # their learning rate (null: train.lr, the image stage's); sample-based training's own
     # default rate, chosen on the development set's brushed starts (docs/inverse.md)
     start_train_lr: float | None = Field(0.03, gt=0.0)
@@ -347,6 +347,9 @@ class Images(_Section):
     # polishing it (null: train.lr; chosen on the development set: docs/inverse.md,
     # "A poor start")
     poor_start_train_lr: float | None = Field(None, gt=0.0)
+    # ... for this many steps instead of start_train_steps (null: start_train_steps;
+    # chosen on the development set: docs/inverse.md, "A poor start")
+    poor_start_train_steps: int | None = Field(6000, ge=1)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
     lobe_every: int = Field(50, ge=1)  # steps between fits of the sampling lobe to the network

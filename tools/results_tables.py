@@ -3384,6 +3384,11 @@ SECTIONS = (
         "alone, not landed)",
     ),
     _images_any(
+        "images_any_dev_start_steps.json",
+        "the start distilled for 12000 steps (images.start_train_steps, chosen by it; its "
+        "two poor starts too, where the split preferred 6000, the run below)",
+    ),
+    _images_any(
         "images_any_dev_poor_start_lr.json",
         "its two poor starts distilled at train.lr 0.01 (images.start_train_lr=0.01 for "
         "these two alone, what images.poor_start_train_lr: null does; else as the run below)",

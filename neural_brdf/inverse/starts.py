@@ -1435,10 +1435,11 @@ def network_start(
     candidates (:func:`candidates`) fitted on the run's training pixels, the one the
     validation split prefers (:func:`choose_start`; a family named alone is taken as
     it is), distilled into the network (:func:`distill`, ``images.start_train_steps``
-    steps in ``init_dir``).  Returns (the network's state_dict, figures: the distillation's,
-    with ``start``, every candidate and the choice, the config the network is trained
-    with: ``cfg`` after :func:`model_for_start`).  ``report``: called with a line per
-    candidate fitted and one for the choice."""
+    steps in ``init_dir``; a poor start's: ``images.poor_start_train_steps``).  Returns
+    (the network's state_dict, figures: the distillation's, with ``start``, every
+    candidate and the choice, the config the network is trained with: ``cfg`` after
+    :func:`model_for_start`).  ``report``: called with a line per candidate fitted and
+    one for the choice."""
     images = cfg.images
     names, left = candidates(cfg)
     if not names:
@@ -1602,7 +1603,10 @@ def network_start(
     poor = inverse.is_poor(
         summary.get("val_loss"), images.poor_start_loss, inverse.target_noise(list(views))
     )
-    state, info = distill(cfg, element, init_dir, images.start_train_steps, poor=poor)
+    steps = images.start_train_steps
+    if poor and images.poor_start_train_steps is not None:
+        steps = images.poor_start_train_steps
+    state, info = distill(cfg, element, init_dir, steps, poor=poor)
     info["start"] = summary
     info["seconds"] = float(info["seconds"]) + float(summary["seconds"])
     return state, info, cfg

@@ -1149,10 +1149,12 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     mi, example, tmp_path, capsys, limit, poor
 ):
     """Every start is poor under a limit of 1e-9: it is distilled at
-    images.poor_start_train_lr, and the image stage runs at train.lr (the grids at
-    images.poor_start_grid_lr_scale) for images.poor_start_steps (the run's config.yaml
-    says so), and a resumed run keeps that rate and those steps; no limit keeps
-    images.start_train_lr, images.start_lr_scale and train.steps."""
+    images.poor_start_train_lr for images.poor_start_train_steps, and the image stage
+    runs at train.lr (the grids at images.poor_start_grid_lr_scale) for
+    images.poor_start_steps (the run's config.yaml says so), and a resumed run keeps
+    that rate and those steps; no limit keeps
+    images.start_train_lr, images.start_train_steps, images.start_lr_scale and
+    train.steps."""
     run_dir = tmp_path / "run"
     sets = [
         *FIT_OVERRIDES,
@@ -1163,6 +1165,7 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
         "images.poor_start_steps=6",
         "images.poor_start_grid_lr_scale=2.5",
         "images.poor_start_train_lr=0.007",
+        "images.poor_start_train_steps=15",
         f"images.poor_start_loss={limit}",
     ]
     code, err = run_cli(train_args(example / "fit.yaml", run_dir, sets), capsys)
@@ -1181,6 +1184,7 @@ def test_a_poor_start_runs_the_image_stage_at_the_full_rate(
     # the distillation's rate, decided before it ran by the verdict the stage then took
     distilled = config.load(run_dir / "init" / "config.yaml").train
     assert distilled.lr == tr["init"]["lr"] == (0.007 if poor else config.Images().start_train_lr)
+    assert distilled.steps == tr["init"]["steps"] == (15 if poor else 20)
     if poor:  # resumed: the rate and the steps come from the checkpoint's start
         more = train_args(example / "fit.yaml", run_dir, [*sets, "images.poor_start_steps=8"])
         code, err = run_cli([*more, "--resume"], capsys)
