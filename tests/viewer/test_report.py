@@ -194,29 +194,26 @@ def test_a_target_without_reference_gets_a_note(tiny_run, tmp_path):
     assert set(FIGURES) <= set(paths)
 
 
-def test_the_albedo_bound_says_how_many_nodes_it_estimated_again(tiny_run, tmp_path):
+@pytest.mark.parametrize(
+    "where, key, said",
+    [
+        # the albedo bound's nodes estimated again (normalization.refine)
+        (("export", "normalization"), "refined_nodes", "3 estimated again with more points"),
+        # the furnace's directions measured again (validation.furnace_refine)
+        (("checks", "max_albedo"), "remeasured", "3 directions over the limit measured again"),
+    ],
+)
+def test_the_physics_says_how_many_figures_it_measured_again(tiny_run, tmp_path, where, key, said):
     run_dir = copy_run(tiny_run, tmp_path)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    norm = metrics["export"]["normalization"]
-    assert "refined_nodes" in norm  # the export records the count, 0 or more
-    for count, said in ((3, True), (0, False)):
-        norm["refined_nodes"] = count
+    entry = metrics[where[0]][where[1]]
+    assert key in entry  # the run records the count, 0 or more
+    for count in (3, 0):
+        entry[key] = count
         (run_dir / "metrics.json").write_text(json.dumps(metrics))
         page = report.write_report(run_dir, render=False)["html"].read_text()
-        assert ("3 estimated again with more points" in page) is said
+        assert (said in page) is (count == 3)
         assert "table nodes needed scaling" in page
-
-
-def test_the_furnace_says_how_many_directions_it_measured_again(tiny_run, tmp_path):
-    run_dir = copy_run(tiny_run, tmp_path)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    check = metrics["checks"]["max_albedo"]
-    assert "remeasured" in check  # the validator records the count, 0 or more
-    for count, said in ((2, True), (0, False)):
-        check["remeasured"] = count
-        (run_dir / "metrics.json").write_text(json.dumps(metrics))
-        page = report.write_report(run_dir, render=False)["html"].read_text()
-        assert ("2 directions over the limit measured again" in page) is said
 
 
 def copy_run(run_dir, tmp_path):
