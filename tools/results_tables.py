@@ -3311,8 +3311,14 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since 2026-12-05: the start distilled at images.start_train_lr 0.03, "
-        "a poor one at train.lr, with normalization.refine 16",
+        "the defaults since 2026-12-05: the start distilled for 12000 steps at "
+        "images.start_train_lr 0.03, a poor one for 6000 at train.lr, with "
+        "normalization.refine 16",
+    ),
+    _images_any(
+        "images_any_2026-12-05_poor_lr.json",
+        "the start distilled for 6000 steps at images.start_train_lr 0.03, a poor one at "
+        "train.lr, with normalization.refine 16",
     ),
     _images_any(
         "images_any_2026-12-05_refine.json",
