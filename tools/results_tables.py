@@ -3332,8 +3332,13 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the start distilled at images.start_train_lr 0.03 with normalization.refine 16, "
-        "the defaults since 2026-12-05",
+        "the defaults since 2026-12-05: the start distilled for 12000 steps at "
+        "images.start_train_lr 0.03, with normalization.refine 16 (no start poor)",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-05_refine.json",
+        "the start distilled for 6000 steps at images.start_train_lr 0.03, with "
+        "normalization.refine 16",
     ),
     _images_any(
         "images_any_lights_2026-12-05_map.json",
