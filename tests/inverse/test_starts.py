@@ -1066,8 +1066,8 @@ def _network_start_fakes(monkeypatch, cands, continued, noise):
             "seconds": 3.0,
         }
 
-    def distill(cfg, element, folder, steps):
-        return {}, {"seconds": 0.5}
+    def distill(cfg, element, folder, steps, *, poor=False):
+        return {}, {"seconds": 0.5, "steps": steps, "poor": poor}  # what it was asked for
 
     calls: list[str] = []
     monkeypatch.setattr(starts, "choose_start", choose)
@@ -1174,13 +1174,20 @@ def test_a_first_choice_far_above_the_noise_is_poor_at_once(mi, materials, monke
     assert s["seconds"] == pytest.approx(1.0)  # the choice alone
     out = capsys.readouterr().out
     assert "images.poor_start_early_loss" in out and "poor at once" in out
-    # the fit's rule then calls it poor (the limit is at least images.poor_start_loss)
+    # the fit's rule then calls it poor (the limit is at least images.poor_start_loss),
+    # and it was distilled as one: images.poor_start_train_steps (and its rate)
     assert inverse.poor_start(info, 0.0015, noise["value"], 450)
+    assert info["poor"] and info["steps"] == config.Images().poor_start_train_steps
     # just below the limit, with null, and with no start poor: the contenders and the
     # refinement as before
     for limit, more in ((least - 0.001 + 1e-4, []), ("null", []), (0.0015, [None])):
-        s = run(limit, f"init_{limit}_{len(more)}", poor_off=bool(more))["start"]
+        got = run(limit, f"init_{limit}_{len(more)}", poor_off=bool(more))
+        s = got["start"]
         assert calls == ["diffuse", "blend"] and [c.family for c in refined] == ["diffuse"]
+        # poor but for the null limit: distilled as a poor start or a good one
+        assert got["poor"] is (not more)
+        images = config.Images()
+        assert got["steps"] == (images.start_train_steps if more else images.poor_start_train_steps)
         assert s["uncontested"] is None and "refine" in s
     # a start at its floor is not poor at once, however far above a noise that high it is
     noise["value"] = least / 1.2
