@@ -48,10 +48,14 @@ development set with the start distilled at images.start_train_lr 0.03, the rate
 benchmarks/start_distill.py chose on the development set's starts, and
 images_any_dev_refine_norm.json the same with the albedo bound's noisy nodes estimated
 again, normalization.refine, found on its brushed copper: for the other seven a repeat,
-which shows the run-to-run spread; images_any_dev_poor_start_lr.json its two poor
-starts distilled at train.lr, which chose images.poor_start_train_lr; images_any.json
-and images_any_lights.json are the test set at those defaults, run once each to
-report), the default
+which shows the run-to-run spread; images_any_dev_poor_start_lr.json (development) its
+two poor starts distilled at train.lr, which chose images.poor_start_train_lr, and
+images_any_dev_start_steps.json (development) every start distilled for 12000 steps,
+which chose images.start_train_steps 12000 and images.poor_start_train_steps 6000;
+images_any.json and images_any_lights.json are the test set at those defaults, run once
+each to report; images_any_2026-12-05_refine.json, images_any_2026-12-05_poor_lr.json
+and images_any_lights_2026-12-05_refine.json are the test set's earlier runs of that
+day, each kept when a development choice replaced it, none used to choose), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

@@ -1497,8 +1497,8 @@ def network_start(
             "candidates": [c.summary()],
             "seconds": c.seconds,
         }
+    noise = inverse.target_noise(list(views))  # the floor (images.poor_start_loss's too)
     if images.start == "auto":
-        noise = inverse.target_noise(list(views))  # the floor (images.poor_start_loss's too)
 
         def continued(name: str, r: dict[str, Any]) -> None:
             if report is not None:
@@ -1600,9 +1600,7 @@ def network_start(
         )
     cfg = moved
     # the verdict the image stage takes (inverse.fit.poor_start), made before distilling
-    poor = inverse.is_poor(
-        summary.get("val_loss"), images.poor_start_loss, inverse.target_noise(list(views))
-    )
+    poor = inverse.is_poor(summary.get("val_loss"), images.poor_start_loss, noise)
     steps = images.start_train_steps
     if poor and images.poor_start_train_steps is not None:
         steps = images.poor_start_train_steps
