@@ -3285,6 +3285,59 @@ def images_behind_cameras_section(d: dict) -> list[str]:
     ]
 
 
+def images_valley_section(d: dict) -> list[str]:
+    """The blend start's weight against its F0: the views' loss along the valley."""
+    rows = []
+    for q in d["points"]:
+        rows.append(
+            [
+                f"{q['weight']:.3f}" + (" (fitted)" if q["fitted"] else ""),
+                ", ".join(f"{x:.3f}" for x in q["f0"]),
+                f"{q['loss']:.7f}",
+                "-" if q["fitted"] else f"{q['minus_fitted']:+.1e} ± {q['minus_fitted_se']:.1e}",
+                "-" if q["fitted"] else _pct(q["minus_fitted"] / q["loss"], 2),
+            ]
+        )
+    t = d["truth"]
+    rows.append(
+        [
+            f"truth ({d['truth_weight']:g})",
+            "",
+            f"{t['loss']:.7f}",
+            f"{t['minus_fitted']:+.1e} ± {t['minus_fitted_se']:.1e}",
+            _pct(t["minus_fitted"] / t["loss"], 2),
+        ]
+    )
+    spread = d["fitted_loss_by_seeds"]
+    which = "development" if d["set"] == "dev" else "test"
+    return [
+        f"## Images: the blend start's weight against its F0 (the {which} set)",
+        "",
+        _source(
+            f"benchmarks/results/images_valley_{d['set']}.json",
+            "python benchmarks/images_valley.py"
+            + ("" if d["set"] == "dev" else f" --material {d['material']}"),
+        ),
+        _recorded(
+            d["date"],
+            f"{d['machine']['platform']}, {d['machine']['cores']} cores",
+            f"{_load(d['machine']['loadavg_before'])} before, "
+            f"{_load(d['machine']['loadavg_after'])} after",
+        ),
+        f"The {which} set's `{d['material']}` ({d['what']}): its images fit's `blend` "
+        "start, moved along the valley where weight x F0 and (1 - weight) x reflectance stay "
+        "as fitted, scored by the fit's loss on the views without the render's noise (the "
+        f"relative MSE over the object's pixels; two renders of {d['spp']} spp per view), "
+        f"under {d['seed_sets']} seed sets shared by every row: each row's loss minus the "
+        "fitted start's under the same seeds, ± its standard error. The fitted start's own "
+        "loss moved from "
+        f"{min(spread):.7f} to {max(spread):.7f} between the seed sets (the pairing removes "
+        "that). Chooses nothing.",
+        "",
+        *_table(["weight", "F0 (RGB)", "loss", "minus the fitted", "relative"], rows),
+    ]
+
+
 def _images_any(name: str, title: str | None = None) -> tuple[Path, partial[list[str]]]:
     """A SECTIONS entry for one of benchmarks/images_any.py's result files (``title``:
     :func:`images_any_section`'s heading end)."""
@@ -3415,6 +3468,15 @@ SECTIONS = (
         "(for all but the brushed copper, whose export alone it changes, a repeat of the "
         "run above)",
     ),
+    _images_any(
+        "images_any_dev_glazed_refine_gain0.json",
+        "the glazed blend's start refined in rounds until the split gains nothing "
+        "(images.start_refine_gain=0; its weight did not move)",
+    ),
+    _images_any(
+        "images_any_dev_glazed_refine_gain0_spp64.json",
+        "the same at 64 spp per refinement step (images.start_refine_spp=64)",
+    ),
     _images_any("images_any_dev_refine.json"),
     _images_any("images_any_dev_start6000.json"),
     _images_any("images_any_dev_rough_clay.json"),
@@ -3485,6 +3547,8 @@ SECTIONS = (
     ),
     _images_any("images_any_dev_glazed_blend.json", "the glazed blend"),
     (RESULTS / "images_behind_cameras.json", images_behind_cameras_section),
+    (RESULTS / "images_valley_dev.json", images_valley_section),
+    (RESULTS / "images_valley_test.json", images_valley_section),
     _images_any(
         "images_any_dev_poor_grid10.json",
         "the clay's poor start, its grids at model.grid.lr_scale (10; "
