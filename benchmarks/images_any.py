@@ -55,7 +55,11 @@ which chose images.start_train_steps 12000 and images.poor_start_train_steps 600
 images_any.json and images_any_lights.json are the test set at those defaults, run once
 each to report; images_any_2026-12-05_refine.json, images_any_2026-12-05_poor_lr.json
 and images_any_lights_2026-12-05_refine.json are the test set's earlier runs of that
-day, each kept when a development choice replaced it, none used to choose), the default
+day, each kept when a development choice replaced it, none used to choose;
+images_any_dev_glazed_refine_gain0.json and images_any_dev_glazed_refine_gain0_spp64.json
+(development, --only glazed_blend) the glazed blend's start refined with no gain limit and
+at 64 spp, which left its weight where it was and chose nothing: benchmarks/images_valley.py
+and docs/inverse.md), the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on
@@ -431,6 +435,19 @@ SETS = {
 
 
 # ------------------------------------------------------------------ one material
+def write_environments(work: Path, which: str) -> dict[str, Path]:
+    """Set ``which``'s two environments as EXR files in ``work`` (made if missing), by
+    role: {"fit": ..., "relit": ...}."""
+    from neural_brdf.inverse import scene
+
+    work.mkdir(parents=True, exist_ok=True)
+    envs = {}
+    for role, env in SETS[which].items():
+        envs[role] = work / f"{env}.exr"
+        scene.write_exr(envs[role], environment(env))
+    return envs
+
+
 def fitting_emitters(capture: str, view: int | None) -> str | None:
     """The emitters (XML) of fitted view ``view`` (0-based) of a ``capture``, or of the
     held-out camera (``view`` None: every view's lights at once, the capture's lights
@@ -893,11 +910,7 @@ def main(argv: list[str] | None = None) -> int:
     import neural_brdf.renderers.mitsuba  # noqa: F401  (registers analytic_brdf for the variant)
 
     work = args.work / (args.which + lights)
-    work.mkdir(parents=True, exist_ok=True)
-    envs = {}
-    for role, env in SETS[args.which].items():
-        envs[role] = work / f"{env}.exr"
-        scene.write_exr(envs[role], environment(env))
+    envs = write_environments(work, args.which)
     chosen = {k: v for k, v in materials().items() if v["set"] == args.which}
     if args.only:
         chosen = {k: chosen[k] for k in args.only}

@@ -53,19 +53,13 @@ SEEDS = 4  # seed sets, the same for every material (paired differences)
 
 
 def scored_loss(views, element, seed: int) -> float:
-    """The noise-free relative MSE of ``element`` over the views' object pixels."""
+    """The noise-free relative MSE of ``element`` over the views' object pixels: the
+    estimate the split uses (:func:`neural_brdf.inverse.starts.noise_free_loss`)."""
     from neural_brdf.inverse import fit as inverse
     from neural_brdf.inverse import starts
 
     inverse.prepare_views(views, element)
-    total, count = 0.0, 0
-    for i, v in enumerate(views):
-        a = starts._render_np(v, v.params, spp=SPP, seed=seed + 2 * i)
-        b = starts._render_np(v, v.params, spp=SPP, seed=seed + 2 * i + 1)
-        q = (v.rel_weight() * (a - v.target) * (b - v.target))[v.object]
-        total += float(q.sum(dtype=np.float64))
-        count += q.size
-    return total / count
+    return starts.noise_free_loss(views, [v.object for v in views], spp=SPP, seed=seed)
 
 
 def along(params: dict, w: float) -> dict:
@@ -88,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from neural_brdf import config, pipeline
     from neural_brdf.inverse import fit as inverse
-    from neural_brdf.inverse import scene, starts
+    from neural_brdf.inverse import starts
 
     mi = inverse.use_variant("llvm_ad_rgb")
     import neural_brdf.renderers.mitsuba  # noqa: F401  (registers analytic_brdf)
@@ -99,11 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     load_before = [round(x, 2) for x in os.getloadavg()]
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
-        envs = {}
-        for role, env in images_any.SETS[which].items():
-            envs[role] = work / f"{env}.exr"
-            envs[role].parent.mkdir(parents=True, exist_ok=True)
-            scene.write_exr(envs[role], images_any.environment(env))
+        envs = images_any.write_environments(work, which)
         folder = work / material
         images_any.write_views(folder, spec["bsdf"], envs["fit"], envs["relit"], 150)
         cfg = config.load(folder / "fit.yaml", ["train.progress=false"])
@@ -126,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         elements = [fam.element(p) for _, p in mats] + [spec["bsdf"]]
         # losses[s, m]: seed set s, material m (the points, then the truth)
         losses = np.array(
-            [[scored_loss(views, el, seed=1000 * s + 11) for el in elements] for s in range(SEEDS)]
+            [[scored_loss(views, el, seed=s) for el in elements] for s in range(SEEDS)]
         )
     k_fit = [w for w, _ in mats].index(w_fit)
 
