@@ -225,7 +225,24 @@ class Train(_Section):
     checkpoint_every: int = Field(500, ge=1)  # steps between checkpoints
     log_every: int = Field(25, ge=1)  # steps between CSV rows
     eval_every: int = Field(500, ge=0)  # steps between held-out errors (0: never)
-    progress: bool = True  # tqdm progress bar on stderr
+    # tqdm progress bar on stderr: auto, only where stderr is a terminal (a log file gets
+    # no carriage-return frames; the run's per-stage lines still print); true, always
+    progress: bool | Literal["auto"] = "auto"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _progress(cls, raw: Any) -> Any:
+        # one message naming the three choices, rather than one per member of the union
+        got = raw.get("progress", "auto") if isinstance(raw, dict) else "auto"
+        if not (isinstance(got, bool) or got == "auto"):
+            shown = limits.bounded(repr(got), 80)
+            raise ValueError(f"progress: expected true, false or auto (got {shown})")
+        return raw
+
+    def bar_disabled(self) -> bool | None:
+        """tqdm's ``disable`` for :attr:`progress`: None (off where stderr is not a
+        terminal, tqdm's own test) for ``auto``."""
+        return None if self.progress == "auto" else not self.progress
 
 
 class Validation(_Section):

@@ -920,7 +920,7 @@ def fit_roughconductor(
     bar = tqdm(
         total=steps,
         desc=f"{label}roughconductor",
-        disable=not (train.progress and label),
+        disable=train.bar_disabled() if label else True,
         dynamic_ncols=True,
         mininterval=0.5,
         leave=False,

@@ -466,7 +466,7 @@ class Session:
             total=self.train.steps,
             initial=min(self.step, self.train.steps),
             desc=self.desc,
-            disable=not self.train.progress,
+            disable=self.train.bar_disabled(),
             dynamic_ncols=True,
             mininterval=0.5,
             leave=False,

@@ -42,6 +42,8 @@ def test_train_py_config_error_is_one_line_and_exit_2(tmp_path):
         (["--set", "target.model=velvet"], "target.model"),
         (["--set", "target.params.albedo=7"], "albedo"),
         (["--set", "oops"], "oops"),
+        (["--set", "train.progress=maybe"], "train.progress: expected true, false or auto"),
+        (["--set", "train.progress=1"], "train.progress: expected true, false or auto"),
     ],
 )
 def test_config_errors_exit_2_naming_the_key(capsys, tmp_path, args, key):
@@ -90,6 +92,20 @@ def test_train_shim_writes_the_run(run_dir):
     assert metrics["passed"] is True
     assert metrics["training"]["steps"] == 10
     assert "rel_rmse" in metrics["accuracy"]
+
+
+@pytest.mark.parametrize("progress, bar", [(None, False), ("true", True), ("false", False)])
+def test_a_redirected_run_gets_a_bar_only_when_asked(tmp_path, progress, bar):
+    """train.progress auto (the default): stderr redirected to a file or a pipe gets no
+    tqdm frames (a log full of carriage returns); true forces them, false never."""
+    sets = [a for kv in TINY if not kv.startswith("train.progress") for a in ("--set", kv)]
+    if progress is not None:
+        sets += ["--set", f"train.progress={progress}"]
+    out = tmp_path / "r"
+    proc = run("-m", "neural_brdf", "train", "lambert", "--out", str(out), *sets)
+    assert proc.returncode == 0, proc.stderr
+    assert ("it/s" in proc.stderr) is bar, proc.stderr
+    assert "physics PASSED" in proc.stdout
 
 
 def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
