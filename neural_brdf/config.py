@@ -272,6 +272,8 @@ START_FAMILIES = (
     "roughplastic",
     "principled",
     "roughconductor",
+    # after the conductor: a tie of their equal numbers of free scalars goes to the earlier
+    "clearcoat",
     "roughconductor_aniso",
     "blend",
 )

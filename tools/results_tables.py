@@ -3338,6 +3338,119 @@ def images_valley_section(d: dict) -> list[str]:
     ]
 
 
+def images_scene_section(
+    d: dict, name: str = "images_scene.json", title: str | None = None
+) -> list[str]:
+    """Images of a torus mesh on a floor: held out, relit, the BRDF by the half angle
+    (``title``: the heading's end, for a file kept beside the current one)."""
+    rows, bands = [], []
+    for mat, r in d["materials"].items():
+        im, b = r["images"], r["brdf"]
+
+        def img(label: str, im=im) -> str:
+            x = im[label]
+            return (
+                f"{x['network']['psnr_db']:.1f} / {x['start']['psnr_db']:.1f} dB, "
+                f"{_pct(x['network']['image_rel_rmse'])} / {_pct(x['start']['image_rel_rmse'])} "
+                f"(floor {x['noise_floor']['psnr_db']:.1f} dB, "
+                f"{_pct(x['noise_floor']['image_rel_rmse'])})"
+            )
+
+        def err(key: str, b=b) -> str:
+            x = b.get(key) or {}
+            return f"{_pct(x['network'])} / {_pct(x['start'])}" if x.get("pairs") else "-"
+
+        sec = r["seconds"]
+        cands = r["start"].get("candidates")
+        chosen = r["start"]["family"]
+        if cands:  # auto: the chosen family's held-out loss, and the best's where another
+            best = min(cands, key=lambda f: cands[f]["val_loss"])
+            choice = f"`{chosen}` ({cands[chosen]['val_loss']:.5f})"
+            if best != chosen:
+                choice += f"; `{best}` {cands[best]['val_loss']:.5f}, tied"
+        elif cands is None:  # a file from before the candidates were recorded
+            choice = f"`{chosen}`"
+        else:
+            choice = f"`{chosen}` (named)"
+        rows.append(
+            [
+                mat,
+                choice,
+                img("heldout"),
+                img("relit"),
+                err("cap_0.5"),
+                err("observed"),
+                err("determined"),
+                _pct(b["determined_bin_means"]["network"]) if "determined_bin_means" in b else "-",
+                _pct(r["coverage"], 1),
+                f"{r['physics']['reciprocity']:g}, {r['physics']['max_albedo']:.3f}",
+                f"{sec['fit']:.0f} s (start {sec['start_choice']:.0f}, images "
+                f"{sec['image_stage']:.0f})",
+            ]
+        )
+        bands.append(
+            [mat]
+            + [
+                f"{_pct(x['network'], 1)} / {_pct(x['start'], 1)} ({_pct(x['truth_share'], 0)})"
+                if x.get("pairs")
+                else "-"
+                for x in b["cap_0.5_by_theta_h"]
+            ]
+        )
+    first = next(iter(d["materials"].values()))
+    heads = [
+        f"θh {x['from_deg']:g} to {x['to_deg']:g}°" for x in first["brdf"]["cap_0.5_by_theta_h"]
+    ]
+    load = ", ".join(
+        f"{n} {_load(r['loadavg_before'])} before and {_load(r['loadavg_after'])} after"
+        for n, r in d["materials"].items()
+    )
+    t = d["torus"]
+    return [
+        "## Images of a scene that is not a lone sphere: a torus mesh on a floor "
+        "(the test set's environments" + (f"; {title})" if title else ")"),
+        "",
+        *([f"Overrides: `{'`, `'.join(d['overrides'])}`."] if d.get("overrides") else []),
+        "",
+        _source(f"benchmarks/results/{name}", "python benchmarks/images_scene.py"),
+        _recorded(d["date"], f"{d['machine']['platform']}, {d['machine']['cores']} cores", load),
+        f"A torus mesh (radii {t[0]:g} and {t[1]:g}, {t[2]} x {t[3]} segments, an OBJ file) "
+        f"resting on a diffuse floor of albedo {d['floor_albedo']:g}, Mitsuba's `path` "
+        f"integrator with 3 bounces, three {d['views']['resolution']}² views at "
+        f"{d['target_spp']} spp under `{d['environments']['fit']}`; the held-out camera "
+        f"under it and relit by `{d['environments']['relit']}`, at {d['heldout_spp']} spp "
+        "against the truth at as many, scored over the torus's pixels (centre ray on it, "
+        "2-pixel erosion) as in the table of images_any.json; the config and the pipeline "
+        "are the benchmark's. Neither material chose any setting. BRDF: relative RMSE of "
+        "f·cos against Mitsuba's `eval` of the truth where both cosines > 0.5, over the "
+        "observed part of the domain, and over the bins the views determine (the pointwise "
+        "figure, and the bins' means). Each cell: network / its start (the chosen family, "
+        "rendered by Mitsuba).",
+        "",
+        *_table(
+            [
+                "material",
+                "start (held-out loss)",
+                "held-out",
+                "relit",
+                "BRDF, cos > 0.5",
+                "BRDF, observed",
+                "BRDF, determined",
+                "its bins' means",
+                "coverage",
+                "recip., max albedo",
+                "fit",
+            ],
+            rows,
+        ),
+        "The BRDF's error where both cosines exceed 0.5, by the half vector's angle θh "
+        "(network / start; in brackets the band's share of the truth's sum of (f·cos)², the "
+        "error's denominator):",
+        "",
+        *_table(["material", *heads], bands),
+    ]
+
+
 def _images_any(name: str, title: str | None = None) -> tuple[Path, partial[list[str]]]:
     """A SECTIONS entry for one of benchmarks/images_any.py's result files (``title``:
     :func:`images_any_section`'s heading end)."""
@@ -3364,8 +3477,12 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since 2026-12-05: the start distilled for 12000 steps at "
-        "images.start_train_lr 0.03, a poor one for 6000 at train.lr, with "
+        "the defaults since 2026-12-06: the clearcoat family among auto's seven",
+    ),
+    _images_any(
+        "images_any_2026-12-05_six_families.json",
+        "the defaults of 2026-12-05, before the clearcoat family: the start distilled for "
+        "12000 steps at images.start_train_lr 0.03, a poor one for 6000 at train.lr, with "
         "normalization.refine 16",
     ),
     _images_any(
@@ -3385,8 +3502,15 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the defaults since 2026-12-05: the start distilled for 12000 steps at "
-        "images.start_train_lr 0.03, with normalization.refine 16 (no start poor)",
+        "the defaults since 2026-12-06: the clearcoat family among auto's seven; the "
+        "principled to the satin blend ran beside another benchmark, load 3.7, so their "
+        "times are not comparable",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-05_six_families.json",
+        "the defaults of 2026-12-05, before the clearcoat family: the start distilled for "
+        "12000 steps at images.start_train_lr 0.03, with normalization.refine 16 (no start "
+        "poor)",
     ),
     _images_any(
         "images_any_lights_2026-12-05_refine.json",
@@ -3549,6 +3673,36 @@ SECTIONS = (
     (RESULTS / "images_behind_cameras.json", images_behind_cameras_section),
     (RESULTS / "images_valley_dev.json", images_valley_section),
     (RESULTS / "images_valley_test.json", images_valley_section),
+    (RESULTS / "images_scene.json", images_scene_section),
+    (
+        RESULTS / "images_scene_2026-12-06_six_families.json",
+        partial(
+            images_scene_section,
+            name="images_scene_2026-12-06_six_families.json",
+            title="the first run, before the clearcoat family: the six families of 2026-12-05",
+        ),
+    ),
+    (
+        RESULTS / "images_scene_named_clearcoat.json",
+        partial(
+            images_scene_section,
+            name="images_scene_named_clearcoat.json",
+            title="the clear-coated paint with its family named, images.start: clearcoat "
+            "(what a user who knows the material is coated can do; not a default)",
+        ),
+    ),
+    _images_any(
+        "images_any_dev_clearcoat.json",
+        "the lacquered wood, the clearcoat family among auto's (chosen: images.start_families)",
+    ),
+    _images_any(
+        "images_any_dev_clearcoat_before.json",
+        "the lacquered wood, the six families of before the clearcoat family",
+    ),
+    _images_any(
+        "images_any_dev_clearcoat_blue_principled.json",
+        "the blue principled with the clearcoat family among auto's (the principled kept)",
+    ),
     _images_any(
         "images_any_dev_poor_grid10.json",
         "the clay's poor start, its grids at model.grid.lr_scale (10; "

@@ -28,6 +28,8 @@ name                     plugin          fitted (free scalars)
 ``roughconductor``       roughconductor  GGX alpha in [0.01, 1], normal-incidence
                                          reflectance F0 RGB in [0.005, 0.98] and edge tint
                                          RGB in [0, 1], mapped to eta and k (7)
+``clearcoat``            principled      the principled's five and its clear coat:
+                                         clearcoat and clearcoat_gloss in [0, 1] (7)
 ``roughconductor_aniso`` roughconductor  alpha_u, alpha_v in [0.01, 1], F0, edge tint (8)
 ``blend``                blendbsdf       a diffuse (reflectance RGB) and a roughconductor
                                          (as above), the conductor's weight in [0, 1] (11)
@@ -74,8 +76,8 @@ counts as more inputs) and replays at every step after.  Where Dr.Jit cannot rec
 step (Mitsuba's ``direct_projective`` refuses) the fit says so once per integrator
 (:data:`UNFREEZABLE`) and traces its steps; :attr:`Candidate.frozen` records which.
 The fit is the traced one to float rounding (tests/inverse/test_starts.py: 1e-4
-relative after 6 steps, every family); on three 96 x 96 views the six families' fits
-took 28.9 s against 50.8 s traced (benchmarks/start_fit.py).
+relative after 6 steps, every family); on three 96 x 96 views the six families before
+``clearcoat`` took 28.9 s against 50.8 s traced (benchmarks/start_fit.py).
 
 The loss reported for a candidate, on the held-out pixels (and on the training pixels,
 for comparison), is the same relative MSE estimated without the render's own noise: two
@@ -296,6 +298,36 @@ ROUGHNESS_START = 0.5
 METALLIC = Bound(0.0, 1.0, ends=True)
 METALLIC_START = 0.3
 PRINCIPLED_SPECULAR = 0.5
+# clearcoat: the principled's clear coat, its weight and gloss (Mitsuba principled: a
+# GTR1 lobe of roughness lerp(0.1, 0.001, gloss) and a fixed IOR of 1.5, after Burley
+# 2012, "Physically-Based Shading at Disney", section 5.7), started halfway
+CLEARCOAT = Bound(0.0, 1.0)
+CLEARCOAT_START = 0.5
+CLEARCOAT_GLOSS = Bound(0.0, 1.0)
+CLEARCOAT_GLOSS_START = 0.5
+
+
+def _principled_params(coat: bool = False) -> dict[str, Param]:
+    """The principled's fitted parameters (``coat``: and its clear coat's two)."""
+    out = {
+        "base_color": Param(3, REFLECTANCE, 0.5, brightness=True),
+        "roughness": Param(1, ROUGHNESS, ROUGHNESS_START),
+        "metallic": Param(1, METALLIC, METALLIC_START),
+    }
+    if coat:
+        out["clearcoat"] = Param(1, CLEARCOAT, CLEARCOAT_START)
+        out["clearcoat_gloss"] = Param(1, CLEARCOAT_GLOSS, CLEARCOAT_GLOSS_START)
+    return out
+
+
+def _principled_keys(v: Values, xp: Any) -> dict[str, Any]:
+    # every parameter of Mitsuba's principled is a texture: its value is "<name>.value"
+    return {f"{name}.value": value for name, value in v.items()}
+
+
+def _principled_element(v: Values) -> ET.Element:
+    props = {n: _rgb(x) if n == "base_color" else _f(x) for n, x in v.items()}
+    return inverse.bsdf_element("principled", specular=PRINCIPLED_SPECULAR, **props)
 
 
 def _conductor_keys(v: Values, xp: Any, prefix: str = "", aniso: bool = False) -> dict[str, Any]:
@@ -384,23 +416,9 @@ FAMILIES: dict[str, Family] = {
             "Disney's principled BRDF (Mitsuba principled; paint, coated and dielectric "
             f"materials, metals in between): base_color RGB, roughness, metallic; specular "
             f"{PRINCIPLED_SPECULAR:g} (an IOR of 1.5), no sheen, clearcoat or transmission",
-            {
-                "base_color": Param(3, REFLECTANCE, 0.5, brightness=True),
-                "roughness": Param(1, ROUGHNESS, ROUGHNESS_START),
-                "metallic": Param(1, METALLIC, METALLIC_START),
-            },
-            lambda v, xp: {
-                "base_color.value": v["base_color"],
-                "roughness.value": v["roughness"],
-                "metallic.value": v["metallic"],
-            },
-            lambda v: inverse.bsdf_element(
-                "principled",
-                base_color=_rgb(v["base_color"]),
-                roughness=_f(v["roughness"]),
-                metallic=_f(v["metallic"]),
-                specular=PRINCIPLED_SPECULAR,
-            ),
+            _principled_params(),
+            _principled_keys,
+            _principled_element,
         ),
         Family(
             "roughconductor",
@@ -410,6 +428,16 @@ FAMILIES: dict[str, Family] = {
             lambda v, xp: _conductor_keys(v, xp),
             _conductor_element,
             _conductor_derived,
+        ),
+        Family(
+            "clearcoat",
+            "principled",
+            "Disney's principled BRDF under its clear coat (Mitsuba principled; varnish, "
+            "lacquer, car paint): base_color RGB, roughness, metallic, clearcoat, "
+            f"clearcoat_gloss; specular {PRINCIPLED_SPECULAR:g}, no sheen or transmission",
+            _principled_params(coat=True),
+            _principled_keys,
+            _principled_element,
         ),
         Family(
             "roughconductor_aniso",
@@ -1012,11 +1040,16 @@ def warm_start(
     mask_train: Sequence[np.ndarray],
 ) -> dict[str, Any] | None:
     """The start of family ``name`` from the families already ``fitted``, or None (its
-    own start): ``roughconductor_aniso`` from ``roughconductor`` (alpha_u = alpha_v =
-    alpha), ``blend`` from ``diffuse`` and ``roughconductor``, its weight the least
-    squares one on the training pixels of their renders (with the loss's weights; the
-    image of a blend is the blend of the images where the object does not see itself,
-    nearly so elsewhere).  Each then starts about as well as its simpler families end."""
+    own start): ``clearcoat`` from ``principled`` (its coat at the family's start),
+    ``roughconductor_aniso`` from ``roughconductor`` (alpha_u = alpha_v = alpha),
+    ``blend`` from ``diffuse`` and ``roughconductor``, its weight the least squares one
+    on the training pixels of their renders (with the loss's weights; the image of a
+    blend is the blend of the images where the object does not see itself, nearly so
+    elsewhere).  Each then starts about as well as its simpler families end."""
+    princ = fitted.get("principled")
+    if name == "clearcoat" and princ is not None:
+        coat = {"clearcoat": CLEARCOAT_START, "clearcoat_gloss": CLEARCOAT_GLOSS_START}
+        return {**princ.params, **coat}
     cond = fitted.get("roughconductor")
     if name == "roughconductor_aniso" and cond is not None:
         p = cond.params

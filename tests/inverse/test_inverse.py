@@ -541,6 +541,7 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
         "roughplastic",
         "principled",
         "roughconductor",
+        "clearcoat",
         "blend",
     ]
     assert list(start["left_out"]) == ["roughconductor_aniso"]
