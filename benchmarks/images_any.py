@@ -589,6 +589,67 @@ def image_figures(view, ref: np.ndarray, mask: np.ndarray, bsdf_el: ET.Element, 
     }
 
 
+def f_cos_at(truth_bsdf, model, fitted: dict[str, ET.Element | None], wi, wo) -> dict:
+    """f cos at the pairs (wi, wo), each material once: the truth (a Mitsuba BSDF), the
+    network (``model``, the exported file) and every element of ``fitted`` that is not
+    None, by its key (the starts, rendered by Mitsuba)."""
+    from neural_brdf.inverse import fit as inverse
+
+    out = {
+        "truth": inverse.mitsuba_f_cos(truth_bsdf, wi, wo),
+        "network": np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3],
+    }
+    for key, el in fitted.items():
+        if el is not None:
+            out[key] = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(el), wi, wo)
+    return out
+
+
+def brdf_errors(fc: dict[str, np.ndarray], m: np.ndarray | None = None) -> dict:
+    """The errors of ``fc``'s materials (:func:`f_cos_at`) at its pairs (those of the
+    mask ``m``)."""
+    from neural_brdf.inverse import fit as inverse
+
+    if m is not None:
+        if not m.any():
+            return {"pairs": 0}
+        fc = {k: v[m] for k, v in fc.items()}
+    true = fc["truth"]
+    out = {
+        "pairs": int(len(true)),
+        "network": inverse.brdf_rel_rmse(fc["network"], true),
+        # spurious bumps: the share of pairs where the network is over OVER x the truth
+        "network_over": overshoot(fc["network"], true),
+    }
+    for key in ("start", "start_unrefined"):
+        if key in fc:
+            out[key] = inverse.brdf_rel_rmse(fc[key], true)
+    return out
+
+
+def view_figures(view, truth: ET.Element, fitted: dict[str, ET.Element | None], offset: int = 0):
+    """``view`` scored as the held-out camera, over the object's pixels: the truth at
+    :data:`HELDOUT_SPP` (seed 101 + ``offset``) against itself with another seed (202 +
+    ``offset``: the reference's own noise floor) and against each element of ``fitted``
+    that is not None, by its key (:func:`image_figures`, seed 303 + ``offset``)."""
+    from neural_brdf.inverse import fit as inverse
+
+    mask = inverse.sphere_mask(view)
+    ref = inverse.render_view(view, truth, spp=HELDOUT_SPP, seed=101 + offset)
+    floor = inverse.render_view(view, truth, spp=HELDOUT_SPP, seed=202 + offset)
+    out = {
+        "pixels": int(mask.sum()),
+        "noise_floor": {
+            "psnr_db": inverse.psnr_linear(ref, floor, mask),
+            "image_rel_rmse": inverse.image_rel_rmse(ref, floor, mask),
+        },
+    }
+    for key, el in fitted.items():
+        if el is not None:
+            out[key] = image_figures(view, ref, mask, el, 303 + offset)
+    return out
+
+
 def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> dict:
     from images_patience import scorings
 
@@ -624,34 +685,10 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         starts.family(start["family"]).element(refined["params_before"]) if refined else None
     )
 
-    def f_cos(wi: np.ndarray, wo: np.ndarray) -> dict[str, np.ndarray]:
-        """f cos of the truth, the network and the starts at the pairs, each once."""
-        out = {
-            "truth": inverse.mitsuba_f_cos(truth_bsdf, wi, wo),
-            "network": np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3],
-        }
-        for key, el in (("start", start_el), ("start_unrefined", before_el)):
-            if el is not None:
-                out[key] = inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(el), wi, wo)
-        return out
+    fitted_els = {"start": start_el, "start_unrefined": before_el}
 
-    def brdf_errors(fc: dict[str, np.ndarray], m: np.ndarray | None = None) -> dict:
-        """The errors of ``fc``'s materials at its pairs (those of the mask ``m``)."""
-        if m is not None:
-            if not m.any():
-                return {"pairs": 0}
-            fc = {k: v[m] for k, v in fc.items()}
-        true = fc["truth"]
-        out = {
-            "pairs": int(len(true)),
-            "network": inverse.brdf_rel_rmse(fc["network"], true),
-            # spurious bumps: the share of pairs where the network is over OVER x the truth
-            "network_over": overshoot(fc["network"], true),
-        }
-        for key in ("start", "start_unrefined"):
-            if key in fc:
-                out[key] = inverse.brdf_rel_rmse(fc[key], true)
-        return out
+    def f_cos(wi: np.ndarray, wo: np.ndarray) -> dict[str, np.ndarray]:
+        return f_cos_at(truth_bsdf, model, fitted_els, wi, wo)
 
     wi, wo = inverse.brdf_pairs(truth_bsdf, PAIRS, seed=7)
     cap = brdf_errors(f_cos(wi, wo))
@@ -673,42 +710,18 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
                 det_info, wi[fixed], wo[fixed], {k: v[fixed] for k, v in domain.items()}
             )
 
-    images = {}
-    for label, view in (("heldout", held[0]), ("relit", held[1])):
-        mask = inverse.sphere_mask(view)
-        ref = inverse.render_view(view, truth, spp=HELDOUT_SPP, seed=101)
-        floor = inverse.render_view(view, truth, spp=HELDOUT_SPP, seed=202)
-        images[label] = {
-            "pixels": int(mask.sum()),
-            "noise_floor": {
-                "psnr_db": inverse.psnr_linear(ref, floor, mask),
-                "image_rel_rmse": inverse.image_rel_rmse(ref, floor, mask),
-            },
-            "network": image_figures(view, ref, mask, net_el, 303),
-        }
-        if start_el is not None:
-            images[label]["start"] = image_figures(view, ref, mask, start_el, 303)
-        if before_el is not None:
-            images[label]["start_unrefined"] = image_figures(view, ref, mask, before_el, 303)
+    images = {
+        label: view_figures(view, truth, {"network": net_el, **fitted_els})
+        for label, view in (("heldout", held[0]), ("relit", held[1]))
+    }
 
     # the fitted views themselves, scored like the held-out camera: a fit that matches
     # them to their noise floor while the held-out camera is off shows what the images
     # do not determine, rather than a fit that failed (docs/inverse.md, Limits)
-    fitted = []
-    for k, view in enumerate(views):
-        mask = inverse.sphere_mask(view)
-        ref = inverse.render_view(view, truth, spp=HELDOUT_SPP, seed=101 + 1000 * (k + 1))
-        floor = inverse.render_view(view, truth, spp=HELDOUT_SPP, seed=202 + 1000 * (k + 1))
-        fitted.append(
-            {
-                "pixels": int(mask.sum()),
-                "noise_floor": {
-                    "psnr_db": inverse.psnr_linear(ref, floor, mask),
-                    "image_rel_rmse": inverse.image_rel_rmse(ref, floor, mask),
-                },
-                "network": image_figures(view, ref, mask, net_el, 303 + 1000 * (k + 1)),
-            }
-        )
+    fitted = [
+        view_figures(view, truth, {"network": net_el}, 1000 * (k + 1))
+        for k, view in enumerate(views)
+    ]
     images["fitted_views"] = fitted
 
     # the issue's yardstick for the image stage: a stand-alone fit of Mitsuba's

@@ -90,8 +90,9 @@ def write_torus(path: Path) -> None:
 
 def scene_xml(camera: tuple[float, float], env: Path, bsdf: str, resolution: int) -> str:
     """The torus on its floor seen from ``camera`` under the environment ``env``."""
-    az, el = np.radians(camera)
-    o = DISTANCE * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+    from neural_brdf.inverse import scene
+
+    o = [DISTANCE * c for c in scene.direction(*camera)]  # the example's convention
     floor_y = -TORUS[1]
     return f"""<scene version="3.0.0">
   <integrator type="path"><integer name="max_depth" value="3"/></integrator>
@@ -156,42 +157,20 @@ def measure(
     model = runtime.load(run_dir / "model.onnx")
     truth_bsdf = inverse.mitsuba_bsdf(truth)
 
-    images = {}
-    for label, view in zip(("heldout", "relit"), held, strict=True):
-        mask = inverse.sphere_mask(view)  # the torus's pixels (any shape using "fit")
-        ref = inverse.render_view(view, truth, spp=images_any.HELDOUT_SPP, seed=101)
-        floor = inverse.render_view(view, truth, spp=images_any.HELDOUT_SPP, seed=202)
-        images[label] = {
-            "pixels": int(mask.sum()),
-            "noise_floor": {
-                "psnr_db": inverse.psnr_linear(ref, floor, mask),
-                "image_rel_rmse": inverse.image_rel_rmse(ref, floor, mask),
-            },
-            "network": images_any.image_figures(view, ref, mask, net_el, 303),
-            "start": images_any.image_figures(view, ref, mask, start_el, 303),
-        }
+    # over the torus's pixels (the mask takes any shape using "fit")
+    images = {
+        label: images_any.view_figures(view, truth, {"network": net_el, "start": start_el})
+        for label, view in zip(("heldout", "relit"), held, strict=True)
+    }
 
     def f_cos(wi, wo) -> dict[str, np.ndarray]:
-        return {
-            "truth": inverse.mitsuba_f_cos(truth_bsdf, wi, wo),
-            "network": np.asarray(model.eval(wi, wo), np.float64) * wo[:, 2:3],
-            "start": inverse.mitsuba_f_cos(inverse.mitsuba_bsdf(start_el), wi, wo),
-        }
+        return images_any.f_cos_at(truth_bsdf, model, {"start": start_el}, wi, wo)
 
-    def errors(fc: dict[str, np.ndarray], m: np.ndarray) -> dict:
-        if not m.any():
-            return {"pairs": 0}
-        return {
-            "pairs": int(m.sum()),
-            **{k: inverse.brdf_rel_rmse(fc[k][m], fc["truth"][m]) for k in ("network", "start")},
-        }
-
+    errors = images_any.brdf_errors
     wi, wo = inverse.brdf_pairs(truth_bsdf, images_any.PAIRS, seed=7)
     fc = f_cos(wi, wo)
-    everything = np.ones(len(wi), bool)
-    brdf = {"cap_0.5": errors(fc, everything)}
-    half = (wi + wo) / np.linalg.norm(wi + wo, axis=-1, keepdims=True)
-    theta_h = np.degrees(np.arccos(np.clip(half[:, 2], -1.0, 1.0)))
+    brdf = {"cap_0.5": errors(fc)}
+    theta_h = np.degrees(coverage.half_diff(wi, wo)[0])
     bands = HALF_ANGLE_BANDS
     brdf["cap_0.5_by_theta_h"] = [
         {"from_deg": lo, "to_deg": hi, "truth_share": _share(fc["truth"], m), **errors(fc, m)}
