@@ -769,8 +769,11 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             # that it was poor at once (images.poor_start_early_loss, also not refined)
             "uncontested": start.get("uncontested"),
             "early_loss": start.get("early_loss"),
-            # the family the first choice took, where the continued contenders changed it
+            # the family the first choice took, where the continued contenders or the
+            # cross-check changed it
             "first_choice": start.get("first_choice"),
+            # an inconclusive split's cross-check over folds (images.start_cross_folds)
+            "cross_check": start.get("cross_check"),
             # the poor-start rule's inputs (images.poor_start_loss): the chosen start's
             # held-out loss, the targets' own noise estimated from the images, the verdict
             "val_loss": start.get("val_loss"),

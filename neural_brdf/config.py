@@ -317,6 +317,12 @@ class Images(_Section):
     # ... at most this many of them, the chosen one and the others of least held-out loss
     # (null: every one within the factor; docs/inverse.md, "The contenders")
     start_continue_max: int | None = Field(3, ge=2)
+    # auto's choice tied by the split's standard error alone (a more complex family's
+    # held-out loss the least, above the chosen one's by more than start_tie_tol): the
+    # two are fitted again on this many folds of the training tiles, each held out in
+    # turn, and chosen by the same rule over every tile the run fits (0: never;
+    # docs/inverse.md, "An inconclusive split")
+    start_cross_folds: int = Field(2, ge=0)
     start_train_steps: int = Field(12000, ge=1)  # training steps on the start (docs/inverse.md)
     # their learning rate (null: train.lr, the image stage's); sample-based training's own
     # default rate, chosen on the development set's brushed starts (docs/inverse.md)

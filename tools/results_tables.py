@@ -3363,11 +3363,19 @@ def images_scene_section(
         sec = r["seconds"]
         cands = r["start"].get("candidates")
         chosen = r["start"]["family"]
+        check = r["start"].get("cross_check")
         if cands:  # auto: the chosen family's held-out loss, and the best's where another
             best = min(cands, key=lambda f: cands[f]["val_loss"])
             choice = f"`{chosen}` ({cands[chosen]['val_loss']:.5f})"
             if best != chosen:
                 choice += f"; `{best}` {cands[best]['val_loss']:.5f}, tied"
+            if check:  # images.start_cross_folds: the split's tie settled over folds
+                first = r["start"].get("first_choice") or chosen
+                choice += (f"; the split tied it with `{first}`" if first != chosen else "") + (
+                    f"; cross-check over {check['tiles']} tiles ({check['folds']} folds): "
+                    f"gain {check['rival_gain']:.5f} ± {check['standard_error']:.5f}, "
+                    f"`{check['chosen']}` chosen, {check['seconds']:.0f} s"
+                )
         elif cands is None:  # a file from before the candidates were recorded
             choice = f"`{chosen}`"
         else:
@@ -3408,11 +3416,15 @@ def images_scene_section(
     t = d["torus"]
     return [
         "## Images of a scene that is not a lone sphere: a torus mesh on a floor "
-        "(the test set's environments" + (f"; {title})" if title else ")"),
+        f"(the {'development' if d.get('set') == 'dev' else 'test'} set's environments"
+        + (f"; {title})" if title else ")"),
         "",
         *([f"Overrides: `{'`, `'.join(d['overrides'])}`."] if d.get("overrides") else []),
         "",
-        _source(f"benchmarks/results/{name}", "python benchmarks/images_scene.py"),
+        _source(
+            f"benchmarks/results/{name}",
+            "python benchmarks/images_scene.py" + (" --set dev" if d.get("set") == "dev" else ""),
+        ),
         _recorded(d["date"], f"{d['machine']['platform']}, {d['machine']['cores']} cores", load),
         f"A torus mesh (radii {t[0]:g} and {t[1]:g}, {t[2]} x {t[3]} segments, an OBJ file) "
         f"resting on a diffuse floor of albedo {d['floor_albedo']:g}, Mitsuba's `path` "
@@ -3421,7 +3433,14 @@ def images_scene_section(
         f"under it and relit by `{d['environments']['relit']}`, at {d['heldout_spp']} spp "
         "against the truth at as many, scored over the torus's pixels (centre ray on it, "
         "2-pixel erosion) as in the table of images_any.json; the config and the pipeline "
-        "are the benchmark's. Neither material chose any setting. BRDF: relative RMSE of "
+        "are the benchmark's. "
+        + (
+            "Both materials are the development set's: images.start_cross_folds was chosen "
+            "on them. "
+            if d.get("set") == "dev"
+            else "Neither material chose any setting. "
+        )
+        + "BRDF: relative RMSE of "
         "f·cos against Mitsuba's `eval` of the truth where both cosines > 0.5, over the "
         "observed part of the domain, and over the bins the views determine (the pointwise "
         "figure, and the bins' means). Each cell: network / its start (the chosen family, "
@@ -3675,11 +3694,36 @@ SECTIONS = (
     (RESULTS / "images_valley_test.json", images_valley_section),
     (RESULTS / "images_scene.json", images_scene_section),
     (
+        RESULTS / "images_scene_2026-12-06_no_cross_check.json",
+        partial(
+            images_scene_section,
+            name="images_scene_2026-12-06_no_cross_check.json",
+            title="before images.start_cross_folds: the split's tie kept the paint's principled",
+        ),
+    ),
+    (
         RESULTS / "images_scene_2026-12-06_six_families.json",
         partial(
             images_scene_section,
             name="images_scene_2026-12-06_six_families.json",
             title="the first run, before the clearcoat family: the six families of 2026-12-05",
+        ),
+    ),
+    (
+        RESULTS / "images_scene_dev.json",
+        partial(
+            images_scene_section,
+            name="images_scene_dev.json",
+            title="development: the grey coat, the blue principled and the silver, which "
+            "chose images.start_cross_folds",
+        ),
+    ),
+    (
+        RESULTS / "images_scene_dev_no_cross_check.json",
+        partial(
+            images_scene_section,
+            name="images_scene_dev_no_cross_check.json",
+            title="development: the grey coat with images.start_cross_folds 0, no cross-check",
         ),
     ),
     (

@@ -282,6 +282,45 @@ def test_report_shows_the_contenders_and_the_first_choice(tiny_run, tmp_path):
     assert "roughplastic 0.00111 0.00127 12.8 s 0.00111 principled 0.00143" in text
 
 
+def test_report_shows_the_cross_check_of_an_inconclusive_split(tiny_run, tmp_path):
+    # images.start_cross_folds: a choice the split tied by its standard error alone,
+    # settled over folds of the training tiles (neural_brdf.inverse.starts.cross_check);
+    # the report names the check, its figures and what it chose, and why the choice moved
+    start = {
+        "family": "clearcoat",
+        "first_choice": "principled",
+        "params": {"roughness": 0.4},
+        "candidates": [
+            {"family": "principled", "val_loss": 0.00141, "train_loss": 0.00175},
+            {"family": "clearcoat", "val_loss": 0.00131, "train_loss": 0.00134},
+        ],
+        "cross_check": {
+            "folds": 2,
+            "families": ["principled", "clearcoat"],
+            "tiles": 470,
+            "rival_gain": 0.000132,
+            "standard_error": 2.9e-05,
+            "chosen": "clearcoat",
+            "seconds": 43.0,
+        },
+        "seconds": 150.0,
+    }
+    init = {"target": "Mitsuba Principled (teacher.xml)", "seconds": 170.0, "start": start}
+    run_dir = make_images_run(tiny_run, tmp_path, extra={"init": init})
+    text = " ".join(
+        visible_text(report.write_report(run_dir, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "start clearcoat (chosen of 2 by the held-out pixels after the cross-check over "
+        "folds of the training tiles; principled before), distilled" in text
+    )
+    assert (
+        "start's cross-check clearcoat against principled (the split tied them by its "
+        "standard error): held-out loss lower by 0.00013 +- 2.9e-05 over 470 tiles (the "
+        "split's and 2 folds of the training tiles); clearcoat chosen" in text
+    )
+
+
 def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     # an auto start (neural_brdf.inverse.starts.network_start): every family fitted, one
     # chosen, one left out; the report names each with its losses and marks the choice

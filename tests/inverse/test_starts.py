@@ -1237,3 +1237,203 @@ def test_poor_at_once_is_a_config_key_no_lower_than_the_poor_limit():
     for bad in (["images.poor_start_early_loss=0.001"], ["images.poor_start_early_loss=0"]):
         with pytest.raises(ConfigError, match="images.poor_start_early_loss"):
             config.load(None, bad)
+
+
+# ------------------------------------------------------------------ an inconclusive split
+def _tile_ids(mask: np.ndarray, block: int = 4) -> set[int]:
+    from neural_brdf.inverse import starts
+
+    return set(np.unique(starts.tiles(mask.shape, block)[mask]).tolist())
+
+
+def _per_pixel(
+    terms: dict[str, list[np.ndarray]],
+    calls: list[tuple[str, bool]],
+    continued: dict[str, list[np.ndarray]] | None = None,
+):
+    """A stand-in for fit_candidate whose candidate scores, on whatever pixels it is
+    held out on, the per-pixel terms ``terms[family]`` (one (H, W) map per view), or
+    ``continued[family]`` when it is given a start (a fit continued from its own), 2 s
+    each; every call recorded with whether it was given a start (a warm start)."""
+
+    def fake(views, family, *, mask_train, mask_val, init=None, **kw):
+        calls.append((family, init is not None))
+        for tr, va in zip(mask_train, mask_val, strict=True):
+            assert not (tr & va).any()  # a fold's fit never sees its held-out pixels
+        table = continued if init is not None and family in (continued or {}) else terms
+        px = np.concatenate([t[m] for t, m in zip(table[family], mask_val, strict=True)])
+        c = _candidate(family, px)
+        return dataclasses.replace(c, params={"fold": True}, seconds=2.0)
+
+    return fake
+
+
+def _a_lobe_on_few_tiles(train, held, seed=5, lobe_tiles=8, gain=0.004, block=4):
+    """Per-pixel held-out terms of ``principled`` and ``clearcoat`` on views of the
+    masks ``train``/``held``: the same noisy floor, and principled worse by ``gain`` on
+    ``lobe_tiles`` tiles of the object, one of them in the split and the others in the
+    training tiles (a clear coat's highlights, as on the development torus)."""
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(seed)
+    floor = [rng.gamma(4.0, 0.00025, m.shape) for m in train]
+    t = starts.tiles(train[0].shape, block)
+    on_held = sorted(_tile_ids(held[0], block))[:1]
+    on_train = sorted(_tile_ids(train[0], block) - _tile_ids(held[0], block))
+    picked = on_held + list(rng.choice(on_train, lobe_tiles - 1, replace=False))
+    lobe = [np.isin(t, picked)] + [np.zeros_like(m) for m in train[1:]]
+    coat = [f + rng.normal(0.0, 0.0001, f.shape) for f in floor]
+    bare = [c + gain * m for c, m in zip(coat, lobe, strict=True)]
+    return {"principled": bare, "clearcoat": coat}, picked
+
+
+def _masks(shape=(48, 48), share=0.2, seed=0, block=4):
+    """(train, held): one view's object (a disc) and a tile split of it."""
+    from neural_brdf.inverse import starts
+
+    h, w = shape
+    y, x = np.mgrid[:h, :w]
+    obj = (x - w / 2 + 0.5) ** 2 + (y - h / 2 + 0.5) ** 2 < (0.45 * h) ** 2
+    t = starts.tiles(shape, block)
+    ids = np.unique(t[obj])
+    rng = np.random.default_rng(seed)
+    held = obj & np.isin(t, rng.choice(ids, round(share * ids.size), replace=False))
+    return [obj & ~held], [held]
+
+
+def test_the_folds_cut_the_training_tiles_and_follow_the_seed():
+    from neural_brdf.inverse import starts
+
+    train, held = _masks()
+    folds = starts.fold_masks(train, 4, seed=3, folds=3)
+    assert len(folds) == 3
+    union = np.zeros_like(train[0])
+    sizes = []
+    for f in folds:
+        assert not (f[0] & union).any() and not (f[0] & held[0]).any()
+        assert not (_tile_ids(f[0]) & set().union(*(_tile_ids(g[0]) for g in folds if g is not f)))
+        union |= f[0]
+        sizes.append(len(_tile_ids(f[0])))
+    assert (union == train[0]).all() and max(sizes) - min(sizes) <= 1
+    again = starts.fold_masks(train, 4, seed=3, folds=3)
+    assert all((a[0] == b[0]).all() for a, b in zip(folds, again, strict=True))
+    other = starts.fold_masks(train, 4, seed=4, folds=3)
+    assert any((a[0] != b[0]).any() for a, b in zip(folds, other, strict=True))
+
+
+def test_an_inconclusive_split_is_settled_over_folds_of_the_training_tiles(monkeypatch):
+    """A lobe seen on eight tiles, one of them in the split: the split ties the family
+    that has it with the simpler one by its standard error alone (inconclusive), and the
+    two fitted again on folds of the training tiles, each held out in turn, choose it
+    over every tile; the warm-started family after the one it starts from in each fold.
+    Without the lobe (the same noise), the folds keep the simpler family; a tie within
+    start_tie_tol, or a best family no more complex, is not inconclusive."""
+    from neural_brdf.inverse import starts
+
+    train, held = _masks()
+    terms, _ = _a_lobe_on_few_tiles(train, held)
+    calls: list[tuple[str, bool]] = []
+    monkeypatch.setattr(starts, "fit_candidate", _per_pixel(terms, calls))
+    kw = dict(mask_train=train, mask_val=held, seed=0)
+    first = {n: starts.fit_candidate([None], n, **kw) for n in ("principled", "clearcoat")}
+    chosen, margins = starts.pick(list(first.values()), starts.units(held, 4))
+    assert chosen.family == "principled" and margins["principled"]["tied"]
+    rival = starts.inconclusive(list(first.values()), chosen)
+    assert rival is first["clearcoat"]
+    calls.clear()
+    check = dict(folds=2, block=4, schedule=starts.Schedule(), **kw)
+    won, s = starts.cross_check([None], first["principled"], rival, **check)
+    assert won == "clearcoat" and s["chosen"] == "clearcoat"
+    # the split's principled scored after as many steps again as the coat had from it,
+    # and in each fold: the principled, the coat from it, the principled continued
+    assert (
+        calls
+        == [("principled", True)]
+        + [
+            ("principled", False),
+            ("clearcoat", True),
+            ("principled", True),
+        ]
+        * 2
+    )
+    assert s["continued"] == ["principled"]
+    assert s["tiles"] == len(_tile_ids(train[0] | held[0])) and s["folds_fitted"] == 2
+    assert s["rival_gain"] > starts.TIE_SIGMAS * s["standard_error"]
+    assert not s["margins"]["principled"]["tied"]
+    # the split alone would not have: the folds are what decide
+    assert (
+        margins["principled"]["above_best"]
+        < starts.TIE_SIGMAS * margins["principled"]["standard_error"]
+    )
+    # the coat's gain is the principled's shorter fit: continued as many steps as the
+    # coat had from it, the principled scores as well, and stays (the isotropic
+    # development silver against its anisotropic conductor)
+    caught_up = {"principled": terms["clearcoat"]}
+    monkeypatch.setattr(starts, "fit_candidate", _per_pixel(terms, calls, caught_up))
+    won, s = starts.cross_check([None], first["principled"], rival, **check)
+    assert won == "principled" and s["margins"]["principled"]["tied"]
+    # no lobe: both score the same floor up to noise, and the simpler family stays
+    flat = {
+        "principled": terms["clearcoat"],
+        "clearcoat": [
+            t + np.random.default_rng(9).normal(0.0, 0.0001, t.shape) for t in terms["clearcoat"]
+        ],
+    }
+    monkeypatch.setattr(starts, "fit_candidate", _per_pixel(flat, calls))
+    won, s = starts.cross_check([None], first["principled"], rival, **check)
+    assert won == "principled" and s["margins"]["principled"]["tied"]
+    # not inconclusive: the best no more complex than the chosen one, or within tie_tol
+    assert starts.inconclusive([first["clearcoat"]], first["clearcoat"]) is None
+    p, c = first["principled"], first["clearcoat"]
+    assert starts.inconclusive([p, c], p, tie_tol=(p.val_loss - c.val_loss) / c.val_loss) is None
+    assert starts.inconclusive([p, c], p, tie_tol=0.5 * (p.val_loss - c.val_loss) / c.val_loss)
+
+
+def test_network_start_settles_an_inconclusive_choice_and_says_so(mi, materials, monkeypatch):
+    """metrics.json's start: a choice the split tied by its standard error alone is
+    cross-checked (images.start_cross_folds folds), the family the folds prefer is
+    refined and distilled, the first choice and the check are recorded, and the check's
+    fits count in the start's time; with images.start_cross_folds 0 the split's choice
+    stands and no check is made."""
+    from neural_brdf.inverse import starts
+
+    path = materials["diffuse"]
+    cfg = config.load(path, ["images.start=auto"])
+    views = _split_views(path, cfg)
+    train, held = starts.run_masks(views)
+    # the lobe on the first view's tiles (a quarter of them: a 24 x 24 film has 36)
+    terms, _ = _a_lobe_on_few_tiles(train, held, lobe_tiles=9, gain=0.0005)
+    first = {}
+    for n in ("principled", "clearcoat"):
+        px = np.concatenate([t[m] for t, m in zip(terms[n], held, strict=True)])
+        first[n] = _first(n, px)
+    assert starts.inconclusive(list(first.values()), first["principled"]) is first["clearcoat"]
+    noise = {"value": float(first["clearcoat"].val_loss)}  # at its floor: no contender
+    _, refined = _network_start_fakes(monkeypatch, list(first.values()), {}, noise)
+    faked = starts.choose_start
+
+    def by_tiles(views, names, **kw):  # the fake's choice, its errors over the split's tiles
+        c = faked(views, names, **kw)
+        picked, margins = starts.pick(c.candidates, starts.units(held, 4))
+        return dataclasses.replace(c, family=picked.family, margins=margins)
+
+    monkeypatch.setattr(starts, "choose_start", by_tiles)
+    calls: list[tuple[str, bool]] = []
+    monkeypatch.setattr(starts, "fit_candidate", _per_pixel(terms, calls))
+    lines: list[str] = []
+    _, info, _ = starts.network_start(cfg, views, path.parent / "init_x", report=lines.append)
+    s = info["start"]
+    assert s["family"] == "clearcoat" and s["first_choice"] == "principled"
+    assert s["cross_check"]["chosen"] == "clearcoat" and s["cross_check"]["folds"] == 2
+    assert [c.family for c in refined] == ["clearcoat"]
+    assert len(calls) == 1 + 3 * 2 and s["seconds"] == pytest.approx(
+        1.0 + s["cross_check"]["seconds"] + 3.0
+    )
+    assert any(line.startswith("cross-check clearcoat against principled") for line in lines)
+    # off: the split's choice stands
+    calls.clear()
+    refined.clear()
+    cfg0 = config.load(path, ["images.start=auto", "images.start_cross_folds=0"])
+    _, info, _ = starts.network_start(cfg0, views, path.parent / "init_0")
+    s = info["start"]
+    assert s["family"] == "principled" and "cross_check" not in s and calls == []

@@ -217,9 +217,18 @@ def _fit_figures(run: Run) -> list[Block]:
         if chosen.get("encoding_moved") is True:  # images.isotropic_encoding
             moved += f" (the {chosen.get('encoding')} encoding, after an isotropic start)"
         first = chosen.get("first_choice")
-        if isinstance(first, str):  # images.start_continue_within changed the choice
-            how += f" after the contenders' further fits; {first} before"
+        check = chosen.get("cross_check")
+        check = check if isinstance(check, dict) else None
+        if isinstance(first, str):  # the contenders' fits or the cross-check changed it
+            why = (
+                "the cross-check over folds of the training tiles"
+                if check is not None and check.get("chosen") == chosen["family"]
+                else "the contenders' further fits"
+            )
+            how += f" after {why}; {first} before"
         rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{moved}"])
+        if check is not None:  # images.start_cross_folds
+            rows.append(["start's cross-check", _cross_check_text(check)])
         rows += _start_noise_rows(chosen)
     elif isinstance(init, dict) and isinstance(init.get("target"), str):
         rows.append(["start", init["target"]])
@@ -228,6 +237,19 @@ def _fit_figures(run: Run) -> list[Block]:
     rows += _validation_rows(training.get("validation"))
     out: list[Block] = [Table(["figure", "value"], rows)] if rows else []
     return out + _start_candidates(chosen)
+
+
+def _cross_check_text(check: dict) -> str:
+    """A line for an inconclusive split's cross-check (inverse.starts.cross_check)."""
+    names = check.get("families") or ["?", "?"]
+    gain, se = _finite(check.get("rival_gain")), _finite(check.get("standard_error"))
+    text = f"{names[-1]} against {names[0]} (the split tied them by its standard error)"
+    if gain is not None and se is not None:
+        text += (
+            f": held-out loss lower by {gain:.2g} +- {se:.2g} over {check.get('tiles')} "
+            f"tiles (the split's and {check.get('folds')} folds of the training tiles)"
+        )
+    return text + f"; {check.get('chosen')} chosen"
 
 
 def _start_noise_rows(chosen: dict) -> list[list[str]]:
