@@ -64,7 +64,10 @@ and images_any_dev_clearcoat_blue_principled.json (development, --only lacquered
 blue_principled) the clearcoat family among auto's, and not, which chose it for
 images.start_families; images_any.json and images_any_lights.json were then run again
 at those defaults to report, their earlier files kept as images_any_2026-12-05_six_families.json
-and images_any_lights_2026-12-05_six_families.json), the default
+and images_any_lights_2026-12-05_six_families.json; images.start_cross_folds, chosen on
+images_scene.py's development torus, then had both run again, the session-81 files kept
+as images_any_2026-12-06_clearcoat.json and images_any_lights_2026-12-06_clearcoat.json),
+the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
 prefers distilled into the network), then the image stage, which keeps its best step on

@@ -3496,7 +3496,13 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since 2026-12-06: the clearcoat family among auto's seven",
+        "the defaults since session 82: an inconclusive split checked on folds, "
+        "images.start_cross_folds 2",
+    ),
+    _images_any(
+        "images_any_2026-12-06_clearcoat.json",
+        "the defaults of session 81, before images.start_cross_folds: the clearcoat family "
+        "among auto's seven",
     ),
     _images_any(
         "images_any_2026-12-05_six_families.json",
@@ -3521,9 +3527,14 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the defaults since 2026-12-06: the clearcoat family among auto's seven; the "
-        "principled to the satin blend ran beside another benchmark, load 3.7, so their "
-        "times are not comparable",
+        "the defaults since session 82: an inconclusive split checked on folds, "
+        "images.start_cross_folds 2",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-06_clearcoat.json",
+        "the defaults of session 81, before images.start_cross_folds: the clearcoat family "
+        "among auto's seven; the principled to the satin blend ran beside another "
+        "benchmark, load 3.7, so their times are not comparable",
     ),
     _images_any(
         "images_any_lights_2026-12-05_six_families.json",
