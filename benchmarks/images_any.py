@@ -630,6 +630,17 @@ def brdf_errors(fc: dict[str, np.ndarray], m: np.ndarray | None = None) -> dict:
     return out
 
 
+def physics_entry(metrics: dict) -> dict:
+    """A fit's physics as the benchmarks record it: reciprocity, the largest albedo and
+    whether every check of metrics.json passed."""
+    checks = metrics["checks"]
+    return {
+        "reciprocity": checks["reciprocity"]["value"],
+        "max_albedo": checks["max_albedo"]["value"],
+        "passed": metrics["passed"],
+    }
+
+
 def view_figures(view, truth: ET.Element, fitted: dict[str, ET.Element | None], offset: int = 0):
     """``view`` scored as the held-out camera, over the object's pixels: the truth at
     :data:`HELDOUT_SPP` (seed 101 + ``offset``) against itself with another seed (202 +
@@ -738,7 +749,6 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     )
     inverse.release(views)
 
-    checks = metrics["checks"]
     val = tr.get("validation") or {}
     candidates = {
         c["family"]: {
@@ -822,11 +832,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
         # [step, held-out loss] at every scoring, the start's at step 0
         | {"trajectory": [list(x) for x in scorings(run_dir)[0]]},
         "image_steps": tr["steps"],
-        "physics": {
-            "reciprocity": checks["reciprocity"]["value"],
-            "max_albedo": checks["max_albedo"]["value"],
-            "passed": metrics["passed"],
-        },
+        "physics": physics_entry(metrics),
         "seconds": {
             "start_choice": start.get("seconds"),
             "distillation": (init.get("seconds") or 0.0) - (start.get("seconds") or 0.0),

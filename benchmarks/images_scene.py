@@ -219,7 +219,6 @@ def measure(
             brdf["determined_bin_means"] = images_any.bin_mean_errors(
                 det_info, wi[fixed], wo[fixed], {k: v[fixed] for k, v in fc.items()}
             )
-    checks = metrics["checks"]
     val = tr.get("validation") or {}
     return {
         "truth": truth_text,
@@ -243,11 +242,7 @@ def measure(
         "coverage": float(cov.figure),
         "determined": (det_info or {}).get("figure"),
         "validation": {k: val.get(k) for k in ("start_loss", "best_loss", "kept", "stopped_at")},
-        "physics": {
-            "reciprocity": checks["reciprocity"]["value"],
-            "max_albedo": checks["max_albedo"]["value"],
-            "passed": metrics["passed"],
-        },
+        "physics": images_any.physics_entry(metrics),
         "seconds": {
             "start_choice": tr.get("start_seconds"),
             "image_stage": tr.get("train_seconds"),

@@ -3370,8 +3370,10 @@ def images_scene_section(
             if best != chosen:
                 choice += f"; `{best}` {cands[best]['val_loss']:.5f}, tied"
             if check:  # images.start_cross_folds: the split's tie settled over folds
-                first = r["start"].get("first_choice") or chosen
-                choice += (f"; the split tied it with `{first}`" if first != chosen else "") + (
+                first = r["start"].get("first_choice")
+                if first and first != chosen:
+                    choice += f"; the split tied it with `{first}`"
+                choice += (
                     f"; cross-check over {check['tiles']} tiles ({check['folds']} folds): "
                     f"gain {check['rival_gain']:.5f} ± {check['standard_error']:.5f}, "
                     f"`{check['chosen']}` chosen, {check['seconds']:.0f} s"

@@ -1035,6 +1035,15 @@ class Choice:
         }
 
 
+# the families a family's warm start (warm_start) is taken from, fitted before it
+# (choose_start fits them first: FAMILIES is in that order)
+WARM_FROM: dict[str, tuple[str, ...]] = {
+    "clearcoat": ("principled",),
+    "roughconductor_aniso": ("roughconductor",),
+    "blend": ("diffuse", "roughconductor"),
+}
+
+
 def warm_start(
     name: str,
     fitted: Mapping[str, Candidate],
@@ -1047,13 +1056,16 @@ def warm_start(
     ``blend`` from ``diffuse`` and ``roughconductor``, its weight the least squares one
     on the training pixels of their renders (with the loss's weights; the image of a
     blend is the blend of the images where the object does not see itself, nearly so
-    elsewhere).  Each then starts about as well as its simpler families end."""
-    princ = fitted.get("principled")
-    if name == "clearcoat" and princ is not None:
+    elsewhere).  Each then starts about as well as its simpler families end.  None where
+    a family of :data:`WARM_FROM` it needs is not fitted."""
+    sources = WARM_FROM.get(name)
+    if sources is None or any(n not in fitted for n in sources):
+        return None
+    if name == "clearcoat":
         coat = {"clearcoat": CLEARCOAT_START, "clearcoat_gloss": CLEARCOAT_GLOSS_START}
-        return {**princ.params, **coat}
-    cond = fitted.get("roughconductor")
-    if name == "roughconductor_aniso" and cond is not None:
+        return {**fitted["principled"].params, **coat}
+    cond = fitted["roughconductor"]
+    if name == "roughconductor_aniso":
         p = cond.params
         return {
             "alpha_u": p["alpha"],
@@ -1061,9 +1073,7 @@ def warm_start(
             "f0": p["f0"],
             "edge_tint": p["edge_tint"],
         }
-    diff = fitted.get("diffuse")
-    if name != "blend" or cond is None or diff is None:
-        return None
+    diff = fitted["diffuse"]  # the blend
     num = den = 0.0
     for i, v in enumerate(views):
         a, b, m = diff.images[i], cond.images[i], mask_train[i]
@@ -1393,13 +1403,6 @@ def contend(
 # (cross_check(); docs/inverse.md, "An inconclusive split").  The folds leave the run's
 # held-out pixels out, as the start's fits do.
 
-# the families a family's warm start (warm_start) is taken from, fitted before it
-WARM_FROM: dict[str, tuple[str, ...]] = {
-    "clearcoat": ("principled",),
-    "roughconductor_aniso": ("roughconductor",),
-    "blend": ("diffuse", "roughconductor"),
-}
-
 
 def inconclusive(
     cands: Sequence[Candidate], chosen: Candidate, *, tie_tol: float = TIE_TOL
@@ -1481,10 +1484,11 @@ def cross_check(
             init=c.params,
         )
 
-    pixels = {
-        c.family: [(again(c, mask_train, mask_val) if c.family in behind else c).val_pixels]
-        for c in pair
-    }
+    pixels: dict[str, list[np.ndarray]] = {}
+    for c in pair:  # on the split: as fitted, or continued
+        pixels[c.family] = [
+            (again(c, mask_train, mask_val) if c.family in behind else c).val_pixels
+        ]
     unit = [units(mask_val, block)]
     fitted_folds = 0
     for held in fold_masks(mask_train, block, seed, folds):
@@ -1507,12 +1511,9 @@ def cross_check(
             pixels[n].append(c.val_pixels)
         unit.append(units(held, block))
         fitted_folds += 1
+    terms = {n: np.concatenate(pixels[n]) for n in names}
     pooled = [
-        dataclasses.replace(
-            c,
-            val_pixels=np.concatenate(pixels[c.family]),
-            val_loss=float(np.mean(np.concatenate(pixels[c.family]))),
-        )
+        dataclasses.replace(c, val_pixels=terms[c.family], val_loss=float(terms[c.family].mean()))
         for c in pair
     ]
     every = np.concatenate(unit)
