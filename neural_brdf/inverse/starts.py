@@ -629,6 +629,15 @@ class Candidate:
     # the fitted family's render of each view (2 x val_spp samples; None: not rendered)
     images: list[np.ndarray | None] = field(default_factory=list, repr=False)
     frozen: bool = False  # whether its steps were recorded and replayed (Frozen steps)
+    # the Adam steps behind its start: those of the fits its warm start came from
+    # (warm_start), or of the fit it continues, and of a continuation of it not kept
+    # (it had those steps, and they did not help); see fit_further and catch_up
+    before: int = 0
+
+    @property
+    def total_steps(self) -> int:
+        """Every step behind this fit, its own and those it started from."""
+        return self.before + self.steps
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready (metrics.json)."""
@@ -641,6 +650,7 @@ class Candidate:
             "val_loss_plain": self.val_loss_plain,
             "free_scalars": self.complexity,
             "steps": self.steps,
+            "steps_before": self.before,
             "seconds": self.seconds,
             "frozen_steps": self.frozen,
         }
@@ -1007,6 +1017,9 @@ class Choice:
     sigmas: float
     tie_max: float
     seconds: float
+    # catch_up's: per family fitted further its record, and the family picked before
+    caught_up: dict[str, dict[str, Any]] = field(default_factory=dict)
+    first_pick: str | None = None
 
     @property
     def chosen(self) -> Candidate:
@@ -1031,6 +1044,8 @@ class Choice:
             "candidates": [
                 {**c.summary(), **self.margins.get(c.family, {})} for c in self.candidates
             ],
+            "caught_up": self.caught_up,
+            **({"first_pick": self.first_pick} if self.first_pick != self.family else {}),
             "seconds": self.seconds,
         }
 
@@ -1092,6 +1107,140 @@ def warm_start(
     }
 
 
+def fit_warm(
+    views: Sequence[inverse.View],
+    name: str,
+    fitted: Mapping[str, Candidate],
+    *,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    **kw: Any,
+) -> Candidate:
+    """:func:`fit_candidate` of family ``name`` from its warm start (:func:`warm_start`
+    from the families ``fitted``; its own start where there is none), with the steps
+    behind that start counted (:attr:`Candidate.before`: the most of its sources')."""
+    init = warm_start(name, fitted, views, mask_train)
+    c = fit_candidate(views, name, mask_train=mask_train, mask_val=mask_val, init=init, **kw)
+    if init is None:
+        return c
+    return dataclasses.replace(c, before=max(fitted[n].total_steps for n in WARM_FROM[name]))
+
+
+def fit_further(
+    views: Sequence[inverse.View],
+    c: Candidate,
+    *,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    seed: int,
+    schedule: Schedule,
+) -> tuple[Candidate, dict[str, Any]]:
+    """``c`` fitted ``schedule.steps`` more steps from its parameters
+    (:func:`fit_candidate` with ``init``, the same render seeds, so that the held-out
+    losses stay paired).  Returns (the continued fit, or ``c`` where that one's held-out
+    loss is higher (:func:`no_worse`), with those steps counted behind it; a record:
+    ``steps``, ``val_loss_before``, ``val_loss_after``, ``kept``, ``seconds``)."""
+    r = fit_candidate(
+        views,
+        c.family,
+        mask_train=mask_train,
+        mask_val=mask_val,
+        seed=seed,
+        schedule=schedule,
+        init=c.params,
+    )
+    r = dataclasses.replace(r, before=c.total_steps)
+    ok = no_worse(r.val_loss, c.val_loss)
+    kept = r if ok else dataclasses.replace(c, before=c.before + r.steps)
+    record = {
+        "steps": r.steps,
+        "val_loss_before": c.val_loss,
+        "val_loss_after": r.val_loss,
+        "kept": ok,
+        "seconds": r.seconds,
+    }
+    return kept, record
+
+
+def behind(c: Candidate, current: Mapping[str, Candidate]) -> list[str]:
+    """The families ``c``'s warm start comes from (:data:`WARM_FROM`) among ``current``
+    that have had fewer steps than ``c`` (:attr:`Candidate.total_steps`): compared with
+    ``c`` as they stand, they would be judged on a shorter fit."""
+    return [
+        n
+        for n in WARM_FROM.get(c.family, ())
+        if n in current and current[n].total_steps < c.total_steps
+    ]
+
+
+def _merged(a: dict[str, Any] | None, b: dict[str, Any]) -> dict[str, Any]:
+    """Two :func:`fit_further` records of one family, one after the other, as one."""
+    if a is None:
+        return b
+    return {
+        "steps": a["steps"] + b["steps"],
+        "val_loss_before": a["val_loss_before"],
+        "val_loss_after": b["val_loss_after"] if b["kept"] else a["val_loss_after"],
+        "kept": a["kept"] or b["kept"],
+        "seconds": a["seconds"] + b["seconds"],
+    }
+
+
+def catch_up(
+    views: Sequence[inverse.View],
+    cands: Sequence[Candidate],
+    *,
+    mask_train: Sequence[np.ndarray],
+    mask_val: Sequence[np.ndarray],
+    seed: int,
+    schedule: Schedule,
+    unit: np.ndarray | None = None,
+    tie_tol: float = TIE_TOL,
+    sigmas: float = TIE_SIGMAS,
+    tie_max: float = TIE_MAX,
+    progress: Callable[[str, str, dict[str, Any]], None] | None = None,
+) -> tuple[Candidate, list[Candidate], dict[str, dict[str, Any]], dict[str, dict[str, Any]], str]:
+    """:func:`pick`, and while the family chosen, or the one of least held-out loss (whose
+    loss sets the tie), was warm-started from families that had fewer steps
+    (:func:`behind`: a ``clearcoat`` from a ``principled`` has had the principled's steps
+    and its own) and do not tie, fit those further (:func:`fit_further`, by
+    ``schedule``) until they have had as many, and pick again: a family never wins over
+    the one it starts from, nor sets the bar for it, by its longer fit alone.  Returns
+    (the candidate chosen, every candidate as it now stands (in ``cands``' order), per
+    family fitted further its record, :func:`pick`'s margins, the family picked first).
+    ``progress``: called with each family fitted further, the family it caught up
+    with, and its record."""
+    current = {c.family: c for c in cands}
+    done: dict[str, dict[str, Any]] = {}
+    first: str | None = None
+    while True:
+        pool = [current[c.family] for c in cands]
+        chosen, margins = pick(pool, unit, tie_tol=tie_tol, sigmas=sigmas, tie_max=tie_max)
+        first = first or chosen.family
+        best = min(pool, key=lambda c: c.val_loss if math.isfinite(c.val_loss) else math.inf)
+        # the sources behind the chosen family, and behind the best, whose loss sets the
+        # tie every other is judged by; one that ties already cannot change the choice
+        todo = [
+            n
+            for n in dict.fromkeys(behind(chosen, current) + behind(best, current))
+            if not margins.get(n, {}).get("tied", False)
+        ]
+        if not todo or schedule.steps <= 0:
+            return chosen, pool, done, margins, first
+        for n in todo:
+            current[n], r = fit_further(
+                views,
+                current[n],
+                mask_train=mask_train,
+                mask_val=mask_val,
+                seed=seed,
+                schedule=schedule,
+            )
+            done[n] = _merged(done.get(n), r)
+            if progress is not None:
+                progress(n, chosen.family, r)
+
+
 def choose_start(
     views: Sequence[inverse.View],
     families: Sequence[str] = DEFAULT,
@@ -1106,14 +1255,24 @@ def choose_start(
     tie_tol: float = TIE_TOL,
     sigmas: float = TIE_SIGMAS,
     tie_max: float = TIE_MAX,
+    catch_up_sources: bool = True,
     progress: Callable[[Candidate], None] | None = None,
+    caught: Callable[[str, str, dict[str, Any]], None] | None = None,
 ) -> Choice:
-    """Fit every family of ``families`` (:func:`fit_candidate`) to the training pixels
-    of a seeded split (:func:`split_pixels` with ``val_share``, ``block``, ``seed``; or
-    ``masks`` = (train, held-out) given) and choose by the held-out loss (:func:`pick`).
-    The views are all it looks at: the scenes' own ``<bsdf id="fit">`` plays no part.
-    ``progress`` is called with each candidate when it is fitted."""
+    """Fit every family of ``families`` (:func:`fit_warm`, in that order) to the training
+    pixels of a seeded split (:func:`split_pixels` with ``val_share``, ``block``,
+    ``seed``; or ``masks`` = (train, held-out) given) and choose by the held-out loss
+    (:func:`pick`; with ``catch_up_sources``, :func:`catch_up`: a warm-started family
+    chosen is compared with the families it starts from after as many steps).  The
+    views are all it looks at: the scenes' own ``<bsdf id="fit">`` plays no part.
+    ``progress`` is called with each candidate when it is fitted, ``caught`` as
+    :func:`catch_up`'s ``progress``."""
     start = time.perf_counter()
+    sched = schedule or Schedule()
+    if steps is not None:
+        sched = dataclasses.replace(sched, steps=steps)
+    if spp is not None:
+        sched = dataclasses.replace(sched, spp=spp)
     for name in families:
         family(name)
     if not families:
@@ -1126,21 +1285,35 @@ def choose_start(
         raise ValueError("no held-out pixels: the choice needs a validation split")
     out: list[Candidate] = []
     for name in families:
-        c = fit_candidate(
+        c = fit_warm(
             views,
             name,
+            {c.family: c for c in out},
             mask_train=train,
             mask_val=held,
             seed=seed,
-            steps=steps,
-            spp=spp,
-            schedule=schedule,
-            init=warm_start(name, {c.family: c for c in out}, views, train),
+            schedule=sched,
         )
         out.append(c)
         if progress is not None:
             progress(c)
-    best, margins = pick(out, units(held, block), tie_tol=tie_tol, sigmas=sigmas, tie_max=tie_max)
+    rule = dict(tie_tol=tie_tol, sigmas=sigmas, tie_max=tie_max)
+    done: dict[str, dict[str, Any]] = {}
+    if catch_up_sources:
+        best, out, done, margins, first = catch_up(
+            views,
+            out,
+            mask_train=train,
+            mask_val=held,
+            seed=seed,
+            schedule=sched,
+            unit=units(held, block),
+            progress=caught,
+            **rule,
+        )
+    else:
+        best, margins = pick(out, units(held, block), **rule)
+        first = best.family
     return Choice(
         family=best.family,
         element=best.element,
@@ -1153,6 +1326,8 @@ def choose_start(
         sigmas=sigmas,
         tie_max=tie_max,
         seconds=time.perf_counter() - start,
+        caught_up=done,
+        first_pick=first,
     )
 
 
@@ -1353,37 +1528,21 @@ def contend(
     progress: Callable[[str, dict[str, Any]], None] | None = None,
 ) -> tuple[Candidate, list[Candidate], dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
     """Fit each of the :func:`contenders` ``schedule.steps`` more steps from its
-    parameters (:func:`fit_candidate` with ``init``, the candidates' own schedule and
-    render seeds, so the held-out losses stay paired), keep the continued fit unless
-    its held-out loss is higher, and choose again among every candidate (:func:`pick`,
-    the same rule).  Returns (the candidate chosen, every candidate as it now stands,
-    per family continued its summary, :func:`pick`'s margins of the new choice; with no
-    contender: ``chosen``, ``cands``, none, none).  ``progress``: called with each
-    family and its summary when it is continued."""
+    parameters (:func:`fit_further`: the candidates' own schedule and render seeds, the
+    continued fit kept unless its held-out loss is higher), and choose again among every
+    candidate (:func:`pick`, the same rule).  Returns (the candidate chosen, every
+    candidate as it now stands, per family continued its summary, :func:`pick`'s margins
+    of the new choice; with no contender: ``chosen``, ``cands``, none, none).
+    ``progress``: called with each family and its summary when it is continued."""
     todo = contenders(cands, chosen, within, most=most, noise=noise, tie_max=tie_max, early=early)
     if not todo:
         return chosen, list(cands), {}, {}
     current = {c.family: c for c in cands}
     done: dict[str, dict[str, Any]] = {}
     for c in todo:
-        r = fit_candidate(
-            views,
-            c.family,
-            mask_train=mask_train,
-            mask_val=mask_val,
-            seed=seed,
-            schedule=schedule,
-            init=c.params,
+        current[c.family], done[c.family] = fit_further(
+            views, c, mask_train=mask_train, mask_val=mask_val, seed=seed, schedule=schedule
         )
-        kept = r if no_worse(r.val_loss, c.val_loss) else c
-        current[c.family] = kept
-        done[c.family] = {
-            "steps": schedule.steps,
-            "val_loss_before": c.val_loss,
-            "val_loss_after": r.val_loss,
-            "kept": kept is r,
-            "seconds": r.seconds,
-        }
         if progress is not None:
             progress(c.family, done[c.family])
     pool = [current[c.family] for c in cands]
@@ -1459,36 +1618,33 @@ def cross_check(
     are fitted on the rest by ``schedule`` as :func:`choose_start` fits them, and
     :func:`pick` (the same rule) chooses over the ``mask_val`` tiles and every fold's
     together.  Where one of the two is the other's warm start (``simple`` the
-    ``principled`` of a ``clearcoat``), it is scored, on the split and in each fold,
-    after ``schedule``'s steps again from its fit, as many as the other had from it.
-    Returns (the family chosen, a summary for metrics.json)."""
+    ``principled`` of a ``clearcoat``) and has had fewer steps (:func:`behind`), it is
+    fitted further (:func:`fit_further`), on the split and in each fold, until it has had
+    as many.  Returns (the family chosen, a summary for metrics.json)."""
     start = time.perf_counter()
     pair = (simple, rival)
     names = [c.family for c in pair]
     needed = {n for c in names for n in (*WARM_FROM.get(c, ()), c)}
     order = [n for n in FAMILIES if n in needed]  # a warm start's families before it
-    # a family the other one's warm start comes from is scored after as many steps again
-    # from its fit, as that one had from it: both then had the same steps, and the check
-    # does not credit the later family with the longer fit (the test set's isotropic
-    # chrome took the anisotropic conductor for it)
-    behind = [a for a, b in (names, names[::-1]) if a in WARM_FROM.get(b, ())]
 
-    def again(c: Candidate, train: Sequence[np.ndarray], held: Sequence[np.ndarray]) -> Candidate:
-        return fit_candidate(
-            views,
-            c.family,
-            mask_train=train,
-            mask_val=held,
-            seed=seed,
-            schedule=schedule,
-            init=c.params,
-        )
+    def level(
+        cur: dict[str, Candidate], train: Sequence[np.ndarray], held: Sequence[np.ndarray]
+    ) -> list[str]:
+        # a family the other one's warm start comes from is fitted further until it has
+        # had as many steps: the check does not credit the later family with the longer
+        # fit (the test set's isotropic chrome took the anisotropic conductor for it)
+        out: list[str] = []
+        while schedule.steps > 0 and (late := [b for b in names if behind(cur[b], cur)]):
+            for a in behind(cur[late[0]], cur):
+                cur[a], _ = fit_further(
+                    views, cur[a], mask_train=train, mask_val=held, seed=seed, schedule=schedule
+                )
+                out.append(a)
+        return out
 
-    pixels: dict[str, list[np.ndarray]] = {}
-    for c in pair:  # on the split: as fitted, or continued
-        pixels[c.family] = [
-            (again(c, mask_train, mask_val) if c.family in behind else c).val_pixels
-        ]
+    split = {c.family: c for c in pair}  # on the split: as fitted, or fitted further
+    continued = level(split, mask_train, mask_val)
+    pixels = {n: [split[n].val_pixels] for n in names}
     unit = [units(mask_val, block)]
     fitted_folds = 0
     for held in fold_masks(mask_train, block, seed, folds):
@@ -1497,18 +1653,13 @@ def cross_check(
             continue
         fitted: dict[str, Candidate] = {}
         for name in order:
-            fitted[name] = fit_candidate(
-                views,
-                name,
-                mask_train=train,
-                mask_val=held,
-                seed=seed,
-                schedule=schedule,
-                init=warm_start(name, fitted, views, train),
+            fitted[name] = fit_warm(
+                views, name, fitted, mask_train=train, mask_val=held, seed=seed, schedule=schedule
             )
+        cur = {n: fitted[n] for n in names}
+        level(cur, train, held)
         for n in names:
-            c = again(fitted[n], train, held) if n in behind else fitted[n]
-            pixels[n].append(c.val_pixels)
+            pixels[n].append(cur[n].val_pixels)
         unit.append(units(held, block))
         fitted_folds += 1
     terms = {n: np.concatenate(pixels[n]) for n in names}
@@ -1523,7 +1674,7 @@ def cross_check(
         "folds": folds,
         "folds_fitted": fitted_folds,
         "families": names,
-        "continued": behind,
+        "continued": sorted(set(continued), key=names.index),
         "tiles": int(np.unique(every).size),
         "val_loss": {c.family: c.val_loss for c in pooled},
         "rival_gain": gain,
@@ -1647,6 +1798,15 @@ def network_start(
                 f"{c.train_loss:.4g}), {c.seconds:.1f} s"
             )
 
+    def caught(name: str, by: str, r: dict[str, Any]) -> None:
+        if report is not None:
+            report(
+                f"caught up {name} with {by}, which started from it: {r['steps']} steps "
+                f"more, held-out loss {r['val_loss_after']:.4g} against "
+                f"{r['val_loss_before']:.4g} ({'kept' if r['kept'] else 'not kept'}), "
+                f"{r['seconds']:.1f} s"
+            )
+
     if images.start == "auto":
         if not any(m.any() for m in held):
             raise InputError(
@@ -1663,7 +1823,9 @@ def network_start(
             tie_tol=images.start_tie_tol,
             sigmas=images.start_tie_sigmas,
             tie_max=images.start_tie_max,
+            catch_up_sources=images.start_catch_up,
             progress=said,
+            caught=caught,
         )
         element, summary = choice.element, choice.summary()
         chosen, cands = choice.chosen, choice.candidates

@@ -321,6 +321,51 @@ def test_report_shows_the_cross_check_of_an_inconclusive_split(tiny_run, tmp_pat
     )
 
 
+def test_report_shows_the_catch_up_of_a_warm_starts_sources(tiny_run, tmp_path):
+    # images.start_catch_up: the first pick warm-started from another family, which was
+    # fitted as many steps further (neural_brdf.inverse.starts.catch_up); the report says
+    # what was picked first, what was fitted further and its held-out loss before and after
+    start = {
+        "family": "roughconductor",
+        "first_pick": "roughconductor_aniso",
+        "params": {"alpha": 0.1},
+        "candidates": [
+            {"family": "roughconductor", "val_loss": 0.000981, "train_loss": 0.00102},
+            {"family": "roughconductor_aniso", "val_loss": 0.000978, "train_loss": 0.00101},
+        ],
+        "caught_up": {
+            "roughconductor": {
+                "steps": 80,
+                "val_loss_before": 0.00112,
+                "val_loss_after": 0.000981,
+                "kept": True,
+                "seconds": 9.5,
+            }
+        },
+        "seconds": 90.0,
+    }
+    init = {"target": "Mitsuba roughconductor (teacher.xml)", "seconds": 110.0, "start": start}
+    run_dir = make_images_run(tiny_run, tmp_path, extra={"init": init})
+    text = " ".join(
+        visible_text(report.write_report(run_dir, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "start's catch-up roughconductor_aniso picked first; the families it starts from "
+        "fitted as long: roughconductor 80 steps more, held-out loss 0.00112 -> 0.000981" in text
+    )
+    # the choice stayed: said so, and a continuation not kept is marked
+    start["caught_up"]["roughconductor"]["kept"] = False
+    start["family"] = start.pop("first_pick")
+    run_dir = make_images_run(tiny_run, tmp_path / "stays", extra={"init": init})
+    text = " ".join(
+        visible_text(report.write_report(run_dir, render=False)["html"].read_text()).split()
+    )
+    assert (
+        "the families the chosen one starts from fitted as long: roughconductor 80 steps "
+        "more, held-out loss 0.00112 -> 0.000981 (not kept); it stays" in text
+    )
+
+
 def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     # an auto start (neural_brdf.inverse.starts.network_start): every family fitted, one
     # chosen, one left out; the report names each with its losses and marks the choice

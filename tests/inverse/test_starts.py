@@ -501,7 +501,7 @@ def _candidate(name: str, terms):
         val_loss=float(terms.mean()),
         val_loss_plain=float(terms.mean()),
         seconds=0.0,
-        steps=0,
+        steps=80,  # a Schedule() fit's
         complexity=fam.complexity,
         element=starts.STAND_IN,
         val_pixels=terms,
@@ -723,7 +723,7 @@ def test_the_choice_rule_comes_from_the_config(mi, materials, monkeypatch):
     monkeypatch.setattr(starts, "choose_start", choose)
     path = materials["diffuse"]
     ties = ["images.start_tie_tol=0.07", "images.start_tie_sigmas=3.5", "images.start_tie_max=0.4"]
-    cfg = config.load(path, ["images.start=auto", *ties])
+    cfg = config.load(path, ["images.start=auto", *ties, "images.start_catch_up=false"])
     views = views_of(path)
     inverse.split_views(views, cfg.images, cfg.train.seed)
     for v in views:
@@ -731,6 +731,7 @@ def test_the_choice_rule_comes_from_the_config(mi, materials, monkeypatch):
     with pytest.raises(RuntimeError, match="stop here"):
         starts.network_start(cfg, views, path.parent / "init")
     assert (seen["tie_tol"], seen["sigmas"], seen["tie_max"]) == (0.07, 3.5, 0.4)
+    assert seen["catch_up_sources"] is False and config.Images().start_catch_up is True
 
 
 def test_the_start_schedules_come_from_the_config():
@@ -940,8 +941,10 @@ def test_continuing_the_contenders_lets_a_family_that_stopped_short_win(monkeypa
     assert calls == ["roughplastic", "principled"] and list(done) == calls
     assert chosen.family == "principled" and chosen.params == {"continued": True}
     assert not margins["roughplastic"]["tied"] and margins["principled"]["above_best"] == 0.0
-    # the roughplastic's continued fit scored worse: its first one stands
-    assert not done["roughplastic"]["kept"] and pool[1] is cands[1]
+    # the roughplastic's continued fit scored worse: its first one stands, the steps it
+    # was given counted behind it
+    assert not done["roughplastic"]["kept"] and pool[1].params is cands[1].params
+    assert pool[1].val_loss == cands[1].val_loss and pool[1].total_steps == 2 * 80
     assert done["principled"]["kept"] and pool[0] is cands[0]
     # the factor bounds the contenders: at 1.2 the roughplastic alone, which stays
     calls.clear()
@@ -1043,7 +1046,7 @@ def test_a_continued_fit_that_diverged_is_never_kept(monkeypatch):
     kw = dict(mask_train=[], mask_val=[], seed=0, schedule=starts.Schedule())
     chosen, pool, done, _ = starts.contend([], cands, first, within=2.0, unit=unit, **kw)
     assert calls == ["roughplastic", "principled"]
-    assert not done["principled"]["kept"] and pool[1] is cands[1]
+    assert not done["principled"]["kept"] and pool[1].params is cands[1].params
     assert done["roughplastic"]["kept"] and chosen.family == "roughplastic"
     assert math.isfinite(chosen.val_loss)
     kept, summary = starts.refine([], cands[1], **kw)  # the principled diverges again
@@ -1336,6 +1339,8 @@ def test_an_inconclusive_split_is_settled_over_folds_of_the_training_tiles(monke
     monkeypatch.setattr(starts, "fit_candidate", _per_pixel(terms, calls))
     kw = dict(mask_train=train, mask_val=held, seed=0)
     first = {n: starts.fit_candidate([None], n, **kw) for n in ("principled", "clearcoat")}
+    # as choose_start fits the coat: from the principled, whose steps are behind it
+    first["clearcoat"] = dataclasses.replace(first["clearcoat"], before=80)
     chosen, margins = starts.pick(list(first.values()), starts.units(held, 4))
     assert chosen.family == "principled" and margins["principled"]["tied"]
     rival = starts.inconclusive(list(first.values()), chosen)
@@ -1407,6 +1412,7 @@ def test_network_start_settles_an_inconclusive_choice_and_says_so(mi, materials,
     for n in ("principled", "clearcoat"):
         px = np.concatenate([t[m] for t, m in zip(terms[n], held, strict=True)])
         first[n] = _first(n, px)
+    first["clearcoat"] = dataclasses.replace(first["clearcoat"], before=80)  # warm-started
     assert starts.inconclusive(list(first.values()), first["principled"]) is first["clearcoat"]
     noise = {"value": float(first["clearcoat"].val_loss)}  # at its floor: no contender
     _, refined = _network_start_fakes(monkeypatch, list(first.values()), {}, noise)
@@ -1437,3 +1443,120 @@ def test_network_start_settles_an_inconclusive_choice_and_says_so(mi, materials,
     _, info, _ = starts.network_start(cfg0, views, path.parent / "init_0")
     s = info["start"]
     assert s["family"] == "principled" and "cross_check" not in s and calls == []
+
+
+# ------------------------------------------------------------------ a warm start's head start
+def test_a_family_is_not_chosen_over_its_source_for_its_longer_fit_alone(monkeypatch):
+    """images.start_catch_up: the anisotropic conductor, warm-started from the isotropic
+    one, has had twice its steps and wins the split by more than the rule's tie; the
+    isotropic conductor fitted as many steps further scores as well (the development
+    silver) and is chosen; where it does not catch up, the richer family stays.  Only the
+    chosen family's sources are fitted further, only while they had fewer steps, and a
+    family fitted without a warm start has no head start to make up."""
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(4)
+    unit = np.repeat(np.arange(12), 16)
+    base = rng.gamma(2.0, 0.0005, unit.size)
+    kw = dict(mask_train=[], mask_val=[], seed=0, schedule=starts.Schedule(), unit=unit)
+    cands = [
+        _first("diffuse", base * 8.0),
+        _first("roughconductor", base * 1.15),
+        dataclasses.replace(_first("roughconductor_aniso", base), before=80),  # from it
+    ]
+    first, margins = starts.pick(cands, unit)
+    assert first.family == "roughconductor_aniso" and not margins["roughconductor"]["tied"]
+    calls: list[str] = []
+    caught_up = {"roughconductor": base * 1.002}
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to(caught_up, calls))
+    seen: list[tuple[str, str]] = []
+    chosen, pool, done, margins, picked = starts.catch_up(
+        [], cands, progress=lambda n, by, r: seen.append((n, by)), **kw
+    )
+    assert calls == ["roughconductor"] and seen == [("roughconductor", "roughconductor_aniso")]
+    assert chosen.family == "roughconductor" and picked == "roughconductor_aniso"
+    assert margins["roughconductor"]["tied"] and done["roughconductor"]["kept"]
+    assert pool[1].total_steps == pool[2].total_steps == 160 and pool[0] is cands[0]
+    assert done["roughconductor"]["val_loss_before"] == cands[1].val_loss
+    # a real second lobe: the conductor fitted further stays worse, and the richer wins
+    calls.clear()
+    stays = {"roughconductor": base * 1.14}
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to(stays, calls))
+    chosen, pool, done, _, picked = starts.catch_up([], cands, **kw)
+    assert chosen.family == picked == "roughconductor_aniso" and calls == ["roughconductor"]
+    # fitted further but worse: not kept, its steps counted, and not fitted again
+    calls.clear()
+    worse = {"roughconductor": base * 1.3}
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to(worse, calls))
+    chosen, pool, done, _, _ = starts.catch_up([], cands, **kw)
+    assert chosen.family == "roughconductor_aniso" and calls == ["roughconductor"]
+    assert not done["roughconductor"]["kept"] and pool[1].val_loss == cands[1].val_loss
+    # no head start: the anisotropic family fitted from its own start
+    calls.clear()
+    cold = [*cands[:2], dataclasses.replace(cands[2], before=0)]
+    chosen, _, done, _, _ = starts.catch_up([], cold, **kw)
+    assert chosen.family == "roughconductor_aniso" and calls == [] and done == {}
+    # the blend starts from both the diffuse and the conductor: both fitted further
+    calls.clear()
+    blend = [*cands[:2], dataclasses.replace(_first("blend", base), before=80)]
+    chosen, _, done, _, _ = starts.catch_up([], blend, **kw)
+    assert sorted(calls) == ["diffuse", "roughconductor"] and chosen.family == "blend"
+
+
+def test_the_best_familys_sources_catch_up_too(monkeypatch):
+    """The least held-out loss sets the tie every family is judged by: a blend ahead by
+    its longer fit leaves the diffuse outside it, and the diffuse fitted as many steps
+    further ties and is chosen over the principled; a source that ties already is not
+    fitted further (it cannot change the choice)."""
+    from neural_brdf.inverse import starts
+
+    rng = np.random.default_rng(8)
+    unit = np.repeat(np.arange(12), 16)
+    base = rng.gamma(2.0, 0.0005, unit.size)
+    kw = dict(mask_train=[], mask_val=[], seed=0, schedule=starts.Schedule(), unit=unit)
+    cands = [
+        _first("diffuse", base * 1.2),
+        _first("principled", base * 1.01),
+        _first("roughconductor", base * 3.0),
+        dataclasses.replace(_first("blend", base), before=80),
+    ]
+    first, margins = starts.pick(cands, unit)
+    assert first.family == "principled" and not margins["diffuse"]["tied"]
+    calls: list[str] = []
+    monkeypatch.setattr(starts, "fit_candidate", _continued_to({"diffuse": base * 1.004}, calls))
+    chosen, _, done, _, picked = starts.catch_up([], cands, **kw)
+    assert sorted(calls) == ["diffuse", "roughconductor"] and picked == "principled"
+    assert chosen.family == "diffuse" and done["diffuse"]["kept"]
+    # the diffuse ties from the start: only the conductor is fitted further
+    calls.clear()
+    tied = [_first("diffuse", base * 1.004), *cands[1:]]
+    chosen, _, done, _, _ = starts.catch_up([], tied, **kw)
+    assert calls == ["roughconductor"] and chosen.family == "diffuse"
+
+
+def test_choose_start_catches_a_source_up_and_records_it(monkeypatch):
+    """choose_start fits the coat from the principled (its steps counted behind it),
+    picks the coat, fits the principled as many steps further, and takes it when it
+    scores as well: the Choice and its summary say what was picked first and what was
+    fitted further; with catch_up_sources off the first pick stands."""
+    from neural_brdf.inverse import starts
+
+    train, held = _masks()
+    floor = [np.random.default_rng(6).gamma(4.0, 0.00025, m.shape) for m in train]
+    terms = {"principled": [1.3 * f for f in floor], "clearcoat": floor}  # 30 % worse
+    calls: list[tuple[str, bool]] = []
+    caught_up = {"principled": terms["clearcoat"]}
+    monkeypatch.setattr(starts, "fit_candidate", _per_pixel(terms, calls, caught_up))
+    kw = dict(masks=(train, held), schedule=starts.Schedule())
+    choice = starts.choose_start([None], ["principled", "clearcoat"], **kw)
+    assert calls == [("principled", False), ("clearcoat", True), ("principled", True)]
+    assert choice.family == "principled" and choice.first_pick == "clearcoat"
+    coat = next(c for c in choice.candidates if c.family == "clearcoat")
+    assert coat.before == 80 and coat.total_steps == choice.chosen.total_steps == 160
+    s = choice.summary()
+    assert s["first_pick"] == "clearcoat" and s["caught_up"]["principled"]["kept"]
+    assert s["candidates"][0]["steps_before"] == 80 and s["candidates"][0]["tied"]
+    calls.clear()
+    off = starts.choose_start([None], ["principled", "clearcoat"], catch_up_sources=False, **kw)
+    assert off.family == "clearcoat" and off.caught_up == {} and "first_pick" not in off.summary()
+    assert calls == [("principled", False), ("clearcoat", True)]

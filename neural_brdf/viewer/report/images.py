@@ -227,6 +227,9 @@ def _fit_figures(run: Run) -> list[Block]:
             )
             how += f" after {why}; {first} before"
         rows.append(["start", f"{chosen['family']} ({how}), distilled into the network{moved}"])
+        caught = chosen.get("caught_up")
+        if isinstance(caught, dict) and caught:  # images.start_catch_up
+            rows.append(["start's catch-up", _catch_up_text(caught, chosen.get("first_pick"))])
         if check is not None:  # images.start_cross_folds
             rows.append(["start's cross-check", _cross_check_text(check)])
         rows += _start_noise_rows(chosen)
@@ -237,6 +240,22 @@ def _fit_figures(run: Run) -> list[Block]:
     rows += _validation_rows(training.get("validation"))
     out: list[Block] = [Table(["figure", "value"], rows)] if rows else []
     return out + _start_candidates(chosen)
+
+
+def _catch_up_text(caught: dict, first: object) -> str:
+    """A line for the families a warm-started first pick started from, fitted further
+    until they had as many steps (inverse.starts.catch_up)."""
+    parts = []
+    for name, r in caught.items():
+        before, after = _finite(r.get("val_loss_before")), _finite(r.get("val_loss_after"))
+        text = f"{name} {r.get('steps')} steps more"
+        if before is not None and after is not None:
+            text += f", held-out loss {before:.4g} -> {after:.4g}"
+        parts.append(text + ("" if r.get("kept") else " (not kept)"))
+    said = "; ".join(parts)
+    if isinstance(first, str):  # the choice made again picked another family
+        return f"{first} picked first; the families it starts from fitted as long: {said}"
+    return f"the families the chosen one starts from fitted as long: {said}; it stays"
 
 
 def _cross_check_text(check: dict) -> str:
