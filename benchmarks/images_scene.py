@@ -236,6 +236,9 @@ def measure(
             "first_choice": start.get("first_choice"),
             # an inconclusive split's cross-check over folds (images.start_cross_folds)
             "cross_check": start.get("cross_check"),
+            # the sources of a warm-started choice fitted further (images.start_catch_up)
+            "caught_up": start.get("caught_up"),
+            "first_pick": start.get("first_pick"),
         },
         "images": images,
         "brdf": brdf,
