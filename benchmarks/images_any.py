@@ -66,7 +66,12 @@ images.start_families; images_any.json and images_any_lights.json were then run 
 at those defaults to report, their earlier files kept as images_any_2026-12-05_six_families.json
 and images_any_lights_2026-12-05_six_families.json; images.start_cross_folds, chosen on
 images_scene.py's development torus, then had both run again, the session-81 files kept
-as images_any_2026-12-06_clearcoat.json and images_any_lights_2026-12-06_clearcoat.json),
+as images_any_2026-12-06_clearcoat.json and images_any_lights_2026-12-06_clearcoat.json;
+images.start_catch_up was measured on the development set first,
+images_any_dev_catch_up.json (development, the five materials whose start was
+warm-started, --only each) and images_scene.py's development silver, then both test
+files run again to report, the session-82 files kept as
+images_any_2026-12-06_cross_check.json and images_any_lights_2026-12-06_cross_check.json),
 the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels

@@ -34,7 +34,10 @@ highlights the split scored within its noise, the sphere benchmark's
 alpha 0.1), which must keep the isotropic family: ``images.start_cross_folds`` (an
 inconclusive split's cross-check over folds of the training tiles) was chosen on these,
 before the test set's paint was run again (images_scene_dev_no_cross_check.json: the
-grey coat with it off).
+grey coat with it off).  images_scene_dev_catch_up.json (development, --only silver):
+the silver with ``images.start_catch_up``, whose first pick was a family warm-started
+from another; the test set was then run again (images_scene.json; the session-82 run
+kept as images_scene_2026-12-06_cross_check.json).
 """
 
 from __future__ import annotations

@@ -1468,7 +1468,14 @@ def images_any_section(
         "`roughconductor` fit's whole steps).",
         "",
     ]
-    return out + _fitted_table(d) + _determined_table(d) + _refine_table(d) + _contenders_table(d)
+    return (
+        out
+        + _fitted_table(d)
+        + _determined_table(d)
+        + _refine_table(d)
+        + _catch_up_table(d)
+        + _contenders_table(d)
+    )
 
 
 def _determined_table(d: dict) -> list[str]:
@@ -1575,6 +1582,46 @@ def _fitted_table(d: dict) -> list[str]:
             ["material", *(f"fitted view {k + 1}" for k in range(views)), "held-out camera"],
             rows,
         ),
+    ]
+
+
+def _caught_up_text(caught: dict) -> str:
+    """The families fitted further by images.start_catch_up, each with its held-out loss
+    before and after and whether the further fit was kept."""
+    return "; ".join(
+        f"`{fam}` {r['val_loss_before']:.3g} → {r['val_loss_after']:.3g}"
+        + ("" if r["kept"] else " (not kept)")
+        for fam, r in caught.items()
+    )
+
+
+def _catch_up_table(d: dict) -> list[str]:
+    """The sources of a warm-started choice (or least loss) fitted as many steps further
+    before the choice was made again (files that record images.start_catch_up)."""
+    rows = []
+    for key, e in d["materials"].items():
+        start = e.get("start") or {}
+        if "caught_up" not in start:
+            continue
+        caught = start.get("caught_up") or {}
+        seconds = sum(r["seconds"] for r in caught.values())
+        rows.append(
+            [
+                key,
+                f"`{start.get('first_pick') or start['family']}`",
+                (_caught_up_text(caught) + f", {seconds:.0f} s") if caught else "none",
+                f"`{start['family']}`",
+            ]
+        )
+    if not rows:
+        return []
+    return [
+        "A warm start's head start (`images.start_catch_up`): where the family picked, or "
+        "the one of least held-out loss, started from families that had fewer steps and "
+        "did not tie, those were fitted as many steps further and the choice made again "
+        "(before the contenders below); the held-out loss before and after.",
+        "",
+        *_table(["material", "first pick", "fitted further", "choice"], rows),
     ]
 
 
@@ -3369,6 +3416,10 @@ def images_scene_section(
             choice = f"`{chosen}` ({cands[chosen]['val_loss']:.5f})"
             if best != chosen:
                 choice += f"; `{best}` {cands[best]['val_loss']:.5f}, tied"
+            caught = r["start"].get("caught_up")
+            if caught:  # images.start_catch_up: a warm start's sources fitted further
+                pick = r["start"].get("first_pick") or chosen
+                choice += f"; `{pick}` picked first, caught up: {_caught_up_text(caught)}"
             if check:  # images.start_cross_folds: the split's tie settled over folds
                 first = r["start"].get("first_choice")
                 if first and first != chosen:
@@ -3425,7 +3476,9 @@ def images_scene_section(
         "",
         _source(
             f"benchmarks/results/{name}",
-            "python benchmarks/images_scene.py" + (" --set dev" if d.get("set") == "dev" else ""),
+            "python benchmarks/images_scene.py"
+            + (" --set dev" if d.get("set") == "dev" else "")
+            + "".join(f" --only {m}" for m in d["materials"] if len(d["materials"]) == 1),
         ),
         _recorded(d["date"], f"{d['machine']['platform']}, {d['machine']['cores']} cores", load),
         f"A torus mesh (radii {t[0]:g} and {t[1]:g}, {t[2]} x {t[3]} segments, an OBJ file) "
@@ -3437,8 +3490,8 @@ def images_scene_section(
         "2-pixel erosion) as in the table of images_any.json; the config and the pipeline "
         "are the benchmark's. "
         + (
-            "Both materials are the development set's: images.start_cross_folds was chosen "
-            "on them. "
+            "The materials are the development set's, on which images.start_cross_folds "
+            "and images.start_catch_up were chosen. "
             if d.get("set") == "dev"
             else "Neither material chose any setting. "
         )
@@ -3498,8 +3551,13 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since session 82: an inconclusive split checked on folds, "
-        "images.start_cross_folds 2",
+        "the defaults since session 83: a warm start's sources fitted as long before the "
+        "choice, images.start_catch_up",
+    ),
+    _images_any(
+        "images_any_2026-12-06_cross_check.json",
+        "the defaults of session 82, before images.start_catch_up: an inconclusive split "
+        "checked on folds, images.start_cross_folds 2",
     ),
     _images_any(
         "images_any_2026-12-06_clearcoat.json",
@@ -3529,8 +3587,13 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the defaults since session 82: an inconclusive split checked on folds, "
-        "images.start_cross_folds 2",
+        "the defaults since session 83: a warm start's sources fitted as long before the "
+        "choice, images.start_catch_up",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-06_cross_check.json",
+        "the defaults of session 82, before images.start_catch_up: an inconclusive split "
+        "checked on folds, images.start_cross_folds 2",
     ),
     _images_any(
         "images_any_lights_2026-12-06_clearcoat.json",
@@ -3707,6 +3770,15 @@ SECTIONS = (
     (RESULTS / "images_valley_test.json", images_valley_section),
     (RESULTS / "images_scene.json", images_scene_section),
     (
+        RESULTS / "images_scene_2026-12-06_cross_check.json",
+        partial(
+            images_scene_section,
+            name="images_scene_2026-12-06_cross_check.json",
+            title="session 82's run, before images.start_catch_up, which changed neither "
+            "choice here",
+        ),
+    ),
+    (
         RESULTS / "images_scene_2026-12-06_no_cross_check.json",
         partial(
             images_scene_section,
@@ -3732,6 +3804,15 @@ SECTIONS = (
         ),
     ),
     (
+        RESULTS / "images_scene_dev_catch_up.json",
+        partial(
+            images_scene_section,
+            name="images_scene_dev_catch_up.json",
+            title="development: the silver with images.start_catch_up, its principled and "
+            "conductor fitted as long as the families started from them",
+        ),
+    ),
+    (
         RESULTS / "images_scene_dev_no_cross_check.json",
         partial(
             images_scene_section,
@@ -3747,6 +3828,12 @@ SECTIONS = (
             title="the clear-coated paint with its family named, images.start: clearcoat "
             "(what a user who knows the material is coated can do; not a default)",
         ),
+    ),
+    _images_any(
+        "images_any_dev_catch_up.json",
+        "the five whose start was warm-started (two brushed metals, the clay, the glazed "
+        "blend, the lacquered wood) with images.start_catch_up: the families they started "
+        "from fitted as long",
     ),
     _images_any(
         "images_any_dev_clearcoat.json",

@@ -1263,7 +1263,7 @@ def choose_start(
     pixels of a seeded split (:func:`split_pixels` with ``val_share``, ``block``,
     ``seed``; or ``masks`` = (train, held-out) given) and choose by the held-out loss
     (:func:`pick`; with ``catch_up_sources``, :func:`catch_up`: a warm-started family
-    chosen is compared with the families it starts from after as many steps).  The
+    chosen, or of least loss, is judged against its sources after as many steps).  The
     views are all it looks at: the scenes' own ``<bsdf id="fit">`` plays no part.
     ``progress`` is called with each candidate when it is fitted, ``caught`` as
     :func:`catch_up`'s ``progress``."""
@@ -1901,7 +1901,7 @@ def network_start(
             else None
         )
         if rival is not None:  # the split tied them by its standard error alone
-            fitted = {c.family: c for c in cands}  # as first fitted: the folds' schedule
+            fitted = {c.family: c for c in cands}  # before the contenders: as the folds fit them
             won, check = cross_check(
                 views,
                 fitted[chosen.family],
