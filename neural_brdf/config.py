@@ -314,11 +314,11 @@ class Images(_Section):
     # again on the continued losses, unless the chosen one is already within
     # start_tie_max of the targets' noise (null: never; docs/inverse.md, "The contenders")
     start_continue_within: float | None = Field(2.0, ge=1.0)
-    # auto's choice, or its least held-out loss, a family warm-started from others
-    # (clearcoat from principled, roughconductor_aniso from roughconductor, blend from
-    # diffuse and roughconductor): those that do not tie are fitted further until they
-    # have had as many steps, and the choice made again, so a family never wins over its
-    # source for its longer fit alone (docs/inverse.md, "A warm start's head start")
+    # auto's choice a family warm-started from others (clearcoat from principled,
+    # roughconductor_aniso from roughconductor, blend from diffuse and roughconductor):
+    # those are fitted further until they have had as many steps, and the choice made
+    # again, so a family never wins over its source for its longer fit alone
+    # (docs/inverse.md, "A warm start's head start")
     start_catch_up: bool = True
     # ... at most this many of them, the chosen one and the others of least held-out loss
     # (null: every one within the factor; docs/inverse.md, "The contenders")

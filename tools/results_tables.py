@@ -1616,10 +1616,11 @@ def _catch_up_table(d: dict) -> list[str]:
     if not rows:
         return []
     return [
-        "A warm start's head start (`images.start_catch_up`): where the family picked, or "
-        "the one of least held-out loss, started from families that had fewer steps and "
-        "did not tie, those were fitted as many steps further and the choice made again "
-        "(before the contenders below); the held-out loss before and after.",
+        "A warm start's head start (`images.start_catch_up`): where the family picked "
+        "started from families that had fewer steps, those were fitted as many steps "
+        "further and the choice made again (before the contenders below); the held-out "
+        "loss before and after. Runs of session 83 also fitted further the sources of "
+        "the family of least held-out loss, a first form of the rule, since narrowed.",
         "",
         *_table(["material", "first pick", "fitted further", "choice"], rows),
     ]

@@ -1200,12 +1200,11 @@ def catch_up(
     tie_max: float = TIE_MAX,
     progress: Callable[[str, str, dict[str, Any]], None] | None = None,
 ) -> tuple[Candidate, list[Candidate], dict[str, dict[str, Any]], dict[str, dict[str, Any]], str]:
-    """:func:`pick`, and while the family chosen, or the one of least held-out loss (whose
-    loss sets the tie), was warm-started from families that had fewer steps
-    (:func:`behind`: a ``clearcoat`` from a ``principled`` has had the principled's steps
-    and its own) and do not tie, fit those further (:func:`fit_further`, by
+    """:func:`pick`, and while the family chosen was warm-started from families that had
+    fewer steps (:func:`behind`: a ``clearcoat`` from a ``principled`` has had the
+    principled's steps and its own), fit those further (:func:`fit_further`, by
     ``schedule``) until they have had as many, and pick again: a family never wins over
-    the one it starts from, nor sets the bar for it, by its longer fit alone.  Returns
+    the one it starts from by its longer fit alone.  Returns
     (the candidate chosen, every candidate as it now stands (in ``cands``' order), per
     family fitted further its record, :func:`pick`'s margins, the family picked first).
     ``progress``: called with each family fitted further, the family it caught up
@@ -1217,14 +1216,11 @@ def catch_up(
         pool = [current[c.family] for c in cands]
         chosen, margins = pick(pool, unit, tie_tol=tie_tol, sigmas=sigmas, tie_max=tie_max)
         first = first or chosen.family
-        best = min(pool, key=lambda c: c.val_loss if math.isfinite(c.val_loss) else math.inf)
-        # the sources behind the chosen family, and behind the best, whose loss sets the
-        # tie every other is judged by; one that ties already cannot change the choice
-        todo = [
-            n
-            for n in dict.fromkeys(behind(chosen, current) + behind(best, current))
-            if not margins.get(n, {}).get("tied", False)
-        ]
+        # the chosen family's sources alone: catching up the sources of another (the
+        # best) would give them steps the chosen one never had, the same bias the other
+        # way (a CI copper's principled, caught up with the clearcoat, displaced its
+        # roughconductor); a source that ties is simpler than the chosen one, so none does
+        todo = behind(chosen, current)
         if not todo or schedule.steps <= 0:
             return chosen, pool, done, margins, first
         for n in todo:
@@ -1263,7 +1259,7 @@ def choose_start(
     pixels of a seeded split (:func:`split_pixels` with ``val_share``, ``block``,
     ``seed``; or ``masks`` = (train, held-out) given) and choose by the held-out loss
     (:func:`pick`; with ``catch_up_sources``, :func:`catch_up`: a warm-started family
-    chosen, or of least loss, is judged against its sources after as many steps).  The
+    chosen is judged against its sources after as many steps).  The
     views are all it looks at: the scenes' own ``<bsdf id="fit">`` plays no part.
     ``progress`` is called with each candidate when it is fitted, ``caught`` as
     :func:`catch_up`'s ``progress``."""
