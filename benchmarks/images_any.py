@@ -793,8 +793,8 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
             "first_choice": start.get("first_choice"),
             # an inconclusive split's cross-check over folds (images.start_cross_folds)
             "cross_check": start.get("cross_check"),
-            # the families a warm-started choice (or least loss) started from, fitted as
-            # many steps further (images.start_catch_up), and what was picked before
+            # the families a warm-started choice started from, fitted as many steps
+            # further (images.start_catch_up), and what was picked before
             "caught_up": start.get("caught_up"),
             "first_pick": start.get("first_pick"),
             # the poor-start rule's inputs (images.poor_start_loss): the chosen start's

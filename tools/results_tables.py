@@ -1596,8 +1596,8 @@ def _caught_up_text(caught: dict) -> str:
 
 
 def _catch_up_table(d: dict) -> list[str]:
-    """The sources of a warm-started choice (or least loss) fitted as many steps further
-    before the choice was made again (files that record images.start_catch_up)."""
+    """The sources of a warm-started choice fitted as many steps further before the
+    choice was made again (files that record images.start_catch_up)."""
     rows = []
     for key, e in d["materials"].items():
         start = e.get("start") or {}
@@ -3479,7 +3479,7 @@ def images_scene_section(
             f"benchmarks/results/{name}",
             "python benchmarks/images_scene.py"
             + (" --set dev" if d.get("set") == "dev" else "")
-            + "".join(f" --only {m}" for m in d["materials"] if len(d["materials"]) == 1),
+            + (f" --only {next(iter(d['materials']))}" if len(d["materials"]) == 1 else ""),
         ),
         _recorded(d["date"], f"{d['machine']['platform']}, {d['machine']['cores']} cores", load),
         f"A torus mesh (radii {t[0]:g} and {t[1]:g}, {t[2]} x {t[3]} segments, an OBJ file) "

@@ -1630,12 +1630,13 @@ def cross_check(
         # had as many steps: the check does not credit the later family with the longer
         # fit (the test set's isotropic chrome took the anisotropic conductor for it)
         out: list[str] = []
-        while schedule.steps > 0 and (late := [b for b in names if behind(cur[b], cur)]):
-            for a in behind(cur[late[0]], cur):
-                cur[a], _ = fit_further(
-                    views, cur[a], mask_train=train, mask_val=held, seed=seed, schedule=schedule
-                )
-                out.append(a)
+        for b in names:
+            while schedule.steps > 0 and (todo := behind(cur[b], cur)):
+                for a in todo:
+                    cur[a], _ = fit_further(
+                        views, cur[a], mask_train=train, mask_val=held, seed=seed, schedule=schedule
+                    )
+                    out.append(a)
         return out
 
     split = {c.family: c for c in pair}  # on the split: as fitted, or fitted further
