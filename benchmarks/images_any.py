@@ -673,7 +673,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     from images_patience import scorings
 
     from neural_brdf import config, pipeline, runtime
-    from neural_brdf.inverse import coverage, determined, starts
+    from neural_brdf.inverse import coverage, determined, families
     from neural_brdf.inverse import fit as inverse
 
     folder = work / name
@@ -694,14 +694,14 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
     # the truth and the two fitted materials
     truth_bsdf = inverse.mitsuba_bsdf(truth)
     net_el = inverse.bsdf_element("neural_brdf", filename=str(run_dir / "model.onnx"))
-    start_el = starts.family(start["family"]).element(start["params"]) if start else None
+    start_el = families.family(start["family"]).element(start["params"]) if start else None
     model = runtime.load(run_dir / "model.onnx")
 
     # the chosen family before images.start_refine_steps (when they ran): its parameters
     # at the end of the choice's fit
     refined = start.get("refine") or {}
     before_el = (
-        starts.family(start["family"]).element(refined["params_before"]) if refined else None
+        families.family(start["family"]).element(refined["params_before"]) if refined else None
     )
 
     fitted_els = {"start": start_el, "start_unrefined": before_el}

@@ -152,7 +152,7 @@ def measure(
 
     from neural_brdf import config, pipeline, runtime
     from neural_brdf.fileio import atomic_write
-    from neural_brdf.inverse import coverage, determined, scene, starts
+    from neural_brdf.inverse import coverage, determined, families, scene
     from neural_brdf.inverse import fit as inverse
 
     folder = work / name
@@ -183,7 +183,7 @@ def measure(
     tr = metrics["training"]
     start = tr["init"]["start"]
     net_el = inverse.bsdf_element("neural_brdf", filename=str(run_dir / "model.onnx"))
-    start_el = starts.family(start["family"]).element(start["params"])
+    start_el = families.family(start["family"]).element(start["params"])
     model = runtime.load(run_dir / "model.onnx")
     truth_bsdf = inverse.mitsuba_bsdf(truth)
 

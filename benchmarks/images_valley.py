@@ -81,8 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     import images_any
 
     from neural_brdf import config, pipeline
+    from neural_brdf.inverse import families, starts
     from neural_brdf.inverse import fit as inverse
-    from neural_brdf.inverse import starts
 
     mi = inverse.use_variant("llvm_ad_rgb")
     import neural_brdf.renderers.mitsuba  # noqa: F401  (registers analytic_brdf)
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         if start["family"] != "blend":
             print(f"{material}: the start is {start['family']}, not blend", file=sys.stderr)
             return 1
-        fam = starts.family("blend")
+        fam = families.family("blend")
         views = inverse.read_views(cfg)
         for v in views:
             v.object = starts.object_mask(v)

@@ -83,13 +83,13 @@ def distil_one(material: dict, lr: float, steps: int, seed: int, work: Path) -> 
     import numpy as np
     import torch
 
+    from neural_brdf.inverse import families, starts
     from neural_brdf.inverse import fit as inverse
-    from neural_brdf.inverse import starts
     from neural_brdf.train.model import RawBRDF
 
     family, params = material["start"]["family"], material["start"]["params"]
     cfg = network_config(family, lr, steps, seed)
-    element = starts.family(family).element(params)
+    element = families.family(family).element(params)
     t0 = time.perf_counter()
     state, _ = starts.distill(cfg, element, work, steps)
     seconds = time.perf_counter() - t0

@@ -4,7 +4,7 @@ or recorded once per view and replayed (issue 29, item 4: the whole fit within 3
     python benchmarks/start_fit.py                        # about five minutes on 2 cores
     python benchmarks/start_fit.py --rounds 2 --out /tmp/start_fit.json
 
-``images.start: auto`` fits every family of :data:`neural_brdf.inverse.starts.FAMILIES`
+``images.start: auto`` fits every family of :data:`neural_brdf.inverse.families.FAMILIES`
 (Mitsuba's own BSDFs) to the training pixels, then the contenders and the chosen one's
 refinement: most of an image fit's time before the network.  A step of such a fit
 renders each view with ``mi.render`` (primal and gradient passes), takes the relative
@@ -88,17 +88,17 @@ def main(argv: list[str] | None = None) -> int:
     from neural_brdf.inverse import fit as inverse
 
     mi = inverse.use_variant("llvm_ad_rgb")
-    from neural_brdf.inverse import starts
+    from neural_brdf.inverse import families, starts
 
     load_before = loadavg()
     sched = starts.Schedule()
-    seconds = {f: {r: math.inf for r in ROUTES} for f in starts.FAMILIES}
-    worst = {f: {"params": 0.0, "val_loss": 0.0} for f in starts.FAMILIES}
+    seconds = {f: {r: math.inf for r in ROUTES} for f in families.FAMILIES}
+    worst = {f: {"params": 0.0, "val_loss": 0.0} for f in families.FAMILIES}
     with tempfile.TemporaryDirectory() as tmp:
         views = inverse.read_views(config.load(write_views(Path(tmp))))
         train, held = starts.split_pixels(views, 0.3, seed=0)
         for r in range(args.rounds):
-            for name, fam in starts.FAMILIES.items():
+            for name, fam in families.FAMILIES.items():
                 fits = {}
                 for route, freeze in ROUTES.items():
                     t0 = time.perf_counter()

@@ -788,13 +788,13 @@ def _saved_init(folder: runfolder.Folder) -> dict[str, Any] | None:
 def _start_element(init: Any) -> ET.Element | None:
     """The ``<bsdf>`` of a fit's start (its ``init`` record): the chosen family's, the
     ``ggx`` start's fitted ``roughconductor``; None for the constant start."""
-    from neural_brdf.inverse import starts
+    from neural_brdf.inverse import families
 
     if not isinstance(init, dict):
         return None
     start, rough = init.get("start"), init.get("roughconductor")
     if isinstance(start, dict) and start.get("family") and start.get("params"):
-        return starts.family(str(start["family"])).element(start["params"])
+        return families.family(str(start["family"])).element(start["params"])
     if isinstance(rough, dict) and "alpha" in rough:
         return roughconductor_element(rough)
     return None

@@ -35,6 +35,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from neural_brdf import config
+from neural_brdf.inverse import families
 
 pytestmark = pytest.mark.mitsuba
 
@@ -94,11 +95,10 @@ def write_material(
 
 @pytest.fixture(scope="module")
 def materials(mi, tmp_path_factory) -> dict[str, Path]:
-    from neural_brdf.inverse import starts
 
     out = {}
     for name, truth in _truths().items():
-        fam = starts.FAMILIES[DECOYS[name]]
+        fam = families.FAMILIES[DECOYS[name]]
         decoy = fam.element(fam.numbers(fam.free_of(fam.initial())))
         out[name] = write_material(tmp_path_factory.mktemp(name), truth, decoy)
     return out
@@ -113,7 +113,6 @@ def views_of(path: Path):
 def truth_figures(name: str, mi) -> dict[str, np.ndarray]:
     """The truth's key parameters, read from its Mitsuba BSDF (tests only)."""
     from neural_brdf.inverse import fit as inverse
-    from neural_brdf.inverse import starts
 
     params = mi.traverse(inverse.mitsuba_bsdf(_truths()[name]))
 
@@ -126,7 +125,7 @@ def truth_figures(name: str, mi) -> dict[str, np.ndarray]:
         return {"diffuse_reflectance": get("diffuse_reflectance.value"), "alpha": get("alpha")}
     return {
         "alpha": get("alpha.value"),
-        "f0": starts.conductor_f0(get("eta.value"), get("k.value")),
+        "f0": families.conductor_f0(get("eta.value"), get("k.value")),
     }
 
 
@@ -169,7 +168,7 @@ def test_choice_finds_the_family_and_its_parameters(mi, materials, name):
         assert err <= tol, f"{name}: {key} {true.params[key]} against {value} ({err:.1%})"
     summary = choice.summary()
     assert summary["family"] == choice.family
-    assert [c["family"] for c in summary["candidates"]] == list(starts.DEFAULT)
+    assert [c["family"] for c in summary["candidates"]] == list(families.DEFAULT)
     assert all(math.isfinite(c["val_loss"]) for c in summary["candidates"])
 
 
@@ -302,9 +301,8 @@ FREE = st.floats(-1e6, 1e6, allow_nan=False) | st.sampled_from([-1e30, -80.0, 0.
 @settings(max_examples=200, deadline=None)
 @given(data=st.data())
 def test_every_free_variable_gives_parameters_in_range(data):
-    from neural_brdf.inverse import starts
 
-    fam = starts.FAMILIES[data.draw(st.sampled_from(sorted(starts.FAMILIES)))]
+    fam = families.FAMILIES[data.draw(st.sampled_from(sorted(families.FAMILIES)))]
     free = {
         n: np.array(data.draw(st.lists(FREE, min_size=p.channels, max_size=p.channels)))
         for n, p in fam.params.items()
@@ -317,9 +315,9 @@ def test_every_free_variable_gives_parameters_in_range(data):
         if n in values:
             assert np.all(values[n] <= 1.0)
     if "f0" in values:
-        eta, k = starts.eta_k(values["f0"], values["edge_tint"], np)
+        eta, k = families.eta_k(values["f0"], values["edge_tint"], np)
         assert np.all(np.isfinite(eta)) and np.all(eta > 0) and np.all(np.isfinite(k))
-        assert np.allclose(starts.conductor_f0(eta, k), values["f0"], rtol=1e-6, atol=1e-9)
+        assert np.allclose(families.conductor_f0(eta, k), values["f0"], rtol=1e-6, atol=1e-9)
     # free_of inverts values (up to its clamp, 1e-4 of the range inside either end)
     back = fam.values(fam.free_of(values), np)
     for n, p in fam.params.items():
@@ -334,13 +332,12 @@ def test_the_principled_metallic_reaches_a_dielectric_and_a_metal():
     about the rate per step; at 0.02 a step (the refinement's), the principled's
     metallic goes from its start to within 1e-3 of either end in at most 60 steps (the
     logistic map needs 300 to 390: a dielectric fitted as metallic 0.05 to 0.1)."""
-    from neural_brdf.inverse import starts
 
-    b = starts.FAMILIES["principled"].params["metallic"].bound
+    b = families.FAMILIES["principled"].params["metallic"].bound
     assert float(b.value(np.array(0.0), np)) == 0.0
     assert float(b.value(np.array(math.pi / 2), np)) == 1.0
     for end, sign in ((0.0, -1.0), (1.0, 1.0)):
-        z = float(b.free(np.array(starts.METALLIC_START)))
+        z = float(b.free(np.array(families.METALLIC_START)))
         steps = 0
         while abs(float(b.value(np.array(z), np)) - end) > 1e-3 and steps < 1000:
             z += sign * 0.02
@@ -356,9 +353,8 @@ def test_mitsuba_gets_valid_parameters_for_any_free_variable(mi, data):
     import drjit as dr
 
     from neural_brdf.inverse import fit as inverse
-    from neural_brdf.inverse import starts
 
-    fam = starts.FAMILIES[data.draw(st.sampled_from(sorted(starts.FAMILIES)))]
+    fam = families.FAMILIES[data.draw(st.sampled_from(sorted(families.FAMILIES)))]
     free = {n: [data.draw(FREE) for _ in range(p.channels)] for n, p in fam.params.items()}
     typed = {n: mi.Float(z[0]) if len(z) == 1 else mi.Color3f(*z) for n, z in free.items()}
     values = fam.values(typed, dr)
@@ -400,7 +396,7 @@ def test_teacher_xml_round_trips_through_mitsuba_target(mi, tmp_path, name):
     from neural_brdf.inverse import starts
     from neural_brdf.measured.mitsuba import MitsubaTarget
 
-    fam = starts.FAMILIES[name]
+    fam = families.FAMILIES[name]
     rng = np.random.default_rng(1)
     free = {n: rng.normal(size=p.channels) for n, p in fam.params.items()}
     if name == "roughconductor_aniso":
@@ -493,7 +489,7 @@ def _candidate(name: str, terms):
     from neural_brdf.inverse import starts
 
     terms = np.asarray(terms, np.float64)
-    fam = starts.family(name)
+    fam = families.family(name)
     return starts.Candidate(
         family=name,
         params={},
@@ -535,10 +531,44 @@ def test_pick_takes_the_simpler_family_within_the_noise_and_never_a_much_worse_o
 
 
 def test_the_config_names_every_family_and_only_those():
+    assert tuple(families.FAMILIES) == config.START_FAMILIES
+    aniso = {n for n, f in families.FAMILIES.items() if f.anisotropic}
+    assert set(config.ANISOTROPIC_FAMILIES) == aniso
+    for name, fam in families.FAMILIES.items():  # a warm start's sources are fitted first
+        order = list(families.FAMILIES)
+        assert (fam.warm is None) == (not fam.warm_from), name
+        assert all(order.index(n) < order.index(name) for n in fam.warm_from), name
+
+
+def test_a_family_added_to_the_registry_alone_is_fitted_warm_started_and_chosen(
+    mi, materials, monkeypatch
+):
+    """A new family is one entry of families.FAMILIES: the choice fits it, starts it from
+    the family it names by its own rule (its steps counted behind it), scores it and
+    may choose it, with nothing in starts.py naming it.  Here a diffuse started from the
+    fitted diffuse with its reflectance a fifth too bright."""
     from neural_brdf.inverse import starts
 
-    assert tuple(starts.FAMILIES) == config.START_FAMILIES
-    assert set(config.ANISOTROPIC_FAMILIES) <= set(starts.FAMILIES)
+    calls = []
+
+    def brighter(fitted, views, mask_train):
+        calls.append((sorted(fitted), len(views), len(mask_train)))
+        return {"reflectance": np.asarray(fitted["diffuse"].params["reflectance"]) * 1.2}
+
+    base = families.FAMILIES["diffuse"]
+    toy = dataclasses.replace(base, name="diffuse_again", warm_from=("diffuse",), warm=brighter)
+    monkeypatch.setitem(families.FAMILIES, "diffuse_again", toy)
+    views = views_of(materials["diffuse"])
+    sched = starts.Schedule(steps=6, spp=4, primal_spp=8, val_spp=16)
+    choice = starts.choose_start(views, ["diffuse", "diffuse_again"], seed=3, schedule=sched)
+    assert [c.family for c in choice.candidates] == ["diffuse", "diffuse_again"]
+    assert calls and calls[0][0] == ["diffuse"], calls
+    by = {c.family: c for c in choice.candidates}
+    assert by["diffuse_again"].before == by["diffuse"].total_steps >= 6
+    assert all(math.isfinite(c.val_loss) for c in choice.candidates)
+    assert choice.family in by and choice.summary()["candidates"][1]["family"] == "diffuse_again"
+    # without the source fitted, the family starts from its own start
+    assert starts.warm_start("diffuse_again", {}, views, []) is None
 
 
 # ------------------------------------------------------------------ refining the choice
@@ -632,7 +662,7 @@ def test_a_frozen_step_fits_what_a_traced_one_does(mi, materials, name, monkeypa
     monkeypatch.setattr(dr, "freeze", spy)
     views = views_of(materials["roughplastic"])
     train, held = starts.split_pixels(views, 0.3, seed=2)
-    fam = starts.FAMILIES[name]
+    fam = families.FAMILIES[name]
     kw = {"mask_train": train, "mask_val": held, "seed": 2}
     fits = {
         freeze: starts.fit_candidate(
