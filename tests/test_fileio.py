@@ -4,6 +4,7 @@ with a path that is a FIFO, a device, a symbolic link or a folder."""
 import errno
 import math
 import os
+import re
 import stat
 import threading
 from pathlib import Path
@@ -55,6 +56,36 @@ def test_no_other_module_writes_through_mkstemp():
     package = Path(fileio.__file__).parent
     users = sorted(p.name for p in package.rglob("*.py") if "mkstemp" in p.read_text())
     assert users == ["fileio.py"]
+
+
+# a write straight to a path: the file is truncated before it is whole
+DIRECT_WRITES = re.compile(
+    r"\.write_text\(|\.write_bytes\(|\bopen\([^)]*[\"'][wx]b?[\"']"
+    r"|\.savefig\((?!buf\b|tmp\b)|torch\.save\((?![^,]*,\s*buf\b)"
+)
+# (file, the line's text) of the writes that are not a user's file, each with why
+NOT_A_USERS_FILE = {
+    # the reference's ONNX bytes, into a TemporaryDirectory of its own
+    ("viewer/page.py", "onnx_path.write_bytes(payload)"),
+}
+
+
+def test_every_write_of_the_package_is_atomic():
+    """No module but fileio writes a file by truncating it in place (``write_text``,
+    ``open(..., "w")``, ``savefig(path)``, ``torch.save(obj, path)``): each writes
+    whole through fileio, so that an interrupted or failed write leaves the file as it
+    was.  A log is appended to after fileio has written its head."""
+    package = Path(fileio.__file__).parent
+    found = set()
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(package).as_posix()
+        if rel == "fileio.py":
+            continue
+        for line in path.read_text().splitlines():
+            code = line.split("#", 1)[0].strip()
+            if DIRECT_WRITES.search(code):
+                found.add((rel, code))
+    assert found == NOT_A_USERS_FILE, sorted(found - NOT_A_USERS_FILE)
 
 
 # ---------------------------------------------------------------- what the path already is

@@ -312,11 +312,16 @@ class RunFiles:
             return [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
 
     def open_log(self, rows: list[dict[str, str]]) -> None:
+        """log.csv anew with ``rows`` (a resumed run's, up to its checkpoint), replaced
+        whole (an interrupted resume keeps the old file), then appended to row by row."""
         try:
-            self._fh = open(self.log_path, "w", newline="")
+            head = io.StringIO(newline="")
+            writer = csv.DictWriter(head, self.columns, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+            atomic_write(self.log_path, head.getvalue())
+            self._fh = open(self.log_path, "a", newline="")
             self._writer = csv.DictWriter(self._fh, self.columns, extrasaction="ignore")
-            self._writer.writeheader()
-            self._writer.writerows(rows)
         except OSError as e:
             raise _cannot_write(self.log_path, e) from None
 

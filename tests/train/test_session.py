@@ -60,6 +60,36 @@ def test_extra_log_columns_are_written_and_kept_on_resume(tmp_path):
     assert got[0]["val_rel_rmse"] == "" and got[0]["loss"] == "0.5"
 
 
+def test_a_resume_that_cannot_write_its_log_leaves_the_old_one_whole(tmp_path, monkeypatch):
+    """A resume rewrites log.csv with the rows up to its checkpoint: whole through
+    fileio, so a resume stopped there (here: writing the rows fails) leaves the old log
+    as it was, never a truncated one."""
+    c = cfg()
+    first = Session.one(c, tmp_path / "r")
+    first.begin()
+    fake_loop(first)
+    log = tmp_path / "r" / "log.csv"
+    before = log.read_bytes()
+    assert [r["step"] for r in rows(log)] == ["2", "4", "6"]
+
+    def fail(self, rowdicts):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(csv.DictWriter, "writerows", fail)
+    again = Session.one(
+        c.model_copy(update={"train": c.train.model_copy(update={"steps": 8})}),
+        tmp_path / "r",
+        resume=True,
+    )
+    ckpt = again.resumed()
+    assert ckpt is not None and ckpt["step"] == 6
+    with pytest.raises(Exception, match="log.csv"):
+        again.begin()
+        again.restore(ckpt)
+        fake_loop(again)
+    assert log.read_bytes() == before
+
+
 def test_a_checkpoint_of_another_kind_is_not_resumed(tmp_path):
     c = cfg()
     files = RunFiles(c, Session.one(c, tmp_path / "r").files.folder, kind="images")

@@ -116,4 +116,6 @@ def summary_figure(rows: list[dict], path: Path) -> None:
         ax.grid(axis="x", alpha=0.3)
     axes[0].set_yticks(list(y), names, fontsize=7)
     axes[0].invert_yaxis()
-    fig.savefig(path, dpi=110)
+    buf = io.BytesIO()  # written whole or not at all, as every file of a sweep
+    fig.savefig(buf, format="png", dpi=110)
+    atomic_write(path, buf.getvalue())
