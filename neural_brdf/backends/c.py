@@ -35,22 +35,10 @@ class CRenderer(CStyleRenderer):
     functions = {
         **CStyleRenderer.functions,
         **{
+            # the IR's functions (graph.UNARY, but neg, an operator, and abs) in
+            # float: sqrtf, expf, ...
             op: f"{op}f"
-            for op in (
-                "sqrt",
-                "exp",
-                "log",
-                "floor",
-                "ceil",
-                "sin",
-                "cos",
-                "atan",
-                "asin",
-                "acos",
-                "tanh",
-                "erf",
-                "pow",
-            )
+            for op in (*(u for u in graph.UNARY if u not in ("neg", "abs")), "pow")
         },
         "abs": "fabsf",
         "isnan": "isnan",

@@ -163,6 +163,24 @@ def _without_dumps(text: str, longest: int = 40) -> str:
     return "".join(out)
 
 
+@contextlib.contextmanager
+def variant_scope(mi: Any, variant: str) -> Iterator[None]:
+    """Mitsuba's variant is ``variant`` inside, the one before after (a no-op when it
+    is already: a switch costs ~0.15 s, so a process that uses another variant pays it
+    per call).  The teachers' (:class:`MitsubaTarget`, the textured one's) evaluations
+    run inside it."""
+    before = mi.variant()
+    if before == variant:
+        yield
+        return
+    mi.set_variant(variant)
+    try:
+        yield
+    finally:
+        if before is not None:
+            mi.set_variant(before)
+
+
 def _children(mi: Any, obj: Any) -> list[tuple[str, Any]]:
     """(name, object) of the objects ``obj`` holds (Mitsuba's traversal)."""
 
@@ -330,21 +348,9 @@ class MitsubaTarget:
             self.albedo_table = self._bound()
 
     # ------------------------------------------------------------------ loading
-    @contextlib.contextmanager
-    def _scope(self) -> Iterator[None]:
-        """Mitsuba's variant is the teacher's inside (a no-op when it is already: a
-        switch costs ~0.15 s, so a process that uses another variant pays it per call)."""
-        mi = self._mi
-        before = mi.variant()
-        if before == self.variant:
-            yield
-            return
-        mi.set_variant(self.variant)
-        try:
-            yield
-        finally:
-            if before is not None:
-                mi.set_variant(before)
+    def _scope(self) -> contextlib.AbstractContextManager[None]:
+        """Mitsuba's variant is the teacher's inside (:func:`variant_scope`)."""
+        return variant_scope(self._mi, self.variant)
 
     def _the_bsdf(self, obj: Any, where: str) -> tuple[Any, str]:
         mi = self._mi

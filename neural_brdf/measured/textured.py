@@ -48,7 +48,6 @@ import contextlib
 import hashlib
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -70,6 +69,7 @@ from neural_brdf.measured.mitsuba import (
     load,
     one_bsdf,
     resolver_for,
+    variant_scope,
 )
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -126,20 +126,9 @@ class TexturedMitsubaTarget:
         return True
 
     # ------------------------------------------------------------------ loading
-    @contextlib.contextmanager
-    def _scope(self) -> Iterator[None]:
-        """Mitsuba's variant is the teacher's inside (as MitsubaTarget._scope)."""
-        mi = self._mi
-        before = mi.variant()
-        if before == self.variant:
-            yield
-            return
-        mi.set_variant(self.variant)
-        try:
-            yield
-        finally:
-            if before is not None:
-                mi.set_variant(before)
+    def _scope(self) -> contextlib.AbstractContextManager[None]:
+        """Mitsuba's variant is the teacher's inside (:func:`variant_scope`)."""
+        return variant_scope(self._mi, self.variant)
 
     def _xml(self, where: str) -> ET.Element:
         try:
