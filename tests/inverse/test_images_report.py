@@ -366,6 +366,43 @@ def test_report_shows_the_catch_up_of_a_warm_starts_sources(tiny_run, tmp_path):
     )
 
 
+def test_the_loss_plot_holds_the_starts_held_out_loss_and_marks_the_kept_weights(
+    tiny_run, tmp_path
+):
+    # log.csv begins at the first step, but the stage scores the start before it and
+    # keeps it when no step beats it: the plot and its caption show that score (step 0,
+    # metrics.json's start_loss) and mark the weights kept, so that a falling held-out
+    # curve above an unseen start does not read as an improvement
+    from neural_brdf.inverse.fit import HELDOUT_COLUMN
+    from neural_brdf.viewer.report import images
+    from neural_brdf.viewer.report.run import load_run
+
+    assert images.HELDOUT == HELDOUT_COLUMN
+    # write_log's held-out losses: 0.12 at step 5, 0.06 at step 10
+    val = {"start_loss": 0.04, "best_loss": 0.04, "best_step": 0, "kept": "the start"}
+    run_dir = make_images_run(tiny_run, tmp_path, extra={"validation": val})
+    page = report.write_report(run_dir, render=False)["html"].read_text()
+    text = " ".join(visible_text(page).split())
+    assert "(step 0: the start's, before the first step)" in text
+    assert (
+        "The star: the weights the stage kept, the lowest held-out loss (the start, 0.04)" in text
+    )
+    series = images.loss_series(load_run(run_dir).log)
+    assert list(series[images.HELDOUT][0]) == [5, 10]  # log.csv's own: no step 0
+    held = images.held_out_series(val, series[images.HELDOUT])
+    assert held is not None and list(held[0]) == [0, 5, 10]
+    series[images.HELDOUT] = held
+    fig = images.loss_figure(series, images.kept_point(val))
+    lines = {
+        ln.get_label(): (list(ln.get_xdata()), list(ln.get_ydata())) for ln in fig.axes[0].lines
+    }
+    assert lines[images.HELDOUT] == ([0, 5, 10], [0.04, 0.12, 0.06])
+    assert lines["kept: the start"] == ([0], [0.04])
+    assert images.kept_point({**val, "best_step": 10, "best_loss": 0.06})[2] == "kept: step 10"
+    assert images.held_out_series(None, series["loss"]) is series["loss"]
+    assert images.kept_point(None) is None
+
+
 def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     # an auto start (neural_brdf.inverse.starts.network_start): every family fitted, one
     # chosen, one left out; the report names each with its losses and marks the choice

@@ -38,8 +38,9 @@ FIT_FIGURES = {
 
 
 # log.csv's columns of an images fit beyond the common ones, said in the loss caption
+HELDOUT = "heldout_loss"  # (neural_brdf.inverse.fit.HELDOUT_COLUMN)
 COLUMN_TEXT = {
-    "heldout_loss": "the same relative MSE over the validation split's held-out pixels",
+    HELDOUT: "the same relative MSE over the validation split's held-out pixels",
 }
 
 
@@ -374,21 +375,54 @@ def loss_series(log: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def loss_figure(series: dict[str, tuple[np.ndarray, np.ndarray]]) -> Figure:
-    """The losses over the steps, log scale where every value is positive."""
+def held_out_series(
+    val: Any, logged: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The held-out losses a fit scored: log.csv's (``logged``, from the first step on)
+    after the start's, scored before the first step (metrics.json's
+    ``training.validation.start_loss``) at step 0; None without either."""
+    start = _finite(val.get("start_loss")) if isinstance(val, dict) else None
+    if start is None:
+        return logged
+    steps, values = logged if logged is not None else (np.zeros(0), np.zeros(0))
+    if steps.size and steps[0] == 0:
+        return steps, values
+    return np.concatenate([[0.0], steps]), np.concatenate([[start], values])
+
+
+def kept_point(val: Any) -> tuple[float, float, str] | None:
+    """(step, held-out loss, label) of the weights the image stage kept (the lowest
+    held-out loss: ``training.validation``'s best), None without a split."""
+    if not isinstance(val, dict):
+        return None
+    step, loss = _finite(val.get("best_step")), _finite(val.get("best_loss"))
+    if step is None or loss is None:
+        return None
+    return step, loss, "kept: the start" if step == 0 else f"kept: step {step:.0f}"
+
+
+def loss_figure(
+    series: dict[str, tuple[np.ndarray, np.ndarray]],
+    kept: tuple[float, float, str] | None = None,
+) -> Figure:
+    """The losses over the steps, log scale where every value is positive; ``kept``:
+    the weights the stage kept, marked on the held-out loss."""
     fig = Figure(figsize=(7, 4), layout="constrained")
     ax = fig.subplots()
     positive = all(np.all(v > 0) for _, v in series.values())
     for name, (s, v) in series.items():
         sparse = len(v) < 20
         ax.plot(s, v, "o-" if sparse else "-", lw=1.4, ms=4, label=name)
+    if kept is not None:
+        ax.plot([kept[0]], [kept[1]], "*", ms=14, color="black", zorder=5, label=kept[2])
+        positive = positive and kept[1] > 0
     if positive:
         ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8, loc="upper right", frameon=False)
-    ax.set_title("image fit: log.csv", fontsize=10)
+    ax.set_title("image fit: losses", fontsize=10)
     return fig
 
 
@@ -396,8 +430,23 @@ def _losses(run: Run) -> list[Block]:
     series = loss_series(run.log)
     if not series:
         return [Text("No steps of the image fit were logged (log.csv).", note=True)]
+    training = run.metrics.get("training")
+    val = training.get("validation") if isinstance(training, dict) else None
+    held = held_out_series(val, series.get(HELDOUT))
+    if held is not None:  # the scorings, from the start's on
+        series[HELDOUT] = held
+    kept = kept_point(val)
     others = [n for n in series if n != "loss"]
     said = "".join(f"; {n}: {COLUMN_TEXT.get(n, 'a column the fit logged')}" for n in others)
+    if held is not None and held[0].size and held[0][0] == 0:
+        said += " (step 0: the start's, before the first step)"
+    if kept is not None:
+        said += (
+            f". The star: the weights the stage kept, the lowest held-out loss "
+            f"({kept[2].removeprefix('kept: ')}, {kept[1]:.4g}); the training loss, one "
+            f"render of few samples a step, holds the render's noise, which the held-out "
+            f"estimate (two renders with independent seeds) leaves out"
+        )
     return [
         Image(
             "images-loss",
@@ -405,7 +454,7 @@ def _losses(run: Run) -> list[Block]:
             f"log.csv per logged step: loss, the step's image loss (the relative MSE of "
             f"the renders against the images, averaged over the views) plus the albedo "
             f"penalty{said}.",
-            plots.png_bytes(loss_figure(series)),
+            plots.png_bytes(loss_figure(series, kept)),
         )
     ]
 
