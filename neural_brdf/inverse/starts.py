@@ -835,7 +835,8 @@ def choose_start(
     progress: Callable[[Candidate], None] | None = None,
     caught: Callable[[str, str, dict[str, Any]], None] | None = None,
 ) -> Choice:
-    """Fit every family of ``families`` (:func:`fit_warm`, in that order) to the training
+    """Fit every family of ``families`` (:func:`fit_warm`, in the order of
+    :data:`~neural_brdf.inverse.families.FAMILIES`, whatever the order given) to the training
     pixels of a seeded split (:func:`split_pixels` with ``val_share``, ``block``,
     ``seed``; or ``masks`` = (train, held-out) given) and choose by the held-out loss
     (:func:`pick`; with ``catch_up_sources``, :func:`catch_up`: a warm-started family
@@ -853,6 +854,8 @@ def choose_start(
         family(name)
     if not families:
         raise ValueError("no families to choose from")
+    # in the registry's order, whatever the order given: a warm start's sources first
+    families = [n for n in FAMILIES if n in set(families)]
     if masks is None:
         train, held = split_pixels(views, val_share, seed, block=block)
     else:
