@@ -1,10 +1,10 @@
 """neural_brdf.fileio: the one atomic-write helper every writer uses, and what it does
 with a path that is a FIFO, a device, a symbolic link or a folder."""
 
+import ast
 import errno
 import math
 import os
-import re
 import stat
 import threading
 from pathlib import Path
@@ -58,33 +58,104 @@ def test_no_other_module_writes_through_mkstemp():
     assert users == ["fileio.py"]
 
 
-# a write straight to a path: the file is truncated before it is whole
-DIRECT_WRITES = re.compile(
-    r"\.write_text\(|\.write_bytes\(|\bopen\([^)]*[\"'][wx]b?[\"']"
-    r"|\.savefig\((?!buf\b|tmp\b)|torch\.save\((?![^,]*,\s*buf\b)"
-)
-# (file, the line's text) of the writes that are not a user's file, each with why
+# (file, the call's first line) of the writes that are not a user's file, each with why
 NOT_A_USERS_FILE = {
     # the reference's ONNX bytes, into a TemporaryDirectory of its own
     ("viewer/page.py", "onnx_path.write_bytes(payload)"),
 }
 
 
+def _dotted(node: ast.expr) -> str:
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if isinstance(node, ast.Name):
+        parts.append(node.id)
+    return ".".join(reversed(parts))
+
+
+def _whole_write_names(tree: ast.AST) -> set[str]:
+    """Names a module writes through whole: bound by ``with atomic_path(...) as name``
+    or assigned a buffer (``io.BytesIO()``, ``io.StringIO()``)."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.With):
+            for item in node.items:
+                call, name = item.context_expr, item.optional_vars
+                if isinstance(call, ast.Call) and isinstance(name, ast.Name):
+                    if _dotted(call.func).endswith("atomic_path"):
+                        out.add(name.id)
+        elif isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
+            if _dotted(node.value.func).split(".")[-1] in ("BytesIO", "StringIO"):
+                out |= {t.id for t in node.targets if isinstance(t, ast.Name)}
+    return out
+
+
+def direct_writes(source: str) -> list[str]:
+    """The first line of each call in ``source`` that writes a file in place: ``open``,
+    ``ZipFile`` or ``fdopen`` in a mode with w, x or +; ``write_text``, ``write_bytes``;
+    shutil's copies and moves; ``savefig``, ``torch.save``, ``np.save`` and ``onnx.save``
+    to anything but a buffer or a name ``atomic_path`` gave."""
+    tree = ast.parse(source)
+    whole = _whole_write_names(tree)
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        name = _dotted(node.func)
+        head, last = name.split(".")[0], name.split(".")[-1]
+        if last in ("open", "ZipFile", "fdopen"):
+            mode = next((k.value for k in node.keywords if k.arg == "mode"), None)
+            if mode is None and len(node.args) > 1:
+                mode = node.args[1]
+            bad = isinstance(mode, ast.Constant) and set(str(mode.value)) & set("wx+")
+        elif last in ("write_text", "write_bytes"):
+            bad = True
+        elif head == "shutil" and last in ("copy", "copy2", "copyfile", "copytree", "move"):
+            bad = True
+        elif last == "savefig" or (last == "save" and head in ("torch", "np", "numpy", "onnx")):
+            pos = 1 if head in ("torch", "onnx") else 0
+            target = node.args[pos] if len(node.args) > pos else None
+            bad = not (isinstance(target, ast.Name) and target.id in whole)
+        else:
+            bad = False
+        if bad:
+            found.append((ast.get_source_segment(source, node) or name).splitlines()[0])
+    return found
+
+
+def test_the_write_scan_finds_writes_in_place_and_passes_whole_ones():
+    flagged = direct_writes(
+        "open(os.path.join(a, b), 'w+')\n"
+        "open(p, mode='wb')\n"
+        "zipfile.ZipFile(p, 'w')\n"
+        "Path(p).write_text(t)\n"
+        "shutil.copyfile(a, b)\n"
+        "fig.savefig(path, dpi=110)\n"
+        "torch.save(\n    state,\n    path,\n)\n"
+        "np.save(out, arr)\n"
+    )
+    assert len(flagged) == 8, flagged
+    whole = (
+        "open(p)\nopen(p, 'rb')\nopen(p, 'a', newline='')\n"
+        "buf = io.BytesIO()\nfig.savefig(buf, format='png')\ntorch.save(state, buf)\n"
+        "with atomic_path(path, suffix='.png') as tmp:\n    fig.savefig(tmp)\n"
+    )
+    assert direct_writes(whole) == []
+
+
 def test_every_write_of_the_package_is_atomic():
-    """No module but fileio writes a file by truncating it in place (``write_text``,
-    ``open(..., "w")``, ``savefig(path)``, ``torch.save(obj, path)``): each writes
-    whole through fileio, so that an interrupted or failed write leaves the file as it
-    was.  A log is appended to after fileio has written its head."""
+    """No module but fileio writes a file in place (truncating it first: ``open(...,
+    "w")``, ``write_text``, ``savefig(path)``, ``torch.save(obj, path)``, ...): each
+    writes whole through fileio, so that an interrupted or failed write leaves the file
+    as it was.  A log is appended to after fileio has written its head."""
     package = Path(fileio.__file__).parent
     found = set()
     for path in sorted(package.rglob("*.py")):
         rel = path.relative_to(package).as_posix()
-        if rel == "fileio.py":
-            continue
-        for line in path.read_text().splitlines():
-            code = line.split("#", 1)[0].strip()
-            if DIRECT_WRITES.search(code):
-                found.add((rel, code))
+        if rel != "fileio.py":
+            found |= {(rel, line) for line in direct_writes(path.read_text())}
     assert found == NOT_A_USERS_FILE, sorted(found - NOT_A_USERS_FILE)
 
 

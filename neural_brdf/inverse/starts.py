@@ -1307,7 +1307,8 @@ def model_for_start(cfg: cfgmod.Config, family: str) -> cfgmod.Config:
     model = cfg.model
     spec = encodings.get(model.encoding)
     d: dict[str, Any] | None = None
-    if FAMILIES[family].anisotropic:
+    known = FAMILIES.get(family)  # (a resumed run's family may since have gone)
+    if known is not None and known.anisotropic:
         if (
             cfg.images.anisotropic_grid == "half_disc"
             and model.grid.size

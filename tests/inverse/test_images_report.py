@@ -383,7 +383,7 @@ def test_the_loss_plot_holds_the_starts_held_out_loss_and_marks_the_kept_weights
     run_dir = make_images_run(tiny_run, tmp_path, extra={"validation": val})
     page = report.write_report(run_dir, render=False)["html"].read_text()
     text = " ".join(visible_text(page).split())
-    assert "(step 0: the start's, before the first step)" in text
+    assert "(step 0: the start's, before the first step, from metrics.json)" in text
     assert (
         "The star: the weights the stage kept, the lowest held-out loss (the start, 0.04)" in text
     )

@@ -117,5 +117,5 @@ def summary_figure(rows: list[dict], path: Path) -> None:
     axes[0].set_yticks(list(y), names, fontsize=7)
     axes[0].invert_yaxis()
     buf = io.BytesIO()  # written whole or not at all, as every file of a sweep
-    fig.savefig(buf, format="png", dpi=110)
+    fig.savefig(buf, format=path.suffix[1:] or "png", dpi=110)
     atomic_write(path, buf.getvalue())

@@ -439,13 +439,14 @@ def _losses(run: Run) -> list[Block]:
     others = [n for n in series if n != "loss"]
     said = "".join(f"; {n}: {COLUMN_TEXT.get(n, 'a column the fit logged')}" for n in others)
     if held is not None and held[0].size and held[0][0] == 0:
-        said += " (step 0: the start's, before the first step)"
+        said += " (step 0: the start's, before the first step, from metrics.json)"
     if kept is not None:
         said += (
             f". The star: the weights the stage kept, the lowest held-out loss "
             f"({kept[2].removeprefix('kept: ')}, {kept[1]:.4g}); the training loss, one "
-            f"render of few samples a step, holds the render's noise, which the held-out "
-            f"estimate (two renders with independent seeds) leaves out"
+            f"render of few samples a step over other pixels, holds the render's noise "
+            f"and the albedo penalty, which the held-out estimate (two renders with "
+            f"independent seeds) leaves out"
         )
     return [
         Image(
