@@ -692,6 +692,13 @@ def _fit_views(
     check_render_sizes(views, images)
     split_views(views, images, cfg.train.seed)
     columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
+    if resume and not folder.ckpt.exists() and folder.init.exists():  # stopped in its start
+        print(
+            f"{cfg.name}: {folder.ckpt} does not exist yet (the run was stopped during its "
+            "start, before the image stage): the fit starts again",
+            file=sys.stderr,
+        )
+        resume = False
     if resume:  # its start's grid, encoding (starts.model_for_start) and steps, as trained
         cfg = _resumed_config(cfg, folder)
     sess = Session.one(cfg, folder, resume=resume, kind=KIND, columns=columns)

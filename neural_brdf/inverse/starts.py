@@ -489,6 +489,9 @@ def fit_candidate(
             except RuntimeError as e:
                 if not frozen:
                     raise
+                stop = _interruption(e)
+                if stop is not None:  # Ctrl-C or SIGTERM inside the recording: stop
+                    raise stop from None
                 _cannot_record(v, e)
                 frozen, step_fn = False, render_loss_backward
                 for x in leaves.values():  # what the failed recording may have left
@@ -544,6 +547,19 @@ def fit_candidate(
 # supported inside of frozen functions"): their fits trace every step (fit_candidate),
 # said once per type on stderr.
 UNFREEZABLE: set[str] = set()
+
+
+def _interruption(error: BaseException) -> BaseException | None:
+    """The Ctrl-C or SIGTERM (a KeyboardInterrupt, or any exception that is not an
+    Exception) that Dr.Jit wrapped in ``error`` when it struck inside a recording, else
+    None: a recording that fails for its own reasons is traced instead, an interrupted
+    one is not."""
+    seen: BaseException | None = error
+    while seen is not None:
+        if not isinstance(seen, Exception):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
 
 
 def _cannot_record(view: inverse.View, error: BaseException) -> None:
@@ -1374,9 +1390,13 @@ def network_start(
 
     def said(c: Candidate) -> None:
         if report is not None:
+            held = (
+                f"held-out loss {c.val_loss:.4g}"
+                if math.isfinite(c.val_loss)
+                else "no held-out pixels to score it on"
+            )
             report(
-                f"start {c.family}: held-out loss {c.val_loss:.4g} (training pixels "
-                f"{c.train_loss:.4g}), {c.seconds:.1f} s"
+                f"start {c.family}: {held} (training pixels {c.train_loss:.4g}), {c.seconds:.1f} s"
             )
 
     def caught(name: str, by: str, r: dict[str, Any]) -> None:

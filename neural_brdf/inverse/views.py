@@ -16,6 +16,7 @@ module doc describes the loss and the checks).
 from __future__ import annotations
 
 import copy
+import os
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -167,6 +168,12 @@ def use_variant(name: str):
 
 
 # ------------------------------------------------------------------ inputs
+EXR_MAGIC = b"\x76\x2f\x31\x01"  # every OpenEXR file's first four bytes (its spec)
+# the largest pixel an image may hold: the loss squares differences of pixels, and
+# float32 holds squares up to 3.4e38, so 1e15 leaves room for the sums and the weights
+PIXEL_MAX = 1e15
+
+
 def read_image(path: Path, key: str) -> np.ndarray:
     """A linear RGB EXR -> (H, W, 3) float32; InputError naming the file otherwise."""
     import mitsuba as mi
@@ -175,6 +182,16 @@ def read_image(path: Path, key: str) -> np.ndarray:
         raise InputError(f"{key}: {path}: no such image file")
     if path.suffix.lower() != ".exr":
         raise InputError(f"{key}: {path}: expected a linear RGB OpenEXR image (.exr)")
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+    except OSError as e:
+        raise InputError(f"{key}: {path}: unreadable ({e.strerror or e})") from None
+    if magic != EXR_MAGIC:  # Mitsuba reads a PNG or a JPEG by its content, whatever its name
+        raise InputError(
+            f"{key}: {path}: not an OpenEXR file (its first bytes are not EXR's), though "
+            "named .exr; give the linear RGB EXR itself"
+        )
     try:
         bmp = mi.Bitmap(str(path))
     except Exception as e:  # Mitsuba raises RuntimeError on a bad or truncated file
@@ -191,6 +208,12 @@ def read_image(path: Path, key: str) -> np.ndarray:
     arr = np.array(img, dtype=np.float32, copy=True).reshape(bmp.height(), bmp.width(), 3)
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{key}: {path}: holds NaN or infinite pixels")
+    top = float(np.abs(arr).max()) if arr.size else 0.0
+    if top > PIXEL_MAX:
+        raise InputError(
+            f"{key}: {path}: a pixel of {top:.3g}, beyond {PIXEL_MAX:g}: the fit's squared "
+            "errors would overflow float32; scale the image (and the scene's lights) down"
+        )
     return arr
 
 
@@ -231,6 +254,14 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
             f'{key}: {path}: no <shape> uses <bsdf id="fit"> (refer to it in a shape with '
             '<ref id="fit"/>, or nest it there)'
         )
+    for film in root.iter("film"):
+        for fmt in film.findall("string"):
+            value = (fmt.get("value") or "").strip().lower()
+            if fmt.get("name") == "pixel_format" and value != "rgb":
+                raise InputError(
+                    f"{key}: {path}: the film's pixel_format is {fmt.get('value')!r}; a fit "
+                    "compares RGB renders with RGB images: give 'rgb' (the default)"
+                )
     integrators = root.findall("integrator")
     kind = integrators[0].get("type", "") if integrators else "path"
     if kind not in INTEGRATORS:
@@ -338,9 +369,17 @@ def read_photograph(path: Path, key: str) -> np.ndarray:
 def read_views(cfg: cfgmod.Config) -> list[View]:
     """Parse and check every ``target.images`` entry (scenes are loaded later)."""
     views = []
+    seen: dict[tuple[str, ...], int] = {}
     for k, item in enumerate(cfg.target.images or []):
         key = f"target.images[{k}]"
         scene_path, image_path = Path(item.scene), Path(item.image)
+        same = tuple(os.path.realpath(p) for p in (item.scene, item.image, item.subtract or ""))
+        if same in seen:  # it would weigh twice in every loss
+            raise InputError(
+                f"{key}: the same scene and image as target.images[{seen[same]}]; list "
+                "each view once"
+            )
+        seen[same] = k
         tree, integrator = read_scene(scene_path, key + ".scene")
         target = read_photograph(image_path, key + ".image")
         photograph = None
@@ -415,19 +454,40 @@ def check_films(views: list[View]) -> None:
         scene = load_scene(v.scene_path, scene_text(v.tree, fit_element(v.tree)))
         if fit_bsdf(scene) is None:
             raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
+        if not scene.sensors():
+            raise InputError(f"{v.scene_path}: no <sensor>: a view needs its camera")
+        channels = scene.sensors()[0].film().base_channels_count()
+        if channels != 3:
+            raise InputError(
+                f"{v.scene_path}: the film renders {channels} channel(s); a fit compares RGB "
+                "renders with RGB images (an hdrfilm with pixel_format 'rgb')"
+            )
+        if not scene.emitters():
+            raise InputError(
+                f"{v.scene_path}: no emitter (no <emitter>, no emissive shape): nothing "
+                "lights the object, so its image holds nothing of its BRDF"
+            )
         check_size(v, scene)
 
 
 def check_render_sizes(views: list[View], images: cfgmod.Images) -> None:
     """limits.TooLarge naming the ``images`` key whose samples per pixel would make one
     render of the largest film hold more than the memory budget (:data:`LANE_BYTES` a
-    sample)."""
+    sample): the image stage's, its held-out scorings' and the start's fits'."""
     h, w = max((v.target.shape[:2] for v in views), key=lambda s: s[0] * s[1])
-    for key in ("spp", "primal_spp", "validation_spp"):
+    # (key, renders of that many samples per pixel: the refinement's primal pass has twice)
+    for key, times in (
+        ("spp", 1),
+        ("primal_spp", 1),
+        ("validation_spp", 1),
+        ("start_spp", 1),
+        ("start_primal_spp", 1),
+        ("start_refine_spp", 2),
+    ):
         spp = getattr(images, key)
         limits.check_bytes(
             f"images.{key}",
-            float(h * w) * spp * LANE_BYTES,
+            float(h * w) * spp * times * LANE_BYTES,
             hint=f"give fewer samples per pixel (the largest film is {w}x{h})",
         )
 

@@ -43,6 +43,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -892,6 +893,39 @@ def test_a_resumed_run_keeps_its_split(fitted, example, tmp_path, capsys):
     assert (copy / "ckpt.pt").read_bytes() == before
 
 
+def test_a_run_stopped_during_its_start_resumes_by_starting_again(
+    mi, example, tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C while the start is chosen or distilled (before the image stage has a
+    checkpoint) said "continue with --resume", and --resume then refused the folder
+    (no ckpt.pt): now it fits again from the start's choice, saying so in one line.  A
+    folder that is no such run still has nothing to resume."""
+    from neural_brdf.inverse import starts
+
+    run_dir = tmp_path / "run"
+    real = starts.network_start
+
+    def stopped(cfg, views, init_dir, **kw):
+        Path(init_dir).mkdir(parents=True, exist_ok=True)  # as distill's run folder
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(starts, "network_start", stopped)
+    overrides = FIT_OVERRIDES + ["images.start=diffuse", "images.start_train_steps=30"]
+    code, err = run_cli(train_args(example / "fit.yaml", run_dir, overrides), capsys)
+    assert code == 130, err
+    assert not (run_dir / "ckpt.pt").exists() and (run_dir / "init").is_dir()
+    monkeypatch.setattr(starts, "network_start", real)
+    args = train_args(example / "fit.yaml", run_dir, overrides) + ["--resume"]
+    code, err = run_cli(args, capsys)
+    assert code == 0, err
+    assert "does not exist yet (the run was stopped during its start" in err, err
+    assert "the fit starts again" in err and (run_dir / "model.onnx").is_file()
+    code, err = run_cli(
+        train_args(example / "fit.yaml", tmp_path / "none", overrides) + ["--resume"], capsys
+    )
+    assert code == 2 and "no checkpoint" in err, err
+
+
 # ------------------------------------------------------------------ bad inputs
 def _config(folder: Path, views: list[tuple[str, str]], extra: str = "") -> Path:
     lines = ["target:", "  images:"]
@@ -965,6 +999,62 @@ def test_negative_pixels_are_warned_in_one_line_and_fitted(mi, copy_of, capsys):
         assert np.array_equal(view.target, noisy)  # fitted as it is, not clamped
 
 
+def test_a_view_listed_twice_exits_2(copy_of, capsys):
+    # (it was fitted, weighing twice in every loss)
+    path = _config(
+        copy_of,
+        [("view1.xml", "view1.exr"), ("view2.xml", "view2.exr"), ("view1.xml", "view1.exr")],
+    )
+    _expect_exit_2(path, copy_of / "run", capsys, "target.images[2]", "target.images[0]")
+
+
+def test_a_png_named_exr_or_a_pixel_beyond_float32s_reach_exits_2(mi, copy_of, capsys):
+    """Mitsuba reads an image by its content, whatever its name: a PNG named .exr was
+    fitted (8-bit, clipped at 1, sRGB-decoded) without a word; a pixel of 1e30 made the
+    loss overflow and the run diverge at step 0 with advice about the learning rate."""
+    from neural_brdf.inverse import scene as inverse_example
+
+    img = np.array(mi.Bitmap(str(copy_of / "view1.exr")), np.float32)[..., :3]
+    png = mi.Bitmap(np.ascontiguousarray(img)).convert(
+        mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, True
+    )
+    png.write(str(copy_of / "png.png"))
+    (copy_of / "png.exr").write_bytes((copy_of / "png.png").read_bytes())
+    path = _config(copy_of, [("view1.xml", "png.exr")])
+    _expect_exit_2(path, copy_of / "run", capsys, "png.exr", "not an OpenEXR file")
+    huge = img.copy()
+    huge[0, 0] = 1e30
+    inverse_example.write_exr(copy_of / "huge.exr", huge)
+    path = _config(copy_of, [("view1.xml", "huge.exr")])
+    _expect_exit_2(path, copy_of / "run", capsys, "huge.exr", "1e+30", "overflow")
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        (lambda t: re.sub(r"<sensor .*?</sensor>", "", t, flags=re.S), "no <sensor>"),
+        (lambda t: re.sub(r"<emitter .*?</emitter>", "", t, flags=re.S), "no emitter"),
+        (lambda t: t.replace("</film>", _pixel_format("rgba")), "pixel_format is 'rgba'"),
+        (lambda t: t.replace("</film>", _pixel_format("luminance")), "'luminance'"),
+        (lambda t: t.replace("</film>", _pixel_format("xyz")), "'xyz'"),
+    ],
+    ids=["no sensor", "no emitter", "rgba film", "luminance film", "xyz film"],
+)
+def test_a_scene_without_camera_light_or_rgb_film_exits_2(copy_of, capsys, edit, needle):
+    # (a traceback, or a film of other channels fitted against RGB images, before)
+    (copy_of / "edited.xml").write_text(edit((copy_of / "view1.xml").read_text()))
+    path = _config(
+        copy_of,
+        [("edited.xml", "view1.exr")],
+        "train: {steps: 1, progress: false}\nimages: {start: constant}\n",
+    )
+    _expect_exit_2(path, copy_of / "run", capsys, "edited.xml", needle)
+
+
+def _pixel_format(value: str) -> str:
+    return f'<string name="pixel_format" value="{value}"/></film>'
+
+
 def test_a_pair_whose_subtracted_photograph_is_missing_of_another_size_or_no_darker_exits_2(
     mi, copy_of, capsys
 ):
@@ -1025,7 +1115,16 @@ def test_scene_whose_fit_bsdf_no_shape_uses_exits_2(copy_of, capsys):
     _expect_exit_2(path, copy_of / "run", capsys, "unused.xml", "no <shape> uses")
 
 
-@pytest.mark.parametrize("key", ["images.primal_spp", "images.validation_spp"])
+@pytest.mark.parametrize(
+    "key",
+    [
+        "images.primal_spp",
+        "images.validation_spp",
+        "images.start_spp",
+        "images.start_primal_spp",
+        "images.start_refine_spp",
+    ],
+)
 def test_samples_beyond_the_memory_budget_exit_2(copy_of, capsys, key):
     # (a short constant-start fit, were the check missing)
     name = key.removeprefix("images.")

@@ -639,6 +639,43 @@ def test_averaged_fit_is_the_mean_of_the_iterates_from_its_step(mi, materials):
     assert np.all(np.asarray(mean) < np.asarray(last)) and np.all(np.asarray(mean) > 0.1)
 
 
+def test_ctrl_c_inside_a_recorded_step_stops_the_fit(mi, materials, monkeypatch):
+    """Ctrl-C (or SIGTERM, a KeyboardInterrupt too) that strikes while Dr.Jit records a
+    step reaches the caller, which Dr.Jit hands a RuntimeError with the interrupt as its
+    cause: it is not taken for a step Dr.Jit cannot record, after which the fit went on
+    traced and the run ended as if never interrupted."""
+    from neural_brdf.inverse import starts
+
+    real = starts.render_loss_backward
+    calls = []
+
+    def interrupted_once(*args):
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(starts, "render_loss_backward", interrupted_once)
+    monkeypatch.setattr(starts, "UNFREEZABLE", set())
+    views = views_of(materials["diffuse"])
+    train, held = starts.split_pixels(views, 0.3, seed=2)
+    with pytest.raises(KeyboardInterrupt):
+        starts.fit_candidate(
+            views, "diffuse", mask_train=train, mask_val=held, seed=2,
+            schedule=starts.Schedule(steps=2, val_spp=8, freeze=True),
+        )  # fmt: skip
+    assert not starts.UNFREEZABLE  # nor marked as a step Dr.Jit cannot record
+    # the cause chain: an interrupt anywhere in it, else none
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise RuntimeError("drjit.freeze(): error while recording") from e
+    except RuntimeError as wrapped:
+        assert isinstance(starts._interruption(wrapped), KeyboardInterrupt)
+    assert starts._interruption(RuntimeError("cannot record", ValueError("x"))) is None
+
+
 @pytest.mark.parametrize("name", config.START_FAMILIES)  # every family (the config's list)
 def test_a_frozen_step_fits_what_a_traced_one_does(mi, materials, name, monkeypatch):
     """A family's fit with its step recorded once per view and replayed (Schedule.freeze,
