@@ -426,9 +426,15 @@ def split_views(views: list[View], images: cfgmod.Images, seed: int) -> None:
         n = int(tile.max()) + 1
         if n < 2:
             h, w = v.target.shape[:2]
+            fix = (
+                "give a smaller block"
+                if block > 1
+                else "hold out whole views (images.validation_views) or none "
+                "(images.validation_pixels: 0)"
+            )
             raise InputError(
                 f"images.validation_pixels: {v.image_path} ({w}x{h} pixels) is one tile of "
-                f"images.validation_block={block}; it cannot be split (give a smaller block)"
+                f"images.validation_block={block}; it cannot be split ({fix})"
             )
         m = min(max(round(share * n), 1), n - 1)
         chosen = np.random.default_rng([seed, 29, k]).choice(n, size=m, replace=False)
@@ -456,6 +462,13 @@ def check_films(views: list[View]) -> None:
             raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
         if not scene.sensors():
             raise InputError(f"{v.scene_path}: no <sensor>: a view needs its camera")
+        if len(scene.sensors()) > 1:  # mi.render's default, as its image was rendered
+            print(
+                f"warning: {v.scene_path}: {len(scene.sensors())} sensors; the fit renders "
+                "the first (scene.sensors()[0]), as mi.render does by default: its image must "
+                "be that camera's view",
+                file=sys.stderr,
+            )
         channels = scene.sensors()[0].film().base_channels_count()
         if channels != 3:
             raise InputError(

@@ -1051,6 +1051,41 @@ def test_a_scene_without_camera_light_or_rgb_film_exits_2(copy_of, capsys, edit,
     _expect_exit_2(path, copy_of / "run", capsys, "edited.xml", needle)
 
 
+def test_a_scene_with_two_sensors_is_warned_in_one_line(mi, copy_of, capsys):
+    from neural_brdf import config as cfgmod
+    from neural_brdf.inverse import fit as inverse
+
+    text = (copy_of / "view1.xml").read_text()
+    sensor = re.search(r"<sensor .*?</sensor>", text, flags=re.S).group(0)
+    (copy_of / "two.xml").write_text(text.replace(sensor, sensor + "\n" + sensor))
+    for name, warned in (("view1.xml", False), ("two.xml", True)):
+        views = inverse.read_views(cfgmod.load(_config(copy_of, [(name, "view1.exr")])))
+        capsys.readouterr()
+        inverse.check_films(views)
+        lines = capsys.readouterr().err.strip().splitlines()
+        if not warned:
+            assert lines == [], lines
+            continue
+        assert len(lines) == 1, lines
+        assert lines[0].startswith(f"warning: {copy_of / 'two.xml'}: 2 sensors;"), lines
+        assert "the fit renders the first (scene.sensors()[0])" in lines[0]
+
+
+def test_a_film_of_one_tile_says_how_to_hold_out_instead():
+    import types
+
+    from neural_brdf import config as cfgmod
+    from neural_brdf.errors import InputError
+    from neural_brdf.inverse import fit as inverse
+
+    view = types.SimpleNamespace(target=np.zeros((1, 1, 3)), image_path=Path("dot.exr"))
+    for block, advice in ((4, "give a smaller block"), (1, "images.validation_views")):
+        images = cfgmod.Images(validation_block=block)
+        with pytest.raises(InputError, match=r"dot.exr \(1x1 pixels\) is one tile") as e:
+            inverse.split_views([view], images, seed=0)
+        assert advice in str(e.value) and (block > 1 or "smaller" not in str(e.value))
+
+
 def _pixel_format(value: str) -> str:
     return f'<string name="pixel_format" value="{value}"/></film>'
 
