@@ -871,7 +871,8 @@ def choose_start(
     if not families:
         raise ValueError("no families to choose from")
     # in the registry's order, whatever the order given: a warm start's sources first
-    families = [n for n in FAMILIES if n in set(families)]
+    given = set(families)
+    families = [n for n in FAMILIES if n in given]
     if masks is None:
         train, held = split_pixels(views, val_share, seed, block=block)
     else:

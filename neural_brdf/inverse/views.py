@@ -369,11 +369,15 @@ def read_photograph(path: Path, key: str) -> np.ndarray:
 def read_views(cfg: cfgmod.Config) -> list[View]:
     """Parse and check every ``target.images`` entry (scenes are loaded later)."""
     views = []
-    seen: dict[tuple[str, ...], int] = {}
+    seen: dict[tuple[str, str, str | None], int] = {}
     for k, item in enumerate(cfg.target.images or []):
         key = f"target.images[{k}]"
         scene_path, image_path = Path(item.scene), Path(item.image)
-        same = tuple(os.path.realpath(p) for p in (item.scene, item.image, item.subtract or ""))
+        same = (
+            os.path.realpath(item.scene),
+            os.path.realpath(item.image),
+            item.subtract and os.path.realpath(item.subtract),
+        )
         if same in seen:  # it would weigh twice in every loss
             raise InputError(
                 f"{key}: the same scene and image as target.images[{seen[same]}]; list "
@@ -460,16 +464,17 @@ def check_films(views: list[View]) -> None:
         scene = load_scene(v.scene_path, scene_text(v.tree, fit_element(v.tree)))
         if fit_bsdf(scene) is None:
             raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
-        if not scene.sensors():
+        sensors = scene.sensors()
+        if not sensors:
             raise InputError(f"{v.scene_path}: no <sensor>: a view needs its camera")
-        if len(scene.sensors()) > 1:  # mi.render's default, as its image was rendered
+        if len(sensors) > 1:  # mi.render's default, as its image was rendered
             print(
-                f"warning: {v.scene_path}: {len(scene.sensors())} sensors; the fit renders "
+                f"warning: {v.scene_path}: {len(sensors)} sensors; the fit renders "
                 "the first (scene.sensors()[0]), as mi.render does by default: its image must "
                 "be that camera's view",
                 file=sys.stderr,
             )
-        channels = scene.sensors()[0].film().base_channels_count()
+        channels = sensors[0].film().base_channels_count()
         if channels != 3:
             raise InputError(
                 f"{v.scene_path}: the film renders {channels} channel(s); a fit compares RGB "

@@ -162,11 +162,16 @@ def _views(run: Run) -> list[Block]:
     ]
 
 
+def _validation(run: Run) -> Any:
+    """metrics.json's ``training.validation`` (the split's record), None without one."""
+    training = run.metrics.get("training")
+    return training.get("validation") if isinstance(training, dict) else None
+
+
 def _held_out(run: Run) -> set[str]:
     """The image names of the views a validation split holds out (metrics.json's
     ``training.validation.views``)."""
-    training = run.metrics.get("training")
-    val = training.get("validation") if isinstance(training, dict) else None
+    val = _validation(run)
     names = val.get("views") if isinstance(val, dict) else None
     return {str(n) for n in names} if isinstance(names, list) else set()
 
@@ -430,8 +435,7 @@ def _losses(run: Run) -> list[Block]:
     series = loss_series(run.log)
     if not series:
         return [Text("No steps of the image fit were logged (log.csv).", note=True)]
-    training = run.metrics.get("training")
-    val = training.get("validation") if isinstance(training, dict) else None
+    val = _validation(run)
     held = held_out_series(val, series.get(HELDOUT))
     if held is not None:  # the scorings, from the start's on
         series[HELDOUT] = held
