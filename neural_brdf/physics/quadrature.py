@@ -101,6 +101,53 @@ def from_numpy(fn: Callable) -> Callable[[torch.Tensor, torch.Tensor], torch.Ten
     return tfn
 
 
+def _counts(n: int, own) -> tuple[list[tuple[str, float, float]], list[int], list[float]]:
+    """The proposals (with the target's own sampler when ``own``), each one's number of
+    points out of ``n`` and its share of them (the cosine share absorbs rounding)."""
+    props = list(PROPOSALS)
+    if own is not None:
+        props = [(k, a, s * (1.0 - TARGET_SHARE)) for k, a, s in props] + [
+            ("target", 0.0, TARGET_SHARE)
+        ]
+    per = max(n, len(props))
+    counts = [max(1, int(round(s * per))) for _, _, s in props]
+    counts[0] += per - sum(counts)
+    return props, counts, [c / per for c in counts]
+
+
+def mis_directions(
+    wi: torch.Tensor, n: int, seed: int, *, target: Described | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` outgoing directions per row of ``wi`` (M, 3), drawn from :data:`PROPOSALS`
+    (and ``target``'s own sampler), and their weights cos(theta_o) / p(wo) under the
+    balance heuristic (0 below the horizon): -> (wo (M, n', 3), weight (M, n')), n' >= n
+    only when there are fewer points than proposals.  ``mean(f(wi, wo) * weight)`` over
+    the second axis estimates rho(wi) without bias; the directions and weights do not
+    depend on ``f``, so the estimate is differentiable in ``f``'s parameters.  The j-th
+    proposal's points are scrambled Sobol of seed ``seed + j``."""
+    wi = torch.as_tensor(wi).reshape(-1, 3)
+    own = sampler(target)
+    props, counts, shares = _counts(n, own)
+    w = wi.double()[:, None, :]  # (m, 1, 3)
+    wos = []
+    for j, ((kind, alpha, _), c) in enumerate(zip(props, counts)):
+        u = physics.sobol_points(c, seed + j)
+        wb = w.expand(-1, c, 3)
+        if own is not None and kind == "target":
+            wos.append(own.sample_dir_t(wb, u.expand(len(w), -1, 2)))
+        else:
+            wos.append(_draw(kind, alpha, wb, u))
+    wo = torch.cat(wos, 1)  # (m, n', 3)
+    wb = w.expand_as(wo)
+    p: torch.Tensor = sum(  # type: ignore[assignment]  # of tensors: a tensor
+        s * (own.pdf_t(wb, wo) if own is not None and k == "target" else _pdf(k, a, wb, wo))
+        for (k, a, _), s in zip(props, shares)
+    )
+    ok = (wo[..., 2] > 0) & (p > 0)
+    weight = torch.where(ok, wo[..., 2] / p.clamp_min(1e-300), torch.zeros_like(p))
+    return wo, weight
+
+
 def albedo(
     fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     wi: torch.Tensor,
@@ -115,45 +162,21 @@ def albedo(
     ``fn(wi, wo)`` takes float32 tensors (K, 3) and returns (K, C).  ``target``: the
     target, whose own sampler (``sample_dir_t`` / ``pdf_t``: an :mod:`analytic` BRDF)
     becomes one more proposal; a target without a sampler (measured data) adds none.
+    Each of :data:`REPLICAS` independent scramblings is a :func:`mis_directions` set.
     """
     wi = torch.as_tensor(wi, dtype=torch.float64).reshape(-1, 3)
-    own = sampler(target)
-    props = list(PROPOSALS)
-    if own is not None:
-        props = [(k, a, s * (1.0 - TARGET_SHARE)) for k, a, s in props] + [
-            ("target", 0.0, TARGET_SHARE)
-        ]
-    per = max(n // REPLICAS, len(props))
-    counts = [max(1, int(round(s * per))) for _, _, s in props]
-    counts[0] += per - sum(counts)  # the cosine share absorbs rounding
-    shares = [c / per for c in counts]
-
+    per = max(n // REPLICAS, len(_counts(1, sampler(target))[0]))
     rows_per_chunk = max(1, chunk // per)
     replicas = []
     for r in range(REPLICAS):
-        us = [physics.sobol_points(c, seed * 7919 + r * 101 + j) for j, c in enumerate(counts)]
         out = []
         for start in range(0, len(wi), rows_per_chunk):
-            w = wi[start : start + rows_per_chunk, None, :]  # (m, 1, 3)
-            wos = []
-            for (kind, alpha, _), u in zip(props, us):
-                wb = w.expand(-1, len(u), 3)
-                if own is not None and kind == "target":
-                    wo = own.sample_dir_t(wb, u.expand(len(w), -1, 2))
-                else:
-                    wo = _draw(kind, alpha, wb, u)
-                wos.append(wo)
-            wo = torch.cat(wos, 1)  # (m, per, 3)
-            wb = w.expand_as(wo)
-            p: torch.Tensor = sum(  # type: ignore[assignment]  # of tensors: a tensor
-                s * (own.pdf_t(wb, wo) if own is not None and k == "target" else _pdf(k, a, wb, wo))
-                for (k, a, _), s in zip(props, shares)
-            )
-            ok = (wo[..., 2] > 0) & (p > 0)
+            w = wi[start : start + rows_per_chunk]
+            wo, weight = mis_directions(w, per, seed * 7919 + r * 101, target=target)
+            wb = w[:, None, :].expand_as(wo)
             f = fn(wb.reshape(-1, 3).float(), wo.reshape(-1, 3).float()).double()
             f = f.reshape(wo.shape[:-1] + (-1,))
-            val = f * (wo[..., 2] / p.clamp_min(1e-300))[..., None]
-            val = torch.where(ok[..., None], val, torch.zeros_like(val))
+            val = torch.where(weight[..., None] > 0, f * weight[..., None], 0.0)
             out.append(val.mean(1))
         replicas.append(torch.cat(out, 0))
     m = torch.stack(replicas, 0)
