@@ -389,8 +389,8 @@ class Images(_Section):
     # graph in Dr.Jit) or torch; the function is the same (docs/inverse.md)
     evaluator: Literal["auto", "graph", "torch"] = "auto"
     # the image stage's albedo penalty: albedo_weight x the sum over albedo_incidences
-    # (degrees) and RGB of max(0, A - 1)^2, A estimated from albedo_side^2 stratified
-    # cosine-distributed wo per incidence, fresh every step (0: off; docs/inverse.md)
+    # (degrees) and RGB of max(0, A - 1)^2, A estimated from albedo_side^2 wo per
+    # incidence by multiple importance sampling, fresh every step (0: off; docs/inverse.md)
     albedo_weight: float = Field(1.0, ge=0.0)
     albedo_incidences: list[float] = Field(
         default_factory=lambda: [0.0, 30.0, 50.0, 65.0, 75.0, 82.0, 87.0]

@@ -64,10 +64,17 @@ difference's noise (:meth:`View.rel_weight`).  Energy: the fit adds
 
     L_albedo = images.albedo_weight * sum over K incidences and RGB of max(0, A(wi) - 1)^2,
 
-the K incidences ``images.albedo_incidences``, A(wi) = (pi / N) sum_j f(wi, wo_j), wo_j
-cosine-distributed (N = ``images.albedo_side``^2, fresh every step), so the fit is
-steered away from a network the normalisation would have to scale down; the exported
-bound itself comes from the normalisation, not the penalty.
+the K incidences ``images.albedo_incidences``, A(wi) = (1 / N) sum_j f(wi, wo_j) cos / p,
+wo_j from the validator's mixture of proposals, cosine, uniform and GGX half vectors
+around the normal and around wi, by the balance heuristic (Veach 1997;
+:func:`neural_brdf.physics.quadrature.mis_directions`, N = ``images.albedo_side``^2,
+fresh every step), so the fit is steered away from a network the normalisation would
+have to scale down; the exported bound itself comes from the normalisation, not the
+penalty.  Cosine-distributed wo alone, as before session 85, rarely hit a sharp lobe: on
+the development set's brushed copper (albedo 0.80 to 0.93) the estimate exceeded 1 at
+some incidence in 81 % of steps (up to 7.9; 4 % and 1.03 with the mixture), and the
+penalty's pull on those false excesses, not the images, made the network drift from a
+good start (docs/inverse.md).
 """
 
 from __future__ import annotations
@@ -137,7 +144,8 @@ KIND = "images"  # the checkpoint's kind (neural_brdf.train.session)
 # images.start_grid_lr_scale x that (not model.grid.lr_scale): a noisy gradient makes
 # the network drift from a good start, the more so the higher the rate (benchmark, 300
 # steps from a start 0.5 % off: 7.3 % at 0.2 with the grids at 10, 5.3 % at 0.2 and 1,
-# 5.0 % at 0.05 and 10, 3.8 % at 0.05 and 1).
+# 5.0 % at 0.05 and 10, 3.8 % at 0.05 and 1; measured with the albedo penalty's
+# cosine-sampled estimate, whose false excesses were much of that drift: module doc).
 # A resumed images fit keeps its start and its validation split (with the seed, in MUST_MATCH).
 RESUME_MUST_MATCH = (
     *MUST_MATCH,
@@ -273,43 +281,44 @@ def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
 
 def albedo_directions(
     seed: int, images: cfgmod.Images | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """wi (K*N, 3) at ``images.albedo_incidences`` (degrees; a random azimuth each) and
-    cosine-distributed wo (K*N, 3), ``images.albedo_side``^2 stratified per incidence,
-    for the albedo penalty; fresh for every ``seed``.  ``images``: the config's section
-    (None: its defaults)."""
-    from analytic import frame
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """wi (K*N, 3) at ``images.albedo_incidences`` (degrees; a random azimuth each), wo
+    (K*N, 3) and their weights cos(theta_o) / p(wo) (K*N,): N = ``images.albedo_side``^2
+    per incidence from :func:`neural_brdf.physics.quadrature.mis_directions` (the
+    cosine, the uniform hemisphere and GGX half vectors of several widths around the
+    normal and around wi, by the balance heuristic), fresh for every ``seed``, so that
+    mean(f * weight) per incidence estimates its albedo.  ``images``: the config's
+    section (None: its defaults)."""
+    from neural_brdf.physics import quadrature
 
     images = cfgmod.Images() if images is None else images
     g = torch.Generator().manual_seed(seed)
-    k, side = len(images.albedo_incidences), images.albedo_side
-    n = side * side
+    k, n = len(images.albedo_incidences), images.albedo_side**2
     theta = torch.tensor([float(d) for d in images.albedo_incidences]).deg2rad()
     phi = 2 * math.pi * torch.rand(k, generator=g)
-    wi = torch.stack(
-        [theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()], -1
-    ).repeat_interleave(n, 0)
-    grid = torch.stack(
-        torch.meshgrid(torch.arange(side), torch.arange(side), indexing="ij"), -1
-    ).reshape(-1, 2)
-    u = (grid + torch.rand(k, n, 2, generator=g)) / side
-    wo = frame.square_to_cosine_hemisphere(u.reshape(-1, 2).float())
-    return wi.float(), wo.float()
+    wi = torch.stack([theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()], -1)
+    wo, weight = quadrature.mis_directions(wi.double(), n, seed)
+    return (
+        wi.repeat_interleave(wo.shape[1], 0).float(),
+        wo.reshape(-1, 3).float(),
+        weight.reshape(-1).float(),
+    )
 
 
 def albedo_penalty_fn(raw: RawBRDF, images: cfgmod.Images | None = None):
-    """A dr.wrap'ed torch function: (weights, wi, wo) -> ``images.albedo_weight`` x the
-    sum of max(0, A - 1)^2 (module doc) over :func:`albedo_directions`' incidences, and
-    the largest A estimated.  ``images``: the config's section (None: its defaults)."""
+    """A dr.wrap'ed torch function: (weights, wi, wo, weight) -> ``images.albedo_weight``
+    x the sum of max(0, A - 1)^2 (module doc) over :func:`albedo_directions`'
+    incidences, and the largest A estimated.  ``images``: the config's section (None:
+    its defaults)."""
     import drjit as dr
 
     images = cfgmod.Images() if images is None else images
     k, weight = len(images.albedo_incidences), images.albedo_weight
 
     @dr.wrap(source="drjit", target="torch")
-    def penalty(weights, wi, wo):
+    def penalty(weights, wi, wo, w):
         f = torch.func.functional_call(raw, weights, (wi, wo))  # (K*N, 3)
-        a = math.pi * f.reshape(k, -1, 3).mean(1)  # (K, 3)
+        a = (f * w[:, None]).reshape(k, -1, 3).mean(1)  # (K, 3)
         return weight * torch.relu(a - 1.0).square().sum().reshape(1), a.max().reshape(1)
 
     return penalty
@@ -516,9 +525,12 @@ def fit_neural(
                 total += float(loss.array[0])
             render_seconds += time.perf_counter() - t_render
             with timed("albedo"):
-                wi, wo = albedo_directions(t.seed * 7919 + step, cfg.images)
+                wi, wo, w = albedo_directions(t.seed * 7919 + step, cfg.images)
                 pen, amax = penalty(
-                    {n: opt[n] for n in names}, mi.TensorXf(wi.numpy()), mi.TensorXf(wo.numpy())
+                    {n: opt[n] for n in names},
+                    mi.TensorXf(wi.numpy()),
+                    mi.TensorXf(wo.numpy()),
+                    mi.TensorXf(w.numpy()),
                 )
                 dr.backward(pen)
                 last = {
