@@ -71,7 +71,12 @@ images.start_catch_up was measured on the development set first,
 images_any_dev_catch_up.json (development, the five materials whose start was
 warm-started, --only each) and images_scene.py's development silver, then both test
 files run again to report, the session-82 files kept as
-images_any_2026-12-06_cross_check.json and images_any_lights_2026-12-06_cross_check.json),
+images_any_2026-12-06_cross_check.json and images_any_lights_2026-12-06_cross_check.json;
+the albedo penalty's estimate by multiple importance sampling (session 85, a change to
+an estimator that chose no setting) was checked on the development set,
+images_any_dev_albedo_mis.json (all nine), then both test files run again to report,
+the session-83 files kept as images_any_2026-12-06_catch_up.json and
+images_any_lights_2026-12-06_catch_up.json),
 the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels

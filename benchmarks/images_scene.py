@@ -36,8 +36,10 @@ inconclusive split's cross-check over folds of the training tiles) was chosen on
 before the test set's paint was run again (images_scene_dev_no_cross_check.json: the
 grey coat with it off).  images_scene_dev_catch_up.json (development, --only silver):
 the silver with ``images.start_catch_up``, whose first pick was a family warm-started
-from another; the test set was then run again (images_scene.json; the session-82 run
-kept as images_scene_2026-12-06_cross_check.json).
+from another; the test set was then run again (the session-82 run kept as
+images_scene_2026-12-06_cross_check.json), and again after the albedo penalty's estimate
+by multiple importance sampling (session 85, chosen on nothing here: images_scene.json,
+session 83's run kept as images_scene_2026-12-06_catch_up.json).
 """
 
 from __future__ import annotations

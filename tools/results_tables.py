@@ -1472,6 +1472,7 @@ def images_any_section(
         out
         + _fitted_table(d)
         + _determined_table(d)
+        + _stage_table(d)
         + _refine_table(d)
         + _catch_up_table(d)
         + _contenders_table(d)
@@ -1540,6 +1541,48 @@ def _determined_table(d: dict) -> list[str]:
                 "BRDF, the rest",
                 "BRDF, observed",
             ],
+            rows,
+        ),
+        "",
+    ]
+
+
+def _stage_table(d: dict) -> list[str]:
+    """The image stage on the validation split (files that record its trajectory): the
+    start's held-out loss, the loss after the first scored steps, the best and the
+    last, and which weights were kept.  A good start's loss rising at once was the
+    albedo penalty's noisy estimate before session 85 (docs/inverse.md)."""
+    rows = []
+    for key, e in d["materials"].items():
+        v = e.get("validation") or {}
+        traj = v.get("trajectory")
+        if not traj or len(traj) < 2:
+            continue
+        loss = dict((int(s), float(x)) for s, x in traj)
+        start = loss.get(0, float(traj[0][1]))
+        best_step = min(loss, key=lambda s: (loss[s], s))
+        last_step = max(loss)
+        early = [s for s in (10, 20, 50) if s in loss]
+        rows.append(
+            [
+                key,
+                f"{start:.3g}",
+                ", ".join(f"{loss[s]:.3g} ({loss[s] / start:.2f}x)" for s in early) or "-",
+                f"{loss[best_step]:.3g} (step {best_step})",
+                f"{loss[last_step]:.3g} (step {last_step})",
+                str(v.get("kept", "-")),
+            ]
+        )
+    if not rows:
+        return []
+    return [
+        "The image stage on the validation split (the run's `training.validation`): the "
+        "held-out loss of the start's network before the first step, after 10, 20 and 50 "
+        "steps (and as a multiple of the start's), the best and the last scored, and the "
+        "weights kept.",
+        "",
+        *_table(
+            ["material", "start", "steps 10, 20, 50", "best", "last", "kept"],
             rows,
         ),
         "",
@@ -3552,8 +3595,14 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since session 83: a warm start's sources fitted as long before the "
-        "choice, images.start_catch_up",
+        "the defaults since session 85: the albedo penalty's estimate by multiple "
+        "importance sampling",
+    ),
+    _images_any(
+        "images_any_2026-12-06_catch_up.json",
+        "the defaults of session 83, before the albedo penalty's estimate by multiple "
+        "importance sampling: a warm start's sources fitted as long before the choice, "
+        "images.start_catch_up",
     ),
     _images_any(
         "images_any_2026-12-06_cross_check.json",
@@ -3588,8 +3637,14 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the defaults since session 83: a warm start's sources fitted as long before the "
-        "choice, images.start_catch_up",
+        "the defaults since session 85: the albedo penalty's estimate by multiple "
+        "importance sampling",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-06_catch_up.json",
+        "the defaults of session 83, before the albedo penalty's estimate by multiple "
+        "importance sampling: a warm start's sources fitted as long before the choice, "
+        "images.start_catch_up",
     ),
     _images_any(
         "images_any_lights_2026-12-06_cross_check.json",
@@ -3771,6 +3826,15 @@ SECTIONS = (
     (RESULTS / "images_valley_test.json", images_valley_section),
     (RESULTS / "images_scene.json", images_scene_section),
     (
+        RESULTS / "images_scene_2026-12-06_catch_up.json",
+        partial(
+            images_scene_section,
+            name="images_scene_2026-12-06_catch_up.json",
+            title="session 83's run, before the albedo penalty's estimate by multiple "
+            "importance sampling",
+        ),
+    ),
+    (
         RESULTS / "images_scene_2026-12-06_cross_check.json",
         partial(
             images_scene_section,
@@ -3829,6 +3893,11 @@ SECTIONS = (
             title="the clear-coated paint with its family named, images.start: clearcoat "
             "(what a user who knows the material is coated can do; not a default)",
         ),
+    ),
+    _images_any(
+        "images_any_dev_albedo_mis.json",
+        "the albedo penalty's estimate by multiple importance sampling (session 85), the "
+        "defaults of session 83 otherwise: all nine",
     ),
     _images_any(
         "images_any_dev_catch_up.json",
