@@ -1559,17 +1559,19 @@ def _stage_table(d: dict) -> list[str]:
         if not traj or len(traj) < 2:
             continue
         loss = dict((int(s), float(x)) for s, x in traj)
-        start = loss.get(0, float(traj[0][1]))
+        if 0 not in loss or not loss[0] > 0:  # no start's score to compare with
+            continue
+        start = loss[0]
         best_step = min(loss, key=lambda s: (loss[s], s))
         last_step = max(loss)
         early = [s for s in (10, 20, 50) if s in loss]
         rows.append(
             [
                 key,
-                f"{start:.3g}",
-                ", ".join(f"{loss[s]:.3g} ({loss[s] / start:.2f}x)" for s in early) or "-",
-                f"{loss[best_step]:.3g} (step {best_step})",
-                f"{loss[last_step]:.3g} (step {last_step})",
+                f"{start:.4g}",
+                ", ".join(f"{s}: {loss[s]:.4g} ({loss[s] / start:.3f}x)" for s in early) or "-",
+                f"{loss[best_step]:.4g} (step {best_step}, {loss[best_step] / start:.3f}x)",
+                f"{loss[last_step]:.4g} (step {last_step})",
                 str(v.get("kept", "-")),
             ]
         )
@@ -1582,7 +1584,7 @@ def _stage_table(d: dict) -> list[str]:
         "weights kept.",
         "",
         *_table(
-            ["material", "start", "steps 10, 20, 50", "best", "last", "kept"],
+            ["material", "start", "at steps 10, 20, 50", "best", "last", "kept"],
             rows,
         ),
         "",

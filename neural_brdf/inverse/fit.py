@@ -284,9 +284,10 @@ def albedo_directions(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """wi (K*N, 3) at ``images.albedo_incidences`` (degrees; a random azimuth each), wo
     (K*N, 3) and their weights cos(theta_o) / p(wo) (K*N,): N = ``images.albedo_side``^2
-    per incidence from :func:`neural_brdf.physics.quadrature.mis_directions` (the
-    cosine, the uniform hemisphere and GGX half vectors of several widths around the
-    normal and around wi, by the balance heuristic), fresh for every ``seed``, so that
+    per incidence (at least one per proposal, so 7 for a side of 1 or 2) from
+    :func:`neural_brdf.physics.quadrature.mis_directions` (the cosine, the uniform
+    hemisphere and GGX half vectors of several widths around the normal and around wi,
+    by the balance heuristic), fresh for every ``seed``, so that
     mean(f * weight) per incidence estimates its albedo.  ``images``: the config's
     section (None: its defaults)."""
     from neural_brdf.physics import quadrature
@@ -318,7 +319,9 @@ def albedo_penalty_fn(raw: RawBRDF, images: cfgmod.Images | None = None):
     @dr.wrap(source="drjit", target="torch")
     def penalty(weights, wi, wo, w):
         f = torch.func.functional_call(raw, weights, (wi, wo))  # (K*N, 3)
-        a = (f * w[:, None]).reshape(k, -1, 3).mean(1)  # (K, 3)
+        # weight 0: below the horizon, where f is not looked at (as in quadrature.albedo)
+        fw = torch.where(w[:, None] > 0, f * w[:, None], 0.0)
+        a = fw.reshape(k, -1, 3).mean(1)  # (K, 3)
         return weight * torch.relu(a - 1.0).square().sum().reshape(1), a.max().reshape(1)
 
     return penalty
