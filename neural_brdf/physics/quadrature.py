@@ -101,20 +101,6 @@ def from_numpy(fn: Callable) -> Callable[[torch.Tensor, torch.Tensor], torch.Ten
     return tfn
 
 
-def _counts(n: int, own) -> tuple[list[tuple[str, float, float]], list[int], list[float]]:
-    """The proposals (with the target's own sampler when ``own``), each one's number of
-    points out of ``n`` and its share of them (the cosine share absorbs rounding)."""
-    props = list(PROPOSALS)
-    if own is not None:
-        props = [(k, a, s * (1.0 - TARGET_SHARE)) for k, a, s in props] + [
-            ("target", 0.0, TARGET_SHARE)
-        ]
-    per = max(n, len(props))
-    counts = [max(1, int(round(s * per))) for _, _, s in props]
-    counts[0] += per - sum(counts)
-    return props, counts, [c / per for c in counts]
-
-
 def mis_directions(
     wi: torch.Tensor, n: int, seed: int, *, target: Described | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,7 +113,15 @@ def mis_directions(
     proposal's points are scrambled Sobol of seed ``seed + j``."""
     wi = torch.as_tensor(wi).reshape(-1, 3)
     own = sampler(target)
-    props, counts, shares = _counts(n, own)
+    props = list(PROPOSALS)
+    if own is not None:
+        props = [(k, a, s * (1.0 - TARGET_SHARE)) for k, a, s in props] + [
+            ("target", 0.0, TARGET_SHARE)
+        ]
+    per = max(n, len(props))
+    counts = [max(1, int(round(s * per))) for _, _, s in props]
+    counts[0] += per - sum(counts)  # the cosine share absorbs rounding
+    shares = [c / per for c in counts]
     w = wi.double()[:, None, :]  # (m, 1, 3)
     wos = []
     for j, ((kind, alpha, _), c) in enumerate(zip(props, counts)):
@@ -165,7 +159,7 @@ def albedo(
     Each of :data:`REPLICAS` independent scramblings is a :func:`mis_directions` set.
     """
     wi = torch.as_tensor(wi, dtype=torch.float64).reshape(-1, 3)
-    per = max(n // REPLICAS, len(_counts(1, sampler(target))[0]))
+    per = max(n // REPLICAS, 1)  # per replica (mis_directions: at least one per proposal)
     rows_per_chunk = max(1, chunk // per)
     replicas = []
     for r in range(REPLICAS):

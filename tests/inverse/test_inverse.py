@@ -1466,15 +1466,15 @@ def test_the_albedo_penalty_follows_the_images_section(mi):
     from neural_brdf.inverse import fit as inverse
 
     images = config.Images(albedo_incidences=[10.0, 60.0, 85.0], albedo_side=5)
-    wi, wo, weight = inverse.albedo_directions(3, images)
-    assert wi.shape == wo.shape == (3 * 25, 3) and weight.shape == (3 * 25,)
+    wi, wo, cos_over_pdf = inverse.albedo_directions(3, images)
+    assert wi.shape == wo.shape == (3 * 25, 3) and cos_over_pdf.shape == (3 * 25,)
     cos = wi[:, 2].reshape(3, 25).numpy()
     np.testing.assert_allclose(cos[:, 0], np.cos(np.deg2rad([10.0, 60.0, 85.0])), rtol=1e-6)
     assert np.all(cos == cos[:, :1])  # one incidence per block
     bsdf = mi.load_dict({"type": ib.PLUGIN, "model": ib.COMPACT, "init_value": 0.3})
     raw = bsdf.torch_model()
     w = {k: ib._to_dr(v) for k, v in raw.state_dict().items()}
-    args = (w, *(mi.TensorXf(x.numpy()) for x in (wi, wo, weight)))
+    args = (w, *(mi.TensorXf(x.numpy()) for x in (wi, wo, cos_over_pdf)))
     values = {}
     for weight in (0.0, 1.0, 2.5):
         pen, amax = inverse.albedo_penalty_fn(
