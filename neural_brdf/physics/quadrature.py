@@ -106,11 +106,12 @@ def mis_directions(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` outgoing directions per row of ``wi`` (M, 3), drawn from :data:`PROPOSALS`
     (and ``target``'s own sampler), and their weights cos(theta_o) / p(wo) under the
-    balance heuristic (0 below the horizon): -> (wo (M, n', 3), weight (M, n')), n' >= n
-    only when there are fewer points than proposals.  ``mean(f(wi, wo) * weight)`` over
-    the second axis estimates rho(wi) without bias; the directions and weights do not
-    depend on ``f``, so the estimate is differentiable in ``f``'s parameters.  The j-th
-    proposal's points are scrambled Sobol of seed ``seed + j``."""
+    balance heuristic (0 below the horizon): -> (wo (M, n', 3), weight (M, n')), n' > n
+    only when ``n`` is too few to give every proposal its point (a handful).
+    ``mean(f(wi, wo) * weight)`` over the second axis estimates rho(wi) without bias;
+    the directions and weights do not depend on ``f``, so the estimate is
+    differentiable in ``f``'s parameters.  The j-th proposal's points are scrambled
+    Sobol of seed ``seed + j``."""
     wi = torch.as_tensor(wi).reshape(-1, 3)
     own = sampler(target)
     props = list(PROPOSALS)
@@ -118,9 +119,11 @@ def mis_directions(
         props = [(k, a, s * (1.0 - TARGET_SHARE)) for k, a, s in props] + [
             ("target", 0.0, TARGET_SHARE)
         ]
-    per = max(n, len(props))
-    counts = [max(1, int(round(s * per))) for _, _, s in props]
-    counts[0] += per - sum(counts)  # the cosine share absorbs rounding
+    counts = [max(1, int(round(s * n))) for _, _, s in props]
+    # the cosine share absorbs the rounding, keeping a point: with fewer points than the
+    # proposals need (a handful) the total grows instead; the shares are the true ones
+    counts[0] = max(1, counts[0] + n - sum(counts))
+    per = sum(counts)
     shares = [c / per for c in counts]
     w = wi.double()[:, None, :]  # (m, 1, 3)
     wos = []
