@@ -252,7 +252,8 @@ def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
     set by ``seed`` and the view alone.  Its expectation is the loss of the noise-free
     render, so two weights (or a network and an analytic start:
     :func:`neural_brdf.inverse.starts.noise_free_loss`) compare by how well they fit, not
-    by how noisy they render; scores of different weights share their samples.  None
+    by how noisy they render; scores of different weights share their samples (through
+    the same sampling lobe: :func:`fit_neural` scores with its start's).  None
     when no pixel is held out."""
     import drjit as dr
     import mitsuba as mi
@@ -473,7 +474,12 @@ def fit_neural(
             v.bsdf.set_lobe(new, "fitted to the network")
 
     def score(step: int) -> float:
-        """The held-out loss of the weights now, recorded in ``val``."""
+        """The held-out loss of the weights now, recorded in ``val``.  Every scoring
+        renders with the sampling lobe of the start's (kept in ``val``), not the one
+        refitted since: the loss's expectation does not depend on the lobe, but its
+        samples do, and scores drawn through other lobes share none of them (the
+        development gold's score fell by 24 % at a refit and rose back at the next, its
+        weights all but unchanged, and the stage kept a step of the lucky lobe)."""
         nonlocal val
         with timed("validation"):
             for v in views:
@@ -481,10 +487,23 @@ def fit_neural(
                     for n in names:
                         v.params["raw." + n] = opt[n]
                     v.params.update()
-            loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
+            scoring = lobe if val is None else val.get("lobe", lobe)
+            if scoring is not lobe:
+                set_lobe(scoring)
+            try:
+                loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
+            finally:
+                if scoring is not lobe:
+                    set_lobe(lobe)
             assert loss is not None
             if val is None:  # the start's
-                val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
+                val = {
+                    "start_loss": loss,
+                    "best_loss": math.inf,
+                    "best_step": 0,
+                    "best": None,
+                    "lobe": lobe,
+                }
             if loss < val["best_loss"]:
                 val.update(best_loss=loss, best_step=step, best=weights_now())
             val.update(last_loss=loss, last_step=step)
@@ -620,7 +639,7 @@ def validation_figures(
         "channel mean (a flash/no-flash pair's: the flash photograph's), mean over the held-out "
         "pixels of the object and RGB, estimated without the render's noise as "
         "(x1 - y)(x2 - y) / (y_bar^2 + 0.01), x1 and x2 two renders of spp / 2 samples with "
-        "fixed independent seeds (the same at every scoring)",
+        "fixed independent seeds and the start's sampling lobe (the same at every scoring)",
         "start_loss": val["start_loss"],
         "best_loss": val["best_loss"],
         "best_step": best,
