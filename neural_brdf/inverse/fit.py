@@ -253,7 +253,8 @@ def heldout_loss(views: list[View], *, spp: int, seed: int) -> float | None:
     render, so two weights (or a network and an analytic start:
     :func:`neural_brdf.inverse.starts.noise_free_loss`) compare by how well they fit, not
     by how noisy they render; scores of different weights share their samples (through
-    the same sampling lobe: :func:`fit_neural` scores with its start's).  None
+    the same sampling lobe: :func:`fit_neural` scores its best weights again after
+    each refit of the lobe).  None
     when no pixel is held out."""
     import drjit as dr
     import mitsuba as mi
@@ -473,37 +474,40 @@ def fit_neural(
         for v in views:
             v.bsdf.set_lobe(new, "fitted to the network")
 
-    def score(step: int) -> float:
-        """The held-out loss of the weights now, recorded in ``val``.  Every scoring
-        renders with the sampling lobe of the start's (kept in ``val``), not the one
-        refitted since: the loss's expectation does not depend on the lobe, but its
-        samples do, and scores drawn through other lobes share none of them (the
-        development gold's score fell by 24 % at a refit and rose back at the next, its
+    def held_out_loss(weights) -> float:
+        """The held-out loss of ``weights`` (the optimiser's, or a saved state) through
+        the sampling lobe in use."""
+        for v in views:
+            if v.validation_mask() is not None:
+                for n in names:
+                    w = weights[n]
+                    v.params["raw." + n] = (
+                        w if isinstance(w, mi.TensorXf) else mi.TensorXf(w.numpy())
+                    )
+                v.params.update()
+        loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
+        assert loss is not None
+        return loss
+
+    def rescore_best(step: int) -> None:
+        """After a refit of the sampling lobe, the best weights' held-out loss again,
+        through the new lobe: the scores that follow are compared with it, never with
+        one drawn through another lobe.  The loss's expectation does not depend on the
+        lobe, but its samples do, and scores through two lobes share none of them (the
+        development gold's fell by 24 % at a refit and rose back at the next, its
         weights all but unchanged, and the stage kept a step of the lucky lobe)."""
+        assert val is not None and val.get("best") is not None
+        with timed("validation"):
+            val["best_loss"] = held_out_loss(val["best"])
+            val.setdefault("best_rescored", []).append([step, val["best_loss"]])
+
+    def score(step: int) -> float:
+        """The held-out loss of the weights now, recorded in ``val``."""
         nonlocal val
         with timed("validation"):
-            for v in views:
-                if v.validation_mask() is not None:
-                    for n in names:
-                        v.params["raw." + n] = opt[n]
-                    v.params.update()
-            scoring = lobe if val is None else val.get("lobe", lobe)
-            if scoring is not lobe:
-                set_lobe(scoring)
-            try:
-                loss = heldout_loss(views, spp=images.validation_spp, seed=t.seed)
-            finally:
-                if scoring is not lobe:
-                    set_lobe(lobe)
-            assert loss is not None
+            loss = held_out_loss(opt)
             if val is None:  # the start's
-                val = {
-                    "start_loss": loss,
-                    "best_loss": math.inf,
-                    "best_step": 0,
-                    "best": None,
-                    "lobe": lobe,
-                }
+                val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
             if loss < val["best_loss"]:
                 val.update(best_loss=loss, best_step=step, best=weights_now())
             val.update(last_loss=loss, last_step=step)
@@ -529,6 +533,8 @@ def fit_neural(
                 with timed("lobe"):
                     lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
                     set_lobe(lobe)
+                if split and val is not None and val.get("best") is not None:
+                    rescore_best(step)
             total = 0.0
             t_render = time.perf_counter()
             for i, v in enumerate(fitted):
@@ -639,10 +645,14 @@ def validation_figures(
         "channel mean (a flash/no-flash pair's: the flash photograph's), mean over the held-out "
         "pixels of the object and RGB, estimated without the render's noise as "
         "(x1 - y)(x2 - y) / (y_bar^2 + 0.01), x1 and x2 two renders of spp / 2 samples with "
-        "fixed independent seeds and the start's sampling lobe (the same at every scoring)",
+        "fixed independent seeds (the same at every scoring); after a refit of the sampling "
+        "lobe the best weights are scored again through the new one, so that every "
+        "comparison is of scores that share their samples",
         "start_loss": val["start_loss"],
         "best_loss": val["best_loss"],
         "best_step": best,
+        # [step, loss]: the best weights scored again through the lobe refitted at step
+        "best_rescored": val.get("best_rescored", []),
         "last_loss": val.get("last_loss"),
         "last_step": val.get("last_step"),
         "kept": "the start" if best == 0 else f"step {best}",
