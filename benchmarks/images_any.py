@@ -76,7 +76,13 @@ the albedo penalty's estimate by multiple importance sampling (session 85, a cha
 an estimator that chose no setting) was checked on the development set,
 images_any_dev_albedo_mis.json (all nine), then both test files run again to report,
 the session-83 files kept as images_any_2026-12-06_catch_up.json and
-images_any_lights_2026-12-06_catch_up.json),
+images_any_lights_2026-12-06_catch_up.json; the image stage's held-out scores made to
+share their samples across the sampling lobe's refits (session 86, a change to how the
+stage compares its scores, choosing no setting) was checked on the development set,
+images_any_dev_scoring_start_lobe.json (every scoring through the start's lobe, not
+kept) and images_any_dev_rescore.json (the best weights scored again through each new
+lobe, kept), then both test files run again to report, the session-85 files kept as
+images_any_2026-12-06_albedo_mis.json and images_any_lights_2026-12-06_albedo_mis.json),
 the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels
@@ -842,6 +848,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
                 "kept",
                 "patience",
                 "stopped_at",
+                "best_rescored",
             )
         }
         # [step, held-out loss] at every scoring, the start's at step 0

@@ -39,7 +39,10 @@ the silver with ``images.start_catch_up``, whose first pick was a family warm-st
 from another; the test set was then run again (the session-82 run kept as
 images_scene_2026-12-06_cross_check.json), and again after the albedo penalty's estimate
 by multiple importance sampling (session 85, chosen on nothing here: images_scene.json,
-session 83's run kept as images_scene_2026-12-06_catch_up.json).
+session 83's run kept as images_scene_2026-12-06_catch_up.json), and again after the
+image stage's best weights began to be scored again through each refitted sampling lobe
+(session 86, checked on benchmarks/images_any.py's development set: images_scene.json,
+session 85's run kept as images_scene_2026-12-06_albedo_mis.json).
 """
 
 from __future__ import annotations
@@ -249,7 +252,10 @@ def measure(
         "brdf": brdf,
         "coverage": float(cov.figure),
         "determined": (det_info or {}).get("figure"),
-        "validation": {k: val.get(k) for k in ("start_loss", "best_loss", "kept", "stopped_at")},
+        "validation": {
+            k: val.get(k)
+            for k in ("start_loss", "best_loss", "kept", "stopped_at", "best_rescored")
+        },
         "physics": images_any.physics_entry(metrics),
         "seconds": {
             "start_choice": tr.get("start_seconds"),
