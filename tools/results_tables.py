@@ -1586,9 +1586,10 @@ def _stage_table(d: dict) -> list[str]:
         "The image stage on the validation split (the run's `training.validation`): the "
         "held-out loss of the start's network before the first step, after 10, 20 and 50 "
         "steps (and as a multiple of the start's), the best and the last scored, and the "
-        "weights kept.  The sampling lobe is refitted every 50 steps, after the score at "
-        "step 50: scores through two lobes do not share their samples (since session 86 the "
-        "best weights are scored again through each new lobe, `best_rescored`).",
+        "weights kept.  The sampling lobe is refitted every `images.lobe_every` steps (50 "
+        "here), after that step's score: scores through two lobes do not share their "
+        "samples (since session 86 the best weights are scored again through each new "
+        "lobe, `best_rescored`).",
         "",
         *_table(
             ["material", "start", "at steps 10, 20, 50", "best", "last", "kept"]

@@ -508,8 +508,8 @@ def fit_neural(
             loss = held_out_loss(opt)
             if val is None:  # the start's
                 val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
-            if loss < val["best_loss"]:
-                val.update(best_loss=loss, best_step=step, best=weights_now())
+            if loss < val["best_loss"]:  # (best_loss: its score through the lobe in use)
+                val.update(best_loss=loss, best_step=step, best=weights_now(), best_scored=loss)
             val.update(last_loss=loss, last_step=step)
         return loss
 
@@ -649,7 +649,9 @@ def validation_figures(
         "lobe the best weights are scored again through the new one, so that every "
         "comparison is of scores that share their samples",
         "start_loss": val["start_loss"],
-        "best_loss": val["best_loss"],
+        # the best's score at its step (log.csv's), comparable with the start's when no
+        # refit of the sampling lobe came between them; best_rescored: its scores since
+        "best_loss": val.get("best_scored", val["best_loss"]),
         "best_step": best,
         # [step, loss]: the best weights scored again through the lobe refitted at step
         "best_rescored": val.get("best_rescored", []),
