@@ -764,6 +764,66 @@ def test_after_a_refit_of_the_lobe_the_best_is_scored_again_through_it(
     assert abs(rescored[0][1] / val["start_loss"] - 1) > 0.05  # the lobes did differ
 
 
+@pytest.mark.slow
+def test_the_weights_scored_again_after_a_refit_are_the_best_so_far(
+    mi, example, tmp_path, monkeypatch
+):
+    # a rate far too high (every step worse than the start), the lobe refitted every 2
+    # steps and a scoring at every step: replaying the rule on the scores as they came,
+    # each score right after a refit is of the best weights so far (the start's here,
+    # not the weights now), and the scores after it are compared with it
+    from neural_brdf.inverse import bsdf as ib
+    from neural_brdf.inverse import fit as fitmod
+
+    events: list[tuple[str, np.ndarray | None, float | None]] = []
+    refit_lobe, heldout = ib.NeuralBSDFAD.refit_lobe, fitmod.heldout_loss
+
+    def marked_refit(self, seed=0, state=None):
+        events.append(("refit", None, None))
+        return refit_lobe(self, seed, state)
+
+    def recorded(views, *, spp, seed):
+        loss = heldout(views, spp=spp, seed=seed)
+        v = next(v for v in views if v.validation_mask() is not None)
+        raw = sorted(k for k in v.params.keys() if k.startswith("raw."))
+        w = np.concatenate([np.array(v.params[k].numpy(), copy=True).ravel() for k in raw])
+        events.append(("score", w, loss))
+        return loss
+
+    monkeypatch.setattr(ib.NeuralBSDFAD, "refit_lobe", marked_refit)
+    monkeypatch.setattr(fitmod, "heldout_loss", recorded)
+    run_dir = tmp_path / "run"
+    worse = [
+        "train.steps=6",
+        "images.start_steps=10",
+        "images.start_train_steps=300",
+        "images.start_lr_scale=25",
+        "images.lobe_every=2",
+        "images.validation_pixels=0.2",
+        "images.validation_every=1",
+        "images.patience=null",
+    ]
+    code = cli.main(train_args(example / "fit.yaml", run_dir, FIT_OVERRIDES + worse))
+    assert code == 0
+    stage = events[next(i for i, e in enumerate(events) if e[0] == "refit") :]
+    best_w, best_loss, now_w, after_refit, rescored = None, math.inf, None, False, []
+    for kind, w, loss in stage:
+        if kind == "refit":
+            after_refit = best_w is not None
+        elif after_refit:  # the best scored again through the new lobe
+            np.testing.assert_array_equal(w, best_w)
+            rescored.append(not np.array_equal(w, now_w))
+            best_loss, after_refit = loss, False
+        else:
+            now_w = w
+            if loss < best_loss:
+                best_w, best_loss = w, loss
+    val = json.loads((run_dir / "metrics.json").read_text())["training"]["validation"]
+    assert [s for s, _ in val["best_rescored"]] == [2, 4] and len(rescored) == 2, stage
+    assert all(rescored), "the weights scored again were the weights now, not the best"
+    assert val["kept"] == "the start"
+
+
 def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):
     from neural_brdf.inverse import scene as inverse_example
 
