@@ -3606,7 +3606,13 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since session 85: the albedo penalty's estimate by multiple "
+        "the defaults since session 86: the best weights scored again through each "
+        "refitted sampling lobe",
+    ),
+    _images_any(
+        "images_any_2026-12-06_albedo_mis.json",
+        "the defaults of session 85, before the best weights were scored again through "
+        "each refitted sampling lobe: the albedo penalty's estimate by multiple "
         "importance sampling",
     ),
     _images_any(
@@ -3648,7 +3654,13 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the defaults since session 85: the albedo penalty's estimate by multiple "
+        "the defaults since session 86: the best weights scored again through each "
+        "refitted sampling lobe",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-06_albedo_mis.json",
+        "the defaults of session 85, before the best weights were scored again through "
+        "each refitted sampling lobe: the albedo penalty's estimate by multiple "
         "importance sampling",
     ),
     _images_any(
@@ -3836,6 +3848,15 @@ SECTIONS = (
     (RESULTS / "images_valley_dev.json", images_valley_section),
     (RESULTS / "images_valley_test.json", images_valley_section),
     (RESULTS / "images_scene.json", images_scene_section),
+    (
+        RESULTS / "images_scene_2026-12-06_albedo_mis.json",
+        partial(
+            images_scene_section,
+            name="images_scene_2026-12-06_albedo_mis.json",
+            title="session 85's run, before the best weights were scored again through "
+            "each refitted sampling lobe",
+        ),
+    ),
     (
         RESULTS / "images_scene_2026-12-06_catch_up.json",
         partial(
