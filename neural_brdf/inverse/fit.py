@@ -500,14 +500,44 @@ def fit_neural(
         with timed("validation"):
             val["best_loss"] = held_out_loss(val["best"])
             val.setdefault("best_rescored", []).append([step, val["best_loss"]])
+        # the start's score is through the lobe in use only while it is the best
+        val["start_current"] = int(val["best_step"]) == 0
+
+    def check_start(step: int) -> None:
+        """At the end of the stage, the start against the kept weights through the lobe
+        in use: once a step has beaten the start and the lobe was refitted, each later
+        replacement of the best compared scores that share their samples, but the chain
+        of them never compared the kept weights with the start.  Scored again through
+        the last lobe, the start competes with every score drawn through it (the kept
+        weights' included), as if it had been scored again at that refit, and it is
+        kept when it scores no worse: the stage never ends worse than its start on the
+        split through one set of samples (issue 29)."""
+        assert val is not None
+        if int(val["best_step"]) == 0 or val.get("start_current", True):
+            return
+        if val.get("start") is None:  # a checkpoint written before the start was kept
+            return
+        with timed("validation"):
+            loss = held_out_loss(val["start"])
+        val["start_rescored"] = [step, loss]
+        val["start_current"] = True
+        if loss <= val["best_loss"]:
+            print(
+                f"images: the start scores {loss:.4g} through the last sampling lobe against "
+                f"{val['best_loss']:.4g} for step {val['best_step']}: the start is kept",
+                file=sys.stderr,
+            )
+            val.update(best_loss=loss, best_step=0, best=val["start"])
+            val["best_scored"] = val["start_loss"]  # (its score at its step, as log.csv's)
 
     def score(step: int) -> float:
         """The held-out loss of the weights now, recorded in ``val``."""
         nonlocal val
         with timed("validation"):
             loss = held_out_loss(opt)
-            if val is None:  # the start's
+            if val is None:  # the start's (its weights kept for check_start)
                 val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
+                val.update(start=weights_now(), start_current=True)
             if loss < val["best_loss"]:  # (best_loss: its score through the lobe in use)
                 val.update(best_loss=loss, best_step=step, best=weights_now(), best_scored=loss)
             val.update(last_loss=loss, last_step=step)
@@ -588,6 +618,9 @@ def fit_neural(
                     f"(images.patience; train.steps {t.steps})",
                     file=sys.stderr,
                 )
+        if split and val is not None and not val.get("start_current", True):
+            check_start(s.step)
+            s.checkpoint()
     raw = copy.deepcopy(raw_template)
     raw.load_state_dict(val["best"] if val is not None else weights_now())
     training: dict[str, Any] = {
@@ -655,6 +688,9 @@ def validation_figures(
         "best_step": best,
         # [step, loss]: the best weights scored again through the lobe refitted at step
         "best_rescored": val.get("best_rescored", []),
+        # [step, loss]: the start scored again through the last lobe at the stage's end
+        # (step), where a step had beaten it before a refit; kept when no worse
+        "start_rescored": val.get("start_rescored"),
         "last_loss": val.get("last_loss"),
         "last_step": val.get("last_step"),
         "kept": "the start" if best == 0 else f"step {best}",

@@ -824,6 +824,69 @@ def test_the_weights_scored_again_after_a_refit_are_the_best_so_far(
     assert val["kept"] == "the start"
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("start_again, kept", [(0.6, "the start"), (0.9, "step 4")])
+def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_no_worse(
+    mi, example, tmp_path, monkeypatch, start_again, kept
+):
+    # scripted held-out scores (the lobe refitted every 2 steps, a scoring at every
+    # step): step 1 beats the start through the start's lobe, step 4 beats step 1's score
+    # again through step 2's lobe, and after the refit at step 4 no step beats step 4's
+    # score again.  The chain never compared step 4 with the start through one lobe, so
+    # at the end the start is scored again through the last lobe: kept when it scores no
+    # worse than the kept weights' score through it (0.75), else step 4 stays
+    from neural_brdf.inverse import fit as fitmod
+
+    script = iter([1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 0.75, 0.8, 0.9, start_again])
+    scored: list[np.ndarray] = []
+
+    def scripted(views, *, spp, seed):
+        v = next(v for v in views if v.validation_mask() is not None)
+        raw = sorted(k for k in v.params.keys() if k.startswith("raw."))
+        scored.append(
+            np.concatenate([np.array(v.params[k].numpy(), copy=True).ravel() for k in raw])
+        )
+        return next(script)
+
+    monkeypatch.setattr(fitmod, "heldout_loss", scripted)
+    run_dir = tmp_path / "run"
+    code = cli.main(
+        train_args(
+            example / "fit.yaml",
+            run_dir,
+            FIT_OVERRIDES
+            + [
+                "train.steps=6",
+                "images.start_steps=10",
+                "images.start_train_steps=60",
+                "images.start_lr_scale=1",
+                "images.lobe_every=2",
+                "images.validation_pixels=0.2",
+                "images.validation_every=1",
+                "images.patience=null",
+            ],
+        )
+    )
+    assert code == 0
+    assert next(script, None) is None, "the start was not scored again at the end"
+    # the scores: the start, steps 1-2, step 1 again, steps 3-4, step 4 again, steps 5-6,
+    # and the start again: the last is of the start's weights, not the kept or the last
+    assert len(scored) == 10
+    np.testing.assert_array_equal(scored[-1], scored[0])
+    assert not np.array_equal(scored[-1], scored[5])
+    np.testing.assert_array_equal(scored[6], scored[5])  # step 4 scored again at its refit
+    val = json.loads((run_dir / "metrics.json").read_text())["training"]["validation"]
+    assert val["start_rescored"] == [6, start_again]
+    assert val["best_rescored"] == [[2, 0.8], [4, 0.75]]
+    assert val["kept"] == kept
+    # metrics.json's best_loss: the kept weights' score at their step (log.csv's)
+    assert val["best_loss"] == (1.0 if kept == "the start" else 0.7)
+    # the run's model is the kept weights: the start's (to the export's float32 parity),
+    # or step 4's, which the full rate has moved well away from it
+    change = start_network_change(run_dir)
+    assert change < 1e-4 if kept == "the start" else change > 1e-3, change
+
+
 def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):
     from neural_brdf.inverse import scene as inverse_example
 
