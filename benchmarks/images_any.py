@@ -849,6 +849,7 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
                 "patience",
                 "stopped_at",
                 "best_rescored",
+                "start_rescored",  # (since session 87)
             )
         }
         # [step, held-out loss] at every scoring, the start's at step 0

@@ -254,7 +254,14 @@ def measure(
         "determined": (det_info or {}).get("figure"),
         "validation": {
             k: val.get(k)
-            for k in ("start_loss", "best_loss", "kept", "stopped_at", "best_rescored")
+            for k in (
+                "start_loss",
+                "best_loss",
+                "kept",
+                "stopped_at",
+                "best_rescored",
+                "start_rescored",
+            )
         },
         "physics": images_any.physics_entry(metrics),
         "seconds": {
