@@ -3966,9 +3966,13 @@ SECTIONS = (
         "(session 87, the defaults since): the six good starts whose stage passed a refit",
     ),
     _images_any(
+        "images_any_dev_start_lr_0.15.json",
+        "the image stage after a good start at 0.15 x train.lr, images.start_lr_scale "
+        "(session 87, not chosen: 0.05 kept): the seven good starts",
+    ),
+    _images_any(
         "images_any_dev_rescore.json",
-        "the best weights scored again through each refitted sampling lobe (session 86): "
-        "all nine",
+        "the best weights scored again through each refitted sampling lobe (session 86): all nine",
     ),
     _images_any(
         "images_any_dev_scoring_start_lobe.json",

@@ -382,7 +382,8 @@ def fit_neural(
     """Fit the RawBRDF of ``cfg.model`` to ``views`` (those not held out: the
     validation split marked by :func:`split_views`) with ``cfg.images``'s settings;
     writes ckpt.pt and log.csv.  With a split, returns the weights of the best held-out
-    loss (the start's when no step beats it).  ``session``: the run's session when
+    loss (the start's when no step beats it, or when it scores no worse through the last
+    sampling lobe: ``check_start``).  ``session``: the run's session when
     :func:`fit` has begun it (else one is opened here,
     :meth:`neural_brdf.train.session.Session.one`)."""
     import drjit as dr

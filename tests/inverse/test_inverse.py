@@ -825,7 +825,7 @@ def test_the_weights_scored_again_after_a_refit_are_the_best_so_far(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("start_again, kept", [(0.6, "the start"), (0.9, "step 4")])
+@pytest.mark.parametrize("start_again, kept", [(0.75, "the start"), (0.9, "step 4")])
 def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_no_worse(
     mi, example, tmp_path, monkeypatch, start_again, kept
 ):
@@ -834,7 +834,8 @@ def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_
     # again through step 2's lobe, and after the refit at step 4 no step beats step 4's
     # score again.  The chain never compared step 4 with the start through one lobe, so
     # at the end the start is scored again through the last lobe: kept when it scores no
-    # worse than the kept weights' score through it (0.75), else step 4 stays
+    # worse than the kept weights' score through it (0.75: a tie keeps the start; against
+    # step 4's score through the old lobe, 0.7, it would lose), else step 4 stays
     from neural_brdf.inverse import fit as fitmod
 
     script = iter([1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 0.75, 0.8, 0.9, start_again])
