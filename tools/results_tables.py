@@ -3622,8 +3622,13 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since session 86: the best weights scored again through each "
-        "refitted sampling lobe",
+        "the defaults since session 87: the start scored again through the last sampling "
+        "lobe at the stage's end",
+    ),
+    _images_any(
+        "images_any_2026-12-06_rescore.json",
+        "the defaults of session 86, before the start was scored again at the stage's end: "
+        "the best weights scored again through each refitted sampling lobe",
     ),
     _images_any(
         "images_any_2026-12-06_albedo_mis.json",
