@@ -82,7 +82,15 @@ stage compares its scores, choosing no setting) was checked on the development s
 images_any_dev_scoring_start_lobe.json (every scoring through the start's lobe, not
 kept) and images_any_dev_rescore.json (the best weights scored again through each new
 lobe, kept), then both test files run again to report, the session-85 files kept as
-images_any_2026-12-06_albedo_mis.json and images_any_lights_2026-12-06_albedo_mis.json),
+images_any_2026-12-06_albedo_mis.json and images_any_lights_2026-12-06_albedo_mis.json;
+the start scored again through the last lobe at the stage's end (session 87, again a
+change to the comparison that chose no setting) was checked on the development set,
+images_any_dev_start_check.json (the six good starts whose stage passed a refit), then
+the studio's test file run again to report, the session-86 file kept as
+images_any_2026-12-06_rescore.json (the multi-light file not run again); and
+images.start_lr_scale 0.15 was tried on the development set alone,
+images_any_dev_start_lr_0.15.json (the seven good starts; not chosen, 0.05 kept, so
+the test set was not run with it)),
 the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels

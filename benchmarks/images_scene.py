@@ -42,7 +42,10 @@ by multiple importance sampling (session 85, chosen on nothing here: images_scen
 session 83's run kept as images_scene_2026-12-06_catch_up.json), and again after the
 image stage's best weights began to be scored again through each refitted sampling lobe
 (session 86, checked on benchmarks/images_any.py's development set: images_scene.json,
-session 85's run kept as images_scene_2026-12-06_albedo_mis.json).
+session 85's run kept as images_scene_2026-12-06_albedo_mis.json).  The test set's
+clear-coated paint was run again with ``--set-key train.seed=1`` and ``=2`` (session 87,
+images_scene_paint_seed1.json and images_scene_paint_seed2.json: that run's spread over
+the split, the render seeds and the distillation, with session 86's code; chose nothing).
 """
 
 from __future__ import annotations

@@ -1589,12 +1589,18 @@ def _stage_table(d: dict) -> list[str]:
         )
     if not rows:
         return []
-    again = any(r[-1] != "-" for r in rows)
-    if not again:
-        rows = [r[:-1] for r in rows]
-    rescored = any(r[6] != "-" for r in rows)
-    if not rescored:
-        rows = [r[:6] + r[7:] for r in rows]
+    heads = [
+        "material",
+        "start",
+        "at steps 10, 20, 50",
+        "best",
+        "last",
+        "kept",
+        "the best scored again through the lobe of step",  # files since session 86
+        "the start scored again at the end",  # files since session 87
+    ]
+    # the last two columns only where some row has them
+    shown = [i for i in range(len(heads)) if i < 6 or any(r[i] != "-" for r in rows)]
     return [
         "The image stage on the validation split (the run's `training.validation`): the "
         "held-out loss of the start's network before the first step, after 10, 20 and 50 "
@@ -1606,12 +1612,7 @@ def _stage_table(d: dict) -> list[str]:
         "refit, the start is scored again through the last lobe at the stage's end and "
         "kept if no worse, `start_rescored`).",
         "",
-        *_table(
-            ["material", "start", "at steps 10, 20, 50", "best", "last", "kept"]
-            + (["the best scored again through the lobe of step"] if rescored else [])
-            + (["the start scored again at the end"] if again else []),
-            rows,
-        ),
+        *_table([heads[i] for i in shown], [[r[i] for i in shown] for r in rows]),
         "",
     ]
 

@@ -504,7 +504,7 @@ def fit_neural(
         # the start's score is through the lobe in use only while it is the best
         val["start_current"] = int(val["best_step"]) == 0
 
-    def check_start(step: int) -> None:
+    def check_start(step: int) -> bool:
         """At the end of the stage, the start against the kept weights through the lobe
         in use: once a step has beaten the start and the lobe was refitted, each later
         replacement of the best compared scores that share their samples, but the chain
@@ -512,12 +512,11 @@ def fit_neural(
         the last lobe, the start competes with every score drawn through it (the kept
         weights' included), as if it had been scored again at that refit, and it is
         kept when it scores no worse: the stage never ends worse than its start on the
-        split through one set of samples (issue 29)."""
+        split through one set of samples (issue 29).  Whether it scored the start (not
+        while its score is through the lobe in use, which it is while it is the best)."""
         assert val is not None
-        if int(val["best_step"]) == 0 or val.get("start_current", True):
-            return
-        if val.get("start") is None:  # a checkpoint written before the start was kept
-            return
+        if val.get("start_current", True) or val.get("start") is None:
+            return False  # (no "start": a checkpoint written before it was kept)
         with timed("validation"):
             loss = held_out_loss(val["start"])
         val["start_rescored"] = [step, loss]
@@ -530,6 +529,7 @@ def fit_neural(
             )
             val.update(best_loss=loss, best_step=0, best=val["start"])
             val["best_scored"] = val["start_loss"]  # (its score at its step, as log.csv's)
+        return True
 
     def score(step: int) -> float:
         """The held-out loss of the weights now, recorded in ``val``."""
@@ -619,8 +619,7 @@ def fit_neural(
                     f"(images.patience; train.steps {t.steps})",
                     file=sys.stderr,
                 )
-        if split and val is not None and not val.get("start_current", True):
-            check_start(s.step)
+        if split and val is not None and check_start(s.step):
             s.checkpoint()
     raw = copy.deepcopy(raw_template)
     raw.load_state_dict(val["best"] if val is not None else weights_now())

@@ -501,6 +501,14 @@ def fitted(mi, example, tmp_path_factory):
     return code, run_dir
 
 
+def scored_weights(views) -> np.ndarray:
+    """The network's weights a held-out scoring renders with (those of the first held-out
+    view's plugin, flattened in name order), for tests that replace ``heldout_loss``."""
+    v = next(v for v in views if v.validation_mask() is not None)
+    raw = sorted(k for k in v.params.keys() if k.startswith("raw."))
+    return np.concatenate([np.array(v.params[k].numpy(), copy=True).ravel() for k in raw])
+
+
 def start_network_change(run_dir: Path) -> float:
     """Relative RMS difference of f between the exported model and the network the GGX
     start handed to the image stage (``init/ckpt.pt``)."""
@@ -784,10 +792,7 @@ def test_the_weights_scored_again_after_a_refit_are_the_best_so_far(
 
     def recorded(views, *, spp, seed):
         loss = heldout(views, spp=spp, seed=seed)
-        v = next(v for v in views if v.validation_mask() is not None)
-        raw = sorted(k for k in v.params.keys() if k.startswith("raw."))
-        w = np.concatenate([np.array(v.params[k].numpy(), copy=True).ravel() for k in raw])
-        events.append(("score", w, loss))
+        events.append(("score", scored_weights(views), loss))
         return loss
 
     monkeypatch.setattr(ib.NeuralBSDFAD, "refit_lobe", marked_refit)
@@ -842,11 +847,7 @@ def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_
     scored: list[np.ndarray] = []
 
     def scripted(views, *, spp, seed):
-        v = next(v for v in views if v.validation_mask() is not None)
-        raw = sorted(k for k in v.params.keys() if k.startswith("raw."))
-        scored.append(
-            np.concatenate([np.array(v.params[k].numpy(), copy=True).ravel() for k in raw])
-        )
+        scored.append(scored_weights(views))
         return next(script)
 
     monkeypatch.setattr(fitmod, "heldout_loss", scripted)
