@@ -858,6 +858,8 @@ def measure(name: str, spec: dict, args, work: Path, envs: dict[str, Path]) -> d
                 "stopped_at",
                 "best_rescored",
                 "start_rescored",  # (since session 87)
+                "start_lobe_same",  # (since session 88)
+                "lobe_unchanged",
             )
         }
         # [step, held-out loss] at every scoring, the start's at step 0

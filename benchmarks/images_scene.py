@@ -264,6 +264,8 @@ def measure(
                 "stopped_at",
                 "best_rescored",
                 "start_rescored",
+                "start_lobe_same",
+                "lobe_unchanged",
             )
         },
         "physics": images_any.physics_entry(metrics),

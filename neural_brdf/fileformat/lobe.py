@@ -346,6 +346,19 @@ def complete(lobe: dict) -> dict:
     return parse(to_json({"kind": KIND, **lobe}))
 
 
+# What sets a lobe's density and sampler (:func:`pdf`, :func:`sample`, the plugins'): the
+# rest of its dict (the second moments) describes the fit that chose it.
+DENSITY_KEYS = ("kind", "alpha_x", "alpha_y", "retro", "distribution", "weight", "table")
+
+
+def same_density(a: dict, b: dict) -> bool:
+    """Whether two lobes (complete or partial) sample with one density: a refit that lands
+    on the same lobe of its grid (:mod:`neural_brdf.physics.lobe_fit`) draws the same
+    directions from the same random numbers."""
+    ca, cb = complete(a), complete(b)
+    return all(ca.get(k) == cb.get(k) for k in DENSITY_KEYS)
+
+
 def from_metadata(meta: dict) -> dict | None:
     """The stored lobe of a model's metadata (a dict of strings), or None (older files)."""
     text = meta.get(KEY)

@@ -97,6 +97,7 @@ from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import LOBE_KEY
+from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed on)
     INTEGRATORS,
     NOISE_KEEP,
@@ -496,7 +497,8 @@ def fit_neural(
         one drawn through another lobe.  The loss's expectation does not depend on the
         lobe, but its samples do, and scores through two lobes share none of them (the
         development gold's fell by 24 % at a refit and rose back at the next, its
-        weights all but unchanged, and the stage kept a step of the lucky lobe)."""
+        weights all but unchanged, and the stage kept a step of the lucky lobe).  Not
+        after a refit whose lobe samples as the one in use: the same samples."""
         assert val is not None and val.get("best") is not None
         with timed("validation"):
             val["best_loss"] = held_out_loss(val["best"])
@@ -513,13 +515,24 @@ def fit_neural(
         weights' included), as if it had been scored again at that refit, and it is
         kept when it scores no worse: the stage never ends worse than its start on the
         split through one set of samples (issue 29).  Whether it scored the start (not
-        while its score is through the lobe in use, which it is while it is the best)."""
+        while its score is through the lobe in use, which it is while it is the best).
+        Where the last lobe samples as the start's did (a refit back onto its grid
+        point), the start's own score is through the same samples and is used again."""
         assert val is not None
         if val.get("start_current", True) or val.get("start") is None:
             return False  # (no "start": a checkpoint written before it was kept)
-        with timed("validation"):
-            loss = held_out_loss(val["start"])
+        same = (
+            val.get("start_lobe") is not None
+            and lobe is not None
+            and lobe_format.same_density(val["start_lobe"], lobe)
+        )
+        if same:
+            loss = val["start_loss"]
+        else:
+            with timed("validation"):
+                loss = held_out_loss(val["start"])
         val["start_rescored"] = [step, loss]
+        val["start_lobe_same"] = same
         val["start_current"] = True
         if loss <= val["best_loss"]:
             print(
@@ -538,7 +551,7 @@ def fit_neural(
             loss = held_out_loss(opt)
             if val is None:  # the start's (its weights kept for check_start)
                 val = {"start_loss": loss, "best_loss": math.inf, "best_step": 0, "best": None}
-                val.update(start=weights_now(), start_current=True)
+                val.update(start=weights_now(), start_current=True, start_lobe=lobe)
             if loss < val["best_loss"]:  # (best_loss: its score through the lobe in use)
                 val.update(best_loss=loss, best_step=step, best=weights_now(), best_scored=loss)
             val.update(last_loss=loss, last_step=step)
@@ -561,11 +574,16 @@ def fit_neural(
             lr = loop.learning_rate(t, step) * lr_factor
             opt.set_learning_rate({n: lr * lr_scale[n] for n in names})
             if step > 0 and step % images.lobe_every == 0:
+                before = lobe
                 with timed("lobe"):
                     lobe = lead.refit_lobe(seed=t.seed + step, state=weights_now())
                     set_lobe(lobe)
                 if split and val is not None and val.get("best") is not None:
-                    rescore_best(step)
+                    if before is not None and lobe_format.same_density(before, lobe):
+                        # the same samples: the best's score through the lobe stands
+                        val.setdefault("lobe_unchanged", []).append(step)
+                    else:
+                        rescore_best(step)
             total = 0.0
             t_render = time.perf_counter()
             for i, v in enumerate(fitted):
@@ -679,8 +697,8 @@ def validation_figures(
         "pixels of the object and RGB, estimated without the render's noise as "
         "(x1 - y)(x2 - y) / (y_bar^2 + 0.01), x1 and x2 two renders of spp / 2 samples with "
         "fixed independent seeds (the same at every scoring); after a refit of the sampling "
-        "lobe the best weights are scored again through the new one, so that every "
-        "comparison is of scores that share their samples",
+        "lobe that samples otherwise the best weights are scored again through the new one, "
+        "so that every comparison is of scores that share their samples",
         "start_loss": val["start_loss"],
         # the best's score at its step (log.csv's), comparable with the start's when no
         # refit of the sampling lobe came between them; best_rescored: its scores since
@@ -691,6 +709,11 @@ def validation_figures(
         # [step, loss]: the start scored again through the last lobe at the stage's end
         # (step), where a step had beaten it before a refit; kept when no worse
         "start_rescored": val.get("start_rescored"),
+        # whether that is the start's own score, the last lobe sampling as its lobe did
+        "start_lobe_same": val.get("start_lobe_same"),
+        # the steps whose refit returned a lobe that samples as the one in use: the best
+        # weights' score through it stands (not scored again)
+        "lobe_unchanged": val.get("lobe_unchanged", []),
         "last_loss": val.get("last_loss"),
         "last_step": val.get("last_step"),
         "kept": "the start" if best == 0 else f"step {best}",

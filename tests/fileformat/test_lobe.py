@@ -125,3 +125,28 @@ def test_the_sampler_test_sees_a_wrong_roughness():
         return lobe.pdf(stored, np.broadcast_to(wi1, wo.shape), wo, sphere=True)
 
     assert not chi2.chi2_test(sample_fn, pdf_fn, name="lobe-wrong", n_samples=200_000).passed
+
+
+def test_same_density_reads_what_the_sampler_reads_and_nothing_else():
+    # two fits of one lobe differ in their scored second moments, which no sampler
+    # reads; every key the density reads tells two lobes apart
+    a = lobe.complete({"alpha": 0.2, "weight": 0.9, "second_moment": 1.3})
+    assert lobe.same_density(a, {**a, "second_moment": 2.7, "second_moment_cosine": 4.0})
+    assert lobe.same_density({"alpha": 0.2, "weight": 0.9}, a)  # partial: completed first
+    table = {"cos_theta": [0.2, 0.9], "alpha_x": [0.2, 0.3], "alpha_y": [0.2, 0.3]}
+    table["weight"] = [0.9, 0.9]
+    for other in (
+        {"alpha_x": 0.3},
+        {"alpha_y": 0.3},
+        {"weight": 0.8},
+        {"retro": True},
+        {"distribution": "beckmann"},
+        {"table": table},
+    ):
+        b = {**a, **other}
+        assert not lobe.same_density(a, b), other
+        # and the sampler does tell them apart: their densities differ somewhere
+        wi = np.array([[0.6, 0.0, 0.8]] * 64)
+        rng = np.random.default_rng(0)
+        wo, _ = lobe.sample(a, wi, rng.random(64), rng.random((64, 2)))
+        assert not np.allclose(lobe.pdf(a, wi, wo), lobe.pdf(lobe.complete(b), wi, wo)), other

@@ -509,6 +509,31 @@ def scored_weights(views) -> np.ndarray:
     return np.concatenate([np.array(v.params[k].numpy(), copy=True).ravel() for k in raw])
 
 
+def scheduled_lobes(monkeypatch, schedule: str) -> list[dict]:
+    """Replace the plugin's refit of the sampling lobe: its first refit's own lobe (A, the
+    start's), then at each refit the lobe that ``schedule``'s next letter names: A, B (A's
+    roughness 3 times, capped at 1) or C (a third of it), so that whether two lobes
+    sample alike is the test's choice, not the grid's.  Returns the lobes handed out."""
+    from neural_brdf.inverse import bsdf as ib
+
+    fit_lobe = ib.NeuralBSDFAD.refit_lobe
+    given: list[dict] = []
+
+    def refit(self, seed=0, state=None):
+        first = given[0] if given else dict(fit_lobe(self, seed, state))
+        lobe = dict(first)
+        scale = {"A": 1.0, "B": 3.0, "C": 1 / 3}[schedule[len(given)]]
+        for k in ("alpha", "alpha_x", "alpha_y"):
+            lobe[k] = min(lobe[k] * scale, 1.0)
+        lobe.pop("table", None)  # (a per-incidence table would override the alphas)
+        given.append(lobe)
+        self.set_lobe(lobe, "scheduled by the test")
+        return lobe
+
+    monkeypatch.setattr(ib.NeuralBSDFAD, "refit_lobe", refit)
+    return given
+
+
 def start_network_change(run_dir: Path) -> float:
     """Relative RMS difference of f between the exported model and the network the GGX
     start handed to the image stage (``init/ckpt.pt``)."""
@@ -779,11 +804,13 @@ def test_the_weights_scored_again_after_a_refit_are_the_best_so_far(
     # a rate far too high (every step worse than the start), the lobe refitted every 2
     # steps and a scoring at every step: replaying the rule on the scores as they came,
     # each score right after a refit is of the best weights so far (the start's here,
-    # not the weights now), and the scores after it are compared with it
+    # not the weights now), and the scores after it are compared with it (each refit's
+    # lobe another: one that samples as the lobe in use needs no new score, below)
     from neural_brdf.inverse import bsdf as ib
     from neural_brdf.inverse import fit as fitmod
 
     events: list[tuple[str, np.ndarray | None, float | None]] = []
+    scheduled_lobes(monkeypatch, "ABC")
     refit_lobe, heldout = ib.NeuralBSDFAD.refit_lobe, fitmod.heldout_loss
 
     def marked_refit(self, seed=0, state=None):
@@ -843,6 +870,7 @@ def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_
     # step 4's score through the old lobe, 0.7, it would lose), else step 4 stays
     from neural_brdf.inverse import fit as fitmod
 
+    scheduled_lobes(monkeypatch, "ABC")  # three lobes that sample differently
     script = iter([1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 0.75, 0.8, 0.9, start_again])
     scored: list[np.ndarray] = []
 
@@ -885,6 +913,73 @@ def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_
     assert val["best_loss"] == (1.0 if kept == "the start" else 0.7)
     # the run's model is the kept weights: the start's (to the export's float32 parity),
     # or step 4's, which the full rate has moved well away from it
+    change = start_network_change(run_dir)
+    assert change < 1e-4 if kept == "the start" else change > 1e-3, change
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "lobes, script, kept",
+    [
+        # step 4 beats step 1 through B, then scores 1.1 through A again, above the
+        # start's own 1.0 through A: the start is kept, its step-0 score used again
+        ("ABA", [1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 1.1, 1.2, 1.3], "the start"),
+        ("ABA", [1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 0.75, 0.8, 0.9], "step 4"),
+        # no refit changes the lobe: every score shares the start's samples
+        ("AAA", [1.0, 0.9, 0.95, 0.85, 0.7, 0.8, 0.9], "step 4"),
+    ],
+)
+def test_a_refit_that_samples_as_before_scores_nothing_again(
+    mi, example, tmp_path, monkeypatch, lobes, script, kept
+):
+    # scripted held-out scores (the lobe refitted every 2 steps, a scoring at every
+    # step), the refits' lobes chosen by the test.  A refit whose lobe samples as the one
+    # in use leaves the best's score standing (no scoring: the same samples), and at the
+    # end, where the last lobe samples as the start's did, the start's own score is
+    # compared with the kept weights' without scoring it again
+    from neural_brdf.inverse import fit as fitmod
+
+    given = scheduled_lobes(monkeypatch, lobes)
+    scores = iter(script)
+    scored: list[np.ndarray] = []
+
+    def scripted(views, *, spp, seed):
+        scored.append(scored_weights(views))
+        return next(scores)
+
+    monkeypatch.setattr(fitmod, "heldout_loss", scripted)
+    run_dir = tmp_path / "run"
+    code = cli.main(
+        train_args(
+            example / "fit.yaml",
+            run_dir,
+            FIT_OVERRIDES
+            + [
+                "train.steps=6",
+                "images.start_steps=10",
+                "images.start_train_steps=60",
+                "images.start_lr_scale=1",
+                "images.lobe_every=2",
+                "images.validation_pixels=0.2",
+                "images.validation_every=1",
+                "images.patience=null",
+            ],
+        )
+    )
+    assert code == 0
+    assert next(scores, None) is None and len(scored) == len(script), len(scored)
+    assert len(given) == 3  # the lobes of steps 0, 2 and 4
+    val = json.loads((run_dir / "metrics.json").read_text())["training"]["validation"]
+    assert val["kept"] == kept
+    if lobes == "AAA":
+        assert val["lobe_unchanged"] == [2, 4] and val["best_rescored"] == []
+        assert val["start_rescored"] is None  # every score was through the start's lobe
+    else:
+        assert val["lobe_unchanged"] == []
+        assert [step for step, _ in val["best_rescored"]] == [2, 4]
+        # the start's score through the last lobe is its own of step 0 (A's samples)
+        assert val["start_rescored"] == [6, 1.0] and val["start_lobe_same"] is True
+        np.testing.assert_array_equal(scored[6], scored[5])  # step 4 scored again at 4
     change = start_network_change(run_dir)
     assert change < 1e-4 if kept == "the start" else change > 1e-3, change
 
