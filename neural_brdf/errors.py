@@ -32,3 +32,16 @@ class Interrupted(RuntimeError):
 
 class ParityError(RuntimeError):
     """onnxruntime does not reproduce the torch model to ``export.parity_tol`` (exit 1)."""
+
+
+def module_parser(module: str, description: str):
+    """The argument parser of a ``python -m MODULE`` tool: its usage names that command,
+    and a bad argument is one line on stderr, ``error: python -m MODULE: ... (see
+    --help)``, with exit code 2, as the ``neural-brdf`` command's."""
+    import argparse
+
+    class Parser(argparse.ArgumentParser):
+        def error(self, message):
+            self.exit(2, f"error: {self.prog}: {message} (see --help)\n")
+
+    return Parser(prog=f"python -m {module}", description=description)

@@ -304,6 +304,13 @@ def _record(
         "seconds": t2 - t1,
     }
     metrics["seconds"] = {
+        # an images fit: its start's choice and distillation, and the whole fit (the
+        # start, the image stage, the checks around them); train is its image stage
+        **(
+            {"start": training["start_seconds"], "fit": training["fit_seconds"]}
+            if "fit_seconds" in training
+            else {}
+        ),
         "train": training["train_seconds"],
         "export": t2 - t1,
         "validate": t3 - t2,

@@ -132,6 +132,18 @@ def test_every_default_config_key_is_documented():
     assert not missing, f"docs/config.md does not document {missing}"
 
 
+def test_the_images_guide_lists_every_images_key():
+    # docs/inverse.md's "The config" says its images bullet holds every setting of the fit
+    keys = _keys(yaml.safe_load((REPO / "configs" / "defaults.yaml").read_text()))
+    images = [k.removeprefix("images.") for k in keys if k.startswith("images.")]
+    assert len(images) > 30 and "start" in images
+    page = (REPO / "docs" / "inverse.md").read_text()
+    section = page[page.index("\n## The config\n") :]
+    section = section[: section.index("\n## ", 1)]
+    missing = [k for k in images if f"`{k}`" not in section]
+    assert not missing, f"docs/inverse.md, The config, does not list images.{missing}"
+
+
 def test_docs_do_not_point_outside_the_repository():
     for doc in DOCS:
         text = doc.read_text()

@@ -63,7 +63,6 @@ when coverage is at least :data:`WARN_BELOW`) is printed.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from collections.abc import Sequence
@@ -73,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_brdf.errors import InputError
+from neural_brdf.errors import InputError, module_parser
 from neural_brdf.inverse import views as inverse_views
 
 BINS = 32  # theta_h and theta_d bins over [0, pi/2] each
@@ -598,7 +597,7 @@ def _scenes(paths: list[str]) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = module_parser("neural_brdf.inverse.coverage", __doc__.splitlines()[0])
     ap.add_argument("inputs", nargs="+", help="scene XML files, or a config with target.images")
     ap.add_argument("-o", "--picture", help="write the (theta_h, theta_d) map as a PNG")
     ap.add_argument("--json", help="write the summary as JSON")

@@ -56,7 +56,6 @@ samples only (a mirror-sharp reference under an environment needs more ``spp``).
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -68,7 +67,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_brdf.errors import InputError
+from neural_brdf.errors import InputError, module_parser
 from neural_brdf.inverse import coverage
 from neural_brdf.inverse import views as inverse_views
 from neural_brdf.measured.rgl.layout import Y_WEIGHTS
@@ -519,7 +518,7 @@ def _inputs(paths: list[str]) -> tuple[list[Any], float | None]:
 
 def main(argv: list[str] | None = None) -> int:
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = module_parser("neural_brdf.inverse.determined", __doc__.splitlines()[0])
     ap.add_argument("inputs", nargs="+", help="scene XML files, or a config with target.images")
     ap.add_argument("-o", "--picture", help="write the (theta_h, theta_d) map as a PNG")
     ap.add_argument("--json", help="write the summary as JSON")

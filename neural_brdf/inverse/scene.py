@@ -26,8 +26,8 @@ several angles.  Every file is written atomically (:mod:`neural_brdf.fileio`).
 
 from __future__ import annotations
 
-import argparse
 import math
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from neural_brdf.errors import module_parser
 from neural_brdf.fileio import atomic_path, atomic_write
 
 # The true material: not a preset (the presets are GGX Au 0.3, Beckmann Cu 0.5 and Ag).
@@ -67,7 +68,7 @@ FLASH_INTENSITY = 15.0  # W/sr of the co-located flash (DISTANCE - 1 from the su
 CAPTURES = ("environment", "lights", "flash", "flash_pair")
 FIT_CONFIG = """\
 # Fit a compact neural BRDF to {count} images of a copper sphere (docs/inverse.md).
-# Written by: python -m neural_brdf.inverse.scene {folder}
+# Written by: {command}
 name: {name}
 target:
   images:
@@ -278,15 +279,24 @@ def write_flash_pair(folder: Path, both: str, alone: str, spp: int, seed: int) -
     return files
 
 
+# write()'s and the command's defaults (the command states only the options that differ)
+WRITE_DEFAULTS: dict[str, Any] = {
+    "resolution": 32,
+    "spp": 64,
+    "steps": 150,
+    "capture": "environment",
+}
+
+
 def write(
     folder: str | Path,
     *,
-    resolution: int = 32,
-    spp: int = 64,
+    resolution: int = WRITE_DEFAULTS["resolution"],
+    spp: int = WRITE_DEFAULTS["spp"],
     heldout: bool = False,
-    steps: int = 150,
+    steps: int = WRITE_DEFAULTS["steps"],
     seed: int = 0,
-    capture: str = "environment",
+    capture: str = WRITE_DEFAULTS["capture"],
 ) -> list[Path]:
     """Write the example into ``folder`` (see the module doc); returns the files written.
     ``capture``: the lighting, one of :data:`CAPTURES` (:func:`capture_emitters`); only
@@ -322,22 +332,36 @@ def write(
     cfg = folder / "fit.yaml"
     count = "four" if extra else "three"
     name = "images_" + folder.name
-    text = FIT_CONFIG.format(folder=folder, name=name, steps=steps, extra=extra, count=count)
+    command = regenerate_command(folder, resolution, spp, heldout, steps, seed, capture)
+    text = FIT_CONFIG.format(command=command, name=name, steps=steps, extra=extra, count=count)
     atomic_write(cfg, text)
     return written + [cfg]
 
 
+def regenerate_command(
+    folder: Path, resolution: int, spp: int, heldout: bool, steps: int, seed: int, capture: str
+) -> str:
+    """The command that writes ``folder`` again as :func:`write` did (its options where
+    they differ from the defaults; a seed other than 0 is :func:`write`'s alone)."""
+    parts = ["python -m neural_brdf.inverse.scene", shlex.quote(str(folder))]
+    given = {"resolution": resolution, "spp": spp, "steps": steps, "capture": capture}
+    parts += [f"--{k} {v}" for k, v in given.items() if v != WRITE_DEFAULTS[k]]
+    parts += ["--heldout"] if heldout else []
+    return " ".join(parts) + (f"  (write(..., seed={seed}) from Python)" if seed else "")
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = module_parser("neural_brdf.inverse.scene", __doc__.splitlines()[0])
     ap.add_argument("out", help="folder to write into")
-    ap.add_argument("--resolution", type=int, default=32, help="film width and height")
-    ap.add_argument("--spp", type=int, default=64, help="samples per pixel of the targets")
+    d = WRITE_DEFAULTS
+    ap.add_argument("--resolution", type=int, default=d["resolution"], help="film width, height")
+    ap.add_argument("--spp", type=int, default=d["spp"], help="samples per pixel of the targets")
     ap.add_argument("--heldout", action="store_true", help="also write view4, held out")
-    ap.add_argument("--steps", type=int, default=150, help="train.steps of fit.yaml")
+    ap.add_argument("--steps", type=int, default=d["steps"], help="train.steps of fit.yaml")
     ap.add_argument(
         "--capture",
         choices=CAPTURES,
-        default="environment",
+        default=d["capture"],
         help="the lighting: the sky (default), a light per view, a flash at each camera, "
         "or the sky and a flash/no-flash pair at the first camera (flash_pair)",
     )

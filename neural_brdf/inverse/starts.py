@@ -648,7 +648,7 @@ class Choice:
     params: dict[str, Any]
     candidates: list[Candidate]
     margins: dict[str, dict[str, Any]]  # pick()'s, per family
-    val_share: float
+    val_share: float  # the share of the pixels scored (train and held out) held out
     block: int
     tie_tol: float
     sigmas: float
@@ -657,6 +657,8 @@ class Choice:
     # catch_up's: per family fitted further its record, and the family picked before
     caught_up: dict[str, dict[str, Any]] = field(default_factory=dict)
     first_pick: str | None = None
+    held_pixels: int | None = None  # the held-out pixels the choice scored
+    pixels: int | None = None  # ... and those it fitted with them
 
     @property
     def chosen(self) -> Candidate:
@@ -677,7 +679,12 @@ class Choice:
             "tie_tol": self.tie_tol,
             "sigmas": self.sigmas,
             "tie_max": self.tie_max,
-            "split": {"val_share": self.val_share, "block_pixels": self.block},
+            "split": {
+                "val_share": self.val_share,
+                "held_out_pixels": self.held_pixels,
+                "pixels": self.pixels,
+                "block_pixels": self.block,
+            },
             "candidates": [
                 {**c.summary(), **self.margins.get(c.family, {})} for c in self.candidates
             ],
@@ -879,6 +886,9 @@ def choose_start(
         train, held = list(masks[0]), list(masks[1])
     if not any(m.any() for m in held):
         raise ValueError("no held-out pixels: the choice needs a validation split")
+    # the split as it is (the run's own, when ``masks`` are given: not ``val_share``)
+    n_held = sum(int(m.sum()) for m in held)
+    n_all = n_held + sum(int(m.sum()) for m in train)
     out: list[Candidate] = []
     for name in families:
         c = fit_warm(
@@ -916,12 +926,14 @@ def choose_start(
         params=best.params,
         candidates=out,
         margins=margins,
-        val_share=val_share,
+        val_share=n_held / n_all,
         block=block,
         tie_tol=tie_tol,
         sigmas=sigmas,
         tie_max=tie_max,
         seconds=time.perf_counter() - start,
+        held_pixels=n_held,
+        pixels=n_all,
         caught_up=done,
         first_pick=first,
     )

@@ -209,15 +209,10 @@ train:
 def main(argv: list[str] | None = None) -> int:
     """``python -m neural_brdf.measured.procedural DIR [--kind K] [--size N]``: a
     procedural teacher (:func:`write_teacher`) and ``DIR/textured.yaml``, its config."""
-    import argparse
+    from neural_brdf.errors import module_parser
 
-    class Parser(argparse.ArgumentParser):
-        def error(self, message):  # one line instead of usage + message (as neural-brdf's)
-            self.exit(2, f"error: {self.prog}: {message} (see --help)\n")
-
-    ap = Parser(
-        prog="python -m neural_brdf.measured.procedural",
-        description="Write a procedural textured Mitsuba teacher.",
+    ap = module_parser(
+        "neural_brdf.measured.procedural", "Write a procedural textured Mitsuba teacher."
     )
     ap.add_argument("out", help="folder to write into")
     ap.add_argument("--kind", choices=KINDS, default="roughplastic", help="the BSDF")

@@ -281,13 +281,23 @@ def _train(args) -> int:
     s = report["seconds"]
     # seconds.report is there only when the report was written (pipeline.finish)
     written = "report" in s and (run_dir / "report.html").is_file()
-    stages = f"train {s['train']:.1f} s, export {s['export']:.1f} s, validate {s['validate']:.1f} s"
+    stages = stage_times(s)
     print(
         f"run: {run_dir}  ({stages}, report {s['report']:.1f} s: report.html)"
         if written
         else f"run: {run_dir}  ({stages}; no report written)"
     )
     return EXIT_OK if report["passed"] else EXIT_PHYSICS
+
+
+def stage_times(s: dict[str, float]) -> str:
+    """The run's last line's times (metrics.json's ``seconds``): an images fit's whole
+    fit, its start and its image stage (``train``), else the training; then the export
+    and the validation."""
+    fit = f"train {s['train']:.1f} s"
+    if "fit" in s:
+        fit = f"fit {s['fit']:.1f} s: start {s['start']:.1f} s, image stage {s['train']:.1f} s"
+    return f"{fit}, export {s['export']:.1f} s, validate {s['validate']:.1f} s"
 
 
 def _train_many(args) -> int:

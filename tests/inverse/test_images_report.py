@@ -446,7 +446,9 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
         visible_text(report.write_report(called, render=False)["html"].read_text()).split()
     )
     assert (
-        "start's loss on the choice's held-out pixels 0.0024 (the targets' own noise" in text
+        "the chosen family's held-out loss (its analytic BSDF, as chosen) 0.0024 "
+        "(the targets' own noise"
+        in text
         and "0.00011" in text
     )
     assert "poor: no family fits the views" in text
@@ -468,7 +470,10 @@ def test_report_lists_the_start_candidates_and_the_choice(tiny_run, tmp_path):
     text = " ".join(
         visible_text(report.write_report(fine, render=False)["html"].read_text()).split()
     )
-    assert "start's loss on the choice's held-out pixels 0.0012" in text and "poor:" not in text
+    assert (
+        "the chosen family's held-out loss (its analytic BSDF, as chosen) 0.0012" in text
+        and "poor:" not in text
+    )
     assert "warned" not in text
     # far above its noise but not poor (inverse.fit.far_above_noise): the warning, repeated
     above = {

@@ -599,6 +599,11 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     tiles = (RES // BLOCK) ** 2  # the split holds out whole BLOCK x BLOCK tiles
     assert val["pixels"] == HELDOUT_SHARE
     assert val["heldout_pixels"] == 3 * round(HELDOUT_SHARE * tiles) * BLOCK * BLOCK
+    # the start was chosen on that split, within the object: its record says so (it
+    # recorded choose_start's own unused default share, 0.25, until session 88)
+    split = training["init"]["start"]["split"]
+    assert 0 < split["held_out_pixels"] <= val["heldout_pixels"], (split, val)
+    assert split["val_share"] == split["held_out_pixels"] / split["pixels"], split
     assert val["best_step"] > 0, val
     assert val["best_loss"] < HELDOUT_GAIN * val["start_loss"], val
     assert start_network_change(run_dir) > NETWORK_CHANGE
@@ -629,6 +634,15 @@ def test_small_fit_reaches_the_stated_error(mi, example, fitted):
     assert (run_dir / "determined.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = (run_dir / "report.md").read_text()
     assert "report-determined.png" in report and "observed (the coverage, at most)" in report
+    # the run's times say where they went: the start, the image stage, the whole fit
+    seconds = json.loads((run_dir / "metrics.json").read_text())["seconds"]
+    assert seconds["start"] == training["start_seconds"] > 0
+    assert seconds["fit"] == training["fit_seconds"] >= seconds["start"] + seconds["train"]
+    assert seconds["total"] >= seconds["fit"] + seconds["export"] + seconds["validate"]
+    line = cli.stage_times(seconds)
+    assert line.startswith(f"fit {seconds['fit']:.1f} s: start {seconds['start']:.1f} s"), line
+    for label in ("whole fit (start included)", "image stage", "start (the families' fits"):
+        assert f"| {label}" in report, label
     cfg = config.load(example / "fit.yaml")
     view = inverse.read_views(cfg)[0]
     mask = inverse.sphere_mask(view, erode=1)
@@ -982,6 +996,32 @@ def test_a_refit_that_samples_as_before_scores_nothing_again(
         np.testing.assert_array_equal(scored[6], scored[5])  # step 4 scored again at 4
     change = start_network_change(run_dir)
     assert change < 1e-4 if kept == "the start" else change > 1e-3, change
+
+
+@pytest.mark.parametrize("capture, heldout", [("lights", True), ("environment", False)])
+def test_the_examples_config_names_the_command_that_writes_it_again(mi, tmp_path, capture, heldout):
+    # fit.yaml's "Written by" line: run as it stands (into another folder), it writes
+    # the same scenes and the same config (it named the folder alone until session 88,
+    # which wrote an environment capture whatever the first had been)
+    import shlex
+
+    from neural_brdf.inverse import scene as inverse_example
+
+    first = tmp_path / "first"
+    inverse_example.write(first, resolution=8, spp=4, steps=3, capture=capture, heldout=heldout)
+    text = (first / "fit.yaml").read_text()
+    line = next(x for x in text.splitlines() if x.startswith("# Written by: "))
+    argv = shlex.split(line.removeprefix("# Written by: "))
+    assert argv[:3] == ["python", "-m", "neural_brdf.inverse.scene"], argv
+    assert argv[3] == str(first), argv
+    again = tmp_path / "again"
+    assert inverse_example.main([str(again), *argv[4:]]) == 0
+    for f in sorted(first.glob("*.xml")):
+        assert (again / f.name).read_text() == f.read_text(), f.name
+    assert sorted(p.name for p in again.iterdir()) == sorted(p.name for p in first.iterdir())
+    assert (again / "fit.yaml").read_text() == text.replace(str(first), str(again)).replace(
+        "images_first", "images_again"
+    )
 
 
 def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):

@@ -182,7 +182,10 @@ def _validation_rows(val: Any) -> list[list[str]]:
         return []
     rows = []
     for key, label in (
-        ("start_loss", "held-out loss of the start"),
+        # the network distilled from that family, scored on the same pixels with the
+        # image stage's own samples (images.validation_spp): the same quantity, not
+        # the same estimate; the distillation's error shows as a difference too
+        ("start_loss", "held-out loss of the network's start (the distilled family)"),
         ("best_loss", "best held-out loss"),
         ("last_loss", "last held-out loss"),
     ):
@@ -287,7 +290,7 @@ def _start_noise_rows(chosen: dict) -> list[list[str]]:
     text = f"{loss:.4g}"
     if noise is not None:
         text += f" (the targets' own noise, estimated from the images: {noise:.2g})"
-    rows = [["start's loss on the choice's held-out pixels", text]]
+    rows = [["the chosen family's held-out loss (its analytic BSDF, as chosen)", text]]
     poor = chosen.get("poor")
     if isinstance(poor, dict):
         above, limit = _finite(poor.get("excess")), _finite(poor.get("limit"))
@@ -351,7 +354,7 @@ def _start_candidates(chosen: Any) -> list[Block]:
         rows += [[str(k), "", "", "", "", f"left out: {why}"] for k, why in left.items()]
     if not rows:
         return []
-    header = ["start family", "held-out loss", "training loss", "fit time", "continued", ""]
+    header = ["start family", "held-out loss", "training loss", "fit time", "continued", "verdict"]
     return [
         Text(
             "Start: every family fitted to the training pixels, scored on the held-out "
@@ -426,7 +429,8 @@ def loss_figure(
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right", frameon=False)
+    # beside the axes, where no curve runs under it (the constrained layout makes room)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.set_title("image fit: losses", fontsize=10)
     return fig
 

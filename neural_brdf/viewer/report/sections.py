@@ -70,8 +70,13 @@ def _summary(run: Run) -> list:
             _fmt(_number(m, "checks.max_albedo.value", path, optional=True), ".6f"),
         ],
         ["training steps", _fmt(_number(m, "training.steps", path, optional=True), ".0f")],
-        ["training time", _fmt(_number(m, "seconds.train", path, optional=True), ".1f") + " s"],
     ]
+    fit = _number(m, "seconds.fit", path, optional=True)
+    train = _fmt(_number(m, "seconds.train", path, optional=True), ".1f") + " s"
+    if fit is None:
+        rows.append(["training time", train])
+    else:  # an images fit: its training is the image stage, after its start
+        rows += [["fit time", _fmt(fit, ".1f") + " s"], [IMAGES_STAGES["train"] + " time", train]]
     return [Heading(f"neural-brdf report: {cfg.name}", 1), Table(["", ""], rows)]
 
 
@@ -367,11 +372,22 @@ def _viewer(run: Run, reference, curves: dict | None = None) -> list:
     ]
 
 
+# the Training table: metrics.json's seconds.KEY in this order; an images fit's train is
+# its image stage, after its start, and its fit the two with the checks around them
+STAGES = ("start", "train", "fit", "export", "validate", "report", "total")
+IMAGES_STAGES = {
+    "start": "start (the families' fits, the choice, the distillation)",
+    "train": "image stage",
+    "fit": "whole fit (start included)",
+}
+
+
 def _training(run: Run) -> list:
     m, path, log = run.metrics, run.dir / "metrics.json", run.log
+    labels = IMAGES_STAGES if _number(m, "seconds.fit", path, optional=True) is not None else {}
     rows = [
-        [k, f"{_number(m, f'seconds.{k}', path):.1f} s"]
-        for k in ("train", "export", "validate", "report", "total")
+        [labels.get(k, k), f"{_number(m, f'seconds.{k}', path):.1f} s"]
+        for k in STAGES
         if _number(m, f"seconds.{k}", path, optional=True) is not None
     ]
     blocks: list[Block] = [Heading("Training")]
