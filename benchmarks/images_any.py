@@ -90,7 +90,10 @@ the studio's test file run again to report, the session-86 file kept as
 images_any_2026-12-06_rescore.json (the multi-light file not run again); and
 images.start_lr_scale 0.15 was tried on the development set alone,
 images_any_dev_start_lr_0.15.json (the seven good starts; not chosen, 0.05 kept, so
-the test set was not run with it)),
+the test set was not run with it); a refit onto the lobe in use scoring nothing again
+(session 88, skipping renders of the same samples, choosing no setting) was checked on
+the development set, images_any_dev_lobe_same.json (the same six), and the test set was
+not run again for it),
 the default
 start ``images.start: auto`` (every analytic
 family fitted to the views, the one the validation split of the user's own pixels

@@ -35,7 +35,11 @@ from neural_brdf.errors import ConfigError
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, validate_default=True)
+    # allow_inf_nan=False: every float setting (in lists too) must be finite; YAML's
+    # .inf, -.inf, .nan and an overflowing 1e999 are refused naming the key
+    model_config = ConfigDict(
+        extra="forbid", strict=True, validate_default=True, allow_inf_nan=False
+    )
 
 
 class ImageView(_Section):
@@ -113,7 +117,7 @@ class CosineGrid(_Section):
     # set by the cosines, as a diffuse term of Ashikhmin-Shirley's form
     size: int = Field(0, ge=0, le=257)  # nodes per axis; 0: off
     channels: int = Field(4, ge=1, le=64)  # learned features per node
-    init_std: float = Field(1e-2, ge=0.0)  # initial values ~ N(0, init_std^2)
+    init_std: float = Field(1e-2, ge=0.0, le=1.0)  # initial values ~ N(0, init_std^2)
     lr_scale: float = Field(10.0, gt=0.0)  # the grid's learning rate / train.lr
 
     @model_validator(mode="after")
@@ -144,7 +148,9 @@ class Model(_Section):
     # the cosine of grazing_power: mean (cos_i + cos_o) / 2, or max(cos_i, cos_o), the
     # denominator of Ashikhmin-Shirley's specular term (model.py)
     grazing_cos: Literal["mean", "max"] = "mean"
-    output_scale: float = Field(1.0, gt=0.0)  # f = output_scale * softplus(y) (see model.py)
+    # f = output_scale * softplus(y) (see model.py); 1e-3 to 1e3: the head's initial bias,
+    # softplus^-1(0.3 / output_scale), and f stay within float32
+    output_scale: float = Field(1.0, ge=1e-3, le=1e3)
     grid: Grid = Field(default_factory=Grid)  # learned feature grid (on by default)
     cosine_grid: CosineGrid = Field(default_factory=CosineGrid)  # a second one (off)
 
@@ -792,8 +798,61 @@ def check_sizes(cfg: Config, *, source: str = "config", overrides: Sequence[str]
 
 
 # --------------------------------------------------------------------- YAML
+class _Refused(yaml.constructor.ConstructorError):
+    """A YAML text that parses but that a config must not be: its ``problem`` is the
+    message, ``problem_mark`` where (parse_yaml: ``SOURCE: line N: problem``)."""
+
+
+_NULL = "tag:yaml.org,2002:null"
+
+
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e-3`` as a float (YAML 1.2), not as a string."""
+    """SafeLoader that also reads ``1e-3`` as a float (YAML 1.2), not as a string,
+    refuses a mapping that gives a key twice (at any depth; plain YAML keeps the last
+    one silently), and a ``target.images:`` key with no value at all (every entry
+    commented out: an explicit ``null`` is the documented "no images")."""
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            seen: set = set()
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # "<<: *base": keys given beside it override the merged ones
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    twice = key in seen
+                    seen.add(key)
+                except TypeError:  # unhashable: SafeLoader's own error follows
+                    continue
+                if twice:
+                    shown = limits.bounded(repr(key), 80)
+                    raise _Refused(None, None, f"duplicate key {shown}", key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+    def construct_document(self, node: Any) -> Any:
+        for key, value in _pairs(node):
+            if key.value == "target":
+                for k, v in _pairs(value):
+                    # "images:" and nothing after it, not the explicit "images: null"
+                    empty = isinstance(v, yaml.ScalarNode) and v.tag == _NULL and not v.value
+                    if k.value == "images" and empty:
+                        raise _Refused(
+                            None,
+                            None,
+                            "target.images: holds no views (every entry commented out?); "
+                            "list at least one {scene, image} pair, or delete the key",
+                            k.start_mark,
+                        )
+        return super().construct_document(node)
+
+
+def _pairs(node: Any) -> list:
+    """A mapping node's (key, value) nodes whose key is a plain string scalar."""
+    if not isinstance(node, yaml.MappingNode):
+        return []
+    return [
+        (k, v) for k, v in node.value if isinstance(k, yaml.ScalarNode) and k.tag.endswith(":str")
+    ]
 
 
 _Loader.add_implicit_resolver(
@@ -816,6 +875,9 @@ def parse_yaml(text: str, *, source: str) -> Any:
     bomb: a few hundred bytes that reference each other into billions of values)."""
     try:
         data = yaml.load(text, Loader=_Loader)
+    except _Refused as e:
+        line = e.problem_mark.line + 1 if e.problem_mark else "?"
+        raise ConfigError(limits.bounded(f"{source}: line {line}: {e.problem}")) from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
@@ -965,7 +1027,9 @@ def load(
 
     ``warn`` is called with a one-line message when the file (with the overrides)
     gives no ``target``: an empty file, or one without a ``target:`` section, is valid,
-    and trains the default target, but is more likely a mistake.
+    and trains the default target, but is more likely a mistake; and when it sets
+    ``images`` keys (to other than their defaults) for a target that is not an images
+    fit, which reads none of them (:func:`ignored_images`).
 
     ``run``: ``path`` is a run's resolved config.yaml, written by an earlier version
     perhaps: a key it lacks that did otherwise before it existed takes that value
@@ -994,4 +1058,20 @@ def load(
     if warn is not None and path is not None and "target" not in raw:
         what = "empty config" if empty else "no target: section"
         warn(f"{path}: {what}: training the default target (a {cfg.target.model} BRDF)")
+    ignored = ignored_images(cfg)
+    if warn is not None and ignored:
+        # the file, unless every one of them was given by --set (then the first's)
+        blamed = [_blame(("images", k), overrides) for k in ignored]
+        where = next((b for b in blamed if b), "config") if all(blamed) else str(path)
+        keys = ", ".join(f"images.{k}" for k in ignored)
+        warn(f"{where}: {keys}: ignored: only an images fit (target.images) reads them")
     return cfg
+
+
+def ignored_images(cfg: Config) -> list[str]:
+    """The ``images`` keys ``cfg`` sets to other than their defaults while its target is
+    not an images fit (no other target reads them); [] for an images fit."""
+    if cfg.target.images is not None:
+        return []
+    default = Images()
+    return [k for k in Images.model_fields if getattr(cfg.images, k) != getattr(default, k)]

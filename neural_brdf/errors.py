@@ -45,3 +45,13 @@ def module_parser(module: str, description: str):
             self.exit(2, f"error: {self.prog}: {message} (see --help)\n")
 
     return Parser(prog=f"python -m {module}", description=description)
+
+
+def not_a_file(path, what: str) -> str:
+    """The message for a ``what`` file (``"model"``, ``"image"``, ...) given as ``path``,
+    which is no file: a folder, or nothing at all."""
+    from pathlib import Path
+
+    if Path(path).is_dir():
+        return f"{path}: is a folder, not a file (give the {what} file)"
+    return f"{path}: no such {what} file"

@@ -101,7 +101,12 @@ def atomic_path(
     name = None  # what the writer was given, once it has been
     try:
         if parents:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            except (FileExistsError, NotADirectoryError):  # a file where a folder goes
+                file = next(p for p in (path.parent, *path.parent.parents) if p.exists())
+                why = f"{file} is a file, not a folder"
+                raise NotADirectoryError(errno.ENOTDIR, why, str(path)) from None
         real, st, replace = _destination(path)
         if not replace:
             name = str(real)

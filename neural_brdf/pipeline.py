@@ -305,10 +305,12 @@ def _record(
     }
     metrics["seconds"] = {
         # an images fit: its start's choice and distillation, and the whole fit (the
-        # start, the image stage, the checks around them); train is its image stage
+        # start, the image stage, the checks around them; not for a resumed run, whose
+        # process timed its own part alone); train is its image stage
+        **({"start": training["start_seconds"]} if "start_seconds" in training else {}),
         **(
-            {"start": training["start_seconds"], "fit": training["fit_seconds"]}
-            if "fit_seconds" in training
+            {"fit": training["fit_seconds"]}
+            if "fit_seconds" in training and not training.get("resumed")
             else {}
         ),
         "train": training["train_seconds"],

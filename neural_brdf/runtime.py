@@ -29,7 +29,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import ArrayLike
 
-from neural_brdf.errors import InputError
+from neural_brdf.errors import InputError, not_a_file
 
 # the file's contract (names, versions, metadata keys, their decoding): neural_brdf.fileformat
 from neural_brdf.fileformat import (  # noqa: F401
@@ -53,7 +53,7 @@ class NeuralBRDF:
     def __init__(self, path: str | Path, *, threads: int = 1):
         path = Path(path)
         if not path.is_file():
-            raise InputError(f"{path}: no such model file")
+            raise InputError(not_a_file(path, "model"))
         # the file's declared sizes, checked before onnxruntime allocates from them
         from neural_brdf.fileformat import reader
 

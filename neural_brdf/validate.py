@@ -425,7 +425,8 @@ def peak(fn: Callable, target: Target, *, anisotropic: bool, tol: float) -> dict
 
 def reference_from(path: str | Path) -> Any:
     """``--reference``: a measured file (a MERL ``.binary``, an RGL ``.bsdf``: any suffix
-    of :mod:`neural_brdf.measured.formats`), or else a YAML config (its target)."""
+    of :mod:`neural_brdf.measured.formats`), or else a YAML config (its target; an images
+    fit's is refused: :func:`neural_brdf.train.data.refuse_images`)."""
     from neural_brdf.measured import formats
 
     if formats.find(path) is not None:
@@ -435,7 +436,7 @@ def reference_from(path: str | Path) -> Any:
             f"--reference {path}: a Mitsuba teacher is named by a config "
             f"(target: {{mitsuba: {Path(path).name}}}); give that config"
         )
-    return data.build_target(cfgmod.load(path).target)
+    return data.build_target(cfgmod.load(path).target, source=str(path))
 
 
 def report(

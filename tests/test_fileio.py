@@ -51,6 +51,18 @@ def test_missing_folders_only_on_request(tmp_path):
     assert path.read_bytes() == b"22"
 
 
+@pytest.mark.parametrize("depth", [1, 2], ids=["its folder", "a folder above"])
+def test_a_file_where_a_folder_goes_is_named(tmp_path, depth):
+    # (-o notes.txt/model.onnx said "File exists", naming neither the file nor why)
+    (tmp_path / "notes.txt").write_text("mine")
+    path = tmp_path / "notes.txt" / ("sub/" * (depth - 1)) / "model.onnx"
+    with pytest.raises(NotADirectoryError) as e:
+        atomic_write(path, b"1", parents=True)
+    assert e.value.filename == str(path), e.value
+    assert f"{tmp_path / 'notes.txt'} is a file, not a folder" in str(e.value), e.value
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
 def test_no_other_module_writes_through_mkstemp():
     """Every atomic write of the package goes through fileio (one helper, not copies)."""
     package = Path(fileio.__file__).parent

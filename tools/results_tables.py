@@ -1547,12 +1547,15 @@ def _determined_table(d: dict) -> list[str]:
     ]
 
 
-def _start_again(entry: list | None, start: float) -> str:
+def _start_again(entry: list | None, start: float, same: bool | None = None) -> str:
     """The start's score through the last lobe at the stage's end, as a multiple of its
-    score before the first step ("-": not scored again)."""
+    score before the first step ("-": not scored again; ``same``: the last lobe sampled
+    as the start's, so its own score stood, since session 88)."""
     if not entry:
         return "-"
     step, loss = entry
+    if same:
+        return f"its own, {loss:.4g} (step {int(step)}: the start's lobe)"
     return f"{loss:.4g} (step {int(step)}, {loss / start:.4f}x)"
 
 
@@ -1584,7 +1587,8 @@ def _stage_table(d: dict) -> list[str]:
                 f"{loss[last_step]:.4g} (step {last_step})",
                 str(v.get("kept", "-")),
                 ", ".join(f"{int(s)}: {x:.4g}" for s, x in v.get("best_rescored") or []) or "-",
-                _start_again(v.get("start_rescored"), start),
+                _start_again(v.get("start_rescored"), start, v.get("start_lobe_same")),
+                ", ".join(str(int(s)) for s in v.get("lobe_unchanged") or []) or "-",
             ]
         )
     if not rows:
@@ -1598,8 +1602,9 @@ def _stage_table(d: dict) -> list[str]:
         "kept",
         "the best scored again through the lobe of step",  # files since session 86
         "the start scored again at the end",  # files since session 87
+        "refits onto the lobe in use (nothing scored again)",  # files since session 88
     ]
-    # the last two columns only where some row has them
+    # the last three columns only where some row has them
     shown = [i for i in range(len(heads)) if i < 6 or any(r[i] != "-" for r in rows)]
     return [
         "The image stage on the validation split (the run's `training.validation`): the "
@@ -1610,7 +1615,9 @@ def _stage_table(d: dict) -> list[str]:
         "samples (since session 86 the best weights are scored again through each new "
         "lobe, `best_rescored`; since session 87, where a step beat the start before a "
         "refit, the start is scored again through the last lobe at the stage's end and "
-        "kept if no worse, `start_rescored`).",
+        "kept if no worse, `start_rescored`; since session 88 a refit that returns a lobe "
+        "sampling as the one in use scores nothing again, `lobe_unchanged`, and a last "
+        "lobe sampling as the start's keeps the start's own score, `start_lobe_same`).",
         "",
         *_table([heads[i] for i in shown], [[r[i] for i in shown] for r in rows]),
         "",
@@ -3965,6 +3972,11 @@ SECTIONS = (
             title="the clear-coated paint with its family named, images.start: clearcoat "
             "(what a user who knows the material is coated can do; not a default)",
         ),
+    ),
+    _images_any(
+        "images_any_dev_lobe_same.json",
+        "a refit onto the lobe in use scores nothing again (session 88, the defaults since; "
+        "its seconds on a machine loaded by tests, 2.5 to 5): the six of session 87's check",
     ),
     _images_any(
         "images_any_dev_start_check.json",

@@ -367,6 +367,7 @@ def compute(
     for k, item in enumerate(views):
         name, path, tree = _scene_of(item, k)
         scene = load(path, tree)
+        inverse_views.check_seen(scene, path)  # a camera to trace, a light to sample
         h, w = inverse_views.film_size(scene)
         spp = max(MIN_SPP, -(-rays // (h * w)))
         s = view_samples(scene, spp=spp, seed=seed * 1_000_003 + k)

@@ -870,6 +870,7 @@ def _fit_views(
         session=sess,
     )
     training["coverage"] = covered
+    training["resumed"] = resume  # (fit_seconds: then this process's part alone)
     training["determined_start"] = {
         k: determined_start[k]
         for k in (

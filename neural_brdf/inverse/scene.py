@@ -26,6 +26,7 @@ several angles.  Every file is written atomically (:mod:`neural_brdf.fileio`).
 
 from __future__ import annotations
 
+import argparse
 import math
 import shlex
 import sys
@@ -35,7 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from neural_brdf.errors import module_parser
+from neural_brdf import limits
+from neural_brdf.errors import InputError, module_parser
 from neural_brdf.fileio import atomic_path, atomic_write
 
 # The true material: not a preset (the presets are GGX Au 0.3, Beckmann Cu 0.5 and Ag).
@@ -350,14 +352,30 @@ def regenerate_command(
     return " ".join(parts) + (f"  (write(..., seed={seed}) from Python)" if seed else "")
 
 
+def _at_least(low: int):
+    """An argparse type: an integer >= ``low`` (else argparse's one-line error)."""
+
+    def integer(text: str) -> int:
+        value = int(text)  # (a ValueError: argparse says "invalid integer value")
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+        return value
+
+    return integer
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = module_parser("neural_brdf.inverse.scene", __doc__.splitlines()[0])
     ap.add_argument("out", help="folder to write into")
     d = WRITE_DEFAULTS
-    ap.add_argument("--resolution", type=int, default=d["resolution"], help="film width, height")
-    ap.add_argument("--spp", type=int, default=d["spp"], help="samples per pixel of the targets")
+    ap.add_argument(
+        "--resolution", type=_at_least(1), default=d["resolution"], help="film width, height"
+    )
+    ap.add_argument(
+        "--spp", type=_at_least(1), default=d["spp"], help="samples per pixel of the targets"
+    )
     ap.add_argument("--heldout", action="store_true", help="also write view4, held out")
-    ap.add_argument("--steps", type=int, default=d["steps"], help="train.steps of fit.yaml")
+    ap.add_argument("--steps", type=_at_least(0), default=d["steps"], help="fit.yaml's train.steps")
     ap.add_argument(
         "--capture",
         choices=CAPTURES,
@@ -366,6 +384,18 @@ def main(argv: list[str] | None = None) -> int:
         "or the sky and a flash/no-flash pair at the first camera (flash_pair)",
     )
     args = ap.parse_args(argv)
+    out = Path(args.out)
+    there = next(p for p in (out, *out.parents) if p.exists())  # (the root, at least)
+    if not there.is_dir():
+        ap.error(f"{out}: {there} is a file, not a folder to write the example into")
+    from neural_brdf.inverse import views as views_layer  # (torch: after the arguments)
+
+    try:  # a target render's samples, before anything is written (one line, exit 2)
+        limits.check_bytes(
+            "--resolution and --spp", args.resolution**2 * args.spp * views_layer.LANE_BYTES
+        )
+    except InputError as e:
+        ap.error(str(e))
     import mitsuba as mi
 
     mi.set_variant("llvm_ad_rgb")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import os
+import re
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ import torch
 
 from neural_brdf import config as cfgmod
 from neural_brdf import limits
-from neural_brdf.errors import InputError
+from neural_brdf.errors import InputError, not_a_file
 
 # Integrators a fit renders with, by the scene's <integrator type>: Mitsuba's C++ ones
 # are differentiated by recording their AD graph; "prb" is replaced by "prb_basic" with
@@ -174,12 +175,28 @@ EXR_MAGIC = b"\x76\x2f\x31\x01"  # every OpenEXR file's first four bytes (its sp
 PIXEL_MAX = 1e15
 
 
+def check_file(path: Path, key: str, what: str) -> None:
+    """InputError naming ``key`` and ``path`` unless ``path`` is a file (``what``: "image",
+    "scene")."""
+    if not path.is_file():
+        raise InputError(f"{key}: {not_a_file(path, what)}")
+
+
+def check_light(img: np.ndarray, key: str, what: str, fix: str, *, mean: bool = False) -> None:
+    """InputError when ``img`` holds no light: its largest value (``mean``: its mean, for
+    a flash/no-flash pair's difference, whose noise leaves positive pixels either way)
+    is not above 0.  ``what`` names the image in the message, ``fix`` says what to do."""
+    value = (float(img.mean()) if mean else float(img.max())) if img.size else 0.0
+    if not value > 0.0:
+        stat = "mean" if mean else "largest value"
+        raise InputError(f"{key}: {what} holds no light ({stat} {value:.3g}); {fix}")
+
+
 def read_image(path: Path, key: str) -> np.ndarray:
     """A linear RGB EXR -> (H, W, 3) float32; InputError naming the file otherwise."""
     import mitsuba as mi
 
-    if not path.is_file():
-        raise InputError(f"{key}: {path}: no such image file")
+    check_file(path, key, "image")
     if path.suffix.lower() != ".exr":
         raise InputError(f"{key}: {path}: expected a linear RGB OpenEXR image (.exr)")
     try:
@@ -225,23 +242,131 @@ def negative_pixels(img: np.ndarray, key: str, path: Path) -> str | None:
     below = (img < 0).any(-1)
     if not below.any():
         return None
-    n, share = int(below.sum()), 100.0 * float(below.mean())
+    n = int(below.sum())
     return (
-        f"{key}: {path}: {n} pixels ({share:.2g} %) have a negative channel, down to "
+        f"{key}: {path}: {n} pixels ({percent(n, below.size)} %) have a negative channel, down to "
         f"{float(img.min()):.3g} (the image's largest value is {float(img.max()):.3g}); "
         "fitted as they are, as noise about 0 (a radiance is never negative)"
     )
 
 
-def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
-    """Parse a scene file and check it: (tree, integrator type the fit uses)."""
-    if not path.is_file():
-        raise InputError(f"{key}: {path}: no such scene file")
+def percent(n: int, total: int) -> str:
+    """``n`` of ``total`` (0 < n) as a percentage to show: "100", "1.3", "0.012", "< 0.01";
+    never "100" for a part, never an exponent."""
+    share = 100.0 * n / total
+    if share < 0.01:
+        return "< 0.01"
+    text = f"{share:.1f}".removesuffix(".0") if share >= 1.0 else f"{share:.2g}"
+    if n < total and float(text) >= 100.0:
+        return "99.9"
+    return text
+
+
+# the most nested <include>s Mitsuba 3.9 loads (a chain of 15 exceeds its "maximum
+# include recursion depth of 15": checked with mi.load_file)
+INCLUDE_DEPTH = 14
+PARAMETER = re.compile(r"(?<!\\)\$(\w*)")  # a $name left after substitution (\$: escaped)
+
+
+def parse_xml(path: Path, key: str) -> ET.Element:
+    """The root element of the XML file ``path``; InputError naming it otherwise."""
     try:
-        tree = ET.parse(path)
+        return ET.parse(path).getroot()
     except (ET.ParseError, OSError, UnicodeDecodeError) as e:
         raise InputError(f"{key}: {path}: not a readable XML scene ({e})") from None
-    root = tree.getroot()
+
+
+def substitute(el: ET.Element, params: dict[str, str], key: str, scene: Path) -> None:
+    """Replace ``$name`` in ``el``'s attributes by ``params`` (the ``<default>``s read so
+    far), as Mitsuba does: the longest name first, ``\\$`` escaped (left as it is, for
+    Mitsuba to read again); a ``$name`` without a value raises InputError."""
+    for attr, value in list(el.attrib.items()):
+        if "$" not in value:
+            continue
+        for name in sorted(params, key=len, reverse=True):
+            token, pos = "$" + name, 0
+            while (pos := value.find(token, pos)) >= 0:
+                if pos > 0 and value[pos - 1] == "\\":
+                    pos += len(token)
+                else:
+                    value = value[:pos] + params[name] + value[pos + len(token) :]
+                    pos += len(params[name])
+        left = PARAMETER.search(value)
+        if left:
+            raise InputError(
+                f"{key}: {scene}: <{el.tag} {attr}=...>: undefined parameter ${left.group(1)} "
+                f'(give <default name="{left.group(1)}" value="..."/> before it)'
+            )
+        el.set(attr, value)
+
+
+def expand(
+    parent: ET.Element,
+    params: dict[str, str],
+    folders: list[Path],
+    key: str,
+    scene: Path,
+    depth: int = 0,
+) -> None:
+    """Read ``parent``'s children as Mitsuba does, in document order: ``$name``
+    substituted (:func:`substitute`), a ``<default>`` adding its parameter (unless one of
+    that name is set already), an ``<include filename>`` replaced by the included file's
+    elements (the children of its ``<scene>``, else its root), read the same way.  An
+    included file is looked for in ``folders`` (the including file's folder first, then
+    those that included it); at most :data:`INCLUDE_DEPTH` levels."""
+    i = 0
+    while i < len(parent):
+        child = parent[i]
+        substitute(child, params, key, scene)
+        if child.tag == "default":
+            name = child.get("name", "")
+            if name and name not in params:
+                params[name] = child.get("value", "")
+        if child.tag != "include":
+            expand(child, params, folders, key, scene, depth)
+            i += 1
+            continue
+        filename = child.get("filename", "")
+        if depth >= INCLUDE_DEPTH:
+            raise InputError(
+                f'{key}: {scene}: <include filename="{filename}">: more than {INCLUDE_DEPTH} '
+                "nested includes (a file that includes itself?)"
+            )
+        if not filename.strip():
+            raise InputError(f"{key}: {scene}: an <include> without a filename")
+        candidates = [Path(filename)] if Path(filename).is_absolute() else []
+        candidates += [folder / filename for folder in folders] + [Path(filename)]
+        found = next((c for c in candidates if c.is_file()), None)
+        if found is None:
+            where = candidates[0]
+            what = "is a folder, not a file" if where.is_dir() else "no such file"
+            raise InputError(f'{key}: {scene}: <include filename="{filename}">: {where}: {what}')
+        root = parse_xml(found, key)
+        substitute(root, params, key, scene)
+        expand(root, params, [found.parent, *folders], key, scene, depth + 1)
+        if root.tag == "scene":
+            new = list(root)
+        else:  # a single object, named by the include's name
+            root.attrib.pop("version", None)  # (a file's root only: refused inside a scene)
+            new = [root]
+            if child.get("name"):
+                root.set("name", child.get("name", ""))
+        if new:
+            new[-1].tail = child.tail
+        parent[i : i + 1] = new
+        i += len(new)
+
+
+def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
+    """Parse a scene file and check it: (tree, integrator type the fit uses).  The tree
+    is the scene as Mitsuba reads it: ``<include>`` files in place and ``$name``
+    parameters replaced by their ``<default>`` values (:func:`expand`), so that the
+    checks, and the fit's ``<bsdf id="fit">``, see what Mitsuba loads."""
+    check_file(path, key, "scene")
+    root = parse_xml(path, key)
+    substitute(root, {}, key, path)
+    expand(root, {}, [path.resolve().parent], key, path)
+    tree: ET.ElementTree[ET.Element] = ET.ElementTree(root)
     if root.tag != "scene":
         raise InputError(f"{key}: {path}: not a Mitsuba scene (root <{root.tag}>)")
     fits = [e for e in root.iter("bsdf") if e.get("id") == "fit"]
@@ -356,10 +481,19 @@ def film_size(scene) -> tuple[int, int]:
     return int(h), int(w)
 
 
-def read_photograph(path: Path, key: str) -> np.ndarray:
+def read_photograph(path: Path, key: str, *, lit: bool = False) -> np.ndarray:
     """:func:`read_image`, and a one-line warning on stderr when it has negative pixels
-    (:func:`negative_pixels`)."""
+    (:func:`negative_pixels`).  ``lit``: the image must hold light
+    (:func:`check_light`; a photograph without the flash may be black)."""
     img = read_image(path, key)
+    if lit:
+        check_light(
+            img,
+            key,
+            str(path),
+            "a target is a photograph of the lit object (an all-black or all-negative "
+            "image: the wrong file, or its exposure)",
+        )
     warning = negative_pixels(img, key, path)
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
@@ -369,14 +503,24 @@ def read_photograph(path: Path, key: str) -> np.ndarray:
 def read_views(cfg: cfgmod.Config) -> list[View]:
     """Parse and check every ``target.images`` entry (scenes are loaded later)."""
     views = []
-    seen: dict[tuple[str, str, str | None], int] = {}
-    for k, item in enumerate(cfg.target.images or []):
+    seen: dict[tuple[Any, Any, Any], int] = {}
+    images: dict[Any, tuple[int, Any]] = {}  # an image's file -> (its entry, its scene's)
+    entries = cfg.target.images or []
+    for k, item in enumerate(entries):
         key = f"target.images[{k}]"
+        for field, value in (("scene", item.scene), ("image", item.image)):
+            if not value.strip():
+                raise InputError(f"{key}.{field}: empty; give the {field} file's path")
+        if item.subtract is not None and not item.subtract.strip():
+            raise InputError(
+                f"{key}.subtract: empty; give the photograph without the flash, or leave "
+                "subtract out"
+            )
         scene_path, image_path = Path(item.scene), Path(item.image)
         same = (
-            os.path.realpath(item.scene),
-            os.path.realpath(item.image),
-            item.subtract and os.path.realpath(item.subtract),
+            file_identity(item.scene),
+            file_identity(item.image),
+            item.subtract and file_identity(item.subtract),
         )
         if same in seen:  # it would weigh twice in every loss
             raise InputError(
@@ -384,8 +528,15 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
                 "each view once"
             )
         seen[same] = k
+        first, its_scene = images.setdefault(same[1], (k, same[0]))
+        if its_scene != same[0]:  # a copy-paste slip: one camera's photograph for another's
+            raise InputError(
+                f"{key}.image: {image_path}: also the image of target.images[{first}], whose "
+                f"scene is another ({Path(entries[first].scene).name}, here "
+                f"{scene_path.name}); a photograph is one camera's view: give each scene its own"
+            )
         tree, integrator = read_scene(scene_path, key + ".scene")
-        target = read_photograph(image_path, key + ".image")
+        target = read_photograph(image_path, key + ".image", lit=True)
         photograph = None
         if item.subtract is not None:  # a flash/no-flash pair: the flash's light alone
             other = Path(item.subtract)
@@ -396,19 +547,29 @@ def read_views(cfg: cfgmod.Config) -> list[View]:
                     f"but its image {image_path.name} is {target.shape[1]}x{target.shape[0]}"
                 )
             photograph, target = target, target - ambient
-            mean = float(target.mean())
-            if not mean > 0.0:  # swapped, or the same photograph twice
-                raise InputError(
-                    f"{key}.subtract: {other}: {image_path.name} - {other.name} holds no "
-                    f"light (mean {mean:.3g}); image is the photograph with the flash, "
-                    "subtract the one without"
-                )
+            check_light(  # swapped, or the same photograph twice
+                target,
+                key + ".subtract",
+                f"{other}: {image_path.name} - {other.name}",
+                "image is the photograph with the flash, subtract the one without",
+                mean=True,
+            )
         view = View(scene_path, image_path, tree, target, integrator)
         view.photograph, view.label = photograph, item.label()
         views.append(view)
     if not views:
         raise InputError("target.images: empty; give at least one {scene, image} pair")
     return views
+
+
+def file_identity(path: str) -> Any:
+    """What makes two paths the same file: (device, inode) of an existing one (a link or
+    another spelling of it too), else its resolved path."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return os.path.realpath(path)
+    return (st.st_dev, st.st_ino)
 
 
 def split_views(views: list[View], images: cfgmod.Images, seed: int) -> None:
@@ -464,9 +625,8 @@ def check_films(views: list[View]) -> None:
         scene = load_scene(v.scene_path, scene_text(v.tree, fit_element(v.tree)))
         if fit_bsdf(scene) is None:
             raise InputError(f'{v.scene_path}: no shape uses <bsdf id="fit">')
+        check_seen(scene, v.scene_path)
         sensors = scene.sensors()
-        if not sensors:
-            raise InputError(f"{v.scene_path}: no <sensor>: a view needs its camera")
         if len(sensors) > 1:  # mi.render's default, as its image was rendered
             print(
                 f"warning: {v.scene_path}: {len(sensors)} sensors; the fit renders "
@@ -480,12 +640,19 @@ def check_films(views: list[View]) -> None:
                 f"{v.scene_path}: the film renders {channels} channel(s); a fit compares RGB "
                 "renders with RGB images (an hdrfilm with pixel_format 'rgb')"
             )
-        if not scene.emitters():
-            raise InputError(
-                f"{v.scene_path}: no emitter (no <emitter>, no emissive shape): nothing "
-                "lights the object, so its image holds nothing of its BRDF"
-            )
         check_size(v, scene)
+
+
+def check_seen(scene, path: Path) -> None:
+    """InputError naming ``path`` when the loaded ``scene`` has no camera or no emitter
+    (what every view needs; :func:`check_films`, and the coverage before its rays)."""
+    if not scene.sensors():
+        raise InputError(f"{path}: no <sensor>: a view needs its camera")
+    if not scene.emitters():
+        raise InputError(
+            f"{path}: no emitter (no <emitter>, no emissive shape): nothing "
+            "lights the object, so its image holds nothing of its BRDF"
+        )
 
 
 def check_render_sizes(views: list[View], images: cfgmod.Images) -> None:

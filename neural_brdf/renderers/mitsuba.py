@@ -76,7 +76,7 @@ import drjit as dr
 import mitsuba as mi
 
 from neural_brdf.backends.drjit import OnnxProgram
-from neural_brdf.errors import InputError
+from neural_brdf.errors import InputError, not_a_file
 from neural_brdf.fileformat import NORMAL, OUTPUT, SIGNATURES, reader
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.graph import SUPPORTED_OPS, UnsupportedOnnxOp
@@ -377,7 +377,7 @@ def _resolve(filename: str) -> Path:
         if resolved.is_file():
             path = resolved
     if not path.is_file():
-        raise InputError(f"neural_brdf: {filename}: no such model file")
+        raise InputError(f"neural_brdf: {not_a_file(filename, 'model')}")
     return path
 
 

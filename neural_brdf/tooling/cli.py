@@ -39,7 +39,7 @@ from pathlib import Path
 # Only effective before torch is first imported, which this module does not do.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from neural_brdf.errors import InputError  # noqa: E402  (light: no torch, no pydantic)
+from neural_brdf.errors import InputError, not_a_file  # noqa: E402  (light: no torch, no pydantic)
 
 EXIT_OK, EXIT_PHYSICS, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130  # SIGTERM: 128 + 15
 STDOUT = "-"  # -o -: the output on stdout (text formats only)
@@ -295,8 +295,9 @@ def stage_times(s: dict[str, float]) -> str:
     fit, its start and its image stage (``train``), else the training; then the export
     and the validation."""
     fit = f"train {s['train']:.1f} s"
-    if "fit" in s:
-        fit = f"fit {s['fit']:.1f} s: start {s['start']:.1f} s, image stage {s['train']:.1f} s"
+    if "start" in s:  # (a resumed images fit has no whole fit's time)
+        fit = f"start {s['start']:.1f} s, image stage {s['train']:.1f} s"
+        fit = f"fit {s['fit']:.1f} s: {fit}" if "fit" in s else fit
     return f"{fit}, export {s['export']:.1f} s, validate {s['validate']:.1f} s"
 
 
@@ -429,7 +430,10 @@ def _analytic_target(config_path: str):
             f"{config_path}: a Mitsuba file; give a config of an analytic target here (a "
             "Mitsuba teacher is compared with neural-brdf view MODEL --compare FILE.xml)"
         )
+    from neural_brdf.train import data
+
     cfg = config.load(config_path)
+    data.refuse_images(cfg.target, config_path)  # its target.model: the unused default
     for key in ("data", "mitsuba"):
         if getattr(cfg.target, key) is not None:
             raise InputError(f"{config_path}: target.{key}: only analytic targets here")
@@ -566,7 +570,7 @@ def _codegen(args) -> int:
     from neural_brdf import backends
 
     if not Path(args.model).is_file():
-        raise InputError(f"{args.model}: no such model file")
+        raise InputError(not_a_file(args.model, "model"))
     if args.out != STDOUT and Path(args.out).is_dir():
         raise InputError(f"-o {args.out}: is a folder; give a file name")
     _not_an_input(args.out, {"model": args.model}, flag="-o")

@@ -83,12 +83,28 @@ class MeasuredTarget:
         return tuple(torch.from_numpy(np.ascontiguousarray(x)) for x in pairs)
 
 
-def build_target(target: cfgmod.Target):
+def refuse_images(target: cfgmod.Target, source: str | None = None) -> None:
+    """ConfigError (one line, naming ``source``, the config file, when given) when
+    ``target`` is ``target.images``: an images fit has no target BRDF, and its
+    ``target.model`` is the unused default (a Lambertian), which a reference (``validate
+    --reference``, ``render --reference``) or a bake would silently stand for it."""
+    if target.images is not None:
+        where = f"{source}: " if source else ""
+        raise cfgmod.ConfigError(
+            f"{where}target.images: an images fit has no target BRDF (it is fitted to "
+            "photographs; the fitted BRDF is its run's model.onnx); give a config whose "
+            "target is a BRDF"
+        )
+
+
+def build_target(target: cfgmod.Target, *, source: str | None = None):
     """The model of ``target``: an analytic BRDF, a :class:`MeasuredTarget` for
     ``target.data``, or a :class:`neural_brdf.measured.mitsuba.MitsubaTarget` for
     ``target.mitsuba`` (a :class:`neural_brdf.measured.textured.TexturedMitsubaTarget`
     when it varies over the surface); bad names, parameters or files raise ConfigError
-    (InputError)."""
+    (InputError), and so does ``target.images`` (:func:`refuse_images`; ``source``: the
+    config file its message names)."""
+    refuse_images(target, source)
     if target.data is not None:
         return MeasuredTarget.from_file(target.data)
     if target.mitsuba is not None:  # Mitsuba is imported by this target only

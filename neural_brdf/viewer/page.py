@@ -514,6 +514,7 @@ def models_for(model, compare=None, *, probes=PROBES) -> list[Model]:
     the same kind (textured or not), a Mitsuba teacher (.xml), or a config (.yaml) whose
     analytic target, or Mitsuba teacher, is compared."""
     from neural_brdf import config
+    from neural_brdf.train import data
 
     model = Path(model)
     if model.suffix != ".onnx":
@@ -537,11 +538,7 @@ def models_for(model, compare=None, *, probes=PROBES) -> list[Model]:
         xml = compare
         if compare.suffix != ".xml":  # a config: its analytic target, or its teacher
             cfg = config.load(compare)
-            if cfg.target.images is not None:  # its target.model is the unused default
-                raise InputError(
-                    f"{compare}: target.images: an images fit has no target BRDF to compare "
-                    "with; compare its model.onnx with another file or a teacher"
-                )
+            data.refuse_images(cfg.target, str(compare))  # its target.model: the unused default
             if cfg.target.data is not None:
                 raise InputError(
                     f"{compare}: target.data: the viewer compares analytic targets and "

@@ -34,13 +34,6 @@ RAYS = RES * RES * 12  # camera rays per view
 
 
 @pytest.fixture(scope="module")
-def mi():
-    from neural_brdf.inverse import fit as inverse
-
-    return inverse.use_variant("llvm_ad_rgb")
-
-
-@pytest.fixture(scope="module")
 def scenes(mi, tmp_path_factory) -> dict[str, list[Path]]:
     """capture -> the example's three view scenes lit that way (no target images)."""
     from neural_brdf.inverse import scene as example
@@ -272,3 +265,26 @@ def test_bin_measure_is_the_measure_of_uniform_pairs():
     assert np.abs(hist - m).max() < 2e-3
     big = m > 5e-3
     assert np.abs(hist[big] / m[big] - 1).max() < 0.06
+
+
+@pytest.mark.parametrize(
+    "cut, needle",
+    [(r"<emitter .*?</emitter>", "no emitter"), (r"<sensor .*?</sensor>", "no <sensor>")],
+    ids=["no emitter", "no sensor"],
+)
+def test_a_scene_without_light_or_camera_is_one_line_and_exit_2(
+    scenes, tmp_path, capsys, cut, needle
+):
+    # the check a fit makes before its start (a traceback from the rays' sampling before)
+    import re
+
+    from neural_brdf.inverse import coverage
+
+    text = scenes["lights"][0].read_text()
+    edited = tmp_path / "edited.xml"
+    edited.write_text(re.sub(cut, "", text, flags=re.S))
+    assert edited.read_text() != text
+    code = coverage.main([str(edited)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "edited.xml" in err and needle in err, err

@@ -30,13 +30,6 @@ pytestmark = pytest.mark.mitsuba
 RES = 24
 
 
-@pytest.fixture(scope="module")
-def mi():
-    from neural_brdf.inverse import fit as inverse
-
-    return inverse.use_variant("llvm_ad_rgb")
-
-
 def test_each_levels_std_is_the_posterior_covariances_diagonal():
     from neural_brdf.inverse import determined as D
 

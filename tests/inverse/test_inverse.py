@@ -94,13 +94,6 @@ FIT_OVERRIDES = [
 
 # ------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
-def mi():
-    from neural_brdf.inverse import fit as inverse
-
-    return inverse.use_variant("llvm_ad_rgb")
-
-
-@pytest.fixture(scope="module")
 def example(mi, tmp_path_factory) -> Path:
     from neural_brdf.inverse import scene as inverse_example
 
@@ -534,6 +527,35 @@ def scheduled_lobes(monkeypatch, schedule: str) -> list[dict]:
     return given
 
 
+def run_scripted(example: Path, run_dir: Path, monkeypatch, script: list[float]) -> list:
+    """A 6-step fit of the example into ``run_dir`` at the full rate whose held-out
+    scores are ``script``'s, in order (``heldout_loss`` replaced; the lobe refitted every
+    2 steps, a scoring at every step, no patience).  Returns the weights each scoring
+    rendered with (:func:`scored_weights`); every score of ``script`` must be used."""
+    from neural_brdf.inverse import fit as fitmod
+
+    scores, scored = iter(script), []
+
+    def scripted(views, *, spp, seed):
+        scored.append(scored_weights(views))
+        return next(scores)
+
+    monkeypatch.setattr(fitmod, "heldout_loss", scripted)
+    every_step = [
+        "train.steps=6",
+        "images.start_steps=10",
+        "images.start_train_steps=60",
+        "images.start_lr_scale=1",
+        "images.lobe_every=2",
+        "images.validation_pixels=0.2",
+        "images.validation_every=1",
+        "images.patience=null",
+    ]
+    code = cli.main(train_args(example / "fit.yaml", run_dir, FIT_OVERRIDES + every_step))
+    assert code == 0 and next(scores, None) is None, (code, len(scored))
+    return scored
+
+
 def start_network_change(run_dir: Path) -> float:
     """Relative RMS difference of f between the exported model and the network the GGX
     start handed to the image stage (``init/ckpt.pt``)."""
@@ -750,10 +772,16 @@ def test_the_image_stage_stops_after_patience_scorings_without_a_better_one(
     assert max(steps) == 10, steps
     report = (run_dir / "report.md").read_text()
     assert "image stage stopped" in report and "at step 10 (images.patience 2)" in report
+    assert "fit" in json.loads((run_dir / "metrics.json").read_text())["seconds"]
     code, err = run_cli(args + ["--resume"], capsys)
     assert code == 0, err
-    again = json.loads((run_dir / "metrics.json").read_text())["training"]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    again = metrics["training"]
     assert again["steps"] == 10 and again["validation"]["stopped_at"] == 10
+    # the resumed process timed its own part alone: no whole fit's time, not fit < start
+    assert again["resumed"] and "fit" not in metrics["seconds"], metrics["seconds"]
+    line = cli.stage_times(metrics["seconds"])
+    assert line.startswith(f"start {metrics['seconds']['start']:.1f} s, image stage"), line
 
 
 @pytest.mark.slow
@@ -882,37 +910,12 @@ def test_at_the_end_the_start_is_scored_again_through_the_last_lobe_and_kept_if_
     # at the end the start is scored again through the last lobe: kept when it scores no
     # worse than the kept weights' score through it (0.75: a tie keeps the start; against
     # step 4's score through the old lobe, 0.7, it would lose), else step 4 stays
-    from neural_brdf.inverse import fit as fitmod
 
     scheduled_lobes(monkeypatch, "ABC")  # three lobes that sample differently
-    script = iter([1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 0.75, 0.8, 0.9, start_again])
-    scored: list[np.ndarray] = []
-
-    def scripted(views, *, spp, seed):
-        scored.append(scored_weights(views))
-        return next(script)
-
-    monkeypatch.setattr(fitmod, "heldout_loss", scripted)
+    script = [1.0, 0.9, 0.95, 0.8, 0.85, 0.7, 0.75, 0.8, 0.9, start_again]
     run_dir = tmp_path / "run"
-    code = cli.main(
-        train_args(
-            example / "fit.yaml",
-            run_dir,
-            FIT_OVERRIDES
-            + [
-                "train.steps=6",
-                "images.start_steps=10",
-                "images.start_train_steps=60",
-                "images.start_lr_scale=1",
-                "images.lobe_every=2",
-                "images.validation_pixels=0.2",
-                "images.validation_every=1",
-                "images.patience=null",
-            ],
-        )
-    )
-    assert code == 0
-    assert next(script, None) is None, "the start was not scored again at the end"
+    scored = run_scripted(example, run_dir, monkeypatch, script)
+    assert len(scored) == len(script), "the start was not scored again at the end"
     # the scores: the start, steps 1-2, step 1 again, steps 3-4, step 4 again, steps 5-6,
     # and the start again: the last is of the start's weights, not the kept or the last
     assert len(scored) == 10
@@ -951,37 +954,11 @@ def test_a_refit_that_samples_as_before_scores_nothing_again(
     # in use leaves the best's score standing (no scoring: the same samples), and at the
     # end, where the last lobe samples as the start's did, the start's own score is
     # compared with the kept weights' without scoring it again
-    from neural_brdf.inverse import fit as fitmod
 
     given = scheduled_lobes(monkeypatch, lobes)
-    scores = iter(script)
-    scored: list[np.ndarray] = []
-
-    def scripted(views, *, spp, seed):
-        scored.append(scored_weights(views))
-        return next(scores)
-
-    monkeypatch.setattr(fitmod, "heldout_loss", scripted)
     run_dir = tmp_path / "run"
-    code = cli.main(
-        train_args(
-            example / "fit.yaml",
-            run_dir,
-            FIT_OVERRIDES
-            + [
-                "train.steps=6",
-                "images.start_steps=10",
-                "images.start_train_steps=60",
-                "images.start_lr_scale=1",
-                "images.lobe_every=2",
-                "images.validation_pixels=0.2",
-                "images.validation_every=1",
-                "images.patience=null",
-            ],
-        )
-    )
-    assert code == 0
-    assert next(scores, None) is None and len(scored) == len(script), len(scored)
+    scored = run_scripted(example, run_dir, monkeypatch, script)
+    assert len(scored) == len(script), len(scored)
     assert len(given) == 3  # the lobes of steps 0, 2 and 4
     val = json.loads((run_dir / "metrics.json").read_text())["training"]["validation"]
     assert val["kept"] == kept
@@ -1022,6 +999,36 @@ def test_the_examples_config_names_the_command_that_writes_it_again(mi, tmp_path
     assert (again / "fit.yaml").read_text() == text.replace(str(first), str(again)).replace(
         "images_first", "images_again"
     )
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--resolution", "0"], "--resolution: must be >= 1, got 0"),
+        (["--spp", "-1"], "--spp: must be >= 1, got -1"),
+        (["--steps", "-2"], "--steps: must be >= 0, got -2"),
+        (["--resolution", "x"], "--resolution: invalid integer value: 'x'"),
+        (["--resolution", "100000"], "--resolution and --spp: would need"),
+    ],
+)
+def test_the_example_writer_refuses_bad_options_in_one_line(tmp_path, capsys, args, says):
+    # each was a Dr.Jit traceback (exit 1) after a partial folder had been written
+    from neural_brdf.inverse import scene as inverse_example
+
+    out = tmp_path / "example"
+    with pytest.raises(SystemExit) as e:
+        inverse_example.main([str(out), *args])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert says in err and not out.exists(), err
+    target = tmp_path / "a_file"
+    target.write_text("mine")
+    for out in (target, target / "sub"):  # the folder itself, or one above it
+        with pytest.raises(SystemExit) as e:
+            inverse_example.main([str(out)])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and f"{target} is a file, not a folder" in err, err
+    assert target.read_text() == "mine"
 
 
 def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):

@@ -68,13 +68,6 @@ DECOYS = {"diffuse": "roughconductor", "roughplastic": "diffuse", "roughconducto
 
 
 # ------------------------------------------------------------------ fixtures
-@pytest.fixture(scope="module")
-def mi():
-    from neural_brdf.inverse import fit as inverse
-
-    return inverse.use_variant("llvm_ad_rgb")
-
-
 def write_material(
     folder: Path, truth: ET.Element, decoy: ET.Element, res: int = RES, spp: int = TARGET_SPP
 ) -> Path:

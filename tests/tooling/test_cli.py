@@ -384,3 +384,18 @@ def test_a_second_train_into_a_running_folder_and_sigterm(tmp_path):
         f"{out / 'ckpt.pt'}; continue with --resume"
     )
     assert not (out / loop.LOCK_FILE).exists()
+
+
+@pytest.mark.parametrize(
+    "command",
+    [["validate"], ["codegen", "--target", "c", "-o", "out.c"], ["render", "-o", "out.png"]],
+    ids=["validate", "codegen", "render"],
+)
+def test_a_folder_given_as_the_model_is_named_a_folder(capsys, tmp_path, command):
+    # (it was "no such model file", though the folder is there: a run's folder, often)
+    folder = tmp_path / "a_run"
+    folder.mkdir()
+    code, _, err = cli(capsys, command[0], str(folder), *command[1:])
+    assert_one_line_error(code, err, str(folder), "is a folder, not a file")
+    code, _, err = cli(capsys, command[0], str(tmp_path / "absent.onnx"), *command[1:])
+    assert_one_line_error(code, err, "absent.onnx", "no such model file")

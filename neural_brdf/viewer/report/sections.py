@@ -73,10 +73,11 @@ def _summary(run: Run) -> list:
     ]
     fit = _number(m, "seconds.fit", path, optional=True)
     train = _fmt(_number(m, "seconds.train", path, optional=True), ".1f") + " s"
-    if fit is None:
+    if _number(m, "seconds.start", path, optional=True) is None:
         rows.append(["training time", train])
     else:  # an images fit: its training is the image stage, after its start
-        rows += [["fit time", _fmt(fit, ".1f") + " s"], [IMAGES_STAGES["train"] + " time", train]]
+        rows += [["fit time", _fmt(fit, ".1f") + " s"]] if fit is not None else []
+        rows += [[IMAGES_STAGES["train"] + " time", train]]
     return [Heading(f"neural-brdf report: {cfg.name}", 1), Table(["", ""], rows)]
 
 
@@ -384,7 +385,7 @@ IMAGES_STAGES = {
 
 def _training(run: Run) -> list:
     m, path, log = run.metrics, run.dir / "metrics.json", run.log
-    labels = IMAGES_STAGES if _number(m, "seconds.fit", path, optional=True) is not None else {}
+    labels = IMAGES_STAGES if _number(m, "seconds.start", path, optional=True) is not None else {}
     rows = [
         [labels.get(k, k), f"{_number(m, f'seconds.{k}', path):.1f} s"]
         for k in STAGES

@@ -1,0 +1,204 @@
+"""Config input that must be refused (or warned of) at load, in one line naming the key
+or the file: non-finite numbers, an output scale the model cannot start from, a key
+given twice, a ``target.images:`` with every entry commented out, and an ``images``
+section that nothing reads."""
+
+from __future__ import annotations
+
+import typing
+
+import pytest
+import torch
+from annotated_types import Ge, Gt, Le
+
+from analytic import physics
+from cli_helpers import ROOT, SETS, assert_one_line_error, cli
+from neural_brdf import config
+from neural_brdf.train.model import RawBRDF
+
+CONFIGS = ROOT / "configs"
+QUICKSTART = CONFIGS / "quickstart.yaml"
+
+
+# ------------------------------------------------------------ non-finite numbers
+def _float_keys(section: type, prefix: str = "") -> list[tuple[str, bool]]:
+    """(dotted key, is a list) of every float setting of the schema, found by walking it."""
+    out = []
+    for name, field in section.model_fields.items():
+        ann, key = field.annotation, f"{prefix}{name}"
+        if isinstance(ann, type) and issubclass(ann, config._Section):
+            out += _float_keys(ann, key + ".")
+        elif typing.get_origin(ann) is list and typing.get_args(ann) == (float,):
+            out.append((key, True))
+        elif ann is float or float in typing.get_args(ann):  # float, float | None
+            out.append((key, False))
+    return out
+
+
+FLOAT_KEYS = _float_keys(config.Config)
+
+
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan", "1e999"])
+@pytest.mark.parametrize("key, is_list", FLOAT_KEYS, ids=[k for k, _ in FLOAT_KEYS])
+def test_every_float_setting_refuses_a_non_finite_value(key, is_list, value):
+    text = f"[{value}]" if is_list else value
+    with pytest.raises(config.ConfigError) as err:
+        config.load(QUICKSTART, [f"{key}={text}"])
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert f"{key}:" in msg or f"{key}.0:" in msg, msg
+    assert "finite number" in msg, msg
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("train.lr", ".inf"),
+        ("model.grid.init_std", ".inf"),  # nested
+        ("images.poor_start_loss", "-.inf"),  # optional
+        ("images.albedo_incidences", "[0.0, .inf]"),  # a list
+    ],
+)
+def test_an_infinite_setting_in_a_file_exits_2_naming_file_and_key(capsys, tmp_path, key, value):
+    assert dict(FLOAT_KEYS)[key] is value.startswith("[")  # the walk above finds each kind
+    *sections, name = key.split(".")
+    text = f"{name}: {value}"
+    for section in reversed(sections):
+        text = f"{section}: {{{text}}}"
+    cfg = tmp_path / "inf.yaml"
+    cfg.write_text(f"target: {{model: lambertian}}\n{text}\n")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"), *SETS)
+    assert_one_line_error(code, err, str(cfg), key, "finite number")
+    assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------------------ model.output_scale
+def _bounds(model: type, name: str) -> tuple[float, float]:
+    lo = hi = None
+    for m in model.model_fields[name].metadata:
+        lo = m.ge if isinstance(m, Ge) else m.gt if isinstance(m, Gt) else lo
+        hi = m.le if isinstance(m, Le) else hi
+    assert lo is not None and hi is not None, f"{name}: no documented range"
+    return lo, hi
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["lowest", "highest"])
+def test_every_output_scale_accepted_builds_a_finite_model(which):
+    scale = _bounds(config.Model, "output_scale")[which]
+    cfg = config.load(QUICKSTART, [f"model.output_scale={scale!r}"])
+    torch.manual_seed(0)
+    net = RawBRDF.from_config(cfg.model)  # raised RuntimeError for 1e-300
+    wi = torch.as_tensor(physics.random_directions(64, 1), dtype=torch.float32)
+    wo = torch.as_tensor(physics.random_directions(64, 2), dtype=torch.float32)
+    with torch.no_grad():
+        f = net(wi, wo)
+    assert torch.isfinite(f).all()
+    # the head starts at output_scale * softplus(bias) = init_value (0.3) whatever the
+    # scale, before the grazing factor divides it
+    m = cfg.model
+    cos = torch.stack([wi[:, 2], wo[:, 2]])
+    cos = cos.mean(0) if m.grazing_cos == "mean" else cos.amax(0)
+    undone = f * cos[:, None] ** m.grazing_power
+    assert torch.allclose(undone, torch.full_like(undone, 0.3), rtol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("model.output_scale=1e-300", "model.output_scale"),
+        ("model.output_scale=1e300", "model.output_scale"),
+        ("model.grid.init_std=1e300", "model.grid.init_std"),
+        ("model.cosine_grid.init_std=1e300", "model.cosine_grid.init_std"),
+    ],
+)
+def test_a_finite_but_absurd_scale_is_refused_at_load(capsys, tmp_path, override, key):
+    code, _, err = cli(
+        capsys, "train", str(QUICKSTART), "--out", str(tmp_path / "r"), *SETS, "--set", override
+    )
+    assert_one_line_error(code, err, f"--set {override}", f"{key}:")
+    assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------------------ a key given twice
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        # the audit's case: a second train section replaced the first (steps 2, lr 0.01)
+        ("train: {steps: 2, lr: 0.01}\nmodel: {hidden: [8]}\ntrain: {progress: false}\n", "train"),
+        ("target: {model: lambertian}\ntrain:\n  steps: 2\n  lr: 0.01\n  steps: 3\n", "steps"),
+        ("model:\n  grid:\n    size: 8\n    channels: 2\n    size: 4\n", "size"),
+    ],
+    ids=["top", "section", "nested"],
+)
+def test_a_key_given_twice_exits_2_naming_file_line_and_key(capsys, tmp_path, text, key):
+    cfg = tmp_path / "twice.yaml"
+    cfg.write_text(text)
+    lines = text.splitlines()
+    # the line of the key's second mention, counted from the text written here
+    mentions = [i for i, s in enumerate(lines, 1) if s.strip().startswith(f"{key}:")]
+    line = mentions[1]
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"), *SETS)
+    assert_one_line_error(code, err, f"{cfg}: line {line}: duplicate key '{key}'")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_key_given_twice_in_a_set_value_is_refused_but_a_merge_may_override(tmp_path):
+    with pytest.raises(config.ConfigError) as err:
+        config.load(QUICKSTART, ["target.params={roughness: 0.1, roughness: 0.5}"])
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith("--set target.params:") and "duplicate key 'roughness'" in msg
+    # a key beside a "<<:" merge overrides the merged one: that is not a key given twice
+    cfg = tmp_path / "merge.yaml"
+    cfg.write_text(
+        "train: &t {steps: 7, lr: 0.01}\nvalidation: {seed: 3}\n"
+        "export: {<<: {parity_pairs: 64, parity_tol: 0.001}, parity_pairs: 32}\n"
+    )
+    loaded = config.load(cfg)
+    assert (loaded.train.steps, loaded.export.parity_pairs) == (7, 32)
+    assert loaded.export.parity_tol == 0.001
+
+
+# ------------------------------------------------------------ target.images: empty
+def test_target_images_with_every_entry_commented_out_exits_2(capsys, tmp_path):
+    cfg = tmp_path / "views.yaml"
+    cfg.write_text("target:\n  images:\n  #  - {scene: v.xml, image: v.exr}\n")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "r"), *SETS)
+    assert_one_line_error(code, err, str(cfg), "target.images", "no views")
+    assert not (tmp_path / "r").exists()
+    # an explicit null (as defaults.yaml and every run's config.yaml write it) and an
+    # absent key are still "no images fit"
+    for text in ["target:\n  images: null\n", "target: {model: lambertian}\n"]:
+        cfg.write_text(text)
+        assert config.load(cfg).target.images is None
+
+
+# ------------------------------------------------------------ images: ignored
+def test_images_keys_for_an_analytic_target_warn_in_one_line(tmp_path):
+    cfg = tmp_path / "ana.yaml"
+    cfg.write_text("target: {model: microfacet}\nimages: {spp: 4}\n")
+    warnings: list[str] = []
+    config.load(cfg, warn=warnings.append)
+    assert len(warnings) == 1 and "\n" not in warnings[0], warnings
+    assert warnings[0].startswith(f"{cfg}: images.spp: ignored"), warnings
+    # none where nothing is ignored: defaults.yaml's images section lists every default,
+    # a default spelled out changes nothing, and an images fit reads the section
+    for path, sets in [
+        (CONFIGS / "defaults.yaml", []),
+        (QUICKSTART, [f"images.spp={config.Images().spp}"]),
+        (None, ["target.images=[{scene: s.xml, image: i.exr}]", "images.spp=4"]),
+    ]:
+        warnings.clear()
+        config.load(path, sets, warn=warnings.append)
+        assert not warnings, (path, sets, warnings)
+
+
+def test_an_images_key_from_set_is_blamed_on_the_set(capsys, tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")  # the run stops at once, after the warning
+    code, _, err = cli(
+        capsys, "train", "lambert", "--out", str(a_file), "--set", "images.primal_spp=3"
+    )
+    warning, error = err.strip().splitlines()
+    assert warning.startswith("warning: --set images.primal_spp=3: images.primal_spp: ignored")
+    assert_one_line_error(code, error, str(a_file))
