@@ -72,3 +72,13 @@ def tiny_run(tmp_path_factory) -> Path:
     assert code in (0, 1), f"the shared tiny run failed (exit {code})"  # 1: a check failed
     assert (folder / "model.onnx").is_file() and (folder / "report.html").is_file()
     return folder
+
+
+@pytest.fixture(scope="module")
+def mi():
+    """Mitsuba in ``llvm_ad_rgb`` with the images fit's differentiable plugin registered
+    (:func:`neural_brdf.inverse.fit.use_variant`): the tests of tests/inverse.  A file
+    that needs Mitsuba set up otherwise defines its own ``mi``, which takes precedence."""
+    from neural_brdf.inverse import fit as inverse
+
+    return inverse.use_variant("llvm_ad_rgb")
