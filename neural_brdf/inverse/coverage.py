@@ -508,18 +508,13 @@ def warning(cov: Coverage, below: float = WARN_BELOW) -> str | None:
     )
 
 
-def write_picture(cov: Coverage, path: str | Path) -> Path:
-    """A PNG of the (theta_h, theta_d) map: the relative density rho of the observed
-    bins in colour (log scale), the domain's unobserved bins grey, outside the domain
-    white; the figure in the title."""
+def map_figure(cov: Coverage):
+    """The matplotlib Figure of :func:`write_picture` (its first axes: the map)."""
     from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.colors import ListedColormap, LogNorm
     from matplotlib.figure import Figure
 
-    from neural_brdf.fileio import atomic_path
-
-    path = Path(path)
     fig = Figure(figsize=(5.6, 4.6), layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.subplots()
@@ -544,14 +539,15 @@ def write_picture(cov: Coverage, path: str | Path) -> Path:
         norm=LogNorm(vmin=cov.threshold, vmax=top),
         interpolation="nearest",
     )
-    t = np.linspace(0.0, math.acos(cov.min_cos), 200)
-    ax.plot(
-        np.degrees(t),
-        np.degrees(np.arccos(np.clip(cov.min_cos / np.cos(t), -1, 1))),
-        color="k",
-        lw=0.8,
-        ls="--",
-    )
+    # The domain's edge, cos(theta_h) cos(theta_d) = min_cos: the smaller cosine of a
+    # pair is cos(theta_h) cos(theta_d) - sin(theta_h) sin(theta_d) |cos(phi_d)|, at most
+    # that at phi_d = 90 degrees.  A bin the edge crosses is in the domain in part; the
+    # part beyond the edge is painted white, so no bin's colour reaches past the dashes.
+    t = np.linspace(0.0, math.pi / 2, 400)
+    edge = np.degrees(np.arccos(np.clip(cov.min_cos / np.maximum(np.cos(t), 1e-12), 0, 1)))
+    ax.fill_between(np.degrees(t), edge, 90.0, color="white", lw=0, zorder=2)
+    inside = np.cos(t) > cov.min_cos
+    ax.plot(np.degrees(t[inside]), edge[inside], color="k", lw=0.8, ls="--", zorder=3)
     ax.set_xlabel("theta_h (degrees)")
     ax.set_ylabel("theta_d (degrees)")
     ax.set_xlim(0, 90)
@@ -563,6 +559,17 @@ def write_picture(cov: Coverage, path: str | Path) -> Path:
         fontsize=9,
     )
     fig.colorbar(img, ax=ax, label="rho: observed density / uniform")
+    return fig
+
+
+def write_picture(cov: Coverage, path: str | Path) -> Path:
+    """A PNG of the (theta_h, theta_d) map: the relative density rho of the observed
+    bins in colour (log scale), the domain's unobserved bins grey, outside the domain
+    white; the figure in the title."""
+    from neural_brdf.fileio import atomic_path
+
+    path = Path(path)
+    fig = map_figure(cov)
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     return path

@@ -267,6 +267,47 @@ def test_bin_measure_is_the_measure_of_uniform_pairs():
     assert np.abs(hist[big] / m[big] - 1).max() < 0.06
 
 
+def test_the_map_paints_nothing_beyond_the_domains_edge():
+    """Every bin the edge cos(theta_h) cos(theta_d) = min_cos crosses is drawn (all
+    observed here): its part beyond the edge is white in the rendered map, its part
+    inside keeps its colour."""
+    from neural_brdf.inverse import coverage
+
+    bins, c = 32, coverage.MIN_COS
+    m = coverage.bin_measure(bins, c)
+    inside = m > 0
+    cov = coverage.Coverage(
+        views=[], bins=bins, min_cos=c, threshold=0.05, rays=0, seed=0, measure=m,
+        density=np.where(inside, 1.0, 0.0), observed=inside, figure=1.0,
+        wi=np.zeros((0, 3), np.float32), wo=np.zeros((0, 3), np.float32),
+        pair_share=np.zeros(0, np.float32), pair_view=np.zeros(0, int),
+        pair_observed=np.zeros(0, bool), pairs_total=0,
+    )  # fmt: skip
+    fig = coverage.map_figure(cov)
+    fig.set_dpi(400)  # a bin some 40 pixels wide
+    fig.canvas.draw()
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    ax = fig.axes[0]
+    width = 90.0 / bins
+    crossed = beyond_checked = 0
+    for i in range(bins):
+        for j in range(bins):
+            th = np.radians(width * (i + np.array([0.15, 0.85])))
+            td = np.radians(width * (j + np.array([0.15, 0.85])))
+            lo = math.cos(th[1]) * math.cos(td[1])
+            hi = math.cos(th[0]) * math.cos(td[0])
+            if not (inside[i, j] and lo < c - 0.006 and hi > c + 0.006):
+                continue
+            crossed += 1
+            # the bin's corner beyond the edge, and the one inside
+            for (a, b), want_white in (((th[1], td[1]), True), ((th[0], td[0]), False)):
+                x, y = ax.transData.transform((np.degrees(a), np.degrees(b)))
+                px = rgba[int(round(rgba.shape[0] - y)), int(round(x)), :3]
+                assert bool((px > 250).all()) == want_white, (i, j, want_white, px)
+                beyond_checked += want_white
+    assert crossed >= 10 and beyond_checked == crossed
+
+
 @pytest.mark.parametrize(
     "cut, needle",
     [(r"<emitter .*?</emitter>", "no emitter"), (r"<sensor .*?</sensor>", "no <sensor>")],
