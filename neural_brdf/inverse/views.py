@@ -300,6 +300,38 @@ def substitute(el: ET.Element, params: dict[str, str], key: str, scene: Path) ->
         el.set(attr, value)
 
 
+UPGRADED_BELOW = (2, 0, 0)  # Mitsuba upgrades a file of an older version as it reads it
+
+
+def _version(text: str) -> tuple[int, ...] | None:
+    parts = text.strip().split(".")
+    if not parts or not all(p.isdigit() for p in parts):
+        return None
+    return tuple(int(p) for p in parts)
+
+
+def check_version(root: ET.Element, path: Path, key: str, scene: Path, version: str | None) -> None:
+    """An included file as Mitsuba reads it: its root has a ``version`` (Mitsuba refuses
+    one without), and since its elements join the scene file's, whose version alone
+    survives, it must be upgraded as that file is: both older than 2.0.0 (Mitsuba then
+    renames ``alphaU`` to ``alpha_u`` and the like in each) or neither.  InputError
+    otherwise."""
+    own = root.get("version")
+    where = f"{key}: {scene}: <include> of {path}"
+    if own is None:
+        raise InputError(f"{where}: missing version attribute in its root <{root.tag}>")
+    mine = _version(own)
+    if mine is None:
+        raise InputError(f'{where}: version="{own}" is not a version such as 3.0.0')
+    theirs = _version(version or "")
+    if theirs is not None and (mine < UPGRADED_BELOW) != (theirs < UPGRADED_BELOW):
+        raise InputError(
+            f'{where}: version="{own}" and the scene\'s version="{version}" are read '
+            "differently (Mitsuba upgrades a file older than 2.0.0): give the included "
+            "file the scene's format and version"
+        )
+
+
 def expand(
     parent: ET.Element,
     params: dict[str, str],
@@ -307,13 +339,16 @@ def expand(
     key: str,
     scene: Path,
     depth: int = 0,
+    version: str | None = None,
 ) -> None:
     """Read ``parent``'s children as Mitsuba does, in document order: ``$name``
     substituted (:func:`substitute`), a ``<default>`` adding its parameter (unless one of
     that name is set already), an ``<include filename>`` replaced by the included file's
     elements (the children of its ``<scene>``, else its root), read the same way.  An
     included file is looked for in ``folders`` (the including file's folder first, then
-    those that included it); at most :data:`INCLUDE_DEPTH` levels."""
+    those that included it); at most :data:`INCLUDE_DEPTH` levels.  ``version``: the
+    scene file's format version, which an included file's must match
+    (:func:`check_version`)."""
     i = 0
     while i < len(parent):
         child = parent[i]
@@ -323,7 +358,7 @@ def expand(
             if name and name not in params:
                 params[name] = child.get("value", "")
         if child.tag != "include":
-            expand(child, params, folders, key, scene, depth)
+            expand(child, params, folders, key, scene, depth, version)
             i += 1
             continue
         filename = child.get("filename", "")
@@ -342,8 +377,9 @@ def expand(
             what = "is a folder, not a file" if where.is_dir() else "no such file"
             raise InputError(f'{key}: {scene}: <include filename="{filename}">: {where}: {what}')
         root = parse_xml(found, key)
+        check_version(root, found, key, scene, version)
         substitute(root, params, key, scene)
-        expand(root, params, [found.parent, *folders], key, scene, depth + 1)
+        expand(root, params, [found.parent, *folders], key, scene, depth + 1, version)
         if root.tag == "scene":
             new = list(root)
         else:  # a single object, named by the include's name
@@ -365,7 +401,7 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
     check_file(path, key, "scene")
     root = parse_xml(path, key)
     substitute(root, {}, key, path)
-    expand(root, {}, [path.resolve().parent], key, path)
+    expand(root, {}, [path.resolve().parent], key, path, version=root.get("version"))
     tree: ET.ElementTree[ET.Element] = ET.ElementTree(root)
     if root.tag != "scene":
         raise InputError(f"{key}: {path}: not a Mitsuba scene (root <{root.tag}>)")

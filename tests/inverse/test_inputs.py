@@ -242,6 +242,29 @@ def test_a_scene_that_includes_itself_exits_2(copy_of, capsys):
     _train_exits_2(q, capsys, "gone.xml", "no.xml", "no such file")
 
 
+@pytest.mark.parametrize(
+    "version, needle",
+    [(None, "missing version attribute"), ("0.6.0", "older than 2.0.0")],
+    ids=["no version", "an older format"],
+)
+def test_an_include_mitsuba_reads_otherwise_exits_2(mi, copy_of, capsys, version, needle):
+    """An included file without a version (Mitsuba refuses it), or in a format older
+    than 2.0.0 in a 3.0.0 scene (Mitsuba upgrades that file alone, renaming alphaU to
+    alpha_u; inlined into the scene it would not be): one line, exit 2, naming it."""
+    text = (copy_of / "view1.xml").read_text()
+    bsdf = FIT.search(text).group(0)
+    head = "<bsdf " if version is None else f'<bsdf version="{version}" '
+    (copy_of / "mat.xml").write_text(bsdf.replace("<bsdf ", head, 1))
+    (copy_of / "inc.xml").write_text(text.replace(bsdf, '<include filename="mat.xml"/>'))
+    if version is None:
+        with pytest.raises(RuntimeError, match="missing version"):
+            mi.load_file(str(copy_of / "inc.xml"))
+    else:
+        assert mi.load_file(str(copy_of / "inc.xml"))  # Mitsuba upgrades the include alone
+    q = _config(copy_of, ["scene: inc.xml, image: view1.exr"])
+    _train_exits_2(q, capsys, "inc.xml", "mat.xml", needle)
+
+
 # ------------------------------------------------------------------ 5: messages
 def test_a_folder_or_an_empty_path_is_named_as_such(copy_of, capsys):
     (copy_of / "adir.exr").mkdir()
