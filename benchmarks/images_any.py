@@ -213,7 +213,7 @@ environment (:data:`neural_brdf.inverse.scene.LIGHTS`, docs/inverse.md's worked
 example: point, area and point lights at about 34, 62 and 105 degrees from their
 cameras), and the held-out camera lit by the three lights together.  Its development
 run chose one setting, with the environment's: ``images.poor_start_loss``, once it was a
-limit above the targets' own noise (docs/inverse.md, "A poor start"); the others are the
+limit above the targets' own noise (docs/inverse-design.md, "A poor start"); the others are the
 environment capture's.
 
 **A flash beside the environment** (``--capture environment_flash``; session 67): the
@@ -405,7 +405,7 @@ def materials() -> dict[str, dict]:
         # added in session 65: a second material outside every family, one that sends
         # light back towards it (a road sign's amber sheeting), sharp where the clay is
         # smooth, so that a poor start's settings are not chosen on one smooth material
-        # (docs/inverse.md, A poor start)
+        # (docs/inverse-design.md, A poor start)
         "retro_sign": (
             _analytic("retroreflective", kd=[0.15, 0.15, 0.2], kr=[0.5, 0.35, 0.15], exponent=40),
             "outside every family: the library's retroreflector, amber and sharper "

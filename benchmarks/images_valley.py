@@ -20,9 +20,10 @@ the same seeds, with the standard error of that paired difference over the sets;
 fitted start's own loss under each set is recorded too (the estimate's spread, which the
 pairing removes).  What it shows: whether the views pin the weight, and so the
 specular at grazing, which the BRDF error over the observed domain holds
-(docs/inverse.md, "A blend's weight").  It chooses nothing, so it may run on the test
-set's ``satin_blend`` (0.65 diffuse + 0.35 silver GGX 0.1, fitted under the test set's
-environment) as well.  Writes benchmarks/results/images_valley_<set>.json.
+(docs/inverse-design.md, "Images of any material": "How flat the valley is").  It
+chooses nothing, so it may run on the test set's ``satin_blend`` (0.65 diffuse + 0.35
+silver GGX 0.1, fitted under the test set's environment) as well.  Writes
+benchmarks/results/images_valley_<set>.json.
 """
 
 from __future__ import annotations

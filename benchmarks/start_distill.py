@@ -25,7 +25,7 @@ exceed 0.1 (the observed domain's bound under an environment, whose coverage is 
 and 2^17 whose both exceed 0.5; and the distillation's seconds (one torch thread, as in
 a fit).  Settings are chosen on these development materials; the test set's figures are
 ``images_any.py --set test``'s.  The run of 2026-12-05 chose ``images.start_train_lr``
-0.03 (docs/inverse.md, "The start"); 12,000 steps were measured there, not chosen.  The
+0.03 (docs/inverse-design.md, "The start"); 12,000 steps were measured there, not chosen.  The
 JSON records the load average before and after (short evaluations of other development
 runs shared the machine for part of that run: its seconds are indicative).
 """

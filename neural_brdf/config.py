@@ -301,39 +301,39 @@ class Images(_Section):
     start_spp: int = Field(4, ge=1)  # ... samples per pixel of its gradient pass
     start_primal_spp: int = Field(16, ge=1)  # ... and of its primal pass
     # ... its step recorded once per view and replayed (drjit.freeze; false: traced
-    # anew every step; the same fit to float rounding: docs/inverse.md, "Frozen steps")
+    # anew every step; the same fit to float rounding: docs/inverse-design.md, "Frozen steps")
     start_freeze: bool = True
     # the chosen family's fit continued from its parameters, its second half's iterates
     # averaged; kept unless the validation split prefers the unrefined parameters
-    # (0 steps: off; chosen on the development set: docs/inverse.md, "Refining the choice")
+    # (0 steps: off; chosen on the development set: docs/inverse-design.md, "Refining the choice")
     start_refine_steps: int = Field(60, ge=0)
     start_refine_lr: float = Field(0.02, gt=0.0)  # its rate, decayed (cosine) ...
     start_refine_lr_end: float = Field(0.1, gt=0.0, le=1.0)  # ... to this fraction of it
     start_refine_spp: int = Field(16, ge=1)  # its gradient pass's samples (primal: twice)
     # a further refinement from the last while the split gains: the last round kept and
     # its held-out loss below (1 - start_refine_gain) x the one before, at most
-    # start_refine_rounds rounds in all (docs/inverse.md, "Refining the choice")
+    # start_refine_rounds rounds in all (docs/inverse-design.md, "Refining the choice")
     start_refine_rounds: int = Field(8, ge=1)
     start_refine_gain: float = Field(0.1, ge=0.0, lt=1.0)
     # auto's contenders: every family whose held-out loss is within this factor of the
     # least fits start_steps more steps from where it stopped, and the choice is made
     # again on the continued losses, unless the chosen one is already within
-    # start_tie_max of the targets' noise (null: never; docs/inverse.md, "The contenders")
+    # start_tie_max of the targets' noise (null: never; docs/inverse-design.md, "The contenders")
     start_continue_within: float | None = Field(2.0, ge=1.0)
     # auto's choice a family warm-started from others (clearcoat from principled,
     # roughconductor_aniso from roughconductor, blend from diffuse and roughconductor):
     # those are fitted further until they have had as many steps, and the choice made
     # again, so a family never wins over its source for its longer fit alone
-    # (docs/inverse.md, "A warm start's head start")
+    # (docs/inverse-design.md, "A warm start's head start")
     start_catch_up: bool = True
     # ... at most this many of them, the chosen one and the others of least held-out loss
-    # (null: every one within the factor; docs/inverse.md, "The contenders")
+    # (null: every one within the factor; docs/inverse-design.md, "The contenders")
     start_continue_max: int | None = Field(3, ge=2)
     # auto's choice tied by the split's standard error alone (a more complex family's
     # held-out loss the least, above the chosen one's by more than start_tie_tol): the
     # two are fitted again on this many folds of the training tiles, each held out in
     # turn, and chosen by the same rule over every tile the run fits (0: never;
-    # docs/inverse.md, "An inconclusive split")
+    # docs/inverse-design.md, "An inconclusive split")
     start_cross_folds: int = Field(2, ge=0)
     start_train_steps: int = Field(12000, ge=1)  # training steps on the start (docs/inverse.md)
     # their learning rate (null: train.lr, the image stage's); sample-based training's own
@@ -343,19 +343,19 @@ class Images(_Section):
     start_grid_lr_scale: float = Field(1.0, gt=0.0)  # ... its grids' lr / that (not grid.lr_scale)
     # after an anisotropic start (ANISOTROPIC_FAMILIES): half_disc puts the network's grid
     # over the half vector's disc (model.grid.coords: half_disc), where a brushed lobe
-    # varies; model: model.grid.coords as set (docs/inverse.md, "The grid after an
+    # varies; model: model.grid.coords as set (docs/inverse-design.md, "The grid after an
     # anisotropic start"; chosen on the development set)
     anisotropic_grid: Literal["half_disc", "model"] = "half_disc"
     # after an isotropic start (any other family): isotropic trains the network with the
     # isotropic encoding (model.encoding: isotropic, when model.encoding is anisotropic),
     # so that no dependence on the half vector's azimuth the views cannot pin is learned;
-    # model: model.encoding as set (docs/inverse.md, "The encoding after an isotropic
+    # model: model.encoding as set (docs/inverse-design.md, "The encoding after an isotropic
     # start"; chosen on the development set)
     isotropic_encoding: Literal["isotropic", "model"] = "isotropic"
     # auto's choice: a family with more free scalars is taken over a simpler one only when
     # its held-out loss is lower by more than max(start_tie_tol x the least,
     # min(start_tie_sigmas standard errors of the paired difference, start_tie_max x the
-    # least)) (docs/inverse.md, "The start")
+    # least)) (docs/inverse-design.md, "The start")
     start_tie_tol: float = Field(0.02, ge=0.0)
     start_tie_sigmas: float = Field(2.0, ge=0.0)
     start_tie_max: float = Field(0.25, ge=0.0)
@@ -364,28 +364,28 @@ class Images(_Section):
     # the images, inverse.fit.target_noise) by more than this fits the views poorly (no
     # family holds the material): the image stage then runs at train.lr with the grids
     # at poor_start_grid_lr_scale (null: never; chosen on the development set under
-    # both captures: docs/inverse.md, "A poor start")
+    # both captures: docs/inverse-design.md, "A poor start")
     poor_start_loss: float | None = Field(0.0015, gt=0.0)
     # a first choice whose held-out loss exceeds the targets' noise by more than this is
     # poor at once: no family is near, so no contender is fitted further and the chosen
     # one is not refined (their time saved; at least poor_start_loss; null, here or
-    # there: never; chosen on the development set: docs/inverse.md, "A poor start")
+    # there: never; chosen on the development set: docs/inverse-design.md, "A poor start")
     poor_start_early_loss: float | None = Field(0.03, gt=0.0)
     # after a poor start the image stage learns the material rather than polishing a
     # start, and runs at least this many steps (train.steps raised to it; the rate's
     # cosine spans them; null: train.steps; chosen on the development set:
-    # docs/inverse.md, "A poor start")
+    # docs/inverse-design.md, "A poor start")
     poor_start_steps: int | None = Field(450, ge=1)
     # ... and its grids' learning rate / train.lr (null: model.grid.lr_scale, as from the
-    # constant start; docs/inverse.md, "A poor start")
+    # constant start; docs/inverse-design.md, "A poor start")
     poor_start_grid_lr_scale: float | None = Field(1.0, gt=0.0)
     # ... and the start's distillation into the network runs at this rate instead of
     # start_train_lr: the image stage reshapes such a start's network rather than
-    # polishing it (null: train.lr; chosen on the development set: docs/inverse.md,
+    # polishing it (null: train.lr; chosen on the development set: docs/inverse-design.md,
     # "A poor start")
     poor_start_train_lr: float | None = Field(None, gt=0.0)
     # ... for this many steps instead of start_train_steps (null: start_train_steps;
-    # chosen on the development set: docs/inverse.md, "A poor start")
+    # chosen on the development set: docs/inverse-design.md, "A poor start")
     poor_start_train_steps: int | None = Field(6000, ge=1)
     spp: int = Field(8, ge=1)  # samples per pixel of every view and step: the gradient pass
     primal_spp: int = Field(16, ge=1)  # ... the primal pass (its noise is in every gradient)
@@ -411,7 +411,7 @@ class Images(_Section):
     validation_every: int = Field(10, ge=1)  # steps between held-out losses
     # held-out scorings in a row without a new best after which the image stage stops
     # (its best weights kept as ever; null: it runs train.steps; chosen on the development
-    # set: docs/inverse.md, "When the image stage stops")
+    # set: docs/inverse-design.md, "When the image stage stops")
     patience: int | None = Field(5, ge=1)
     validation_spp: int = Field(64, ge=1)  # samples per pixel of the held-out renders
 

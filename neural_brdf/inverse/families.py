@@ -1,5 +1,5 @@
 """The analytic families an images fit can start from (issue 29, item 1;
-docs/inverse.md, "The start"): one registry, :data:`FAMILIES`, simplest first.
+docs/inverse-design.md, "The start"): one registry, :data:`FAMILIES`, simplest first.
 
     from neural_brdf.inverse import families
     fam = families.family("roughplastic")

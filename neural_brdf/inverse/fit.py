@@ -158,7 +158,7 @@ HELDOUT_COLUMN = "heldout_loss"  # log.csv's column of the held-out loss (with a
 # A start not called poor (images.poor_start_loss, an excess of relative MSE) whose
 # held-out loss is this many times the targets' noise or more gets a warning
 # (far_above_noise): two orders of magnitude, where no start of the development set
-# that fits its views stands (0.2 to 2.3 times; docs/inverse.md, "A poor start")
+# that fits its views stands (0.2 to 2.3 times; docs/inverse-design.md, "A poor start")
 FAR_ABOVE_NOISE = 100.0
 VALIDATION_STEP = 999_983  # the held-out renders' seeds: _rng_seed(train.seed, this, view)
 
@@ -210,7 +210,7 @@ def far_above_noise(
     start that ``images.poor_start_loss`` does not call poor still has a held-out loss
     :data:`FAR_ABOVE_NOISE` times the targets' noise or more: the limit is an excess of
     relative MSE, and under point lights, whose renders are nearly noise-free and mostly
-    dark, a start that fits its views badly can stay under it (docs/inverse.md, "A poor
+    dark, a start that fits its views badly can stay under it (docs/inverse-design.md, "A poor
     start").  Changes nothing."""
     if not noise or noise <= 0.0 or not loss >= FAR_ABOVE_NOISE * noise:  # NaN: no
         return

@@ -1050,7 +1050,7 @@ def refine_rounds(
 # within that factor of the least held-out loss fits as many steps again from where it
 # stopped, and the choice is made again on the continued losses (contend(); then the
 # chosen one is refined as before), unless the chosen start is already at the targets'
-# noise (uncontested(); docs/inverse.md, "The contenders").
+# noise (uncontested(); docs/inverse-design.md, "The contenders").
 
 
 def at_floor(chosen: Candidate, noise: float | None, tie_max: float = TIE_MAX) -> bool:
@@ -1067,7 +1067,7 @@ def far_above_floor(chosen: Candidate, noise: float | None, early: float | None)
     None: never)?  Such a start is poor at once: no family is near the material, and
     fitting the contenders further or refining the chosen one would not bring it near
     (the most the contenders and the refinement took off a first choice on the
-    development set was 0.003, the brushed copper under lights; docs/inverse.md,
+    development set was 0.003, the brushed copper under lights; docs/inverse-design.md,
     "A poor start")."""
     return early is not None and chosen.val_loss - (noise or 0.0) > early
 
@@ -1167,7 +1167,7 @@ def contend(
 # a choice tied that way (inconclusive()) is checked: the two families are fitted again
 # on images.start_cross_folds folds of the training tiles, each held out in turn
 # (fold_masks()), and chosen by pick() over the split's tiles and every fold's together
-# (cross_check(); docs/inverse.md, "An inconclusive split").  The folds leave the run's
+# (cross_check(); docs/inverse-design.md, "An inconclusive split").  The folds leave the run's
 # held-out pixels out, as the start's fits do.
 
 
@@ -1324,12 +1324,12 @@ def model_for_start(cfg: cfgmod.Config, family: str) -> cfgmod.Config:
       ``images.anisotropic_grid: half_disc``: the grid over the half vector's disc
       (``model.grid.coords: half_disc``, where a brushed lobe varies; the grid over
       (theta_h, theta_d) cannot follow it), when the model has a grid and its encoding
-      offers that grid (docs/inverse.md, "The grid after an anisotropic start").
+      offers that grid (docs/inverse-design.md, "The grid after an anisotropic start").
     - After any other family with ``images.isotropic_encoding: isotropic``: the
       isotropic encoding, when ``model.encoding`` is an anisotropic reciprocal one and the
       isotropic encoding offers the model's grid.  The validation split preferred a
       family without the half vector's azimuth, so the network is not given one to learn
-      from views that see few of its values (docs/inverse.md, "The encoding after an
+      from views that see few of its values (docs/inverse-design.md, "The encoding after an
       isotropic start")."""
     from neural_brdf import encodings
 
