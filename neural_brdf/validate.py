@@ -30,8 +30,9 @@ Accuracy, with a reference (``--reference CONFIG``, ``--reference material.binar
 Peak, with an analytic reference (:func:`peak`): the error right at the highlight,
 which a mean over random pairs cannot see (a notch 0.3 degrees wide at the mirror
 direction moved the relative RMSE by less than 0.1 %).  For incidences ``PEAK_THETAS``
-(10, 45, 70 degrees) wo is put at the exact mirror direction and at ``PEAK_OFFSETS``
-(0.01, 0.1, 0.3, 1 degree) from it, towards the normal, towards the horizon and out of
+(0, 10, 45, 70 degrees; at 0, wi = wo = the normal, the three ways are alike by
+symmetry) wo is put at the exact mirror direction and at ``PEAK_OFFSETS`` (0.01, 0.1,
+0.3, 1 degree) from it, towards the normal, towards the horizon and out of
 the plane of incidence; for a model that may be anisotropic, in the two planes of
 incidence phi = 0 and phi = 90 degrees (both tangent axes).  The error at a pair is the
 largest over RGB of |f^ / f - 1|, with f floored at 1e-3 of the largest target value
@@ -74,7 +75,7 @@ N_WORST = 5
 # at grazing angles (Ward, Ashikhmin-Shirley) the overall error is set by the first band.
 INCIDENCE_BANDS = ((0.0, 0.05), (0.05, 0.2), (0.2, 0.5), (0.5, 1.01))
 # The peak probe: incidences and offsets from the mirror direction, in degrees.
-PEAK_THETAS = (10.0, 45.0, 70.0)
+PEAK_THETAS = (0.0, 10.0, 45.0, 70.0)  # 0: wi = wo = the normal, a flash's view
 PEAK_OFFSETS = (0.0, 0.01, 0.1, 0.3, 1.0)
 # offset directions: towards the normal, towards the horizon, out of the plane of incidence
 PEAK_DIRECTIONS = ("normal", "horizon", "across")

@@ -116,9 +116,9 @@ def test_anisotropic_probe_sees_a_notch_in_the_second_tangent_plane_only():
     )
     base = _notched(target, 0.5, 0.3)
 
-    def fn(wi, wo):  # the notch only where wi lies in the yz plane
-        f = target.eval(wi, wo)
-        in_y = np.abs(wi[:, 0]) < 1e-9
+    def fn(wi, wo):  # the notch only where wi lies in the yz plane (the normal, in both
+        f = target.eval(wi, wo)  # planes, left out)
+        in_y = (np.abs(wi[:, 0]) < 1e-9) & (np.abs(wi[:, 1]) > 1e-9)
         return np.where(in_y[:, None], base(wi, wo), f)
 
     assert validate.peak(fn, target, anisotropic=False, tol=0.03)["passed"]
@@ -163,6 +163,73 @@ def test_peak_pairs_of_the_training_data_are_uniform_in_the_peak_coordinate():
 
     assert 0.01 < share_near_peak(0.2) < 0.03
     assert share_near_peak(0.0) < 0.002
+
+
+def _corner_share(wi: torch.Tensor, wo: torch.Tensor) -> float:
+    """The share of pairs in the encoding's corner u_h < 0.3, theta_d < 2 degrees (wi and
+    wo within about 2 degrees of the normal's mirror pair)."""
+    u_h = enc.features(wi, wo, "isotropic")[:, 0]
+    theta_d = analytic.frame.rusinkiewicz(wi.double(), wo.double())[2]
+    return float(((u_h < 0.3) & (theta_d < math.radians(2.0))).float().mean())
+
+
+def test_peak_pairs_are_uniform_in_u_h_and_theta_d_and_reach_normal_incidence():
+    from neural_brdf import config
+    from neural_brdf.train import data
+
+    u = torch.rand(20000, 4, generator=torch.Generator().manual_seed(4))
+    wi, wo = data.peak_pairs(u, torch.float64)
+    assert torch.allclose(wi.norm(dim=-1), torch.ones(20000, dtype=torch.float64))
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    u_h = enc.features(wi, wo, "isotropic")[:, 0]
+    theta_d = analytic.frame.rusinkiewicz(wi, wo)[2]
+    assert float((u_h - u[:, 0])[up].abs().max()) < 1e-4
+    assert float((theta_d - math.pi / 2 * u[:, 2]).abs().max()) < 1e-6
+    # the pool: a tenth of peak pairs puts about 0.1 x 0.3 x 2/90 of its pairs in the
+    # corner wi = wo = the normal; wi uniform on the hemisphere put one in 1,700 within 2
+    # degrees of the normal, and the old peak pairs (wi uniform) under 1e-4 in the corner
+    target = data.build_target(config.from_dict({"target": {"model": "lambertian"}}).target)
+    cfg = config.from_dict({"target": {"model": "lambertian"}, "data": {"peak": 0.1}})
+    src = data.pair_source(target, cfg.data, torch.Generator().manual_seed(0))
+    wi, wo, _ = src.draw(200000)
+    assert 0.5 * 0.1 * 0.3 * 2 / 90 < _corner_share(wi, wo) < 2 * 0.1 * 0.3 * 2 / 90
+    assert bool(((wi[:, 2] > 0) & (wo[:, 2] > 0)).all())
+
+
+def test_textured_training_pools_draw_peak_pairs_and_validation_pairs_do_not():
+    from neural_brdf.train import textured_loop
+
+    class Flat:  # a teacher: 1/pi everywhere, its sampler cosine-weighted
+        def eval(self, wi, wo, uv):
+            return np.full((len(wi), 3), 1 / math.pi)
+
+        def sample(self, wi, uv, u):
+            return analytic.frame.square_to_cosine_hemisphere(torch.from_numpy(u)).numpy()
+
+    rng = np.random.default_rng
+    wi, wo, _, _ = textured_loop.pairs(Flat(), 200000, rng(1), peak=0.1)
+    assert _corner_share(wi, wo) > 0.5 * 0.1 * 0.3 * 2 / 90
+    assert bool(((wi[:, 2] > 0) & (wo[:, 2] > 0)).all())
+    wi, wo, _, _ = textured_loop.pairs(Flat(), 200000, rng(1))
+    assert _corner_share(wi, wo) < 1e-4
+    pool = textured_loop.PairPool(Flat(), 200000, 1)  # the training pool: data.peak's share
+    assert _corner_share(*pool.at(0)[:2]) > 0.5 * 0.1 * 0.3 * 2 / 90
+
+
+def test_the_peak_check_sees_a_spike_at_normal_incidence():
+    # a bump of +50 % where both directions are within a few degrees of the normal: the
+    # probe at 10, 45 and 70 degrees alone (before 2026-12-07) passed it
+    target = analytic.create("microfacet", material="Au", **GOLD)
+
+    def fn(wi, wo):
+        tilt2 = 1 - wi[:, 2] ** 2 + 1 - wo[:, 2] ** 2  # ~ theta_i^2 + theta_o^2
+        return target.eval(wi, wo) * (1 + 0.5 * np.exp(-tilt2 / math.radians(2.0) ** 2))[:, None]
+
+    report = validate.peak(fn, target, anisotropic=False, tol=0.03)
+    assert not report["passed"] and report["at"]["theta_deg"] == 0.0
+    assert report["value"] == pytest.approx(0.5, rel=0.01)
+    away = [r["error"] for r in report["pairs"] if r["theta_deg"] >= 10]
+    assert max(away) < 0.03
 
 
 def test_a_checkpoint_of_the_old_encoding_is_not_resumed(tmp_path):

@@ -4,12 +4,15 @@ of :mod:`neural_brdf.measured.formats`, by the file's suffix).
 
 Analytic targets.  wi is uniform on the upper hemisphere.  wo is a mixture, by configured shares, of
 uniform-hemisphere, cosine-weighted and the target's own importance sampling (so that
-specular peaks are seen often), and of ``peak`` pairs: wo is wi reflected about a half
-vector whose peak coordinate u_h (:func:`neural_brdf.train.encoding.peak_coordinate`) is
-uniform in [0, 1], so that the region about the mirror direction, which the encoding
-stretches over half of u_h, is trained for any target.  Without them a diffuse target
-(Oren-Nayar) left the grid rows near u_h = 0 under-trained: compact clay read 8 % off
-its target within a degree of the mirror direction at 70 degrees.  A sampled wo below
+specular peaks are seen often), and of ``peak`` pairs (:func:`peak_pairs`): uniform in
+the peak coordinate u_h (:func:`neural_brdf.train.encoding.peak_coordinate`) and in
+theta_d, so that the region about the mirror direction, which the encoding stretches
+over half of u_h, is trained for any target, down to normal incidence.  Without them a
+diffuse target (Oren-Nayar) left the grid rows near u_h = 0 under-trained: compact clay
+read 8 % off its target within a degree of the mirror direction at 70 degrees.  With wi
+uniform and wo reflected about a half vector uniform in u_h (the peak pairs until
+2026-12-07) the corner u_h, theta_d -> 0 (wi = wo = the normal) was not: the quickstart
+gold read 1.9 times its target there, the clay 7 % off (docs/model.md).  A sampled wo below
 the horizon (possible with visible-normal or Phong lobes) is replaced by a
 cosine-distributed one, since the network is 0 there by construction and the pair would
 teach nothing.
@@ -148,6 +151,23 @@ def about_mirror(wi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     return 2.0 * (wi * h).sum(-1, keepdim=True) * h - wi
 
 
+def peak_pairs(u: torch.Tensor, dtype: torch.dtype = torch.float32):
+    """(wi, wo) uniform in the encoding's (u_h, theta_d) square: the Rusinkiewicz (1998)
+    angles theta_h with peak coordinate u_h = u[:, 0] (:func:`about_mirror`'s mapping),
+    phi_h = 2 pi u[:, 1], theta_d = pi/2 u[:, 2], phi_d = 2 pi u[:, 3]
+    (:func:`analytic.frame.from_rusinkiewicz`).  Unlike wi uniform on the hemisphere,
+    which puts one pair in 1,700 within 2 degrees of the normal, this trains the corner
+    u_h, theta_d -> 0 (wi = wo = the normal) that the encoding stretches over half of
+    u_h.  Either direction may be below the horizon."""
+    u = u.double()
+    t2 = enc.PEAK_EPS * torch.expm1(u[:, 0] / enc.PEAK_LOG_SCALE)  # tan^2(theta_h / 2)
+    theta_h = 2.0 * torch.atan(torch.sqrt(t2))
+    wi, wo = frame.from_rusinkiewicz(
+        theta_h, 2.0 * math.pi * u[:, 1], 0.5 * math.pi * u[:, 2], 2.0 * math.pi * u[:, 3]
+    )
+    return wi.to(dtype), wo.to(dtype)
+
+
 class PairSource:
     """Fresh (wi, wo, f) batches from a target, float32."""
 
@@ -170,11 +190,17 @@ class PairSource:
         wo_cos = frame.square_to_cosine_hemisphere(torch.rand(n_cos, 2, generator=g))
         k = n_uni + n_cos
         wo_imp = self.target.sample_dir_t(wi[k : k + n_imp], torch.rand(n_imp, 2, generator=g))
-        wo_peak = about_mirror(wi[k + n_imp :], torch.rand(n_peak, 2, generator=g))
+        # the peak share: pairs uniform in (u_h, theta_d); one with a direction below
+        # the horizon is replaced by wi's own pair about the mirror direction
+        wi_peak, wo_peak = peak_pairs(torch.rand(n_peak, 4, generator=g))
+        mirror = about_mirror(wi[k + n_imp :], torch.rand(n_peak, 2, generator=g))
+        above = ((wi_peak[:, 2] > 0) & (wo_peak[:, 2] > 0))[:, None]
+        wi = torch.cat([wi[: k + n_imp], torch.where(above, wi_peak, wi[k + n_imp :])], 0)
+        wo_peak = torch.where(above, wo_peak, mirror)
         wo = torch.cat([wo_uni, wo_cos, wo_imp.float(), wo_peak], 0)
         backup = frame.square_to_cosine_hemisphere(torch.rand(n, 2, generator=g))
         wo = torch.where(wo[:, 2:3] > 0, wo, backup)
-        wo = frame.normalize(wo)
+        wi, wo = frame.normalize(wi), frame.normalize(wo)
         f = self.target.f(wi, wo).float()
         return wi, wo, f
 

@@ -16,7 +16,9 @@ grazing pairs carried 98 % of the squared error, and a cosine-distributed wi, us
 left them rare in training: 16 % held-out error against 9.4 % with uniform wi), wo uniform
 on the hemisphere for half the pool and from the teacher's own sampler
 ``teacher.sample(wi, uv, u)`` for the other half (a failed sample is replaced by a
-uniform one), and the target ``teacher.eval(wi, wo, uv)``.
+uniform one), and the target ``teacher.eval(wi, wo, uv)``.  A ``data.peak`` share (0.1)
+of the pool's pairs, taken from the uniform half, is drawn uniform in the encoding's
+(u_h, theta_d) instead (:func:`pairs`), as homogeneous training draws its peak pairs.
 
 Loss and schedule are the project's (:mod:`neural_brdf.train.loop`): ``log_l2`` with the
 peak weight and cap (:func:`~neural_brdf.train.loop.loss_fn`), Adam with linear warm-up
@@ -48,6 +50,7 @@ import torch
 from analytic import frame
 from neural_brdf import config as cfgmod
 from neural_brdf.runfolder import Folder
+from neural_brdf.train.data import peak_pairs
 from neural_brdf.train.ggx_heads import (
     alpha_from_teacher,
     analytic_count,
@@ -59,6 +62,7 @@ from neural_brdf.train.model import RawBRDF
 from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
 from neural_brdf.train.textured_model import TexturedBRDF, WeightField, lobe_envelope, raw_of
 
+PEAK_SHARE = cfgmod.Data().peak  # the training pools' share of peak pairs (pairs())
 FIELD_LR_SCALE = 10.0  # the weight field's logits: lr x this (module doc)
 # pairs drawn from the teacher once: on a 16 x 16 roughplastic (K = 4, R = 16, 600
 # steps of 2048) 131072 gave a held-out error of 7.1 %, 32768 stalled at 24 % (overfitted)
@@ -70,11 +74,20 @@ COLORS = {"rgb": 3, "grey": 1}  # texture.lobe_color: a lobe's outputs (RawBRDF.
 
 
 def pairs(
-    teacher: Any, n: int, rng: np.random.Generator, *, cosine_wi: bool = False
+    teacher: Any,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    cosine_wi: bool = False,
+    peak: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """n pairs (wi, wo, uv, f) as float32 tensors: uv uniform, wi cosine-distributed
     (``cosine_wi``) or uniform, wo uniform for the first half and from the teacher's
-    sampler for the second (failed samples: uniform)."""
+    sampler for the second (failed samples: uniform).  ``peak``: the share of the first
+    half replaced by pairs uniform in the encoding's (u_h, theta_d)
+    (:func:`neural_brdf.train.data.peak_pairs`, ``data.peak`` for training; those below
+    the horizon are kept as drawn): without them the corner wi = wo = the normal went
+    untrained, and a textured roughplastic read 18 times its teacher there."""
     uv = rng.random((n, 2))
     u_wi = torch.from_numpy(rng.random((n, 2)))
     wi = (
@@ -84,6 +97,16 @@ def pairs(
     ).numpy()
     wo = frame.square_to_uniform_hemisphere(torch.from_numpy(rng.random((n, 2)))).numpy()
     half = n // 2
+    n_peak = min(int(round(n * peak)), half)
+    if n_peak:
+        p_wi, p_wo = (x.numpy() for x in peak_pairs(torch.from_numpy(rng.random((n_peak, 4)))))
+        above = ((p_wi[:, 2] > 0) & (p_wo[:, 2] > 0))[:, None]
+        wi[:n_peak] = np.where(
+            above, p_wi / np.linalg.norm(p_wi, axis=1, keepdims=True), wi[:n_peak]
+        )
+        wo[:n_peak] = np.where(
+            above, p_wo / np.linalg.norm(p_wo, axis=1, keepdims=True), wo[:n_peak]
+        )
     sampled = np.asarray(teacher.sample(wi[half:], uv[half:], rng.random((n - half, 2))))
     good = sampled[:, 2] > 0
     wo[half:][good] = sampled[good]
@@ -105,10 +128,18 @@ class PairPool:
     pool of 2M pairs) the held-out error fell when the pool grew, and the teacher's calls
     cost about 0.6 s per million pairs against about 14 ms per step of 8192."""
 
-    def __init__(self, teacher: Any, size: int, seed: int, fresh_every: int | None = None):
+    def __init__(
+        self,
+        teacher: Any,
+        size: int,
+        seed: int,
+        fresh_every: int | None = None,
+        peak: float = PEAK_SHARE,
+    ):
         if fresh_every is not None and fresh_every < 1:
             raise ValueError(f"PairPool: fresh_every >= 1 or None, got {fresh_every}")
         self.teacher, self.size, self.seed, self.fresh_every = teacher, size, seed, fresh_every
+        self.peak = peak
         self.draw = -1
         self.draws = 0  # how many times the teacher was asked (figures)
         self.seconds = 0.0
@@ -122,7 +153,7 @@ class PairPool:
             t0 = time.perf_counter()
             rng = np.random.default_rng(self.seed if draw == 0 else [self.seed, draw])
             self.pairs = ()  # free the old pool before the new one is drawn
-            self.pairs = pairs(self.teacher, self.size, rng)
+            self.pairs = pairs(self.teacher, self.size, rng, peak=self.peak)
             self.draw = draw
             self.draws += 1
             self.seconds += time.perf_counter() - t0
@@ -639,7 +670,7 @@ def train(
     ckpt = sess.resumed(checkpoint, must_match=TEXTURED_MUST_MATCH)
     sess.begin()
     t0 = time.perf_counter()
-    pool = PairPool(target, tx.pool(cfg.data.pool_size), t.seed, tx.fresh_every)
+    pool = PairPool(target, tx.pool(cfg.data.pool_size), t.seed, tx.fresh_every, cfg.data.peak)
     p_f = pool.at(0)[3]
     v_wi, v_wo, v_uv, v_f = pairs(
         target, VAL_PAIRS, np.random.default_rng(t.seed + 101), cosine_wi=False
