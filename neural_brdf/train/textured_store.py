@@ -108,6 +108,28 @@ def save(
     atomic_write(path, bytes(buf.getbuffer()))
 
 
+def _match_forms(model: TexturedBRDF, state: dict[str, torch.Tensor]) -> None:
+    """Give each of the skeleton's lobes the form its kept state has.  Whether a lobe keeps
+    its table or is folded into a constant (normalized_textured, FOLD_LIMIT) is decided
+    by its own table, and a projected run's kept lobes were refitted after the
+    checkpoint's: the checkpoint's lobe folded where the kept one did not, or the other
+    way round (tests/train/test_textured_pipeline.py's projected run, once the
+    training pairs reached normal incidence)."""
+    from neural_brdf.train.conditioned import ConditionedNormalizedBRDF
+    from neural_brdf.train.model import NormalizedBRDF
+    from neural_brdf.train.textured_model import ScaledBRDF
+
+    for k, lobe in enumerate(model.lobes):
+        table = state.get(f"lobes.{k}.table")
+        if isinstance(lobe, ScaledBRDF) and table is not None:
+            form = ConditionedNormalizedBRDF if table.dim() == 3 else NormalizedBRDF
+            model.lobes[k] = form(lobe.raw, table).eval()
+        elif f"lobes.{k}.scale" in state and isinstance(
+            lobe, NormalizedBRDF | ConditionedNormalizedBRDF
+        ):
+            model.lobes[k] = ScaledBRDF(lobe.raw, lobe.table).eval()
+
+
 def load(
     path: Path,
     cfg: cfgmod.Config,
@@ -131,6 +153,7 @@ def load(
     try:
         f = d["field"]
         model = skeleton()
+        _match_forms(model, d["model"])
         model.field = FrozenWeightField(
             torch.zeros(f["resolution"] ** 2, f["width"]),
             f["resolution"],

@@ -493,3 +493,41 @@ def test_a_loaded_table_decides_whether_the_division_is_the_identity(conditioned
         high.load_state_dict(cls(raw, torch.full(shape, 0.5)).state_dict())
         assert high.identity
         torch.testing.assert_close(high(wi, wo, *extra), raw(wi, wo, *extra))
+
+
+@pytest.mark.parametrize("conditioned", [False, True])
+def test_a_kept_lobes_form_is_taken_whatever_the_checkpoints_lobe_folded_to(conditioned):
+    """textured_store.load builds its skeleton from the checkpoint's lobes, whose tables
+    may fold into a constant (ScaledBRDF) where the kept, refitted lobes kept theirs, or
+    the other way round: each skeleton lobe takes the kept state's form, so the state
+    loads (it failed with 'Missing key(s): lobes.0.scale', and export projected again)."""
+    from torch import nn
+
+    from neural_brdf.train import textured_store
+    from neural_brdf.train.conditioned import ConditionedNormalizedBRDF
+    from neural_brdf.train.model import NormalizedBRDF, RawBRDF
+    from neural_brdf.train.textured_model import ScaledBRDF
+
+    torch.manual_seed(4)
+    raw = RawBRDF("isotropic", [8], "relu", heads=1, latent=int(conditioned)).eval()
+    shape = (3, 5, 3) if conditioned else (5, 3)
+    cls = ConditionedNormalizedBRDF if conditioned else NormalizedBRDF
+    kept = nn.ModuleList(
+        [cls(raw, torch.full(shape, 2.0)), ScaledBRDF(raw, torch.full(shape, 1.5))]
+    )
+    skeleton = nn.Module()
+    skeleton.lobes = nn.ModuleList(
+        [ScaledBRDF(raw, torch.full(shape, 1.2)), cls(raw, torch.full(shape, 3.0))]
+    )
+    state = {f"lobes.{k}": v for k, v in kept.state_dict().items()}
+    with pytest.raises(RuntimeError, match="Missing key"):
+        skeleton.load_state_dict(state)
+    textured_store._match_forms(skeleton, state)
+    skeleton.load_state_dict(state)
+    assert isinstance(skeleton.lobes[0], cls) and isinstance(skeleton.lobes[1], ScaledBRDF)
+    wi = torch.tensor([[0.3, 0.1, 0.9]])
+    wo = torch.tensor([[-0.2, 0.4, 0.8]])
+    extra = (torch.full((1, 1), 0.5),) if conditioned else ()
+    with torch.no_grad():
+        for k in range(2):
+            torch.testing.assert_close(skeleton.lobes[k](wi, wo, *extra), kept[k](wi, wo, *extra))
