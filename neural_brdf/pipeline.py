@@ -232,7 +232,7 @@ def finish_textured(
         target_desc=target.describe(),
         texture_info=tables,
     )
-    return _record(
+    metrics = _record(
         run_dir,
         built,
         tables,
@@ -244,6 +244,11 @@ def finish_textured(
         report=report,
         extra={"teacher_excess": excess},
     )
+    warn = getattr(target, "normal_field_warning", None)  # a Mitsuba teacher's
+    line = warn(metrics.get("normal_field")) if warn is not None else None
+    if line is not None:  # a bump map's relief the file's normal field does not hold
+        print(f"{cfg.name}: warning: {line}", file=sys.stderr)
+    return metrics
 
 
 def finish(

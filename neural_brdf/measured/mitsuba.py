@@ -21,7 +21,8 @@ Refused, with one line naming the file (exit 2): a file Mitsuba cannot load (a s
 table in an RGB variant included), a BSDF that transmits (dielectrics, masks, the
 principled's ``spec_trans``), one with a delta (perfectly smooth) lobe, alone or beside
 rough ones (a network of finite values cannot hold it, and Mitsuba's ``eval`` leaves
-it out, so the file would silently lose it), one with negative or non-finite values (at
+it out, so the file would silently lose it) or a rough one at roughness 0 anywhere on
+the surface (:func:`check_rough`), one with negative or non-finite values (at
 a probed uv, or a bitmap texel of NaN or inf), and one whose value depends on the position
 on the surface (a texture, a normal or bump map): :class:`VariesOverSurface`, which
 ``train.data.build_target`` answers with a spatially varying teacher
@@ -92,6 +93,12 @@ ANISO_TOL = 1e-3  # relative RMS change under a turn about the normal (float32 n
 # all but name: a rough plugin at roughness ~0 (Mitsuba clamps alpha near 1e-4: 7e7 to
 # 9e7 for roughplastic and roughconductor; alpha 1e-3 reaches 1e6, 0.01 about 1e4)
 MAX_F_COS = 1e7
+# ... and so at any uv (check_rough): PROBE_UV random uv, this many pairs at each, wo from
+# the sampler at that uv (pairs drawn at uv 0.5 miss a lobe that is sharp elsewhere)
+PEAK_PAIRS = 32
+# the microfacet roughness of Mitsuba's rough plugins: a bitmap bound to one with a texel at
+# 0 or below is a delta lobe there (a lone texel is ~0 only near its centre: no probe sees it)
+ALPHA_PARAMS = ("alpha", "alpha_u", "alpha_v")
 # The energy bound's table (module doc)
 THETA_NODES = 46  # polar angles, 2 degrees apart, the last (90) moved to LAST_THETA_DEG
 LAST_THETA_DEG = 89.9
@@ -296,6 +303,65 @@ def check_reflective(bsdf: Any, plugin: str, where: str) -> None:
         raise InputError(f"{where}: {plugin} reflects nothing")
 
 
+def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
+    """InputError naming ``where`` when ``bsdf`` is a delta lobe in all but name somewhere
+    on the surface (docs/mitsuba.md: refused, "a rough one at roughness 0 or below"): a
+    bitmap bound to an alpha (:data:`ALPHA_PARAMS`) with a texel at 0 or below (named), or
+    f cos above :data:`MAX_F_COS` at one of :data:`PROBE_UV` random uv, wo drawn from the
+    teacher's sampler at that uv.  Else such a teacher trained to a 100 % error and passed
+    its physics (the probes at uv 0.5 saw only the rough part)."""
+    import drjit as dr
+
+    params = mi.traverse(bsdf)
+    for k in params.keys():
+        parts = k.split(".")
+        value = params[k]
+        if parts[-1] != "data" or len(parts) < 2 or parts[-2] not in ALPHA_PARAMS:
+            continue
+        if not dr.is_tensor_v(value):  # any type: an 8-bit PNG's is TensorXu8
+            continue
+        arr = np.asarray(value.numpy(), dtype=np.float64)
+        texels = arr.reshape(-1, arr.shape[-1]) if arr.ndim == 3 else arr.reshape(-1, 1)
+        if texels.shape[1] == 3:  # an RGB map read as a float: its luminance (bitmap.cpp)
+            texels = texels @ np.array([[0.2126], [0.7152], [0.0722]])
+        low = texels[:, 0] <= 0  # a NaN is not: refused as non-finite
+        if low.any():
+            raise InputError(
+                f"{where}: the texture {k.removesuffix('.data')} holds {int(low.sum())} of "
+                f"{len(texels)} texels at 0 or below (lowest {texels[low].min():.3g}): a "
+                "roughness of 0 there, a nearly delta lobe (Mitsuba clamps alpha near 1e-4), "
+                "which a BRDF of finite values cannot hold: give a larger roughness"
+            )
+    rng = np.random.default_rng(9)
+    uv = np.repeat(rng.random((PROBE_UV, 2)), PEAK_PAIRS, 0)
+    wi = _hemisphere(rng.random((len(uv), 2)), z_min=math.sin(math.radians(3.0)))
+    try:
+        si = interaction(mi, wi, uv)
+        bs, _ = bsdf.sample(
+            mi.BSDFContext(),
+            si,
+            mi.Float(rng.random(len(uv)).astype(np.float32)),
+            mi.Point2f(np.ascontiguousarray(rng.random((2, len(uv))), dtype=np.float32)),
+        )
+        wo, pdf = _np(bs.wo), _np(bs.pdf)
+        ok = (pdf > 0) & (wo[:, 2] > 1e-3) & np.all(np.isfinite(wo), -1)
+        wo[~ok] = (0.0, 0.0, 1.0)
+        value = np.where(ok[:, None], _np(bsdf.eval(mi.BSDFContext(), si, _tensor(mi, wo))), 0.0)
+    except Exception as e:  # a plugin that needs what a bare interaction lacks
+        raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
+    if not np.all(np.isfinite(value)) or value.min() < 0:
+        raise InputError(f"{where}: {plugin} gives negative or non-finite values")
+    top = value.max(-1)
+    k = int(np.argmax(top))
+    if top[k] > MAX_F_COS:
+        raise InputError(
+            f"{where}: {plugin} reaches f cos = {top[k]:.3g} at uv ({uv[k, 0]:.3f}, "
+            f"{uv[k, 1]:.3f}) (a nearly delta lobe: a roughness of 0, or negative, somewhere "
+            "on the surface), which a BRDF of finite values cannot hold: give a larger "
+            "roughness"
+        )
+
+
 def interaction(mi: Any, wi: np.ndarray, uv: np.ndarray | None = None) -> Any:
     """A surface interaction per row of unit ``wi`` (K, 3): the local frame itself as the
     shading frame (z the normal, tangent x = dp_du), si.uv = ``uv`` (K, 2; None: 0.5)
@@ -447,6 +513,7 @@ class MitsubaTarget:
             raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
         if not np.all(np.isfinite(at)) or at.min() < 0:  # else a NaN reads as "no change"
             raise InputError(f"{where}: {self.plugin} gives negative or non-finite values")
+        check_rough(self._mi, self.bsdf, self.plugin, where)  # sharp away from uv 0.5
         change = float(np.sqrt(np.mean((at - np.tile(base, (PROBE_UV, 1))) ** 2))) / scale
         if change > SPATIAL_TOL or varying_bitmap:
             raise VariesOverSurface(

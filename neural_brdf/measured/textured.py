@@ -39,7 +39,8 @@ in an RGB JIT variant.  There is no energy bound here (a later model bounds it):
 albedo at given uv is estimated by :meth:`TexturedMitsubaTarget.max_albedo`.
 
 Refused, one line naming the file: a file Mitsuba cannot load, a missing texture file
-(named), a non-RGB variant, a BSDF that transmits or has a delta lobe.
+(named), a non-RGB variant, a BSDF that transmits or has a delta lobe, or a roughness
+of 0 somewhere (``mitsuba.check_rough``: a bitmap alpha's texel, or f cos at random uv).
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ from neural_brdf.measured.mitsuba import (
     _np,
     _tensor,
     check_reflective,
+    check_rough,
     interaction,
     load,
     one_bsdf,
@@ -81,6 +83,14 @@ ANISO_TOL = 1e-3  # relative RMS change under a turn (float32 noise ~1e-6)
 # max_albedo's defaults
 ALBEDO_THETA_DEG = (0.0, 30.0, 60.0, 80.0)
 ALBEDO_SAMPLES = 4096
+# normal_field_warning: the file's normal field is worth a line when its mean error (as
+# validate measures it) exceeds both.  Sampled as normal_texels does, bump maps of 16²
+# read 0.02 to 0.8 deg (0.7 to 1.6 % of their mean tilt of 2.4 to 62 deg) and a bitmap
+# normal map 1e-5 deg; sampled at the bitmap's texel centres they read 0.96 to 50 deg
+# (39 to 89 %).  Below half a degree the file's relief is the teacher's to the eye.
+NORMAL_WARN_DEG = 0.5
+NORMAL_WARN_SHARE = 0.1  # of the teacher's mean tilt
+NORMAL_WARN_UV = 4096  # random uv for that mean tilt
 
 
 def _as_rows(x: Any, width: int) -> np.ndarray:
@@ -90,6 +100,13 @@ def _as_rows(x: Any, width: int) -> np.ndarray:
     if a.shape[-1:] != (width,):
         raise ValueError(f"expected a (..., {width}) array, got {a.shape}")
     return a
+
+
+def bump_factor(texels: int, resolution: int) -> int:
+    """How many samples a bump bitmap's texel gets along an axis of ``texels``
+    (:meth:`TexturedMitsubaTarget.normal_texels`): even, so that no sample falls on a texel
+    centre (odd factors put one there), at least 2, and enough for ``resolution`` in all."""
+    return max(2, 2 * math.ceil(resolution / (2 * texels)))
 
 
 class TexturedMitsubaTarget:
@@ -104,7 +121,7 @@ class TexturedMitsubaTarget:
         self.path = Path(path)
         self.source = str(path)
         self.variant = variant
-        where = f"{key}: {self.source}"
+        where = self._where = f"{key}: {self.source}"
         if not self.path.is_file():
             raise InputError(f"{where}: no such file")
         mi = self._mi = _mitsuba(self.variant, key)
@@ -119,6 +136,7 @@ class TexturedMitsubaTarget:
             self.whole_bsdf = obj  # wrappers included: what a scene of the teacher renders
             self.bsdf, self.plugin = self._unwrap(obj, where)
             check_reflective(self.bsdf, self.plugin, where)
+            check_rough(mi, self.bsdf, self.plugin, where)
             self.anisotropic = self._probe_anisotropy(where)
 
     @property
@@ -335,6 +353,9 @@ class TexturedMitsubaTarget:
         out[ok] = n / np.linalg.norm(n, axis=-1, keepdims=True)
         return out.reshape(batch + (3,))
 
+    def _is_bump(self) -> bool:
+        return self.normal_map is not None and self.normal_map["plugin"] == "bumpmap"
+
     def _raw_normal(self, uv: np.ndarray) -> np.ndarray:
         """The map's unnormalised normal (K, 3) at finite uv (K, 2), before Mitsuba's
         normalize: 2 t - 1 of a normalmap, (-s h_u, -s h_v, 1) of a bumpmap."""
@@ -343,7 +364,7 @@ class TexturedMitsubaTarget:
             r = slice(s, s + CHUNK)
             with self._scope():
                 si = interaction(self._mi, np.tile([0.0, 0.0, 1.0], (len(uv[r]), 1)), uv[r])
-                if self.normal_map is not None and self.normal_map["plugin"] == "bumpmap":
+                if self._is_bump():
                     # bumpmap.cpp frame(): cross(dp_du + n s h_u, dp_dv + n s h_v)
                     g = _np(self._normal_tex.eval_1_grad(si)) * self._bump_scale
                     out[r] = np.c_[-g[:, 0], -g[:, 1], np.ones(len(g))]
@@ -360,9 +381,17 @@ class TexturedMitsubaTarget:
         A normalmap's texels are its texture's own 2 t - 1 (at a texel centre a bitmap's
         bilinear look-up is the texel itself), at the bitmap's resolution, so bilinear
         interpolation and normalisation reproduce Mitsuba's normal between centres too.
-        A bump map's normal (the height's gradient) and a procedural texture are sampled
-        at ``default_resolution`` (or the bitmap's) texel centres: an approximation
-        between them, which ``validate`` measures (docs/model.md, "The normal field")."""
+        A procedural texture is sampled at ``default_resolution`` texel centres.  A bump
+        map's normal is the gradient of the bitmap's bilinear height, which is constant
+        in u (linear in v) across each cell between four texel centres and JUMPS at the
+        centres: sampled there it is one side's difference or the other's (float32
+        decides), and the file's blend between centres lags by half a texel (a mean error
+        of 8.5 deg on a 16² map with a mean tilt of 22 deg).  So a bitmap's gradient is
+        sampled :func:`bump_factor` (even) times per texel and axis: every sample lies
+        inside a cell, where it is the gradient's mean over its own texel (constant or
+        linear there), and only the file's texels astride a jump blend across it: the mean
+        error falls as 1 / factor (0.16 deg at 512² there), the largest stays about half
+        the largest jump.  ``validate`` measures it (docs/model.md, "The normal field")."""
         if self._normal_tex is None:
             return None
         mi = self._mi
@@ -370,11 +399,35 @@ class TexturedMitsubaTarget:
             data = mi.traverse(self._normal_tex).get("data")
         shape = tuple(int(d) for d in data.shape) if data is not None else ()
         rv, ru = shape[:2] if len(shape) >= 2 else (default_resolution, default_resolution)
+        if len(shape) >= 2 and self._is_bump():
+            rv *= bump_factor(rv, default_resolution)
+            ru *= bump_factor(ru, default_resolution)
         u = (np.arange(ru) + 0.5) / ru
         v = (np.arange(rv) + 0.5) / rv
         uv = np.stack(np.meshgrid(u, v, indexing="xy"), -1).reshape(-1, 2)  # row j, column i
         out = self._raw_normal(uv)
         return out.reshape(rv, ru, 3)
+
+    def normal_field_warning(self, figures: dict[str, Any] | None) -> str | None:
+        """One warning line when the file's normal field is far from the teacher's:
+        ``figures`` is ``validate.normal_field_error``'s (metrics.json ``normal_field``),
+        large when its mean error exceeds NORMAL_WARN_DEG and NORMAL_WARN_SHARE of the
+        teacher's mean tilt (at NORMAL_WARN_UV random uv); None otherwise.  The error has
+        no limit in ``passed``: the run goes on, and says so (docs/mitsuba.md)."""
+        if not figures or self._normal_tex is None:
+            return None
+        uv = np.random.default_rng(0).random((NORMAL_WARN_UV, 2))
+        tilt = float(np.degrees(np.arccos(np.clip(self.normal_field(uv)[:, 2], -1, 1))).mean())
+        mean = float(figures["mean_deg"])
+        if not mean > max(NORMAL_WARN_DEG, NORMAL_WARN_SHARE * tilt):
+            return None
+        plugin = (self.normal_map or {}).get("plugin", "normal map")
+        return (
+            f"{self._where}: the file's normal field ({plugin}) is "
+            f"{mean:.2f} deg from the teacher's on average (max {figures['max_deg']:.1f} deg), "
+            f"against a teacher's tilt of {tilt:.2f} deg on average (max "
+            f"{figures['teacher_max_tilt_deg']:.1f} deg): its relief shades differently"
+        )
 
     def max_albedo(
         self,

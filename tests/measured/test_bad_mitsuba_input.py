@@ -10,7 +10,9 @@ exit code 2, never a traceback or a silent wrong answer (docs/mitsuba.md).
 * a normal map of one channel, on which Mitsuba's sampler raises: one line that keeps
   Mitsuba's sentence (was a traceback with a 12-line dump of the texture);
 * a rough plugin at roughness 0 (or negative), a delta lobe in all but name (trained
-  with a 100 % error and exit code 0); alpha 1e-3 is kept;
+  with a 100 % error and exit code 0), and a roughness texture at 0 somewhere: a bitmap
+  bound to alpha with texels at 0 (named; a quarter of a 16² PNG trained with physics
+  PASSED and exit 0), a procedural one away from uv 0.5; alpha 1e-3 is kept;
 * an XML file given where a config is expected (``validate --reference``, ``render
   --reference``, ``bake``): one line that says to give a config (was "expected a mapping
   of keys at the top level, got str");
@@ -187,6 +189,73 @@ def test_a_sharp_but_rough_lobe_is_kept(mi, tmp_path):
         '<bsdf version="3.0.0" type="roughconductor"><float name="alpha" value="0.001"/></bsdf>'
     )
     MitsubaTarget(xml)
+
+
+def _alpha_teacher(mi, folder: Path, alpha: np.ndarray, name: str) -> Path:
+    """A roughconductor whose alpha is the bitmap ``name`` (raw) of ``alpha`` [rows, cols]:
+    an 8-bit PNG or a float EXR, by the name's suffix."""
+    rgb = np.repeat(alpha[..., None], 3, -1).astype(np.float32)
+    if name.endswith(".png"):  # written now, not in a thread
+        mi.util.write_bitmap(str(folder / name), rgb, write_async=False)
+    else:
+        mi.Bitmap(rgb).write(str(folder / name))
+    xml = folder / f"{Path(name).stem}.xml"
+    xml.write_text(
+        '<bsdf version="3.0.0" type="roughconductor"><texture type="bitmap" name="alpha">'
+        f'<string name="filename" value="{name}"/><boolean name="raw" value="true"/>'
+        "</texture></bsdf>"
+    )
+    return xml
+
+
+@pytest.mark.parametrize("layout", ["quadrant", "scattered"])
+def test_a_roughness_bitmap_with_texels_at_zero_is_refused(mi, tmp_path, capsys, layout):
+    # a quarter of a 16² PNG's texels at 0: the probe at uv 0.5 saw a rough lobe, and the run
+    # trained to a 100 % error with physics PASSED and exit code 0.  Scattered, a zero texel
+    # is ~0 only near its centre, where no probe looks: the bitmap itself is read
+    from neural_brdf.measured.mitsuba import VariesOverSurface
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    alpha = np.full((16, 16), 0.3)
+    if layout == "quadrant":
+        alpha[:8, :8] = 0.0
+    else:
+        alpha[::2, ::2] = 0.0
+    xml = _alpha_teacher(mi, tmp_path, alpha, "alpha.png")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"target: {{mitsuba: {xml.name}}}\n")
+    run = tmp_path / "run"
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(run), *SETS, *TEXTURED_SETS)
+    assert_one_line_error(code, err, "target.mitsuba", str(xml), "alpha", "roughness of 0")
+    assert "64 of 256 texels" in err  # texels, not channels
+    assert not (run / "model.onnx").exists()
+    with pytest.raises(InputError) as e:  # built on its own (the viewer's --compare)
+        TexturedMitsubaTarget(xml)
+    assert not isinstance(e.value, VariesOverSurface) and str(xml) in str(e.value)
+    # its twin with a sharp but rough floor (alpha 1e-3: f cos up to ~1e6) is taken
+    alpha[alpha == 0.0] = 1e-3
+    assert TexturedMitsubaTarget(_alpha_teacher(mi, tmp_path, alpha, "sharp.exr")).plugin
+
+
+def test_a_procedural_roughness_of_zero_away_from_the_centre_is_refused(mi, tmp_path):
+    # uv (0.5, 0.5) reads color1 (rough): only f cos at other uv, wo drawn from the sampler
+    # there, sees the delta lobe (pairs drawn at uv 0.5 miss it)
+    from neural_brdf.measured.mitsuba import MitsubaTarget, VariesOverSurface
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    xml = tmp_path / "checker.xml"
+    xml.write_text(
+        '<bsdf version="3.0.0" type="roughconductor"><texture type="checkerboard" '
+        'name="alpha"><float name="color0" value="0"/><float name="color1" value="0.3"/>'
+        "</texture></bsdf>"
+    )
+    for build in (MitsubaTarget, TexturedMitsubaTarget):
+        with pytest.raises(InputError) as e:
+            build(xml)
+        msg = str(e.value)
+        assert not isinstance(e.value, VariesOverSurface), msg
+        assert len(msg.splitlines()) == 1 and str(xml) in msg
+        assert "nearly delta" in msg and "at uv (" in msg and "roughness" in msg
 
 
 # ------------------------------------------------------------------ view --uv

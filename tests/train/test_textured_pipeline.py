@@ -396,3 +396,24 @@ def test_a_projected_field_is_the_files_and_export_makes_it_again(teacher, tmp_p
     )  # fmt: skip
     assert_one_line_error(code, err, "refit_steps", "set project")
     assert not (tmp_path / "bad").exists()
+
+
+def test_the_run_prints_the_teachers_normal_field_warning(teacher, tmp_path, capsys, monkeypatch):
+    """finish_textured hands the run's normal-field figures to the teacher's
+    normal_field_warning and prints its line on stderr (the line's own wording and
+    threshold: tests/measured/test_textured.py)."""
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    seen = []
+
+    def warn(self, figures):
+        seen.append(figures)
+        return "the file's normal field is far from the teacher's"
+
+    monkeypatch.setattr(TexturedMitsubaTarget, "normal_field_warning", warn)
+    cfg = write_config(tmp_path, teacher, steps=20)
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"))
+    assert code == 0, err
+    assert "warning: the file's normal field is far from the teacher's" in err
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert seen == [metrics.get("normal_field")]
