@@ -969,12 +969,16 @@ def sampling_noise_section(d: dict) -> list[str]:
     return out
 
 
-def peak_section(d: dict) -> list[str]:
+def peak_section(
+    d: dict, name: str = "peak.json", title: str | None = None, command: str = ""
+) -> list[str]:
     offsets = [f"{o:g}" for o in d["offsets_deg"]]
+    heading = "## The highlight's peak: every analytic preset at and around the mirror direction"
+    sets = d.get("sets")
     out = [
-        "## The highlight's peak: every analytic preset at and around the mirror direction",
+        heading + (f": {title}" if title else ""),
         "",
-        _source("benchmarks/results/peak.json", "python benchmarks/peak.py"),
+        _source(f"benchmarks/results/{name}", "python benchmarks/peak.py" + command),
         f"Recorded in the file: {d.get('machine', 'machine not recorded')} (no timing is "
         "compared).",
         f"Statistic: {d['statistic']}, for θi = "
@@ -987,12 +991,20 @@ def peak_section(d: dict) -> list[str]:
         "check catches.",
         "",
     ]
+    if sets:
+        out += [
+            f"Development presets (the training pairs were chosen on them): "
+            f"{', '.join(sets['development'])}; the others are held out (test). "
+            f"{sets.get('note', '')}".rstrip(),
+            "",
+        ]
     rows = []
     for label, m in d["models"].items():
         by = m["peak_max_error_by_offset_deg"]
         verdict = "ok" if m["peak_passed"] else "**FAIL**"
+        dev = " (dev)" if sets and m.get("preset") in sets["development"] else ""
         rows.append(
-            [label, f"{_pct(m['peak_max_error'])} {verdict}"]
+            [label + dev, f"{_pct(m['peak_max_error'])} {verdict}"]
             + [_pct(by[o]) if o in by else "-" for o in offsets]
             + [_pct(m["rel_rmse_f_cos"]), f"{m['steps']}"]
         )
@@ -3626,6 +3638,25 @@ SECTIONS = (
     (RESULTS / "packet_gathers.json", packet_gathers_section),
     (RESULTS / "compact_presets.json", compact_presets_section),
     (RESULTS / "sampling_noise.json", sampling_noise_section),
+    (
+        RESULTS / "peak_normal.json",
+        partial(
+            peak_section,
+            name="peak_normal.json",
+            title="the training pairs since 2026-12-07, probed at normal incidence too",
+            command=" --recipes compact --out benchmarks/results/peak_normal.json",
+        ),
+    ),
+    (
+        RESULTS / "peak_normal_before.json",
+        partial(
+            peak_section,
+            name="peak_normal_before.json",
+            title="the training pairs before 2026-12-07, probed at normal incidence too",
+            command=" --recipes compact --out benchmarks/results/peak_normal_before.json "
+            "(at the commit before)",
+        ),
+    ),
     (RESULTS / "peak.json", peak_section),
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
