@@ -102,7 +102,8 @@ class Target(_Section):
         if self.data is not None:
             if not self.data.strip():
                 raise ValueError("data: empty path")
-            # (a resolved config.yaml repeats the default model: that is not a clash)
+            # (a resolved config.yaml of an earlier version repeats the default model:
+            # that is not a clash)
             if self.params or self.model != Target.model_fields["model"].default:
                 raise ValueError(
                     "data: give either target.data (measured) or "
@@ -731,7 +732,16 @@ class Config(_Section):
         return self
 
     def to_yaml(self) -> str:
-        return yaml.safe_dump(self.model_dump(), sort_keys=False)
+        """The resolved config (a run's config.yaml): every key, except the analytic
+        ``target.model`` and ``target.params`` of a target that is not analytic (a
+        Mitsuba teacher, measured data, an images fit).  Those can only hold their
+        defaults there (Target's validators), which reading the file gives them again,
+        and written out they read as if the run had a Lambertian target."""
+        d = self.model_dump()
+        t = self.target
+        if t.mitsuba is not None or t.data is not None or t.images is not None:
+            del d["target"]["model"], d["target"]["params"]
+        return yaml.safe_dump(d, sort_keys=False)
 
 
 # --------------------------------------------------------------------- sizes
@@ -1027,9 +1037,10 @@ def load(
 
     ``warn`` is called with a one-line message when the file (with the overrides)
     gives no ``target``: an empty file, or one without a ``target:`` section, is valid,
-    and trains the default target, but is more likely a mistake; and when it sets
+    and trains the default target, but is more likely a mistake; when it sets
     ``images`` keys (to other than their defaults) for a target that is not an images
-    fit, which reads none of them (:func:`ignored_images`).
+    fit, which reads none of them (:func:`ignored_images`); and when it sets
+    ``texture`` keys for a target that is not a Mitsuba teacher (:func:`ignored_texture`).
 
     ``run``: ``path`` is a run's resolved config.yaml, written by an earlier version
     perhaps: a key it lacks that did otherwise before it existed takes that value
@@ -1058,14 +1069,24 @@ def load(
     if warn is not None and path is not None and "target" not in raw:
         what = "empty config" if empty else "no target: section"
         warn(f"{path}: {what}: training the default target (a {cfg.target.model} BRDF)")
-    ignored = ignored_images(cfg)
-    if warn is not None and ignored:
-        # the file, unless every one of them was given by --set (then the first's)
-        blamed = [_blame(("images", k), overrides) for k in ignored]
-        where = next((b for b in blamed if b), "config") if all(blamed) else str(path)
-        keys = ", ".join(f"images.{k}" for k in ignored)
-        warn(f"{where}: {keys}: ignored: only an images fit (target.images) reads them")
+    if warn is not None:
+        for section, keys, why in (
+            ("images", ignored_images(cfg), "only an images fit (target.images) reads them"),
+            ("texture", ignored_texture(cfg), _texture_unread(cfg)),
+        ):
+            if not keys:
+                continue
+            # the file, unless every one of them was given by --set (then the first's)
+            blamed = [_blame((section, k), overrides) for k in keys]
+            where = next((b for b in blamed if b), "config") if all(blamed) else str(path)
+            listed = ", ".join(f"{section}.{k}" for k in keys)
+            warn(f"{where}: {listed}: ignored: {why}")
     return cfg
+
+
+def _changed(section: _Section, default: _Section) -> list[str]:
+    """The keys of ``section`` set to other than their values in ``default``."""
+    return [k for k in type(default).model_fields if getattr(section, k) != getattr(default, k)]
 
 
 def ignored_images(cfg: Config) -> list[str]:
@@ -1073,5 +1094,29 @@ def ignored_images(cfg: Config) -> list[str]:
     not an images fit (no other target reads them); [] for an images fit."""
     if cfg.target.images is not None:
         return []
-    default = Images()
-    return [k for k in Images.model_fields if getattr(cfg.images, k) != getattr(default, k)]
+    return _changed(cfg.images, Images())
+
+
+def ignored_texture(cfg: Config) -> list[str]:
+    """The ``texture`` keys ``cfg`` sets to other than their defaults while its target is
+    not a Mitsuba teacher: only a teacher that varies over the surface reads them.  []
+    for a Mitsuba teacher, whose file is read first: a homogeneous one's run says the
+    section is ignored itself (``pipeline.teacher_warnings``, the same comparison)."""
+    if cfg.target.mitsuba is not None:
+        return []
+    return _changed(cfg.texture, Texture())
+
+
+def _texture_unread(cfg: Config) -> str:
+    t = cfg.target
+    what = (
+        "an images fit (target.images)"
+        if t.images is not None
+        else "measured data (target.data)"
+        if t.data is not None
+        else f"an analytic target ({t.model})"
+    )
+    return (
+        "only a Mitsuba teacher that varies over the surface (target.mitsuba) reads "
+        f"them, not {what}; the model is homogeneous"
+    )

@@ -202,3 +202,53 @@ def test_an_images_key_from_set_is_blamed_on_the_set(capsys, tmp_path):
     warning, error = err.strip().splitlines()
     assert warning.startswith("warning: --set images.primal_spp=3: images.primal_spp: ignored")
     assert_one_line_error(code, error, str(a_file))
+
+
+# ------------------------------------------------------------ texture: ignored
+@pytest.mark.parametrize(
+    "target, named",
+    [
+        ("{model: microfacet}", "an analytic target (microfacet)"),
+        ("{data: x.binary}", "measured data (target.data)"),
+        ("{images: [{scene: s.xml, image: i.exr}]}", "an images fit (target.images)"),
+    ],
+    ids=["analytic", "data", "images"],
+)
+def test_texture_keys_for_a_target_without_a_teacher_warn_in_one_line(tmp_path, target, named):
+    """Only a Mitsuba teacher that varies over the surface reads ``texture``: on any other
+    target the section trained a homogeneous model without a word (a homogeneous teacher
+    said so: pipeline.teacher_warnings)."""
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text(f"target: {target}\ntexture: {{lobes: 3, weights: rgb}}\n")
+    warnings: list[str] = []
+    config.load(cfg, warn=warnings.append)
+    assert len(warnings) == 1 and "\n" not in warnings[0], warnings
+    assert warnings[0].startswith(f"{cfg}: texture.lobes, texture.weights: ignored"), warnings
+    assert "target.mitsuba" in warnings[0] and named in warnings[0]
+
+
+def test_texture_keys_warn_only_where_nothing_reads_them(tmp_path):
+    """No warning where the section is read or says nothing: a Mitsuba teacher (its file
+    decides whether it varies; the run says so if not), defaults.yaml (every default
+    spelled out) and a default value given again."""
+    (tmp_path / "teacher.xml").write_text('<bsdf version="3.0.0" type="diffuse"/>\n')
+    teacher = tmp_path / "teacher.yaml"
+    teacher.write_text("target: {mitsuba: teacher.xml}\ntexture: {lobes: 3}\n")
+    warnings: list[str] = []
+    for path, sets in [
+        (teacher, ["texture.resolution=8"]),
+        (CONFIGS / "defaults.yaml", []),
+        (QUICKSTART, [f"texture.lobes={config.Texture().lobes}"]),
+    ]:
+        config.load(path, sets, warn=warnings.append)
+        assert not warnings, (path, sets, warnings)
+
+
+def test_a_texture_key_from_set_is_blamed_on_the_set(capsys, tmp_path):
+    """``neural-brdf train gold --set texture.lobes=3``: the warning names the --set."""
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")  # the run stops at once, after the warning
+    code, _, err = cli(capsys, "train", "gold", "--out", str(a_file), "--set", "texture.lobes=3")
+    warning, error = err.strip().splitlines()
+    assert warning.startswith("warning: --set texture.lobes=3: texture.lobes: ignored"), warning
+    assert_one_line_error(code, error, str(a_file))

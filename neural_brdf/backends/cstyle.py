@@ -58,6 +58,28 @@ from neural_brdf.fileformat import lobe as lobe_format  # the stored lobe: its s
 
 PREFIX = "neural_brdf"
 NORMAL_FUNCTION = f"{PREFIX}_normal"
+# A metadata value in the header comment (the target's JSON, say) is cut to this many
+# characters, at an item's or a word's end, and marked by ELLIPSIS.
+HEADER_VALUE_CHARS = 200
+ELLIPSIS = " ..."
+
+
+def comment_value(value: object, limit: int = HEADER_VALUE_CHARS) -> str:
+    """``value`` as one line of a header comment: its whitespace collapsed, and when it
+    is longer than ``limit``, cut after its last whole item (``", "``) or word that fits,
+    with :data:`ELLIPSIS` after it (never mid-key: ``"kind": `` and nothing).  It never
+    ends in a backslash, which in C and GLSL would join the next line to the comment."""
+    text = " ".join(str(value).split())
+    if len(text) > limit:
+        room = limit - len(ELLIPSIS)
+        head = text[: room + 1]  # a boundary just after room characters still counts
+        cut = head.rfind(", ")
+        if cut < room // 2:  # no item ends in the second half: the last word's end
+            cut = head.rfind(" ")
+        text = text[: cut if cut > 0 else room].rstrip(" ,:\\") + ELLIPSIS
+    if text.endswith("\\"):  # (a short value too: its backslashes are what is left out)
+        text = text.rstrip("\\") + ELLIPSIS
+    return text
 
 
 @dataclass
@@ -376,8 +398,7 @@ class CStyleRenderer:
             "parity_rel_error",
         ):
             if key in meta:
-                value = " ".join(str(meta[key]).split())  # one line
-                lines.append(f"{c} {key}: {value[:200]}")
+                lines.append(f"{c} {key}: {comment_value(meta[key])}")
         lines.append(
             f"{c} sampling lobe: {lobe_format.KIND}, {lobe['distribution']}, "
             f"alpha_x={lobe['alpha_x']:.6g}, "

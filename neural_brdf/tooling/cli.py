@@ -12,6 +12,9 @@
     neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
     neural-brdf view model.onnx [--compare OTHER.onnx|TEACHER.xml|CONFIG] [--uv U,V] -o viewer.html
 
+A CONFIG (train, train-many, validate, bake, render, view) may be a preset's name instead
+(``gold``, ``mitsuba/roughplastic``: ``neural-brdf presets``).
+
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
 message on stderr, never a traceback: a bad key, file or option, a folder in use, a
@@ -111,7 +114,7 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("model")
     v.add_argument(
         "--reference",
-        help="ground truth: a config (its target), a MERL "
+        help="ground truth: a config (its target) or a preset name, a MERL "
         ".binary or an RGL .bsdf file (measured data)",
     )
     v.add_argument("--json", help="write the report as JSON to this file")
@@ -121,7 +124,9 @@ def _parser() -> argparse.ArgumentParser:
         help="tabulate a model (.onnx) or a config's analytic target: "
         "MERL .binary or RGL .bsdf (by the output extension)",
     )
-    b.add_argument("source", help="model.onnx, or a YAML config whose target is baked")
+    b.add_argument(
+        "source", help="model.onnx, or a YAML config (or a preset name) whose target is baked"
+    )
     b.add_argument("-o", "--out", required=True, help="output file: .binary (MERL) or .bsdf (RGL)")
 
     r = sub.add_parser(
@@ -131,7 +136,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("model", help="model.onnx")
     r.add_argument(
         "--reference",
-        help="config whose analytic target is rendered beside it, with an error map and PSNR",
+        help="a config (or a preset name) whose analytic target or Mitsuba teacher is "
+        "rendered beside it, with an error map and PSNR",
     )
     r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
@@ -160,8 +166,9 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("model", help="model.onnx")
     vw.add_argument(
         "--compare",
-        help="a second model (.onnx), a Mitsuba teacher (.xml), or a config whose "
-        "analytic target or Mitsuba teacher is shown beside it with a difference view",
+        help="a second model (.onnx), a Mitsuba teacher (.xml), or a config (or a preset "
+        "name) whose analytic target or Mitsuba teacher is shown beside it with a "
+        "difference view",
     )
     vw.add_argument(
         "--uv",
@@ -401,8 +408,9 @@ def _validate(args) -> int:
 
     if args.json and args.json != STDOUT and Path(args.json).is_dir():
         raise InputError(f"--json {args.json}: is a folder; give a file name")
-    _not_an_input(args.json, {"model": args.model, "reference": args.reference}, flag="--json")
-    reference = validate.reference_from(args.reference) if args.reference else None
+    given = _preset_or_path(args.reference)  # a preset name, as train takes one
+    _not_an_input(args.json, {"model": args.model, "reference": given}, flag="--json")
+    reference = validate.reference_from(given) if given else None
     report = validate.report(args.model, target=reference)
     # with --json -, stdout carries the JSON alone and the table goes to stderr
     table_to = sys.stderr if args.json == STDOUT else sys.stdout
@@ -418,6 +426,23 @@ def _validate(args) -> int:
         except OSError as e:
             raise InputError(f"{args.json}: cannot write ({e.strerror})") from None
     return EXIT_OK if validate.passed(report) else EXIT_PHYSICS  # the peak too
+
+
+def _preset_or_path(text: str | None) -> str | None:
+    """A preset name (``gold``, ``mitsuba/roughplastic``: ``neural-brdf presets``) as its
+    config file, as ``train`` takes one; anything else as it is: a file that exists wins,
+    and a missing one with a suffix (``x.onnx``, ``x.yaml``) is reported by whoever reads
+    it.  A bare name that is neither: InputError listing the presets, as train's."""
+    if not text or text == STDOUT or Path(text).exists():
+        return text
+    from neural_brdf import presets
+
+    try:
+        return str(presets.resolve(text))
+    except InputError:
+        if not Path(text).suffix:
+            raise
+        return text  # the command's own message names the missing file
 
 
 def _analytic_target(config_path: str):
@@ -444,6 +469,38 @@ def _analytic_target(config_path: str):
     )
 
 
+def _render_reference(path: str, model) -> tuple[dict | None, tuple | None]:
+    """``render --reference``: ({"model", "params"} of a config's analytic target, None),
+    or (None, (Mitsuba BSDF, words)) of its Mitsuba teacher (``target.mitsuba``),
+    homogeneous or textured, rendered by Mitsuba as the report renders it
+    (:func:`neural_brdf.viewer.report.sections.teacher_to_render`)."""
+    from neural_brdf import config
+    from neural_brdf.train import data
+
+    if Path(path).suffix.lower() == ".xml":  # else read as YAML: "expected a mapping"
+        raise InputError(
+            f"{path}: a Mitsuba file; give a config whose target names it (target: "
+            f"{{mitsuba: {Path(path).name}}}) or an analytic target here (neural-brdf view "
+            "MODEL --compare FILE.xml takes the file itself)"
+        )
+    cfg = config.load(path)
+    data.refuse_images(cfg.target, path)  # its target.model: the unused default
+    if cfg.target.data is not None:
+        raise InputError(
+            f"{path}: target.data: render compares analytic targets and Mitsuba "
+            "teachers only (a measured table is not a BSDF Mitsuba renders)"
+        )
+    if cfg.target.mitsuba is None:
+        name, params, _ = _analytic_target(path)
+        return {"model": name, "params": params}, None
+    from neural_brdf.viewer.report.sections import teacher_to_render
+
+    # (a teacher of target.variant cuda_ad_rgb: one line, the render runs in llvm_ad_rgb)
+    teacher = teacher_to_render(model, data.build_target(cfg.target, source=path))
+    assert teacher is not None  # a Mitsuba target always has its BSDF
+    return None, teacher
+
+
 def _bake(args) -> int:
     """The output format by its suffix: :mod:`neural_brdf.measured.formats`."""
     from neural_brdf.measured import formats
@@ -459,8 +516,8 @@ def _bake(args) -> int:
         _project_model(model, args.source)
         _homogeneous(model, args.source, "bake", "an RGL or MERL table holds one BRDF")
         fn = model.eval
-    else:
-        fn = _analytic_target(args.source)[2].eval
+    else:  # a config, or a preset's name
+        fn = _analytic_target(_preset_or_path(args.source) or args.source)[2].eval
     try:
         fmt.bake(fn, args.out)
     except OSError as e:
@@ -494,31 +551,36 @@ def _render(args) -> int:
     if args.spp < 1 or args.resolution < 8:
         raise InputError("render: --spp must be >= 1 and --resolution >= 8")
     _output_file(args.out, "a PNG or JPEG image")
-    _not_an_input(args.out, {"model": args.model, "reference": args.reference}, flag="-o")
-    _project_model(load(args.model), args.model)  # an empty, foreign or broken file: exit 2
+    given = _preset_or_path(args.reference)  # a preset name, as train takes one
+    _not_an_input(args.out, {"model": args.model, "reference": given}, flag="-o")
+    model = load(args.model)
+    _project_model(model, args.model)  # an empty, foreign or broken file: exit 2
     try:
         import mitsuba as mi
     except ImportError:
         raise InputError(
             "render: needs Mitsuba 3: pip install -e '.[mitsuba]' and apt-get install libllvm19"
         ) from None
-    reference = None
-    if args.reference:
-        name, params, _ = _analytic_target(args.reference)
-        reference = {"model": name, "params": params}
     if mi.variant() is None:
         mi.set_variant("llvm_ad_rgb")
     from neural_brdf.renderers import render as nbr
 
     nbr.image_format(args.out)  # .png, .jpg or .jpeg: refused before the render
+    reference, teacher = _render_reference(given, model) if given else (None, None)
     info = nbr.render_comparison(
-        args.model, args.out, reference=reference, spp=args.spp, resolution=args.resolution
+        args.model,
+        args.out,
+        reference=reference,
+        reference_bsdf=teacher[0] if teacher else None,
+        spp=args.spp,
+        resolution=args.resolution,
     )
     if info["psnr"] is None:
         print(f"wrote {args.out}")
     else:
+        versus = f"the teacher: {teacher[1]}" if teacher else "reference"
         print(
-            f"wrote {args.out}  (PSNR {info['psnr']:.2f} dB vs reference; panels: neural, "
+            f"wrote {args.out}  (PSNR {info['psnr']:.2f} dB vs {versus}; panels: neural, "
             f"target, |difference| x {info['gain']:g})"
         )
     return EXIT_OK
@@ -529,6 +591,7 @@ def _view(args) -> int:
     from neural_brdf.viewer import page as viewer
 
     probes = viewer.parse_probes(args.uv)
+    args.compare = _preset_or_path(args.compare)  # a preset name, as train takes one
     if args.uv and Path(args.model).is_file() and not load(args.model).textured:
         raise InputError(f"--uv: {args.model} is not a textured model (its plots have no uv)")
     _not_an_input(

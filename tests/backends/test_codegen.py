@@ -16,7 +16,9 @@ exported graph as onnxruntime does.
 * Dr.Jit (the Mitsuba plugin's path): parity with onnxruntime, NaN / scale rows;
 * a graph using every ONNX op the lowering supports (IsNaN and IsInf included) gives
   onnxruntime's values in C, WGSL and Dr.Jit and validates in GLSL; an unknown op is
-  named; ``neural-brdf codegen`` writes files and exits 2 on bad input.
+  named; ``neural-brdf codegen`` writes files and exits 2 on bad input;
+* the header comment: a long metadata value (the target's JSON) is cut at an item's end
+  with an ellipsis, never in mid-key, never ends in a backslash, and still compiles.
 
 Two tiny models (isotropic quickstart, anisotropic brushed_ggx) are trained once per
 module (about 20 s each).
@@ -24,6 +26,7 @@ module (about 20 s each).
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 import subprocess
@@ -37,6 +40,7 @@ from onnx import TensorProto, helper
 
 from lobe_reference import ANISO_RETRO, BECKMANN, PER_INCIDENCE, RETRO_TABLE, mixture_pdf
 from neural_brdf import backends, config, graph, pipeline
+from neural_brdf.backends.cstyle import ELLIPSIS, HEADER_VALUE_CHARS
 from neural_brdf.errors import InputError
 from neural_brdf.export import relative_difference
 
@@ -776,3 +780,93 @@ def test_cli_codegen(models, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("error: ") for line in err)
     assert not (tmp_path / "x.h").exists()
+
+
+# ------------------------------------------------------------------ the header comment
+# A long metadata value, the target's JSON, is cut at an item's end and marked with an
+# ellipsis, never in mid-key (``"kind": `` and nothing), no value ends in a backslash (in
+# GLSL and C it joins the next line to a // comment), and the header still compiles.  The
+# model is the session's tiny run (conftest.tiny_run) with its ``target`` metadata
+# replaced.
+def long_target() -> str:
+    """A target JSON whose character HEADER_VALUE_CHARS - 1 falls just after
+    ``"kind": ``: a plain cut there leaves the key without its value."""
+    head = {"description": "", "kind": "mitsuba", "path": "/data/teachers/tiles.xml"}
+    text = json.dumps(head)
+    pad = HEADER_VALUE_CHARS - text.index('"mitsuba"')  # "kind": then the limit
+    head["description"] = "rough plastic " + "x" * (pad - len("rough plastic "))
+    text = json.dumps(head)
+    assert text[:HEADER_VALUE_CHARS].endswith('"kind": ')
+    return text
+
+
+def with_target(model: Path, target: str, out: Path) -> Path:
+    proto = onnx.load(str(model))
+    for prop in proto.metadata_props:
+        if prop.key == "target":
+            prop.value = target
+            break
+    else:
+        raise AssertionError("the tiny run's model has no target metadata")
+    onnx.save(proto, str(out))
+    return out
+
+
+def header_line(text: str, key: str) -> str:
+    """The value of ``key`` in the header (C: `` * key: ``, GLSL, WGSL: ``// key: ``)."""
+    (line,) = [ln for ln in text.splitlines() if ln.startswith((f" * {key}: ", f"// {key}: "))]
+    return line.split(f"{key}: ", 1)[1]
+
+
+@pytest.mark.parametrize("lang", ["c", "glsl", "wgsl"])
+def test_a_long_target_is_cut_at_an_item_with_an_ellipsis(tiny_run, tmp_path, lang):
+    target = long_target()
+    model = with_target(tiny_run / "model.onnx", target, tmp_path / "long.onnx")
+    text = backends.generate(model, lang)
+    shown = header_line(text, "target")
+    assert shown.endswith(ELLIPSIS) and len(shown) <= HEADER_VALUE_CHARS
+    kept = shown.removesuffix(ELLIPSIS)
+    # what is kept is the JSON up to the end of a whole item: never '"kind": ' alone
+    assert target.startswith(kept) and target[len(kept) :].startswith(", ")
+    assert not kept.rstrip().endswith(":")
+
+
+def test_a_short_target_is_shown_whole(tiny_run, tmp_path):
+    target = json.dumps({"kind": "analytic", "model": "ggx"})
+    model = with_target(tiny_run / "model.onnx", target, tmp_path / "short.onnx")
+    assert header_line(backends.generate(model, "c"), "target") == target
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        "C:\\teachers\\" + "a" * HEADER_VALUE_CHARS,  # cut inside a Windows path
+        "a" * (HEADER_VALUE_CHARS - 10) + " x\\\\\\ " + "b" * 20,  # cut at backslashes
+        "a" * (HEADER_VALUE_CHARS - 1) + "\\" + "b" * 20,  # the limit's last character
+        "C:\\teachers\\",  # short, and ending in one
+    ],
+)
+def test_no_header_value_ends_in_a_backslash(tiny_run, tmp_path, value):
+    """In GLSL (and C) a line that ends in a backslash joins the next one to it: a
+    line comment (``//``) would swallow the line after it."""
+    model = with_target(tiny_run / "model.onnx", value, tmp_path / "slash.onnx")
+    shown = header_line(backends.generate(model, "glsl"), "target")
+    assert not shown.endswith("\\") and len(shown) <= HEADER_VALUE_CHARS
+
+
+def test_the_cut_header_compiles(tiny_run, tmp_path):
+    """The header with the cut target is still a comment: the C file compiles."""
+    cc = shutil.which("cc")
+    assert cc, "a C compiler is needed (the codegen tests use it too)"
+    model = with_target(tiny_run / "model.onnx", long_target(), tmp_path / "long.onnx")
+    header = tmp_path / "brdf.h"
+    header.write_text(backends.generate(model, "c"))
+    main = tmp_path / "main.c"
+    main.write_text('#include "brdf.h"\nint main(void) { return 0; }\n')
+    r = subprocess.run(
+        [cc, "-std=c99", "-Wall", "-Werror", "-fsyntax-only", str(main)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]

@@ -1,8 +1,10 @@
-"""`neural-brdf bake` (MERL files) and `neural-brdf render` (Mitsuba previews)."""
+"""`neural-brdf bake` (MERL files) and `neural-brdf render` (Mitsuba previews), and the
+configs they and validate / view take: a Mitsuba teacher's, a preset's name."""
 
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,3 +131,142 @@ def test_render_writes_a_labelled_side_by_side_preview(capsys, tiny_model, tmp_p
     err_scaled = np.abs(neural - target).mean(-1) * gain
     assert np.percentile(err_scaled, 99) == pytest.approx(1.0, abs=0.15)
     assert diff.max() > 0.9  # inferno at 1: pale yellow, not black
+
+
+# ------------------------------------------------------------------ --reference: teachers, presets
+# ``render --reference CFG`` whose target is a Mitsuba teacher, homogeneous or textured,
+# renders the teacher with Mitsuba beside the model (it was refused: "target.mitsuba:
+# only analytic targets here"); its panel is checked against Mitsuba's own render of the
+# teacher's XML in the same scene, samples and seed, to the PNG's 8-bit rounding.  A
+# preset's name (mitsuba/roughplastic, lambert, gold) is taken wherever train takes one:
+# render, validate, view and bake give what the preset's file gives (they read the name
+# as a missing file); a bare name that is neither is one line naming it.
+CONFIGS = ROOT / "configs"
+RES, SPP = 32, 4  # the render's size: the checks are of the panels, not of the quality
+QUANTUM = 1.0 / 255.0  # a PNG's 8-bit rounding
+
+
+@pytest.fixture(scope="module")
+def mi():  # (Mitsuba's variant before the renderer's module is imported)
+    import mitsuba
+
+    if mitsuba.variant() is None:
+        mitsuba.set_variant("llvm_ad_rgb")
+    return mitsuba
+
+
+def three_panels(path: Path) -> list[np.ndarray]:
+    """The three RES x RES panels (neural, target, difference) under the label strip."""
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(path)[..., :3].astype(np.float64)
+    strip = img.shape[0] - RES
+    gap = (img.shape[1] - 3 * RES) // 2
+    assert strip >= 16 and gap >= 2, img.shape
+    return [img[strip:, i * (RES + gap) : i * (RES + gap) + RES] for i in range(3)]
+
+
+def mitsuba_render(mi, xml: Path) -> np.ndarray:
+    """The teacher's XML as Mitsuba loads it (its twosided wrapper included) in the
+    preview scene, in display values."""
+    from neural_brdf.renderers import render as nbr
+
+    return nbr.to_display(nbr.render_scene(mi.load_file(str(xml)), resolution=RES, spp=SPP))
+
+
+def render_with(capsys, model: Path, reference: str, out: Path) -> str:
+    args = ["render", str(model), "--reference", reference, "-o", str(out)]
+    code, stdout, err = cli(capsys, *args, "--spp", str(SPP), "--resolution", str(RES))
+    assert code == 0, err
+    return stdout
+
+
+@pytest.fixture(scope="module")
+def textured_config(tmp_path_factory) -> tuple[Path, Path]:
+    """(config, teacher.xml) of a small procedural textured teacher (no normal map)."""
+    from neural_brdf.measured.procedural import write_teacher
+
+    folder = tmp_path_factory.mktemp("textured")
+    xml = write_teacher(folder / "mat", "roughplastic", size=8)
+    cfg = folder / "textured.yaml"
+    cfg.write_text("target: {mitsuba: mat/teacher.xml}\n")
+    return cfg, xml
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("kind", ["homogeneous", "textured"])
+def test_render_shows_a_mitsuba_teacher_beside_the_model(
+    mi, capsys, tiny_model, tmp_path, textured_config, kind
+):
+    if kind == "homogeneous":  # the preset, by its name (a file of the same name is not here)
+        reference, xml = "mitsuba/roughplastic", CONFIGS / "mitsuba" / "roughplastic.xml"
+    else:
+        reference, xml = str(textured_config[0]), textured_config[1]
+    out = tmp_path / "teacher.png"
+    stdout = render_with(capsys, tiny_model, reference, out)
+    assert "PSNR" in stdout and "teacher" in stdout
+    neural, target, _ = three_panels(out)
+    teacher = mitsuba_render(mi, xml)
+    assert np.abs(target - teacher).max() <= 2 * QUANTUM  # the teacher, as Mitsuba renders it
+    assert np.abs(neural - teacher).mean() > 10 * QUANTUM  # (and the check can tell)
+    psnr = float(re.search(r"PSNR ([0-9.]+) dB", stdout).group(1))
+    mse = np.mean((neural - target) ** 2)
+    assert psnr == pytest.approx(10 * np.log10(1 / mse), abs=0.2)  # of these two panels
+
+
+@pytest.mark.mitsuba
+def test_render_takes_an_analytic_preset_by_its_name(mi, capsys, tiny_model, tmp_path):
+    by_name, by_file = tmp_path / "name.png", tmp_path / "file.png"
+    render_with(capsys, tiny_model, "lambert", by_name)
+    render_with(capsys, tiny_model, str(CONFIGS / "lambert.yaml"), by_file)
+    assert np.array_equal(three_panels(by_name)[1], three_panels(by_file)[1])
+
+
+def test_validate_takes_a_preset_by_its_name(capsys, tiny_model):
+    model = str(tiny_model)
+    code, by_name, err = cli(capsys, "validate", model, "--reference", "lambert")
+    assert code in (0, 1), err  # 1: the tiny model fails a check
+    code, by_file, _ = cli(capsys, "validate", model, "--reference", str(CONFIGS / "lambert.yaml"))
+    assert "rel_rmse" in by_name and by_name == by_file
+
+
+def test_view_takes_a_preset_by_its_name(capsys, tiny_model, tmp_path):
+    model = str(tiny_model)
+    pages = []
+    for compare in ("gold", str(CONFIGS / "gold.yaml")):
+        out = tmp_path / f"{len(pages)}.html"
+        code, _, err = cli(capsys, "view", model, "--compare", compare, "-o", str(out))
+        assert code == 0, err
+        pages.append(out.read_text())
+    from neural_brdf import config
+
+    label = f"target: {config.load(CONFIGS / 'gold.yaml').target.model}"
+    same = [re.sub(r"nbrdf-view-\w+", "TMP", p) for p in pages]  # a temporary folder
+    assert label in pages[0] and same[0] == same[1]
+
+
+def test_bake_takes_a_preset_by_its_name(capsys, tmp_path):
+    tables = []
+    for source in ("lambert", str(CONFIGS / "lambert.yaml")):
+        out = tmp_path / f"{len(tables)}.bsdf"
+        code, _, err = cli(capsys, "bake", source, "-o", str(out))
+        assert code == 0, err
+        tables.append(out.read_bytes())
+    assert tables[0] == tables[1]
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "{m}", "--reference", "nosuch", "-o", "{d}/r.png"],
+        ["validate", "{m}", "--reference", "nosuch"],
+        ["view", "{m}", "--compare", "nosuch", "-o", "{d}/v.html"],
+        ["bake", "nosuch", "-o", "{d}/b.bsdf"],
+    ],
+    ids=["render", "validate", "view", "bake"],
+)
+def test_a_name_that_is_neither_file_nor_preset_is_one_line(capsys, tiny_model, tmp_path, argv):
+    args = [a.format(m=tiny_model, d=tmp_path) for a in argv]
+    code, _, err = cli(capsys, *args)
+    assert_one_line_error(code, err, "nosuch", "preset")
+    assert not list(tmp_path.iterdir())  # nothing written

@@ -2,7 +2,9 @@
 
 The page checks use Debian's chromium (CI installs it); they never skip.  The report
 under test is the one training writes at the end of a tiny run, Mitsuba render included
-where Mitsuba is installed (CI installs it too).
+where Mitsuba is installed (CI installs it too).  A Mitsuba teacher's run (a tiny one of
+a homogeneous teacher) is checked for its render beside the teacher, its captions and
+its resolved config (at the end).
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import math
 import re
 import shutil
 from html.parser import HTMLParser
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,8 +25,9 @@ import yaml
 from PIL import Image
 
 import analytic
-from cli_helpers import ROOT, SETS, assert_one_line_error
+from cli_helpers import ROOT, SETS, TINY, assert_one_line_error, cli
 from harness import browser
+from neural_brdf import config
 from neural_brdf.tooling.cli import main
 from neural_brdf.viewer import plots, report
 
@@ -351,3 +356,157 @@ def test_rusinkiewicz_grid_round_trips_through_the_angles():
     np.testing.assert_allclose(th.numpy(), np.broadcast_to(a, (16, 16)), atol=1e-9)
     np.testing.assert_allclose(td.numpy(), np.broadcast_to(a[:, None], (16, 16)), atol=1e-9)
     np.testing.assert_allclose(pd.numpy(), math.pi / 2, atol=1e-9)
+
+
+# ------------------------------------------------------------------ a Mitsuba teacher's run
+# The render section of a HOMOGENEOUS teacher's run shows the teacher, rendered by
+# Mitsuba, beside the model (it showed the model alone): its panel is checked against
+# Mitsuba's own render of the teacher's XML in the same scene, to the PNG's rounding.  A
+# textured file's caption says the teacher's normal (or bump) map is left out only when
+# the teacher has one, that it is included when the file carries the normal field, and
+# nothing of a map when there is none (``_rendering`` with the render itself replaced).
+# The resolved config.yaml of a teacher's run holds no analytic target.model / params (it
+# showed ``model: lambertian``, an unused default); the run still resumes, reports and
+# exports, and an analytic run's config keeps them.
+XML = ROOT / "configs" / "mitsuba" / "roughplastic.xml"  # a blue rough plastic, twosided
+QUANTUM = 1.0 / 255.0  # a PNG's 8-bit rounding
+
+
+@pytest.fixture(scope="module")
+def mi():  # (Mitsuba's variant before the renderer's module is imported)
+    import mitsuba
+
+    if mitsuba.variant() is None:
+        mitsuba.set_variant("llvm_ad_rgb")
+    return mitsuba
+
+
+@pytest.fixture(scope="module")
+def teacher_run(mi, tmp_path_factory) -> tuple[Path, Path]:
+    """(run folder, config) of a tiny run of a homogeneous Mitsuba teacher (report
+    written)."""
+    folder = tmp_path_factory.mktemp("teacher_run")
+    shutil.copy(XML, folder / "teacher.xml")
+    cfg = folder / "plastic.yaml"
+    cfg.write_text("target: {mitsuba: teacher.xml}\n")
+    run = folder / "run"
+    assert main(["train", str(cfg), "--out", str(run), *SETS]) in (0, 1)  # 1: a check failed
+    assert (run / "report.md").is_file()
+    return run, cfg
+
+
+def render_caption(run: Path) -> str:
+    (line,) = [ln for ln in (run / "report.md").read_text().splitlines() if "preview" in ln]
+    return line
+
+
+@pytest.mark.mitsuba
+def test_the_report_renders_a_homogeneous_teacher_beside_the_model(mi, teacher_run):
+    import matplotlib.image as mpimg
+
+    from neural_brdf.renderers import render as nbr
+    from neural_brdf.viewer.report.run import RENDER_RESOLUTION as RES
+    from neural_brdf.viewer.report.run import RENDER_SPP
+
+    run, _ = teacher_run
+    caption = render_caption(run)
+    assert "the teacher (Mitsuba's own BSDF)" in caption and "PSNR" in caption
+    assert "normal map" not in caption  # a homogeneous teacher has none
+    img = mpimg.imread(run / "report-render.png")[..., :3].astype(np.float64)
+    strip = img.shape[0] - RES
+    gap = (img.shape[1] - 3 * RES) // 2
+    assert gap >= 2, img.shape  # three panels: neural | teacher | difference
+    neural, target = (img[strip:, i * (RES + gap) : i * (RES + gap) + RES] for i in range(2))
+    scene = nbr.render_scene(mi.load_file(str(XML)), resolution=RES, spp=RENDER_SPP)
+    teacher = nbr.to_display(scene)
+    assert np.abs(target - teacher).max() <= 2 * QUANTUM
+    assert np.abs(neural - teacher).mean() > 10 * QUANTUM  # the tiny model is not the teacher
+
+
+@pytest.mark.mitsuba
+def test_a_teacher_runs_config_has_no_analytic_target(teacher_run, tiny_run):
+    run, cfg = teacher_run
+    target = yaml.safe_load((run / "config.yaml").read_text())["target"]
+    assert "model" not in target and "params" not in target, target
+    assert target["mitsuba"] == str((cfg.parent / "teacher.xml").resolve())
+    # read back, it is the config the run trained (the dropped keys at their defaults)
+    again = config.load(run / "config.yaml", run=True)
+    assert again.model_dump() == config.load(cfg, TINY).model_dump()
+    # an analytic run keeps its model and parameters
+    analytic = yaml.safe_load((tiny_run / "config.yaml").read_text())["target"]
+    assert analytic["model"] == config.load(tiny_run / "config.yaml").target.model
+
+
+@pytest.mark.mitsuba
+def test_a_teacher_run_still_resumes_reports_and_exports(capsys, teacher_run, tmp_path):
+    run, cfg = teacher_run
+    code, out, err = cli(capsys, "train", str(cfg), "--out", str(run), "--resume", *SETS)
+    assert code == 0 and "already finished" in out, err
+    code, out, err = cli(capsys, "report", str(run), "-o", str(tmp_path / "again"))
+    assert code == 0, err
+    assert "the teacher (Mitsuba's own BSDF)" in render_caption(tmp_path / "again")
+    code, out, err = cli(capsys, "export", str(run), "-o", str(tmp_path / "again.onnx"))
+    assert code in (0, 1) and (tmp_path / "again.onnx").is_file(), err
+
+
+# ------------------------------------------------------------------ the textured caption
+@pytest.fixture(scope="module")
+def teachers(mi, tmp_path_factory) -> dict:
+    """Textured teachers: the procedural roughplastic (no normal map) and principled (a
+    normal map), 8 x 8 texels."""
+    from neural_brdf.measured.procedural import write_teacher
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    folder = tmp_path_factory.mktemp("textured")
+    return {
+        kind: TexturedMitsubaTarget(write_teacher(folder / kind, kind, size=8))
+        for kind in ("roughplastic", "principled")
+    }
+
+
+def rendering(monkeypatch, tmp_path, reference, *, normal_field: bool):
+    """The report's render section of a textured file (with or without the teacher's
+    normal field) beside ``reference``, the render itself replaced: (caption, the BSDF
+    object handed to the render)."""
+    from neural_brdf.viewer import plots
+    from neural_brdf.viewer.report import sections
+
+    handed = {}
+
+    def spheres(model_path, out_png, *, reference_bsdf=None, **kwargs):
+        import matplotlib.image as mpimg
+
+        handed["bsdf"] = reference_bsdf
+        mpimg.imsave(out_png, np.zeros((4, 12, 3)))
+        return 30.0
+
+    monkeypatch.setattr(plots, "spheres", spheres)
+    run = SimpleNamespace(
+        config=config.from_dict({"target": {"mitsuba": str(reference.path)}}),
+        model=SimpleNamespace(textured=True, has_normal_field=normal_field),
+        dir=tmp_path,
+    )
+    blocks = sections._rendering(run, True, tmp_path, reference)
+    (image,) = [b for b in blocks if hasattr(b, "caption")]
+    return image.caption, handed["bsdf"]
+
+
+@pytest.mark.mitsuba
+def test_a_teacher_without_a_normal_map_is_not_said_to_have_one(monkeypatch, tmp_path, teachers):
+    teacher = teachers["roughplastic"]
+    assert teacher.normal_map is None  # the case
+    caption, bsdf = rendering(monkeypatch, tmp_path, teacher, normal_field=False)
+    assert "the teacher (Mitsuba's own BSDF)" in caption and "map" not in caption, caption
+    assert bsdf is teacher.bsdf
+
+
+@pytest.mark.mitsuba
+def test_a_teacher_with_a_normal_map_says_whether_it_is_shown(monkeypatch, tmp_path, teachers):
+    teacher = teachers["principled"]
+    assert teacher.normal_map is not None  # the case
+    caption, bsdf = rendering(monkeypatch, tmp_path, teacher, normal_field=False)
+    assert "its normal map left out as the file's is" in caption, caption
+    assert bsdf is teacher.bsdf  # the nested BSDF, as the file has no normal field
+    caption, bsdf = rendering(monkeypatch, tmp_path, teacher, normal_field=True)
+    assert "normal map included" in caption and "left out" not in caption, caption
+    assert bsdf is teacher.whole_bsdf

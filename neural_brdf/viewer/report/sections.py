@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
@@ -226,6 +227,41 @@ def _peak(peak: dict, path: Path) -> list:
     ]
 
 
+def teacher_to_render(model, reference) -> tuple[Any, str] | None:
+    """The Mitsuba BSDF object that ``model`` (a :class:`neural_brdf.runtime.NeuralBRDF`)
+    is rendered beside when ``reference`` is a Mitsuba teacher, homogeneous or textured
+    (:func:`neural_brdf.train.data.build_target`'s), and the caption's words on it; None
+    for any other reference (an analytic one is rendered from its name and parameters).
+
+    A file that carries its teacher's normal field renders beside the whole teacher
+    (normal or bump map included); any other beside the nested BSDF, and the words say
+    that the teacher's map is left out only when it has one.  InputError when the
+    teacher was loaded in another Mitsuba variant than the one the render runs in."""
+    if getattr(reference, "kind", None) != "mitsuba" or getattr(reference, "bsdf", None) is None:
+        return None
+    import mitsuba as mi
+
+    variant = getattr(reference, "variant", None)
+    if variant is not None and mi.variant() != variant:
+        raise InputError(
+            f"the teacher was loaded in Mitsuba's {variant} variant and the render runs "
+            f"in {mi.variant()}"
+        )
+    bsdf = reference.bsdf
+    words = "Mitsuba's own BSDF"
+    normal = getattr(reference, "normal_map", None)  # a textured teacher's map, if any
+    if normal is not None:
+        what = "bump map" if normal.get("plugin") == "bumpmap" else "normal map"
+        if model.textured and model.has_normal_field:
+            bsdf = getattr(reference, "whole_bsdf", bsdf)
+            words += f", {what} included"
+        else:
+            words += f", its {what} left out as the file's is"
+    if getattr(reference, "excess", None) is not None:  # the model learned it bounded
+        words += ", its albedo above 1 not bounded as the model's is"
+    return bsdf, words
+
+
 def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     blocks = [Heading("Rendering")]
     why = (
@@ -237,15 +273,11 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     ref = None
     if reference is not None and cfg.target.data is None and cfg.target.mitsuba is None:
         ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}  # analytic
-    teacher = getattr(reference, "bsdf", None) if run.model.textured else None
-    # a file that carries its teacher's normal field renders beside the whole teacher
-    # (normal map included); one without it beside the nested BSDF
-    whole = run.model.textured and run.model.has_normal_field
-    if whole:
-        teacher = getattr(reference, "whole_bsdf", teacher)
     with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
         png_path = Path(tmp) / "render.png"
         try:
+            # a Mitsuba teacher, homogeneous or textured, is rendered by Mitsuba itself
+            teacher, words = teacher_to_render(run.model, reference) or (None, "")
             psnr = plots.spheres(
                 run.dir / "model.onnx",
                 png_path,
@@ -262,9 +294,7 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     caption = f"Mitsuba 3 preview, {RENDER_SPP} spp: neural"
     if teacher is not None:
         caption += (
-            " | the teacher (Mitsuba's own BSDF"
-            + (", normal map included" if whole else ", its normal map left out as the file's is")
-            + ") | "
+            f" | the teacher ({words}) | "
             f"{ERROR_GAIN:g} x |difference| (PSNR {psnr:.1f} dB, Monte Carlo noise included)"
         )
     elif ref is not None:
