@@ -205,7 +205,7 @@ class Data(_Section):
     uniform: float = Field(0.1, ge=0.0)  # share of wo uniform on the hemisphere
     cosine: float = Field(0.1, ge=0.0)  # share of wo cosine-distributed
     importance: float = Field(0.7, ge=0.0)  # share of wo from the target's sampler
-    peak: float = Field(0.1, ge=0.0)  # share of wo about the mirror direction, uniform in u_h
+    peak: float = Field(0.1, ge=0.0)  # share of pairs uniform in (u_h, theta_d) (train/data.py)
 
     @model_validator(mode="after")
     def _shares(self):

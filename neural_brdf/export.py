@@ -792,6 +792,7 @@ def textured_for_export(
         batch=cfg.data.batch_size,
         pool=tx.pool(cfg.data.pool_size),
         seed=cfg.train.seed,
+        peak=cfg.data.peak,
         alphas=tx.project_alphas,
         alpha_source=tx.project_alpha,
     )

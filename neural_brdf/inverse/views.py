@@ -304,8 +304,10 @@ UPGRADED_BELOW = (2, 0, 0)  # Mitsuba upgrades a file of an older version as it 
 
 
 def _version(text: str) -> tuple[int, ...] | None:
+    """(major, minor, patch) of a file's ``version``, else None: Mitsuba 3.9.1 reads
+    three numbers and refuses "2.0" and "3.0.0.1" alike ("invalid version number")."""
     parts = text.strip().split(".")
-    if not parts or not all(p.isdigit() for p in parts):
+    if len(parts) != 3 or not all(p.isdigit() for p in parts):
         return None
     return tuple(int(p) for p in parts)
 

@@ -433,7 +433,7 @@ def _preset_or_path(text: str | None) -> str | None:
     config file, as ``train`` takes one; anything else as it is: a file that exists wins,
     and a missing one with a suffix (``x.onnx``, ``x.yaml``) is reported by whoever reads
     it.  A bare name that is neither: InputError listing the presets, as train's."""
-    if not text or text == STDOUT or Path(text).exists():
+    if not text or text == STDOUT or Path(text).is_file():  # a folder does not shadow one
         return text
     from neural_brdf import presets
 

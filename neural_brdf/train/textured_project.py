@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from analytic import frame
+from neural_brdf import config as cfgmod
 from neural_brdf.train.ggx_heads import (
     ALPHA_MIN,
     GGXLobes,
@@ -432,6 +433,7 @@ def refit_lobes(
     check_pairs: int = REFIT_CHECK_PAIRS,
     check_every: int = REFIT_CHECK_EVERY,
     bounded: Callable[[TexturedBRDF], TexturedBRDF] | None = None,
+    peak: float = cfgmod.Data().peak,
 ) -> tuple[TexturedBRDF, dict[str, Any]]:
     """A projected model's shared lobe network trained ``steps`` more steps with its
     projected field frozen (``texture.refit_steps``): the lobes were trained beside a
@@ -461,7 +463,6 @@ def refit_lobes(
     kept)."""
     import copy
 
-    from neural_brdf import config as cfgmod
     from neural_brdf.train.loop import learning_rate, rel_rmse
     from neural_brdf.train.textured_loop import PairPool, pairs
 
@@ -474,7 +475,7 @@ def refit_lobes(
     for p in params:
         p.requires_grad_(True)
     opt = torch.optim.Adam(params, lr=lr)
-    drawn = PairPool(teacher, pool, seed)
+    drawn = PairPool(teacher, pool, seed, peak=peak)  # data.peak, as training
     wi_all, wo_all, uv_all, f_all = drawn.at(0)
     scale = float(((f_all * wo_all[:, 2:3]) ** 2).mean().clamp_min(1e-30))
     check = pairs(teacher, check_pairs, np.random.default_rng(seed + 1))
@@ -546,6 +547,7 @@ def refitted(
     batch: int,
     seed: int,
     pool: int = REFIT_POOL,
+    peak: float = cfgmod.Data().peak,
 ) -> tuple[TexturedBRDF, list[dict[str, Any]], dict[str, Any]]:
     """:func:`refit_lobes` checked as ``bound`` bounds its lobes (model -> (the bounded
     model, its lobes' table figures): the caller's ``normalized_textured``), then bound.
@@ -559,6 +561,7 @@ def refitted(
         seed=seed,
         pool=pool,
         bounded=lambda m: bound(m)[0],
+        peak=peak,
     )
     out, tables = bound(out)
     return out, tables, info
@@ -584,6 +587,7 @@ def project_and_refit(
     seed: int,
     alphas: int = 1,
     alpha_source: str = "trained",
+    peak: float = cfgmod.Data().peak,
 ) -> tuple[TexturedBRDF, list[dict[str, Any]] | None, dict[str, Any]]:
     """``texture.project`` and ``texture.refit_steps`` after training: a model normalised
     by ``bound`` (``normalized_textured``) with its field projected (:func:`projected`,
@@ -614,5 +618,6 @@ def project_and_refit(
             batch=batch,
             seed=seed + REFIT_SEED,
             pool=min(REFIT_POOL, pool),
+            peak=peak,
         )
     return model, tables, info

@@ -122,7 +122,9 @@ def _match_forms(model: TexturedBRDF, state: dict[str, torch.Tensor]) -> None:
     for k, lobe in enumerate(model.lobes):
         table = state.get(f"lobes.{k}.table")
         if isinstance(lobe, ScaledBRDF) and table is not None:
-            form = ConditionedNormalizedBRDF if table.dim() == 3 else NormalizedBRDF
+            # as normalized_textured decides: by the network's latent, not the table's
+            # shape (an anisotropic lobe's table is (K, K, C) too)
+            form = ConditionedNormalizedBRDF if lobe.raw.latent else NormalizedBRDF
             model.lobes[k] = form(lobe.raw, table).eval()
         elif f"lobes.{k}.scale" in state and isinstance(
             lobe, NormalizedBRDF | ConditionedNormalizedBRDF

@@ -230,6 +230,19 @@ def test_validate_takes_a_preset_by_its_name(capsys, tiny_model):
     assert "rel_rmse" in by_name and by_name == by_file
 
 
+def test_a_folder_of_a_presets_name_does_not_shadow_it(capsys, tiny_model, tmp_path, monkeypatch):
+    # a run written with --out lambert: train lambert still trains the preset, and so
+    # --reference lambert still names it (it read the folder: "Is a directory")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lambert").mkdir()
+    code, by_name, err = cli(capsys, "validate", str(tiny_model), "--reference", "lambert")
+    assert code in (0, 1), err
+    _, by_file, _ = cli(
+        capsys, "validate", str(tiny_model), "--reference", str(CONFIGS / "lambert.yaml")
+    )
+    assert "rel_rmse" in by_name and by_name == by_file
+
+
 def test_view_takes_a_preset_by_its_name(capsys, tiny_model, tmp_path):
     model = str(tiny_model)
     pages = []

@@ -495,8 +495,11 @@ def test_a_loaded_table_decides_whether_the_division_is_the_identity(conditioned
         torch.testing.assert_close(high(wi, wo, *extra), raw(wi, wo, *extra))
 
 
-@pytest.mark.parametrize("conditioned", [False, True])
-def test_a_kept_lobes_form_is_taken_whatever_the_checkpoints_lobe_folded_to(conditioned):
+@pytest.mark.parametrize(
+    "conditioned, encoding",
+    [(False, "isotropic"), (True, "isotropic"), (False, "anisotropic")],
+)
+def test_a_kept_lobes_form_is_taken_whatever_the_checkpoints_lobe_folded_to(conditioned, encoding):
     """textured_store.load builds its skeleton from the checkpoint's lobes, whose tables
     may fold into a constant (ScaledBRDF) where the kept, refitted lobes kept theirs, or
     the other way round: each skeleton lobe takes the kept state's form, so the state
@@ -509,8 +512,9 @@ def test_a_kept_lobes_form_is_taken_whatever_the_checkpoints_lobe_folded_to(cond
     from neural_brdf.train.textured_model import ScaledBRDF
 
     torch.manual_seed(4)
-    raw = RawBRDF("isotropic", [8], "relu", heads=1, latent=int(conditioned)).eval()
-    shape = (3, 5, 3) if conditioned else (5, 3)
+    raw = RawBRDF(encoding, [8], "relu", heads=1, latent=int(conditioned)).eval()
+    # an anisotropic lobe's table is (K, K, C), as a conditioned one's (S, K, C)
+    shape = (3, 5, 3) if conditioned else (5, 5, 3) if encoding == "anisotropic" else (5, 3)
     cls = ConditionedNormalizedBRDF if conditioned else NormalizedBRDF
     kept = nn.ModuleList(
         [cls(raw, torch.full(shape, 2.0)), ScaledBRDF(raw, torch.full(shape, 1.5))]

@@ -417,3 +417,27 @@ def test_the_run_prints_the_teachers_normal_field_warning(teacher, tmp_path, cap
     assert "warning: the file's normal field is far from the teacher's" in err
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert seen == [metrics.get("normal_field")]
+
+
+def test_every_training_pool_of_a_projected_run_draws_data_peaks_share(
+    teacher, tmp_path, capsys, monkeypatch
+):
+    """Training and the lobes' refit on the projected field draw their pools with the
+    config's data.peak (the refit's took the default share whatever the config said)."""
+    from neural_brdf.train import textured_loop
+
+    shares = []
+    init = textured_loop.PairPool.__init__
+
+    def recording(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        shares.append(self.peak)
+
+    monkeypatch.setattr(textured_loop.PairPool, "__init__", recording)
+    cfg = write_config(tmp_path, teacher, steps=20, name="peak")
+    code, _, err = cli(
+        capsys, "train", str(cfg), "--out", str(tmp_path / "run"), "--set", "data.peak=0.03",
+        "--set", "texture.project=8", "--set", "texture.refit_steps=5",
+    )  # fmt: skip
+    assert code == 0, err
+    assert len(shares) >= 2 and set(shares) == {0.03}, shares
