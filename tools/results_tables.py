@@ -3661,8 +3661,13 @@ SECTIONS = (
     (RESULTS / "inverse.json", inverse_section),
     _images_any(
         "images_any.json",
-        "the defaults since session 87: the start scored again through the last sampling "
-        "lobe at the stage's end",
+        "the defaults since 2026-12-07: the start distilled from training pairs that reach "
+        "normal incidence (run while other jobs shared the 2 cores: its times are no measure)",
+    ),
+    _images_any(
+        "images_any_2026-12-07_session87.json",
+        "the defaults of sessions 87 and 88, before the training pairs reached normal "
+        "incidence: the start scored again through the last sampling lobe at the stage's end",
     ),
     _images_any(
         "images_any_2026-12-06_rescore.json",
