@@ -336,13 +336,9 @@ def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
     uv = np.repeat(rng.random((PROBE_UV, 2)), PEAK_PAIRS, 0)
     wi = _hemisphere(rng.random((len(uv), 2)), z_min=math.sin(math.radians(3.0)))
     try:
+        s1 = rng.random(len(uv))
+        bs, _ = sample_rows(mi, bsdf, wi, uv, s1, rng.random((2, len(uv))).T)
         si = interaction(mi, wi, uv)
-        bs, _ = bsdf.sample(
-            mi.BSDFContext(),
-            si,
-            mi.Float(rng.random(len(uv)).astype(np.float32)),
-            mi.Point2f(np.ascontiguousarray(rng.random((2, len(uv))), dtype=np.float32)),
-        )
         wo, pdf = _np(bs.wo), _np(bs.pdf)
         ok = (pdf > 0) & (wo[:, 2] > 1e-3) & np.all(np.isfinite(wo), -1)
         wo[~ok] = (0.0, 0.0, 1.0)
@@ -360,6 +356,19 @@ def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
             "on the surface), which a BRDF of finite values cannot hold: give a larger "
             "roughness"
         )
+
+
+def sample_rows(
+    mi: Any, bsdf: Any, wi: np.ndarray, uv: np.ndarray | None, s1: np.ndarray, u: np.ndarray
+) -> tuple[Any, Any]:
+    """Mitsuba's (BSDFSample3f, weight) of ``bsdf`` for unit ``wi`` rows (K, 3) at ``uv``
+    (K, 2; None: 0.5), the lobe choice ``s1`` (K,) and the square's ``u`` (K, 2)."""
+    return bsdf.sample(
+        mi.BSDFContext(),
+        interaction(mi, wi, uv),
+        mi.Float(np.asarray(s1).astype(np.float32)),
+        mi.Point2f(np.ascontiguousarray(np.asarray(u).T, dtype=np.float32)),
+    )
 
 
 def interaction(mi: Any, wi: np.ndarray, uv: np.ndarray | None = None) -> Any:

@@ -71,6 +71,7 @@ from neural_brdf.measured.mitsuba import (
     load,
     one_bsdf,
     resolver_for,
+    sample_rows,
     variant_scope,
 )
 
@@ -293,15 +294,9 @@ class TexturedMitsubaTarget:
     def _sample_rows(self, wi: np.ndarray, uv: np.ndarray, u: np.ndarray) -> tuple[Any, Any]:
         """Mitsuba's (BSDFSample3f, weight) for unit wi rows.  The lobe choice
         (``sample1``) is a uniform number from a hash of ``u`` (as MitsubaTarget)."""
-        mi = self._mi
         seed = int.from_bytes(hashlib.blake2b(u.tobytes(), digest_size=8).digest(), "little")
         s1 = np.random.default_rng(seed).random(len(u))
-        return self.bsdf.sample(
-            mi.BSDFContext(),
-            interaction(self._mi, wi, uv),
-            mi.Float(s1.astype(np.float32)),
-            mi.Point2f(np.ascontiguousarray(u.T, dtype=np.float32)),
-        )
+        return sample_rows(self._mi, self.bsdf, wi, uv, s1, u)
 
     def sample(self, wi: Any, uv: Any, u: Any) -> np.ndarray:
         """wo (..., 3) for wi (..., 3) at uv (..., 2) from u (..., 2) in [0, 1)^2 by

@@ -447,7 +447,6 @@ def _preset_or_path(text: str | None) -> str | None:
 
 def _analytic_target(config_path: str):
     """The analytic model of a config's target (measured-data targets are refused)."""
-    import analytic
     from neural_brdf import config
 
     if Path(config_path).suffix.lower() == ".xml":  # else read as YAML: "expected a mapping"
@@ -459,6 +458,14 @@ def _analytic_target(config_path: str):
 
     cfg = config.load(config_path)
     data.refuse_images(cfg.target, config_path)  # its target.model: the unused default
+    return _analytic_of(cfg, config_path)
+
+
+def _analytic_of(cfg, config_path: str):
+    """(name, params, BRDF) of a loaded config's analytic target; a measured or Mitsuba
+    one is refused, naming ``config_path``."""
+    import analytic
+
     for key in ("data", "mitsuba"):
         if getattr(cfg.target, key) is not None:
             raise InputError(f"{config_path}: target.{key}: only analytic targets here")
@@ -491,7 +498,7 @@ def _render_reference(path: str, model) -> tuple[dict | None, tuple | None]:
             "teachers only (a measured table is not a BSDF Mitsuba renders)"
         )
     if cfg.target.mitsuba is None:
-        name, params, _ = _analytic_target(path)
+        name, params, _ = _analytic_of(cfg, path)
         return {"model": name, "params": params}, None
     from neural_brdf.viewer.report.sections import teacher_to_render
 

@@ -140,10 +140,17 @@ def uniform_wi(n: int, gen: torch.Generator) -> torch.Tensor:
     return frame.square_to_uniform_hemisphere(torch.rand(n, 2, generator=gen))
 
 
+def peak_tan2(u_h: torch.Tensor) -> torch.Tensor:
+    """tan^2(theta_h / 2) of the encoding's peak coordinate u_h: the inverse of its
+    log-stretched map (:mod:`neural_brdf.encodings.angles`), so that uniform u_h gives
+    half vectors uniform in u_h."""
+    return enc.PEAK_EPS * torch.expm1(u_h / enc.PEAK_LOG_SCALE)
+
+
 def about_mirror(wi: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """wi reflected about a half vector h with u_h(h) = u[:, 0] (the encoding's peak
     coordinate, so uniform u gives pairs uniform in u_h) and azimuth 2 pi u[:, 1]."""
-    t2 = enc.PEAK_EPS * torch.expm1(u[:, 0] / enc.PEAK_LOG_SCALE)  # tan^2(theta_h / 2)
+    t2 = peak_tan2(u[:, 0])
     cos_h = (1.0 - t2) / (1.0 + t2)
     sin_h = 2.0 * torch.sqrt(t2) / (1.0 + t2)
     phi = 2.0 * math.pi * u[:, 1]
@@ -160,8 +167,7 @@ def peak_pairs(u: torch.Tensor, dtype: torch.dtype = torch.float32):
     u_h, theta_d -> 0 (wi = wo = the normal) that the encoding stretches over half of
     u_h.  Either direction may be below the horizon."""
     u = u.double()
-    t2 = enc.PEAK_EPS * torch.expm1(u[:, 0] / enc.PEAK_LOG_SCALE)  # tan^2(theta_h / 2)
-    theta_h = 2.0 * torch.atan(torch.sqrt(t2))
+    theta_h = 2.0 * torch.atan(torch.sqrt(peak_tan2(u[:, 0])))
     wi, wo = frame.from_rusinkiewicz(
         theta_h, 2.0 * math.pi * u[:, 1], 0.5 * math.pi * u[:, 2], 2.0 * math.pi * u[:, 3]
     )
