@@ -11,7 +11,9 @@ from strategies import directions
 
 
 def test_registry_lists_every_issue_model():
-    assert analytic.available() == [
+    # a superset: a model added by its own file and _MODELS line (docs/architecture.md,
+    # "Adding something") is welcome; the issue's models must stay
+    issue = {
         "lambertian",
         "phong",
         "blinn_phong",
@@ -22,7 +24,9 @@ def test_registry_lists_every_issue_model():
         "bank",
         "oren_nayar",
         "retroreflective",
-    ]
+    }
+    missing = issue - set(analytic.available())
+    assert not missing, f"analytic.available() lost {sorted(missing)}"
 
 
 @pytest.mark.parametrize("name", analytic.available())

@@ -132,6 +132,33 @@ def test_every_default_config_key_is_documented():
     assert not missing, f"docs/config.md does not document {missing}"
 
 
+def _row(page: str, start: str) -> str:
+    """The first line of docs/``page`` that starts with ``start``."""
+    text = (REPO / "docs" / page).read_text()
+    rows = [line for line in text.splitlines() if line.startswith(start)]
+    assert rows, f"docs/{page}: no line starts with {start!r}"
+    return rows[0]
+
+
+def test_the_hand_kept_lists_name_every_encoding_and_codegen_target():
+    # a new encoding or back end is one file and its registry line (docs/architecture.md):
+    # the pages that list the names by hand must follow, and this names the page to edit
+    from neural_brdf import backends, encodings
+    from neural_brdf.tooling import cli
+
+    rows = {
+        "config.md": _row("config.md", "| `model.encoding` |"),
+        "model.md": _row("model.md", "| `encoding` |"),
+        "portable.md": _row("portable.md", "| `encoding` |"),
+    }
+    for page, row in rows.items():
+        missing = [n for n in encodings.names() if f"`{n}`" not in row]
+        assert not missing, f"docs/{page}: the encodings' list lacks {missing}: {row}"
+    usage = "--target " + "|".join(backends.TARGETS)
+    assert usage in (REPO / "docs" / "cli.md").read_text(), f"docs/cli.md: say {usage}"
+    assert usage in (cli.__doc__ or ""), f"neural_brdf/tooling/cli.py's docstring: say {usage}"
+
+
 def test_the_images_guide_lists_every_images_key():
     # docs/inverse.md's "The config" says its images bullet holds every setting of the fit
     keys = _keys(yaml.safe_load((REPO / "configs" / "defaults.yaml").read_text()))

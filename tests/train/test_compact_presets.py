@@ -17,8 +17,11 @@ MLP = sorted((CONFIGS / "mlp").glob("*.yaml"))
 
 
 def test_every_preset_is_compact_and_every_mlp_preset_has_its_twin():
-    assert {p.stem for p in MLP} <= {p.stem for p in COMPACT}
-    assert {p.stem for p in COMPACT} - {p.stem for p in MLP} == {"quickstart"}
+    orphans = sorted({p.stem for p in MLP} - {p.stem for p in COMPACT})
+    assert not orphans, f"configs/mlp/ has no compact twin in configs/ for {orphans}"
+    untwinned = sorted({p.stem for p in COMPACT} - {p.stem for p in MLP} - {"quickstart"})
+    assert not untwinned, f"add configs/mlp/<name>.yaml (the 3 x 64 network) for {untwinned}"
+    assert (CONFIGS / "quickstart.yaml").exists() and not (CONFIGS / "mlp/quickstart.yaml").exists()
 
 
 @pytest.mark.parametrize("path", COMPACT, ids=[p.stem for p in COMPACT])
