@@ -243,6 +243,12 @@ def convert_opset(model, opset: int) -> onnx.ModelProto:
         ):
             blocking.add(n.op_type)
     if not blocking:
+        # an attribute newer than the target opset left here holds its default (any other
+        # value blocked above: Reshape's allowzero = 0, which torch writes): drop it
+        for n in proto.graph.node:
+            known = onnx.defs.get_schema(n.op_type, opset).attributes
+            for a in [a for a in n.attribute if a.name not in known]:
+                n.attribute.remove(a)
         for o in proto.opset_import:
             if o.domain in ("", "ai.onnx"):
                 o.version = opset

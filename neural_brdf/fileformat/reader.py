@@ -50,6 +50,8 @@ def load(model, *, external_data: bool = True) -> onnx.ModelProto:
         raise
     except Exception as e:  # onnx raises DecodeError, OSError and others on a bad file
         raise InputError(f"{source}: not a loadable ONNX model ({type(e).__name__})") from None
+    if not proto.HasField("graph"):  # protobuf reads an empty file as an empty message
+        raise InputError(f"{source}: not an ONNX model (it has no graph; an empty file?)")
     sizes.check(proto, source=source)  # declared sizes, before anything is allocated
     return proto
 

@@ -401,6 +401,12 @@ def _read_proto(filename) -> tuple[Path, Any, dict | None]:
     except InputError as e:
         raise InputError(f"neural_brdf: {e}") from None
     try:
+        # the contract first: a foreign graph would fail later inside onnxruntime (the
+        # lobe's fit at load) with a message that names neither the file nor the fault
+        reader.signature(proto, source=f"neural_brdf: {path}")
+    except InputError as e:
+        raise InputError(str(e)) from None
+    try:
         stored = lobe_format.from_metadata(reader.props(proto))
     except InputError as e:
         raise InputError(f"neural_brdf: {path}: {e}") from None

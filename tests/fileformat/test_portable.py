@@ -172,6 +172,29 @@ def test_onnx_version_converter_cannot_go_below_14():
     assert portable.convert_opset(m, 13).opset_import[0].version == 13
 
 
+def test_convert_opset_drops_a_default_attribute_older_opsets_lack():
+    # torch writes Reshape's allowzero = 0 (a textured graph has one); opset 13's Reshape
+    # has no such attribute, so relabelling must drop it, and keep a value that matters
+    h = onnx.helper
+    g = h.make_graph(
+        [h.make_node("Reshape", ["x", "s"], ["y"], allowzero=0)],
+        "g",
+        [h.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [2, 3])],
+        [h.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [3, 2])],
+        [h.make_tensor("s", onnx.TensorProto.INT64, [2], [3, 2])],
+    )
+    m = h.make_model(g, opset_imports=[h.make_opsetid("", 17)])
+    out = portable.convert_opset(m, 13)  # before: ValidationError, unrecognized allowzero
+    assert out.opset_import[0].version == 13 and not out.graph.node[0].attribute
+    x = np.arange(6, dtype=np.float32).reshape(2, 3)
+    sess = ort.InferenceSession(out.SerializeToString(), providers=["CPUExecutionProvider"])
+    np.testing.assert_array_equal(sess.run(["y"], {"x": x})[0], x.reshape(3, 2))
+    assert len(portable.convert_opset(m, 14).graph.node[0].attribute) == 1  # 14 knows it
+    m.graph.node[0].attribute[0].i = 1
+    with pytest.raises(ValueError, match="Reshape"):
+        portable.convert_opset(m, 13)
+
+
 # ------------------------------------------------------------------ metadata
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
@@ -278,6 +301,9 @@ def test_the_one_loader_names_a_file_that_is_not_onnx(tmp_path):
         reader.load(bad)
     with pytest.raises(InputError, match="model bytes: not a loadable ONNX model"):
         reader.load(b"\x08\xff\xff")
+    (tmp_path / "empty.onnx").write_bytes(b"")  # protobuf reads it as an empty message
+    with pytest.raises(InputError, match=r"empty\.onnx: not an ONNX model \(it has no graph"):
+        reader.load(tmp_path / "empty.onnx")
     assert graph.load is reader.load  # the graph lowering reads through it
 
 

@@ -330,6 +330,24 @@ def test_bad_lobe_metadata_is_a_one_line_input_error(mi, plugin, tiny_model, tmp
     assert "\n" not in str(e.value)
 
 
+def test_a_foreign_or_empty_file_is_the_plugins_one_line_error(mi, plugin, tmp_path):
+    # before: onnxruntime's own error from the lobe's fit at load, naming neither
+    import onnx
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 4])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 4])
+    graph = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "g", [x], [y])
+    onnx.save(helper.make_model(graph), tmp_path / "foreign.onnx")
+    (tmp_path / "empty.onnx").write_bytes(b"")
+    for name, words in [("foreign.onnx", "expected inputs"), ("empty.onnx", "no graph")]:
+        with pytest.raises(InputError) as e:
+            plugin.read_model(tmp_path / name)
+        assert name in str(e.value) and words in str(e.value) and "\n" not in str(e.value)
+        with pytest.raises(Exception, match=words):  # the constructor, through Mitsuba
+            mi.load_dict({"type": "neural_brdf", "filename": str(tmp_path / name)})
+
+
 @pytest.mark.parametrize(
     "theta, stored",
     [(t, None) for t in CHI2_THETA_DEG]
