@@ -724,10 +724,17 @@ class Config(_Section):
                 "set images.validation_pixels > 0 or images.validation_views, or name the "
                 "start (constant, ggx or a family)"
             )
-        if im.start in ANISOTROPIC_FAMILIES and not encodings.get(self.model.encoding).anisotropic:
+        isotropic = not encodings.get(self.model.encoding).anisotropic
+        if im.start in ANISOTROPIC_FAMILIES and isotropic:
             raise ValueError(
                 f"images.start: {im.start} needs an anisotropic model.encoding "
                 f"(anisotropic), not {self.model.encoding}"
+            )
+        if im.start == "auto" and isotropic and set(im.start_families) <= set(ANISOTROPIC_FAMILIES):
+            raise ValueError(
+                f"images.start_families: {', '.join(im.start_families)} alone: every family "
+                f"is left out, as an isotropic model.encoding ({self.model.encoding}) cannot "
+                "represent it; add an isotropic family or set model.encoding: anisotropic"
             )
         return self
 

@@ -59,6 +59,9 @@ def run(
         if cfg.target.images is not None:
             from neural_brdf.inverse import fit as inverse  # Mitsuba: only for an images fit
 
+            done = inverse.finished_report(cfg, run_dir, folder) if resume else None
+            if done is not None:  # nothing is written (docs/cli.md, resume)
+                return {**done, "already_finished": done["training"]["steps"]}
             raw, training, t0, cfg = inverse.fit(  # cfg: its grid as the start chose it
                 cfg, run_dir, resume=resume, overwrite=overwrite, folder=folder
             )

@@ -199,6 +199,13 @@ def test_the_default_start_chooses_by_a_split_and_refuses_to_run_without_one(ima
         "model.grid.coords=half_disc",
     ]
     assert config.load(images_config, aniso).images.start == "roughconductor_aniso"
+    # auto with that family alone: every candidate left out, known before anything runs
+    with pytest.raises(config.ConfigError, match="images.start_families: roughconductor_aniso"):
+        config.load(images_config, ["images.start_families=[roughconductor_aniso]"])
+    assert config.load(
+        images_config,
+        ["images.start_families=[roughconductor_aniso]", "model.encoding=anisotropic"],
+    ).images.start_families == ["roughconductor_aniso"]
 
 
 @pytest.mark.parametrize(

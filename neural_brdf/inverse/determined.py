@@ -405,7 +405,7 @@ def warning(det: Determined, below: float = WARN_ENERGY, role: str = "start") ->
     return (
         f"determined: in {90.0 / det.bins:g}-degree bins the images fix f to "
         f"{100 * det.tol:.0f} % over {100 * det.figure:.1f} % of the domain, holding "
-        f"{100 * det.energy_figure:.1f} % of the {det.reference} {role}'s reflected light "
+        f"{100 * det.energy_figure:.1f} % of the reflected light of the {det.reference} {role} "
         f"(below {100 * below:.0f} %): the rest of the BRDF comes from the start's family "
         "and the network's prior, not the images; add views or lights at other angles "
         "(docs/inverse.md)"

@@ -152,6 +152,7 @@ RESUME_MUST_MATCH = (
     *MUST_MATCH,
     "images.start",
     "images.validation_pixels",
+    "images.validation_block",
     "images.validation_views",
 )
 HELDOUT_COLUMN = "heldout_loss"  # log.csv's column of the held-out loss (with a split)
@@ -852,8 +853,15 @@ def _fit_views(
             init_info["seconds"] += rough["seconds"]
     # what the views determine near the start (a resumed run: its checkpoint's start)
     start_info = init_info if init_info is not None else _saved_init(folder)
+    element = _start_element(start_info)  # None: the constant start, measured by a stand-in
     determined_start, warning = _determined(
-        views, run_dir, _start_element(start_info), cfg.train.seed, covered, picture=False
+        views,
+        run_dir,
+        element,
+        cfg.train.seed,
+        covered,
+        picture=False,
+        role="start" if element is not None else "stand-in for the constant start",
     )
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
@@ -883,6 +891,27 @@ def _fit_views(
         )
     }
     return raw, training, cfg
+
+
+def finished_report(cfg: cfgmod.Config, run_dir: Path, folder: runfolder.Folder) -> dict | None:
+    """``--resume`` of an images run that has finished: its metrics.json (model.onnx
+    written too) when the checkpoint, checked as a resume checks it, is at the steps the
+    run trains (after a poor start, more: :func:`_resumed_config`) or where its image
+    stage stopped early (``training.validation.stopped_at``: a resume would not step
+    again); None otherwise, and always without a checkpoint."""
+    if not folder.ckpt.exists():
+        return None
+    resumed = _resumed_config(cfg, folder)
+    from neural_brdf.train import session
+
+    ckpt = session.load_resumable(resumed, folder.ckpt, kind=KIND, must_match=RESUME_MUST_MATCH)
+    step = int(ckpt["step"])
+    done = session.finished_report(run_dir, step)
+    if done is None:
+        return None
+    validation = done["training"].get("validation")
+    stopped = validation.get("stopped_at") if isinstance(validation, dict) else None
+    return done if step >= resumed.train.steps or stopped == step else None
 
 
 def _saved_init(folder: runfolder.Folder) -> dict[str, Any] | None:

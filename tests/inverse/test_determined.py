@@ -115,7 +115,7 @@ def test_a_plane_under_a_constant_sky_is_observed_but_determines_nothing(plane):
     det = D.compute([plane], None, None, spp=64)
     assert observed > 0.15
     assert all(lv.figure == 0.0 for lv in det.levels.values()), det.levels
-    assert D.warning(det) is not None and "start's reflected light" in D.warning(det)
+    assert D.warning(det) is not None and "reflected light of the diffuse start" in D.warning(det)
 
 
 def test_a_sky_determines_more_than_a_flash(mi, tmp_path):

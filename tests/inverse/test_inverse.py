@@ -1042,6 +1042,11 @@ def test_a_thin_coverage_warns_in_one_line(mi, tmp_path, capsys):
     warnings = [line for line in err.splitlines() if line.startswith("warning: coverage:")]
     assert len(warnings) == 1, err
     assert "below 25 %" in warnings[0]
+    # what the views determine, measured near a grey stand-in (the constant start has no
+    # analytic form): said so, not "the diffuse start" of a run without one, as before
+    determined = [line for line in err.splitlines() if line.startswith("warning: determined:")]
+    assert len(determined) == 1, err
+    assert "stand-in for the constant start" in determined[0], determined[0]
     coverage = json.loads((run_dir / "metrics.json").read_text())["training"]["coverage"]
     assert coverage["figure"] < 0.25 and len(coverage["per_view"]) == 3
     assert (run_dir / "coverage.png").is_file()
@@ -1209,12 +1214,41 @@ def test_a_resumed_run_keeps_its_split(fitted, example, tmp_path, capsys):
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy)
     before = (copy / "ckpt.pt").read_bytes()
-    other = FIT_OVERRIDES + ["train.steps=40", "images.validation_pixels=0.3"]
-    code, err = run_cli(train_args(example / "fit.yaml", copy, other) + ["--resume"], capsys)
-    assert code == 2, err
-    lines = [s for s in err.strip().splitlines() if s.strip()]
-    assert len(lines) == 1 and "images.validation_pixels" in lines[0], err
-    assert (copy / "ckpt.pt").read_bytes() == before
+    # the split's share, and its tiles' size (a new split, scored against the old
+    # split's best: no step after the resume could be kept; it resumed before)
+    for key, value in [("validation_pixels", "0.3"), ("validation_block", "8")]:
+        other = FIT_OVERRIDES + ["train.steps=40", f"images.{key}={value}"]
+        code, err = run_cli(train_args(example / "fit.yaml", copy, other) + ["--resume"], capsys)
+        assert code == 2, err
+        lines = [s for s in err.strip().splitlines() if s.strip()]
+        assert len(lines) == 1 and f"images.{key}" in lines[0], err
+        assert (copy / "ckpt.pt").read_bytes() == before
+
+
+@pytest.mark.slow
+def test_resuming_a_finished_images_run_touches_nothing(fitted, example, tmp_path, capsys):
+    # docs/cli.md: "already finished ...; nothing to do", exit 0, no file touched; an
+    # images run exported, validated and reported again before, rewriting its timings
+    import shutil
+
+    code, run_dir = fitted
+    assert code == 0
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    split = [
+        f"images.validation_pixels={HELDOUT_SHARE}",
+        "images.start_train_steps=30",
+        "images.start_train_lr=null",
+        "images.start_lr_scale=1",
+    ]
+    files = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in copy.rglob("*") if p.is_file()}
+    args = train_args(example / "fit.yaml", copy, FIT_OVERRIDES + split) + ["--resume"]
+    code = cli.main(args)
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "already finished" in out and "nothing to do" in out, out + err
+    now = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in copy.rglob("*") if p.is_file()}
+    assert now == files
 
 
 def test_a_run_stopped_during_its_start_resumes_by_starting_again(
