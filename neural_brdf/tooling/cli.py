@@ -33,6 +33,7 @@ import argparse
 import contextlib
 import os
 import signal
+import stat
 import sys
 import threading
 from pathlib import Path
@@ -207,6 +208,16 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
         raise InputError(f"{flag} {out}: is a folder; give a file name ({what})")
 
 
+def _in_place(out: str) -> bool:
+    """Whether ``out`` is a device, a FIFO or a socket (``/dev/null``, ``/dev/stdout``, a
+    named pipe), which fileio writes in place: not a regular file, a folder or a new path."""
+    try:
+        mode = os.stat(out).st_mode  # follows links, as fileio does
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
 # A run folder's own files (neural_brdf.runfolder owns the list): no command's output may
 # replace one of them, except the file that command exists to write there.
 def _not_an_input(
@@ -236,6 +247,22 @@ def _not_an_input(
             f"{flag} {out}: is a file of the run in {target.parent}; give a file outside "
             "the run folder (or another name)"
         )
+
+
+def _write_files(payloads: dict[str, bytes]) -> None:
+    """Each file of ``payloads`` (path -> bytes) atomically (see fileio), and all of them
+    or none: every one is written to its temporary file before the first is renamed, and
+    a failed write removes them all."""
+    from neural_brdf.fileio import atomic_path
+
+    path = ""
+    try:
+        with contextlib.ExitStack() as stack:
+            for path, payload in payloads.items():
+                with open(stack.enter_context(atomic_path(path)), "wb") as f:
+                    f.write(payload)
+    except OSError as e:
+        raise InputError(f"{e.filename or path}: cannot write ({e.strerror})") from None
 
 
 def _write_text(out: str, text: str) -> None:
@@ -410,7 +437,7 @@ def _validate(args) -> int:
         raise InputError(f"--json {args.json}: is a folder; give a file name")
     given = _preset_or_path(args.reference)  # a preset name, as train takes one
     _not_an_input(args.json, {"model": args.model, "reference": given}, flag="--json")
-    reference = validate.reference_from(given) if given else None
+    reference = _reference(given) if given else None
     report = validate.report(args.model, target=reference)
     # with --json -, stdout carries the JSON alone and the table goes to stderr
     table_to = sys.stderr if args.json == STDOUT else sys.stdout
@@ -426,6 +453,21 @@ def _validate(args) -> int:
         except OSError as e:
             raise InputError(f"{args.json}: cannot write ({e.strerror})") from None
     return EXIT_OK if validate.passed(report) else EXIT_PHYSICS  # the peak too
+
+
+def _reference(path: str):
+    """``validate --reference``: :func:`neural_brdf.validate.reference_from`, a config read
+    with train's warnings (an empty one means the default target)."""
+    from neural_brdf import validate
+    from neural_brdf.measured import formats
+
+    if formats.find(path) is not None or Path(path).suffix.lower() == ".xml":
+        return validate.reference_from(path)
+    from neural_brdf import config
+    from neural_brdf.train import data
+
+    # (reference_from's own reading of a config, but for the warnings)
+    return data.build_target(config.load(path, warn=_warn).target, source=str(path))
 
 
 def _preset_or_path(text: str | None) -> str | None:
@@ -456,7 +498,7 @@ def _analytic_target(config_path: str):
         )
     from neural_brdf.train import data
 
-    cfg = config.load(config_path)
+    cfg = config.load(config_path, warn=_warn)  # an empty config: train's warning
     data.refuse_images(cfg.target, config_path)  # its target.model: the unused default
     return _analytic_of(cfg, config_path)
 
@@ -464,16 +506,17 @@ def _analytic_target(config_path: str):
 def _analytic_of(cfg, config_path: str):
     """(name, params, BRDF) of a loaded config's analytic target; a measured or Mitsuba
     one is refused, naming ``config_path``."""
-    import analytic
+    from neural_brdf import config
+    from neural_brdf.train import data
 
     for key in ("data", "mitsuba"):
         if getattr(cfg.target, key) is not None:
             raise InputError(f"{config_path}: target.{key}: only analytic targets here")
-    return (
-        cfg.target.model,
-        dict(cfg.target.params),
-        analytic.create(cfg.target.model, **cfg.target.params),
-    )
+    try:  # a bad model or parameter: train's message (target.model, target.params)
+        brdf = data.build_target(cfg.target, source=config_path)
+    except config.ConfigError as e:
+        raise InputError(f"{config_path}: {e}") from None
+    return cfg.target.model, dict(cfg.target.params), brdf
 
 
 def _render_reference(path: str, model) -> tuple[dict | None, tuple | None]:
@@ -490,7 +533,7 @@ def _render_reference(path: str, model) -> tuple[dict | None, tuple | None]:
             f"{{mitsuba: {Path(path).name}}}) or an analytic target here (neural-brdf view "
             "MODEL --compare FILE.xml takes the file itself)"
         )
-    cfg = config.load(path)
+    cfg = config.load(path, warn=_warn)  # an empty config: train's warning
     data.refuse_images(cfg.target, path)  # its target.model: the unused default
     if cfg.target.data is not None:
         raise InputError(
@@ -516,21 +559,37 @@ def _bake(args) -> int:
     _output_file(args.out, f"a tabulated BRDF ({suffixes})")
     _not_an_input(args.out, {"source": args.source}, flag="-o")
     fmt = formats.format_of(args.out)  # an unknown suffix: InputError naming the known ones
-    if str(args.source).endswith(".onnx"):
+    if Path(args.source).suffix.lower() == ".onnx":
         from neural_brdf.runtime import load
+        from neural_brdf.train.encoding import is_anisotropic
 
         model = load(args.source)
         _project_model(model, args.source)
         _homogeneous(model, args.source, "bake", "an RGL or MERL table holds one BRDF")
+        if is_anisotropic(model.encoding):  # (an unknown encoding counts as anisotropic)
+            raise InputError(
+                f"{args.source}: encoding {model.encoding}: the model may depend on the "
+                f"azimuth; {_ISOTROPIC_TABLES}"
+            )
         fn = model.eval
     else:  # a config, or a preset's name
-        fn = _analytic_target(_preset_or_path(args.source) or args.source)[2].eval
+        name, _, brdf = _analytic_target(_preset_or_path(args.source) or args.source)
+        if brdf.anisotropic:
+            raise InputError(f"{args.source}: target: an anisotropic {name}; {_ISOTROPIC_TABLES}")
+        fn = brdf.eval
     try:
         fmt.bake(fn, args.out)
     except OSError as e:
         raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
     print(f"wrote {args.out} ({fmt.name})")
     return EXIT_OK
+
+
+# why bake refuses an anisotropic model or target (docs/rgl.md)
+_ISOTROPIC_TABLES = (
+    "bake writes isotropic tables only (MERL, and RGL with one phi_i: anisotropic .bsdf "
+    "files are not written yet)"
+)
 
 
 def _homogeneous(model, path: str, command: str, why: str) -> None:
@@ -608,12 +667,16 @@ def _view(args) -> int:
         may="viewer.html",
     )
 
-    if args.out == STDOUT:
-        models = viewer.models_for(args.model, args.compare, probes=probes)
+    if args.out == STDOUT or _in_place(args.out):  # -o -, /dev/stdout, a FIFO: any name
+        models = viewer.models_for(args.model, args.compare, probes=probes, warn=_warn)
         title = f"neural-brdf viewer: {Path(args.model).name}"  # as write_viewer's
-        _write_text(STDOUT, viewer.page(models, title=title, probes=probes))
+        _write_text(args.out, viewer.page(models, title=title, probes=probes))
+        if args.out != STDOUT:  # not into the page, when the device is stdout
+            print(f"wrote {args.out}", file=sys.stderr)
         return EXIT_OK
-    written = viewer.write_viewer(args.model, args.out, compare=args.compare, probes=probes)
+    written = viewer.write_viewer(
+        args.model, args.out, compare=args.compare, probes=probes, warn=_warn
+    )
     print(f"wrote {written}")
     return EXIT_OK
 
@@ -644,6 +707,8 @@ def _codegen(args) -> int:
     if args.out != STDOUT and Path(args.out).is_dir():
         raise InputError(f"-o {args.out}: is a folder; give a file name")
     _not_an_input(args.out, {"model": args.model}, flag="-o")
+    # -o -, /dev/stdout, a FIFO: stdout may be the code itself, so status goes to stderr
+    in_place = args.out == STDOUT or _in_place(args.out)
     text = backends.generate(args.model, args.target)
     # a textured file's code reads its weight table from buffers the host binds: their
     # data go next to the code, OUT's stem + .texture<k>.f32 (docs/codegen.md)
@@ -653,24 +718,29 @@ def _codegen(args) -> int:
             "the textures are not written with -o -: give -o FILE (FILE's stem + "
             ".texture<k>.f32) or use neural_brdf.backends.textures()"
         )
-    elif textures:
-        from neural_brdf.fileio import atomic_write
-
-        stem = Path(args.out).with_suffix("")
-        for k, data in enumerate(textures):
-            path = f"{stem}.texture{k}.f32"
-            _not_an_input(path, {"model": args.model}, flag="-o")
-            try:
-                atomic_write(path, data.astype("<f4").tobytes())
-            except OSError as e:
-                raise InputError(f"{path}: cannot write ({e.strerror})") from None
-            print(f"wrote {path} (texture {k}: {data.shape[0]} x {data.shape[1]} float32)")
-    _write_text(args.out, text)
-    # with -o -, stdout carries the code alone
+        textures = []
+    elif textures and in_place:
+        raise InputError(
+            f"-o {args.out}: not a regular file; a textured model's textures are written "
+            "beside its code (FILE's stem + .texture<k>.f32): give a file path (or -o - "
+            "for the code alone)"
+        )
+    stem = Path(args.out).with_suffix("")
+    files = {f"{stem}.texture{k}.f32": t for k, t in enumerate(textures)}
+    for path in files:  # every check before the first write
+        _not_an_input(path, {"model": args.model}, flag="-o")
+    if files:  # the textures and the code: all of them or none
+        payloads = {p: t.astype("<f4").tobytes() for p, t in files.items()}
+        _write_files({**payloads, args.out: text.encode("utf-8")})
+    else:
+        _write_text(args.out, text)
+    status = sys.stderr if in_place else sys.stdout
+    for k, (path, t) in enumerate(files.items()):
+        print(f"wrote {path} (texture {k}: {t.shape[0]} x {t.shape[1]} float32)", file=status)
     print(
         f"wrote {'stdout' if args.out == STDOUT else args.out} "
         f"({args.target}, {text.count(chr(10))} lines)",
-        file=sys.stderr if args.out == STDOUT else sys.stdout,
+        file=status,
     )
     return EXIT_OK
 

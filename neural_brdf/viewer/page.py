@@ -509,10 +509,11 @@ def _label(path: Path) -> str:
     return f"{path.parent.name}/{path.name}" if path.parent.name else path.name
 
 
-def models_for(model, compare=None, *, probes=PROBES) -> list[Model]:
+def models_for(model, compare=None, *, probes=PROBES, warn=None) -> list[Model]:
     """The page's models: ``model`` (.onnx) and optionally ``compare``: another .onnx of
     the same kind (textured or not), a Mitsuba teacher (.xml), or a config (.yaml) whose
-    analytic target, or Mitsuba teacher, is compared."""
+    analytic target, or Mitsuba teacher, is compared.  ``warn``: called with train's
+    one-line warnings about the config (:func:`neural_brdf.config.load`: an empty one)."""
     from neural_brdf import config
     from neural_brdf.train import data
 
@@ -537,7 +538,7 @@ def models_for(model, compare=None, *, probes=PROBES) -> list[Model]:
     elif compare.suffix in (".xml", ".yaml", ".yml"):
         xml = compare
         if compare.suffix != ".xml":  # a config: its analytic target, or its teacher
-            cfg = config.load(compare)
+            cfg = config.load(compare, warn=warn)
             data.refuse_images(cfg.target, str(compare))  # its target.model: the unused default
             if cfg.target.data is not None:
                 raise InputError(
@@ -550,6 +551,10 @@ def models_for(model, compare=None, *, probes=PROBES) -> list[Model]:
                     "Mitsuba teacher (target.mitsuba, or the .xml) or another textured file"
                 )
             if cfg.target.mitsuba is None:
+                try:  # a bad model or parameter: train's message (target.params: ...)
+                    data.build_target(cfg.target, source=str(compare))
+                except config.ConfigError as e:
+                    raise InputError(f"{compare}: {e}") from None
                 name, params = cfg.target.model, dict(cfg.target.params)
                 return out + [analytic_model(name, params, f"target: {name}")]
             xml = Path(cfg.target.mitsuba)
@@ -588,14 +593,15 @@ def parse_probes(texts) -> tuple[tuple[float, float], ...]:
     return tuple(out)
 
 
-def write_viewer(model, out, *, compare=None, probes=PROBES) -> Path:
-    """Write the viewer of ``model`` (and ``compare``) to ``out``; returns the path."""
+def write_viewer(model, out, *, compare=None, probes=PROBES, warn=None) -> Path:
+    """Write the viewer of ``model`` (and ``compare``) to ``out``; returns the path.
+    ``warn``: as for :func:`models_for`."""
     out = Path(out)
     if out.suffix not in (".html", ".htm"):
         raise InputError(f"-o {out}: the viewer is an HTML file (.html)")
     if not out.parent.is_dir():
         raise InputError(f"-o {out}: cannot write (no folder {out.parent})")
-    models = models_for(model, compare, probes=probes)
+    models = models_for(model, compare, probes=probes, warn=warn)
     text = page(models, title=f"neural-brdf viewer: {Path(model).name}", probes=probes)
     try:
         atomic_write(out, text.encode("utf-8"))
