@@ -467,7 +467,11 @@ def _reference(path: str):
     from neural_brdf.train import data
 
     # (reference_from's own reading of a config, but for the warnings)
-    return data.build_target(config.load(path, warn=_warn).target, source=str(path))
+    cfg = config.load(path, warn=_warn)
+    try:  # a bad model or parameter: train's message, after the file's name
+        return data.build_target(cfg.target, source=str(path))
+    except config.ConfigError as e:
+        raise InputError(f"{path}: {e}") from None
 
 
 def _preset_or_path(text: str | None) -> str | None:

@@ -518,14 +518,14 @@ def models_for(model, compare=None, *, probes=PROBES, warn=None) -> list[Model]:
     from neural_brdf.train import data
 
     model = Path(model)
-    if model.suffix != ".onnx":
+    if model.suffix.lower() != ".onnx":
         raise InputError(f"{model}: expected an ONNX model (.onnx)")
     first = onnx_model(model, _label(model), probes=probes)
     out = [first]
     if compare is None:
         return out
     compare = Path(compare)
-    if compare.suffix == ".onnx":
+    if compare.suffix.lower() == ".onnx":
         second = onnx_model(compare, _label(compare), probes=probes)
         if second.textured != first.textured:
             kinds = {True: "textured (inputs wi, wo, uv)", False: "homogeneous (wi, wo)"}
@@ -535,9 +535,9 @@ def models_for(model, compare=None, *, probes=PROBES, warn=None) -> list[Model]:
                 "model with its Mitsuba teacher (.xml)"
             )
         out.append(second)
-    elif compare.suffix in (".xml", ".yaml", ".yml"):
+    elif compare.suffix.lower() in (".xml", ".yaml", ".yml"):
         xml = compare
-        if compare.suffix != ".xml":  # a config: its analytic target, or its teacher
+        if compare.suffix.lower() != ".xml":  # a config: its analytic target, or its teacher
             cfg = config.load(compare, warn=warn)
             data.refuse_images(cfg.target, str(compare))  # its target.model: the unused default
             if cfg.target.data is not None:
@@ -597,7 +597,7 @@ def write_viewer(model, out, *, compare=None, probes=PROBES, warn=None) -> Path:
     """Write the viewer of ``model`` (and ``compare``) to ``out``; returns the path.
     ``warn``: as for :func:`models_for`."""
     out = Path(out)
-    if out.suffix not in (".html", ".htm"):
+    if out.suffix.lower() not in (".html", ".htm"):
         raise InputError(f"-o {out}: the viewer is an HTML file (.html)")
     if not out.parent.is_dir():
         raise InputError(f"-o {out}: cannot write (no folder {out.parent})")

@@ -113,6 +113,24 @@ def test_bake_of_a_bad_target_is_one_line_naming_the_file(capsys, tmp_path, kind
 
 
 @pytest.mark.parametrize("kind", ["bad_value", "unknown_model"])
+def test_validate_reference_of_a_bad_target_is_one_line_naming_the_file(
+    capsys, model, tmp_path, kind
+):
+    cfg = bad_config(tmp_path, kind)  # (one line before, without the file's name)
+    code, _, err = cli(capsys, "validate", str(model), "--reference", str(cfg))
+    assert_one_line_error(code, err, cfg.name, BAD_TARGETS[kind][1])
+
+
+def test_view_reads_suffixes_in_any_case(capsys, model, tmp_path):
+    upper = tmp_path / "GOLD.ONNX"  # (refused as "expected an ONNX model" before)
+    upper.write_bytes(model.read_bytes())
+    out = tmp_path / "page.HTML"
+    code, _, err = cli(capsys, "view", str(upper), "--compare", str(model), "-o", str(out))
+    assert code == 0, err
+    assert "<html" in out.read_text(encoding="utf-8").lower()
+
+
+@pytest.mark.parametrize("kind", ["bad_value", "unknown_model"])
 def test_view_compare_of_a_bad_target_is_one_line_naming_the_file(capsys, model, tmp_path, kind):
     cfg = bad_config(tmp_path, kind)
     out = tmp_path / "x.html"
