@@ -3719,8 +3719,14 @@ SECTIONS = (
     ),
     _images_any(
         "images_any_lights.json",
-        "the defaults since session 86: the best weights scored again through each "
-        "refitted sampling lobe",
+        "the defaults since 2026-12-07: the start distilled from training pairs that "
+        "reach normal incidence (run while other jobs shared the 2 cores: its times are "
+        "no measure)",
+    ),
+    _images_any(
+        "images_any_lights_2026-12-06_session86.json",
+        "the defaults of session 86, before the training pairs reached normal incidence: "
+        "the best weights scored again through each refitted sampling lobe",
     ),
     _images_any(
         "images_any_lights_2026-12-06_albedo_mis.json",
