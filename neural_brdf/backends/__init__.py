@@ -38,29 +38,44 @@ def get(target: str):
     return getattr(importlib.import_module(module), cls)
 
 
-def generate(model, target: str, *, lobe: dict | None = None, group: int | None = None) -> str:
+def generate(
+    model,
+    target: str,
+    *,
+    lobe: dict | None = None,
+    group: int | None = None,
+    prefix: str | None = None,
+    source: str | None = None,
+) -> str:
     """Source code of ``target`` (one of TARGETS) for an ONNX model: f, pdf and sample.
 
     ``lobe`` overrides the sampling lobe stored in the model's metadata (a dict with
     ``alpha`` and ``weight``); a model without one must be given it.  ``group``: the
     WGSL bind group of a textured file's textures (default 1; GLSL's bindings are
-    #defines, C's are parameters)."""
+    #defines, C's are parameters).  ``prefix``: the prefix of every name the file
+    defines (default ``neural_brdf``: ``neural_brdf_eval``, C's guard ``NEURAL_BRDF_H``),
+    so that the files of several models can be used in one program
+    (:func:`neural_brdf.backends.cstyle.check_prefix`).  ``source``: how the header
+    comment and errors name the model (default: its path as given; errors of bytes or
+    a ModelProto say ``codegen``)."""
     if target not in TARGETS:
         raise InputError(f"target: expected one of {', '.join(TARGETS)}, got {target!r}")
-    if group is None:
-        return get(target)().generate(model, lobe=lobe)
-    if target != "wgsl":
-        raise InputError(f"group: a WGSL bind group, not for target {target!r}")
-    return get(target)(group=group).generate(model, lobe=lobe)
+    options: dict = {} if prefix is None else {"prefix": prefix}
+    if group is not None:
+        if target != "wgsl":
+            raise InputError(f"group: a WGSL bind group, not for target {target!r}")
+        options["group"] = group
+    return get(target)(**options).generate(model, lobe=lobe, source=source)
 
 
-def textures(model) -> list[np.ndarray]:
+def textures(model, *, source: str | None = None) -> list[np.ndarray]:
     """The data the generated code of a textured file reads from its bound textures, in
     order (``neural_brdf_texture0``, ...): float32 [rows, channels] each, row-major, as
     the ONNX initializer holds them (for the weight field [R * R, K], row j * R + i for
     texel column i along u and row j along v).  A file with the normal field (output n)
     lists after neural_brdf_eval's the one neural_brdf_normal reads, its texels [Rv * Ru,
-    3] (row j * Ru + i).  A two-input file has none: []."""
+    3] (row j * Ru + i).  A two-input file has none: [].  ``source``: how errors name
+    the model (default: its path as given)."""
     from neural_brdf.backends.cstyle import lower_file
 
-    return [t.data.copy() for t in lower_file(model)[2]]
+    return [t.data.copy() for t in lower_file(model, source=source)[2]]

@@ -1,4 +1,5 @@
-"""C99: one self-contained header (``<math.h>`` only) of ``static inline`` functions.
+"""C99: one self-contained header (``<math.h>``, ``<stdint.h>`` and ``<string.h>`` only) of
+``static inline`` functions.
 
     #include "brdf.h"                     // neural-brdf codegen model.onnx --target c -o brdf.h
     float f[3];
@@ -18,7 +19,13 @@ and one with the normal field (output n) also gives, its texels a pointer too:
 
 Booleans are ints; min/max are comparisons (no libm call); fused multiply-adds are
 written ``a * b + c`` (a compiler contracts them only where its floating-point
-contraction setting allows: GCC's ISO C modes, e.g. ``-std=c99``, do not).
+contraction setting allows: GCC's ISO C modes, e.g. ``-std=c99``, do not).  NaN and
+infinity tests are bit tests of the float's ``uint32_t`` (``memcpy``), not isnan() and
+isinf(), which ``-ffast-math`` (``-ffinite-math-only``) folds to 0.
+
+``CRenderer(prefix="gold")`` names everything the header defines ``gold_...`` (its
+macros ``GOLD_...``, its include guard ``GOLD_H``), so that the headers of several models
+can be included in one translation unit; the default is ``neural_brdf``.
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from neural_brdf import graph
-from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer
+from neural_brdf.backends.cstyle import CStyleRenderer
 
 
 class CRenderer(CStyleRenderer):
@@ -41,8 +48,6 @@ class CRenderer(CStyleRenderer):
             for op in (*(u for u in graph.UNARY if u not in ("neg", "abs")), "pow")
         },
         "abs": "fabsf",
-        "isnan": "isnan",
-        "isinf": "isinf",
     }
     float_suffix = "f"
 
@@ -58,10 +63,10 @@ class CRenderer(CStyleRenderer):
         return f"({self.types[dst]}){x}"
 
     def minmax(self, op: str, dtype: str, a: str, b: str) -> str:
-        return self.call(f"{PREFIX}_{op}{'f' if dtype == 'float' else 'i'}", a, b)
+        return self.call(self.fn(f"{op}{'f' if dtype == 'float' else 'i'}"), a, b)
 
     def clamp_index(self, i: str, last: int) -> str:
-        return self.call(f"{PREFIX}_clampi", i, "0", str(last))
+        return self.call(self.fn("clampi"), i, "0", str(last))
 
     def input_component(self, name: str, col: int, width: int) -> str:
         return name if width == 1 else f"{name}[{col}]"
@@ -69,14 +74,18 @@ class CRenderer(CStyleRenderer):
     def helpers(self) -> list[str]:
         lines = []
         for t, s in (("float", "f"), ("int", "i")):
-            sig = f"static inline {t} {PREFIX}_%s{s}({t} a, {t} b)"
+            sig = f"static inline {t} {self.prefix}_%s{s}({t} a, {t} b)"
             lines += [
                 sig % "max" + " { return a > b ? a : b; }",
                 sig % "min" + " { return a < b ? a : b; }",
             ]
+        # bit tests, not isnan()/isinf(): -ffast-math folds those to 0 (module doc)
+        bits = "uint32_t b; memcpy(&b, &x, sizeof b); return (b & 0x7fffffffu)"
         lines += [
-            f"static inline int {PREFIX}_clampi(int i, int lo, int hi) "
+            f"static inline int {self.prefix}_clampi(int i, int lo, int hi) "
             "{ return i < lo ? lo : (i > hi ? hi : i); }",
+            f"static inline int {self.fn('isnan')}(float x) {{ {bits} > 0x7f800000u; }}",
+            f"static inline int {self.fn('isinf')}(float x) {{ {bits} == 0x7f800000u; }}",
             "",
         ]
         return lines
@@ -118,38 +127,33 @@ class CRenderer(CStyleRenderer):
         lines = []
         for k, tex in enumerate(self.textures):
             rows, width = tex.data.shape
-            name = self.texture_name(k).upper()
+            name = self.macro(f"TEXTURE{k}")
             lines += [f"#define {name}_ROWS {rows}", f"#define {name}_CHANNELS {width}"]
         return lines + [""] if lines else []
 
     def usage(self) -> list[str]:
+        ev, pdf, smp = self.fn("eval"), self.fn("pdf"), self.fn("sample")
+        include = '#include "this_file.h"   (C99, <math.h>, <stdint.h>, <string.h>; link with -lm)'
+        tail = [
+            f"float pdf = {pdf}(wi, wo);",
+            f"float wo[3]; float pdf = {smp}(wi, u1, u2, wo);  (float u1, u2[2])",
+        ]
         if self.normal_reads is not None:
             args = "".join(f"{self.texture_name(k)}, " for k in self.f_reads)
             nargs = "".join(f"{self.texture_name(k)}, " for k in self.normal_reads)
             return [
-                '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
-                f"float n[3]; neural_brdf_normal(uv, {nargs}n);  (float uv[2]; first: the frame)",
-                f"float f[3]; neural_brdf_eval(wi, wo, uv, {args}f);  (wi, wo in n's frame)",
-                "float pdf = neural_brdf_pdf(wi, wo);",
-                "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  (float u1, u2[2])",
+                include,
+                f"float n[3]; {self.fn('normal')}(uv, {nargs}n);  (float uv[2]; first: the frame)",
+                f"float f[3]; {ev}(wi, wo, uv, {args}f);  (wi, wo in n's frame)",
+                *tail,
             ]
         if self.textures:
             args = ", ".join(self.texture_name(k) for k in range(len(self.textures)))
-            return [
-                '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
-                f"float f[3]; neural_brdf_eval(wi, wo, uv, {args}, f);  (float uv[2])",
-                "float pdf = neural_brdf_pdf(wi, wo);",
-                "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  (float u1, u2[2])",
-            ]
-        return [
-            '#include "this_file.h"   (C99, only <math.h>; link with -lm)',
-            "float f[3]; neural_brdf_eval(wi, wo, f);",
-            "float pdf = neural_brdf_pdf(wi, wo);",
-            "float wo[3]; float pdf = neural_brdf_sample(wi, u1, u2, wo);  (float u1, u2[2])",
-        ]
+            return [include, f"float f[3]; {ev}(wi, wo, uv, {args}, f);  (float uv[2])", *tail]
+        return [include, f"float f[3]; {ev}(wi, wo, f);", *tail]
 
     def wrap(self, header: list[str], parts: list[str]) -> str:
-        guard = "NEURAL_BRDF_H"
+        guard = self.macro("H")  # NEURAL_BRDF_H: one per prefix
         # a comment marker inside a metadata value must not end the block comment
         body = [" *" + line[2:].replace("*/", "* /").replace("/*", "/ *") for line in header]
         text = [
@@ -160,6 +164,8 @@ class CRenderer(CStyleRenderer):
             f"#define {guard}",
             "",
             "#include <math.h>",
+            "#include <stdint.h>",
+            "#include <string.h>",
             "",
             *parts,
             f"#endif /* {guard} */",

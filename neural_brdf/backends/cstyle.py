@@ -8,8 +8,9 @@ temporary per instruction, one statement per line, with the constants inlined by
 rule per kind (:meth:`CStyleRenderer.literal`).  A dialect (C, GLSL, WGSL) is a short
 subclass: type names, literal spellings, the few operators and functions that differ,
 how a function binds its inputs and returns its outputs, and the file around them.
-Adding a language (HLSL, Metal, ...) is one file with such a subclass and one line in
-:data:`neural_brdf.backends.REGISTRY`.
+Adding a language (HLSL, Metal, ...) is one file with such a subclass and its lines in
+:data:`neural_brdf.backends.REGISTRY` and :data:`neural_brdf.backends.TARGETS` (what
+``neural-brdf codegen --target`` offers; docs/architecture.md, "Adding something").
 
 Every generated file holds three functions built from the model (its graph, and its
 stored sampling lobe, :mod:`neural_brdf.backends.lobe_ir`):
@@ -34,11 +35,17 @@ rendered from ``graph.lower(model, ("n",))`` while ``neural_brdf_eval`` is rende
 ``graph.lower(model, ("f",))``.  The file has ONE list of bound textures: those of
 neural_brdf_eval first (numbered as in a file without n), then those that only
 neural_brdf_normal reads (:func:`lower_file`).
+
+``neural_brdf`` is the default prefix of every name the file defines (functions,
+helpers, tables, textures, and in upper case its macros and C's include guard):
+``CRenderer(prefix="gold")`` gives ``gold_eval``, ``gold_texture0``, ``GOLD_H``, ..., so
+that files of several models can be used in one program (:func:`check_prefix`).
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,8 +63,12 @@ from neural_brdf.fileformat import (
 )
 from neural_brdf.fileformat import lobe as lobe_format  # the stored lobe: its schema
 
-PREFIX = "neural_brdf"
-NORMAL_FUNCTION = f"{PREFIX}_normal"
+PREFIX = "neural_brdf"  # the default prefix of the generated names
+# A prefix: lower-case words of letters and digits, each starting with a letter, joined
+# by single underscores, so that it is an identifier in C, GLSL and WGSL (no "__", which
+# GLSL reserves), and its upper case (the macros) and CamelCase (WGSL's struct, GLSL's
+# block names) are as distinct as the prefixes themselves.
+PREFIX_PATTERN = re.compile(r"[a-z][a-z0-9]*(_[a-z][a-z0-9]*)*")
 # A metadata value in the header comment (the target's JSON, say) is cut to this many
 # characters, at an item's or a word's end, and marked by ELLIPSIS.
 HEADER_VALUE_CHARS = 200
@@ -82,6 +93,37 @@ def comment_value(value: object, limit: int = HEADER_VALUE_CHARS) -> str:
     return text
 
 
+def check_prefix(prefix: str) -> str:
+    """``prefix`` if it can prefix the generated names (:data:`PREFIX_PATTERN`, not
+    GLSL's reserved ``gl_``), else a one-line InputError."""
+    if (
+        not isinstance(prefix, str)
+        or not PREFIX_PATTERN.fullmatch(prefix)
+        or prefix == "gl"
+        or prefix.startswith("gl_")
+    ):
+        raise InputError(
+            "prefix: expected lower-case words of letters and digits joined by single "
+            f"underscores, each starting with a letter (e.g. {PREFIX!r}, 'gold_v2'), "
+            f"not 'gl' or 'gl_...', got {prefix!r}"
+        )
+    return prefix
+
+
+def camel(prefix: str) -> str:
+    """``neural_brdf`` -> ``NeuralBrdf``: the prefix of generated type and block names."""
+    return "".join(word[:1].upper() + word[1:] for word in prefix.split("_"))
+
+
+def source_name(model, source: str | None = None) -> str:
+    """What an error names: ``source`` if given, a path as given, else ``codegen``."""
+    if source is not None:
+        return source
+    if isinstance(model, (bytes, bytearray)) or hasattr(model, "graph"):
+        return "codegen"
+    return str(model)
+
+
 @dataclass
 class Part:
     """One generated function's program and the textures it reads: ``textures`` are
@@ -104,7 +146,9 @@ def _declared_inputs(proto) -> dict[str, int]:
     return out
 
 
-def lower_file(model) -> tuple[Part, Part | None, list[graph.Texture]]:
+def lower_file(
+    model, *, source: str | None = None
+) -> tuple[Part, Part | None, list[graph.Texture]]:
     """The programs of a file's functions: f's (``neural_brdf_eval``), n's
     (``neural_brdf_normal``, None without the output n) and the file's bound textures.
 
@@ -114,18 +158,26 @@ def lower_file(model) -> tuple[Part, Part | None, list[graph.Texture]]:
     are 0, 1, ... in their order (the weight field is texture 0, as without n); n's
     follow, except one whose data equal one already listed, which shares its number.
     The file's contract (inputs wi, wo [N, 3] (and uv [N, 2]), output f [N, 3] (and n
-    [N, 3] with uv)) is checked: a one-line InputError otherwise."""
-    proto = graph.load(model)
+    [N, 3] with uv)) is checked: a one-line InputError otherwise, naming ``source``
+    (default: the path, or ``codegen`` for bytes and a ModelProto), as is an op the
+    lowering does not know."""
+    src = source_name(model, source)
+    proto = graph.load(model)  # a file that is not ONNX: an error naming the path
+    if not proto.HasField("graph"):  # an empty file reads as an empty ModelProto
+        raise InputError(f"{src}: not an ONNX model (it has no graph; an empty file?)")
     names = tuple(o.name for o in proto.graph.output)
     with_normal = names == OUTPUT_SIGNATURES[1]
-    if with_normal:
-        prog = graph.lower(proto, (OUTPUT,))
-        prog.inputs = _declared_inputs(proto)  # the signature, whatever f reads
-        nprog = graph.lower(proto, (NORMAL,))
-        nprog.inputs = {UV: INPUT_WIDTHS[UV]}  # n is of uv alone
-    else:
-        prog = graph.lower(proto)
-        nprog = None
+    try:
+        if with_normal:
+            prog = graph.lower(proto, (OUTPUT,))
+            prog.inputs = _declared_inputs(proto)  # the signature, whatever f reads
+            nprog = graph.lower(proto, (NORMAL,))
+            nprog.inputs = {UV: INPUT_WIDTHS[UV]}  # n is of uv alone
+        else:
+            prog = graph.lower(proto)
+            nprog = None
+    except graph.UnsupportedOnnxOp as e:
+        raise graph.UnsupportedOnnxOp(f"{src}: {e}") from None
     # the file's contract (fileformat): inputs wi, wo [N, 3] (and uv [N, 2]: a
     # textured file), output f [N, 3] (and n [N, 3], a textured file's normal field)
     if (
@@ -142,18 +194,21 @@ def lower_file(model) -> tuple[Part, Part | None, list[graph.Texture]]:
         if nprog is not None:
             outs[NORMAL] = len(nprog.outputs[NORMAL])
         raise InputError(
-            "codegen: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
+            f"{src}: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
             f"{OUTPUT} [N, 3] (and {NORMAL} [N, 3] with uv), got {prog.inputs} -> {outs}"
             if nprog is not None
-            else "codegen: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
+            else f"{src}: expected inputs wi, wo [N, 3] (and uv [N, 2]) and output "
             f"{OUTPUT} [N, 3], got {prog.inputs} -> {outs}"
         )
-    textures = graph.textures(prog, UV)
+    try:
+        textures = graph.textures(prog, UV)
+        ntextures = graph.textures(nprog, UV) if nprog is not None else []
+    except graph.UnsupportedOnnxOp as e:  # a table no float buffer can hold
+        raise graph.UnsupportedOnnxOp(f"{src}: {e}") from None
     f = Part(prog, textures, list(range(len(textures))))
     listed = list(textures)
     if nprog is None:
         return f, None, listed
-    ntextures = graph.textures(nprog, UV)
     numbers = []
     for tex in ntextures:
         same = [
@@ -176,7 +231,8 @@ class CStyleRenderer:
     name = "cstyle"
     comment = "//"
     types = {"float": "float", "int": "int", "bool": "bool"}
-    # unary instruction -> function name (``neg`` and ``not`` are operators)
+    # unary instruction -> function name (``neg`` and ``not`` are operators); those in
+    # ``helper_ops`` are the file's own helpers (:meth:`helpers`), <prefix>_<name>
     functions = {
         "abs": "abs",
         "sqrt": "sqrt",
@@ -194,9 +250,12 @@ class CStyleRenderer:
         "pow": "pow",
         "max": "max",
         "min": "min",
-        "isnan": f"{PREFIX}_isnan",
-        "isinf": f"{PREFIX}_isinf",
+        "isnan": "isnan",
+        "isinf": "isinf",
     }
+    # NaN and infinity tests are bit tests in every dialect: GLSL lets a compiler assume
+    # isnan() is false, WGSL has none, and C's isnan() is removed by -ffast-math
+    helper_ops: frozenset[str] = frozenset({"isnan", "isinf"})
     infix = {
         "add": "+",
         "sub": "-",
@@ -224,6 +283,18 @@ class CStyleRenderer:
     # file has no normal field)
     normal_reads: list[int] | None = None
     table_stem = "table"  # the literal tables' names: neural_brdf_table<k>
+
+    def __init__(self, *, prefix: str = PREFIX):
+        # the prefix of every name the file defines (module doc, check_prefix)
+        self.prefix = check_prefix(prefix)
+
+    def fn(self, name: str) -> str:
+        """A function the file defines: ``eval`` -> ``neural_brdf_eval``."""
+        return f"{self.prefix}_{name}"
+
+    def macro(self, name: str) -> str:
+        """A macro the file defines: ``TEXTURE0_ROWS`` -> ``NEURAL_BRDF_TEXTURE0_ROWS``."""
+        return f"{self.prefix.upper()}_{name}"
 
     # ------------------------------------------------------------------ literals
     def literal(self, value, dtype: str) -> str:
@@ -288,6 +359,8 @@ class CStyleRenderer:
             return f"{self.table_name(ins.attr)}[{self.clamp_index(a[0], k - 1)}]"
         if op in ("max", "min"):
             return self.minmax(op, ins.dtype, a[0], a[1])
+        if op in self.helper_ops:
+            return self.call(self.fn(op), *a)
         if op in self.functions:
             return self.call(self.functions[op], *a)
         raise graph.UnsupportedOnnxOp(f"{self.name} back end: instruction {op!r}")
@@ -305,10 +378,10 @@ class CStyleRenderer:
         return self.call("clamp", i, self.literal(0, "int"), self.literal(last, "int"))
 
     def table_name(self, k: int) -> str:
-        return f"{PREFIX}_{self.table_stem}{k}"
+        return self.fn(f"{self.table_stem}{k}")
 
     def texture_name(self, k: int) -> str:
-        return f"{PREFIX}_texture{k}"
+        return self.fn(f"texture{k}")
 
     def fetch(self, k: int, element: str) -> str:
         """Element ``element`` (an int expression in [0, rows * channels)) of texture k."""
@@ -412,21 +485,23 @@ class CStyleRenderer:
         )
         lines += [
             f"{c}",
-            f"{c} Directions are unit vectors in the local shading frame (z = "
-            f"normal, x = tangent), both pointing",
-            f"{c} away from the surface.  neural_brdf_eval returns f(wi, wo) in 1/sr "
-            f"per RGB channel WITHOUT",
-            f"{c} the cosine (0 below the horizon).  neural_brdf_sample draws wo from "
-            f"the lobe (u1, u2 uniform",
-            f"{c} in [0, 1)) and returns its pdf, as neural_brdf_pdf would.  Estimator: "
-            f"f * cos(theta_o) / pdf.",
+            f"{c} Directions are in the local shading frame (z = normal, x = tangent), "
+            "both pointing away from",
+            f"{c} the surface; every function normalises them (a non-finite or "
+            "zero-length one gives f = 0,",
+            f"{c} pdf = 0).  {self.fn('eval')} returns f(wi, wo) in 1/sr per RGB channel "
+            "WITHOUT the cosine",
+            f"{c} (0 below the horizon).  {self.fn('sample')} draws wo from the lobe "
+            "(u1, u2 uniform in [0, 1))",
+            f"{c} and returns its pdf, as {self.fn('pdf')} would (0: reject the sample).",
+            f"{c} Estimator: f * cos(theta_o) / pdf.",
         ]
         for k, tex in enumerate(self.textures):
             rows, width = tex.data.shape
             if k == 0:
                 lines += [
                     f"{c}",
-                    f"{c} Textured: neural_brdf_eval takes uv as well; its weight table is "
+                    f"{c} Textured: {self.fn('eval')} takes uv as well; its weight table is "
                     "bound by the host, not written",
                     f'{c} here (docs/codegen.md, "Textured files"): float32, row-major '
                     "[row][channel], row = the texel",
@@ -449,12 +524,12 @@ class CStyleRenderer:
         users = [
             fname
             for fname, reads in (
-                (f"{PREFIX}_eval", self.f_reads),
-                (NORMAL_FUNCTION, self.normal_reads or []),
+                (self.fn("eval"), self.f_reads),
+                (self.fn("normal"), self.normal_reads or []),
             )
             if k in reads
         ]
-        what = "the normal texels, " if users == [NORMAL_FUNCTION] else ""
+        what = "the normal texels, " if users == [self.fn("normal")] else ""
         return f"; {what}read by {' and '.join(users)}"
 
     def normal_header(self) -> list[str]:
@@ -463,7 +538,7 @@ class CStyleRenderer:
         reads = ", ".join(self.texture_name(k) for k in self.normal_reads or [])
         return [
             f"{c}",
-            f"{c} Normal field: {NORMAL_FUNCTION}(uv) returns the teacher's unit shading "
+            f"{c} Normal field: {self.fn('normal')}(uv) returns the teacher's unit shading "
             "normal n at uv, in the",
             f"{c} unperturbed shading frame (a normal map: wrapping bilinear look-up of "
             "the texels, normalised;",
@@ -471,7 +546,7 @@ class CStyleRenderer:
             "its frame to n",
             f"{c} (s = normalize(x - n n.x), t = n x s, as Mitsuba's normalmap), "
             "expresses wi and wo in it",
-            f"{c} and calls neural_brdf_eval (and _pdf, _sample) there; metadata "
+            f"{c} and calls {self.fn('eval')} (and _pdf, _sample) there; metadata "
             "texture.normal_field holds",
             f"{c} flip_invalid_normals and use_shadowing_function.  Its texels "
             f"({reads or 'none bound'}): [Rv * Ru, 3],",
@@ -483,15 +558,18 @@ class CStyleRenderer:
         return []
 
     def generate(self, model, *, lobe: dict | None = None, source: str | None = None) -> str:
-        """The file's text for an ONNX model (path, bytes or ModelProto)."""
+        """The file's text for an ONNX model (path, bytes or ModelProto).  ``source``
+        names the model in the header comment and in errors (default: the path as
+        given; an error of bytes or a ModelProto says ``codegen``)."""
+        src = source_name(model, source)
         proto = graph.load(model)
-        f, n, listed = lower_file(proto)  # checks the file's contract
+        f, n, listed = lower_file(proto, source=src)  # checks the file's contract
         prog = f.prog
         if lobe is None:
             lobe = lobe_format.from_metadata(prog.metadata)
             if lobe is None:
                 raise InputError(
-                    "codegen: the model has no stored sampling lobe (metadata "
+                    f"{src}: the model has no stored sampling lobe (metadata "
                     f"{lobe_format.KEY!r}); re-export it with this version"
                 )
         lobe = lobe_format.complete(lobe)
@@ -516,7 +594,7 @@ class CStyleRenderer:
             parts += self.tables(prog)
             parts += self.texture_decls()
             parts += self.function(
-                f"{PREFIX}_eval",
+                self.fn("eval"),
                 prog,
                 "f(wi, wo, uv): the BRDF in 1/sr per RGB channel, no cosine."
                 if UV in prog.inputs
@@ -528,7 +606,7 @@ class CStyleRenderer:
                 self.table_stem = "normal_table"
                 parts += self.tables(n.prog)
                 parts += self.function(
-                    NORMAL_FUNCTION,
+                    self.fn("normal"),
                     n.prog,
                     "n(uv): the unit shading normal at uv in the unperturbed frame "
                     "(evaluate f in the frame rotated to n).",
@@ -538,12 +616,13 @@ class CStyleRenderer:
             self.table_stem = CStyleRenderer.table_stem
             self.normal_reads = None
         parts += self.function(
-            f"{PREFIX}_pdf",
+            self.fn("pdf"),
             lobe_ir.pdf_program(**shape),
-            "The sampling lobe's solid-angle density of wo given wi.",
+            "The sampling lobe's solid-angle density of wo given wi (0 if either is not "
+            "finite or has zero length).",
         )
         parts += self.function(
-            f"{PREFIX}_sample",
+            self.fn("sample"),
             lobe_ir.sample_program(**shape),
             "Draws wo from the lobe (u1, u2 uniform in [0, 1)); returns its pdf (0: reject).",
         )

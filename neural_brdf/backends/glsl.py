@@ -15,6 +15,10 @@ texels bound the same way (texture 1).
 
 NaN and infinity tests are bit tests (``floatBitsToUint``): GLSL lets a compiler assume
 that isnan() is false.  GLSL has no erf; it is a polynomial (Abramowitz & Stegun 7.1.26).
+
+``GLSLRenderer(prefix="gold")`` names everything the file defines ``gold_...`` (its macros
+``GOLD_...``, its buffer blocks ``GoldTexture<k>``), so that the files of several models
+can be pasted into one shader; the default is ``neural_brdf``.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from neural_brdf import graph
-from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer
+from neural_brdf.backends.cstyle import CStyleRenderer, camel
 
 VEC = {1: "float", 2: "vec2", 3: "vec3", 4: "vec4"}
 
@@ -54,18 +58,18 @@ def erf_helper(fn: str, ret: str, decl: str, ftype: str, sfx: str) -> list[str]:
 class GLSLRenderer(CStyleRenderer):
     name = "glsl"
     vectors = VEC  # width -> type name
-    functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
+    helper_ops = CStyleRenderer.helper_ops | {"erf"}  # GLSL has no erf
 
     def bitcast_float(self, bits: str) -> str:
         return f"uintBitsToFloat({bits})"
 
     def helpers(self) -> list[str]:
         return [
-            f"bool {PREFIX}_isnan(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) > "
+            f"bool {self.fn('isnan')}(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) > "
             "0x7f800000u; }",
-            f"bool {PREFIX}_isinf(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) == "
+            f"bool {self.fn('isinf')}(float x) {{ return (floatBitsToUint(x) & 0x7fffffffu) == "
             "0x7f800000u; }",
-            *erf_helper(f"float {PREFIX}_erf(float x)", "", "float ", "float", ""),
+            *erf_helper(f"float {self.fn('erf')}(float x)", "", "float ", "float", ""),
             "",
         ]
 
@@ -76,7 +80,7 @@ class GLSLRenderer(CStyleRenderer):
         return f"const {t} {name}[{n}] = {t}[{n}](\n{body}\n);\n"
 
     def fetch(self, k: int, element: str) -> str:
-        return self.call(f"{PREFIX}_fetch{k}", element)
+        return self.call(self.fn(f"fetch{k}"), element)
 
     def texture_decls(self) -> list[str]:
         """Per bound texture a reader ``neural_brdf_fetch<k>(int e)`` of its float e, over
@@ -84,23 +88,24 @@ class GLSLRenderer(CStyleRenderer):
         host can change the width and the binding with #defines before this file."""
         if not self.textures:
             return []
-        width = f"{PREFIX.upper()}_TEXTURE_WIDTH"
+        width = self.macro("TEXTURE_WIDTH")
         lines = [f"#ifndef {width}", f"#define {width} 1024", "#endif"]
         for k in range(len(self.textures)):
             name = self.texture_name(k)
-            binding = f"{name.upper()}_BINDING"
+            binding = self.macro(f"TEXTURE{k}_BINDING")
             lines += [
                 "#ifdef GL_ES",
                 f"uniform highp sampler2D {name};",
-                f"float {PREFIX}_fetch{k}(int e) {{ return texelFetch({name}, "
+                f"float {self.fn(f'fetch{k}')}(int e) {{ return texelFetch({name}, "
                 f"ivec2(e % {width}, e / {width}), 0).r; }}",
                 "#else",
                 f"#ifndef {binding}",
                 f"#define {binding} {k}",
                 "#endif",
-                f"layout(std430, binding = {binding}) readonly buffer NeuralBrdfTexture{k} "
+                f"layout(std430, binding = {binding}) readonly buffer "
+                f"{camel(self.prefix)}Texture{k} "
                 f"{{ float {name}[]; }};",
-                f"float {PREFIX}_fetch{k}(int e) {{ return {name}[e]; }}",
+                f"float {self.fn(f'fetch{k}')}(int e) {{ return {name}[e]; }}",
                 "#endif",
             ]
         return lines + [""]
@@ -125,30 +130,21 @@ class GLSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
-        if self.normal_reads is not None:
-            return [
-                "#version 300 es  (or #version 450)",
-                "precision highp float;",
-                "precision highp int;",
-                "<this file>",
-                "vec3 n = neural_brdf_normal(uv);  // vec2 uv; first: rotate the frame to n",
-                "vec3 f = neural_brdf_eval(wi, wo, uv);  // wi, wo in n's frame",
-                "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2",
-            ]
-        if self.textures:
-            return [
-                "#version 300 es  (or #version 450)",
-                "precision highp float;",
-                "precision highp int;",
-                "<this file>",
-                "vec3 f = neural_brdf_eval(wi, wo, uv);  // vec2 uv",
-                "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2",
-            ]
-        return [
+        ev, smp = self.fn("eval"), self.fn("sample")
+        head = [
             "#version 300 es  (or #version 450)",
             "precision highp float;",
             "precision highp int;",
             "<this file>",
-            "vec3 f = neural_brdf_eval(wi, wo);",
-            "vec3 wo; float pdf = neural_brdf_sample(wi, u1, u2, wo);  // vec2 u2",
         ]
+        tail = [f"vec3 wo; float pdf = {smp}(wi, u1, u2, wo);  // vec2 u2"]
+        if self.normal_reads is not None:
+            return [
+                *head,
+                f"vec3 n = {self.fn('normal')}(uv);  // vec2 uv; first: rotate the frame to n",
+                f"vec3 f = {ev}(wi, wo, uv);  // wi, wo in n's frame",
+                *tail,
+            ]
+        if self.textures:
+            return [*head, f"vec3 f = {ev}(wi, wo, uv);  // vec2 uv", *tail]
+        return [*head, f"vec3 f = {ev}(wi, wo);", *tail]

@@ -25,6 +25,12 @@ u1 < w (Heitz 2018, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4
 listing 1, with u2; turned for a retro lobe) and the cosine branch otherwise (u2 ->
 r = sqrt(u2.x), phi = 2 pi u2.y); it returns the sampled wo and pdf(wo) computed by the
 same instructions as ``pdf`` (0 when wo is below the horizon).
+
+Both normalise their directions first, as the exported graph does for f
+(:func:`neural_brdf.train.model.unit_or_invalid`, the same operations): pdf(k wi, k' wo)
+is pdf(wi, wo) for k, k' > 0 (to float32 rounding), and a direction with a NaN, an
+infinity or zero length gives pdf 0; ``sample`` of such a wi returns wo = (0, 0, -1)
+(below the horizon) and pdf 0, a rejected sample.
 """
 
 from __future__ import annotations
@@ -103,6 +109,24 @@ def _dot(a, b) -> V:
 def _normalize(v):
     inv = 1.0 / _dot(v, v).f("sqrt")
     return [c * inv for c in v]
+
+
+def _unit_or_invalid(b: Builder, w: list[V]) -> tuple[list[V], V]:
+    """(unit vector, valid) for any float direction, by the operations of the exported
+    graph (:func:`neural_brdf.train.model.unit_or_invalid`): valid when the three
+    components are finite and not all zero; scaled by the largest absolute component,
+    then divided by its norm; an invalid direction becomes +z (its result is then
+    replaced by the caller)."""
+    b.hint = "unit"
+    bad = [c._op("or", c.f("isnan"), c.f("isinf")) for c in w]
+    ok = bad[0]._op("not", bad[0]._op("or", bad[0]._op("or", bad[0], bad[1]), bad[2]))
+    a = [_select(ok, c, 0.0).f("abs") for c in w]
+    m = _max(_max(a[0], a[1]), a[2])
+    ok = ok & (m > 0.0)
+    u = [_select(ok, c, 0.0) / _select(ok, m, 1.0) for c in w]
+    n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).f("sqrt")
+    inv = _select(ok, n, 1.0)
+    return [_select(ok, c / inv, z) for c, z in zip(u, (0.0, 0.0, 1.0), strict=True)], ok
 
 
 def _vec(b: Builder, name: str, n: int) -> list[V]:
@@ -197,8 +221,10 @@ def pdf_program(
 ) -> Program:
     """Inputs ``wi``, ``wo`` (3 columns) -> output ``pdf`` (solid-angle density of wo)."""
     b = Builder()
-    wi, wo = _vec(b, "wi", 3), _vec(b, "wo", 3)
+    wi, ok_i = _unit_or_invalid(b, _vec(b, "wi", 3))
+    wo, ok_o = _unit_or_invalid(b, _vec(b, "wo", 3))
     p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table, distribution)
+    p = _select(ok_i & ok_o, p, 0.0)
     return b.finish({"wi": 3, "wo": 3}, {"pdf": [p.i]})
 
 
@@ -281,7 +307,7 @@ def sample_program(
 ) -> Program:
     """Inputs ``wi`` (3), ``u1`` (1), ``u2`` (2) -> outputs ``wo`` (3) and ``pdf``."""
     b = Builder()
-    wi = _vec(b, "wi", 3)
+    wi, ok = _unit_or_invalid(b, _vec(b, "wi", 3))
     u1 = _vec(b, "u1", 1)[0]
     u2 = _vec(b, "u2", 2)
     b.hint = "cosine"
@@ -298,5 +324,11 @@ def sample_program(
         v = _turn(v) if retro else v
         pick = u1 < w
         wo = [_select(pick, v[j], wo[j]) for j in range(3)]
-    p = _pdf(b, wi, wo, alpha_x, alpha_y, weight, retro, table, distribution)
+    # an invalid wi: a rejected sample below the horizon
+    wo = [_select(ok, c, z) for c, z in zip(wo, (0.0, 0.0, -1.0), strict=True)]
+    # pdf(wi, wo) by pdf_program's instructions, wo normalised as there (a sampled wo is
+    # a unit vector up to rounding), so that the two agree bit for bit
+    uo, ok_o = _unit_or_invalid(b, wo)
+    p = _pdf(b, wi, uo, alpha_x, alpha_y, weight, retro, table, distribution)
+    p = _select(ok & ok_o, p, 0.0)
     return b.finish({"wi": 3, "u1": 1, "u2": 2}, {"wo": [v.i for v in wo], "pdf": [p.i]})

@@ -13,6 +13,10 @@ docs/codegen.md, "Textured files".
 
 WGSL has no isnan/isinf: they are bit tests on ``bitcast<u32>``; no erf either (a
 polynomial, as in GLSL).
+
+``WGSLRenderer(prefix="gold")`` names everything the file defines ``gold_...`` (and its
+sample struct ``GoldSample``), so that the files of several models can be pasted into one
+module (give each textured one its own ``group``); the default is ``neural_brdf``.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from neural_brdf import graph
-from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer
+from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer, camel
 from neural_brdf.backends.glsl import erf_helper
 
 VEC = {1: "f32", 2: "vec2<f32>", 3: "vec3<f32>", 4: "vec4<f32>"}
@@ -30,13 +34,15 @@ class WGSLRenderer(CStyleRenderer):
     name = "wgsl"
     vectors = VEC  # width -> type name
     types = {"float": "f32", "int": "i32", "bool": "bool"}
-    functions = {**CStyleRenderer.functions, "erf": f"{PREFIX}_erf"}
+    helper_ops = CStyleRenderer.helper_ops | {"erf"}  # WGSL has no erf
     float_suffix = "f"
     int_suffix = "i"
 
-    def __init__(self, group: int = 1):
+    def __init__(self, group: int = 1, *, prefix: str = PREFIX):
+        super().__init__(prefix=prefix)
         # group 1: a host's own bindings are most often in group 0
         self.group = int(group)
+        self.sample_struct = f"{camel(self.prefix)}Sample"  # NeuralBrdfSample
 
     def bitcast_float(self, bits: str) -> str:
         return f"bitcast<f32>({bits})"
@@ -55,11 +61,11 @@ class WGSLRenderer(CStyleRenderer):
     def helpers(self) -> list[str]:
         bits = "(bitcast<u32>(x) & 0x7fffffffu)"
         return [
-            f"fn {PREFIX}_isnan(x: f32) -> bool {{ return {bits} > 0x7f800000u; }}",
-            f"fn {PREFIX}_isinf(x: f32) -> bool {{ return {bits} == 0x7f800000u; }}",
-            *erf_helper(f"fn {PREFIX}_erf(x: f32)", " -> f32", "let ", "f32", "f"),
+            f"fn {self.fn('isnan')}(x: f32) -> bool {{ return {bits} > 0x7f800000u; }}",
+            f"fn {self.fn('isinf')}(x: f32) -> bool {{ return {bits} == 0x7f800000u; }}",
+            *erf_helper(f"fn {self.fn('erf')}(x: f32)", " -> f32", "let ", "f32", "f"),
             "",
-            "struct NeuralBrdfSample {",
+            f"struct {self.sample_struct} {{",
             "    wo: vec3<f32>,",
             "    pdf: f32,",
             "}",
@@ -91,9 +97,9 @@ class WGSLRenderer(CStyleRenderer):
             ret = self.vectors[len(outs[0][1])]
             body.append(f"    return {self.vector(outs[0][1], rendered)};")
         else:
-            ret = "NeuralBrdfSample"
+            ret = self.sample_struct
             fields = ", ".join(self.vector(c, rendered) for _, c in outs)
-            body.append(f"    return NeuralBrdfSample({fields});")
+            body.append(f"    return {ret}({fields});")
         return [f"// {doc}", f"fn {fname}({', '.join(params)}) -> {ret} {{", *body, "}", ""]
 
     def vector(self, cols: list[int], rendered: list[str]) -> str:
@@ -103,18 +109,14 @@ class WGSLRenderer(CStyleRenderer):
         return f"{self.vectors[len(parts)]}({', '.join(parts)})"
 
     def usage(self) -> list[str]:
+        ev, smp = self.fn("eval"), self.fn("sample")
+        tail = [f"let s = {smp}(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)"]
         if self.normal_reads is not None:
             return [
-                "let n = neural_brdf_normal(uv);              // vec3<f32>; first: the frame",
-                "let f = neural_brdf_eval(wi, wo, uv);        // wi, wo in n's frame",
-                "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",
+                f"let n = {self.fn('normal')}(uv);              // vec3<f32>; first: the frame",
+                f"let f = {ev}(wi, wo, uv);        // wi, wo in n's frame",
+                *tail,
             ]
         if self.textures:
-            return [
-                "let f = neural_brdf_eval(wi, wo, uv);        // vec3<f32> (uv: vec2<f32>)",
-                "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",
-            ]
-        return [
-            "let f = neural_brdf_eval(wi, wo);            // vec3<f32>",
-            "let s = neural_brdf_sample(wi, u1, u2);      // s.wo, s.pdf (u2: vec2<f32>)",
-        ]
+            return [f"let f = {ev}(wi, wo, uv);        // vec3<f32> (uv: vec2<f32>)", *tail]
+        return [f"let f = {ev}(wi, wo);            // vec3<f32>", *tail]

@@ -9,7 +9,7 @@
     neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf  (measured.formats: by suffix)
     neural-brdf render model.onnx [--reference CONFIG] [--spp N] -o out.png|out.jpg
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
-    neural-brdf codegen model.onnx --target c|glsl|wgsl -o FILE
+    neural-brdf codegen model.onnx --target c|glsl|wgsl [--prefix NAME] -o FILE
     neural-brdf view model.onnx [--compare OTHER.onnx|TEACHER.xml|CONFIG] [--uv U,V] -o viewer.html
 
 A CONFIG (train, train-many, validate, bake, render, view) may be a preset's name instead
@@ -157,6 +157,12 @@ def _parser() -> argparse.ArgumentParser:
         required=True,
         choices=list(TARGETS),
         help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)",
+    )
+    g.add_argument(
+        "--prefix",
+        default=None,
+        help="prefix of every name the code defines (default neural_brdf: neural_brdf_eval, "
+        "NEURAL_BRDF_H); give each model its own to use several in one program",
     )
     g.add_argument("-o", "--out", required=True, help="output file")
     vw = sub.add_parser(
@@ -703,6 +709,13 @@ def _sweep(args) -> int:
     return EXIT_OK if all(r["status"] == "ok" for r in results["trials"]) else EXIT_PHYSICS
 
 
+def _has_uv(model: str) -> bool:
+    """Whether ``model`` (checked readable by codegen already) is a textured file."""
+    from neural_brdf.fileformat import SIGNATURES, reader
+
+    return reader.signature(reader.load(model, external_data=False), source=model) == SIGNATURES[1]
+
+
 def _codegen(args) -> int:
     from neural_brdf import backends
 
@@ -713,10 +726,10 @@ def _codegen(args) -> int:
     _not_an_input(args.out, {"model": args.model}, flag="-o")
     # -o -, /dev/stdout, a FIFO: stdout may be the code itself, so status goes to stderr
     in_place = args.out == STDOUT or _in_place(args.out)
-    text = backends.generate(args.model, args.target)
+    text = backends.generate(args.model, args.target, prefix=args.prefix)
     # a textured file's code reads its weight table from buffers the host binds: their
     # data go next to the code, OUT's stem + .texture<k>.f32 (docs/codegen.md)
-    textures = backends.textures(args.model) if "neural_brdf_texture0" in text else []
+    textures = backends.textures(args.model) if _has_uv(args.model) else []
     if textures and args.out == STDOUT:
         _warn(
             "the textures are not written with -o -: give -o FILE (FILE's stem + "

@@ -18,7 +18,15 @@ exported graph as onnxruntime does.
   onnxruntime's values in C, WGSL and Dr.Jit and validates in GLSL; an unknown op is
   named; ``neural-brdf codegen`` writes files and exits 2 on bad input;
 * the header comment: a long metadata value (the target's JSON) is cut at an item's end
-  with an ellipsis, never in mid-key, never ends in a backslash, and still compiles.
+  with an ellipsis, never in mid-key, never ends in a backslash, and still compiles;
+* pdf and sample normalise their directions as eval does (C99 and -ffast-math, WGSL,
+  WebGL2): scaled directions give the lobe's density and draws at the unit ones (the
+  reference mixture density and the file format's sampler), a non-finite or zero-length
+  direction gives pdf 0 (sample: wo below the horizon);
+* prefixes: three C headers (two prefixes and the default) in one translation unit, three
+  WGSL files in one module, three GLSL files in one shader, each with its own model's
+  values; the default prefix is the unprefixed file; a bad prefix is one line;
+* errors of a foreign, empty, lobe-less or unlowerable file name it (API and CLI).
 
 Two tiny models (isotropic quickstart, anisotropic brushed_ggx) are trained once per
 module (about 20 s each).
@@ -151,6 +159,21 @@ def unit(rng, n):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def graph_unit(w: np.ndarray) -> np.ndarray:
+    """Finite, non-zero float32 directions normalised as the exported graph defines it
+    (neural_brdf.train.model.unit_or_invalid: divided by the largest absolute component,
+    then by the length (x^2 + y^2) + z^2), each operation rounded to float32 as IEEE
+    arithmetic does (numpy; torch's vectorised division differs by an ulp), as float64:
+    the directions the generated code evaluates, eval and pdf alike.  The float32 rounding
+    moves a unit vector by up to an ulp, which changes the lobe's density by up to 3e-4
+    where wi + wo nearly cancels (grazing pairs near the mirror direction)."""
+    w = np.asarray(w, np.float32)
+    m = np.abs(w).max(-1, keepdims=True)
+    u = w / m
+    n = np.sqrt((u[:, 0:1] * u[:, 0:1] + u[:, 1:2] * u[:, 1:2]) + u[:, 2:3] * u[:, 2:3])
+    return (u / n).astype(np.float64)
+
+
 def test_pairs(seed: int = 0, n: int = 3000) -> tuple[np.ndarray, np.ndarray]:
     """Random pairs over the sphere (half below the horizon), near-grazing ones, exactly
     at the horizon, equal, opposite and mirrored pairs: float32 (N, 3) each."""
@@ -184,7 +207,7 @@ def onnx_ref(model, wi, wo) -> np.ndarray:
 class CProgram:
     """A generated header compiled with its driver: ``eval``, ``pdf``, ``sample``."""
 
-    def __init__(self, model, folder: Path, *, lobe=None):
+    def __init__(self, model, folder: Path, *, lobe=None, flags: tuple[str, ...] = ()):
         cc = shutil.which("cc") or shutil.which("gcc")
         assert cc, "a C compiler (cc) is needed"
         folder.mkdir(parents=True, exist_ok=True)
@@ -199,6 +222,7 @@ class CProgram:
                 "-O2",
                 "-Wall",
                 "-Werror",
+                *flags,
                 "-o",
                 str(self.exe),
                 str(folder / "driver.c"),
@@ -333,7 +357,7 @@ def test_c_pdf_is_the_stored_lobe(models, c_programs, tmp_path, override):
     wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     wi, wo = wi.astype(np.float32), wo.astype(np.float32)
     got = c.pdf(wi, wo)
-    ref = mixture_pdf(wi, wo, lobe)
+    ref = mixture_pdf(graph_unit(wi), graph_unit(wo), lobe)  # pdf normalises, as eval
     assert (ref > 0).sum() > 3000
     np.testing.assert_allclose(got, ref, rtol=PDF_RTOL, atol=1e-6)
 
@@ -725,7 +749,8 @@ def test_every_op_in_drjit(every_op, drjit_eval):
     assert relative_difference(drjit_eval(payload, wi, wo), ref) <= C_TOL
 
 
-def test_unknown_op_is_named():
+def einsum_model() -> bytes:
+    """wi, wo -> f by an Einsum (node 'mix'), an op the lowering does not know."""
     node = helper.make_node("Einsum", ["wi", "wo"], ["f"], name="mix", equation="ni,ni->ni")
     g = helper.make_graph(
         [node],
@@ -733,9 +758,12 @@ def test_unknown_op_is_named():
         [helper.make_tensor_value_info(k, TensorProto.FLOAT, ["N", 3]) for k in ("wi", "wo")],
         [helper.make_tensor_value_info("f", TensorProto.FLOAT, ["N", 3])],
     )
-    model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    return helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)]).SerializeToString()
+
+
+def test_unknown_op_is_named():
     with pytest.raises(graph.UnsupportedOnnxOp, match="'mix'.*'Einsum'"):
-        backends.generate(model.SerializeToString(), "c", lobe=EVERY_OP_LOBE)
+        backends.generate(einsum_model(), "c", lobe=EVERY_OP_LOBE)
     assert issubclass(graph.UnsupportedOnnxOp, InputError)
 
 
@@ -744,8 +772,9 @@ def test_registry():
     assert set(backends.TARGETS) <= set(backends.REGISTRY)
     for target in backends.TARGETS:
         assert backends.get(target)().name == target
-    with pytest.raises(InputError, match="hlsl"):
-        backends.get("hlsl")
+    # a name no back end will take (hlsl is docs/codegen.md's example of a new one)
+    with pytest.raises(InputError, match="no_such_target"):
+        backends.get("no_such_target")
 
 
 def test_cli_codegen(models, tmp_path, capsys):
@@ -757,10 +786,13 @@ def test_cli_codegen(models, tmp_path, capsys):
         text = out.read_text()
         assert "neural_brdf_eval" in text and "neural_brdf_sample" in text
         assert "max_albedo" in text
-    assert (
-        main(["codegen", str(models["isotropic"]), "--target", "hlsl", "-o", str(tmp_path / "x")])
-        == 2
-    )
+    unknown = ["--target", "no_such_target", "-o", str(tmp_path / "x")]
+    assert main(["codegen", str(models["isotropic"]), *unknown]) == 2  # argparse's choices
+    prefixed = tmp_path / "gold.h"
+    args = ["codegen", str(models["isotropic"]), "--target", "c", "--prefix", "gold"]
+    assert main([*args, "-o", str(prefixed)]) == 0
+    text = prefixed.read_text()
+    assert "gold_eval" in text and "GOLD_H" in text and "neural_brdf_eval" not in text
     bad = tmp_path / "bad.onnx"
     bad.write_text("not a model")
     assert main(["codegen", str(bad), "--target", "c", "-o", str(tmp_path / "x.h")]) == 2
@@ -870,3 +902,432 @@ def test_the_cut_header_compiles(tiny_run, tmp_path):
         cwd=tmp_path,
     )
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+# ------------------------------------------------------------------ the lobe's directions
+# neural_brdf_pdf and neural_brdf_sample normalise their directions as neural_brdf_eval
+# does (the exported graph's unit_or_invalid): pdf(k wi, k' wo) is the lobe's density at
+# the unit vectors, and a non-finite or zero-length direction gives pdf 0 (sample: pdf
+# 0 and wo below the horizon, a rejected sample).  The references are the mixture density
+# of analytic's distributions (lobe_reference.mixture_pdf) and the file format's sampler
+# in float64, at the directions normalised by numpy.  The network plays no part: the
+# file is the smallest one of the contract (f = wi * wo) with a lobe given.
+LOBE_SCALES = (1e-30, 1e-3, 7.5, 1e4, 1e30)
+SCALED_WO_TOL = 1e-4  # a scaled wi's sample against the unit wi's (float32 rounding)
+# WebGL2 on SwiftShader: sin and cos of phi = 2 pi u2.y are loose near 2 pi, so the
+# sampled directions are compared with the float64 sampler to 0.05 (measured 0.035 at
+# most; the unscaled rows alike), and with the unit rows' to SCALED_WO_TOL
+WEBGL_WO_TOL = 0.05
+LOBE_SHAPES = [EVERY_OP_LOBE, ANISO_RETRO, PER_INCIDENCE, BECKMANN]
+LOBE_IDS = ["ggx", "aniso_retro", "per_incidence", "beckmann"]
+
+
+def product_model(scale: float = 1.0) -> bytes:
+    """wi, wo [N, 3] -> f = scale * wi * wo: the smallest file of the contract, with no
+    stored lobe (the tests give one)."""
+    f32 = TensorProto.FLOAT
+    nodes = [
+        helper.make_node("Mul", ["wi", "wo"], ["p"]),
+        helper.make_node("Mul", ["p", "k"], ["f"]),
+    ]
+    g = helper.make_graph(
+        nodes,
+        "product",
+        [helper.make_tensor_value_info(k, f32, ["N", 3]) for k in ("wi", "wo")],
+        [helper.make_tensor_value_info("f", f32, ["N", 3])],
+        [onnx.numpy_helper.from_array(np.array([scale], np.float32), "k")],
+    )
+    model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    return model.SerializeToString()
+
+
+def lobe_rows(seed: int = 21, n: int = 400):
+    """Rows (wi, wo, u1, u2) as float32 and a mask of the rows whose wi or wo is not a
+    direction: n unit pairs (wo near the mirror and the retro directions, and anywhere),
+    then blocks of the same n scaled on either side and on both by LOBE_SCALES (the
+    same (u1, u2) in every block), then test_codegen's HOSTILE rows as wi and as wo."""
+    rng = np.random.default_rng(seed)
+    wi = unit(rng, n)
+    wi[:, 2] = np.abs(wi[:, 2]) + 0.05
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    wo = np.concatenate(
+        [
+            wi[: n // 3] * [-1.0, -1.0, 1.0] + rng.normal(0, 0.1, (n // 3, 3)),
+            wi[n // 3 : 2 * n // 3] + rng.normal(0, 0.1, (2 * n // 3 - n // 3, 3)),
+            unit(rng, n - 2 * n // 3),
+        ]
+    )
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    given = [(wi, wo)]
+    for k in LOBE_SCALES:
+        given += [(wi * k, wo), (wi, wo * k), (wi * k, wo / k)]
+    bad = np.array(HOSTILE, dtype=np.float64)
+    good = np.repeat(wi[:1], len(bad), 0)
+    given += [(bad, good), (good, bad)]
+    gwi = np.concatenate([a for a, _ in given]).astype(np.float32)
+    gwo = np.concatenate([b for _, b in given]).astype(np.float32)
+    hostile = np.zeros(len(gwi), bool)
+    hostile[-2 * len(bad) :] = True
+    reps = len(given) - 2
+    u1 = np.concatenate([np.tile(rng.random(n), reps), rng.random(2 * len(bad))])
+    u2 = np.concatenate([np.tile(rng.random((n, 2)), (reps, 1)), rng.random((2 * len(bad), 2))])
+    return (gwi, gwo, u1.astype(np.float32), u2.astype(np.float32)), hostile
+
+
+def check_lobe_directions(run, lobe: dict, tol: float, wo_tol: float, n: int = 400) -> None:
+    """``run(wi, wo, u1, u2) -> (pdf(wi, wo), wo and pdf of sample(wi, u1, u2))`` of one
+    back end on :func:`lobe_rows`, against the float64 references at the directions
+    normalised (:func:`graph_unit`): pdf to ``tol`` (relative), a sampled direction to
+    ``wo_tol`` (99.9th percentile); each block of scaled rows draws what the unit rows
+    draw, to SCALED_WO_TOL; a non-finite or zero-length direction gives pdf 0 and, as
+    wi, a rejected sample."""
+    from neural_brdf.fileformat import lobe as lobe_format
+
+    (wi, wo, u1, u2), hostile = lobe_rows(n=n)
+    pdf, swo, spdf = run(wi, wo, u1, u2)
+    assert np.isfinite(pdf).all() and np.isfinite(swo).all() and np.isfinite(spdf).all()
+    ok = ~hostile
+    ref = mixture_pdf(graph_unit(wi[ok]), graph_unit(wo[ok]), lobe)
+    assert (ref > 0).mean() > 0.5
+    np.testing.assert_allclose(pdf[ok], ref, rtol=tol, atol=1e-6)
+    assert (pdf[hostile] == 0.0).all(), pdf[hostile]
+    # sample: a hostile wi draws a rejected sample (pdf 0, wo below the horizon)
+    bad_wi = hostile & (~np.isfinite(wi).all(1) | (wi == 0).all(1))
+    assert bad_wi.sum() == len(HOSTILE)
+    assert (spdf[bad_wi] == 0.0).all() and (swo[bad_wi][:, 2] < 0.0).all()
+    # a scaled wi draws what the unit wi draws
+    blocks = (len(wi) - 2 * len(HOSTILE)) // n
+    for b in range(1, blocks):
+        moved = np.linalg.norm(swo[b * n : (b + 1) * n] - swo[:n], axis=-1)
+        assert np.quantile(moved, 0.999) < SCALED_WO_TOL, (b, np.quantile(moved, [0.5, 0.999]))
+    # ... what the file format's sampler draws from the unit wi, a unit vector
+    good = ~bad_wi
+    uwi = graph_unit(wi[good])
+    wo_r, _ = lobe_format.sample(lobe_format.complete(lobe), uwi, u1[good], u2[good])
+    err = np.linalg.norm(swo[good] - wo_r, axis=-1)
+    assert np.quantile(err, 0.999) < wo_tol, np.quantile(err, [0.5, 0.99, 0.999])
+    drawn = spdf[good] > 0
+    assert drawn.mean() > 0.5
+    np.testing.assert_allclose(np.linalg.norm(swo[good][drawn], axis=-1), 1.0, atol=wo_tol)
+    # and returns the density at the wo it drew
+    at_drawn = mixture_pdf(uwi[drawn], graph_unit(swo[good][drawn]), lobe)
+    np.testing.assert_allclose(spdf[good][drawn], at_drawn, rtol=tol, atol=1e-6)
+
+
+@pytest.mark.parametrize("flags", [(), ("-ffast-math",)], ids=["c99", "fast_math"])
+@pytest.mark.parametrize("lobe", LOBE_SHAPES, ids=LOBE_IDS)
+def test_c_pdf_and_sample_normalise_their_directions(tmp_path, lobe, flags):
+    c = CProgram(product_model(), tmp_path, lobe=lobe, flags=flags)
+
+    def run(wi, wo, u1, u2):
+        swo, spdf = c.sample(wi, u1, u2)
+        return c.pdf(wi, wo), swo, spdf
+
+    check_lobe_directions(run, lobe, PDF_RTOL, 1e-4)
+    # sample() returns pdf(wo) of its wo for scaled and hostile wi too (bit for bit in
+    # ISO C; -ffast-math may compile the same expressions differently in the two)
+    (wi, _, u1, u2), _ = lobe_rows()
+    swo, spdf = c.sample(wi, u1, u2)
+    np.testing.assert_allclose(spdf, c.pdf(wi, swo), rtol=1e-4 if flags else 0.0, atol=0.0)
+
+
+WGSL_LOBE_KERNEL = """
+@group(0) @binding(0) var<storage, read> nb_rows: array<f32>;
+@group(0) @binding(1) var<storage, read_write> nb_res: array<f32>;
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= arrayLength(&nb_res) / 5u) {
+        return;
+    }
+    let b = 9u * i;
+    let wi = vec3<f32>(nb_rows[b], nb_rows[b + 1u], nb_rows[b + 2u]);
+    let wo = vec3<f32>(nb_rows[b + 3u], nb_rows[b + 4u], nb_rows[b + 5u]);
+    let s = neural_brdf_sample(wi, nb_rows[b + 6u], vec2<f32>(nb_rows[b + 7u], nb_rows[b + 8u]));
+    nb_res[5u * i] = neural_brdf_pdf(wi, wo);
+    nb_res[5u * i + 1u] = s.wo.x;
+    nb_res[5u * i + 2u] = s.wo.y;
+    nb_res[5u * i + 3u] = s.wo.z;
+    nb_res[5u * i + 4u] = s.pdf;
+}
+"""
+
+
+@pytest.mark.parametrize("lobe", [ANISO_RETRO, BECKMANN], ids=["aniso_retro", "beckmann"])
+def test_wgsl_pdf_and_sample_normalise_their_directions(wgpu_device, lobe):
+    from wgpu.utils.compute import compute_with_buffers
+
+    source = backends.generate(product_model(), "wgsl", lobe=lobe) + WGSL_LOBE_KERNEL
+    wgpu_device.create_shader_module(code=source)  # naga validation; raises on error
+
+    def run(wi, wo, u1, u2):
+        n = len(wi)
+        rows = np.concatenate([wi, wo, u1[:, None], u2], 1).astype(np.float32).reshape(-1)
+        out = compute_with_buffers({0: rows}, {1: (n * 5, "f")}, source, n=(n + 63) // 64)
+        res = np.frombuffer(out[1], np.float32).reshape(n, 5)
+        return res[:, 0], res[:, 1:4], res[:, 4]
+
+    check_lobe_directions(run, lobe, GPU_TOL, 1e-3)
+
+
+GLSL_LOBE_CALLS = {  # vec3 neural_brdf_eval(a, b) of the harness, over the lobe's functions
+    "pdf": "return vec3(nb_lobe_pdf(a, b), 0.0, 0.0);",
+    "wo": "vec3 w; nb_lobe_sample(a, b.x, b.yz, w); return w;",
+    "spdf": "vec3 w; return vec3(nb_lobe_sample(a, b.x, b.yz, w), 0.0, 0.0);",
+}
+
+
+def test_glsl_pdf_and_sample_normalise_their_directions():
+    """GLSL ES in WebGL2 (headless Chromium): the harness evaluates a function
+    ``neural_brdf_eval(a, b)``, here one per output over the generated pdf and sample
+    (renamed nb_lobe_*; b holds (u1, u2) for sample)."""
+    import re
+
+    from harness import gpu_browser
+
+    lobe = ANISO_RETRO
+    text = backends.generate(product_model(), "glsl", lobe=lobe)
+    text = re.sub(r"\bneural_brdf_(pdf|sample|eval)\b", r"nb_lobe_\1", text)
+    sources = {
+        k: f"{text}\nvec3 neural_brdf_eval(vec3 a, vec3 b) {{ {call} }}\n"
+        for k, call in GLSL_LOBE_CALLS.items()
+    }
+
+    def run(wi, wo, u1, u2):
+        u = np.concatenate([u1[:, None], u2], 1).astype(np.float32)
+        with gpu_browser.Session() as s:
+            pdf = s.eval_glsl(sources["pdf"], wi, wo)[:, 0]
+            swo = s.eval_glsl(sources["wo"], wi, u)
+            spdf = s.eval_glsl(sources["spdf"], wi, u)[:, 0]
+        return pdf, swo, spdf
+
+    check_lobe_directions(run, lobe, GPU_TOL, WEBGL_WO_TOL)
+
+
+# ------------------------------------------------------------------ prefixes
+# The files of several models in one program: each file's names (functions, helpers,
+# tables, textures, macros, C's include guard, WGSL's sample struct) carry its prefix, the
+# default one (neural_brdf) giving the names of a file without one.  Three models with
+# different values and lobes: the every-op graph, and f = k * wi * wo for two k.
+PREFIXED = {  # prefix (None: the default) -> (model, lobe)
+    "gold": (every_op_model, EVERY_OP_LOBE),
+    "brushed_v2": (lambda: product_model(2.5), ANISO_RETRO),
+    None: (lambda: product_model(-0.75), BECKMANN),
+}
+
+TWO_HEADERS_DRIVER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include "gold.h"
+#include "brushed_v2.h"
+#include "neural_brdf.h"
+
+/* driver N IN OUT: rows of 6 float32 (wi, wo) -> f and pdf of each file (12 float32) */
+int main(int argc, char **argv)
+{
+    long n, i;
+    float row[6], out[12];
+    FILE *in, *res;
+    if (argc != 4) return 2;
+    n = atol(argv[1]);
+    in = fopen(argv[2], "rb");
+    res = fopen(argv[3], "wb");
+    if (!in || !res) return 2;
+    for (i = 0; i < n; i++) {
+        if (fread(row, sizeof(float), 6, in) != 6) return 3;
+        gold_eval(row, row + 3, out);
+        brushed_v2_eval(row, row + 3, out + 3);
+        neural_brdf_eval(row, row + 3, out + 6);
+        out[9] = gold_pdf(row, row + 3);
+        out[10] = brushed_v2_pdf(row, row + 3);
+        out[11] = neural_brdf_pdf(row, row + 3);
+        fwrite(out, sizeof(float), 12, res);
+    }
+    fclose(in);
+    fclose(res);
+    return 0;
+}
+"""
+
+
+def test_headers_with_different_prefixes_work_in_one_c_program(tmp_path):
+    """Three headers in one translation unit (-Wall -Wextra -pedantic -Werror): each gives
+    its own model's f (against onnxruntime) and its own lobe's pdf."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    assert cc, "a C compiler (cc) is needed"
+    payloads = {}
+    for prefix, (model, lobe) in PREFIXED.items():
+        payloads[prefix] = model()
+        text = backends.generate(payloads[prefix], "c", lobe=lobe, prefix=prefix)
+        (tmp_path / f"{prefix or 'neural_brdf'}.h").write_text(text)
+    (tmp_path / "driver.c").write_text(TWO_HEADERS_DRIVER)
+    exe = tmp_path / "driver"
+    flags = ["-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic", "-Werror"]
+    r = subprocess.run(
+        [cc, *flags, "-o", str(exe), str(tmp_path / "driver.c"), "-lm"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    wi, wo = pairs(9, 500)
+    np.concatenate([wi, wo], 1).tofile(tmp_path / "in.bin")
+    subprocess.run(
+        [str(exe), str(len(wi)), str(tmp_path / "in.bin"), str(tmp_path / "out.bin")], check=True
+    )
+    out = np.fromfile(tmp_path / "out.bin", np.float32).reshape(-1, 12)
+    for k, (prefix, (_, lobe)) in enumerate(PREFIXED.items()):
+        ref = onnx_ref(payloads[prefix], wi, wo)
+        assert relative_difference(out[:, 3 * k : 3 * k + 3], ref) <= C_TOL, prefix
+        ok = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+        np.testing.assert_allclose(
+            out[:, 9 + k], mixture_pdf(wi, wo, lobe), rtol=PDF_RTOL, atol=1e-6
+        )
+        assert (out[~ok, 9 + k] == 0).all()
+    # the three models differ: a header dropped for another would show
+    assert relative_difference(out[:, 3:6], out[:, 0:3]) > 0.1
+    assert relative_difference(out[:, 6:9], out[:, 3:6]) > 0.1
+
+
+WGSL_PREFIXES_KERNEL = """
+@group(0) @binding(0) var<storage, read> nb_rows: array<f32>;
+@group(0) @binding(1) var<storage, read_write> nb_res: array<f32>;
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= arrayLength(&nb_res) / 12u) {
+        return;
+    }
+    let wi = vec3<f32>(nb_rows[6u * i], nb_rows[6u * i + 1u], nb_rows[6u * i + 2u]);
+    let wo = vec3<f32>(nb_rows[6u * i + 3u], nb_rows[6u * i + 4u], nb_rows[6u * i + 5u]);
+    let f0 = gold_eval(wi, wo);
+    let f1 = brushed_v2_eval(wi, wo);
+    let f2 = neural_brdf_eval(wi, wo);
+    let s0: GoldSample = gold_sample(wi, 0.5f, vec2<f32>(0.25f, 0.75f));
+    let s1: BrushedV2Sample = brushed_v2_sample(wi, 0.5f, vec2<f32>(0.25f, 0.75f));
+    let s2: NeuralBrdfSample = neural_brdf_sample(wi, 0.5f, vec2<f32>(0.25f, 0.75f));
+    let b = 12u * i;
+    nb_res[b] = f0.x;
+    nb_res[b + 1u] = f0.y;
+    nb_res[b + 2u] = f0.z;
+    nb_res[b + 3u] = f1.x;
+    nb_res[b + 4u] = f1.y;
+    nb_res[b + 5u] = f1.z;
+    nb_res[b + 6u] = f2.x;
+    nb_res[b + 7u] = f2.y;
+    nb_res[b + 8u] = f2.z;
+    nb_res[12u * i + 9u] = gold_pdf(wi, wo) + 0.0f * s0.pdf;
+    nb_res[12u * i + 10u] = brushed_v2_pdf(wi, wo) + 0.0f * s1.pdf;
+    nb_res[12u * i + 11u] = neural_brdf_pdf(wi, wo) + 0.0f * s2.pdf;
+}
+"""
+
+
+def test_wgsl_files_with_different_prefixes_work_in_one_module(wgpu_device):
+    from wgpu.utils.compute import compute_with_buffers
+
+    payloads = {prefix: model() for prefix, (model, _) in PREFIXED.items()}
+    source = "".join(
+        backends.generate(payloads[prefix], "wgsl", lobe=lobe, prefix=prefix)
+        for prefix, (_, lobe) in PREFIXED.items()
+    )
+    source += WGSL_PREFIXES_KERNEL
+    wgpu_device.create_shader_module(code=source)  # naga validation; raises on error
+    wi, wo = pairs(9, 500)
+    n = len(wi)
+    rows = np.concatenate([wi, wo], 1).astype(np.float32).reshape(-1)
+    res = compute_with_buffers({0: rows}, {1: (n * 12, "f")}, source, n=(n + 63) // 64)
+    out = np.frombuffer(res[1], np.float32).reshape(n, 12)
+    for k, (prefix, (_, lobe)) in enumerate(PREFIXED.items()):
+        tol = EVERY_OP_GPU_TOL if prefix == "gold" else GPU_TOL
+        assert (
+            relative_difference(out[:, 3 * k : 3 * k + 3], onnx_ref(payloads[prefix], wi, wo))
+            <= tol
+        )
+        np.testing.assert_allclose(
+            out[:, 9 + k], mixture_pdf(wi, wo, lobe), rtol=GPU_TOL, atol=1e-5
+        )
+
+
+def test_glsl_files_with_different_prefixes_validate_in_one_shader(tmp_path):
+    """GLSL ES 3.00 and Vulkan GLSL 4.50: the three files pasted into one shader that calls
+    each one's functions."""
+    source = "".join(
+        backends.generate(model(), "glsl", lobe=lobe, prefix=prefix)
+        for prefix, (model, lobe) in PREFIXED.items()
+    )
+    for prefix in ("gold", "brushed_v2"):
+        source += (
+            f"vec3 {prefix}_calls(vec3 wi, vec3 wo) {{ vec3 w; "
+            f"return {prefix}_eval(wi, wo) + vec3({prefix}_pdf(wi, wo) "
+            f"+ {prefix}_sample(wi, 0.5, vec2(0.3), w)) + w; }}\n"
+        )
+    glsl_validate(source, tmp_path)  # its main() calls the default file's functions
+
+
+def test_the_default_prefix_is_the_unprefixed_file():
+    payload = product_model()
+    for target in backends.TARGETS:
+        plain = backends.generate(payload, target, lobe=ANISO_RETRO)
+        assert plain == backends.generate(payload, target, lobe=ANISO_RETRO, prefix="neural_brdf")
+        other = backends.generate(payload, target, lobe=ANISO_RETRO, prefix="gold")
+        assert "neural_brdf_" not in other.replace("neural_brdf.backends", "")
+        assert "NEURAL_BRDF" not in other and "NeuralBrdf" not in other
+    assert "#ifndef NEURAL_BRDF_H" in backends.generate(payload, "c", lobe=ANISO_RETRO)
+    assert "#ifndef GOLD_H" in backends.generate(payload, "c", lobe=ANISO_RETRO, prefix="gold")
+
+
+@pytest.mark.parametrize(
+    "prefix",
+    ["", "Gold", "gold__v2", "gold_", "_gold", "2gold", "gold_2", "gl_x", "gold-x", "gold x"],
+)
+def test_a_bad_prefix_is_one_line(prefix):
+    """A prefix that is not an identifier in every language, or whose upper case or
+    CamelCase (the macros, WGSL's struct) another prefix could share."""
+    for target in backends.TARGETS:
+        with pytest.raises(InputError, match="prefix: expected") as e:
+            backends.generate(product_model(), target, lobe=ANISO_RETRO, prefix=prefix)
+        assert "\n" not in str(e.value)
+
+
+# ------------------------------------------------------------------ errors name the file
+def test_errors_name_the_file(tmp_path, capsys):
+    """A foreign graph, an empty file, a file of the contract without a stored lobe and one
+    with an op the lowering does not know: one line that names the file, from the API (a
+    path) and from ``neural-brdf codegen``; bytes are named ``codegen``."""
+    from cli_helpers import assert_one_line_error, cli
+
+    f32 = TensorProto.FLOAT
+    x, y = (helper.make_tensor_value_info(k, f32, ["N", 4]) for k in ("x", "y"))
+    foreign = helper.make_model(
+        helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "g", [x], [y]),
+        opset_imports=[helper.make_opsetid("", 17)],
+    )
+    files = {
+        "foreign.onnx": foreign.SerializeToString(),
+        "empty.onnx": b"",
+        "no_lobe.onnx": product_model(),
+        "einsum.onnx": einsum_model(),
+    }
+    for name, payload in files.items():
+        path = tmp_path / name
+        path.write_bytes(payload)
+        with pytest.raises(InputError) as e:
+            backends.generate(path, "c")
+        assert str(e.value).startswith(f"{path}: "), str(e.value)
+        code, _, err = cli(
+            capsys, "codegen", str(path), "--target", "glsl", "-o", str(tmp_path / "x")
+        )
+        assert_one_line_error(code, err, f"error: {path}: ")
+        assert not (tmp_path / "x").exists()
+    with pytest.raises(InputError, match="^codegen: .*no stored sampling lobe"):
+        backends.generate(product_model(), "wgsl")
+    with pytest.raises(
+        InputError, match=r"^model\.onnx: expected inputs wi, wo .*got \{'x': 4\} -> \{'y': 4\}"
+    ):
+        backends.generate(foreign.SerializeToString(), "c", source="model.onnx")
+    with pytest.raises(InputError, match=r"^m\.onnx: "):
+        backends.textures(foreign.SerializeToString(), source="m.onnx")

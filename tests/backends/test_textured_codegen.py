@@ -11,6 +11,8 @@ the graph as onnxruntime does, its weight table bound by the host (docs/codegen.
   edges, integers and the rounding cases next to them, with test_codegen's (wi, wo)
   rows; the same code with the texture's rows reversed does not (the data are read);
 * the desktop GLSL (SSBO) and ES variants validate with glslangValidator;
+* C with a prefix beside the default header in one translation unit, and C compiled with
+  -ffast-math: NaN / inf uv and hostile directions still give exactly 0 (bit tests);
 * a two-input file renders as before (no texture, no uv) and a table that cannot be
   bound (an int table at uv-dependent indices) is a one-line error.
 
@@ -189,6 +191,13 @@ def test_cli_writes_the_texture_beside_the_code(textured, tmp_path, capsys):
     assert np.array_equal(data, table.reshape(-1))
     code, out, err = cli(capsys, "codegen", str(path), "--target", "wgsl", "-o", "-")
     assert code == 0 and "neural_brdf_texture0" in out and "not written" in err
+    # with a prefix the textures are written too (found from the file's inputs, not the
+    # default names in the code)
+    args = ["codegen", str(path), "--target", "c", "--prefix", "gold"]
+    code, out, _ = cli(capsys, *args, "-o", str(tmp_path / "g.h"))
+    assert code == 0 and "g.texture0.f32" in out, out
+    assert np.array_equal(np.fromfile(tmp_path / "g.texture0.f32", "<f4"), table.reshape(-1))
+    assert "gold_eval" in (tmp_path / "g.h").read_text()
 
 
 def test_a_table_that_cannot_be_bound_is_one_line(tmp_path, capsys):
@@ -274,15 +283,38 @@ int main(int argc, char **argv)
 """
 
 
-def c_eval(path, folder: Path, wi, wo, uv, textures: list[np.ndarray]) -> list[np.ndarray]:
-    """The generated header compiled with DRIVER, run once per texture given."""
+def c_eval(
+    path,
+    folder: Path,
+    wi,
+    wo,
+    uv,
+    textures: list[np.ndarray],
+    *,
+    flags: tuple[str, ...] = (),
+    prefix: str | None = None,
+) -> list[np.ndarray]:
+    """The generated header compiled with DRIVER (and ``flags``), run once per texture
+    given.  With ``prefix`` the header is generated with it and DRIVER calls its names;
+    the default file of the same model is included too (before it: one translation
+    unit, two headers)."""
     cc = shutil.which("cc") or shutil.which("gcc")
     assert cc, "a C compiler (cc) is needed"
-    (folder / "model.h").write_text(backends.generate(path, "c"))
-    (folder / "driver.c").write_text(DRIVER)
+    driver = DRIVER
+    if prefix is None:
+        (folder / "model.h").write_text(backends.generate(path, "c"))
+    else:
+        (folder / "model.h").write_text(backends.generate(path, "c", prefix=prefix))
+        (folder / "plain.h").write_text(backends.generate(path, "c"))
+        driver = (
+            driver.replace('#include "model.h"', '#include "plain.h"\n#include "model.h"')
+            .replace("NEURAL_BRDF_", f"{prefix.upper()}_")
+            .replace("neural_brdf_eval", f"{prefix}_eval")
+        )
+    (folder / "driver.c").write_text(driver)
     exe = folder / "driver"
-    cmd = [cc, "-std=c99", "-O2", "-Wall", "-Werror", "-o", str(exe), str(folder / "driver.c")]
-    subprocess.run([*cmd, "-lm"], check=True, capture_output=True)
+    cmd = [cc, "-std=c99", "-O2", "-Wall", "-Werror", *flags, "-o", str(exe)]
+    subprocess.run([*cmd, str(folder / "driver.c"), "-lm"], check=True, capture_output=True)
     np.concatenate([wi, wo, uv], 1).astype(np.float32).tofile(folder / "in.bin")
     out = []
     for data in textures:
@@ -298,6 +330,50 @@ def test_c_matches_onnxruntime(textured, reference, tmp_path):
     wi, wo, uv, ref = reference
     got, wrong = c_eval(path, tmp_path, wi, wo, uv, [table, table[::-1]])
     check_parity(got, wrong, ref, C_TOL)
+
+
+def test_c_with_a_prefix_beside_the_default_file(textured, reference, tmp_path):
+    """The header generated with a prefix (its texture macros TEX_TEXTURE0_ROWS, ...)
+    and the default one of the same model in one translation unit: the prefixed
+    tex_eval matches onnxruntime."""
+    path, table = textured
+    wi, wo, uv, ref = reference
+    got, wrong = c_eval(path, tmp_path, wi, wo, uv, [table, table[::-1]], prefix="tex")
+    check_parity(got, wrong, ref, C_TOL)
+
+
+# -ffast-math may reassociate and contract: measured 6e-7 relative against onnxruntime
+FAST_MATH_TOL = 1e-4
+
+
+def test_c_under_fast_math_gives_0_for_a_non_finite_uv(textured, tmp_path):
+    """Compiled with -ffast-math (which folds isnan() and isinf() to 0), rows with a NaN
+    or infinite uv, or a non-finite or zero-length direction, still give exactly 0: the
+    generated tests are bit tests; the other rows match onnxruntime."""
+    from test_codegen import HOSTILE
+
+    path, table = textured
+    rng = np.random.default_rng(5)
+    n = 64
+    wi, wo = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]) + 0.1, np.abs(wo[:, 2]) + 0.1
+    good_uv = rng.uniform(-2.0, 2.0, (n, 2))
+    bad = np.array(HOSTILE)
+    # every hostile uv with good directions, every hostile direction on either side
+    rows = [(wi, wo, good_uv)]
+    rows += [(wi[:6], wo[:6], np.repeat([h], 6, 0)) for h in HOSTILE_UV]
+    rows += [(bad, wo[: len(bad)], good_uv[: len(bad)]), (wi[: len(bad)], bad, good_uv[: len(bad)])]
+    wi, wo, uv = (np.concatenate([r[k] for r in rows]).astype(np.float32) for k in range(3))
+    (got,) = c_eval(path, tmp_path, wi, wo, uv, [table], flags=("-ffast-math",))
+    ref = onnx_ref(path, wi, wo, uv)
+    assert np.isfinite(got).all()
+    hostile = ~np.isfinite(uv).all(1) | ~np.isfinite(wi).all(1) | ~np.isfinite(wo).all(1)
+    hostile |= (wi == 0).all(1) | (wo == 0).all(1)
+    assert hostile.sum() == 4 * 6 + 2 * len(bad)
+    assert (got[hostile] == 0.0).all(), got[hostile]
+    assert (ref[hostile] == 0.0).all()
+    assert (ref[~hostile] != 0).all()
+    assert relative_difference(got[~hostile], ref[~hostile]) <= FAST_MATH_TOL
 
 
 # ------------------------------------------------------------------ WGSL (wgpu: naga + lavapipe)
