@@ -789,6 +789,10 @@ def sizes(cfg: Config) -> list[tuple[str, float]]:
             heads = 2 if cfg.texture.analytic_heads != "none" else 0  # and alpha's column
             width = 3 * (cfg.texture.lobes + heads) + 1 + bool(heads)  # float32, bounded copy
             out.append(("texture.project", (8.0 + 4.0 + 4.0) * cfg.texture.project**2 * width))
+            # a texel's pairs are drawn and solved at once (at least one texel a chunk):
+            # the pairs, and the float64 rows of its least squares
+            pairs = float(cfg.texture.project_pairs)
+            out.append(("texture.project_pairs", pairs * (PAIR_BYTES + 8.0 * width)))
     for key, grid in (("model.grid", m.grid), ("model.cosine_grid", m.cosine_grid)):
         out.append((key + ".size", 16.0 * grid.size**2 * grid.channels))
     return out

@@ -278,6 +278,22 @@ def _tensor(mi: Any, x: np.ndarray) -> Any:
     return mi.Vector3f(np.ascontiguousarray(x.T, dtype=np.float32))
 
 
+NORMAL_MAPS = {"NormalMap": "normalmap", "BumpMap": "bumpmap"}  # Mitsuba's classes
+
+
+def nested_normal_map(mi: Any, obj: Any, depth: int = 0) -> str | None:
+    """The plugin name of a normal or bump map among the BSDFs ``obj`` holds, at any
+    depth (a ``blendbsdf`` of a ``normalmap``), or None."""
+    for _, child in _children(mi, obj):
+        if not isinstance(child, mi.BSDF):
+            continue
+        if child.class_name() in NORMAL_MAPS:
+            return NORMAL_MAPS[child.class_name()]
+        if depth < 16 and (found := nested_normal_map(mi, child, depth + 1)) is not None:
+            return found
+    return None
+
+
 def _np(x: Any) -> np.ndarray:
     """A Mitsuba array of (3, N) or (N,) -> (N, 3) / (N,) float64 numpy."""
     return np.array(x, dtype=np.float64).T
@@ -347,6 +363,12 @@ def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
         raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
     if not np.all(np.isfinite(value)) or value.min() < 0:
         raise InputError(f"{where}: {plugin} gives negative or non-finite values")
+    if not value.max() > 0:  # else trained to a black file with "physics PASSED"
+        raise InputError(
+            f"{where}: {plugin} reflects no light at {PROBE_UV} random uv (f = 0 in every "
+            "channel): a black material, or a texture that needs a mesh (such as "
+            "mesh_attribute), which a teacher evaluated on its own cannot read"
+        )
     top = value.max(-1)
     k = int(np.argmax(top))
     if top[k] > MAX_F_COS:
@@ -437,6 +459,14 @@ class MitsubaTarget:
             if front is None:
                 raise InputError(f"{where}: a twosided BSDF without a nested BSDF")
             obj = front
+        if obj.class_name() in NORMAL_MAPS or nested_normal_map(mi, obj) is not None:
+            # its frame turns with uv, even under a uniform map: the textured teacher takes
+            # it apart (or refuses one inside another BSDF), never evaluated as it is here,
+            # where the map's rotated frame makes f non-reciprocal
+            raise VariesOverSurface(
+                f"{where}: {obj.class_name()} holds a normal or bump map: a spatially "
+                "varying teacher (measured.textured)"
+            )
         names.append(obj.class_name())
         return obj, " > ".join(names)
 

@@ -69,6 +69,7 @@ from neural_brdf.measured.mitsuba import (
     check_rough,
     interaction,
     load,
+    nested_normal_map,
     one_bsdf,
     resolver_for,
     sample_rows,
@@ -136,6 +137,7 @@ class TexturedMitsubaTarget:
             obj = load(mi, self.path, where)
             self.whole_bsdf = obj  # wrappers included: what a scene of the teacher renders
             self.bsdf, self.plugin = self._unwrap(obj, where)
+            self._probe_whole(where)
             check_reflective(self.bsdf, self.plugin, where)
             check_rough(mi, self.bsdf, self.plugin, where)
             self.anisotropic = self._probe_anisotropy(where)
@@ -215,13 +217,40 @@ class TexturedMitsubaTarget:
                 else:
                     self._normal_tex = kids.get("nested_texture")
                     self._bump_scale = float(mi.traverse(obj)["scale"])
+                    self.warnings.append(
+                        f"{where}: a bumpmap's relief depends on the mesh (Mitsuba tilts "
+                        "the normal by the height's gradient over |dp/du|, |dp/dv|); the "
+                        "file holds it for |dp/du| = |dp/dv| = 1, so on a mesh of another "
+                        "uv scale it differs from the teacher; a normalmap does not "
+                        "(docs/mitsuba.md, Textured materials)"
+                    )
                 if self.normal_map is None:  # not found in the XML (a scene's reference)
                     self.normal_map = {"plugin": name}
             if inner is None:
                 raise InputError(f"{where}: a {name} BSDF without a nested BSDF")
             obj = inner
         names.append(obj.class_name())
+        nested = nested_normal_map(mi, obj)
+        if nested is not None:  # else trained as Mitsuba's non-reciprocal wrapper
+            raise InputError(
+                f"{where}: a {nested} inside {obj.class_name()}: only a normal or bump map "
+                "around the whole material (within twosided) goes into the file's normal "
+                "field, and inside it the teacher is not reciprocal; move it outside"
+            )
         return obj, " > ".join(names)
+
+    def _probe_whole(self, where: str) -> None:
+        """Mitsuba evaluates the whole teacher, its normal or bump map included (as the
+        report and the viewer render it), at a few random uv: else a map Mitsuba cannot
+        read (a normal map of one channel) trained and failed in the report."""
+        mi, rng = self._mi, np.random.default_rng(11)
+        uv = rng.random((PROBE_PAIRS, 2))
+        wi = _hemisphere(rng.random((PROBE_PAIRS, 2)), z_min=0.1)
+        wo = _hemisphere(rng.random((PROBE_PAIRS, 2)), z_min=0.1)
+        try:
+            self.whole_bsdf.eval(mi.BSDFContext(), interaction(mi, wi, uv), _tensor(mi, wo))
+        except Exception as e:  # a plugin that needs what a bare interaction lacks
+            raise InputError(f"{where}: Mitsuba cannot evaluate it ({_first(e)})") from None
 
     def _probe_anisotropy(self, where: str) -> bool:
         """The same pairs at PROBE_UV random uv, turned about the normal: anisotropic

@@ -166,6 +166,66 @@ def test_a_normal_map_of_one_channel_is_one_line(mi, tmp_path, capsys):
     assert_one_line_error(code, err, "nm.xml", "cannot evaluate", "[...]", "monochromatic")
 
 
+# ------------------------------------------------------------------ a teacher walkthrough
+@pytest.mark.parametrize(
+    "xml",
+    [
+        '<bsdf version="3.0.0" type="diffuse"><rgb name="reflectance" value="0, 0, 0"/></bsdf>',
+        '<bsdf version="3.0.0" type="diffuse"><texture type="mesh_attribute" '
+        'name="reflectance"><string name="name" value="vertex_color"/></texture></bsdf>',
+    ],
+    ids=["black", "mesh_attribute"],
+)
+def test_a_teacher_that_reflects_nothing_is_refused(mi, tmp_path, capsys, xml):
+    # it trained a black file with physics PASSED, an error of 3e146 % and exit 0 (a
+    # mesh_attribute texture reads 0 where the teacher is evaluated on its own)
+    (tmp_path / "t.xml").write_text(xml)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("target: {mitsuba: t.xml}\n")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"), *SETS)
+    assert_one_line_error(code, err, "t.xml", "reflects no light")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_normal_map_inside_a_blend_is_refused(mi, tmp_path, capsys):
+    # it trained on Mitsuba's wrapper, not reciprocal there, to a 72 % error, and the file's
+    # description claimed a normal field it did not have
+    data = np.zeros((8, 8, 3), np.float32)
+    data[..., 0], data[..., 2] = 0.6, 1.0
+    mi.Bitmap(data).write(str(tmp_path / "n.exr"))
+    (tmp_path / "t.xml").write_text(
+        '<bsdf version="3.0.0" type="blendbsdf"><float name="weight" value="0.5"/>'
+        '<bsdf type="normalmap"><texture type="bitmap" name="normalmap">'
+        '<string name="filename" value="n.exr"/><boolean name="raw" value="true"/></texture>'
+        '<bsdf type="roughplastic"/></bsdf><bsdf type="diffuse"/></bsdf>'
+    )
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("target: {mitsuba: t.xml}\n")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"), *SETS)
+    assert_one_line_error(code, err, "t.xml", "normalmap inside", "move it outside")
+
+
+def test_a_bump_map_teacher_warns_that_its_relief_depends_on_the_mesh(mi, tmp_path):
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    # three channels: a normal map's (x, y, z) near +z, a bump map's height its luminance
+    h = np.random.default_rng(1).random((8, 8, 1)).astype(np.float32)
+    mi.Bitmap((np.repeat(h, 3, -1) * 0.2 + [0.4, 0.4, 0.8]).astype(np.float32)).write(
+        str(tmp_path / "h.exr")
+    )
+    wrapped = '<bsdf type="roughplastic"/>'
+    for plugin, texture in [("bumpmap", ""), ("normalmap", ' name="normalmap"')]:
+        (tmp_path / f"{plugin}.xml").write_text(
+            f'<bsdf version="3.0.0" type="{plugin}"><texture type="bitmap"{texture}>'
+            '<string name="filename" value="h.exr"/><boolean name="raw" value="true"/>'
+            f"</texture>{wrapped}</bsdf>"
+        )
+    bump = TexturedMitsubaTarget(tmp_path / "bumpmap.xml")
+    assert any("relief depends on the mesh" in w for w in bump.warnings), bump.warnings
+    normal = TexturedMitsubaTarget(tmp_path / "normalmap.xml")
+    assert not any("relief depends on the mesh" in w for w in normal.warnings)
+
+
 # ------------------------------------------------------------------ a delta lobe in all but name
 @pytest.mark.parametrize("plugin, alpha", [("roughplastic", "0"), ("roughconductor", "-0.3")])
 def test_a_rough_plugin_at_roughness_zero_is_refused(mi, tmp_path, capsys, plugin, alpha):

@@ -44,6 +44,17 @@ def test_the_memory_check_names_pool_per_texel_for_a_textured_teacher(monkeypatc
     assert "texture.pool_per_texel" not in dict(cfgmod.sizes(cfgmod.Config()))
 
 
+def test_the_memory_check_names_project_pairs(monkeypatch):
+    # a texel's projection pairs are drawn and solved at once: 2e9 of them trained first
+    # and then failed with a line that named no key, leaving an unfinished run
+    monkeypatch.setenv(limits.ENV_LIMIT, "64G")
+    huge = ["target.mitsuba=t.xml", "texture.project=8", "texture.project_pairs=2000000000"]
+    with pytest.raises(limits.TooLarge, match=r"texture\.project_pairs: would need"):
+        cfgmod.load(None, huge)  # the loader checks the sizes, before anything runs
+    cfgmod.load(None, ["target.mitsuba=t.xml", "texture.project=8"])
+    assert "texture.project_pairs" not in dict(cfgmod.sizes(_cfg()))  # no projection
+
+
 @pytest.mark.parametrize("value", ["0", "-5", "1.5", "many"])
 def test_a_bad_pool_per_texel_is_refused(value):
     with pytest.raises(cfgmod.ConfigError, match="texture.pool_per_texel"):
