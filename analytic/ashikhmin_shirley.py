@@ -55,7 +55,7 @@ class AshikhminShirley(BRDF):
     name = "ashikhmin_shirley"
     reciprocal = True
     energy_conserving = True
-    anisotropic = True
+    anisotropic = True  # per instance: nu != nv
     notes = (
         "Eq. 24.5 implemented (the textbook's typeset 24.9 misplaces the denominator "
         "inside the exponent). Measured max total albedo 0.9996 (rs = 1, "
@@ -80,6 +80,7 @@ class AshikhminShirley(BRDF):
         nu = scalar("nu", nu, lo=0.0)
         nv = scalar("nv", nv, lo=0.0)
         super().__init__(rd=rd, rs=rs, nu=nu, nv=nv)
+        self.anisotropic = nu != nv  # per instance: equal exponents do not see the azimuth
 
     # ------------------------------------------------------------------ pieces
     def _hexp(self, h: torch.Tensor) -> torch.Tensor:

@@ -418,3 +418,29 @@ def test_metadata(name):
     assert brdf.reciprocal is True
     assert brdf.anisotropic == (name in ("ward", "ashikhmin_shirley", "bank"))
     assert set(cls.param_space) == set(brdf.params)
+
+
+@pytest.mark.parametrize(
+    "name, iso, aniso",
+    [
+        ("ward", dict(alpha_x=0.2, alpha_y=0.2), dict(alpha_x=0.1, alpha_y=0.4)),
+        ("ashikhmin_shirley", dict(nu=200.0, nv=200.0), dict(nu=200.0, nv=20.0)),
+    ],
+)
+def test_anisotropic_is_per_instance(name, iso, aniso):
+    # the class said anisotropic whatever the parameters: the plastic preset (nu = nv)
+    # was refused by bake and told to use the anisotropic encoding
+    rng = np.random.default_rng(3)
+    wi = rng.normal(size=(512, 3))
+    wo = rng.normal(size=(512, 3))
+    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]) + 0.1, np.abs(wo[:, 2]) + 0.1
+    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+    c, s = np.cos(1.1), np.sin(1.1)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    for params, expected in ((iso, False), (aniso, True)):
+        brdf = analytic.create(name, **params)
+        a, b = brdf.eval(wi, wo), brdf.eval(wi @ rot.T, wo @ rot.T)
+        turned = not np.allclose(a, b, rtol=1e-5, atol=1e-9)
+        assert brdf.anisotropic is expected and turned is expected, (params, brdf.anisotropic)
+
