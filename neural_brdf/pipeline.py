@@ -19,6 +19,7 @@ write into) from start to end.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -135,6 +136,18 @@ def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[
     # loop (and the kind of checkpoint a resumed run must have)
     target = data.build_target(cfg.target) if cfg.target.mitsuba is not None else None
     textured = spatially_varying(target)
+    started = os.path.lexists(run_dir / runfolder.MARKER)  # this run's first write
+    if resume and started and not folder.ckpt.exists() and not (run_dir / runfolder.MODEL).exists():
+        # stopped before its first checkpoint (kill -9 within train.checkpoint_every
+        # steps, SIGTERM while starting): a scheduler's restart with --resume trains it
+        # from step 0, where it refused every time before (a run that wrote its model
+        # and lost its checkpoint is not replaced: load_resumable says so)
+        print(
+            f"{cfg.name}: {folder.ckpt} does not exist yet (the run was stopped before its "
+            "first checkpoint): it trains from step 0",
+            file=sys.stderr,
+        )
+        resume = False
     ckpt = (
         loop.load_resumable(
             cfg,

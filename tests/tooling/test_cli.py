@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from cli_helpers import ROOT, SETS, TINY, assert_one_line_error, cli, run  # noqa: F401
-from neural_brdf import config, export
+from neural_brdf import config, export, runfolder
 from neural_brdf.train import loop
 from test_fileio import devices  # noqa: F401  (a fixture)
 
@@ -212,6 +212,31 @@ def test_an_unfinished_run_needs_resume_or_overwrite(capsys, tmp_path):
     assert code == 0, err
     assert json.loads((half / "metrics.json").read_text())["training"]["steps"] == 10
     assert (half / "keep.txt").read_text() == "mine"
+
+
+def test_a_run_stopped_before_its_first_checkpoint_resumes_from_step_0(capsys, run_dir, tmp_path):
+    # kill -9 within train.checkpoint_every steps leaves the marker and config.yaml alone:
+    # --resume (a scheduler's restart) refused it every time, "no checkpoint"
+    early = tmp_path / "early"
+    shutil.copytree(run_dir, early)
+    for p in early.iterdir():
+        if p.name not in (runfolder.MARKER, runfolder.CONFIG):
+            p.unlink()
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(early), *SETS, "--resume")
+    assert code == 0, err
+    assert "stopped before its first checkpoint" in err and "from step 0" in err, err
+    assert json.loads((early / "metrics.json").read_text())["training"]["steps"] == 10
+    # a run that wrote its model and then lost its checkpoint is not trained over
+    (early / runfolder.CKPT).unlink()
+    model = (early / runfolder.MODEL).read_bytes()
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(early), *SETS, "--resume")
+    assert code == 2 and "no checkpoint" in err, err
+    assert (early / runfolder.MODEL).read_bytes() == model
+    # nor is a folder that holds no run
+    code, _, err = cli(
+        capsys, "train", "lambert", "--out", str(tmp_path / "new"), *SETS, "--resume"
+    )
+    assert code == 2, err
 
 
 # ------------------------------------------------- issue 19: safe wherever it writes
