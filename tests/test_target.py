@@ -109,3 +109,21 @@ def test_the_target_has_one_name(fn):
     for old in ("extra", "reference"):
         if old in params:
             assert params.index(old) > params.index("target"), params
+
+
+@pytest.mark.parametrize(
+    "model, params",
+    [("lambertian", {"albedo": 0.0}), ("oren_nayar", {"albedo": 0.0, "sigma": 0.3})],
+)
+def test_an_analytic_target_that_reflects_nothing_is_refused(model, params):
+    # it trained a black file with "physics PASSED" and a relative error of 1e143 %
+    from neural_brdf import config
+
+    black = config.Config.model_validate({"target": {"model": model, "params": params}})
+    brdf = analytic.create(model, **params)
+    wi = torch.nn.functional.normalize(torch.rand(256, 3) + torch.tensor([0.0, 0.0, 0.1]), dim=-1)
+    assert not bool((brdf.eval(wi, wi.flip(0)) > 0).any())  # black indeed, at these pairs
+    with pytest.raises(config.ConfigError, match="target.params: .* reflects no light"):
+        data.build_target(black.target)
+    grey = config.Config.model_validate({"target": {"model": model, "params": {}}})
+    assert data.reflects(data.build_target(grey.target))  # the defaults reflect

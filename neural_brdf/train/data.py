@@ -131,9 +131,27 @@ def build_target(target: cfgmod.Target, *, source: str | None = None):
             "is not importable in this installation"
         ) from None
     try:
-        return analytic.create(target.model, **target.params)
+        brdf = analytic.create(target.model, **target.params)
     except (analytic.ParameterError, TypeError) as e:
         raise cfgmod.ConfigError(f"target.params: {e}") from None
+    if not reflects(brdf):  # else a relative error of 1e143 % and "physics PASSED"
+        raise cfgmod.ConfigError(
+            f"target.params: {target.model} with these parameters reflects no light (f = 0 "
+            "at every probed pair): there is nothing to learn or to compare with"
+        )
+    return brdf
+
+
+def reflects(brdf: analytic.BRDF, pairs: int = 4096) -> bool:
+    """Whether ``brdf`` is above 0 somewhere: ``pairs`` fixed pairs, wi uniform and wo
+    cosine-distributed and near the mirror direction (a sharp lobe is seen too)."""
+    g = torch.Generator().manual_seed(12345)
+    wi = uniform_wi(pairs, g)
+    wo = frame.square_to_cosine_hemisphere(torch.rand(pairs, 2, generator=g))
+    mirror = wi * torch.tensor([-1.0, -1.0, 1.0])
+    both = (torch.cat([wi, wi]), torch.cat([wo, mirror]))
+    with torch.no_grad():
+        return bool((brdf.eval(*both) > 0).any())
 
 
 def uniform_wi(n: int, gen: torch.Generator) -> torch.Tensor:
