@@ -32,7 +32,7 @@ from neural_brdf.errors import InputError
 from neural_brdf.target import Target, spatially_varying
 from neural_brdf.train import data, loop
 from neural_brdf.train.encoding import is_anisotropic
-from neural_brdf.train.session import MUST_MATCH, TEXTURED_MUST_MATCH
+from neural_brdf.train.session import MUST_MATCH, REPORT_PENDING, TEXTURED_MUST_MATCH
 
 
 def run(
@@ -339,12 +339,15 @@ def _record(
         "validate": t3 - t2,
         "total": t3 - t0,
     }
+    if report:  # until the report is written: a run stopped in it is not finished
+        metrics[REPORT_PENDING] = True
     validate.write_json(metrics, run_dir / "metrics.json")
     if not report:
         return metrics
     from neural_brdf.viewer.report import write_report  # matplotlib: only when a run has finished
 
     write_report(run_dir)  # report.html / report.md from the files above
+    del metrics[REPORT_PENDING]
     metrics["seconds"]["report"] = time.perf_counter() - t3
     metrics["seconds"]["total"] = time.perf_counter() - t0
     validate.write_json(metrics, run_dir / "metrics.json")

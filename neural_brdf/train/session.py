@@ -170,9 +170,15 @@ def load_resumable(
     return ckpt
 
 
+# metrics.json's key while its run writes its report (pipeline._record): such a run has
+# not finished (a resume exports, validates and reports it again)
+REPORT_PENDING = "report_pending"
+
+
 def finished_report(run_dir: Path, step: int) -> dict | None:
     """The metrics.json of a run that finished at ``step`` (its model.onnx written
-    too), or None: a run stopped before it finished exporting or validating."""
+    too), or None: a run stopped before it finished exporting, validating or writing
+    the report it was to write (:data:`REPORT_PENDING`)."""
     if not (run_dir / runfolder.MODEL).is_file():
         return None
     try:
@@ -180,7 +186,9 @@ def finished_report(run_dir: Path, step: int) -> dict | None:
     except (OSError, ValueError):
         return None
     training = report.get("training") if isinstance(report, dict) else None
-    return report if isinstance(training, dict) and training.get("steps") == step else None
+    if not isinstance(training, dict) or training.get("steps") != step:
+        return None
+    return None if report.get(REPORT_PENDING) else report
 
 
 # ------------------------------------------------------------------ Ctrl-C and SIGTERM

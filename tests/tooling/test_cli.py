@@ -239,6 +239,31 @@ def test_a_run_stopped_before_its_first_checkpoint_resumes_from_step_0(capsys, r
     assert code == 2, err
 
 
+def test_a_run_stopped_in_its_report_writes_it_on_resume(capsys, tmp_path, monkeypatch):
+    # metrics.json came before the report: a run stopped there was "already finished" and
+    # never got its report
+    from neural_brdf.viewer import report as report_module
+
+    real = report_module.write_report
+
+    def stopped(run_dir):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report_module, "write_report", stopped)
+    run = tmp_path / "run"
+    code, _, err = cli(capsys, "train", "lambert", "--out", str(run), *SETS)
+    assert code == 130, err
+    assert (run / "metrics.json").is_file() and not (run / "report.html").exists()
+    monkeypatch.setattr(report_module, "write_report", real)
+    code, out, err = cli(capsys, "train", "lambert", "--out", str(run), *SETS, "--resume")
+    assert code == 0, err
+    assert "already finished" not in out and (run / "report.html").is_file()
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert "report" in metrics["seconds"] and "report_pending" not in metrics
+    code, out, _ = cli(capsys, "train", "lambert", "--out", str(run), *SETS, "--resume")
+    assert code == 0 and "already finished" in out  # now it has
+
+
 # ------------------------------------------------- issue 19: safe wherever it writes
 def snapshot(folder: Path) -> dict:
     """name -> (bytes, mtime_ns) of every file in ``folder``."""
