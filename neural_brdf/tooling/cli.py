@@ -576,10 +576,11 @@ def _bake(args) -> int:
         model = load(args.source)
         _project_model(model, args.source)
         _homogeneous(model, args.source, "bake", "an RGL or MERL table holds one BRDF")
-        if is_anisotropic(model.encoding):  # (an unknown encoding counts as anisotropic)
+        encoding = model.metadata.get("encoding")  # none (a file edited by hand): unknown
+        if encoding is None or is_anisotropic(encoding):  # an unknown one counts as such
             raise InputError(
-                f"{args.source}: encoding {model.encoding}: the model may depend on the "
-                f"azimuth; {_ISOTROPIC_TABLES}"
+                f"{args.source}: encoding {encoding or '(none in its metadata)'}: the model "
+                f"may depend on the azimuth; {_ISOTROPIC_TABLES}"
             )
         fn = model.eval
     else:  # a config, or a preset's name

@@ -300,3 +300,19 @@ def test_view_to_dev_null(capsys, model, tmp_path):
     assert code == 0, err
     code, _, err = cli(capsys, "view", str(model), "-o", str(tmp_path / "page.txt"))
     assert_one_line_error(code, err, "page.txt", ".html")  # a regular file: still .html
+
+
+def test_bake_refuses_a_model_whose_metadata_lost_its_encoding(capsys, model, tmp_path):
+    # it was read as isotropic: an anisotropic file edited so baked a wrong table, exit 0
+    import onnx
+
+    proto = onnx.load(str(model))
+    kept = [p for p in proto.metadata_props if p.key != "encoding"]
+    assert len(kept) < len(proto.metadata_props)
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(kept)
+    edited = tmp_path / "edited.onnx"
+    onnx.save(proto, str(edited))
+    code, _, err = cli(capsys, "bake", str(edited), "-o", str(tmp_path / "x.binary"))
+    assert_one_line_error(code, err, "edited.onnx", "none in its metadata")
+    assert not (tmp_path / "x.binary").exists()
