@@ -181,6 +181,12 @@ def finished_report(run_dir: Path, step: int) -> dict | None:
     the report it was to write (:data:`REPORT_PENDING`)."""
     if not (run_dir / runfolder.MODEL).is_file():
         return None
+    from neural_brdf.fileformat import reader
+
+    try:  # an empty or truncated model.onnx (outside damage) is exported again
+        reader.load(run_dir / runfolder.MODEL, external_data=False)
+    except InputError:
+        return None
     try:
         report = json.loads((run_dir / runfolder.METRICS).read_text(encoding="utf-8"))
     except (OSError, ValueError):

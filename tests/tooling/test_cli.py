@@ -239,6 +239,20 @@ def test_a_run_stopped_before_its_first_checkpoint_resumes_from_step_0(capsys, r
     assert code == 2, err
 
 
+@pytest.mark.parametrize("damage", ["empty", "truncated"])
+def test_a_damaged_model_is_exported_again_on_resume(capsys, run_dir, tmp_path, damage):
+    # --resume said "already finished" over an empty model.onnx, which validate refused
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    model = done / runfolder.MODEL
+    model.write_bytes(b"" if damage == "empty" else model.read_bytes()[:100])
+    code, out, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS, "--resume")
+    assert code == 0, err
+    assert "already finished" not in out
+    code, _, err = cli(capsys, "validate", str(model))
+    assert code == 0, err
+
+
 def test_a_run_stopped_in_its_report_writes_it_on_resume(capsys, tmp_path, monkeypatch):
     # metrics.json came before the report: a run stopped there was "already finished" and
     # never got its report
