@@ -122,6 +122,8 @@ def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
     report = json.loads(out.read_text())
     assert code == (0 if report["peak"]["passed"] else 1), err  # 1: any check failed
     assert report["passed"] is True
+    # the file says what the exit code says (its "passed" is the physics' alone)
+    assert report["checks_passed"] is (code == 0) is report["peak"]["passed"]
     assert report["checks"]["reciprocity"]["value"] <= 1e-6
     assert report["accuracy"]["rel_rmse"] >= 0.0
     assert "max_albedo" in stdout
