@@ -24,6 +24,13 @@ NORM_RANGE = (1e-150, 1e150)
 
 Pairs = tuple[np.ndarray, np.ndarray, np.ndarray]  # (wi, wo, f), each (N, 3) float64
 
+# The largest table value a reader accepts (f in 1/sr for MERL; rho, and the bound
+# rho * max(ndf) / (4 min(sigma)) on f cos, for RGL): above it a file is refused as not a
+# BRDF.  The sharpest lobe Mitsuba evaluates (GGX alpha ~1e-4) peaks near 3e7 /sr, and
+# f cos above 1e7 is already a delta lobe (measured.mitsuba.MAX_F_COS); squares of values
+# above ~1e19 overflow float32 and, near 1e154, float64 (error metrics, training losses).
+MAX_VALUE = 1e10
+
 
 class FormatError(InputError):
     """A measured file that cannot be read.  The one-line message names the file (exit

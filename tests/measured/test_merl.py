@@ -224,6 +224,48 @@ def test_non_finite_values_are_a_format_error(tmp_path, bad):
     assert str(path) in msg and "channel G" in msg and "theta_h 40" in msg
 
 
+# Finite values that cannot be a BRDF (the documented bound, docs/merl.md)
+MAX_F = 1e10  # 1/sr
+
+
+def _refused_values(tmp_path, raw, *words):
+    path = tmp_path / "odd values.binary"
+    path.write_bytes(file_bytes(raw))
+    with pytest.raises(MerlFormatError) as err:
+        merl.read_merl(path)
+    msg = str(err.value)
+    assert str(path) in msg and "\n" not in msg, msg
+    for w in words:
+        assert w in msg, msg
+
+
+def test_a_value_too_large_for_a_brdf_is_refused_naming_it(tmp_path):
+    raw = random_raw(13)
+    raw[2, 7, 55, 156] = 1e300  # squares to inf in float64: rel_rmse nan before the fix
+    _refused_values(tmp_path, raw, "1e+10", f"{1e300 * SCALE[2]:.3g}", "channel B", "theta_h 7")
+    raw[2, 7, 55, 156] = 2 * MAX_F / SCALE[2]
+    _refused_values(tmp_path, raw, f"{2 * MAX_F:.3g}", "channel B", "phi_d 156")
+
+
+def test_a_table_with_no_positive_value_is_refused(tmp_path):
+    _refused_values(tmp_path, np.zeros((3,) + DIMS), "reflects nothing")
+    raw = np.zeros((3,) + DIMS)
+    raw[:, :, :, :90] = -1.0  # unmeasured bins do not count
+    _refused_values(tmp_path, raw, "reflects nothing")
+
+
+def test_negative_and_large_values_stay_accepted_where_they_are_valid(tmp_path):
+    raw = random_raw(14, unmeasured=0.3)
+    raw[0, 3, 4, 5], raw[1, 3, 4, 5] = 1e300, -1.0  # an unmeasured bin: its values unused
+    raw[:, 6, 7, 8] = 1.0
+    raw[0, 6, 7, 8] = 0.5 * MAX_F / SCALE[0]  # below the bound
+    path = tmp_path / "ok.binary"
+    path.write_bytes(file_bytes(raw))
+    m = merl.read_merl(path)
+    assert not m.valid[3, 4, 5] and m.valid[6, 7, 8]
+    np.testing.assert_array_equal(m.raw, raw)
+
+
 def test_missing_file_and_directory(tmp_path):
     for path, words in ((tmp_path / "nope.binary", "no such file"), (tmp_path, "directory")):
         with pytest.raises(MerlFormatError, match=words) as err:

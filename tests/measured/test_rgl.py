@@ -16,6 +16,7 @@ agree to ~1e-6 relative; the tests allow 1e-4.
 from __future__ import annotations
 
 import math
+import os
 import struct
 from pathlib import Path
 
@@ -154,6 +155,71 @@ def test_bad_contents_are_named(baked, tmp_path):
     nan = fields["luminance"].copy()
     nan[0, 0, 0, 0] = np.nan
     refused(lambda f: f.update(luminance=nan), "non-finite")
+
+
+MAX_VALUE = 1e10  # the documented bound on values (docs/rgl.md)
+
+
+def test_values_that_cannot_be_a_brdf_are_named(baked, tmp_path, capsys):
+    fields = rgl.read_tensor_file(baked["lambertian"][1])
+    assert fields["jacobian"][0] == 1
+
+    def read(change):
+        f = {k: v.copy() for k, v in fields.items()}
+        change(f)
+        path = tmp_path / "odd.bsdf"
+        rgl.write_tensor_file(path, f)
+        return path, lambda: rgl.read_rgl(path)
+
+    def refused(change, *needles):
+        path, go = read(change)
+        with pytest.raises(rgl.RGLFormatError) as e:
+            go()
+        msg = str(e.value)
+        assert str(path) in msg and "\n" not in msg, msg
+        for n in needles:
+            assert n in msg, msg
+
+    def put(name, value, at=(0,)):
+        def change(f):
+            f[name][at] = value
+
+        return change
+
+    refused(put("rgb", -1.0), "'rgb'", "negative")
+    path = tmp_path / "odd.bsdf"  # as the CLI reports it: one line, exit code 2
+    args = ("validate", tmp_path / "m.onnx", "--reference", path)
+    assert_one_line_error(*cli_run(capsys, *args)[::2], str(path), "'rgb'", "--reference")
+    refused(lambda f: f["rgb"].fill(-1.0), "'rgb'", "negative")
+    refused(put("rgb", 0.0, at=...), "'rgb'", "reflects nothing")
+    refused(put("rgb", 3e10, at=(0, 0, 1, 2, 3)), "'rgb'", "3e+10", "not a BRDF")
+    refused(put("sigma", 0.0, at=...), "'sigma'", "<= 0")
+    refused(put("sigma", 0.0, at=(-1, 1)), "'sigma'", "<= 0")
+    refused(put("sigma", 1e-30, at=(-1, 1)), "'ndf'", "'sigma'", "not a BRDF")
+    refused(put("ndf", 0.0, at=...), "'ndf'", "reflects nothing")
+    refused(put("ndf", -1.0, at=(-1, 1)), "'ndf'", "negative")
+    # without the Jacobian, f cos = rgb: ndf and sigma divide nothing
+    no_jac = {k: v.copy() for k, v in fields.items()}
+    no_jac["jacobian"][:] = 0
+    no_jac["sigma"][-1, 1] = 0.0
+    rgl.write_tensor_file(tmp_path / "nojac.bsdf", no_jac)
+    assert not rgl.read_rgl(tmp_path / "nojac.bsdf").jacobian
+    # a value below the bound reads
+    path, go = read(put("rgb", 1e3, at=(0, 0, 1, 2, 3)))
+    assert go().fields["rgb"].max() == np.float32(1e3)
+
+
+def test_a_file_beyond_the_memory_budget_is_refused_before_reading(baked, tmp_path, monkeypatch):
+    good = baked["lambertian"][1].read_bytes()
+    monkeypatch.setenv("NEURAL_BRDF_MEMORY_LIMIT", str(len(good) + 4096))
+    path = tmp_path / "huge.bsdf"
+    path.write_bytes(good)
+    rgl.read_rgl(path)  # within the budget
+    os.truncate(path, len(good) + 8192)  # sparse trailing bytes past the budget
+    with pytest.raises(rgl.RGLFormatError) as e:
+        rgl.read_rgl(path)
+    msg = str(e.value)
+    assert str(path) in msg and "\n" not in msg and "limit" in msg, msg
 
 
 def test_a_real_tensor_file_is_read(data_dir):

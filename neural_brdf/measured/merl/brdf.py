@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from neural_brdf.fileio import atomic_write
-from neural_brdf.measured.base import Pairs, eval_pairs
+from neural_brdf.measured.base import MAX_VALUE, Pairs, eval_pairs
 from neural_brdf.measured.merl.format import (
     CHUNK,
     FILE_BYTES,
@@ -289,7 +289,30 @@ def read_merl(path) -> MerlBRDF:
             f"{p}: {int(bad.sum())} non-finite values (first: channel "
             f"{'RGB'[c]}, bin theta_h {ih}, theta_d {id_}, phi_d {ip})"
         )
+    _check_values(raw, p)
     return MerlBRDF(raw, source=str(p))  # copies to native float64
+
+
+def _check_values(raw: np.ndarray, p: Path) -> None:
+    """MerlFormatError for measured bins (every channel >= 0) that cannot be a BRDF: a value
+    above MAX_VALUE 1/sr, or none above 0 (a file with no measured bin at all reads; it is
+    refused as a target or a reference, :mod:`neural_brdf.measured.formats`)."""
+    valid = np.all(raw >= 0, axis=0)
+    if not valid.any():
+        return
+    f = np.where(valid, raw * SCALE[:, None, None, None], -np.inf)  # 1/sr
+    k = int(np.argmax(f))
+    top = float(f.reshape(-1)[k])
+    if top > MAX_VALUE:
+        c, ih, id_, ip = (int(i) for i in np.unravel_index(k, f.shape))
+        raise MerlFormatError(
+            f"{p}: largest value {top:.3g} 1/sr (channel {'RGB'[c]}, bin theta_h {ih}, "
+            f"theta_d {id_}, phi_d {ip}) is above {MAX_VALUE:.0e} 1/sr: not a BRDF"
+        )
+    if top <= 0:
+        raise MerlFormatError(
+            f"{p}: every measured bin is 0 (no positive value): the file reflects nothing"
+        )
 
 
 def write_merl(path, brdf_or_array) -> None:

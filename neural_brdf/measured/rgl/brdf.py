@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from neural_brdf.measured.base import Pairs, eval_pairs
+from neural_brdf.measured.base import MAX_VALUE, Pairs, eval_pairs
 from neural_brdf.measured.rgl.layout import (
     CHUNK,
     REQUIRED,
@@ -90,6 +90,7 @@ class RGLBRDF:
             raise bad("field 'theta_i': not strictly increasing")
         self.description = bytes(f["description"]).decode("utf-8", "replace")
         self.jacobian = bool(jac[0])
+        self._check_values(rgb, ndf, sigma, bad)
         self.theta_i, self.phi_i = th.astype(np.float64), ph.astype(np.float64)
         try:
             self._ndf = Marginal2D(ndf, normalize=False)
@@ -101,6 +102,38 @@ class RGLBRDF:
         self._rgb = [
             Marginal2D(rgb[:, :, c], (self.phi_i, self.theta_i), normalize=False) for c in range(3)
         ]
+
+    def _check_values(self, rgb, ndf, sigma, bad) -> None:
+        """Refuse finite values that cannot be a BRDF: negative or all-zero ``rgb`` (or
+        ``ndf``), ``sigma`` <= 0 where it divides f, anything above MAX_VALUE."""
+
+        def nonnegative(name, a):
+            if np.any(a < 0):
+                raise bad(
+                    f"field {name!r}: {int(np.sum(a < 0))} negative values (smallest "
+                    f"{float(a.min()):.3g}); a reflectance cannot be negative"
+                )
+            top = float(a.max())
+            if top <= 0:
+                raise bad(f"field {name!r}: no positive value: the material reflects nothing")
+            return top
+
+        top = nonnegative("rgb", rgb)
+        if top > MAX_VALUE:
+            raise bad(f"field 'rgb': largest value {top:.3g} is above {MAX_VALUE:.0e}: not a BRDF")
+        if not self.jacobian:  # f cos = rgb: ndf and sigma only steer sampling
+            return
+        if np.any(sigma <= 0):  # f cos = rgb * ndf / (4 sigma), sigma interpolated
+            raise bad(
+                f"field 'sigma': {int(np.sum(sigma <= 0))} values <= 0 (smallest "
+                f"{float(sigma.min()):.3g}); sigma divides f (jacobian = 1)"
+            )
+        bound = top * nonnegative("ndf", ndf) / (4.0 * float(sigma.min()))
+        if not bound <= MAX_VALUE:
+            raise bad(
+                f"fields 'rgb', 'ndf', 'sigma': f cos up to {bound:.3g} (max rgb x max ndf "
+                f"/ (4 min sigma)) is above {MAX_VALUE:.0e}: not a BRDF"
+            )
 
     def __repr__(self) -> str:
         r = self.fields["rgb"].shape

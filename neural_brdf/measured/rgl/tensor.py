@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import os
 import struct
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from neural_brdf import limits
 from neural_brdf.fileio import atomic_write
 from neural_brdf.measured.base import FormatError
 
@@ -41,7 +43,13 @@ def read_tensor_file(path) -> dict[str, np.ndarray]:
     """Every field of a TensorFile, in file order, as native numpy arrays (copies)."""
     p = Path(path)
     try:
-        buf = p.read_bytes()
+        with open(p, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            try:  # before reading: a huge file is refused by name, not by the allocator
+                limits.check_bytes(str(p), size, hint="too large for a tensor file")
+            except limits.TooLarge as e:
+                raise RGLFormatError(str(e)) from None
+            buf = fh.read()
     except FileNotFoundError:
         raise RGLFormatError(f"{p}: no such file") from None
     except IsADirectoryError:
