@@ -216,9 +216,18 @@ class Data(_Section):
         return self
 
 
+# A seed is 0 <= seed < 2**31.  The code derives seeds from it by at most
+# (seed + ~10**6) * 7919 + a few hundred (validate.py's REMEASURE_SEED, then
+# quadrature.albedo's replicas; fit.py's seed * 7919 + step), about 2**44 here: far inside
+# torch's and numpy's int64 (a larger seed ended in "Overflow when unpacking long long"
+# after training); numpy refuses a negative seed.  Mitsuba's UInt32 seeds take
+# seed + step, or reduce modulo 2**31 - 1.
+SEED_LIMIT = 2**31
+
+
 class Train(_Section):
     steps: int = Field(3000, ge=1)  # optimizer steps
-    seed: int = 0  # seeds weights, data and quadrature
+    seed: int = Field(0, ge=0, lt=SEED_LIMIT)  # seeds weights, data and quadrature
     lr: float = Field(3e-2, gt=0.0)  # Adam learning rate after warm-up
     lr_min: float = Field(0.01, ge=0.0, le=1.0)  # final lr as a fraction of lr (cosine)
     schedule: Literal["cosine", "constant"] = "cosine"  # lr decay after warm-up
@@ -263,7 +272,7 @@ class Validation(_Section):
     reciprocity_tol: float = Field(1e-6, ge=0.0)  # max relative |f(a,b) - f(b,a)|
     albedo_tol: float = Field(1e-3, ge=0.0)  # max albedo allowed: 1 + albedo_tol
     peak_tol: float = Field(0.03, ge=0.0)  # max |f / f_ref - 1| at and near the mirror direction
-    seed: int = 1234  # independent of the training seeds
+    seed: int = Field(1234, ge=0, lt=SEED_LIMIT)  # independent of the training seeds
 
 
 class Export(_Section):
@@ -930,16 +939,30 @@ def apply_override(raw: dict, item: str) -> None:
     node[path[-1]] = value
 
 
-def _blame(loc: Sequence, overrides: Sequence[str]) -> str | None:
-    """``--set ITEM`` of the last override that sets the key at ``loc``, a key inside it
-    or the section holding it; None when the key comes from the file."""
-    loc = tuple(str(p) for p in loc)
-    for item in reversed(overrides):
-        key = tuple(item.partition("=")[0].strip().split("."))
-        n = min(len(key), len(loc))
-        if n and key[:n] == loc[:n]:
+def _blame(
+    key: Sequence, overrides: Sequence[str], *, within: Sequence = (), message: str = ""
+) -> str | None:
+    """``--set ITEM`` of the last override that sets ``key`` (the failing key) or a section
+    holding it; None when the key comes from the file.
+
+    ``within`` and ``message``: ``key`` was found by a validator of section ``within``
+    (its message names it).  Such a check may fail for a key that the message names
+    beside it (``pool_size: must be >= batch_size``): the one override under ``within``
+    whose key the message names is blamed; when none or several are, the file is.
+    Another override in the same section is never blamed (it did not fail)."""
+    key = tuple(str(p) for p in key)
+    given = [(tuple(item.partition("=")[0].strip().split(".")), item) for item in overrides]
+    for k, item in reversed(given):
+        if key[: len(k)] == k:
             return f"--set {item}"
-    return None
+    within = tuple(str(p) for p in within)
+    named = {}  # the overrides under `within` whose key the message names: the last of each
+    for k, item in given:
+        rest = ".".join(k[len(within) :])
+        if message and rest and k[: len(within)] == within:
+            if re.search(rf"(?<![\w.]){re.escape(rest)}(?![\w.])", message):
+                named[k] = item
+    return f"--set {next(iter(named.values()))}" if len(named) == 1 else None
 
 
 def _key_of(err: Any) -> tuple[str, ...]:
@@ -973,8 +996,13 @@ def from_dict(raw: Any, *, source: str = "config", overrides: Sequence[str] = ()
     except ValidationError as e:
         errs = e.errors()
         more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
-        loc = errs[0]["loc"] or _key_of(errs[0])
-        where = _blame(loc, overrides) or source
+        loc = tuple(errs[0]["loc"])
+        if errs[0]["type"] == "value_error" or not loc:
+            # a validator's error: its loc is the section, its message names the key
+            key, msg = loc + _key_of(errs[0]), str(errs[0].get("msg", ""))
+            where = _blame(key, overrides, within=loc, message=msg) or source
+        else:
+            where = _blame(loc, overrides) or source
         raise ConfigError(limits.bounded(f"{where}: {_describe(errs[0])}{more}")) from None
     except RecursionError:
         raise ConfigError(f"{source}: nested too deeply") from None

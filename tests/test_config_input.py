@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import typing
 
+import numpy as np
 import pytest
 import torch
 from annotated_types import Ge, Gt, Le
@@ -252,3 +253,114 @@ def test_a_texture_key_from_set_is_blamed_on_the_set(capsys, tmp_path):
     warning, error = err.strip().splitlines()
     assert warning.startswith("warning: --set texture.lobes=3: texture.lobes: ignored"), warning
     assert_one_line_error(code, error, str(a_file))
+
+
+# ------------------------------------------------------------ seeds
+def _seed_keys(section: type, prefix: str = "") -> list[str]:
+    """Every integer seed of the schema (``seed``, ``*_seed``), found by walking it."""
+    out = []
+    for name, field in section.model_fields.items():
+        ann, key = field.annotation, f"{prefix}{name}"
+        if isinstance(ann, type) and issubclass(ann, config._Section):
+            out += _seed_keys(ann, key + ".")
+        elif (name == "seed" or name.endswith("_seed")) and int in (ann, *typing.get_args(ann)):
+            out.append(key)
+    return out
+
+
+SEED_KEYS = _seed_keys(config.Config)
+
+
+def _section_and_field(key: str):
+    *sections, name = key.split(".")
+    node: type = config.Config
+    for s in sections:
+        node = node.model_fields[s].annotation
+    return node, name
+
+
+def test_the_seed_walk_finds_the_training_and_validation_seeds():
+    assert {"train.seed", "validation.seed"} <= set(SEED_KEYS)
+
+
+@pytest.mark.parametrize("value", ["-1", str(2**63 - 1), "99999999999999999999"])
+@pytest.mark.parametrize("key", SEED_KEYS)
+def test_every_seed_refuses_a_value_that_cannot_seed(key, value):
+    """torch and numpy take a seed in int64 (numpy: not negative); a larger one ended in
+    "Overflow when unpacking long long", a traceback after training."""
+    with pytest.raises(config.ConfigError) as err:
+        config.load(QUICKSTART, [f"{key}={value}"])
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"--set {key}={value}: {key}:"), msg
+
+
+def test_a_huge_train_seed_exits_2_before_training(capsys, tmp_path):
+    over = "train.seed=9223372036854775807"
+    code, _, err = cli(
+        capsys, "train", "quickstart", "--out", str(tmp_path / "r"), *SETS, "--set", over
+    )
+    assert_one_line_error(code, err, f"--set {over}", "train.seed:")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("key", SEED_KEYS)
+def test_the_largest_seed_accepted_survives_the_seeds_derived_from_it(key):
+    """The largest seed each key accepts, through the largest derived seeds: the
+    furnace's re-measurement (seed + 3 + REMEASURE_SEED, then times 7919 per replica in
+    quadrature.albedo) and an images fit's albedo directions (seed * 7919 + step)."""
+    from neural_brdf import validate
+    from neural_brdf.physics import quadrature
+
+    section, name = _section_and_field(key)
+    hi = [m.lt - 1 for m in section.model_fields[name].metadata if hasattr(m, "lt")]
+    hi += [m.le for m in section.model_fields[name].metadata if hasattr(m, "le")]
+    assert hi, f"{key}: no upper bound"
+    top = min(hi)
+    config.load(QUICKSTART, [f"{key}={top}"])  # accepted
+    wi = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]], dtype=torch.float64)
+    rho, _ = quadrature.albedo(
+        lambda a, b: torch.ones(len(a), 1), wi, 64, seed=top + 3 + validate.REMEASURE_SEED
+    )
+    assert torch.isfinite(rho).all()
+    quadrature.mis_directions(wi, 8, top * 7919 + 10**7)
+    torch.Generator().manual_seed(top * 7919 + 10**7)
+    np.random.default_rng(top * 1_000_003 + 10**7)
+
+
+# ------------------------------------------------------------ whose error: the file or a --set
+@pytest.mark.parametrize(
+    "text, sets, blamed, key",
+    [
+        # the walkthrough's cases: an error in the file, an unrelated --set in its section
+        ("train: {progress: maybe}\n", ["train.steps=5"], None, "train.progress"),
+        ("model: {grid: {coords: half_disc}}\n", ["model.hidden=[8]"], None, "model.grid.coords"),
+        # two --sets in one section: the one that failed
+        ("", ["train.progress=maybe", "train.log_every=1"], 0, "train.progress"),
+        # a section check that a --set broke through another key the message names
+        (
+            "model: {encoding: anisotropic, grid: {coords: half_disc}}\n",
+            ["model.hidden=[8]", "model.encoding=isotropic"],
+            1,
+            "model.grid.coords",
+        ),
+        ("data: {pool_size: 4096}\n", ["data.batch_size=8192"], 0, "data.pool_size"),
+        (
+            "data: {pool_size: 4096, batch_size: 8192}\n",
+            ["data.uniform=0.5"],
+            None,
+            "data.pool_size",
+        ),
+        # the key itself, or a section holding it, given by --set
+        ("", ["train.steps=5", "model.grid={size: 1}"], 1, "model.grid.size"),
+    ],
+)
+def test_an_error_names_the_file_or_the_set_that_gave_it(tmp_path, text, sets, blamed, key):
+    cfg = tmp_path / "mine.yaml"
+    cfg.write_text(text or "target: {model: lambertian}\n")
+    with pytest.raises(config.ConfigError) as err:
+        config.load(cfg, sets)
+    where = str(cfg) if blamed is None else f"--set {sets[blamed]}"
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"{where}: {key}"), msg

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -257,3 +258,52 @@ def test_held_out_views_need_an_images_target(images_config):
     bad.write_text(IMAGES_CONFIG + "images: {validation_views: [5]}\n")
     with pytest.raises(config.ConfigError, match=r"^.*bad\.yaml: images\.validation_views: 5"):
         config.load(bad)
+
+
+# ------------------------------------------------------------------ docs/config.md's defaults
+DOCS = CONFIGS.parent / "docs"
+ROW = re.compile(r"^\| `([\w.]+)` \| `([^`|]*)` \|", re.M)  # | `key` | `default` | ...
+
+
+def _at(tree: object, key: str) -> object:
+    for part in key.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return KeyError
+        tree = tree[part]
+    return tree
+
+
+def test_every_literal_default_in_config_md_is_the_schemas():
+    """docs/config.md's default column (where it is one literal, not prose) equals
+    configs/defaults.yaml, which holds exactly the schema's defaults (test above)."""
+    defaults = yaml.safe_load((CONFIGS / "defaults.yaml").read_text())
+    rows = ROW.findall((DOCS / "config.md").read_text())
+    checked, wrong = 0, []
+    for key, cell in rows:
+        actual = _at(defaults, key)
+        if actual is KeyError:
+            continue  # a key documented under another name: test_docs covers the keys
+        documented = config.parse_yaml(cell, source=f"docs/config.md: {key}")
+        checked += 1
+        if documented != actual:
+            wrong.append(f"{key}: documented {cell}, schema {actual!r}")
+    assert not wrong, wrong
+    assert checked > len(rows) // 2, (checked, len(rows))  # the parse found the table
+
+
+def test_the_quickstart_steps_in_config_md_are_the_presets():
+    text = " ".join((DOCS / "config.md").read_text().split())
+    m = re.search(r"`quickstart\.yaml` is `gold` with (\d+) steps instead of (\d+)", text)
+    assert m, "docs/config.md: the quickstart sentence changed: update this test"
+    quick, gold = (config.load(CONFIGS / f"{n}.yaml").train.steps for n in ("quickstart", "gold"))
+    assert (int(m[1]), int(m[2])) == (quick, gold)
+
+
+def test_model_md_names_the_default_network():
+    """docs/model.md's "default WIDTHS ACTIVATION" is the schema's default MLP."""
+    text = " ".join((DOCS / "model.md").read_text().split())
+    m = re.search(r"`model\.activation`; default ([\d-]+) (\w+)", text)
+    assert m, "docs/model.md: the default network's sentence changed: update this test"
+    default = config.Config().model
+    assert [int(w) for w in m[1].split("-")] == default.hidden
+    assert m[2].lower() == default.activation

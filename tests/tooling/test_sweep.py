@@ -340,6 +340,19 @@ def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
     assert not (tmp_path / "out").exists()  # nothing ran
 
 
+@pytest.mark.parametrize("name", ["../../escaped", "a/b", ".hidden", "-x", ""])
+def test_a_sweep_name_that_is_not_one_plain_folder_is_refused(tmp_path, capsys, monkeypatch, name):
+    """The sweep goes to runs/sweeps/<name>/: ``../../escaped`` wrote outside it."""
+    here = tmp_path / "a" / "b"
+    here.mkdir(parents=True)
+    path = write_sweep(here, name=name)
+    monkeypatch.chdir(here)
+    assert cli.main(["sweep", str(path), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {path}: name: ") and "\n" not in err, err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a", "b", path.name]  # nothing ran
+
+
 @pytest.mark.parametrize("path", sorted((CONFIGS / "sweeps").glob("*.yaml")), ids=lambda p: p.stem)
 def test_shipped_sweep_files_plan_cleanly(path, tmp_path):
     raw = yaml.safe_load(path.read_text())

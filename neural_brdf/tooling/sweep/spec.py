@@ -100,6 +100,12 @@ def _entries(spec: SweepFile, source: Path) -> list[dict]:
 
 def _check(spec: SweepFile, source: Path) -> None:
     here = source.parent
+    if spec.name is not None:  # the folder runs/sweeps/<name>/: one plain name, as a run's
+        try:
+            cfgmod.check_name(spec.name)
+        except ValueError as e:
+            why = str(e).replace("a run's name", "a sweep's name")
+            raise SweepError(f"{source}: {why}") from None
     axes = (
         [("grid", k) for k in spec.grid]
         + [("list", k) for e in _entries(spec, source) for k in e]
