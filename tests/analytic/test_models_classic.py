@@ -443,4 +443,3 @@ def test_anisotropic_is_per_instance(name, iso, aniso):
         a, b = brdf.eval(wi, wo), brdf.eval(wi @ rot.T, wo @ rot.T)
         turned = not np.allclose(a, b, rtol=1e-5, atol=1e-9)
         assert brdf.anisotropic is expected and turned is expected, (params, brdf.anisotropic)
-
