@@ -910,8 +910,10 @@ def finished_report(cfg: cfgmod.Config, run_dir: Path, folder: runfolder.Folder)
     if done is None:
         return None
     validation = done["training"].get("validation")
-    stopped = validation.get("stopped_at") if isinstance(validation, dict) else None
-    return done if step >= resumed.train.steps or stopped == step else None
+    v = validation if isinstance(validation, dict) else {}
+    # stopped early under the same patience (another lets the stage train on)
+    stopped = v.get("stopped_at") == step and v.get("patience") == resumed.images.patience
+    return done if step >= resumed.train.steps or stopped else None
 
 
 def _saved_init(folder: runfolder.Folder) -> dict[str, Any] | None:

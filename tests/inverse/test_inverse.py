@@ -773,11 +773,18 @@ def test_the_image_stage_stops_after_patience_scorings_without_a_better_one(
     report = (run_dir / "report.md").read_text()
     assert "image stage stopped" in report and "at step 10 (images.patience 2)" in report
     assert "fit" in json.loads((run_dir / "metrics.json").read_text())["seconds"]
-    code, err = run_cli(args + ["--resume"], capsys)
+    # resumed as it is, the stopped stage has finished: nothing to do, nothing touched
+    before = (run_dir / "metrics.json").read_bytes()
+    code = cli.main(args + ["--resume"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "already finished at step 10" in out, out + err
+    assert (run_dir / "metrics.json").read_bytes() == before
+    # a larger patience lets it train on, to its next stop (3 scorings after step 0)
+    code, err = run_cli(args + ["--resume", "--set", "images.patience=3"], capsys)
     assert code == 0, err
     metrics = json.loads((run_dir / "metrics.json").read_text())
     again = metrics["training"]
-    assert again["steps"] == 10 and again["validation"]["stopped_at"] == 10
+    assert again["steps"] == 15 and again["validation"]["stopped_at"] == 15, again["steps"]
     # the resumed process timed its own part alone: no whole fit's time, not fit < start
     assert again["resumed"] and "fit" not in metrics["seconds"], metrics["seconds"]
     line = cli.stage_times(metrics["seconds"])
