@@ -153,6 +153,15 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, *, parents: bool = 
         _write_all(name, payload)
 
 
+def atomic_write_all(payloads: dict[str, bytes]) -> None:
+    """Each file of ``payloads`` (path -> bytes) atomically (see atomic_path), and all of
+    them or none: every one is written to its temporary file before the first is
+    renamed, and a failed write removes them all (a textured model's code and textures)."""
+    with contextlib.ExitStack() as stack:
+        for path, payload in payloads.items():
+            _write_all(stack.enter_context(atomic_path(path)), payload)
+
+
 # ------------------------------------------------------------------ JSON reports
 def jsonable(value: object) -> object:
     """``value`` as JSON types: numpy scalars and arrays, tuples and paths converted, and

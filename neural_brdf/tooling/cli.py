@@ -259,16 +259,14 @@ def _write_files(payloads: dict[str, bytes]) -> None:
     """Each file of ``payloads`` (path -> bytes) atomically (see fileio), and all of them
     or none: every one is written to its temporary file before the first is renamed, and
     a failed write removes them all."""
-    from neural_brdf.fileio import atomic_path
+    from neural_brdf.fileio import atomic_write_all
 
-    path = ""
     try:
-        with contextlib.ExitStack() as stack:
-            for path, payload in payloads.items():
-                with open(stack.enter_context(atomic_path(path)), "wb") as f:
-                    f.write(payload)
+        atomic_write_all(payloads)
     except OSError as e:
-        raise InputError(f"{e.filename or path}: cannot write ({e.strerror})") from None
+        raise InputError(
+            f"{e.filename or next(iter(payloads))}: cannot write ({e.strerror})"
+        ) from None
 
 
 def _write_text(out: str, text: str) -> None:
