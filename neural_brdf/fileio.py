@@ -74,6 +74,17 @@ def _destination(path: Path) -> tuple[Path, os.stat_result | None, bool]:
     return Path(os.path.realpath(path)), st, True
 
 
+def written_in_place(path: str | os.PathLike) -> bool:
+    """Whether a write to ``path`` goes in place, as :func:`atomic_path` writes it: a
+    device, FIFO or socket (``/dev/null``, ``/dev/stdout``, a named pipe), not a regular
+    file, a folder or a new path."""
+    try:
+        st = os.stat(path)  # follows links, as _destination does
+    except OSError:
+        return False
+    return not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode))
+
+
 def _renamed(e: OSError, path: Path) -> OSError:
     """``e`` naming ``path`` (OSError(errno, ...) picks the subclass from the errno)."""
     if e.errno is None:  # e.g. OSError("simulated"): nothing to name

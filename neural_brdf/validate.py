@@ -424,10 +424,11 @@ def peak(fn: Callable, target: Target, *, anisotropic: bool, tol: float) -> dict
     }
 
 
-def reference_from(path: str | Path) -> Any:
+def reference_from(path: str | Path, *, warn: Callable[[str], None] | None = None) -> Any:
     """``--reference``: a measured file (a MERL ``.binary``, an RGL ``.bsdf``: any suffix
-    of :mod:`neural_brdf.measured.formats`), or else a YAML config (its target; an images
-    fit's is refused: :func:`neural_brdf.train.data.refuse_images`)."""
+    of :mod:`neural_brdf.measured.formats`), or else a YAML config (its target, read with
+    train's warnings given ``warn``; a bad one's error names the file; an images fit's is
+    refused: :func:`neural_brdf.train.data.refuse_images`)."""
     from neural_brdf.measured import formats
 
     if formats.find(path) is not None:
@@ -437,7 +438,11 @@ def reference_from(path: str | Path) -> Any:
             f"--reference {path}: a Mitsuba teacher is named by a config "
             f"(target: {{mitsuba: {Path(path).name}}}); give that config"
         )
-    return data.build_target(cfgmod.load(path).target, source=str(path))
+    cfg = cfgmod.load(path, warn=warn)
+    try:  # a bad model or parameter: train's message, after the file's name
+        return data.build_target(cfg.target, source=str(path))
+    except cfgmod.ConfigError as e:
+        raise InputError(f"{path}: {e}") from None
 
 
 def report(

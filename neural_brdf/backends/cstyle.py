@@ -162,9 +162,7 @@ def lower_file(
     (default: the path, or ``codegen`` for bytes and a ModelProto), as is an op the
     lowering does not know."""
     src = source_name(model, source)
-    proto = graph.load(model)  # a file that is not ONNX: an error naming the path
-    if not proto.HasField("graph"):  # an empty file reads as an empty ModelProto
-        raise InputError(f"{src}: not an ONNX model (it has no graph; an empty file?)")
+    proto = graph.load(model)  # not ONNX, or empty: an error naming the path (reader.load)
     names = tuple(o.name for o in proto.graph.output)
     with_normal = names == OUTPUT_SIGNATURES[1]
     try:

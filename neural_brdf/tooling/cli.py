@@ -33,7 +33,6 @@ import argparse
 import contextlib
 import os
 import signal
-import stat
 import sys
 import threading
 from pathlib import Path
@@ -212,16 +211,6 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
         )
     if Path(out).is_dir():
         raise InputError(f"{flag} {out}: is a folder; give a file name ({what})")
-
-
-def _in_place(out: str) -> bool:
-    """Whether ``out`` is a device, a FIFO or a socket (``/dev/null``, ``/dev/stdout``, a
-    named pipe), which fileio writes in place: not a regular file, a folder or a new path."""
-    try:
-        mode = os.stat(out).st_mode  # follows links, as fileio does
-    except OSError:
-        return False
-    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
 # A run folder's own files (neural_brdf.runfolder owns the list): no command's output may
@@ -441,7 +430,7 @@ def _validate(args) -> int:
         raise InputError(f"--json {args.json}: is a folder; give a file name")
     given = _preset_or_path(args.reference)  # a preset name, as train takes one
     _not_an_input(args.json, {"model": args.model, "reference": given}, flag="--json")
-    reference = _reference(given) if given else None
+    reference = validate.reference_from(given, warn=_warn) if given else None
     report = validate.report(args.model, target=reference)
     # "passed" is the physics' verdict (train's); this one is the exit code's, the peak too
     report["checks_passed"] = validate.passed(report)
@@ -459,25 +448,6 @@ def _validate(args) -> int:
         except OSError as e:
             raise InputError(f"{args.json}: cannot write ({e.strerror})") from None
     return EXIT_OK if report["checks_passed"] else EXIT_PHYSICS  # the peak too
-
-
-def _reference(path: str):
-    """``validate --reference``: :func:`neural_brdf.validate.reference_from`, a config read
-    with train's warnings (an empty one means the default target)."""
-    from neural_brdf import validate
-    from neural_brdf.measured import formats
-
-    if formats.find(path) is not None or Path(path).suffix.lower() == ".xml":
-        return validate.reference_from(path)
-    from neural_brdf import config
-    from neural_brdf.train import data
-
-    # (reference_from's own reading of a config, but for the warnings)
-    cfg = config.load(path, warn=_warn)
-    try:  # a bad model or parameter: train's message, after the file's name
-        return data.build_target(cfg.target, source=str(path))
-    except config.ConfigError as e:
-        raise InputError(f"{path}: {e}") from None
 
 
 def _preset_or_path(text: str | None) -> str | None:
@@ -664,6 +634,7 @@ def _render(args) -> int:
 
 
 def _view(args) -> int:
+    from neural_brdf import fileio
     from neural_brdf.runtime import load
     from neural_brdf.viewer import page as viewer
 
@@ -678,7 +649,7 @@ def _view(args) -> int:
         may="viewer.html",
     )
 
-    if args.out == STDOUT or _in_place(args.out):  # -o -, /dev/stdout, a FIFO: any name
+    if args.out == STDOUT or fileio.written_in_place(args.out):  # /dev/stdout, a FIFO: any name
         models = viewer.models_for(args.model, args.compare, probes=probes, warn=_warn)
         title = f"neural-brdf viewer: {Path(args.model).name}"  # as write_viewer's
         _write_text(args.out, viewer.page(models, title=title, probes=probes))
@@ -719,6 +690,7 @@ def _has_uv(model: str) -> bool:
 
 def _codegen(args) -> int:
     from neural_brdf import backends
+    from neural_brdf.fileio import written_in_place
 
     if not Path(args.model).is_file():
         raise InputError(not_a_file(args.model, "model"))
@@ -726,7 +698,7 @@ def _codegen(args) -> int:
         raise InputError(f"-o {args.out}: is a folder; give a file name")
     _not_an_input(args.out, {"model": args.model}, flag="-o")
     # -o -, /dev/stdout, a FIFO: stdout may be the code itself, so status goes to stderr
-    in_place = args.out == STDOUT or _in_place(args.out)
+    in_place = args.out == STDOUT or written_in_place(args.out)
     text = backends.generate(args.model, args.target, prefix=args.prefix)
     # a textured file's code reads its weight table from buffers the host binds: their
     # data go next to the code, OUT's stem + .texture<k>.f32 (docs/codegen.md)
