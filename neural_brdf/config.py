@@ -1028,11 +1028,18 @@ def read_text(path: Path) -> str:
         raise ConfigError(f"{path}: not a YAML text file (byte {e.start} is not UTF-8)") from None
 
 
-def _images_relative_to(raw: dict, folder: Path) -> None:
-    """target.images and target.mitsuba paths in a config file are relative to its
-    folder: made absolute."""
+def paths_relative_to(raw: dict, folder: Path) -> None:
+    """target.images, target.mitsuba and target.data paths in a config file are relative
+    to its folder: made absolute (so a run's config.yaml finds them from any folder).
+    target.data was read against the current folder before: a file found there and not
+    beside the config is still taken (a config written for that rule)."""
     target = raw.get("target")
     if isinstance(target, dict):
+        data = target.get("data")
+        if isinstance(data, str) and data.strip() and not Path(data).is_absolute():
+            beside = folder / data
+            old_rule = not beside.exists() and Path(data).exists()
+            target["data"] = os.path.abspath(data if old_rule else beside)
         teacher = target.get("mitsuba")
         if isinstance(teacher, str) and teacher.strip() and not Path(teacher).is_absolute():
             target["mitsuba"] = os.path.abspath(folder / teacher)
@@ -1099,11 +1106,13 @@ def load(
             )
         if "name" not in raw:
             raw["name"] = name or path.stem
-        _images_relative_to(raw, path.parent)
+        paths_relative_to(raw, path.parent)
         if run:
             _earlier_defaults(raw)
     for item in overrides:
         apply_override(raw, item)
+    if overrides:
+        paths_relative_to(raw, Path.cwd())  # a path given by --set: the current folder's
     cfg = from_dict(raw, source=str(path) if path is not None else "config", overrides=overrides)
     if warn is not None and path is not None and "target" not in raw:
         what = "empty config" if empty else "no target: section"

@@ -147,6 +147,42 @@ def test_a_toy_format_trains_validates_and_bakes_through_the_public_paths(toy, t
     assert report_json["accuracy"]["pairs"] == 81
 
 
+def test_a_data_path_is_the_config_folders_and_a_run_finds_it_from_anywhere(
+    toy, tmp_path, capsys, monkeypatch
+):
+    # target.data in a config file is relative to the config's folder, as target.mitsuba
+    # and target.images are; a --set value to the current folder; both made absolute
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    bake_toy(lambda a, b: np.full((len(a), 3), 0.5 / math.pi), tmp_path / "cfg" / "m.toy")
+    bake_toy(lambda a, b: np.full((len(a), 3), 0.2 / math.pi), tmp_path / "old.toy")
+    cfg_file = tmp_path / "cfg" / "m.yaml"
+    cfg_file.write_text("target:\n  data: m.toy\n")
+    monkeypatch.chdir(tmp_path)
+    assert config.load(cfg_file).target.data == str(tmp_path / "cfg" / "m.toy")
+    assert config.load(cfg_file, ["target.data=old.toy"]).target.data == str(tmp_path / "old.toy")
+    # a config written for the earlier rule (the current folder's) still finds its file
+    (tmp_path / "cfg" / "old.yaml").write_text("target:\n  data: old.toy\n")
+    assert config.load(tmp_path / "cfg" / "old.yaml").target.data == str(tmp_path / "old.toy")
+    # a missing file is named by the path it was looked for at
+    (tmp_path / "cfg" / "gone.yaml").write_text("target:\n  data: gone.toy\n")
+    code, _, err = cli(capsys, "train", "cfg/gone.yaml", "--out", "r0", *SETS)
+    assert_one_line_error(code, err, "target.data", str(tmp_path / "cfg" / "gone.toy"))
+
+    # a run trained here is exported, reported and resumed from another folder
+    code, _, err = cli(capsys, "train", "cfg/m.yaml", "--out", "run", *SETS)
+    assert code == 0, err
+    reference = json.loads((tmp_path / "run" / "metrics.json").read_text())["reference"]
+    assert reference == f"TOY {tmp_path / 'cfg' / 'm.toy'} (albedo 0.5 0.5 0.5)"
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    code, _, err = cli(capsys, "export", str(tmp_path / "run"))
+    assert code == 0, err
+    code, _, err = cli(capsys, "report", str(tmp_path / "run"))
+    assert code == 0, err
+    again = json.loads((tmp_path / "run" / "metrics.json").read_text())["reference"]
+    assert again == reference
+
+
 def test_unknown_suffixes_and_bad_files_are_one_line_errors(toy, tmp_path, capsys):
     with pytest.raises(InputError) as e:
         formats.format_of(tmp_path / "m.exr")

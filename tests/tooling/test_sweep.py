@@ -301,6 +301,26 @@ def test_materials_become_data_targets(tmp_path):
         assert names == {k.split("/")[0] for k in z.files} and len(names) == 100
 
 
+def test_paths_are_relative_to_the_file_that_gives_them(tmp_path, monkeypatch):
+    # a base config's paths are its own folder's (as `train` reads it); a path the sweep
+    # sets is the sweep file's folder's; wherever the sweep is started from
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "sweeps").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    base = tmp_path / "configs" / "teacher.yaml"
+    base.write_text("target:\n  mitsuba: teacher.xml\n")
+    path = tmp_path / "sweeps" / "sweep.yaml"
+    grid = {"config": ["../configs/teacher.yaml", str(CONFIGS / "merl.yaml")]}
+    path.write_text(yaml.safe_dump({"grid": grid, "set": {"target.data": "m.binary"}}))
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    jobs = sweep.plan(sweep.load_sweep(path), path, tmp_path / "out")
+    assert "target.mitsuba alone" in jobs[0]["error"] and jobs[1]["error"] is None
+    assert jobs[1]["config"]["target"]["data"] == str(tmp_path / "sweeps" / "m.binary")
+    path.write_text(yaml.safe_dump({"base": "../configs/teacher.yaml"}))
+    (job,) = sweep.plan(sweep.load_sweep(path), path, tmp_path / "out")
+    assert job["config"]["target"]["mitsuba"] == str(tmp_path / "configs" / "teacher.xml")
+
+
 def test_grid_crosses_and_list_zips(tmp_path):
     path = write_sweep(
         tmp_path,

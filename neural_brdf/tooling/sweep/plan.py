@@ -91,6 +91,8 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
         raw = (cfgmod.parse_yaml((here / base).read_text(), source=base) if base else None) or {}
         if not isinstance(raw, dict):
             raise SweepError(f"{source}: {base}: expected a mapping of config keys")
+        if base:  # its paths are relative to its own folder
+            cfgmod.paths_relative_to(raw, (here / base).parent)
         raw["name"] = name
         job = {
             "name": name,
@@ -114,6 +116,7 @@ def plan(spec: SweepFile, source: Path, out_dir: Path) -> list[dict]:
                 raw["target"] = {"data": str(data)}  # replaces an analytic target
             elif key != "config":
                 _override(raw, key, value)
+        cfgmod.paths_relative_to(raw, here)  # a path set by the sweep: the sweep file's folder
         try:
             job["config"] = cfgmod.from_dict(raw, source=f"trial {name}").model_dump()
         except cfgmod.ConfigError as e:
