@@ -244,6 +244,15 @@ def _not_an_input(
         )
 
 
+def _cannot_write(path, e: OSError) -> Exception:
+    """The one-line error of a failed write of ``path``; a pipe whose reader left
+    (``codegen -o /dev/stdout | head``) stays a BrokenPipeError, which ends quietly
+    (:func:`main`), as ``-o -`` does."""
+    if isinstance(e, BrokenPipeError):
+        return e
+    return InputError(f"{path}: cannot write ({e.strerror})")
+
+
 def _write_files(payloads: dict[str, bytes]) -> None:
     """Each file of ``payloads`` (path -> bytes) atomically (see fileio), and all of them
     or none: every one is written to its temporary file before the first is renamed, and
@@ -253,9 +262,7 @@ def _write_files(payloads: dict[str, bytes]) -> None:
     try:
         atomic_write_all(payloads)
     except OSError as e:
-        raise InputError(
-            f"{e.filename or next(iter(payloads))}: cannot write ({e.strerror})"
-        ) from None
+        raise _cannot_write(e.filename or next(iter(payloads)), e) from None
 
 
 def _write_text(out: str, text: str) -> None:
@@ -266,7 +273,7 @@ def _write_text(out: str, text: str) -> None:
         try:
             atomic_write(out, text)
         except OSError as e:
-            raise InputError(f"{out}: cannot write ({e.strerror})") from None
+            raise _cannot_write(out, e) from None
         return
     try:
         sys.stdout.write(text)
@@ -446,7 +453,7 @@ def _validate(args) -> int:
         try:
             validate.write_json(report, args.json)
         except OSError as e:
-            raise InputError(f"{args.json}: cannot write ({e.strerror})") from None
+            raise _cannot_write(args.json, e) from None
     return EXIT_OK if report["checks_passed"] else EXIT_PHYSICS  # the peak too
 
 
@@ -561,7 +568,7 @@ def _bake(args) -> int:
     try:
         fmt.bake(fn, args.out)
     except OSError as e:
-        raise InputError(f"{args.out}: cannot write ({e.strerror})") from None
+        raise _cannot_write(args.out, e) from None
     print(f"wrote {args.out} ({fmt.name})")
     return EXIT_OK
 
