@@ -243,3 +243,71 @@ def test_readme_layout_lists_the_top_level_folders():
     }
     listed = {f.rstrip("/") for f in layout}
     assert folders <= listed, f"README's Layout lacks {sorted(folders - listed)}"
+
+
+# ------------------------------------------------ the Python examples name what exists
+PYTHON_BLOCK = re.compile(r"```python\n(.*?)```", re.S)
+OWN = ("neural_brdf", "analytic")  # the packages whose names the examples must get right
+
+
+def _examples() -> list[tuple[str, str]]:
+    return [
+        (f"{doc.relative_to(REPO)}#{i}", block)
+        for doc in DOCS
+        for i, block in enumerate(PYTHON_BLOCK.findall(doc.read_text()))
+    ]
+
+
+def _names_used(block: str) -> list[tuple[str, str | None]]:
+    """(module, attribute) of the project's own names an example uses: each ``from M
+    import A``, and each ``alias.A`` where ``alias`` is an imported project module."""
+    import ast
+
+    tree = ast.parse(block)
+    aliases: dict[str, str] = {}
+    used: list[tuple[str, str | None]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] in OWN:
+                    # `import a.b` binds a; `import a.b as c` binds c to a.b
+                    aliases[a.asname or a.name.split(".")[0]] = (
+                        a.name if a.asname else a.name.split(".")[0]
+                    )
+                    used.append((a.name, None))
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in OWN:
+            for a in node.names:
+                used.append((node.module, a.name))
+                aliases[a.asname or a.name] = f"{node.module}.{a.name}"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            if node.value.id in aliases:
+                used.append((aliases[node.value.id], node.attr))
+    return used
+
+
+def test_the_python_examples_use_names_that_exist():
+    import importlib
+
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")  # the examples' variant; the plugins' modules need one
+    examples = _examples()
+    assert len(examples) >= 10  # the check finds the examples
+    wrong = []
+    for where, block in examples:
+        for module, attr in _names_used(block):
+            try:
+                obj = importlib.import_module(module)
+            except ModuleNotFoundError:  # `from package import submodule` as a module path
+                parent, _, last = module.rpartition(".")
+                obj = getattr(importlib.import_module(parent), last, None)
+                if obj is None:
+                    wrong.append(f"{where}: {module}")
+                    continue
+            if attr is not None and not hasattr(obj, attr):
+                try:
+                    importlib.import_module(f"{module}.{attr}")
+                except ModuleNotFoundError:
+                    wrong.append(f"{where}: {module}.{attr}")
+    assert wrong == []
