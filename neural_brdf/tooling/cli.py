@@ -214,13 +214,19 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
 
 
 # A run folder's own files (neural_brdf.runfolder owns the list): no command's output may
-# replace one of them, except the file that command exists to write there.
+# replace one of them, except the file that command exists to write into its own run.
 def _not_an_input(
-    out: str | None, inputs: dict[str, str | None], *, flag: str, may: str = ""
+    out: str | None,
+    inputs: dict[str, str | None],
+    *,
+    flag: str,
+    may: str | os.PathLike | None = None,
 ) -> None:
     """Refuse an output (``flag out``) that is one of the command's ``inputs`` (name ->
-    path) or one of a run folder's own files (other than ``may``): writing it would
-    destroy what the command was given (InputError, exit 2; nothing is written)."""
+    path) or one of a run folder's own files (other than the path ``may``, the file the
+    command writes into the run it was given): writing it would destroy what the command
+    was given, or leave another run's files describing two runs (InputError, exit 2;
+    nothing is written)."""
     if out is None or out == STDOUT:
         return
     target = Path(os.path.realpath(out))
@@ -237,7 +243,8 @@ def _not_an_input(
             )
     from neural_brdf import runfolder
 
-    if target.name != may and runfolder.is_own_file(target):
+    allowed = may is not None and target == Path(os.path.realpath(may))
+    if not allowed and runfolder.is_own_file(target):
         raise InputError(
             f"{flag} {out}: is a file of the run in {target.parent}; give a file outside "
             "the run folder (or another name)"
@@ -399,7 +406,12 @@ def _presets(args) -> int:
 def _export(args) -> int:
     if args.out is not None:
         _output_file(args.out, "an ONNX model")
-        _not_an_input(args.out, {"run folder": args.run_dir}, flag="-o", may="model.onnx")
+        _not_an_input(
+            args.out,
+            {"run folder": args.run_dir},
+            flag="-o",
+            may=Path(args.run_dir) / "model.onnx",
+        )
     from neural_brdf import export, validate
 
     # export writes (and checks parity); validate measures the graph and gives the verdict
@@ -422,8 +434,16 @@ def _export(args) -> int:
 def _report(args) -> int:
     if args.out == STDOUT:
         raise InputError("-o -: the report is a folder of files, not for stdout")
+    from neural_brdf import runfolder
     from neural_brdf.viewer.report import write_report
 
+    if args.out is not None and runfolder.is_run(Path(args.out)):
+        same = Path(os.path.realpath(args.out)) == Path(os.path.realpath(args.run_dir))
+        if not same:
+            raise InputError(
+                f"-o {args.out}: is another run's folder (its report would describe "
+                f"{args.run_dir}); give a folder outside it, or leave -o out"
+            )
     paths = write_report(args.run_dir, args.out)
     print(f"wrote {paths['html']} and {paths['md']}")
     return EXIT_OK
@@ -653,7 +673,7 @@ def _view(args) -> int:
         args.out,
         {"model": args.model, "compared model": args.compare},
         flag="-o",
-        may="viewer.html",
+        may=Path(args.model).parent / "viewer.html",  # the model's own run's viewer
     )
 
     if args.out == STDOUT or fileio.written_in_place(args.out):  # /dev/stdout, a FIFO: any name

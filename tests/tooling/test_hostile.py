@@ -60,6 +60,29 @@ def test_export_into_its_run_s_model_onnx_is_allowed(capsys, run_copy):
     assert "wrote" in out
 
 
+def test_export_view_and_report_write_only_into_their_own_run(capsys, tiny_run, tmp_path):
+    # the files a command may write into a run (model.onnx, viewer.html, the report) are
+    # its own run's: into another run they would leave it describing two runs
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(tiny_run, a)
+    shutil.copytree(tiny_run, b)
+    (b / "viewer.html").write_text("b's viewer")
+    before = digest(b)
+    code, _, err = cli(capsys, "export", str(a), "-o", str(b / "model.onnx"))
+    assert_one_line_error(code, err, "model.onnx", "file of the run")
+    code, _, err = cli(capsys, "view", str(a / "model.onnx"), "-o", str(b / "viewer.html"))
+    assert_one_line_error(code, err, "viewer.html", "file of the run")
+    code, _, err = cli(capsys, "report", str(a), "-o", str(b))
+    assert_one_line_error(code, err, str(b), "another run")
+    assert digest(b) == before
+    # into their own run, as before
+    code, _, err = cli(capsys, "view", str(a / "model.onnx"), "-o", str(a / "viewer.html"))
+    assert code == 0, err
+    code, _, err = cli(capsys, "report", str(a), "-o", str(a))
+    assert code == 0, err
+    assert (a / "viewer.html").is_file() and (a / "report.html").is_file()
+
+
 def test_codegen_refuses_to_write_over_its_model(capsys, run_copy):
     model = run_copy / "model.onnx"
     before = model.read_bytes()
