@@ -229,7 +229,10 @@ def accuracy(fn: Callable, target: Target, *, n: int, seed: int) -> dict[str, An
     measured = kind_of(target) == "measured"
     wi, wo, ref = data.accuracy_pairs(target, None if measured else n, seed)
     wi, wo, ref = wi.numpy(), wo.numpy(), ref.numpy()
-    return _accuracy_report(wi, wo, ref, np.asarray(fn(wi, wo), dtype=np.float64))
+    report = _accuracy_report(wi, wo, ref, np.asarray(fn(wi, wo), dtype=np.float64))
+    # measured data: the bins training draws from, so none is held out (the report says so)
+    report["pairs_from"] = "measured bins" if measured else "sampled"
+    return report
 
 
 def _accuracy_report(

@@ -134,6 +134,10 @@ def test_a_toy_format_trains_validates_and_bakes_through_the_public_paths(toy, t
     assert metrics["reference"] == target.describe() == f"TOY {baked} (albedo 0.8 0.6 0.4)"
     assert metrics["accuracy"]["pairs"] == len(target.grid_pairs()[0]) == 81
     assert "peak" not in metrics  # measured data: no analytic peak probe
+    # the bins are what training draws from: the report does not call them held out
+    assert metrics["accuracy"]["pairs_from"] == "measured bins"
+    report_md = (run / "report.md").read_text()
+    assert "on 81 measured bin centres" in report_md and "held-out pairs" not in report_md
 
     # validate --reference: the toy file, by its suffix (not read as a YAML config)
     report = tmp_path / "report.json"

@@ -104,6 +104,11 @@ def test_training_writes_the_report(tiny_run):
     assert seconds["report"] > 0
     parts = seconds["train"] + seconds["export"] + seconds["validate"] + seconds["report"]
     assert seconds["total"] >= parts
+    # an analytic target's accuracy pairs are drawn apart from training's
+    metrics = json.loads((tiny_run / "metrics.json").read_text())
+    assert metrics["accuracy"]["pairs_from"] == "sampled"
+    said = f"on {metrics['accuracy']['pairs']} held-out pairs"
+    assert said in (tiny_run / "report.md").read_text()
 
 
 def test_html_is_self_contained_and_every_image_is_a_drawn_png(tiny_run):

@@ -175,9 +175,20 @@ def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
             rows.append([f"rel. RMSE, {band}", "-" if v is None else f"{100 * v:.3f} %"])
         rows.append(["NBRDF log error", f"{_number(m, 'accuracy.nbrdf_log_error', path):.3g}"])
         pairs = _number(m, "accuracy.pairs", path, optional=True)
+        # measured data are compared on every measured bin, which training draws from
+        # (an earlier run's metrics.json lacks pairs_from: its reference names the file)
+        binned = m["accuracy"].get("pairs_from") == "measured bins" or str(
+            m.get("reference", "")
+        ).startswith(("MERL ", "RGL "))
+        where = (
+            "measured bin centres (every bin of the file, which training draws its pairs "
+            "from: none is held out)"
+            if binned
+            else "held-out pairs"
+        )
         blocks += [
             Text(
-                f"Against the target on {_fmt(pairs, '.0f')} held-out pairs "
+                f"Against the target on {_fmt(pairs, '.0f')} {where} "
                 "(neural_brdf/validate.py): the relative RMSE of f cos θo, overall "
                 "and by bands of cos θi, and the NBRDF log error, the mean of "
                 "|log(1 + f̂ cos θo) − log(1 + f cos θo)|."
