@@ -438,6 +438,20 @@ def _quantile(values: list[float], q: float) -> float:
     return v[i] if i + 1 >= len(v) else v[i] + (x - i) * (v[i + 1] - v[i])
 
 
+def _config_now(path: str, recipes: dict) -> str:
+    """A config file as a results file recorded it, with today's name where the presets
+    were renamed since (issue 21: compact/X became X, and X, the 3 x 64 network, mlp/X);
+    a file naming a ``compact/`` config predates that."""
+    if not any("configs/compact/" in v for v in recipes.values()):
+        return f"`{path}`"
+    now = (
+        path.replace("configs/compact/", "configs/")
+        if "configs/compact/" in path
+        else path.replace("configs/", "configs/mlp/", 1)
+    )
+    return f"`{path}` (now `{now}`)"
+
+
 def merl_sweep_section(d: dict) -> list[str]:
     mats = d["materials"]
     recipes = list(d["recipes"])
@@ -452,7 +466,7 @@ def merl_sweep_section(d: dict) -> list[str]:
             f"{d.get('load_at_start')} at the start, {d.get('load_at_end')} at the end",
         ),
         f"{n} materials. Reference: {d['reference']}. Recipes: "
-        + ", ".join(f"{k} = `{v}`" for k, v in d["recipes"].items())
+        + ", ".join(f"{k} = {_config_now(v, d['recipes'])}" for k, v in d["recipes"].items())
         + f" (overrides: {d['overrides'] or 'none'}), {d['workers']} worker processes of "
         f"one thread (other jobs shared the machine at times: the training seconds are "
         f"wall times under that load). Render: {d['render']}. BRDF-space errors over every "
