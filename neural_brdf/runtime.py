@@ -47,11 +47,41 @@ from neural_brdf.fileformat.metadata import Metadata, parse_target, read_metadat
 CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
 
 
+def _rows(name: str, x: ArrayLike, width: int, *, direction: bool = False) -> np.ndarray:
+    """``x`` as float32 (..., ``width``), or a one-line InputError naming ``name``.
+
+    A direction in a wider float whose rounding to float32 would lose it, such as
+    (1e-50, 0, 1e-50) (the zero vector: f = 0) or (1e300, 0, 1e300) (infinite), is first
+    scaled by its largest absolute component, the graph's own first step, so f is that
+    of the direction; every other row is rounded as it is."""
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError) as e:  # a ragged list
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise InputError(f"{name}: expected an array of shape (..., {width}) ({first})") from None
+    if a.dtype.kind not in "biuf":  # strings, objects, complex numbers
+        raise InputError(f"{name}: expected real numbers, got an array of {a.dtype}")
+    if a.shape[-1:] != (width,):
+        raise InputError(f"{name}: expected shape (..., {width}), got {a.shape}")
+    if direction and a.dtype.kind == "f" and a.dtype.itemsize > 4 and a.size:
+        with np.errstate(all="ignore"):
+            m = np.max(np.abs(a), axis=-1, keepdims=True)
+            # only rows whose rounding to float32 would lose them: others are rounded
+            # as they are, bit for bit as onnxruntime fed float32 would see them
+            ok = np.isfinite(m) & (m > 0) & ((m < 2.0**-100) | (m > 2.0**100))
+            if ok.any():
+                a = np.where(ok, a / np.where(ok, m, 1.0), a)
+    with np.errstate(over="ignore"):  # a larger float beyond float32: inf, f = 0
+        return a.astype(np.float32)
+
+
 class NeuralBRDF:
     """An exported model: ``eval(wi, wo)`` on numpy arrays, plus its metadata."""
 
     def __init__(self, path: str | Path, *, threads: int = 1):
         path = Path(path)
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+            raise InputError(f"threads: expected a whole number >= 1, got {threads!r}")
         if not path.is_file():
             raise InputError(not_a_file(path, "model"))
         # the file's declared sizes, checked before onnxruntime allocates from them
@@ -59,7 +89,7 @@ class NeuralBRDF:
 
         reader.load(path, external_data=False)
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads  # 1 thread was fastest here (docs/results.md)
+        opts.intra_op_num_threads = int(threads)  # 1 thread was fastest here (docs/results.md)
         opts.inter_op_num_threads = 1
         opts.log_severity_level = 3
         try:
@@ -116,9 +146,7 @@ class NeuralBRDF:
         """The shading normal n(uv): (..., 2) -> (..., 3) float32 unit vectors in the
         unperturbed shading frame; (0, 0, 1) everywhere for a file without a normal
         field, and where uv is not finite."""
-        c = np.asarray(uv, dtype=np.float32)
-        if c.shape[-1:] != (2,):
-            raise InputError(f"uv: expected shape (..., 2), got {c.shape}")
+        c = _rows("uv", uv, 2)
         rows = np.ascontiguousarray(c.reshape(-1, 2))
         out = np.zeros((len(rows), 3), dtype=np.float32)
         out[:, 2] = 1.0
@@ -143,17 +171,13 @@ class NeuralBRDF:
         A textured file (:attr:`textured`) needs ``uv``, (..., 2) texture coordinates
         broadcast with the directions; a homogeneous one is the same at every uv, so a
         ``uv`` given to it is checked for its shape and otherwise unused."""
-        wi = np.asarray(wi, dtype=np.float32)
-        wo = np.asarray(wo, dtype=np.float32)
-        if wi.shape[-1:] != (3,) or wo.shape[-1:] != (3,):
-            raise InputError(f"wi, wo: expected shape (..., 3), got {wi.shape}, {wo.shape}")
+        wi = _rows("wi", wi, 3, direction=True)
+        wo = _rows("wo", wo, 3, direction=True)
         if uv is None and self.textured:
             raise InputError(
                 f"{self.path}: a textured material: give uv, (..., 2) texture coordinates"
             )
-        c = np.zeros((2,), np.float32) if uv is None else np.asarray(uv, dtype=np.float32)
-        if c.shape[-1:] != (2,):
-            raise InputError(f"uv: expected shape (..., 2), got {c.shape}")
+        c = np.zeros((2,), np.float32) if uv is None else _rows("uv", uv, 2)
         try:
             batch = np.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], c.shape[:-1])
         except ValueError:

@@ -146,6 +146,42 @@ def test_runtime_eval_handles_every_hostile_row(model_file):
     assert np.isfinite(got).all() and got[len(HOSTILE) :].all()
 
 
+@pytest.mark.parametrize("k", [1e-50, 1e-40, 1e40, 1e300])
+def test_runtime_eval_keeps_a_float64_direction_float32_cannot_hold(model_file, k):
+    # finite, non-zero directions beyond float32's range: f is the direction's (the
+    # graph's first step, the scale by the largest component, done before the rounding);
+    # they gave f = 0 (the zero vector, or infinity)
+    brdf = neural_brdf.load(model_file)
+    wi, wo = (x.astype(np.float64) for x in _pairs(256, seed=6))
+    ref = brdf.eval(wi, wo)
+    assert ref.any()
+    for a, b in [(k * wi, wo), (wi, k * wo), (k * wi, k * wo)]:
+        got = brdf.eval(a, b)
+        err = export.relative_difference(got.astype(np.float64), ref.astype(np.float64))
+        assert err <= SCALE_TOL, (k, err)
+    assert np.array_equal(brdf.eval(wi, wo), brdf.eval(wi.astype(np.float32), wo))  # as before
+
+
+@pytest.mark.parametrize(
+    "wi, kwargs, named",
+    [
+        ("abc", {}, "wi: expected real numbers"),
+        ([[0, 0, 1], [0, 1]], {}, "wi: expected an array of shape (..., 3)"),
+        ([0j, 0, 1], {}, "wi: expected real numbers"),
+        ([0, 1], {}, "wi: expected shape (..., 3), got (2,)"),
+        ([0, 0, 1], {"threads": "2"}, "threads: expected a whole number >= 1, got '2'"),
+        ([0, 0, 1], {"threads": 2.5}, "threads: expected a whole number >= 1, got 2.5"),
+        ([0, 0, 1], {"threads": 0}, "threads: expected a whole number >= 1, got 0"),
+    ],
+)
+def test_runtime_names_the_bad_argument_in_one_line(model_file, wi, kwargs, named):
+    from neural_brdf.errors import InputError
+
+    with pytest.raises(InputError) as e:
+        neural_brdf.load(model_file, **kwargs).eval(wi, [0.0, 0.0, 1.0])
+    assert str(e.value).startswith(named) and "\n" not in str(e.value)
+
+
 @pytest.mark.mitsuba
 def test_drjit_plugin_evaluation_is_total_too(model_file, session):
     """The Mitsuba plugin runs the same graph through Dr.Jit: same zeros, same values."""
