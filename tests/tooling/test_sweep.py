@@ -242,6 +242,76 @@ def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
     assert {p.name: p.stat().st_mtime_ns for p in first.parent.iterdir()} == kept
 
 
+def stuck_trial(job: dict) -> dict:
+    """A worker that misses Ctrl-C and never ends on its own (an idle worker blocked as
+    the walkthrough found one): it says it started, then sleeps."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    Path(job["run_dir"]).mkdir(parents=True, exist_ok=True)
+    (Path(job["run_dir"]) / "started").write_text(str(os.getpid()))
+    time.sleep(90)
+    return {}
+
+
+def test_an_interrupted_local_sweep_ends_a_worker_that_does_not(tmp_path):
+    import threading
+
+    from neural_brdf.tooling.sweep import executors
+
+    started = tmp_path / "a" / "started"
+    interrupted = []
+
+    def interrupt_once_started():
+        deadline = time.monotonic() + 120
+        while not started.is_file() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        interrupted.append(time.monotonic())
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the sweep's own process
+
+    records = executors._run_local(
+        [{"name": "a", "run_dir": str(tmp_path / "a")}], 1, trial=stuck_trial, grace=1.0
+    )
+    threading.Thread(target=interrupt_once_started, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        next(records)
+    took = time.monotonic() - interrupted[0]
+    pid = int(started.read_text())
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)  # the worker is gone
+    assert took < 30  # it would have slept on for 90 s, and the sweep waited for it
+
+
+def test_a_rerun_keeps_the_users_files_and_refuses_a_folder_not_its_own(tmp_path, capsys):
+    path = write_sweep(tmp_path, list=TRIALS[:1])
+    out = tmp_path / "out"
+    sweep.run_sweep(path, workers=1, out=out)
+    trial = out / "trials" / "seed-0"
+    (trial / "notes.md").write_text("why seed 0 is odd")
+    # a changed base reruns the trial: its run files are replaced, the user's stay
+    path.write_text(path.read_text().replace("train.steps: 60", "train.steps: 61"))
+    sweep.run_sweep(path, workers=1, out=out)
+    assert read(trial / "trial.json")["config"]["train"]["steps"] == 61
+    assert (trial / "notes.md").read_text() == "why seed 0 is odd"
+    # a trial folder of the user's own (no run in it) is refused, nothing removed
+    mine = tmp_path / "mine"
+    (mine / "trials" / "seed-0").mkdir(parents=True)
+    (mine / "trials" / "seed-0" / "thesis.tex").write_text("thesis")
+    (mine / "results.json").write_text(json.dumps({"trials": []}))
+    code = cli.main(["sweep", str(path), "--workers", "1", "--out", str(mine)])
+    err = capsys.readouterr().err
+    assert code == 2 and "thesis.tex" in err and len(err.strip().splitlines()) == 1
+    assert (mine / "trials" / "seed-0" / "thesis.tex").read_text() == "thesis"
+    # a folder that is no sweep's, and a file, are refused as --out
+    (mine / "results.json").write_text("my own results")
+    code = cli.main(["sweep", str(path), "--workers", "1", "--out", str(mine)])
+    err = capsys.readouterr().err
+    assert code == 2 and "not a sweep's folder" in err
+    assert (mine / "results.json").read_text() == "my own results"
+    code = cli.main(["sweep", str(path), "--out", str(mine / "results.json")])
+    assert code == 2 and "is a file" in capsys.readouterr().err
+    code = cli.main(["sweep", str(path), "--workers", "0", "--out", str(tmp_path / "w")])
+    assert code == 2 and "--workers: must be >= 1, got 0" in capsys.readouterr().err
+
+
 def test_failing_trials_are_recorded_and_the_others_finish(tmp_path):
     trials = [
         {"train.seed": 0},

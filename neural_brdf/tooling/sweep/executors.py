@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
@@ -13,23 +14,49 @@ from neural_brdf.fileio import atomic_write
 from neural_brdf.tooling.sweep.spec import MARKER
 from neural_brdf.tooling.sweep.trial import _failed, _one_line, _read_marker, run_trial
 
-
 # ------------------------------------------------------------------ executors
-def _run_local(jobs: list[dict], workers: int):
+# Seconds an interrupted sweep waits for its workers (each saves its checkpoint on the
+# same Ctrl-C) before it ends those still running
+STOP_GRACE = 20.0
+
+
+def _stop(pool: ProcessPoolExecutor, grace: float) -> None:
+    """Stop a pool at once: cancel the trials not started, give the running ones
+    ``grace`` seconds, then terminate the workers still alive.  Leaving the pool's
+    ``with`` waits for every worker instead, for ever where one is blocked (an idle
+    worker that missed the interrupt)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())  # shutdown drops it
+    pool.shutdown(wait=False, cancel_futures=True)
+    deadline = time.monotonic() + grace
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(5.0)
+
+
+def _run_local(jobs: list[dict], workers: int, *, trial=run_trial, grace: float = STOP_GRACE):
     """Yield records as trials finish, on a spawn process pool.  If a worker process
     dies, the trials it may have been running are failed and the others go on in a
-    fresh pool."""
+    fresh pool.  Ctrl-C (or closing the generator) stops the pool (:func:`_stop`).
+    ``trial``: what a worker runs on a job (a module-level function)."""
     ctx = multiprocessing.get_context("spawn")
     pending = list(jobs)
     while pending:
         broken = []
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futures = {pool.submit(run_trial, job): job for job in pending}
-            for fut in as_completed(futures):
-                try:
-                    yield fut.result()
-                except BrokenProcessPool:
-                    broken.append(futures[fut])
+            try:
+                futures = {pool.submit(trial, job): job for job in pending}
+                for fut in as_completed(futures):
+                    try:
+                        yield fut.result()
+                    except BrokenProcessPool:
+                        broken.append(futures[fut])
+            except (KeyboardInterrupt, GeneratorExit):
+                _stop(pool, grace)
+                raise
         # run_trial's first act is to write its marker: those without one never started
         started = [j for j in broken if _read_marker(j["run_dir"]) is not None] or broken
         for job in started:

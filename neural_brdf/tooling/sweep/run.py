@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-import shutil
+import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 
+from neural_brdf import runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.tooling.sweep.executors import _run_local, _run_ray, default_workers
 from neural_brdf.tooling.sweep.plan import plan
@@ -15,6 +17,26 @@ from neural_brdf.tooling.sweep.trial import _failed, _finished, _write_json
 
 
 # ------------------------------------------------------------------ the sweep
+def _check_sweep_folder(out_dir: Path) -> None:
+    """Refuse (InputError, one line) a ``--out`` that is a file, or a folder that holds
+    files and no sweep's results.json (a sweep writes its table and trials there; the
+    user's own files in a sweep's folder stay as they are)."""
+    if os.path.lexists(out_dir) and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir}: is a file; a sweep's output is a folder")
+    entries = sorted(os.listdir(out_dir)) if out_dir.is_dir() else []
+    if not entries:
+        return
+    try:
+        ours = isinstance(json.loads((out_dir / "results.json").read_text()).get("trials"), list)
+    except (OSError, ValueError, AttributeError):
+        ours = False
+    if not ours:
+        raise InputError(
+            f"--out {out_dir}: not a sweep's folder (it holds {entries[0]} and no "
+            "results.json of a sweep); choose a new or empty folder, or the sweep's own"
+        )
+
+
 def run_sweep(
     path: str | Path,
     *,
@@ -28,16 +50,18 @@ def run_sweep(
     spec = load_sweep(path)
     if executor not in ("local", "ray"):
         raise InputError(f"--executor: expected local or ray, got {executor!r}")
-    workers = workers or default_workers()
+    if workers is None:
+        workers = default_workers()
     if workers < 1:
         raise InputError(f"--workers: must be >= 1, got {workers}")
     name = spec.name or Path(path).stem
     out_dir = Path(out) if out is not None else Path("runs", "sweeps", name)
+    _check_sweep_folder(out_dir)
     jobs = plan(spec, Path(path), out_dir)
     records = {job["name"]: _finished(job) for job in jobs}
     todo = [job for job in jobs if records[job["name"]] is None]
-    for job in todo:  # a fresh start for reruns
-        shutil.rmtree(job["run_dir"], ignore_errors=True)
+    for job in todo:  # a rerun replaces the trial's run files alone (overwrite), never
+        runfolder.check_writable(Path(job["run_dir"]))  # a folder of the user's
     configs = {job["name"]: job["config"] for job in jobs}
     done = len(jobs) - len(todo)
 
