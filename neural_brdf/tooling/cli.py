@@ -251,6 +251,26 @@ def _not_an_input(
         )
 
 
+def _same_path(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    return Path(os.path.realpath(a)) == Path(os.path.realpath(b))
+
+
+@contextlib.contextmanager
+def _holding(run_dir: str | os.PathLike):
+    """Hold a run folder's lock (:func:`neural_brdf.runfolder.run_lock`) while a command
+    writes a run's own file into it (``export RUN``, ``report RUN``): a run still
+    training there (train, resume) is refused in one line, exit 2, instead of having
+    its files replaced under it.  A folder that is not a run is left to the command."""
+    from neural_brdf import runfolder
+
+    path = Path(run_dir)
+    if not (path.is_dir() and runfolder.is_run(path)):
+        yield
+        return
+    with runfolder.run_lock(path):
+        yield
+
+
 def _cannot_write(path, e: OSError) -> Exception:
     """The one-line error of a failed write of ``path``; a pipe whose reader left
     (``codegen -o /dev/stdout | head``) stays a BrokenPipeError, which ends quietly
@@ -415,12 +435,14 @@ def _export(args) -> int:
     from neural_brdf import export, validate
 
     # export writes (and checks parity); validate measures the graph and gives the verdict
-    info = export.export_run(
-        args.run_dir,
-        args.out,
-        measure=validate.physics,
-        measure_textured=validate.physics_textured,
-    )
+    into_run = args.out is None or _same_path(args.out, Path(args.run_dir) / "model.onnx")
+    with _holding(args.run_dir) if into_run else contextlib.nullcontext():
+        info = export.export_run(
+            args.run_dir,
+            args.out,
+            measure=validate.physics,
+            measure_textured=validate.physics_textured,
+        )
     c = info["physics"]["checks"]
     t = info.get("target") or {}
     fitted = f" (an images fit of {t['views']} views)" if t.get("kind") == "images" else ""
@@ -444,7 +466,9 @@ def _report(args) -> int:
                 f"-o {args.out}: is another run's folder (its report would describe "
                 f"{args.run_dir}); give a folder outside it, or leave -o out"
             )
-    paths = write_report(args.run_dir, args.out)
+    into_run = args.out is None or _same_path(args.out, args.run_dir)
+    with _holding(args.run_dir) if into_run else contextlib.nullcontext():
+        paths = write_report(args.run_dir, args.out)
     print(f"wrote {paths['html']} and {paths['md']}")
     return EXIT_OK
 

@@ -83,6 +83,23 @@ def test_export_view_and_report_write_only_into_their_own_run(capsys, tiny_run, 
     assert (a / "viewer.html").is_file() and (a / "report.html").is_file()
 
 
+def test_export_and_report_wait_for_no_run_still_going_in_their_folder(capsys, run_copy, tmp_path):
+    # a run that holds its folder (training or resuming) keeps export and report out of
+    # it; they replaced its model.onnx or report under it
+    from neural_brdf import runfolder
+
+    before = digest(run_copy)
+    with runfolder.run_lock(run_copy):  # as a run still training holds it
+        code, _, err = cli(capsys, "export", str(run_copy))
+        assert_one_line_error(code, err, str(run_copy), "in use")
+        code, _, err = cli(capsys, "report", str(run_copy))
+        assert_one_line_error(code, err, str(run_copy), "in use")
+        # a copy written elsewhere reads the checkpoint only
+        code, _, err = cli(capsys, "export", str(run_copy), "-o", str(tmp_path / "m.onnx"))
+        assert code in (0, 1), err
+    assert {k: v for k, v in digest(run_copy).items() if k != ".lock"} == before
+
+
 def test_codegen_refuses_to_write_over_its_model(capsys, run_copy):
     model = run_copy / "model.onnx"
     before = model.read_bytes()
