@@ -108,9 +108,15 @@ def _with_defaults(saved: dict) -> dict:
     The saved dict unchanged where it no longer validates (a key since removed, a target
     file since moved): then the comparison is of what was saved."""
     try:
-        return cfgmod.Config.model_validate(saved).model_dump()
+        out = cfgmod.Config.model_validate(saved).model_dump()
     except Exception:  # pydantic's ValidationError and the validators' own errors
         return saved
+    # a target.data saved relative, as it was read before paths were made absolute
+    # (config.paths_relative_to): the current folder's, by the rule of its time
+    data = out["target"].get("data")
+    if isinstance(data, str) and data.strip() and not os.path.isabs(data):
+        out["target"]["data"] = os.path.abspath(data)
+    return out
 
 
 def check_resumable(

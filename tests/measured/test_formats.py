@@ -186,6 +186,19 @@ def test_a_data_path_is_the_config_folders_and_a_run_finds_it_from_anywhere(
     again = json.loads((tmp_path / "run" / "metrics.json").read_text())["reference"]
     assert again == reference
 
+    # a checkpoint saved before paths were made absolute (target.data as given, read
+    # against the current folder) still resumes with the same file, and not another
+    from neural_brdf.train import session
+
+    monkeypatch.chdir(tmp_path)
+    cfg = config.load(cfg_file)
+    saved = cfg.model_dump()
+    saved["target"]["data"] = "cfg/m.toy"
+    session.check_resumable(saved, cfg)
+    saved["target"]["data"] = "old.toy"
+    with pytest.raises(config.ConfigError, match="target: differs"):
+        session.check_resumable(saved, cfg)
+
 
 def test_unknown_suffixes_and_bad_files_are_one_line_errors(toy, tmp_path, capsys):
     with pytest.raises(InputError) as e:
