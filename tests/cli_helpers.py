@@ -37,6 +37,21 @@ def run(*args, cwd=ROOT):
     )
 
 
+def into_closed_pipe(*args) -> tuple[int, str]:
+    """``neural-brdf ARGS | head -0`` in a subprocess: the reader of stdout is gone
+    before the first byte is written; (exit code, stderr)."""
+    with subprocess.Popen(
+        [sys.executable, "-m", "neural_brdf.tooling.cli", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    ) as proc:
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        return proc.wait(timeout=120), err
+
+
 def cli(capsys, *args):
     """In-process ``neural-brdf ARGS`` (fast): (exit code, stdout, stderr)."""
     code = main(list(args))

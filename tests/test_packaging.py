@@ -311,16 +311,10 @@ def test_public_api_is_annotated():
 
 def test_presets_into_a_closed_pipe_exit_quietly():
     # `neural-brdf presets | head -0`: the reader is gone before the first line is written
-    with subprocess.Popen(
-        [sys.executable, "-m", "neural_brdf.tooling.cli", "presets"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    ) as proc:
-        proc.stdout.close()
-        err = proc.stderr.read().decode()
-        assert proc.wait(timeout=60) == 0, err
+    from cli_helpers import into_closed_pipe
+
+    code, err = into_closed_pipe("presets")
+    assert code == 0, err
     assert "Traceback" not in err and "BrokenPipe" not in err
 
 
