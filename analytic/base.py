@@ -18,12 +18,21 @@ below the horizon; such a sample has ``eval == 0`` and so carries zero weight, w
 keeps the estimator ``f cos / pdf`` unbiased.  Over the upper hemisphere the pdf
 integrates to 1 minus that lost fraction.  Lobes are mixed with weights that
 approximate their albedo ("mixtures choose lobes by albedo weight").
+
+Errors.  A bad model parameter raises :class:`ParameterError`.  A malformed array
+argument of the public functions (``eval``, ``pdf``, ``sample``, ``delta_reflectance``,
+:func:`analytic.albedo` ...): not real numbers, a last axis other than 3 for a direction
+or 2 for ``u``, batch shapes that do not broadcast, raises ``ValueError``.  Both
+messages are one line and name the parameter or argument.  The torch methods (``f``,
+``pdf_t``, ``sample_t``, ``sample_dir_t``) are the hot loops of training and
+quadrature, and check nothing.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+import reprlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -38,32 +47,55 @@ class ParameterError(ValueError):
 
 
 # ------------------------------------------------------------------ parameter checks
+def _show(value) -> str:
+    """A short, one-line description of a bad value for an error message."""
+    if isinstance(value, (np.ndarray, torch.Tensor)):
+        return f"an array of {value.dtype} of shape {tuple(value.shape)}"
+    return " ".join(reprlib.repr(value).split())
+
+
 def rgb(name: str, value, *, lo: float = 0.0, hi: float = 1.0) -> tuple[float, float, float]:
-    """A scalar or 3-sequence -> an RGB triple, checked to lie in ``[lo, hi]``."""
-    arr = np.asarray(value, dtype=np.float64)
+    """A scalar or 3-sequence -> an RGB triple, checked to lie in ``[lo, hi]``.  Each
+    number is read as :func:`scalar` reads one, with ``float()``."""
+    try:
+        items = np.asarray(value, dtype=object)
+        arr = np.array([float(v) for v in items.reshape(-1)], dtype=np.float64)
+        arr = arr.reshape(items.shape)
+    except (TypeError, ValueError):  # None, a string, a dict, a ragged list
+        raise ParameterError(
+            f"{name}: expected a number or 3 RGB numbers, got {_show(value)}"
+        ) from None
     if arr.ndim == 0:
         arr = np.repeat(arr, 3)
     if arr.shape != (3,):
-        raise ParameterError(f"{name}: expected a number or 3 RGB numbers, got {value!r}")
+        raise ParameterError(f"{name}: expected a number or 3 RGB numbers, got {_show(value)}")
     if not np.all(np.isfinite(arr)):
-        raise ParameterError(f"{name}: must be finite, got {value!r}")
+        raise ParameterError(f"{name}: must be finite, got {_show(value)}")
     if np.any(arr < lo) or np.any(arr > hi):
-        raise ParameterError(f"{name}: must lie in [{lo}, {hi}], got {value!r}")
+        raise ParameterError(f"{name}: must lie in [{lo}, {hi}], got {_show(value)}")
     return float(arr[0]), float(arr[1]), float(arr[2])
 
 
 def scalar(
-    name: str, value, *, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False
+    name: str,
+    value,
+    *,
+    lo: float = -math.inf,
+    hi: float = math.inf,
+    lo_open: bool = False,
+    hi_open: bool = False,
 ) -> float:
+    """A number checked to lie in ``[lo, hi]`` (``(`` / ``)`` where ``lo_open`` /
+    ``hi_open``)."""
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ParameterError(f"{name}: expected a number, got {value!r}") from None
+        raise ParameterError(f"{name}: expected a number, got {_show(value)}") from None
     if not math.isfinite(v):
-        raise ParameterError(f"{name}: must be finite, got {value!r}")
-    if (lo_open and v <= lo) or (not lo_open and v < lo) or v > hi:
-        lb = "(" if lo_open else "["
-        raise ParameterError(f"{name}: must lie in {lb}{lo}, {hi}], got {value!r}")
+        raise ParameterError(f"{name}: must be finite, got {_show(value)}")
+    if (v <= lo if lo_open else v < lo) or (v >= hi if hi_open else v > hi):
+        lb, rb = "(" if lo_open else "[", ")" if hi_open else "]"
+        raise ParameterError(f"{name}: must lie in {lb}{lo}, {hi}{rb}, got {_show(value)}")
     return v
 
 
@@ -80,27 +112,53 @@ def rgb_pair(name_a: str, a, name_b: str, b) -> tuple[tuple, tuple]:
 
 def choice(name: str, value, options: Sequence[str]) -> str:
     if value not in options:
-        raise ParameterError(f"{name}: must be one of {list(options)}, got {value!r}")
+        raise ParameterError(f"{name}: must be one of {list(options)}, got {_show(value)}")
     return value
 
 
 # ------------------------------------------------------------------ array edge
-def _as_tensor(x, like: torch.Tensor | None = None) -> torch.Tensor:
+def _as_tensor(x, like: torch.Tensor | None = None, *, name: str = "x") -> torch.Tensor:
+    """``x`` as a tensor (a tensor passes through); anything but real numbers (strings,
+    objects, complex numbers, a ragged list) -> a one-line ValueError naming ``name``."""
     if isinstance(x, torch.Tensor):
+        if x.is_complex():
+            raise ValueError(f"{name}: expected real numbers, got {_show(x)}")
         return x
-    arr = np.asarray(x)
+    try:
+        arr = np.asarray(x)
+    except (TypeError, ValueError):  # a ragged list
+        raise ValueError(f"{name}: expected an array of real numbers, got {_show(x)}") from None
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"{name}: expected real numbers, got {_show(x)}")
     if arr.dtype not in (np.float32, np.float64):
         arr = arr.astype(np.float64)
-    t = torch.from_numpy(np.ascontiguousarray(arr))
+    t = torch.from_numpy(np.ascontiguousarray(arr).reshape(arr.shape))  # 0-d stays 0-d
     if like is not None:
         t = t.to(device=like.device)
     return t
 
 
-def _common(*xs):
-    """Convert inputs to tensors of one floating dtype; remember whether to return numpy."""
+def _common(*xs, names: Sequence[str] = (), widths: Sequence[int] = ()):
+    """Convert inputs to tensors of one floating dtype; remember whether to return numpy.
+
+    The public edge's checks: ``names`` name the inputs in errors, and with ``widths``
+    input k must have shape ``(..., widths[k])`` and the batch shapes must broadcast;
+    otherwise a one-line ValueError names the argument."""
+    names = tuple(names) or tuple(f"x{k}" for k in range(len(xs)))
     is_numpy = not any(isinstance(x, torch.Tensor) for x in xs)
-    ts = [_as_tensor(x) for x in xs]
+    ts = [_as_tensor(x, name=n) for x, n in zip(xs, names)]
+    if widths:
+        for t, n, w in zip(ts, names, widths):
+            if t.shape[-1:] != (w,):
+                raise ValueError(f"{n}: expected shape (..., {w}), got {tuple(t.shape)}")
+        batches = [tuple(t.shape[:-1]) for t in ts]
+        try:
+            torch.broadcast_shapes(*batches)
+        except RuntimeError:
+            shapes = " and ".join(str(b) for b in batches)
+            raise ValueError(
+                f"{', '.join(names)}: batch shapes {shapes} do not broadcast"
+            ) from None
     dtype = ts[0].dtype
     for t in ts[1:]:
         dtype = torch.promote_types(dtype, t.dtype)
@@ -138,7 +196,7 @@ class BRDF:
     """Base class.  Subclasses set the class attributes and implement ``_f`` and ``_lobes``."""
 
     name: str = "brdf"
-    reciprocal: bool = True  # f(wi, wo) == f(wo, wi) exactly (tested to 1e-6)
+    reciprocal: bool = True  # f(wi, wo) == f(wo, wi) bit for bit, float32 and float64 (tested)
     energy_conserving: bool = True  # rho(wi) <= 1 for all wi (tested to 1e-3)
     anisotropic: bool = False  # depends on the azimuth of the tangent frame
     notes: str = ""  # what differs from the published formula, and why
@@ -218,22 +276,24 @@ class BRDF:
             wo = cand.gather(-2, idx[..., None, None].expand(idx.shape + (1, 3)))[..., 0, :]
         return wo
 
-    # -- public, array-typed API
+    # -- public, array-typed API (malformed arrays: a ValueError naming the argument)
     def eval(self, wi, wo):
-        is_np, (wi_t, wo_t) = _common(wi, wo)
+        """f(wi, wo), (..., 3), for directions wi, wo (..., 3) whose batch shapes broadcast."""
+        is_np, (wi_t, wo_t) = _common(wi, wo, names=("wi", "wo"), widths=(3, 3))
         return _out(self.f(wi_t, wo_t), is_np)
 
     def pdf(self, wi, wo):
-        is_np, (wi_t, wo_t) = _common(wi, wo)
+        """The density of :meth:`sample`'s wo, (...), for wi, wo (..., 3)."""
+        is_np, (wi_t, wo_t) = _common(wi, wo, names=("wi", "wo"), widths=(3, 3))
         with torch.no_grad():
             return _out(self.pdf_t(wi_t, wo_t), is_np)
 
     def sample(self, wi, u):
-        """Sample ``wo`` for ``wi`` from ``u`` in [0,1)^2 -> ``(wo, pdf)``.
+        """Sample ``wo`` for ``wi`` (..., 3) from ``u`` (..., 2) in [0,1)^2 -> ``(wo, pdf)``.
 
         ``wo`` may lie below the horizon (see the module docstring); ``eval`` is 0 there.
         """
-        is_np, (wi_t, u_t) = _common(wi, u)
+        is_np, (wi_t, u_t) = _common(wi, u, names=("wi", "u"), widths=(3, 2))
         with torch.no_grad():
             wo, p = self.sample_t(wi_t, u_t)
         return _out(wo, is_np), _out(p, is_np)
@@ -241,5 +301,5 @@ class BRDF:
     # -- delta lobes (only `coupled` has one); not part of eval
     def delta_reflectance(self, wi):
         """Reflectance of a Dirac specular lobe at the mirror direction (0 if none)."""
-        is_np, (wi_t,) = _common(wi)
+        is_np, (wi_t,) = _common(wi, names=("wi",), widths=(3,))
         return _out(torch.zeros(wi_t.shape[:-1] + (3,), dtype=wi_t.dtype), is_np)

@@ -7,7 +7,7 @@ import math
 import torch
 
 from . import frame
-from .base import BRDF, ParameterError, _common, _out, cosine_lobe, rgb, scalar
+from .base import BRDF, _common, _out, cosine_lobe, rgb, scalar
 
 
 class Coupled(BRDF):
@@ -56,9 +56,7 @@ class Coupled(BRDF):
         r0: normal-incidence Fresnel reflectance of the coat, in [0, 1) (default 0.05;
         ((n - 1) / (n + 1))^2 is 0.02 for water, 0.04-0.06 for polish and glass)."""
         rm = rgb("rm", rm)
-        r0 = scalar("r0", r0, lo=0.0, hi=1.0)
-        if r0 >= 1.0:
-            raise ParameterError(f"r0: must lie in [0, 1), got {r0!r}")
+        r0 = scalar("r0", r0, lo=0.0, hi=1.0, hi_open=True)
         super().__init__(rm=rm, r0=r0)
 
     @staticmethod
@@ -87,10 +85,10 @@ class Coupled(BRDF):
 
     def delta_reflectance(self, wi):
         """R_f(theta_i) of the Dirac mirror lobe, RGB (..., 3); 0 below the horizon."""
-        is_np, (wi_t,) = _common(wi)
+        is_np, (wi_t,) = _common(wi, names=("wi",), widths=(3,))
         return _out(self._delta_reflectance_t(wi_t), is_np)
 
     def delta_direction(self, wi):
         """The mirror direction of wi about the normal (where the Dirac lobe sends light)."""
-        is_np, (wi_t,) = _common(wi)
+        is_np, (wi_t,) = _common(wi, names=("wi",), widths=(3,))
         return _out(frame.reflect_z(wi_t), is_np)

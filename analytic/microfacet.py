@@ -32,7 +32,10 @@ combines them.
   64 x 17 table smooths.  That is the stated tolerance of the energy test for
   ``multiscatter=True`` with anisotropic alphas.
 
-Reciprocal: yes for every option (F depends on wi.h = wo.h; D, G symmetric).
+Reciprocal: yes for every option, bit for bit in float32 and float64: F depends on
+wi.h = wo.h, computed as |wi + wo| / 2 (:func:`half_cos`), and D, G and the
+compensation are evaluated in forms symmetric in (wi, wo) (1 + (Lambda(wi) +
+Lambda(wo)), not (1 + Lambda(wi)) + Lambda(wo), which rounds differently when swapped).
 Energy conserving: yes (single scattering loses energy; the compensation adds at
 most what was lost, up to the table tolerance above).  Tested: rho <= 1 + 1e-3.
 """
@@ -162,6 +165,14 @@ def _beckmann_visible_slopes(ws: torch.Tensor, u: torch.Tensor):
     sx = cp * x - sp * y
     sy = sp * x + cp * y
     return sx.to(ws.dtype), sy.to(ws.dtype)
+
+
+def half_cos(wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """wi.h = wo.h, as |wi + wo| / 2 (equal for unit wi, wo).
+
+    Computed from wi + wo alone, so it is the same bit for bit with wi and wo swapped,
+    which frame.dot(wi, h) and frame.dot(wo, h) are not (they differ by rounding)."""
+    return 0.5 * torch.linalg.vector_norm(wi + wo, dim=-1)
 
 
 # ------------------------------------------------------------------- the model
@@ -311,11 +322,12 @@ class Microfacet(BRDF):
         if m == "smith_separable":
             return self.dist.G1(wi) * self.dist.G1(wo)
         if m == "smith_correlated":
-            return 1.0 / (1.0 + self.dist.Lambda(wi) + self.dist.Lambda(wo))
+            # Lambda(wi) + Lambda(wo) first: (1 + a) + b is not (1 + b) + a in floats
+            return 1.0 / (1.0 + (self.dist.Lambda(wi) + self.dist.Lambda(wo)))
         # V-cavity (Cook & Torrance 1982):
         # min(1, 2 hz co / (wo.h), 2 hz ci / (wi.h))
         hz = h[..., 2]
-        d = frame.dot(wi, h).clamp_min(frame.EPS_COS)  # wi.h == wo.h
+        d = half_cos(wi, wo).clamp_min(frame.EPS_COS)  # wi.h == wo.h
         g = torch.minimum(2.0 * hz * wo[..., 2] / d, 2.0 * hz * wi[..., 2] / d)
         return g.clamp(0.0, 1.0)
 
@@ -326,7 +338,7 @@ class Microfacet(BRDF):
         val = self.dist.D(h) * self.G(wi, wo, h) / (4.0 * ci * co)  # Walter et al. 2007
         val = val[..., None]
         if with_fresnel:
-            val = val * self.fresnel(frame.dot(wi, h))
+            val = val * self.fresnel(half_cos(wi, wo))
         return val.expand(val.shape[:-1] + (3,))
 
     def _f(self, wi, wo):

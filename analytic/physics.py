@@ -16,6 +16,7 @@ here, n = 4096 gives errors of order 1e-4 (see tests/test_physics.py).
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable
 from typing import Any
 
@@ -23,7 +24,7 @@ import numpy as np
 import torch
 
 from . import frame
-from .base import BRDF, _common, _out
+from .base import BRDF, _common, _out, _show
 
 REPLICAS = 4
 DEFENSIVE = 1 / 8  # share of quadrature points drawn from the cosine hemisphere
@@ -36,9 +37,26 @@ def sobol_points(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:
     return eng.draw(n, dtype=dtype).clamp(0.0, 1.0 - 1e-12)
 
 
+def _count(name: str, value, least: int, why: str) -> int:
+    """An integer argument >= ``least``, or a one-line ValueError naming it."""
+    try:
+        k = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name}: expected an integer, got {_show(value)}") from None
+    if k < least:
+        raise ValueError(f"{name}: must be >= {least} ({why}), got {k}")
+    return k
+
+
+def _points(n) -> int:
+    """The quadrature's ``n``: at least one point per scrambled replica."""
+    return _count("n", n, REPLICAS, f"n points are split over {REPLICAS} scrambled replicas")
+
+
 def _estimate(integrand: Callable[[torch.Tensor], torch.Tensor], n: int, seed: int):
-    """Mean of integrand(u) over R scrambled Sobol replicas -> (mean, standard error)."""
-    per = max(n // REPLICAS, 1)
+    """Mean of integrand(u) over R scrambled Sobol replicas of n // R points each ->
+    (mean, standard error).  n >= R (:func:`_points`)."""
+    per = n // REPLICAS
     means = []
     for r in range(REPLICAS):
         u = sobol_points(per, seed * REPLICAS + r)
@@ -57,10 +75,14 @@ def albedo(
 ) -> Any:
     """Directional albedo rho(wi) = int f(wi, wo) cos(theta_o) dwo, shape (..., 3).
 
-    Computed in float64 and returned in the input's type and dtype.  With
-    ``return_error=True`` returns ``(rho, stderr)``.
+    ``wi``: directions (..., 3).  ``n``: the number of quadrature points per wi, split
+    over the ``REPLICAS`` = 4 scrambled replicas (n // 4 each), so at least 4; fewer,
+    or a wi of another shape, raises a ValueError naming the argument.  Computed in
+    float64 and returned in the input's type and dtype.  With ``return_error=True``
+    returns ``(rho, stderr)``.
     """
-    is_np, (wi_t,) = _common(wi)
+    n = _points(n)
+    is_np, (wi_t,) = _common(wi, names=("wi",), widths=(3,))
     out_dtype = wi_t.dtype
     wi64 = wi_t.detach().to(torch.float64)
 
@@ -92,9 +114,12 @@ def albedo_of(
     """Directional albedo of any callable f(wi, wo) on numpy (N, 3) arrays.
 
     Cosine-weighted Sobol quadrature: rho = mean f(wi, wo) * pi.  Exact for a
-    constant f; for peaked lobes prefer :func:`albedo` with a sampler.
+    constant f; for peaked lobes prefer :func:`albedo` with a sampler.  ``wi`` (..., 3)
+    is flattened to (N, 3); ``n`` as in :func:`albedo` (at least 4).
     """
-    wi = np.asarray(wi, dtype=np.float64).reshape(-1, 3)
+    n = _points(n)
+    _, (wi_t,) = _common(wi, names=("wi",), widths=(3,))
+    wi = wi_t.detach().cpu().to(torch.float64).numpy().reshape(-1, 3)
 
     def integrand(u):
         wo = frame.square_to_cosine_hemisphere(u).numpy()  # (n, 3)
@@ -110,7 +135,11 @@ def albedo_of(
 def hemispherical_albedo(
     brdf: BRDF, n_wi: int = 256, n: int = 2048, *, seed: int = 0
 ) -> np.ndarray:
-    """rho_hh = (1/pi) int rho(wi) cos(theta_i) dwi, with wi cosine-distributed (RGB)."""
+    """rho_hh = (1/pi) int rho(wi) cos(theta_i) dwi, with wi cosine-distributed (RGB).
+
+    ``n_wi`` incident directions (at least 1), ``n`` points each as in :func:`albedo`."""
+    n_wi = _count("n_wi", n_wi, 1, "the number of incident directions")
+    n = _points(n)
     u = sobol_points(n_wi, seed + 1000)
     wi = frame.square_to_cosine_hemisphere(u)
     return np.asarray(albedo(brdf, wi, n, seed=seed).mean(0))
@@ -124,7 +153,7 @@ def weak_white_furnace(dist, wo, n_s: int = 384, n_phi: int = 256) -> np.ndarray
     Gauss-Legendre in s with tan(theta_h) = a s / (1 - s), a = max(alpha_x, alpha_y),
     midpoint rule in phi_h.  ``dist`` provides ``D(h)``, ``G1(w)`` and alphas.
     """
-    _, (wo_t,) = _common(wo)
+    _, (wo_t,) = _common(wo, names=("wo",), widths=(3,))
     wo_t = wo_t.to(torch.float64)
     x, w = np.polynomial.legendre.leggauss(n_s)
     s = torch.from_numpy(0.5 * (x + 1.0))

@@ -3,7 +3,9 @@
 phong, blinn_phong, ward, ashikhmin_shirley, coupled, bank, oren_nayar, retroreflective.
 Generic properties (reciprocity, non-negativity, energy, chi-square) live elsewhere;
 these tests check each model's own claims: its normalisation, the published formulas it
-corrects, its sampling density, and its albedo against independent quadrature.
+corrects, its sampling density, and its albedo against independent quadrature.  The
+robustness sections also check, for every model, that bad parameters and malformed
+arrays are refused with a one-line error that names them.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import pytest
 import torch
 
 import analytic
-from analytic import frame
+from analytic import frame, physics
 from analytic.bank import SAFETY, lobe_albedo, normalization
 from analytic.blinn_phong import normalization_closed_form
 from analytic.oren_nayar import directional_albedo
@@ -403,11 +405,128 @@ def test_grazing_values_and_gradients_are_finite(name, dtype):
         ("bank", dict(kd=0.5, ks=0.6), "ks"),
         ("oren_nayar", dict(sigma=2.0), "sigma"),
         ("retroreflective", dict(kd=0.5, kr=0.6), "kr"),
+        # an RGB parameter that is not numbers raised a plain ValueError or a TypeError
+        ("lambertian", dict(albedo="red"), "albedo"),
+        ("lambertian", dict(albedo=[0.5, "x", 0.5]), "albedo"),
+        ("lambertian", dict(albedo={"r": 1}), "albedo"),
+        ("coupled", dict(rm=[0.1, [0.2], 0.3]), "rm"),
+        ("microfacet", dict(fresnel="schlick", f0=1j), "f0"),
     ],
 )
 def test_invalid_parameters_are_rejected(name, params, bad):
-    with pytest.raises(analytic.ParameterError, match=bad):
+    with pytest.raises(analytic.ParameterError, match=f"^{bad}: ") as e:
         analytic.create(name, **params)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("value", [None, [0.5, None, 0.5], "red", {"r": 1}, np.zeros((2, 2))])
+def test_rgb_parameters_say_what_they_expect(value):
+    # albedo=None said "must be finite, got None"
+    with pytest.raises(analytic.ParameterError) as e:
+        analytic.create("lambertian", albedo=value)
+    message = str(e.value)
+    assert message.startswith("albedo: expected a number or 3 RGB numbers"), message
+    assert "\n" not in message
+
+
+def test_coupled_r0_states_one_range():
+    # r0 = -0.1 said "must lie in [0.0, 1.0]", r0 = 1.0 "must lie in [0, 1)"
+    stated = set()
+    for r0 in (-0.1, 1.0, 1.5, float("inf")):
+        with pytest.raises(analytic.ParameterError, match="^r0: ") as e:
+            analytic.create("coupled", r0=r0)
+        if "must lie in" in str(e.value):
+            stated.add(str(e.value).split(", got")[0])
+    assert len(stated) == 1, stated
+    assert stated.pop().endswith(")"), "r0 = 1 is refused: the range is open at 1"
+    for r0 in (0.0, 0.5, 1.0 - 1e-9):
+        assert analytic.create("coupled", r0=r0).params["r0"] == r0
+
+
+# ----------------------------------------------------------------- malformed arrays
+def assert_refused(cases):
+    """Each call raises a one-line ValueError that starts with the argument's name and
+    shows what was wrong with it."""
+    for argument, call, shown in cases:
+        with pytest.raises(ValueError) as e:
+            call()
+        message = str(e.value)
+        assert message.startswith(f"{argument}: ") and shown in message, message
+        assert "\n" not in message
+
+
+@pytest.mark.parametrize("name", analytic.available())
+def test_sample_refuses_a_u_without_two_columns(name):
+    # a u of one column was broadcast to both coordinates: the same as u = (0.3, 0.3)
+    brdf = analytic.create(name)
+    wi = physics.random_directions(4, 1)
+    assert_refused(
+        [
+            ("u", lambda: brdf.sample(wi, np.full((4, 1), 0.3)), "(4, 1)"),
+            ("u", lambda: brdf.sample(wi, [0.3]), "(1,)"),
+            ("u", lambda: brdf.sample(wi, 0.3), "()"),
+            ("u", lambda: brdf.sample(torch.from_numpy(wi), torch.full((4, 1), 0.3)), "(4, 1)"),
+            ("u", lambda: brdf.sample(wi, np.full((4, 3), 0.3)), "(4, 3)"),
+        ]
+    )
+    # one u for the whole batch is still broadcast, as before
+    w1, p1 = brdf.sample(wi, [0.3, 0.7])
+    w2, p2 = brdf.sample(wi, np.tile([0.3, 0.7], (4, 1)))
+    assert np.array_equal(w1, w2) and np.array_equal(p1, p2)
+
+
+@pytest.mark.parametrize("name", analytic.available())
+def test_malformed_directions_are_refused_naming_the_argument(name):
+    # a wrong last axis or batches that do not broadcast gave torch's IndexError or
+    # RuntimeError, and a string numpy's "could not convert string to float"
+    brdf = analytic.create(name)
+    wi, wo = physics.random_directions(4, 1), physics.random_directions(4, 2)
+    u = np.random.default_rng(0).random((4, 2))
+    five = physics.random_directions(5, 3)
+    cases = [
+        ("wi", lambda: brdf.sample(wi[:, :2], u), "(4, 2)"),
+        ("wi", lambda: brdf.eval(wi[:, :2], wo[:, :2]), "(4, 2)"),
+        ("wo", lambda: brdf.eval(wi, wo[:, :2]), "(4, 2)"),
+        ("wi", lambda: brdf.eval(torch.zeros(4, 2), torch.zeros(4, 3)), "(4, 2)"),
+        ("wo", lambda: brdf.pdf(wi, wo[:, 0]), "(4,)"),
+        ("wi", lambda: brdf.delta_reflectance(wi[:, :2]), "(4, 2)"),
+        ("wi", lambda: analytic.albedo(brdf, wi[:, :2], n=64), "(4, 2)"),
+        ("wi", lambda: physics.albedo_of(brdf.eval, np.zeros((6, 2)), n=64), "(6, 2)"),
+        ("wi, wo", lambda: brdf.eval(wi, five), "(4,) and (5,)"),
+        ("wi, wo", lambda: brdf.pdf(wi, five), "(4,) and (5,)"),
+        ("wi, u", lambda: brdf.sample(wi, u[:3]), "(4,) and (3,)"),
+        ("wi", lambda: brdf.eval("abc", [0, 0, 1]), "abc"),
+        ("wo", lambda: brdf.eval(wi, [[0, 1], [0, 0, 1]]), ""),
+        ("wo", lambda: brdf.eval(wi, wo.astype(complex)), "complex"),
+        ("u", lambda: brdf.sample(wi, [["a", "b"]]), ""),
+    ]
+    assert_refused(cases)
+    # one wi for the whole batch is still broadcast, as before
+    assert np.array_equal(brdf.eval(wi[0], wo), brdf.eval(np.tile(wi[0], (4, 1)), wo))
+
+
+def test_weak_white_furnace_refuses_a_malformed_wo():
+    dist = analytic.create("microfacet").dist
+    assert_refused(
+        [("wo", lambda: analytic.weak_white_furnace(dist, np.array([0.0, 1.0])), "(2,)")]
+    )
+
+
+@pytest.mark.parametrize("n", [0, -5, 1, physics.REPLICAS - 1, 2.5, "4096"])
+def test_quadrature_refuses_too_few_points(n):
+    # n = 0 or -5 quietly used one point per replica: albedo 0.744 against 0.877
+    brdf = analytic.create("microfacet")
+    wi = [0.0, 0.0, 1.0]
+    calls = [
+        lambda: analytic.albedo(brdf, wi, n=n),
+        lambda: physics.albedo_of(brdf.eval, wi, n=n),
+        lambda: analytic.hemispherical_albedo(brdf, n_wi=2, n=n),
+    ]
+    assert_refused([("n", call, str(n)) for call in calls])
+    assert_refused([("n_wi", lambda: analytic.hemispherical_albedo(brdf, n_wi=0, n=64), "0")])
+    # the fewest points allowed: one per replica, and a finite estimate with its error
+    rho, err = analytic.albedo(brdf, wi, n=physics.REPLICAS, return_error=True)
+    assert np.all(np.isfinite(rho)) and np.all(np.isfinite(err))
 
 
 @pytest.mark.parametrize("name", CLASSIC)
