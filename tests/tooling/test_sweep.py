@@ -271,8 +271,13 @@ def test_an_interrupted_local_sweep_ends_a_worker_that_does_not(tmp_path):
         [{"name": "a", "run_dir": str(tmp_path / "a")}], 1, trial=stuck_trial, grace=1.0
     )
     threading.Thread(target=interrupt_once_started, daemon=True).start()
-    with pytest.raises(KeyboardInterrupt):
-        next(records)
+    # as in a terminal: a job started in the background (CI's) inherits SIGINT ignored
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            next(records)
+    finally:
+        signal.signal(signal.SIGINT, old)
     took = time.monotonic() - interrupted[0]
     pid = int(started.read_text())
     with pytest.raises(ProcessLookupError):
