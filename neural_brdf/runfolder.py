@@ -37,6 +37,7 @@ start to end, so a second run into the same folder stops at once (:class:`RunLoc
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import signal
@@ -350,14 +351,18 @@ class RunLocked(InputError):
 
 
 @contextmanager
-def run_lock(run_dir: Path) -> Iterator[None]:
+def run_lock(run_dir: Path, *, elsewhere: str = "choose another --out") -> Iterator[None]:
     """Create ``run_dir`` if needed and hold ``run_dir/.lock`` (an exclusive
     ``fcntl.flock``, the holder's pid written inside) until the block ends.
 
-    A second holder raises :class:`RunLocked` at once, naming the first one's pid.  The
-    lock dies with its process (even by SIGKILL), so a stale ``.lock`` file is no
-    obstacle.  The file is removed on release, and a folder this call created is
-    removed again if the run left it empty (an error before anything was written).
+    A second holder raises :class:`RunLocked` at once, naming the first one's pid and
+    ending with ``elsewhere`` (the command's own way out: its flag).  The lock dies with
+    its process (even by SIGKILL), so a stale ``.lock`` file is no obstacle.  The file
+    is removed on release, and a folder this call created is removed again if the run
+    left it empty (an error before anything was written).  A folder this process cannot
+    write (a read-only mount, another user's run) is not locked: nothing here can be
+    written by it, so there is nothing to guard, and a command that only reads (a
+    finished run's ``--resume``) runs; a write fails later naming its own file.
     """
     created = not run_dir.exists()
     try:
@@ -367,32 +372,10 @@ def run_lock(run_dir: Path) -> Iterator[None]:
     except OSError as e:
         raise InputError(f"{run_dir}: cannot create the run folder ({e.strerror})") from None
     path = run_dir / LOCK
-    while True:
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
-        except OSError as e:
-            raise InputError(f"{path}: cannot create the run's lock file ({e.strerror})") from None
-        if fcntl is None:
-            break
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
-            os.close(fd)
-            raise RunLocked(
-                f"{run_dir}: in use by another run (pid {holder}); wait for it to end "
-                "or choose another --out"
-            ) from None
-        except OSError:  # a file system without flock (some network mounts): unlocked
-            break
-        # The holder before us may have removed the file between our open and our lock:
-        # then we hold a lock on a deleted file, and must lock the path's new file.
-        try:
-            if os.path.samestat(os.fstat(fd), os.stat(path)):
-                break
-        except FileNotFoundError:
-            pass
-        os.close(fd)
+    fd = _lock_fd(run_dir, path, elsewhere)
+    if fd is None:  # a folder this process cannot write: unlocked
+        yield
+        return
     with contextlib.suppress(OSError):  # the pid only names the holder to a second run
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
@@ -405,6 +388,49 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         if created:
             with contextlib.suppress(OSError):
                 run_dir.rmdir()  # only if empty
+
+
+def _lock_fd(run_dir: Path, path: Path, elsewhere: str) -> int | None:
+    """The open, locked lock file of :func:`run_lock`, or None where ``run_dir`` cannot
+    be written by this process (:func:`_unwritable`)."""
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        except OSError as e:
+            if _unwritable(run_dir, e):
+                return None
+            raise InputError(f"{path}: cannot create the run's lock file ({e.strerror})") from None
+        if fcntl is None:
+            break
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            raise RunLocked(
+                f"{run_dir}: in use by another run (pid {holder}); wait for it to end "
+                f"or {elsewhere}"
+            ) from None
+        except OSError:  # a file system without flock (some network mounts): unlocked
+            break
+        # The holder before us may have removed the file between our open and our lock:
+        # then we hold a lock on a deleted file, and must lock the path's new file.
+        try:
+            if os.path.samestat(os.fstat(fd), os.stat(path)):
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    return fd
+
+
+def _unwritable(folder: Path, e: OSError) -> bool:
+    """Whether a failure ``e`` to create a file in ``folder`` means that this process
+    can write nothing there: a read-only file system, or a folder it may not write
+    (not a lock file of another user's in a folder it may write: that one is a run)."""
+    if e.errno == errno.EROFS:
+        return True
+    return e.errno in (errno.EACCES, errno.EPERM) and not os.access(folder, os.W_OK | os.X_OK)
 
 
 @contextmanager

@@ -267,7 +267,7 @@ def _holding(run_dir: str | os.PathLike):
     if not (path.is_dir() and runfolder.is_run(path)):
         yield
         return
-    with runfolder.run_lock(path):
+    with runfolder.run_lock(path, elsewhere="write elsewhere with -o"):
         yield
 
 
@@ -460,8 +460,7 @@ def _report(args) -> int:
     from neural_brdf.viewer.report import write_report
 
     if args.out is not None and runfolder.is_run(Path(args.out)):
-        same = Path(os.path.realpath(args.out)) == Path(os.path.realpath(args.run_dir))
-        if not same:
+        if not _same_path(args.out, args.run_dir):
             raise InputError(
                 f"-o {args.out}: is another run's folder (its report would describe "
                 f"{args.run_dir}); give a folder outside it, or leave -o out"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -380,6 +381,48 @@ def test_a_locked_run_folder_is_refused_naming_the_holder(capsys, tmp_path):
         assert_one_line_error(code, err, str(out), f"pid {os.getpid()}")
         assert sorted(p.name for p in out.iterdir()) == [loop.LOCK_FILE]  # nothing written
     assert not out.exists()  # the folder the lock created, empty again, is removed
+
+
+def test_export_and_report_of_a_busy_run_name_their_own_flag(capsys, run_dir, tmp_path):
+    busy = tmp_path / "busy"
+    shutil.copytree(run_dir, busy)
+    with runfolder.run_lock(busy):
+        for command in ("export", "report"):
+            code, _, err = cli(capsys, command, str(busy))
+            assert_one_line_error(code, err, f"pid {os.getpid()}", "write elsewhere with -o")
+            assert "--out" not in err  # train's flag, not theirs
+
+
+def read_only(monkeypatch, folder: Path) -> None:
+    """Files can no longer be created in ``folder`` (as on a read-only mount, which a
+    test run as root cannot make with chmod): os.open with O_CREAT there fails."""
+    real = os.open
+
+    def fake(path, flags, *args, **kwargs):
+        inside = Path(os.path.realpath(os.fspath(path))).is_relative_to(os.path.realpath(folder))
+        if inside and flags & os.O_CREAT:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), os.fspath(path))
+        return real(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", fake)
+
+
+def test_a_read_only_run_folder(capsys, monkeypatch, run_dir, tmp_path):
+    """docs/cli.md: --resume of a finished run touches nothing and exits 0, also where
+    nothing can be written (it stopped at the lock file); the writers name their file
+    (report named a temporary folder of its render)."""
+    done = tmp_path / "done"
+    shutil.copytree(run_dir, done)
+    before = snapshot(done)
+    read_only(monkeypatch, done)
+    code, out, err = cli(capsys, "train", "lambert", "--out", str(done), *SETS, "--resume")
+    assert code == 0, err
+    assert f"{done}: already finished at step 10" in out
+    for command, name in (("report", "report.html"), ("export", "model.onnx")):
+        code, _, err = cli(capsys, command, str(done))
+        assert_one_line_error(code, err, str(done / name), "Read-only file system")
+    assert snapshot(done) == before
+    assert not (done / loop.LOCK_FILE).exists()
 
 
 SIGTERM_AT_STEP_4 = """

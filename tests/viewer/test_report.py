@@ -491,7 +491,7 @@ def rendering(monkeypatch, tmp_path, reference, *, normal_field: bool):
         model=SimpleNamespace(textured=True, has_normal_field=normal_field),
         dir=tmp_path,
     )
-    blocks = sections._rendering(run, True, tmp_path, reference)
+    blocks = sections._rendering(run, True, reference)
     (image,) = [b for b in blocks if hasattr(b, "caption")]
     return image.caption, handed["bsdf"]
 

@@ -273,7 +273,7 @@ def teacher_to_render(model, reference) -> tuple[Any, str] | None:
     return bsdf, words
 
 
-def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
+def _rendering(run: Run, render: bool, reference) -> list:
     blocks = [Heading("Rendering")]
     why = (
         "rendering was switched off for this report" if not render else plots.mitsuba_unavailable()
@@ -284,7 +284,7 @@ def _rendering(run: Run, render: bool, out_dir: Path, reference) -> list:
     ref = None
     if reference is not None and cfg.target.data is None and cfg.target.mitsuba is None:
         ref = {"model": cfg.target.model, "params": dict(cfg.target.params)}  # analytic
-    with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
+    with tempfile.TemporaryDirectory() as tmp:  # (read back: the PNG is embedded)
         png_path = Path(tmp) / "render.png"
         try:
             # a Mitsuba teacher, homogeneous or textured, is rendered by Mitsuba itself
@@ -525,7 +525,7 @@ def _textured_note(run: Run) -> list:
     return [Text(text, note=True)]
 
 
-def _blocks(run: Run, out_dir: Path, render: bool) -> list:
+def _blocks(run: Run, render: bool) -> list:
     reference, note = reference_of(run.config)
     check_textured(reference, textured=run.model.textured, where=str(run.dir / "model.onnx"))
     neural = run.model.eval
@@ -589,7 +589,7 @@ def _blocks(run: Run, out_dir: Path, render: bool) -> list:
         + _textured_note(run)
         + _physics(run, albedo, ref is not None)
         + middle
-        + _rendering(run, render, out_dir, reference)
+        + _rendering(run, render, reference)
         + _viewer(run, reference, curves)
         + _training(run)
         + [

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 from neural_brdf.errors import InputError
@@ -23,7 +24,12 @@ def write_report(run_dir, out_dir=None, *, render: bool = True) -> dict[str, Pat
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise InputError(f"{out_dir}: cannot create the output directory ({e.strerror})") from None
-    blocks = _blocks(run, out_dir, render)
+    try:  # before the render's minute: a folder this process cannot write (read-only)
+        with tempfile.NamedTemporaryFile(dir=out_dir):  # as atomic_write creates its files
+            pass
+    except OSError as e:
+        raise InputError(f"{out_dir / 'report.html'}: cannot write ({e.strerror})") from None
+    blocks = _blocks(run, render)
     paths = {}
     for b in blocks:
         if isinstance(b, Image):
