@@ -25,12 +25,14 @@ from test_codegen import (
 )
 
 from analytic import physics
-from cli_helpers import assert_one_line_error, cli
+from cli_helpers import ROOT, assert_one_line_error, cli
 from neural_brdf import backends, config, pipeline
 from neural_brdf.export import relative_difference, to_onnx_bytes
 from neural_brdf.physics.quadrature import albedo, from_numpy
 from neural_brdf.train import encoding as enc
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
+
+GOLD = ROOT / "configs" / "gold.yaml"  # (any working directory)
 
 GRID = 8
 CHANNELS = 3
@@ -225,9 +227,7 @@ def torch_eval_raw(raw, wi, wo):
     ],
 )
 def test_bad_grid_config_is_exit_2_naming_the_key(capsys, tmp_path, value, key):
-    code, _, err = cli(
-        capsys, "train", "configs/gold.yaml", "--out", str(tmp_path / "r"), "--set", value
-    )
+    code, _, err = cli(capsys, "train", str(GOLD), "--out", str(tmp_path / "r"), "--set", value)
     assert_one_line_error(code, err, key)
     assert not (tmp_path / "r").exists()
 
@@ -246,7 +246,7 @@ def test_grid_on_an_encoding_without_its_axes_is_a_config_error(capsys, tmp_path
     code, _, err = cli(
         capsys,
         "train",
-        "configs/gold.yaml",
+        str(GOLD),
         "--out",
         str(tmp_path / "r"),
         "--set",
@@ -287,7 +287,7 @@ def test_training_reduces_the_error(tmp_path):
     ]
     errors = []
     for steps in (1, 300):  # train.steps must be >= 1: one step is as good as untrained
-        cfg = config.load("configs/gold.yaml", sets + [f"train.steps={steps}"])
+        cfg = config.load(GOLD, sets + [f"train.steps={steps}"])
         report = pipeline.run(cfg, tmp_path / f"s{steps}")
         errors.append(report["accuracy"]["rel_rmse"])
         assert report["checks"]["reciprocity"]["value"] == 0.0

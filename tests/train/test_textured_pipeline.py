@@ -28,7 +28,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
-from cli_helpers import assert_one_line_error, cli
+from cli_helpers import ROOT, assert_one_line_error, cli
 from neural_brdf import config as cfgmod
 from neural_brdf import export, validate
 
@@ -294,9 +294,8 @@ def test_a_textured_teacher_is_refused_by_train_many(teacher, tmp_path, capsys):
 
 
 def test_a_homogeneous_reference_for_a_textured_file(run, capsys):
-    code, _, err = cli(
-        capsys, "validate", str(run / "model.onnx"), "--reference", "configs/gold.yaml"
-    )
+    gold = ROOT / "configs" / "gold.yaml"
+    code, _, err = cli(capsys, "validate", str(run / "model.onnx"), "--reference", str(gold))
     assert_one_line_error(code, err, "textured model", "does not vary over the surface")
 
 
