@@ -199,6 +199,22 @@ def test_resume_runs_only_unfinished_trials(local, tmp_path):
     assert stable(results) == stable(read(out_local / "results.json"))
 
 
+def test_a_trial_that_stored_its_data_path_relative_is_still_finished(tmp_path, monkeypatch):
+    """A trial written before target paths were made absolute stored a base config's
+    relative target.data (the current folder's, by the rule of its time); the sweep now
+    plans it absolute, and the trial is the same one, not run again."""
+    from neural_brdf.tooling.sweep import trial
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("a.pbsdf", "b.pbsdf"):
+        shutil.copy(REPO / "tests" / "data" / "spectralon_lowres.pbsdf", tmp_path / name)
+    planned = config.from_dict({"target": {"data": str(tmp_path / "a.pbsdf")}}).model_dump()
+    for stored, same in (("a.pbsdf", True), ("b.pbsdf", False)):
+        old = config.from_dict({"target": {"data": stored}}).model_dump()
+        assert old["target"]["data"] == stored  # (as such a trial.json holds it)
+        assert trial._same_config(old, planned) is same, stored
+
+
 @pytest.mark.slow
 def test_ctrl_c_stops_the_sweep_and_a_rerun_resumes_it(tmp_path):
     path = write_sweep(tmp_path, list=TRIALS[:2])

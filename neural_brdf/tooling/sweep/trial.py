@@ -3,6 +3,7 @@ metrics; a finished trial is recognised and not run again."""
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import socket
@@ -118,9 +119,13 @@ def _read_marker(run_dir: Path) -> dict | None:
 def _same_config(stored, config: dict) -> bool:
     """Whether a finished trial's config is this one.  The stored config is read with
     today's schema first, so that a setting added since (with its default) changes
-    nothing."""
+    nothing, and its target paths are made absolute by today's rule (a trial written
+    before paths were, which kept a base config's relative ``target.data``: the current
+    folder's then, as :func:`neural_brdf.train.session.check_resumable` reads it)."""
     if not isinstance(stored, dict):
         return False
+    stored = copy.deepcopy(stored)
+    cfgmod.paths_relative_to(stored, Path.cwd())
     try:
         return cfgmod.from_dict(stored).model_dump() == config
     except cfgmod.ConfigError:
