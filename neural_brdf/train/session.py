@@ -23,16 +23,18 @@ owns what they share and nothing of what they train:
   first writes (the folder's marker and config.yaml, an overwritten run removed first),
   the checkpoint (written atomically, read with ``weights_only=True``; ``kind`` tells an
   images fit's from a sample-based one), the resume checks (format version, the settings
-  in ``MUST_MATCH``, ``train.steps`` not below the checkpoint's step), log.csv (one
-  ``LOG_COLUMNS``, plus the columns a loop adds: ``columns``; the rows of a resumed run
-  kept up to its step);
+  in ``MUST_MATCH``, the target's files unchanged, ``train.steps`` not below the
+  checkpoint's step), log.csv (one ``LOG_COLUMNS``, plus the columns a loop adds:
+  ``columns``; the rows of a resumed run kept up to its step);
 * the loop's frame: the step and the training time (a resumed run's included), the
   progress bar, Ctrl-C and SIGTERM deferred to the end of the step (:func:`deferred_interrupt`:
   a checkpoint, then :class:`Interrupted`; a second signal aborts at once), and the
   divergence errors (:class:`Diverged`, naming the step and the last good checkpoint).
 
 What a loop saves beyond the common keys (format_version, kind, step, config,
-train_seconds) is its ``state()``: weights, optimizer, pool, lobe, and so on.
+train_seconds, and ``target_files``: the sha256 of each file the target reads,
+:mod:`neural_brdf.train.target_files`, compared on resume) is its ``state()``: weights,
+optimizer, pool, lobe, and so on.
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ from neural_brdf import runfolder
 from neural_brdf.errors import Diverged, InputError, Interrupted
 from neural_brdf.fileformat import FORMAT_VERSION
 from neural_brdf.fileio import atomic_write
+from neural_brdf.train import target_files
 
 # log.csv's columns; a loop may add its own after them (``columns``)
 LOG_COLUMNS = ("step", "loss", "lr", "seconds", "val_rel_rmse")
@@ -71,6 +74,9 @@ KINDS = {
 }
 # ... and what a textured run's must share too (train.textured_loop)
 TEXTURED_MUST_MATCH = (*MUST_MATCH, "texture")
+# A checkpoint's key of the target's files, path -> sha256 (train.target_files.digest),
+# compared on resume; absent from a checkpoint written before it (then not compared)
+TARGET_FILES = "target_files"
 
 
 # ------------------------------------------------------------------ checkpoints
@@ -112,10 +118,12 @@ def _with_defaults(saved: dict) -> dict:
     except Exception:  # pydantic's ValidationError and the validators' own errors
         return saved
     # a target.data saved relative, as it was read before paths were made absolute
-    # (config.paths_relative_to): the current folder's, by the rule of its time
-    data = out["target"].get("data")
-    if isinstance(data, str) and data.strip() and not os.path.isabs(data):
-        out["target"]["data"] = os.path.abspath(data)
+    # (config.paths_relative_to): the current folder's, by the rule of its time (that
+    # key alone: a relative target.mitsuba or target.images of a config built in Python
+    # is compared as saved, with the one resumed)
+    data = {"target": {"data": out["target"].get("data")}}
+    cfgmod.paths_relative_to(data, Path.cwd())
+    out["target"]["data"] = data["target"]["data"]
     return out
 
 
@@ -137,6 +145,33 @@ def check_resumable(
             )
 
 
+def check_target_files(saved: Any, cfg: cfgmod.Config) -> None:
+    """ConfigError naming the first file of ``saved`` (a checkpoint's
+    :data:`TARGET_FILES`: path -> sha256) that is gone or whose bytes differ now; a
+    checkpoint of an earlier version (``saved`` None) is not checked."""
+    if not isinstance(saved, dict):
+        return
+    for path, sha in saved.items():
+        key = target_files.where(cfg, path)
+        try:
+            now = target_files.sha256(path)
+        except FileNotFoundError:
+            raise cfgmod.ConfigError(
+                f"{key}: {path} is gone since the checkpoint was written; train anew "
+                "(--overwrite) or restore the file"
+            ) from None
+        except OSError as e:
+            raise cfgmod.ConfigError(
+                f"{key}: {path}: cannot be read ({e.strerror or e}) to compare it with the "
+                "checkpoint's; train anew (--overwrite) or restore the file"
+            ) from None
+        if now != sha:
+            raise cfgmod.ConfigError(
+                f"{key}: {path} changed since the checkpoint was written (sha256 differs); "
+                "train anew (--overwrite) or restore the file"
+            )
+
+
 def load_resumable(
     cfg: cfgmod.Config,
     ckpt_path: Path,
@@ -145,8 +180,9 @@ def load_resumable(
     must_match: Sequence[str] = MUST_MATCH,
 ) -> dict:
     """The checkpoint that ``cfg`` resumes: same format version, trained the same way
-    (``kind``), not in a batch, the same ``must_match`` settings, and ``train.steps``
-    not below its step (a resumed run only trains on)."""
+    (``kind``), not in a batch, the same ``must_match`` settings, the target's files
+    as they were (:func:`check_target_files`), and ``train.steps`` not below its step
+    (a resumed run only trains on)."""
     ckpt = load_checkpoint(ckpt_path)
     if ckpt.get("format_version") != FORMAT_VERSION:  # e.g. another encoding
         raise cfgmod.ConfigError(
@@ -166,6 +202,7 @@ def load_resumable(
             "be resumed: train anew (--overwrite)"
         )
     check_resumable(ckpt["config"], cfg, must_match)
+    check_target_files(ckpt.get(TARGET_FILES), cfg)
     step = int(ckpt["step"])
     if cfg.train.steps < step:
         raise cfgmod.ConfigError(
@@ -283,6 +320,7 @@ class RunFiles:
         self.columns = list(columns)
         self._fh: IO[str] | None = None
         self._writer: csv.DictWriter | None = None
+        self._digest: tuple[str, dict[str, str]] | None = None  # (target, its files')
 
     @property
     def ckpt_path(self) -> Path:
@@ -297,6 +335,14 @@ class RunFiles:
         run's files removed first: :meth:`neural_brdf.runfolder.Folder.start`)."""
         self.folder.start(self.cfg.to_yaml())
 
+    def target_digest(self) -> dict[str, str]:
+        """The target's files and their sha256 (:func:`target_files.digest`), read
+        once per target (at the first checkpoint: the files the run has just read)."""
+        target = self.cfg.target.model_dump_json()
+        if self._digest is None or self._digest[0] != target:
+            self._digest = (target, target_files.digest(self.cfg))
+        return self._digest[1]
+
     def state(self, step: int, seconds: float, extra: dict[str, Any]) -> dict[str, Any]:
         """A checkpoint: the common keys, then ``extra`` (the loop's own state)."""
         kind = {} if self.kind is None else {"kind": self.kind}
@@ -306,6 +352,7 @@ class RunFiles:
             "step": step,
             "config": self.cfg.model_dump(),
             "train_seconds": seconds,
+            TARGET_FILES: self.target_digest(),
             **extra,
         }
 
