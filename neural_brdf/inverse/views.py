@@ -30,6 +30,7 @@ import torch
 from neural_brdf import config as cfgmod
 from neural_brdf import limits
 from neural_brdf.errors import InputError, not_a_file
+from neural_brdf.measured.mitsuba import INCLUDE_DEPTH, include_candidates
 
 # Integrators a fit renders with, by the scene's <integrator type>: Mitsuba's C++ ones
 # are differentiated by recording their AD graph; "prb" is replaced by "prb_basic" with
@@ -262,9 +263,6 @@ def percent(n: int, total: int) -> str:
     return text
 
 
-# the most nested <include>s Mitsuba 3.9 loads (a chain of 15 exceeds its "maximum
-# include recursion depth of 15": checked with mi.load_file)
-INCLUDE_DEPTH = 14
 PARAMETER = re.compile(r"(?<!\\)\$(\w*)")  # a $name left after substitution (\$: escaped)
 
 
@@ -371,8 +369,7 @@ def expand(
             )
         if not filename.strip():
             raise InputError(f"{key}: {scene}: an <include> without a filename")
-        candidates = [Path(filename)] if Path(filename).is_absolute() else []
-        candidates += [folder / filename for folder in folders] + [Path(filename)]
+        candidates = include_candidates(filename, folders)
         found = next((c for c in candidates if c.is_file()), None)
         if found is None:
             where = candidates[0]

@@ -221,6 +221,20 @@ def load(mi: Any, path: Path, where: str) -> Any:
         raise InputError(f"{where}: Mitsuba cannot load it ({_first(e)})") from None
 
 
+# the most nested <include>s Mitsuba 3.9 loads (a chain of 15 exceeds its "maximum
+# include recursion depth of 15": checked with mi.load_file)
+INCLUDE_DEPTH = 14
+
+
+def include_candidates(filename: str, folders: list[Path]) -> list[Path]:
+    """Where an ``<include filename>`` is looked for, in order, as Mitsuba's loader
+    does: an absolute name itself, then ``folders`` (the including file's folder first,
+    then those of the files that included it), then the current folder; the first that
+    is a file is the one included."""
+    first = [Path(filename)] if Path(filename).is_absolute() else []
+    return first + [folder / filename for folder in folders] + [Path(filename)]
+
+
 def resolver_for(mi: Any, path: Path) -> Any:
     """Mitsuba's file resolver as its loader uses it for the XML at ``path`` (that
     folder first), as a copy: the global one is untouched."""

@@ -18,9 +18,8 @@ found through a rule below, as that rule finds it):
   for a teacher), ``image`` and ``subtract``.
 
 What an XML reads: the files of its ``<include filename>`` elements, found as
-:func:`neural_brdf.inverse.views.expand` finds them (an absolute name; else the including
-file's folder, then those of the files that included it, then the current folder;
-restated here, since ``train`` comes before ``inverse`` in the package's layers), and
+:func:`neural_brdf.inverse.views.expand` finds them
+(:func:`neural_brdf.measured.mitsuba.include_candidates`), and
 the files its ``<string name="filename">`` elements and ``filename`` attributes name
 (bitmaps, an envmap, meshes, a ``measured`` table, a spectrum file), resolved by
 Mitsuba's file resolver with the scene's folder first
@@ -38,9 +37,9 @@ from pathlib import Path
 from typing import Any
 
 from neural_brdf import config as cfgmod
+from neural_brdf.measured.mitsuba import INCLUDE_DEPTH, include_candidates
 
 CHUNK = 1 << 20  # bytes read at a time
-INCLUDE_DEPTH = 14  # as neural_brdf.inverse.views.INCLUDE_DEPTH (Mitsuba 3.9's limit)
 
 
 def sha256(path: str | os.PathLike[str]) -> str:
@@ -144,9 +143,7 @@ def _includes(
         name = el.get("filename", "")
         if not name.strip() or "$" in name:
             continue
-        candidates = [Path(name)] if Path(name).is_absolute() else []
-        candidates += [folder / name for folder in folders] + [Path(name)]
-        found = next((c for c in candidates if c.is_file()), None)
+        found = next((c for c in include_candidates(name, folders) if c.is_file()), None)
         if found is None or os.path.abspath(found) in files:
             continue
         files.append(os.path.abspath(found))
