@@ -136,7 +136,7 @@ def check_resumable(
 ) -> None:
     """ConfigError naming the first key of ``must_match`` on which ``cfg`` differs from
     the ``saved`` config of a checkpoint (``what``, in the message)."""
-    now = cfg.model_dump()
+    now = _with_defaults(cfg.model_dump())  # (a config built in Python may name it relative)
     saved = _with_defaults(saved)
     for key in must_match:
         if _get(saved, key) != _get(now, key):

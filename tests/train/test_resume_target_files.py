@@ -112,6 +112,23 @@ def test_a_checkpoint_of_an_earlier_version_resumes_unchecked(measured, rgl_file
     assert ckpt["step"] == 6 and ckpt["target_files"] == {str(data): sha(data)}
 
 
+def test_a_python_config_with_a_relative_data_path_resumes(rgl_file, tmp_path, monkeypatch):
+    """A config built in Python keeps target.data as written (relative: the current
+    folder's); its checkpoint resumes, the two sides compared by one rule."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "plastic.bsdf").write_bytes(rgl_file.read_bytes())
+
+    def built(overrides: list[str]) -> cfgmod.Config:
+        raw = cfgmod.load(None, overrides).model_dump()
+        raw["target"] = {"data": "plastic.bsdf"}
+        return cfgmod.from_dict(raw)
+
+    assert built(STEPS).target.data == "plastic.bsdf"
+    loop.train(built(STEPS), tmp_path / "run")
+    loop.train(built(STEPS + MORE), tmp_path / "run", resume=True)
+    assert saved(tmp_path / "run")["step"] == 6
+
+
 # ------------------------------------------------------------------ a textured teacher
 TEXTURED = """\
 target: {{mitsuba: {xml}}}
