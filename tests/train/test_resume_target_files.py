@@ -29,7 +29,7 @@ from cli_helpers import TINY, assert_one_line_error, cli
 from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
 from neural_brdf.train import loop, session, target_files
-from textured_helpers import one_torch_thread  # noqa: F401  (one torch thread: autouse)
+from textured_helpers import one_torch_thread, small_run_config  # noqa: F401  (autouse)
 
 STEPS = [*TINY, "train.steps=4", "train.checkpoint_every=2"]
 MORE = ["train.steps=6"]
@@ -130,16 +130,6 @@ def test_a_python_config_with_a_relative_data_path_resumes(rgl_file, tmp_path, m
 
 
 # ------------------------------------------------------------------ a textured teacher
-TEXTURED = """\
-target: {{mitsuba: {xml}}}
-texture: {{lobes: 2, resolution: 4, validation_uv: 4}}
-train: {{steps: 4, checkpoint_every: 2, log_every: 2, eval_every: 4, progress: false}}
-data: {{pool_size: 2048, batch_size: 256}}
-validation: {{pairs: 500, furnace_dirs: 8, furnace_samples: 1024, accuracy_samples: 1024}}
-normalization: {{samples: 1024}}
-"""
-
-
 @pytest.fixture
 def textured(tmp_path) -> tuple[Path, Path, Path]:
     """A textured run trained 4 steps: (its config file, the teacher's XML, its folder)."""
@@ -148,7 +138,13 @@ def textured(tmp_path) -> tuple[Path, Path, Path]:
 
     xml = write_teacher(tmp_path / "teacher", "roughplastic", size=16)
     cfg_path = tmp_path / "tx.yaml"
-    cfg_path.write_text(TEXTURED.format(xml=xml))
+    small_run_config(
+        cfg_path,
+        xml,
+        texture="lobes: 2, resolution: 4, validation_uv: 4",
+        train="steps: 4, checkpoint_every: 2, log_every: 2, eval_every: 4, progress: false",
+        normalization="samples: 1024",
+    )
     cfg = cfgmod.load(cfg_path)
     run = tmp_path / "run"
     textured_loop.train(cfg, run, target=data.build_target(cfg.target))
