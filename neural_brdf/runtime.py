@@ -45,6 +45,9 @@ from neural_brdf.fileformat import (  # noqa: F401
 from neural_brdf.fileformat.metadata import Metadata, parse_target, read_metadata  # noqa: F401
 
 CHUNK = 1 << 18  # pairs per onnxruntime call: bounds the memory of a large eval
+# onnxruntime's threads: it takes a C int (2**40 gave pybind11's 4-line TypeError), and
+# a pool far beyond any host's cores only costs memory
+MAX_THREADS = 1024
 
 
 def _rows(name: str, x: ArrayLike, width: int, *, direction: bool = False) -> np.ndarray:
@@ -80,8 +83,14 @@ class NeuralBRDF:
 
     def __init__(self, path: str | Path, *, threads: int = 1):
         path = Path(path)
-        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
-            raise InputError(f"threads: expected a whole number >= 1, got {threads!r}")
+        if (
+            isinstance(threads, bool)
+            or not isinstance(threads, (int, np.integer))
+            or not 1 <= threads <= MAX_THREADS
+        ):
+            raise InputError(
+                f"threads: expected a whole number from 1 to {MAX_THREADS}, got {threads!r}"
+            )
         if not path.is_file():
             raise InputError(not_a_file(path, "model"))
         # the file's declared sizes, checked before onnxruntime allocates from them

@@ -169,9 +169,10 @@ def test_runtime_eval_keeps_a_float64_direction_float32_cannot_hold(model_file, 
         ([[0, 0, 1], [0, 1]], {}, "wi: expected an array of shape (..., 3)"),
         ([0j, 0, 1], {}, "wi: expected real numbers"),
         ([0, 1], {}, "wi: expected shape (..., 3), got (2,)"),
-        ([0, 0, 1], {"threads": "2"}, "threads: expected a whole number >= 1, got '2'"),
-        ([0, 0, 1], {"threads": 2.5}, "threads: expected a whole number >= 1, got 2.5"),
-        ([0, 0, 1], {"threads": 0}, "threads: expected a whole number >= 1, got 0"),
+        ([0, 0, 1], {"threads": "2"}, "threads: expected a whole number from 1 to 1024, got '2'"),
+        ([0, 0, 1], {"threads": 2.5}, "threads: expected a whole number from 1 to 1024, got 2.5"),
+        ([0, 0, 1], {"threads": 0}, "threads: expected a whole number from 1 to 1024, got 0"),
+        ([0, 0, 1], {"threads": 2**40}, "threads: expected a whole number from 1 to 1024, got"),
     ],
 )
 def test_runtime_names_the_bad_argument_in_one_line(model_file, wi, kwargs, named):
