@@ -5,7 +5,7 @@
         ... write folder.ckpt, folder.log, folder.model, ...
 
 Every name a run writes is here (``CONFIG``, ``CKPT``, ``LOG``, ``MODEL``, ``METRICS``,
-``REPORT_HTML``, ``REPORT_MD``, ``report-*.png``, ``VIEWER``, a projected textured run's
+``REPORT_HTML``, ``REPORT_MD``, ``REPORT_PNGS``, ``VIEWER``, a projected textured run's
 ``TEXTURED``, an images fit's ``COVERAGE``, ``DETERMINED`` and ``INIT`` folder, ``LOCK``
 and ``MARKER``);
 :func:`own_files` lists those a folder holds.
@@ -71,7 +71,21 @@ COVERAGE = "coverage.png"  # an images fit's map of the observed (wi, wo) domain
 DETERMINED = "determined.png"  # ... and of where they determine f near the fitted network
 REPORT_HTML = "report.html"
 REPORT_MD = "report.md"
-REPORT_PNG = "report-*.png"  # the markdown report's images (a glob)
+# the markdown report's images, report-<key>.png: every key the report has ever written
+# (a key the report adds is registered here, or the report refuses it), so --overwrite
+# removes these and no other file of the user's that starts with report-
+REPORT_IMAGES = (
+    "albedo",
+    "loss",
+    "slices",
+    "lobes",
+    "rusinkiewicz",
+    "render",
+    "images-loss",
+    "coverage",
+    "determined",
+)
+REPORT_PNGS = tuple(f"report-{key}.png" for key in REPORT_IMAGES)
 VIEWER = "viewer.html"  # the interactive viewer, beside the report
 INIT = "init"  # an images fit's start: a run folder of its own, inside this one
 TEACHER = "teacher.xml"  # in INIT: the fitted Mitsuba BSDF a start is distilled from
@@ -109,7 +123,7 @@ def _temporary_of_own(name: str) -> bool:
 
 
 def _own_name(name: str) -> bool:
-    return name in FILES or re.fullmatch(r"report-[A-Za-z0-9_-]+\.png", name) is not None
+    return name in FILES or name in REPORT_PNGS
 
 
 def default_run_dir(cfg: cfgmod.Config) -> Path:
@@ -206,7 +220,7 @@ def own_files(run_dir: str | os.PathLike) -> list[Path]:
     if not run_dir.is_dir() or not is_run(run_dir):
         return []
     out = [run_dir / n for n in FILES if os.path.lexists(run_dir / n)]
-    out += sorted(p for p in run_dir.glob(REPORT_PNG) if _own_name(p.name))
+    out += [run_dir / n for n in REPORT_PNGS if os.path.lexists(run_dir / n)]
     if (run_dir / INIT).is_dir() and not (run_dir / INIT).is_symlink():
         out += own_files(run_dir / INIT)
     return out

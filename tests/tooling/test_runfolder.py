@@ -270,7 +270,11 @@ def test_own_files_lists_a_runs_files_and_nothing_else(finished, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(finished, run_dir)
     (run_dir / "notes.txt").write_text("mine\n")
+    (run_dir / "report-notes.png").write_bytes(b"mine")  # a user's, named like the report's
     names = {p.name for p in runfolder.own_files(run_dir)}
+    assert "report-notes.png" not in names and not runfolder.is_own_file(
+        run_dir / "report-notes.png"
+    )
     assert {MARKER, "config.yaml", "ckpt.pt", "log.csv", "model.onnx", "metrics.json"} <= names
     assert {"report.html", "report.md", "viewer.html", "report-loss.png"} <= names
     assert "notes.txt" not in names and ".lock" not in names

@@ -8,6 +8,8 @@ import html
 import struct
 from dataclasses import dataclass
 
+from neural_brdf import runfolder
+
 
 # ------------------------------------------------------------------ document blocks
 @dataclass
@@ -135,6 +137,10 @@ def _cell_md(c) -> str:
 
 
 def image_name(key: str) -> str:
+    """report-<key>.png, for a key registered in :data:`runfolder.REPORT_IMAGES` (what
+    ``--overwrite`` removes as the run's own)."""
+    if key not in runfolder.REPORT_IMAGES:
+        raise ValueError(f"report image {key!r}: add it to runfolder.REPORT_IMAGES")
     return f"report-{key}.png"
 
 
