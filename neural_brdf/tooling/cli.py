@@ -468,7 +468,11 @@ def _report(args) -> int:
     into_run = args.out is None or _same_path(args.out, args.run_dir)
     with _holding(args.run_dir) if into_run else contextlib.nullcontext():
         paths = write_report(args.run_dir, args.out)
-    print(f"wrote {paths['html']} and {paths['md']}")
+    others = sorted(p.name for k, p in paths.items() if k not in ("html", "md"))
+    print(
+        f"wrote {paths['html']} and {paths['md']}"
+        + (f" with {', '.join(others)}" if others else "")
+    )
     return EXIT_OK
 
 

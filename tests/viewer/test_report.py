@@ -179,7 +179,11 @@ def test_report_cli_writes_elsewhere_and_says_when_it_cannot_render(
     monkeypatch.setattr(plots, "mitsuba_unavailable", lambda: "Mitsuba 3 is switched off")
     out = tmp_path / "elsewhere"
     assert main(["report", str(tiny_run), "-o", str(out)]) == 0
-    assert str(out / "report.html") in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert str(out / "report.html") in said
+    # every file it wrote is named: a viewer.html of the folder's is replaced
+    written = sorted(p.name for p in out.iterdir() if p.name not in ("report.html", "report.md"))
+    assert "viewer.html" in written and said.rstrip().endswith(", ".join(written)), said
     page = (out / "report.html").read_text()
     assert "No render: Mitsuba 3 is switched off" in page
     assert set(data_uri_pngs(page)) == {
