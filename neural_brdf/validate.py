@@ -441,6 +441,11 @@ def reference_from(path: str | Path, *, warn: Callable[[str], None] | None = Non
             f"--reference {path}: a Mitsuba teacher is named by a config "
             f"(target: {{mitsuba: {Path(path).name}}}); give that config"
         )
+    if Path(path).suffix.lower() == ".onnx":  # else "not a YAML text file", or an empty one
+        raise InputError(  # read as a config of the default target
+            f"--reference {path}: a model, not a target: give the config or the measured "
+            "file it was trained from (two models: neural-brdf view A.onnx --compare B.onnx)"
+        )
     cfg = cfgmod.load(path, warn=warn)
     try:  # a bad model or parameter: train's message, after the file's name
         return data.build_target(cfg.target, source=str(path))

@@ -535,7 +535,7 @@ def models_for(model, compare=None, *, probes=PROBES, warn=None) -> list[Model]:
                 "model with its Mitsuba teacher (.xml)"
             )
         out.append(second)
-    elif compare.suffix.lower() in (".xml", ".yaml", ".yml"):
+    else:  # a Mitsuba teacher, or a config (any other name, as validate --reference reads it)
         xml = compare
         if compare.suffix.lower() != ".xml":  # a config: its analytic target, or its teacher
             cfg = config.load(compare, warn=warn)
@@ -561,11 +561,6 @@ def models_for(model, compare=None, *, probes=PROBES, warn=None) -> list[Model]:
         teacher = mitsuba_teacher(xml)
         label = f"teacher: {xml.name}"
         out.append(teacher_model(teacher, label, textured=first.textured, probes=probes))
-    else:
-        raise InputError(
-            f"--compare {compare}: expected a model (.onnx), a Mitsuba teacher (.xml) or a "
-            "config (.yaml) whose analytic target or teacher is compared"
-        )
     return out
 
 

@@ -121,6 +121,16 @@ def test_validate_reference_of_a_bad_target_is_one_line_naming_the_file(
     assert_one_line_error(code, err, cfg.name, BAD_TARGETS[kind][1])
 
 
+def test_validate_reference_of_a_model_says_what_it_takes(capsys, model, tmp_path):
+    """A model given as --reference: it was read as YAML ("not a YAML text file"), and
+    an empty x.onnx as a config of the default target (validated against a Lambertian)."""
+    empty = tmp_path / "x.onnx"
+    empty.write_bytes(b"")
+    for given in (model, empty):
+        code, _, err = cli(capsys, "validate", str(model), "--reference", str(given))
+        assert_one_line_error(code, err, f"--reference {given}: a model, not a target")
+
+
 def test_view_reads_suffixes_in_any_case(capsys, model, tmp_path):
     upper = tmp_path / "GOLD.ONNX"  # (refused as "expected an ONNX model" before)
     upper.write_bytes(model.read_bytes())

@@ -313,7 +313,7 @@ def cli_capture(args):
         ("missing", "no such model file"),
         ("not_onnx", "expected an ONNX model"),
         ("garbage", "not a loadable ONNX model"),
-        ("compare_suffix", "--compare"),
+        ("compare_suffix", "x.txt"),  # read as a config, as validate --reference reads it
         ("compare_data", "target.data"),
         ("compare_images", "target.images"),
         ("out_suffix", ".html"),
@@ -341,6 +341,17 @@ def test_bad_input_exits_2_with_one_line(case, needle, model_path, tmp_path, cap
     code, _, err = cli(capsys, "view", *args)
     assert_one_line_error(code, err, needle)
     assert not (tmp_path / "v.html").exists()
+
+
+def test_a_config_named_without_a_suffix_is_compared(model_path, tmp_path, capsys):
+    """view --compare reads any file but a model or a teacher as a config, as validate
+    --reference does (a config named ``okcfg`` was refused for its suffix)."""
+    cfg = tmp_path / "okcfg"
+    cfg.write_text("target: {model: microfacet, params: {alpha: 0.3}}\n")
+    out = tmp_path / "v.html"
+    code, _, err = cli(capsys, "view", str(model_path), "--compare", str(cfg), "-o", str(out))
+    assert code == 0 and out.is_file(), err
+    assert "target: microfacet" in out.read_text()
 
 
 # ------------------------------------------------------------------ in the run's report
