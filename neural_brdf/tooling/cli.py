@@ -540,16 +540,13 @@ def _analytic_target(config_path: str):
 def _analytic_of(cfg, config_path: str):
     """(name, params, BRDF) of a loaded config's analytic target; a measured or Mitsuba
     one is refused, naming ``config_path``."""
-    from neural_brdf import config
     from neural_brdf.train import data
 
     for key in ("data", "mitsuba"):
         if getattr(cfg.target, key) is not None:
             raise InputError(f"{config_path}: target.{key}: only analytic targets here")
-    try:  # a bad model or parameter: train's message (target.model, target.params)
-        brdf = data.build_target(cfg.target, source=config_path)
-    except config.ConfigError as e:
-        raise InputError(f"{config_path}: {e}") from None
+    # a bad model or parameter: train's message (target.model, target.params), after the file
+    brdf = data.build_target(cfg.target, source=config_path)
     return cfg.target.model, dict(cfg.target.params), brdf
 
 

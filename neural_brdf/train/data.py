@@ -105,9 +105,19 @@ def build_target(target: cfgmod.Target, *, source: str | None = None):
     ``target.data``, or a :class:`neural_brdf.measured.mitsuba.MitsubaTarget` for
     ``target.mitsuba`` (a :class:`neural_brdf.measured.textured.TexturedMitsubaTarget`
     when it varies over the surface); bad names, parameters or files raise ConfigError
-    (InputError), and so does ``target.images`` (:func:`refuse_images`; ``source``: the
-    config file its message names)."""
-    refuse_images(target, source)
+    (InputError), and so does ``target.images`` (:func:`refuse_images`).  ``source``:
+    the config file, which each ConfigError then names first (once: callers add
+    nothing)."""
+    try:
+        return _build_target(target)
+    except cfgmod.ConfigError as e:
+        if source is None:
+            raise
+        raise cfgmod.ConfigError(f"{source}: {e}") from None
+
+
+def _build_target(target: cfgmod.Target):
+    refuse_images(target)
     if target.data is not None:
         return MeasuredTarget.from_file(target.data)
     if target.mitsuba is not None:  # Mitsuba is imported by this target only

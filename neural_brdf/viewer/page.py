@@ -551,10 +551,8 @@ def models_for(model, compare=None, *, probes=PROBES, warn=None) -> list[Model]:
                     "Mitsuba teacher (target.mitsuba, or the .xml) or another textured file"
                 )
             if cfg.target.mitsuba is None:
-                try:  # a bad model or parameter: train's message (target.params: ...)
-                    data.build_target(cfg.target, source=str(compare))
-                except config.ConfigError as e:
-                    raise InputError(f"{compare}: {e}") from None
+                # a bad model or parameter: train's message (target.params: ...), after the file
+                data.build_target(cfg.target, source=str(compare))
                 name, params = cfg.target.model, dict(cfg.target.params)
                 return out + [analytic_model(name, params, f"target: {name}")]
             xml = Path(cfg.target.mitsuba)

@@ -121,6 +121,21 @@ def test_validate_reference_of_a_bad_target_is_one_line_naming_the_file(
     assert_one_line_error(code, err, cfg.name, BAD_TARGETS[kind][1])
 
 
+def test_a_reference_that_is_no_brdf_names_its_file_once(capsys, model, tmp_path):
+    """validate, view and render name the config once ("fit.yaml: fit.yaml: ..." before,
+    from an images fit's config: its target is photographs, not a BRDF)."""
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("target:\n  images: [{scene: s.xml, image: a.exr}]\n")
+    for command in (
+        ["validate", str(model), "--reference", str(cfg)],
+        ["view", str(model), "--compare", str(cfg), "-o", str(tmp_path / "v.html")],
+        ["render", str(model), "--reference", str(cfg), "-o", str(tmp_path / "r.png")],
+    ):
+        code, _, err = cli(capsys, *command)
+        assert_one_line_error(code, err, f"{cfg}: target.images:")
+        assert err.count(cfg.name) == 1, err
+
+
 def test_validate_reference_of_a_model_says_what_it_takes(capsys, model, tmp_path):
     """A model given as --reference: it was read as YAML ("not a YAML text file"), and
     an empty x.onnx as a config of the default target (validated against a Lambertian)."""
