@@ -285,6 +285,27 @@ def test_grey_lobes_train_export_and_say_so(teacher, tmp_path, capsys):
     assert not (tmp_path / "bad").exists()
 
 
+def test_the_reports_albedo_figure_is_at_the_figures_uv(run, tmp_path, monkeypatch):
+    """The neural albedo curve and its maximum were the validator's, at its worst texel,
+    drawn beside the teacher's at uv (0.5, 0.5): both are now at the figures' uv."""
+    from neural_brdf.viewer import plots
+    from neural_brdf.viewer.report import write_report
+
+    seen: dict = {}
+    real = plots.albedo_curve
+
+    def spy(neural, ref, **kw):
+        seen.update(kw)
+        return real(neural, ref, **kw)
+
+    monkeypatch.setattr(plots, "albedo_curve", spy)
+    paths = write_report(run, tmp_path / "r", render=False)
+    assert seen["measured"] is None and seen["validated_max"] is None
+    html = paths["html"].read_text()
+    assert "per channel at uv (0.5, 0.5), the figures" in html
+    assert "the texel of the maximum albedo" in html
+
+
 def test_a_textured_teacher_is_refused_by_train_many(teacher, tmp_path, capsys):
     a = write_config(tmp_path, teacher, name="a")
     b = write_config(tmp_path, teacher, name="b")

@@ -119,7 +119,15 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
     if isinstance(hemi, list) and hemi:
         values = (_number(m, f"hemispherical_albedo.{i}", path) for i in range(len(hemi)))
         blocks.append(
-            Text("Hemispherical albedo (R, G, B): " + ", ".join(f"{v:.4f}" for v in values))
+            Text(
+                "Hemispherical albedo (R, G, B): "
+                + ", ".join(f"{v:.4f}" for v in values)
+                + (  # (validate: that of the texel where the maximum was found)
+                    f" at uv {tuple(uv)}, the texel of the maximum albedo"
+                    if isinstance(uv := m["checks"].get("max_albedo", {}).get("at_uv"), list)
+                    else ""
+                )
+            )
         )
     raw_max = _number(m, "export.normalization.raw_max_albedo", path, optional=True)
     if raw_max is not None:
@@ -146,11 +154,19 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
         Image(
             "albedo",
             "Directional albedo (white furnace)",
-            "ρ(θi) per channel: the neural curve as the validator measured it (averaged "
-            "over azimuth for an anisotropic model)"
-            + (", the reference's in the incidence plane" if reference else "")
-            + "; the dotted line is the furnace limit 1, the cross the validator's "
-            "measured maximum.",
+            (
+                f"ρ(θi) per channel at uv {TEXTURED_UV}, the figures' uv: the neural curve "
+                "by quadrature"
+                + (", the reference's in the incidence plane" if reference else "")
+                + "; the dotted line is the furnace limit 1 (the validator's maximum over "
+                "the texture is in the table above)."
+                if run.model.textured
+                else "ρ(θi) per channel: the neural curve as the validator measured it "
+                "(averaged over azimuth for an anisotropic model)"
+                + (", the reference's in the incidence plane" if reference else "")
+                + "; the dotted line is the furnace limit 1, the cross the validator's "
+                "measured maximum."
+            ),
             albedo_png,
         )
     )
@@ -542,7 +558,11 @@ def _blocks(run: Run, render: bool) -> list:
     curves: dict = {}  # the albedo curves, computed once for the plot and the viewer
     curve = m.get("furnace", {}).get("curve") if isinstance(m.get("furnace"), dict) else None
     measured = None
-    if isinstance(curve, dict) and curve.get("theta_deg") and curve.get("rho"):
+    if run.model.textured:
+        # the validator's curve and maximum are at its worst texel, and the figures (and
+        # the teacher's curve) at TEXTURED_UV: the neural curve there too, by quadrature
+        validated = None
+    elif isinstance(curve, dict) and curve.get("theta_deg") and curve.get("rho"):
         measured = (curve["theta_deg"], curve["rho"])  # the validator's: no second quadrature
     albedo = plots.png_bytes(
         plots.albedo_curve(
