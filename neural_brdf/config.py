@@ -994,7 +994,9 @@ def from_dict(raw: Any, *, source: str = "config", overrides: Sequence[str] = ()
     try:
         cfg = Config.model_validate(raw)
     except ValidationError as e:
-        errs = e.errors()
+        # a misspelt key first: it is also a missing one ("imgae" for "image"), and the
+        # typo is what the user must see
+        errs = sorted(e.errors(), key=lambda err: err["type"] != "extra_forbidden")
         more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
         loc = tuple(errs[0]["loc"])
         if errs[0]["type"] == "value_error" or not loc:

@@ -364,3 +364,14 @@ def test_an_error_names_the_file_or_the_set_that_gave_it(tmp_path, text, sets, b
     msg = str(err.value)
     assert "\n" not in msg
     assert msg.startswith(f"{where}: {key}"), msg
+
+
+# ------------------------------------------------------------ a misspelt key
+def test_a_misspelt_key_is_named_before_the_one_it_leaves_missing(tmp_path):
+    """``imgae`` for ``image``: two errors, and the message named the missing ``image``
+    ("Field required") without a word of the typo."""
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("target:\n  images: [{scene: v1.xml, imgae: v1.exr}]\n")
+    with pytest.raises(config.ConfigError) as e:
+        config.load(cfg)
+    assert str(e.value) == f"{cfg}: target.images.0.imgae: unknown key (and 1 more)"
