@@ -223,10 +223,12 @@ class Data(_Section):
 # after training); numpy refuses a negative seed.  Mitsuba's UInt32 seeds take
 # seed + step, or reduce modulo 2**31 - 1.
 SEED_LIMIT = 2**31
+MAX_STEPS = 10**8  # far beyond any training (the recipes take 2000 to 20000)
+MAX_THREADS = 1024  # torch's pool: 100000 threads crashed the process (SIGSEGV)
 
 
 class Train(_Section):
-    steps: int = Field(3000, ge=1)  # optimizer steps
+    steps: int = Field(3000, ge=1, le=MAX_STEPS)  # optimizer steps
     seed: int = Field(0, ge=0, lt=SEED_LIMIT)  # seeds weights, data and quadrature
     lr: float = Field(3e-2, gt=0.0)  # Adam learning rate after warm-up
     lr_min: float = Field(0.01, ge=0.0, le=1.0)  # final lr as a fraction of lr (cosine)
@@ -236,7 +238,8 @@ class Train(_Section):
     loss_eps: float = Field(1e-3, gt=0.0)  # offset inside the log (1/sr)
     peak_weight: float = Field(10.0, ge=0.0)  # extra loss weight (f cos)^2 / mean (f cos)^2
     peak_cap: float = Field(100.0, gt=0.0)  # cap on (f cos)^2 / mean (f cos)^2 in the weight
-    threads: int = Field(1, ge=1)  # torch CPU threads (fixed for determinism; docs/config.md)
+    # torch CPU threads (fixed for determinism; docs/config.md); 100000 crashed torch
+    threads: int = Field(1, ge=1, le=MAX_THREADS)
     device: Literal["cpu", "cuda", "auto"] = "cpu"  # auto: cuda when torch sees a GPU
     checkpoint_every: int = Field(500, ge=1)  # steps between checkpoints
     log_every: int = Field(25, ge=1)  # steps between CSV rows
@@ -923,12 +926,24 @@ def parse_yaml(text: str, *, source: str) -> Any:
     return data
 
 
+def _names_a_brdf(target: Any) -> bool:
+    """Whether a raw ``target`` section names what to train: a model, a measured file, a
+    teacher or images (``target: {data: }``, a path left empty, names none)."""
+    if not isinstance(target, dict):
+        return True  # (the schema's error, not this warning)
+    return any(target.get(k) is not None for k in ("model", "data", "mitsuba", "images"))
+
+
 def apply_override(raw: dict, item: str) -> None:
     """Apply one ``a.b.c=value`` override to the raw (unvalidated) config dict."""
     key, sep, text = item.partition("=")
     if not sep or not key.strip():
         raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. train.steps=500")
     path = key.strip().split(".")
+    if path in (["target", "data"], ["target", "mitsuba"]) and not text.strip():
+        # (an unset shell variable: YAML reads it as null, the default analytic target,
+        # which would then be trained without a word; null itself, written out, is that)
+        raise ConfigError(f"--set {item}: an empty path; give the file (or null for none)")
     value = parse_yaml(text, source=f"--set {key}")
     node = raw
     for i, part in enumerate(path[:-1]):
@@ -1116,9 +1131,15 @@ def load(
     if overrides:
         paths_relative_to(raw, Path.cwd())  # a path given by --set: the current folder's
     cfg = from_dict(raw, source=str(path) if path is not None else "config", overrides=overrides)
+    given = raw.get("target")
     if warn is not None and path is not None and "target" not in raw:
         what = "empty config" if empty else "no target: section"
         warn(f"{path}: {what}: training the default target (a {cfg.target.model} BRDF)")
+    elif warn is not None and path is not None and not _names_a_brdf(given):
+        warn(
+            f"{path}: target: names no BRDF (model, data, mitsuba and images empty): "
+            f"training the default target (a {cfg.target.model} BRDF)"
+        )
     if warn is not None:
         for section, keys, why in (
             ("images", ignored_images(cfg), "only an images fit (target.images) reads them"),

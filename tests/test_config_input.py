@@ -375,3 +375,42 @@ def test_a_misspelt_key_is_named_before_the_one_it_leaves_missing(tmp_path):
     with pytest.raises(config.ConfigError) as e:
         config.load(cfg)
     assert str(e.value) == f"{cfg}: target.images.0.imgae: unknown key (and 1 more)"
+
+
+# ------------------------------------------------------------ a target path left empty
+@pytest.mark.parametrize("key", ["target.data", "target.mitsuba"])
+def test_an_empty_target_path_given_by_set_is_refused(key):
+    """``--set target.data=$UNSET``: YAML reads the empty text as null, and the run
+    trained the default Lambertian without a word; ``null`` written out still means none."""
+    with pytest.raises(config.ConfigError) as e:
+        config.load(None, [f"{key}="])
+    assert str(e.value) == f"--set {key}=: an empty path; give the file (or null for none)"
+    assert config.load(None, [f"{key}=null"]).target.model == "lambertian"
+
+
+def test_a_target_section_that_names_no_brdf_is_warned_of(tmp_path):
+    cfg = tmp_path / "empty_data.yaml"
+    cfg.write_text("target: {data: }\n")
+    warned: list[str] = []
+    config.load(cfg, warn=warned.append)
+    assert warned == [
+        f"{cfg}: target: names no BRDF (model, data, mitsuba and images empty): training "
+        "the default target (a lambertian BRDF)"
+    ]
+    cfg.write_text("target: {model: lambertian}\n")  # named: no warning
+    warned.clear()
+    config.load(cfg, warn=warned.append)
+    assert warned == []
+
+
+@pytest.mark.parametrize(
+    "item, needle",
+    [
+        ("train.threads=100000", "train.threads"),  # crashed torch (SIGSEGV)
+        ("train.steps=99999999999999999999999999999999", "train.steps"),  # trained for ever
+    ],
+)
+def test_absurd_sizes_are_refused_naming_the_key(item, needle):
+    with pytest.raises(config.ConfigError) as e:
+        config.load(None, [item])
+    assert str(e.value).startswith(f"--set {item}: {needle}: ")
