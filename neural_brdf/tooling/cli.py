@@ -423,12 +423,27 @@ def _presets(args) -> int:
     return EXIT_OK
 
 
+def _target_files_of(run_dir: str) -> dict[str, str]:
+    """The files a run's target reads (its measured file, a teacher and its bitmaps, an
+    images fit's scenes and images), named as inputs: export reads the target (for its
+    accuracy) and must not write over them.  {} where the run's config cannot be read
+    (export's own error says why)."""
+    from neural_brdf import config
+    from neural_brdf.train import target_files
+
+    try:
+        cfg = config.load(Path(run_dir) / "config.yaml", run=True)
+    except (InputError, OSError):
+        return {}
+    return {f"run's {target_files.where(cfg, p)} ({p})": p for p in target_files.files(cfg)}
+
+
 def _export(args) -> int:
     if args.out is not None:
         _output_file(args.out, "an ONNX model")
         _not_an_input(
             args.out,
-            {"run folder": args.run_dir},
+            {"run folder": args.run_dir, **_target_files_of(args.run_dir)},
             flag="-o",
             may=Path(args.run_dir) / "model.onnx",
         )

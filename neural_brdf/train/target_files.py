@@ -71,7 +71,7 @@ def digest(cfg: cfgmod.Config) -> dict[str, str]:
     {} for an analytic target.  A file that cannot be read is left out (the run that
     reads it says why)."""
     out: dict[str, str] = {}
-    for path in _files(cfg):
+    for path in files(cfg):
         if path in out:
             continue
         try:
@@ -81,7 +81,9 @@ def digest(cfg: cfgmod.Config) -> dict[str, str]:
     return out
 
 
-def _files(cfg: cfgmod.Config) -> list[str]:
+def files(cfg: cfgmod.Config) -> list[str]:
+    """Every file the target of ``cfg`` reads, absolute, as found (module doc): what
+    :func:`digest` hashes, and what a command that writes must not write over."""
     t = cfg.target
     if t.data is not None:
         return [os.path.abspath(t.data)]

@@ -112,6 +112,16 @@ def test_a_checkpoint_of_an_earlier_version_resumes_unchecked(measured, rgl_file
     assert ckpt["step"] == 6 and ckpt["target_files"] == {str(data): sha(data)}
 
 
+def test_export_does_not_write_over_its_runs_measured_file(measured, capsys):
+    """export reads the run's target.data (its accuracy): -o onto it replaced the 35 MB
+    MERL file with an ONNX model, and every later read of it failed."""
+    _, data, run = measured
+    before = data.read_bytes()
+    code, _, err = cli(capsys, "export", str(run), "-o", str(data))
+    assert_one_line_error(code, err, f"-o {data}: is the run's target.data ({data})")
+    assert data.read_bytes() == before
+
+
 def test_a_python_config_with_a_relative_data_path_resumes(rgl_file, tmp_path, monkeypatch):
     """A config built in Python keeps target.data as written (relative: the current
     folder's); its checkpoint resumes, the two sides compared by one rule."""
