@@ -397,15 +397,20 @@ def summary(det: Determined) -> dict[str, Any]:
     }
 
 
-def warning(det: Determined, below: float = WARN_ENERGY, role: str = "start") -> str | None:
+def warning(
+    det: Determined, below: float = WARN_ENERGY, role: str = "start", label: str | None = None
+) -> str | None:
     """A one-line warning when the reference's determined energy is below ``below``
-    (``role``: what the reference is to the reader: a fit's start)."""
+    (``role``: what the reference is to the reader: a fit's start; ``label``: its name
+    there, a fit's start family, where it is not the reference's Mitsuba type: a
+    ``clearcoat`` start is a ``principled``)."""
     if det.energy_figure >= below:
         return None
     return (
         f"determined: in {90.0 / det.bins:g}-degree bins the images fix f to "
         f"{100 * det.tol:.0f} % over {100 * det.figure:.1f} % of the domain, holding "
-        f"{100 * det.energy_figure:.1f} % of the reflected light of the {det.reference} {role} "
+        f"{100 * det.energy_figure:.1f} % of the reflected light of the "
+        f"{label or det.reference} {role} "
         f"(below {100 * below:.0f} %): the rest of the BRDF comes from the start's family "
         "and the network's prior, not the images; add views or lights at other angles "
         "(docs/inverse.md)"
@@ -482,17 +487,18 @@ def assess(
     *,
     picture: str | Path | None = None,
     role: str = "start",
+    label: str | None = None,
     **kwargs: Any,
 ) -> tuple[dict[str, Any], str | None]:
     """:func:`compute`, the PNG when ``picture`` is a path, and (:func:`summary`,
-    :func:`warning`)."""
+    :func:`warning`; ``role`` and ``label`` name the reference there)."""
     t0 = time.perf_counter()
     det = compute(views, reference, noise, **kwargs)
     info = summary(det)
     info["seconds"] = round(time.perf_counter() - t0, 2)
     if picture is not None:
         info["picture"] = Path(write_picture(det, picture)).name
-    return info, warning(det, role=role)
+    return info, warning(det, role=role, label=label)
 
 
 # ------------------------------------------------------------------ command line

@@ -46,9 +46,10 @@ thin.  Bad input raises :class:`neural_brdf.errors.InputError` (exit code 2) wit
 line naming the file, before anything is written: a missing or unreadable image, an
 image that is not RGB, an image whose size is not the film's, a scene without
 ``<bsdf id="fit">`` or with no ``<shape>`` that uses it (``<ref id="fit"/>``, or the
-BSDF nested in the shape), an integrator that cannot be differentiated here, samples
-per pixel (``images.*spp``) beyond the memory budget.  The Mitsuba
-variant (``target.variant``, else ``train.device``: ``llvm_ad_rgb`` on the CPU,
+BSDF nested in the shape), a view that sees no pixel of the fitted object
+(:func:`neural_brdf.inverse.views.check_sees_object`), an integrator that cannot be
+differentiated here, samples per pixel (``images.*spp``) beyond the memory budget.  The
+Mitsuba variant (``target.variant``, else ``train.device``: ``llvm_ad_rgb`` on the CPU,
 ``cuda_ad_rgb`` on CUDA) must be a JIT AD RGB one (config.py refuses others).
 
 Loss.  With x the render, y the target and y_bar the target's channel mean at a pixel,
@@ -83,6 +84,7 @@ import contextlib
 import copy
 import json
 import math
+import os
 import sys
 import time
 import xml.etree.ElementTree as ET
@@ -108,6 +110,7 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     bsdf_element,
     check_films,
     check_render_sizes,
+    distillation_config,
     fit_bsdf,
     fit_element,
     fit_is_used,
@@ -797,11 +800,16 @@ def _fit_views(
     check_films(views)  # before anything is written
     check_render_sizes(views, images)
     split_views(views, images, cfg.train.seed)
+    # the object's pixels (the held-out loss, the start's split, the noise estimate): a
+    # view that sees none of the object is refused, before anything is written
+    for k, v in enumerate(views):
+        v.object = starts.seen_object_mask(v, f"target.images[{k}].scene")
     columns = (*LOG_COLUMNS, HELDOUT_COLUMN) if images.split else LOG_COLUMNS
-    if resume and not folder.ckpt.exists() and folder.init.exists():  # stopped in its start
+    if resume and stopped_before_image_stage(folder):
+        again = " from the start's choice" if images.start not in ("ggx", "constant") else ""
         print(
             f"{cfg.name}: {folder.ckpt} does not exist yet (the run was stopped during its "
-            "start, before the image stage): the fit starts again",
+            f"start, before the image stage): the fit starts again{again}",
             file=sys.stderr,
         )
         resume = False
@@ -816,8 +824,6 @@ def _fit_views(
     )
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
-    for v in views:  # the object's pixels: the held-out loss and the start's split
-        v.object = starts.object_mask(v)
     init_state, init_info = None, None
     lr_factor, grid_lr_scale = 1.0, None
     if images.start not in ("ggx", "constant"):  # auto, or a family
@@ -862,6 +868,7 @@ def _fit_views(
         covered,
         picture=False,
         role="start" if element is not None else "stand-in for the constant start",
+        label=_start_family(start_info) if element is not None else None,
     )
     if warning:
         print(f"warning: {warning}", file=sys.stderr)
@@ -893,6 +900,17 @@ def _fit_views(
     return raw, training, cfg
 
 
+def stopped_before_image_stage(folder: runfolder.Folder) -> bool:
+    """Was the images run in ``folder`` stopped (Ctrl-C, SIGTERM, kill) before its image
+    stage wrote a checkpoint: while the coverage was assessed, the start chosen or
+    distilled (``init/``)?  A run folder (its marker, or ``init/``) without ``ckpt.pt``
+    and without a model (one that wrote its model and lost its checkpoint is not fitted
+    again: the resume says it has no checkpoint)."""
+    if folder.ckpt.exists() or folder.model.exists():
+        return False
+    return folder.init.exists() or os.path.lexists(folder.path / runfolder.MARKER)
+
+
 def finished_report(cfg: cfgmod.Config, run_dir: Path, folder: runfolder.Folder) -> dict | None:
     """``--resume`` of an images run that has finished: its metrics.json (model.onnx
     written too) when the checkpoint, checked as a resume checks it, is at the steps the
@@ -913,7 +931,21 @@ def finished_report(cfg: cfgmod.Config, run_dir: Path, folder: runfolder.Folder)
     v = validation if isinstance(validation, dict) else {}
     # stopped early under the same patience (another lets the stage train on)
     stopped = v.get("stopped_at") == step and v.get("patience") == resumed.images.patience
-    return done if step >= resumed.train.steps or stopped else None
+    if not (step >= resumed.train.steps or stopped):
+        return None
+    if stopped:  # train.steps, the CLI's usual advice, would not make it train on
+        done = {**done, "resume_advice": early_stop_advice(step, resumed.images.patience)}
+    return done
+
+
+def early_stop_advice(step: int, patience: int | None) -> str:
+    """What lets an images run whose image stage stopped early at ``step`` (under
+    ``images.patience`` ``patience``: :func:`stalled_for`) train on when resumed: a
+    larger patience, or none; a larger ``train.steps`` alone stops it again at once."""
+    return (
+        f"its image stage stopped early at step {step} (images.patience {patience}): raise "
+        "images.patience, or set it to null, to train on (raising train.steps alone does not)"
+    )
 
 
 def _saved_init(folder: runfolder.Folder) -> dict[str, Any] | None:
@@ -944,6 +976,15 @@ def _start_element(init: Any) -> ET.Element | None:
     return None
 
 
+def _start_family(init: Any) -> str | None:
+    """The family of a fit's start (its ``init`` record), as the choice named it
+    (``clearcoat``, whose ``<bsdf>`` is a ``principled``); None for the ``ggx`` and
+    the constant starts."""
+    start = init.get("start") if isinstance(init, dict) else None
+    family = start.get("family") if isinstance(start, dict) else None
+    return str(family) if family else None
+
+
 def _network_brdf(raw: RawBRDF):
     """f(wi, wo) of the trained network, numpy in and out (RGB, 1/sr)."""
     device = next(raw.parameters()).device
@@ -971,11 +1012,13 @@ def _determined(
     *,
     picture: bool,
     role: str = "start",
+    label: str | None = None,
 ) -> tuple[dict[str, Any], str | None]:
     """How well the fitted views determine f near ``reference`` (the start's
     ``<bsdf>``, the network's f, or None: a grey diffuse;
     :mod:`neural_brdf.inverse.determined`) within the bins that their coverage
-    (``covered``, its summary) observes: its summary and warning, the map
+    (``covered``, its summary) observes: its summary and warning (``role`` and
+    ``label``, the start's family, name the reference there), the map
     ``determined.png`` in the run folder when ``picture``."""
     from neural_brdf.inverse import determined
 
@@ -985,6 +1028,7 @@ def _determined(
         target_noise(views),
         picture=run_dir / runfolder.DETERMINED if picture else None,
         role=role,
+        label=label,
         seed=seed or 0,
         observed=np.asarray(covered["observed_bins"], bool),
     )
@@ -1132,8 +1176,7 @@ def ggx_initial_state(
     masking, conductor Fresnel with the fitted eta and k."""
     from neural_brdf.train import loop
 
-    d = cfg.model_dump()
-    d["target"] = {
+    target = {
         "model": "microfacet",
         "params": {
             "distribution": "ggx",
@@ -1144,9 +1187,13 @@ def ggx_initial_state(
             "k": [float(x) for x in rough["k"]],
         },
     }
-    d["name"] = f"{cfg.name}: GGX start, network"
-    d["train"] = start_training(cfg, steps)
-    icfg = cfgmod.from_dict(d, source="ggx initialisation")
+    icfg = distillation_config(
+        cfg,
+        target,
+        f"{cfg.name}: GGX start, network",
+        start_training(cfg, steps),
+        source="ggx initialisation",
+    )
     raw, info = loop.train(icfg, run_dir)
     return raw.state_dict(), {
         "target": info["target"],

@@ -7,7 +7,8 @@ writes ``OUT_DIR/sky.exr`` (a procedural environment), ``view1.xml`` .. ``view3.
 directions), their target images ``view1.exr`` .. ``view3.exr`` rendered by Mitsuba at
 ``--spp``, and ``fit.yaml``, a config that fits a compact neural BRDF to them
 (``neural-brdf train OUT_DIR/fit.yaml``).  ``--heldout`` adds ``view4.xml`` and
-``view4.exr``, a fourth direction the fit does not see.
+``view4.exr``, a fourth direction the fit does not see: fit.yaml lists it commented out,
+saying how to score the fit on it (``images.validation_views``).
 
 ``--capture`` picks the lighting (docs/inverse.md, "What the images determine"):
 ``environment`` (the default: the sky above, the same in every view), ``lights`` (a
@@ -76,7 +77,7 @@ target:
   images:
     - {{scene: view1.xml, image: view1.exr}}
     - {{scene: view2.xml, image: view2.exr}}
-    - {{scene: view3.xml, image: view3.exr}}{extra}
+    - {{scene: view3.xml, image: view3.exr}}{extra}{heldout}
 model:
   hidden: [32]
   activation: relu
@@ -263,6 +264,15 @@ def render_file(scene_path: Path, spp: int, seed: int = 0) -> np.ndarray:
     return np.asarray(img, dtype=np.float32)[..., :3]
 
 
+# fit.yaml's lines on view 4 (--heldout): not a view of target.images, which the fit would
+# render, but commented out, with how to score the fit on it (docs/inverse.md, "The
+# held-out split"); {index}: its index once added
+HELDOUT_LINES = """
+    # view4 (--heldout): a fourth camera, not fitted.  To score the fit on it, held out
+    # whole (docs/inverse.md, "The held-out split"), uncomment the next line and add
+    # the section  images: {{validation_views: [{index}]}}
+    # - {{scene: view4.xml, image: view4.exr}}"""
+
 # fit.yaml's entry of a flash/no-flash pair's fitted view (:func:`write_flash_pair`): its
 # target is the flash photograph minus view 1's, the photograph without the flash
 PAIR_ENTRY = "\n    - {scene: pair1.xml, image: flash1.exr, subtract: view1.exr}"
@@ -335,7 +345,10 @@ def write(
     count = "four" if extra else "three"
     name = "images_" + folder.name
     command = regenerate_command(folder, resolution, spp, heldout, steps, seed, capture)
-    text = FIT_CONFIG.format(command=command, name=name, steps=steps, extra=extra, count=count)
+    held = HELDOUT_LINES.format(index=3 + bool(extra)) if heldout else ""
+    text = FIT_CONFIG.format(
+        command=command, name=name, steps=steps, extra=extra, heldout=held, count=count
+    )
     atomic_write(cfg, text)
     return written + [cfg]
 

@@ -107,8 +107,22 @@ def object_mask(view: inverse.View) -> np.ndarray:
     """(H, W) bool: the pixels of the object to fit (:func:`~neural_brdf.inverse.fit.
     sphere_mask`: every shape with ``<bsdf id="fit">``, eroded by the film's filter),
     found with :data:`STAND_IN` in place of the scene's own BSDF."""
+    return inverse.sphere_mask(_stood_in(view))
+
+
+def seen_object_mask(view: inverse.View, key: str) -> np.ndarray:
+    """:func:`object_mask`, after checking that the view sees the object at all
+    (:func:`~neural_brdf.inverse.views.check_sees_object`: InputError naming ``key``,
+    ``target.images[k].scene``, otherwise); one load of the scene for both."""
+    hit, front = inverse.fit_hits(_stood_in(view))
+    inverse.check_sees_object(view, key, hit, front)
+    return inverse.eroded(hit, inverse.FILTER_REACH)
+
+
+def _stood_in(view: inverse.View) -> inverse.View:
+    """``view`` with :data:`STAND_IN` as its scene's ``<bsdf id="fit">``."""
     root = ET.fromstring(inverse.scene_text(view.tree, STAND_IN))
-    return inverse.sphere_mask(dataclasses.replace(view, tree=ET.ElementTree(root)))
+    return dataclasses.replace(view, tree=ET.ElementTree(root))
 
 
 tiles = inverse.tiles  # (H, W) tile indices (the split's units)
@@ -1649,11 +1663,13 @@ def distill(
     run_dir = Path(run_dir)
     xml = (run_dir / TEACHER_XML).absolute()
     variant = inverse.variant_name(cfg)
-    d = cfg.model_dump()
-    d["target"] = {"mitsuba": str(xml), "variant": variant}
-    d["name"] = f"{cfg.name}: {element.get('type')} start, network"
-    d["train"] = inverse.start_training(cfg, steps, poor=poor)
-    icfg = cfgmod.from_dict(d, source="images start")
+    icfg = inverse.distillation_config(
+        cfg,
+        {"mitsuba": str(xml), "variant": variant},
+        f"{cfg.name}: {element.get('type')} start, network",
+        inverse.start_training(cfg, steps, poor=poor),
+        source="images start",
+    )
     # the folder becomes a run (its marker) before the teacher is written into it: a
     # folder holding a file no run wrote is refused (neural_brdf.runfolder)
     folder = runfolder.Folder.open(run_dir, resume=False, overwrite=True)

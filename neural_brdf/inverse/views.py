@@ -29,7 +29,7 @@ import torch
 
 from neural_brdf import config as cfgmod
 from neural_brdf import limits
-from neural_brdf.errors import InputError, not_a_file
+from neural_brdf.errors import InputError, Interrupted, not_a_file
 from neural_brdf.measured.mitsuba import INCLUDE_DEPTH, include_candidates
 
 # Integrators a fit renders with, by the scene's <integrator type>: Mitsuba's C++ ones
@@ -128,6 +128,20 @@ def start_training(cfg: cfgmod.Config, steps: int, *, poor: bool = False) -> dic
         "eval_every": 0,
         "checkpoint_every": max(1, steps),
     }
+
+
+def distillation_config(
+    cfg: cfgmod.Config, target: dict[str, Any], name: str, train: dict[str, Any], source: str
+) -> cfgmod.Config:
+    """The config of a start's distillation into the network (sample-based training on
+    ``target``, a teacher's ``target`` section; ``train``: :func:`start_training`): the
+    images fit's ``cfg`` with that target, name and ``train`` section, and without its
+    ``images`` section (back to the defaults), which no other target reads and parts
+    of which are refused without ``target.images`` (``images.validation_views``)."""
+    d = cfg.model_dump()
+    d.pop("images", None)
+    d.update(target=target, name=name, train=train)
+    return cfgmod.from_dict(d, source=source)
 
 
 def use_variant(name: str):
@@ -501,13 +515,47 @@ def load_scene(path: Path, text: str):
     fr.prepend(str(path.resolve().parent))
     try:
         return mi.load_string(text)
+    except Interrupted:  # Ctrl-C or SIGTERM, the run's own: not the scene's fault
+        raise
     except Exception as e:  # Mitsuba reports every load error as a multi-line RuntimeError
         lines = [s.strip() for s in str(e).strip().splitlines() if s.strip()]
+        stop = interruption_in(lines[-1] if lines else "")
+        if stop is not None:
+            raise stop from None
         raise InputError(f"{path}: Mitsuba cannot load it: {lines[-1][:200]}") from None
     finally:
         fr.clear()
         for entry in saved:
             fr.append(entry)
+
+
+# The last line of the traceback that Mitsuba puts into the RuntimeError it raises when
+# Python code it calls (a Python plugin's constructor: neural_brdf_ad) raised: the
+# exception's (qualified) name and message
+RAISED = re.compile(r"^(?:[\w.]*\.)?(\w+)(?::\s*(.*))?$")
+
+
+def interruption_in(line: str) -> BaseException | None:
+    """The Ctrl-C, SIGTERM or exit that Mitsuba wrapped in a load error whose last line
+    is ``line`` (:data:`RAISED`: ``KeyboardInterrupt:``, the CLI's SIGTERM, a
+    :class:`~neural_brdf.errors.Interrupted`, ``SystemExit``), raised again as such;
+    None for any other error."""
+    import signal
+
+    m = RAISED.match(line.strip())
+    if m is None:
+        return None
+    name, message = m.group(1), (m.group(2) or "").strip()
+    if name == "Interrupted":
+        return Interrupted(message or "interrupted")
+    if name == "SystemExit":
+        return SystemExit(int(message) if message.lstrip("-").isdigit() else message or None)
+    if name not in ("KeyboardInterrupt", "_Terminated"):
+        return None
+    e = KeyboardInterrupt(message)
+    if name == "_Terminated":  # the CLI's SIGTERM (a KeyboardInterrupt): exit code 143
+        e.signum = signal.SIGTERM  # type: ignore[attr-defined]
+    return e
 
 
 def film_size(scene) -> tuple[int, int]:
@@ -831,10 +879,20 @@ def render_view(view: View, bsdf: ET.Element, *, spp: int, seed: int) -> np.ndar
     return np.asarray(img, dtype=np.float32)[..., :3]
 
 
-def sphere_mask(view: View, erode: int = 2) -> np.ndarray:
+FILTER_REACH = 2  # pixels: how far the film's default (Gaussian) filter reaches
+
+
+def sphere_mask(view: View, erode: int = FILTER_REACH) -> np.ndarray:
     """(H, W) bool: pixels whose centre ray hits a shape with ``<bsdf id="fit">``, and
     whose neighbours within ``erode`` pixels do too (the film's filter reaches 2 pixels),
     so that no background enters a pixel of the mask."""
+    return eroded(fit_hits(view)[0], erode)
+
+
+def fit_hits(view: View) -> tuple[np.ndarray, np.ndarray]:
+    """(hit, front), each (H, W) bool: the pixels whose centre ray hits a shape with
+    ``<bsdf id="fit">`` (the scene's own, from ``view.tree``), and those of them where it
+    meets the front of the surface (the side the fitted BSDF, one-sided, reflects on)."""
     import mitsuba as mi
 
     scene = load_scene(view.scene_path, scene_text(view.tree, fit_element(view.tree)))
@@ -844,7 +902,16 @@ def sphere_mask(view: View, erode: int = 2) -> np.ndarray:
     ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     si = scene.ray_intersect(ray)
     hit = si.is_valid() & (si.bsdf() == mi.BSDFPtr(fit_bsdf(scene)))
-    mask = np.asarray(hit.numpy(), dtype=bool).reshape(h, w)
+    front = hit & (mi.Frame3f.cos_theta(si.wi) > 0.0)
+    return (
+        np.asarray(hit.numpy(), dtype=bool).reshape(h, w),
+        np.asarray(front.numpy(), dtype=bool).reshape(h, w),
+    )
+
+
+def eroded(mask: np.ndarray, erode: int) -> np.ndarray:
+    """``mask``'s pixels whose neighbours within ``erode`` pixels (a square) are in it too."""
+    h, w = mask.shape
     out = mask.copy()
     for dy in range(-erode, erode + 1):
         for dx in range(-erode, erode + 1):
@@ -854,6 +921,50 @@ def sphere_mask(view: View, erode: int = 2) -> np.ndarray:
             shifted[yd, xd] = mask[ys, xs]
             out &= shifted
     return out
+
+
+def check_sees_object(view: View, key: str, hit: np.ndarray, front: np.ndarray) -> None:
+    """InputError naming ``key`` (``target.images[k].scene``) and the scene when the
+    view sees no pixel of the fitted object: no pixel's centre ray meets the front of a
+    shape that uses ``<bsdf id="fit">`` (``hit``, ``front``: :func:`fit_hits`).  Such a
+    view renders nothing of the BRDF: its camera looks away, sits inside the object or
+    behind something that hides it (its target would still weigh in the loss and the
+    noise estimate)."""
+    if front.any():
+        return
+    fix = "fix its <sensor>, or leave the view out"
+    wrapper = None if hit.any() else _fit_wrapper(view.tree.getroot())
+    if hit.any():
+        why = (
+            f"its camera sees only the back of the surface ({int(hit.sum())} pixels), as "
+            f"from inside the object; {fix}"
+        )
+    elif wrapper is not None:
+        why = (
+            f'<bsdf id="fit"> is nested in a <bsdf type="{wrapper}">, and the object\'s '
+            "pixels are those whose ray meets a shape whose own BSDF is the fit; give the "
+            'shape <ref id="fit"/> itself'
+        )
+    else:
+        why = (
+            'no pixel\'s centre ray meets a shape that uses <bsdf id="fit"> (the camera '
+            f"looks away from the object, or something hides it); {fix}"
+        )
+    raise InputError(
+        f"{key}: {view.scene_path}: the view sees no pixel of the fitted object: {why}"
+    )
+
+
+def _fit_wrapper(root: ET.Element) -> str | None:
+    """The type of a ``<bsdf>`` inside a ``<shape>`` that holds ``<bsdf id="fit">`` (or
+    ``<ref id="fit"/>``) below it (a ``twosided``, say), else None."""
+    for shape in root.iter("shape"):
+        for outer in shape.iter("bsdf"):
+            if outer.get("id") == "fit":
+                continue
+            if any(e.get("id") == "fit" for e in outer.iter() if e is not outer):
+                return outer.get("type", "")
+    return None
 
 
 def mitsuba_bsdf(bsdf: ET.Element):

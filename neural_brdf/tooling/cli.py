@@ -333,9 +333,11 @@ def _train(args) -> int:
     run_dir = Path(args.out) if args.out else loop.default_run_dir(cfg)
     report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     if report.get("already_finished") is not None:
+        # an images run stopped early: a larger train.steps would stop it again at once
+        advice = report.get("resume_advice") or "raise train.steps to train on"
         print(
             f"{run_dir}: already finished at step {report['already_finished']}; nothing "
-            "to do (raise train.steps to train on, or --overwrite to start again)"
+            f"to do ({advice}, or --overwrite to start again)"
         )
         return EXIT_OK
     print(validate.format_table(report))

@@ -282,6 +282,34 @@ def test_report_shows_the_contenders_and_the_first_choice(tiny_run, tmp_path):
     assert "roughplastic 0.00111 0.00127 12.8 s 0.00111 principled 0.00143" in text
 
 
+def test_report_of_a_named_start_does_not_describe_autos_choice(tiny_run, tmp_path):
+    """images.start: roughplastic fits that family alone: the paragraph said "every
+    family fitted ... the simplest one within the noise of the best"."""
+    import inspect
+
+    from neural_brdf.inverse import starts
+    from neural_brdf.viewer.report import images as images_report
+
+    assert f'"rule": "{images_report.NAMED}"' in inspect.getsource(starts)  # (one rule)
+    start = {
+        "family": "roughplastic",
+        "params": {"alpha": 0.2},
+        "val_loss": 0.0011,
+        "rule": images_report.NAMED,
+        "candidates": [
+            {"family": "roughplastic", "val_loss": 0.0011, "train_loss": 0.001, "seconds": 9.0}
+        ],
+        "seconds": 9.0,
+    }
+    init = {"target": "Mitsuba roughplastic (teacher.xml)", "seconds": 20.0, "start": start}
+    run_dir = make_images_run(tiny_run, tmp_path, extra={"init": init})
+    text = " ".join(
+        visible_text(report.write_report(run_dir, render=False)["html"].read_text()).split()
+    )
+    assert "Start: the family images.start names" in text
+    assert "every family fitted" not in text
+
+
 def test_report_shows_the_cross_check_of_an_inconclusive_split(tiny_run, tmp_path):
     # images.start_cross_folds: a choice the split tied by its standard error alone,
     # settled over folds of the training tiles (neural_brdf.inverse.starts.cross_check);

@@ -1848,3 +1848,259 @@ def test_the_albedo_penalty_follows_the_images_section(mi):
     assert float(amax.array[0]) > 1.0  # init 0.3: an albedo near 12.6 x 0.3 at grazing
     assert values[0.0] == 0.0 and values[1.0] > 0.0
     np.testing.assert_allclose(values[2.5], 2.5 * values[1.0], rtol=1e-6)
+
+
+# ------------------------------------------------------------------ a user's walkthrough
+# A tiny fit: 16² views, a few steps, a named start fitted and distilled briefly, no
+# poor-start verdict (which would distil and train for hundreds of steps).
+TINY_FIT = [
+    *FIT_OVERRIDES,
+    "train.steps=4",
+    "images.start=diffuse",
+    "images.start_steps=3",
+    "images.start_refine_steps=0",
+    "images.start_train_steps=20",
+    "images.poor_start_loss=null",
+    "images.validation_every=2",
+    "images.patience=null",
+]
+
+
+@pytest.mark.parametrize("start", ["diffuse", "ggx"])
+def test_a_view_held_out_whole_is_scored_not_refused_by_the_starts_distillation(
+    mi, example, tmp_path, capsys, start
+):
+    # images.validation_views broke every fit: the start's distillation (sample-based
+    # training, in init/) took the images section with it, and its config, which has
+    # no target.images, refused it ("only for target.images"), exit 2, after the start
+    run_dir = tmp_path / "run"
+    held = ["images.validation_views=[2]", "images.validation_pixels=0", f"images.start={start}"]
+    code, err = run_cli(train_args(example / "fit.yaml", run_dir, TINY_FIT + held), capsys)
+    assert code == 0, err
+    training = json.loads((run_dir / "metrics.json").read_text())["training"]
+    val = training["validation"]
+    assert val["views"] == ["view3.exr"] and val["heldout_pixels"] == RES * RES, val
+    assert math.isfinite(val["start_loss"]) and math.isfinite(val["best_loss"]), val
+    assert "1 held out (view3.exr)" in training["target"], training["target"]
+    # the distillation's own config: the images section at its defaults
+    init = config.load(run_dir / "init" / "config.yaml")
+    assert init.target.images is None and init.images.validation_views == []
+
+
+@pytest.mark.parametrize(
+    "camera, says",
+    [
+        ('origin="0, 0, 5" target="0, 0, 10"', "the camera looks away from the object"),
+        ('origin="0, 0, 0.2" target="0, 0, 0"', "only the back of the surface"),
+    ],
+    ids=["turned away", "inside the sphere"],
+)
+@pytest.mark.parametrize("held_out", [False, True])
+def test_a_view_that_sees_none_of_the_object_exits_2_before_anything_is_written(
+    mi, copy_of, capsys, camera, says, held_out
+):
+    # it was fitted (exit 0), metrics.json saying pixels_lit: 0 for it, and its target fed
+    # the noise estimate; a view held out whole would be scored on nothing
+    text = (copy_of / "view2.xml").read_text()
+    (copy_of / "blind.xml").write_text(
+        re.sub(r'origin="[^"]*" target="[^"]*"', camera, text, count=1)
+    )
+    extra = "train: {steps: 1, progress: false}\nimages: {start: constant"
+    extra += ", validation_views: [1]}\n" if held_out else "}\n"
+    views = [("view1.xml", "view1.exr"), ("blind.xml", "view2.exr"), ("view3.xml", "view3.exr")]
+    path = _config(copy_of, views, extra)
+    needles = ("target.images[1].scene", "blind.xml", "sees no pixel of the fitted object", says)
+    _expect_exit_2(path, copy_of / "run", capsys, *needles)
+    assert not (copy_of / "run" / "config.yaml").exists()
+
+
+def test_a_fit_nested_in_another_bsdf_is_named_when_no_pixel_is_found():
+    # the object's pixels are those whose ray meets a shape whose own BSDF is the fit: a
+    # <ref id="fit"/> inside a twosided is not found, and the message says why
+    from neural_brdf.errors import InputError
+    from neural_brdf.inverse import views as inverse
+
+    root = ET.fromstring(
+        '<scene version="3.0.0"><bsdf type="diffuse" id="fit"/><shape type="sphere">'
+        '<bsdf type="twosided"><ref id="fit"/></bsdf></shape></scene>'
+    )
+    view = inverse.View(Path("s.xml"), Path("s.exr"), ET.ElementTree(root), None, "path")
+    none = np.zeros((4, 4), bool)
+    with pytest.raises(InputError, match=r'nested in a <bsdf type="twosided">') as e:
+        inverse.check_sees_object(view, "target.images[0].scene", none, none)
+    assert str(e.value).startswith("target.images[0].scene: s.xml: the view sees no pixel")
+    inverse.check_sees_object(view, "k", none, ~none)  # a front-facing pixel: seen
+
+
+def test_resume_after_ctrl_c_during_the_starts_choice_fits_again_from_it(
+    mi, example, tmp_path, capsys, monkeypatch
+):
+    # Ctrl-C while auto fitted its families (no init/ yet: the folder held config.yaml
+    # and coverage.png alone), then --resume: "no checkpoint", exit 2
+    import signal
+    import time
+
+    from neural_brdf.inverse import starts
+
+    real = starts.fit_candidate
+
+    def interrupted(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # a terminal's Ctrl-C, in this process
+        time.sleep(5)  # (the handler raises KeyboardInterrupt at once)
+        raise AssertionError("SIGINT did not interrupt")
+
+    run_dir = tmp_path / "run"
+    auto = ["images.start=auto", "images.start_families=[diffuse]", "images.validation_pixels=0.2"]
+    args = train_args(example / "fit.yaml", run_dir, TINY_FIT + auto)
+    monkeypatch.setattr(starts, "fit_candidate", interrupted)
+    # as in a terminal: a job started in the background (CI's) inherits SIGINT ignored
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        code, err = run_cli(args, capsys)
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert code == 130 and "interrupted" in err, err
+    left = sorted(p.name for p in run_dir.iterdir() if p.name != ".lock")
+    assert left == [".neural-brdf-run", "config.yaml", "coverage.png"], left
+    monkeypatch.setattr(starts, "fit_candidate", real)
+    code, err = run_cli(args + ["--resume"], capsys)
+    assert code == 0, err
+    said = [line for line in err.splitlines() if "does not exist yet" in line]
+    assert len(said) == 1 and "the fit starts again from the start's choice" in said[0], err
+    assert (run_dir / "model.onnx").is_file() and (run_dir / "ckpt.pt").is_file()
+    # a finished run's model without its checkpoint is not fitted again
+    (run_dir / "ckpt.pt").unlink()
+    code, err = run_cli(args + ["--resume", "--set", "train.steps=6"], capsys)
+    assert code == 2 and "no checkpoint" in err, err
+
+
+# a Python BSDF whose constructor Ctrl-C interrupts: Mitsuba turns what Python code it
+# calls raises into a RuntimeError holding the traceback's text ("KeyboardInterrupt: ")
+INTERRUPTING = "neural_brdf_test_interrupting"
+
+
+@pytest.fixture
+def interrupting_plugin(mi):
+    class Interrupting(mi.BSDF):
+        def __init__(self, props):
+            super().__init__(props)
+            raise KeyboardInterrupt
+
+    mi.register_bsdf(INTERRUPTING, lambda props: Interrupting(props))
+    return (
+        f'<scene version="3.0.0"><shape type="sphere"><bsdf type="{INTERRUPTING}"/></shape></scene>'
+    )
+
+
+def test_ctrl_c_inside_a_scenes_load_is_the_interrupt_not_bad_input(
+    mi, interrupting_plugin, tmp_path
+):
+    from neural_brdf.errors import InputError, Interrupted
+    from neural_brdf.inverse import views as inverse
+
+    with pytest.raises(KeyboardInterrupt):
+        inverse.load_scene(tmp_path / "s.xml", interrupting_plugin)
+    terminated = "Traceback ...\nneural_brdf.tooling.cli._Terminated: terminated (SIGTERM)"
+    for text, kind in [
+        ("[parser.cpp:1] failed to instantiate\nKeyboardInterrupt: ", KeyboardInterrupt),
+        (terminated, KeyboardInterrupt),
+        ("failed\nneural_brdf.errors.Interrupted: stopped", Interrupted),
+        ("failed\nSystemExit: 3", SystemExit),
+        ("[xml.cpp:12] Error while loading\nRuntimeError: no such plugin", None),
+    ]:
+        stop = inverse.interruption_in(text.splitlines()[-1])
+        assert (type(stop) if stop is not None else None) is kind, text
+    assert getattr(inverse.interruption_in(terminated.splitlines()[-1]), "signum", 0) == 15
+    # a bad scene is still bad input
+    with pytest.raises(InputError, match="Mitsuba cannot load it"):
+        inverse.load_scene(
+            tmp_path / "s.xml", '<scene version="3.0.0"><shape type="nothing"/></scene>'
+        )
+
+
+@pytest.mark.parametrize("raised", ["inside Mitsuba", "KeyboardInterrupt", "Interrupted"])
+def test_ctrl_c_while_the_scenes_load_exits_130_not_2(
+    mi, interrupting_plugin, copy_of, capsys, monkeypatch, raised
+):
+    # "error: v1.xml: Mitsuba cannot load it: KeyboardInterrupt:", exit 2, before
+    from neural_brdf.errors import Interrupted
+
+    real = mi.load_string
+
+    def loading(text, *args, **kwargs):
+        if raised == "KeyboardInterrupt":
+            raise KeyboardInterrupt
+        if raised == "Interrupted":
+            raise Interrupted("interrupted (Ctrl-C)")
+        return real(interrupting_plugin)
+
+    monkeypatch.setattr(mi, "load_string", loading)
+    path = _config(copy_of, [("view1.xml", "view1.exr")], "train: {progress: false}\n")
+    code, err = run_cli(["train", str(path), "--out", str(copy_of / "run")], capsys)
+    assert code == 130, err
+    assert "interrupted (Ctrl-C)" in err and "cannot load" not in err, err
+
+
+def test_resuming_a_run_stopped_early_says_to_raise_the_patience_not_the_steps(
+    mi, example, tmp_path, capsys, monkeypatch
+):
+    # "already finished at step 4; nothing to do (raise train.steps to train on ...)",
+    # which does nothing for a stage stopped by images.patience
+    from neural_brdf.inverse import fit as fitmod
+
+    scores = iter([1.0, 0.5, 0.9])  # the start, step 2 (the best), step 4: stop (patience 1)
+    monkeypatch.setattr(fitmod, "heldout_loss", lambda views, *, spp, seed: next(scores))
+    run_dir = tmp_path / "run"
+    stop = TINY_FIT + ["train.steps=8", "images.patience=1", "images.validation_pixels=0.2"]
+    code, err = run_cli(train_args(example / "fit.yaml", run_dir, stop), capsys)
+    assert code == 0 and "the image stage stops at step 4" in err, err
+    more = stop + ["train.steps=20"]
+    code = cli.main(train_args(example / "fit.yaml", run_dir, more) + ["--resume"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "already finished at step 4" in out, out + err
+    assert "raise train.steps" not in out, out
+    assert "its image stage stopped early at step 4 (images.patience 1)" in out, out
+    assert "raise images.patience, or set it to null, to train on" in out, out
+
+
+def test_a_clearcoat_start_is_named_as_such_in_the_determined_warning(mi):
+    # "... of the principled start" when auto chose clearcoat (a principled with a coat)
+    from types import SimpleNamespace
+
+    from neural_brdf.inverse import determined, families
+    from neural_brdf.inverse import fit as fitmod
+
+    init = {"start": {"family": "clearcoat", "params": families.family("clearcoat").initial()}}
+    element = fitmod._start_element(init)
+    assert element is not None and element.get("type") == "principled"
+    assert fitmod._start_family(init) == "clearcoat"
+    assert fitmod._start_family({"roughconductor": {"alpha": 0.2}}) is None  # the ggx start
+    det = SimpleNamespace(energy_figure=0.1, bins=8, tol=0.05, figure=0.2, reference="principled")
+    line = determined.warning(det, label=fitmod._start_family(init))  # type: ignore[arg-type]
+    assert line is not None and "of the clearcoat start" in line, line
+    assert "of the principled start" in (determined.warning(det) or "")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("capture, index", [("environment", 3), ("flash_pair", 4)])
+def test_the_examples_held_out_view_is_in_fit_yaml_with_how_to_score_it(
+    mi, tmp_path, capture, index
+):
+    # --heldout wrote view4, but fit.yaml neither listed it nor said how to use it
+    import yaml
+
+    from neural_brdf.inverse import scene as inverse_example
+
+    folder = tmp_path / "ex"
+    inverse_example.write(folder, resolution=8, spp=2, steps=3, capture=capture, heldout=True)
+    text = (folder / "fit.yaml").read_text()
+    entry = "    # - {scene: view4.xml, image: view4.exr}"
+    assert entry in text and f"images: {{validation_views: [{index}]}}" in text, text
+    # as it says: the entry uncommented, the section added; view4 is then held out whole
+    done = text.replace(entry, entry.replace("# ", "", 1))
+    done += f"images: {{validation_views: [{index}]}}\n"
+    (folder / "scored.yaml").write_text(done)
+    cfg = config.load(folder / "scored.yaml")
+    assert cfg.target.images[index].scene.endswith("view4.xml")
+    assert cfg.images.validation_views == [index]
+    plain = yaml.safe_load(text)["target"]["images"]  # as written: view4 not fitted
+    assert all("view4" not in e["scene"] for e in plain)

@@ -324,6 +324,10 @@ def _start_noise_rows(chosen: dict) -> list[list[str]]:
     return rows
 
 
+# the rule a start records when images.start named its family (neural_brdf/inverse/starts.py)
+NAMED = "images.start names the family"
+
+
 def _start_candidates(chosen: Any) -> list[Block]:
     """The families fitted for the start (``training.init.start.candidates``): each one's
     held-out and training loss, its time and whether the choice's rule tied it with the
@@ -355,17 +359,22 @@ def _start_candidates(chosen: Any) -> list[Block]:
     if not rows:
         return []
     header = ["start family", "held-out loss", "training loss", "fit time", "continued", "verdict"]
-    return [
-        Text(
+    if chosen.get("rule") == NAMED:  # (starts.choose: images.start gives the family)
+        said = (
+            "Start: the family images.start names, fitted to the training pixels, scored "
+            "on the held-out pixels (relative MSE without the render's noise), refined and "
+            "distilled into the network."
+        )
+    else:
+        said = (
             "Start: every family fitted to the training pixels, scored on the held-out "
             "pixels (relative MSE without the render's noise); the families within "
             "images.start_continue_within of the best, images.start_continue_max at most, "
             "fitted further (continued), and the "
             "simplest one within the noise of the best refined and distilled into the "
             "network."
-        ),
-        Table(header, rows),
-    ]
+        )
+    return [Text(said), Table(header, rows)]
 
 
 def loss_series(log: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
