@@ -51,10 +51,12 @@ def generate(
 
     ``lobe`` overrides the sampling lobe stored in the model's metadata (a dict with
     ``alpha`` and ``weight``); a model without one must be given it.  ``group``: the
-    WGSL bind group of a textured file's textures (default 1; GLSL's bindings are
-    #defines, C's are parameters).  ``prefix``: the prefix of every name the file
-    defines (default ``neural_brdf``: ``neural_brdf_eval``, C's guard ``NEURAL_BRDF_H``),
-    so that the files of several models can be used in one program
+    WGSL bind group of a textured file's textures, an int from 0 to 2^31 - 1 (default
+    1; anything else is a one-line InputError naming ``group``,
+    :func:`neural_brdf.backends.wgsl.check_group`; texture k is at binding k; GLSL's
+    bindings are #defines, C's are parameters).  ``prefix``: the prefix of every name
+    the file defines (default ``neural_brdf``: ``neural_brdf_eval``, C's guard
+    ``NEURAL_BRDF_H``), so that the files of several models can be used in one program
     (:func:`neural_brdf.backends.cstyle.check_prefix`).  ``source``: how the header
     comment and errors name the model (default: its path as given; errors of bytes or
     a ModelProto say ``codegen``)."""

@@ -491,7 +491,9 @@ class CStyleRenderer:
             "WITHOUT the cosine",
             f"{c} (0 below the horizon).  {self.fn('sample')} draws wo from the lobe "
             "(u1, u2 uniform in [0, 1))",
-            f"{c} and returns its pdf, as {self.fn('pdf')} would (0: reject the sample).",
+            f"{c} and returns its pdf, as {self.fn('pdf')} would (0: reject the sample; "
+            "a u not finite or not in",
+            f"{c} [0, 1) gives wo = (0, 0, -1) and pdf 0).",
             f"{c} Estimator: f * cos(theta_o) / pdf.",
         ]
         for k, tex in enumerate(self.textures):
@@ -622,7 +624,8 @@ class CStyleRenderer:
         parts += self.function(
             self.fn("sample"),
             lobe_ir.sample_program(**shape),
-            "Draws wo from the lobe (u1, u2 uniform in [0, 1)); returns its pdf (0: reject).",
+            "Draws wo from the lobe (u1, u2 uniform in [0, 1)); returns its pdf (0: reject; "
+            "a u not finite or not in [0, 1): wo = (0, 0, -1), pdf 0).",
         )
         return self.wrap(header, parts)
 

@@ -30,7 +30,8 @@ Both normalise their directions first, as the exported graph does for f
 (:func:`neural_brdf.train.model.unit_or_invalid`, the same operations): pdf(k wi, k' wo)
 is pdf(wi, wo) for k, k' > 0 (to float32 rounding), and a direction with a NaN, an
 infinity or zero length gives pdf 0; ``sample`` of such a wi returns wo = (0, 0, -1)
-(below the horizon) and pdf 0, a rejected sample.
+(below the horizon) and pdf 0, a rejected sample, and so does ``sample`` given a random
+number (u1, u2.x or u2.y) that is not finite or not in [0, 1) (1 included).
 """
 
 from __future__ import annotations
@@ -127,6 +128,22 @@ def _unit_or_invalid(b: Builder, w: list[V]) -> tuple[list[V], V]:
     n = (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]).f("sqrt")
     inv = _select(ok, n, 1.0)
     return [_select(ok, c / inv, z) for c, z in zip(u, (0.0, 0.0, 1.0), strict=True)], ok
+
+
+def _random_numbers(b: Builder, u1: V, u2: list[V]) -> tuple[V, list[V], V]:
+    """(u1, u2, valid): valid where u1, u2.x and u2.y are all finite and in [0, 1) (a
+    NaN fails every comparison, but the test is also a bit test, isnan and isinf, which
+    -ffast-math does not fold away and GLSL may not assume false); each number is
+    replaced by 0 where they are not, so that no NaN flows through the sampler."""
+    b.hint = "rnd"  # (not "u": its temporaries u1, u2 would shadow the inputs)
+    us = [u1, *u2]
+    good = [
+        u._op("not", u._op("or", u.f("isnan"), u.f("isinf"))) & u._op("ge", u, 0.0) & (u < 1.0)
+        for u in us
+    ]
+    ok = good[0] & good[1] & good[2]
+    safe = [_select(ok, u, 0.0) for u in us]
+    return safe[0], safe[1:], ok
 
 
 def _vec(b: Builder, name: str, n: int) -> list[V]:
@@ -308,8 +325,8 @@ def sample_program(
     """Inputs ``wi`` (3), ``u1`` (1), ``u2`` (2) -> outputs ``wo`` (3) and ``pdf``."""
     b = Builder()
     wi, ok = _unit_or_invalid(b, _vec(b, "wi", 3))
-    u1 = _vec(b, "u1", 1)[0]
-    u2 = _vec(b, "u2", 2)
+    u1, u2, u_ok = _random_numbers(b, _vec(b, "u1", 1)[0], _vec(b, "u2", 2))
+    ok = ok & u_ok
     b.hint = "cosine"
     r = u2[0].f("sqrt")
     phi = 2.0 * math.pi * u2[1]
@@ -324,7 +341,7 @@ def sample_program(
         v = _turn(v) if retro else v
         pick = u1 < w
         wo = [_select(pick, v[j], wo[j]) for j in range(3)]
-    # an invalid wi: a rejected sample below the horizon
+    # an invalid wi or random number: a rejected sample below the horizon
     wo = [_select(ok, c, z) for c, z in zip(wo, (0.0, 0.0, -1.0), strict=True)]
     # pdf(wi, wo) by pdf_program's instructions, wo normalised as there (a sampled wo is
     # a unit vector up to rounding), so that the two agree bit for bit

@@ -6,10 +6,10 @@
 
 A textured file gives ``neural_brdf_eval(wi, wo, uv)`` (uv: vec2<f32>) and binds its weight
 table as ``@group(1) @binding(k) var<storage, read> neural_brdf_texture<k>: array<f32>``
-(the group: ``WGSLRenderer(group=...)``, ``backends.generate(..., group=...)``; WGSL has
-no preprocessor).  One with the normal field (output n) also gives
-``fn neural_brdf_normal(uv: vec2<f32>) -> vec3<f32>``, its texels at binding 1.
-docs/codegen.md, "Textured files".
+(the group: ``WGSLRenderer(group=...)``, ``backends.generate(..., group=...)``, an int
+from 0 to 2^31 - 1, :func:`check_group`; WGSL has no preprocessor).  One with the
+normal field (output n) also gives ``fn neural_brdf_normal(uv: vec2<f32>) ->
+vec3<f32>``, its texels at binding 1.  docs/codegen.md, "Textured files".
 
 WGSL has no isnan/isinf: they are bit tests on ``bitcast<u32>``; no erf either (a
 polynomial, as in GLSL).
@@ -26,8 +26,27 @@ import numpy as np
 from neural_brdf import graph
 from neural_brdf.backends.cstyle import PREFIX, CStyleRenderer, camel
 from neural_brdf.backends.glsl import erf_helper
+from neural_brdf.errors import InputError
 
 VEC = {1: "f32", 2: "vec2<f32>", 3: "vec3<f32>", 4: "vec4<f32>"}
+# WGSL: the value of @group is a non-negative i32.  A WebGPU device takes groups below
+# its maxBindGroups limit, which is at least 4 (groups 0 to 3 work on every device).
+MAX_GROUP = 2**31 - 1
+
+
+def check_group(group) -> int:
+    """``group`` if it is a WGSL bind group (an int, not a bool, from 0 to
+    :data:`MAX_GROUP`), else a one-line InputError naming ``group``."""
+    if (
+        isinstance(group, (bool, np.bool_))
+        or not isinstance(group, (int, np.integer))
+        or not 0 <= group <= MAX_GROUP
+    ):
+        raise InputError(
+            f"group: expected a WGSL bind group, an int from 0 to {MAX_GROUP} (groups 0 to 3 "
+            f"work on every WebGPU device), got {group!r}"
+        )
+    return int(group)
 
 
 class WGSLRenderer(CStyleRenderer):
@@ -41,7 +60,7 @@ class WGSLRenderer(CStyleRenderer):
     def __init__(self, group: int = 1, *, prefix: str = PREFIX):
         super().__init__(prefix=prefix)
         # group 1: a host's own bindings are most often in group 0
-        self.group = int(group)
+        self.group = check_group(group)
         self.sample_struct = f"{camel(self.prefix)}Sample"  # NeuralBrdfSample
 
     def bitcast_float(self, bits: str) -> str:

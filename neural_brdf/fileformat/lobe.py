@@ -20,6 +20,9 @@ The JSON form (docs/model.md, "Sampling lobe"):
      "retro": false, "distribution": "ggx", "weight": 0.9, "second_moment": 1.31,
      "second_moment_cosine": 3.9, "table": {...}}   (table optional)
 
+Every alpha (alpha, alpha_x, alpha_y, the table's) is finite, > 0 (raised to MIN_ALPHA)
+and at most MAX_ALPHA; anything else is a one-line InputError naming the key.
+
 Who implements it: :mod:`neural_brdf.physics.lobe_fit` fits it; the Mitsuba plugin
 (:mod:`neural_brdf.renderers.mitsuba`) samples it with Mitsuba's own
 ``MicrofacetDistribution``; the code generators (:mod:`neural_brdf.backends.lobe_ir`) emit
@@ -48,6 +51,13 @@ KIND = "cosine+ggx_vndf"
 # sampler, 1.4x with 0.995).
 MIN_ALPHA = 0.01
 MAX_WEIGHT = 0.995
+# The roughest lobe a file may hold: the fitter's grid (neural_brdf.physics.lobe_fit.ALPHAS)
+# ends here, per-incidence tables included.  A larger alpha is refused (a one-line
+# error naming the key) rather than evaluated: far above it the float32 pdf and sampler
+# of every implementation overflow (alpha = 1e30 gave a NaN pdf at normal incidence),
+# and making them finite for any finite alpha would rewrite each of them (the plugin's
+# Mitsuba distribution included) for lobes no fit writes, all but the cosine lobe.
+MAX_ALPHA = 1.0
 # The microfacet distributions a lobe can sample: Mitsuba's MicrofacetType names.
 DISTRIBUTIONS = ("ggx", "beckmann")
 
@@ -285,6 +295,8 @@ def parse(text: str) -> dict:
             f"in [0, 1], "
             f"got {text!r}"
         )
+    for key, value in (("alpha", alpha), ("alpha_x", ax), ("alpha_y", ay)):
+        _check_max_alpha(key, value)
     if not isinstance(retro, bool):
         raise InputError(f"metadata {KEY!r}: retro must be true or false, got {text!r}")
     dist = lobe.get("distribution", "ggx")
@@ -306,10 +318,18 @@ def parse(text: str) -> dict:
     return out
 
 
+def _check_max_alpha(key: str, value: float) -> None:
+    if value > MAX_ALPHA:
+        raise InputError(
+            f"metadata {KEY!r}: {key} must be at most {MAX_ALPHA:g} (the roughest lobe the "
+            f"fit writes), got {value!r}"
+        )
+
+
 def _parse_table(table, text: str) -> dict:
     """The per-incidence table: equal-length lists (>= 2 nodes) of finite numbers,
-    cos_theta strictly ascending in [0, 1], alphas > 0 (raised to MIN_ALPHA), weights in
-    [0, 1]."""
+    cos_theta strictly ascending in [0, 1], alphas > 0 (raised to MIN_ALPHA) and at most
+    MAX_ALPHA, weights in [0, 1]."""
     keys = ("cos_theta", "alpha_x", "alpha_y", "weight")
     try:
         if not all(isinstance(table[k], list) for k in keys) or any(
@@ -335,6 +355,8 @@ def _parse_table(table, text: str) -> dict:
             f"in [0, 1], alphas > 0 and weights in [0, 1], got {text!r}"
         )
     for k in ("alpha_x", "alpha_y"):
+        for a in cols[k]:
+            _check_max_alpha(f"table {k}", a)
         cols[k] = [max(a, MIN_ALPHA) for a in cols[k]]
     return cols
 

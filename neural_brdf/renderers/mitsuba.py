@@ -58,11 +58,16 @@ lobe from the ONNX metadata key ``sampling_lobe``, which the exporter writes; fo
 exported before it did, it fits them when the model loads (about a second), as the
 analytic plugin always does.  The sample weight is
 computed by the very same traced functions as ``eval`` and ``pdf`` (value / pdf), so it
-equals eval / pdf exactly.
+equals eval / pdf exactly; with a normal field, to rounding only (the sampled wo is
+turned back to the unperturbed frame, and eval and pdf turn it again: docs/mitsuba.md).
 
 Conventions (Mitsuba's): ``eval`` returns f * cos(theta_o), 0 when wi or
 wo is at or below the horizon (one-sided, like Mitsuba's built-in BSDFs); ``pdf`` is 0
-below the horizon; a sample below it has weight 0.
+below the horizon; a sample below it has weight 0.  Directions follow the generated
+code's rule (:mod:`neural_brdf.backends.lobe_ir`, the graph's): each is normalised
+(:func:`_unit_or_invalid`) before the horizon test, the cosine and the pdf; one with a
+NaN, an infinity or zero length gives eval 0 and pdf 0, and as wi a refused sample (wo
+= (0, 0, -1), pdf 0, weight 0), as does a random number not finite or not in [0, 1].
 """
 
 from __future__ import annotations
@@ -132,6 +137,51 @@ def _turn(w):
     return mi.Vector3f(-w.x, -w.y, w.z)
 
 
+def _unit_or_invalid(w):
+    """(unit vector, valid) of any float direction by the exported graph's rule
+    (:func:`neural_brdf.train.model.unit_or_invalid`, and the generated code's
+    ``neural_brdf.backends.lobe_ir._unit_or_invalid``, the same operations): valid when
+    the three components are finite and not all zero; divided by the largest absolute
+    component, then by the length; an invalid direction becomes +z (the caller masks
+    it).  So pdf(k wi, k' wo) is pdf(wi, wo) for k, k' > 0, as in the generated code, and
+    a huge direction such as (3e38, 3e38, 3e38) means what it means to the graph."""
+    finite = dr.isfinite(w.x) & dr.isfinite(w.y) & dr.isfinite(w.z)
+    a = dr.abs(dr.select(finite, w, 0.0))
+    m = dr.maximum(dr.maximum(a.x, a.y), a.z)
+    ok = finite & (m > 0.0)
+    # component by component: a Vector3f divided by a Float is a product with the
+    # reciprocal, which is subnormal, so flushed to 0, for m above 2^126 (3e38)
+    u, d = dr.select(ok, w, 0.0), dr.select(ok, m, 1.0)
+    u = mi.Vector3f(u.x / d, u.y / d, u.z / d)
+    n = dr.sqrt(u.x * u.x + u.y * u.y + u.z * u.z)
+    return dr.select(ok, mi.Vector3f(u.x / n, u.y / n, u.z / n), mi.Vector3f(0.0, 0.0, 1.0)), ok
+
+
+def _in_unit_interval(x):
+    """Where a random number is finite and in [0, 1].  Not [0, 1): a sampler's float32
+    rounding may reach 1.0 ((i + jitter) / n, say), and Mitsuba's warps take it; the
+    generated code, whose callers are documented to pass [0, 1), refuses 1
+    (neural_brdf.backends.lobe_ir)."""
+    return dr.isfinite(x) & (x >= 0.0) & (x <= 1.0)
+
+
+def _samples_ok(sample1, sample2):
+    return _in_unit_interval(sample1) & _in_unit_interval(sample2.x) & _in_unit_interval(sample2.y)
+
+
+def _unit_si(si):
+    """(a copy of si with wi normalised by the graph's rule, valid)."""
+    wi, ok = _unit_or_invalid(si.wi)
+    usi = mi.SurfaceInteraction3f(si)
+    usi.wi = wi
+    return usi, ok
+
+
+# where a sample is refused before it is drawn (wi not a direction, u not in [0, 1]):
+# a direction below the horizon, as the generated code's rejected sample
+_REJECTED = (0.0, 0.0, -1.0)
+
+
 def _shadow_terminator(n, wo):
     """Estevez et al. 2019's shadowing term of a perturbed normal n (in the unperturbed
     frame) for wo: normalmap_helpers.h's eval_shadow_terminator."""
@@ -177,8 +227,15 @@ class _GraphBSDF(mi.BSDF):
 
     # -- the three traced pieces; sample() reuses them so that weight == eval / pdf
     def _f_cos(self, si, wo, active):
-        cos_i, cos_o = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(wo)
-        valid = active & (cos_i > 0.0) & (cos_o > 0.0)
+        # wi and wo are normalised by the graph's rule for the horizon test and the
+        # cosine (a non-finite or zero-length direction gives 0, a scaled one what the
+        # unit one gives); the graph itself gets them as given and normalises them with
+        # the same operations, so that it is onnxruntime's f at the given floats
+        wi_u, ok_i = _unit_or_invalid(si.wi)
+        wo_u, ok_o = _unit_or_invalid(wo)
+        valid = active & ok_i & ok_o & (wi_u.z > 0.0) & (wo_u.z > 0.0)
+        # (the cosine is the unit wo's, taken in _graph_f_cos, whose (wi, wo) signature
+        # the differentiable plugin, neural_brdf.inverse.bsdf, overrides)
         # The graph runs inside a conditional, which Dr.Jit skips for a SIMD packet
         # (LLVM) or warp (CUDA) where no lane needs it: the unlit side of a light,
         # light samples below the horizon, paths that left the surface.
@@ -190,18 +247,25 @@ class _GraphBSDF(mi.BSDF):
 
     def _graph_f_cos(self, wi, wo):
         out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z])[OUTPUT]
-        return mi.Color3f(out[0], out[1], out[2]) * mi.Frame3f.cos_theta(wo)
+        return mi.Color3f(out[0], out[1], out[2]) * _unit_or_invalid(wo)[0].z
 
     def _graph_f_cos_uv(self, wi, wo, uv):
         """The textured graph at the texture coordinates ``uv`` (the host's si.uv, wrapped
         by the graph itself); the sampling lobe stays the file's global one."""
         out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z], uv=[uv.x, uv.y])[OUTPUT]
-        return mi.Color3f(out[0], out[1], out[2]) * mi.Frame3f.cos_theta(wo)
+        return mi.Color3f(out[0], out[1], out[2]) * _unit_or_invalid(wo)[0].z
 
-    def _pdf(self, si, wo, active):
+    def _pdf(self, si, wo, active, unit=False):
+        # the generated code's rule (neural_brdf.backends.lobe_ir): both directions
+        # normalised as the graph does, 0 for a non-finite or zero-length one; unit:
+        # they were, before a normal field's rotation (_rotated), and are used as they
+        # are (so that a flat field gives the pdf of the file without it, bit for bit)
         wi = si.wi
-        cos_i, cos_o = mi.Frame3f.cos_theta(wi), mi.Frame3f.cos_theta(wo)
-        valid = active & (cos_i > 0.0) & (cos_o > 0.0)
+        if not unit:
+            wi, ok_i = _unit_or_invalid(wi)
+            wo, ok_o = _unit_or_invalid(wo)
+            active = active & ok_i & ok_o
+        valid = active & (wi.z > 0.0) & (wo.z > 0.0)
         distr, w, ax, ay = self._lobe(wi)
         p = (1.0 - w) * mi.warp.square_to_cosine_hemisphere_pdf(wo)
         if self.lobe_weight > 0.0:  # a Python float: decided once, not per lane
@@ -265,13 +329,18 @@ class _GraphBSDF(mi.BSDF):
         return frame
 
     def _rotated(self, si, wo, active):
-        """(frame, si with wi in the frame, wo in the frame, active & same side)."""
-        frame = self._frame(si)
-        psi = mi.SurfaceInteraction3f(si)
-        psi.wi = frame.to_local(si.wi)
+        """(frame, si with wi in the frame, wo in the frame, wo, active & same side), wi
+        and wo normalised first by the graph's rule (a non-finite or zero-length one
+        leaves active false), so that a scaled direction is turned as the unit one."""
+        usi, ok_i = _unit_si(si)
+        wo, ok_o = _unit_or_invalid(wo)
+        frame = self._frame(usi)
+        psi = mi.SurfaceInteraction3f(usi)
+        psi.wi = frame.to_local(usi.wi)
         pwo = frame.to_local(wo)
-        ok = active & (mi.Frame3f.cos_theta(wo) * mi.Frame3f.cos_theta(pwo) > 0.0)
-        return frame, psi, pwo, ok
+        ok = active & ok_i & ok_o
+        ok &= mi.Frame3f.cos_theta(wo) * mi.Frame3f.cos_theta(pwo) > 0.0
+        return frame, psi, pwo, wo, ok
 
     def _shadowed(self, value, frame, wo):
         if self.normal_flags.get("use_shadowing_function", True):
@@ -283,7 +352,7 @@ class _GraphBSDF(mi.BSDF):
             return mi.Color3f(0.0)
         if self.normal_program is None:
             return self._f_cos(si, wo, active)
-        frame, psi, pwo, ok = self._rotated(si, wo, active)
+        frame, psi, pwo, wo, ok = self._rotated(si, wo, active)
         value = self._shadowed(self._f_cos(psi, pwo, ok), frame, wo)
         return dr.select(ok, value, 0.0)
 
@@ -292,37 +361,44 @@ class _GraphBSDF(mi.BSDF):
             return mi.Float(0.0)
         if self.normal_program is None:
             return self._pdf(si, wo, active)
-        _, psi, pwo, ok = self._rotated(si, wo, active)
-        return dr.select(ok, self._pdf(psi, pwo, ok), 0.0)
+        _, psi, pwo, _, ok = self._rotated(si, wo, active)
+        return dr.select(ok, self._pdf(psi, pwo, ok, unit=True), 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):
         if not self._enabled(ctx):
             return mi.Color3f(0.0), mi.Float(0.0)
         if self.normal_program is None:
             return self._f_cos(si, wo, active), self._pdf(si, wo, active)
-        frame, psi, pwo, ok = self._rotated(si, wo, active)
+        frame, psi, pwo, wo, ok = self._rotated(si, wo, active)
         value = self._shadowed(self._f_cos(psi, pwo, ok), frame, wo)
-        return dr.select(ok, value, 0.0), dr.select(ok, self._pdf(psi, pwo, ok), 0.0)
+        return dr.select(ok, value, 0.0), dr.select(ok, self._pdf(psi, pwo, ok, unit=True), 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         if self.normal_program is None or not self._enabled(ctx):
             return self._sample(ctx, si, sample1, sample2, active)
-        frame = self._frame(si)
-        psi = mi.SurfaceInteraction3f(si)
-        psi.wi = frame.to_local(si.wi)
-        bs, weight = self._sample(ctx, psi, sample1, sample2, active)
+        usi, ok_i = _unit_si(si)
+        frame = self._frame(usi)
+        psi = mi.SurfaceInteraction3f(usi)
+        psi.wi = frame.to_local(usi.wi)
+        bs, weight = self._sample(ctx, psi, sample1, sample2, active & ok_i, unit=True)
         wo = frame.to_world(bs.wo)
-        ok = active & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(wo) > 0.0)
+        ok = active & ok_i & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(wo) > 0.0)
         bs.pdf = dr.select(ok, bs.pdf, 0.0)
-        bs.wo = wo
+        bs.wo = dr.select(ok_i & _samples_ok(sample1, sample2), wo, mi.Vector3f(*_REJECTED))
         weight = self._shadowed(weight, frame, wo)
         return bs, dr.select(ok, weight, 0.0)
 
-    def _sample(self, ctx, si, sample1, sample2, active=True):
+    def _sample(self, ctx, si, sample1, sample2, active=True, unit=False):
         bs = dr.zeros(mi.BSDFSample3f)
         if not self._enabled(ctx):
             return bs, mi.Color3f(0.0)
-        wi = si.wi
+        # the generated code's rule: wi normalised as the graph does; a non-finite or
+        # zero-length wi, or a random number that is not finite or not in [0, 1], is a
+        # refused sample: wo = (0, 0, -1), pdf 0, weight 0 (never a NaN direction)
+        wi, ok_i = (si.wi, mi.Bool(True)) if unit else _unit_or_invalid(si.wi)
+        drawn = ok_i & _samples_ok(sample1, sample2)
+        sample1 = dr.select(drawn, sample1, 0.0)
+        sample2 = dr.select(drawn, sample2, 0.0)
         wo = mi.warp.square_to_cosine_hemisphere(sample2)
         glossy = mi.Bool(False)
         if self.lobe_weight > 0.0:
@@ -331,8 +407,9 @@ class _GraphBSDF(mi.BSDF):
             glossy = sample1 < w
             v = mi.reflect(wi, m)
             wo = dr.select(glossy, _turn(v) if self.lobe_retro else v, wo)
-        active = active & (mi.Frame3f.cos_theta(wi) > 0.0)
-        pdf = self._pdf(si, wo, active)
+        wo = dr.select(drawn, wo, mi.Vector3f(*_REJECTED))
+        active = active & drawn & (wi.z > 0.0)
+        pdf = self._pdf(si, wo, active, unit)
         value = self._f_cos(si, wo, active)
         ok = active & (pdf > 0.0)
         bs.wo = wo

@@ -23,6 +23,8 @@ exported graph as onnxruntime does.
   WebGL2): scaled directions give the lobe's density and draws at the unit ones (the
   reference mixture density and the file format's sampler), a non-finite or zero-length
   direction gives pdf 0 (sample: wo below the horizon);
+* sample refuses a random number that is not finite or not in [0, 1) (C99 and
+  -ffast-math, WGSL, WebGL2): wo = (0, 0, -1) and pdf 0, never a NaN direction;
 * prefixes: three C headers (two prefixes and the default) in one translation unit, three
   WGSL files in one module, three GLSL files in one shader, each with its own model's
   values; the default prefix is the unprefixed file; a bad prefix is one line;
@@ -1044,6 +1046,50 @@ def test_c_pdf_and_sample_normalise_their_directions(tmp_path, lobe, flags):
     np.testing.assert_allclose(spdf, c.pdf(wi, swo), rtol=1e-4 if flags else 0.0, atol=0.0)
 
 
+# Random numbers the sampler refuses: not finite, or outside [0, 1) (1 included), in
+# u1, u2.x or u2.y; each gives a rejected sample, wo = (0, 0, -1) and pdf 0, never a NaN
+# direction (before: wo = NaN for a bad u2, and a NaN u1 drew the GGX branch).
+BAD_U = (np.nan, np.inf, -np.inf, -1.0, -1e-30, 1.0, 2.0, 1e30)
+# ... and ones it takes: the ends of [0, 1), a subnormal
+GOOD_U = (0.0, -0.0, float(np.nextafter(np.float32(1.0), np.float32(0.0))), 1e-45, 0.5)
+
+
+def random_number_rows(seed: int = 23) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(wi, u1, u2) float32 rows: each value of BAD_U and GOOD_U in each of the three
+    places, the other two ordinary, at four incident directions; the mask of bad rows."""
+    rng = np.random.default_rng(seed)
+    wi_list, us, bad = [], [], []
+    for wi in ([0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [0.3, -0.2, 0.5], [0.9999, 0.0, 0.01414]):
+        for value in BAD_U + GOOD_U:
+            for place in range(3):
+                u = rng.uniform(0.05, 0.95, 3)
+                u[place] = value
+                wi_list.append(wi)
+                us.append(u)
+                bad.append(value in BAD_U or np.isnan(value))
+    u = np.array(us, dtype=np.float32)
+    return np.array(wi_list, np.float32), u[:, 0], u[:, 1:], np.array(bad)
+
+
+def check_random_numbers(sample) -> None:
+    """``sample(wi, u1, u2) -> (wo, pdf)`` of one back end on :func:`random_number_rows`:
+    a refused number gives wo = (0, 0, -1) and pdf 0; a good one a finite unit wo."""
+    wi, u1, u2, bad = random_number_rows()
+    wo, pdf = sample(wi, u1, u2)
+    assert np.isfinite(wo).all() and np.isfinite(pdf).all()
+    assert (wo[bad] == [0.0, 0.0, -1.0]).all(), wo[bad]
+    assert (pdf[bad] == 0.0).all(), pdf[bad]
+    np.testing.assert_allclose(np.linalg.norm(wo[~bad], axis=-1), 1.0, atol=1e-3)
+    assert (pdf[~bad] > 0).mean() > 0.5
+
+
+@pytest.mark.parametrize("flags", [(), ("-ffast-math",)], ids=["c99", "fast_math"])
+@pytest.mark.parametrize("lobe", [ANISO_RETRO, BECKMANN, {"alpha": 0.3, "weight": 0.0}])
+def test_c_sample_rejects_bad_random_numbers(tmp_path, lobe, flags):
+    c = CProgram(product_model(), tmp_path, lobe=lobe, flags=flags)
+    check_random_numbers(c.sample)
+
+
 WGSL_LOBE_KERNEL = """
 @group(0) @binding(0) var<storage, read> nb_rows: array<f32>;
 @group(0) @binding(1) var<storage, read_write> nb_res: array<f32>;
@@ -1082,6 +1128,7 @@ def test_wgsl_pdf_and_sample_normalise_their_directions(wgpu_device, lobe):
         return res[:, 0], res[:, 1:4], res[:, 4]
 
     check_lobe_directions(run, lobe, GPU_TOL, 1e-3)
+    check_random_numbers(lambda wi, u1, u2: run(wi, np.zeros_like(wi), u1, u2)[1:])
 
 
 GLSL_LOBE_CALLS = {  # vec3 neural_brdf_eval(a, b) of the harness, over the lobe's functions
@@ -1116,6 +1163,7 @@ def test_glsl_pdf_and_sample_normalise_their_directions():
         return pdf, swo, spdf
 
     check_lobe_directions(run, lobe, GPU_TOL, WEBGL_WO_TOL)
+    check_random_numbers(lambda wi, u1, u2: run(wi, np.zeros_like(wi), u1, u2)[1:])
 
 
 # ------------------------------------------------------------------ prefixes
@@ -1302,6 +1350,31 @@ def test_a_bad_prefix_is_one_line(prefix):
         with pytest.raises(InputError, match="prefix: expected") as e:
             backends.generate(product_model(), target, lobe=ANISO_RETRO, prefix=prefix)
         assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("group", [-1, 1.5, True, np.bool_(False), "2", 2**31, [1], None], ids=repr)
+def test_a_bad_wgsl_group_is_one_line(group):
+    """WGSL's @group is a non-negative i32: a negative, fractional, boolean, string or
+    too large group is refused in one line naming ``group`` (before: @group(-1) was
+    written, 1.5 and True became 1, '2' was taken).  None is generate()'s default."""
+    from neural_brdf.backends.wgsl import WGSLRenderer
+
+    if group is not None:
+        with pytest.raises(InputError, match=r"^group: expected a WGSL bind group") as e:
+            backends.generate(product_model(), "wgsl", lobe=ANISO_RETRO, group=group)
+        assert "\n" not in str(e.value)
+    with pytest.raises(InputError, match=r"^group: expected a WGSL bind group"):
+        WGSLRenderer(group=group)
+
+
+def test_a_wgsl_group_is_an_int_from_0():
+    from neural_brdf.backends.wgsl import MAX_GROUP, WGSLRenderer
+
+    for group in (0, 3, np.int64(2), MAX_GROUP):
+        assert WGSLRenderer(group=group).group == int(group)
+        assert type(WGSLRenderer(group=group).group) is int
+    text = backends.generate(product_model(), "wgsl", lobe=ANISO_RETRO, group=0)
+    assert "@group" not in text  # a two-input file binds nothing
 
 
 # ------------------------------------------------------------------ errors name the file

@@ -150,3 +150,34 @@ def test_same_density_reads_what_the_sampler_reads_and_nothing_else():
         rng = np.random.default_rng(0)
         wo, _ = lobe.sample(a, wi, rng.random(64), rng.random((64, 2)))
         assert not np.allclose(lobe.pdf(a, wi, wo), lobe.pdf(lobe.complete(b), wi, wo)), other
+
+
+@pytest.mark.parametrize(
+    "key, given",
+    [
+        ("alpha", {"alpha": 1e30}),
+        ("alpha_x", {"alpha": 0.5, "alpha_x": 1.5}),
+        ("alpha_y", {"alpha": 0.5, "alpha_y": 1e30}),
+        ("table alpha_x", {"alpha": 0.3, "table": {"alpha_x": [0.2, 3.0]}}),
+        ("table alpha_y", {"alpha": 0.3, "table": {"alpha_y": [1e30, 0.3]}}),
+    ],
+)
+def test_an_alpha_above_the_maximum_is_refused_naming_the_key(key, given):
+    """The fitter's grid ends at MAX_ALPHA (1.0); a larger alpha (1e30 gave a NaN pdf at
+    normal incidence in the generated code) is a one-line error naming the key, in the
+    metadata (parse) and in a lobe given whole or in part (complete)."""
+    from neural_brdf.errors import InputError
+
+    assert lobe.MAX_ALPHA == 1.0
+    table = {"cos_theta": [0.2, 0.9], "alpha_x": [0.2, 0.3], "alpha_y": [0.2, 0.3]}
+    table["weight"] = [0.5, 0.5]
+    if "table" in given:
+        given = {**given, "table": {**table, **given["table"]}}
+    text = lobe.to_json({"kind": lobe.KIND, "weight": 0.5, **given})
+    for read in (lambda: lobe.parse(text), lambda: lobe.complete({"weight": 0.5, **given})):
+        with pytest.raises(InputError, match=rf"{lobe.KEY!r}: {key} must be at most 1 ") as e:
+            read()
+        assert "\n" not in str(e.value)
+    # the fitter's roughest lobe is taken, in a table too
+    assert lobe.complete({"alpha": 1.0, "weight": 0.5})["alpha_x"] == 1.0
+    assert lobe.complete({"alpha": 0.3, "weight": 0.5, "table": {**table, "alpha_x": [1.0, 1.0]}})

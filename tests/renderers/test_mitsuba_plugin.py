@@ -422,6 +422,112 @@ def test_sample_weight_is_eval_over_pdf(mi, tiny_model, kind):
     np.testing.assert_array_equal(to_np(bsdf.pdf(ctx, si, bs.wo)), pdf)
 
 
+# ------------------------------------------------------------------ any direction
+# The generated code's rule (neural_brdf.backends.lobe_ir, the graph's unit_or_invalid):
+# a direction with a NaN or an infinity, or of zero length, is not one; any other is
+# normalised (divided by its largest component, then by its length).  Scales stay off
+# float32's subnormals, which Dr.Jit's vectorised LLVM kernels flush to 0.
+HOSTILE = [
+    [np.nan, 0.0, 1.0],
+    [np.inf, 0.0, 1.0],
+    [0.1, -np.inf, 0.5],
+    [0.0, 0.0, np.inf],
+    [0.0, 0.0, 0.0],
+    [np.nan, np.nan, np.nan],
+]
+SCALES = (1e-30, 1e-3, 7.5, 1e4, 1e30)
+
+
+def graph_unit(w: np.ndarray) -> np.ndarray:
+    """Finite, non-zero float32 directions normalised by the graph's operations."""
+    w = np.asarray(w, np.float32)
+    u = w / np.abs(w).max(-1, keepdims=True)
+    n = np.sqrt((u[:, 0:1] * u[:, 0:1] + u[:, 1:2] * u[:, 1:2]) + u[:, 2:3] * u[:, 2:3])
+    return (u / n).astype(np.float64)
+
+
+def test_eval_pdf_and_sample_take_any_direction_as_the_generated_code_does(mi, tiny_model):
+    """A non-finite or zero-length wi or wo gives eval 0 and pdf 0, and as wi a refused
+    sample (wo = (0, 0, -1), pdf 0, weight 0); a scaled direction, (3e38, 3e38, 3e38)
+    included, gives what the unit one gives: eval = f (onnxruntime at the given floats)
+    times the unit wo's cosine, pdf the stored mixture at the unit vectors, the same
+    sample.  Before: pdf((NaN, 0, 1), wo) was the cosine share 0.0318, pdf((3e38, 3e38,
+    3e38), (0, 0, 1)) too where the generated C gives 0.148, eval((0, 0, 5), (0, 3, 4))
+    was 5 f cos, and a NaN wi drew a NaN wo."""
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(tiny_model)})
+    ctx = mi.BSDFContext()
+    wi, wo = pairs(11, 600)
+    wo[:, 2] = np.abs(wo[:, 2])
+    bad = np.array(HOSTILE, np.float32)
+    good = np.repeat(wi[:1], len(bad), 0)
+    huge = (wi / np.abs(wi).max(-1, keepdims=True) * 3e38).astype(np.float32)
+    blocks = [(wi, wo), (bad, good), (good, bad), (huge, wo), (wi, huge)]
+    for k in SCALES:
+        blocks += [(wi * k, wo), (wi, wo * k), (wi * k, wo / k)]
+    bwi = np.concatenate([a for a, _ in blocks]).astype(np.float32)
+    bwo = np.concatenate([b for _, b in blocks]).astype(np.float32)
+    hostile = ~np.isfinite(bwi).all(1) | ~np.isfinite(bwo).all(1)
+    hostile |= (bwi == 0).all(1) | (bwo == 0).all(1)
+    assert hostile.sum() == 2 * len(HOSTILE)
+    si = interaction(mi, bwi)
+    value = to_np(bsdf.eval(ctx, si, vec3(mi, bwo)))
+    pdf = to_np(bsdf.pdf(ctx, si, vec3(mi, bwo)))
+    assert np.isfinite(value).all() and np.isfinite(pdf).all()
+    assert (value[hostile] == 0).all() and (pdf[hostile] == 0).all(), pdf[hostile]
+    ok = ~hostile
+    uwi, uwo = graph_unit(bwi[ok]), graph_unit(bwo[ok])
+    np.testing.assert_allclose(pdf[ok], mixture_pdf(uwi, uwo, bsdf.lobe), rtol=2e-4, atol=1e-6)
+    f = ort.InferenceSession(str(tiny_model), providers=["CPUExecutionProvider"]).run(
+        ["f"], {"wi": bwi[ok], "wo": bwo[ok]}
+    )[0]
+    ref = f.astype(np.float64) * np.clip(uwo[:, 2:3], 0.0, None)
+    assert relative_difference(value[ok], ref) <= PARITY_TOL
+    assert (pdf[ok] > 0).mean() > 0.9
+    # sample: a hostile wi is a refused sample; a scaled one draws what the unit one does
+    n = len(wi)
+    u = np.random.default_rng(12).random((n, 3)).astype(np.float32)
+    given = [np.asarray(a, np.float32) for a, _ in blocks if len(a) == n]  # every wi of n
+    swi = np.concatenate([*given, bad])
+    su = np.concatenate([u] * len(given) + [u[: len(bad)]])
+    bs, weight = bsdf.sample(
+        ctx,
+        interaction(mi, swi),
+        mi.Float(su[:, 0]),
+        mi.Point2f(mi.Float(su[:, 1]), mi.Float(su[:, 2])),
+    )
+    swo, spdf, weight = to_np(bs.wo), to_np(bs.pdf), to_np(weight)
+    assert np.isfinite(swo).all() and np.isfinite(spdf).all() and np.isfinite(weight).all()
+    last = slice(len(swi) - len(bad), None)
+    assert (swo[last] == [0.0, 0.0, -1.0]).all() and (spdf[last] == 0).all()
+    assert (weight[last] == 0).all()
+    assert (spdf[:n] > 0).mean() > 0.9
+    for k in range(1, len(given)):
+        block = slice(k * n, (k + 1) * n)
+        assert np.quantile(np.linalg.norm(swo[block] - swo[:n], axis=-1), 0.999) < 1e-4, k
+        np.testing.assert_allclose(spdf[block], spdf[:n], rtol=2e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("place", [0, 1, 2])
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf, -1.0, 2.0])
+def test_a_random_number_that_is_not_one_is_a_refused_sample(mi, tiny_model, place, value):
+    """Not finite, or outside [0, 1], in sample1, sample2.x or sample2.y: wo = (0, 0, -1),
+    pdf 0, weight 0 (before: a NaN sample2 drew a NaN wo)."""
+    bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(tiny_model)})
+    wi, _ = pairs(13, 200)
+    u = np.random.default_rng(14).random((len(wi), 3)).astype(np.float32)
+    u[::2, place] = value
+    bs, weight = bsdf.sample(
+        mi.BSDFContext(),
+        interaction(mi, wi),
+        mi.Float(u[:, 0]),
+        mi.Point2f(mi.Float(u[:, 1]), mi.Float(u[:, 2])),
+    )
+    swo, spdf, weight = to_np(bs.wo), to_np(bs.pdf), to_np(weight)
+    assert (swo[::2] == [0.0, 0.0, -1.0]).all() and (spdf[::2] == 0).all()
+    assert (weight[::2] == 0).all()
+    assert np.isfinite(swo).all() and (spdf[1::2] > 0).mean() > 0.9
+
+
 # ------------------------------------------------------------------ furnace
 def furnace_cases():
     return [
