@@ -1028,17 +1028,27 @@ def from_dict(raw: Any, *, source: str = "config", overrides: Sequence[str] = ()
 
 
 def read_text(path: Path) -> str:
-    """A config file's text; ConfigError naming the file if it is unreadable or not UTF-8."""
+    """A config file's text; ConfigError naming the file if it is unreadable or not UTF-8,
+    or is no regular file (a FIFO or a device: refused before it is read, never waited
+    on).  At most ``limits.MAX_CONFIG_BYTES`` + 1 bytes are read.  (The command line
+    names a measured file given as a config as such: ``cli._not_measured``.)"""
+    from neural_brdf import fileio
+
     try:
-        size = path.stat().st_size
-        if size > limits.MAX_CONFIG_BYTES:
-            raise ConfigError(
-                f"{path}: {limits.human(size)}, more than a config may be "
-                f"({limits.human(limits.MAX_CONFIG_BYTES)}); is it a config file?"
-            )
-        data = path.read_bytes()
+        data = fileio.read_capped(path, limits.MAX_CONFIG_BYTES)
+    except fileio.NotAFileError as e:
+        raise ConfigError(f"{e} (give a config file)") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+    if len(data) > limits.MAX_CONFIG_BYTES:
+        try:
+            size = limits.human(path.stat().st_size)
+        except OSError:
+            size = "more than " + limits.human(limits.MAX_CONFIG_BYTES)
+        raise ConfigError(
+            f"{path}: {size}, more than a config may be "
+            f"({limits.human(limits.MAX_CONFIG_BYTES)}); is it a config file?"
+        )
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as e:

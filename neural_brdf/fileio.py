@@ -36,6 +36,7 @@ import tempfile
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 _UMASK_LOCK = threading.Lock()
 
@@ -171,6 +172,69 @@ def atomic_write_all(payloads: dict[str, bytes]) -> None:
     with contextlib.ExitStack() as stack:
         for path, payload in payloads.items():
             _write_all(stack.enter_context(atomic_path(path)), payload)
+
+
+# ------------------------------------------------------------------ reading
+class NotAFileError(OSError):
+    """A file to read is a FIFO, a device or a socket: ``str()`` is the one-line
+    message, ``PATH: is a FIFO, not a file``."""
+
+    def __str__(self) -> str:
+        return f"{self.filename}: {self.strerror}"
+
+
+_KINDS = (
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _not_a_file(path: str | os.PathLike, mode: int) -> NotAFileError | None:
+    for test, kind in _KINDS:
+        if test(mode):
+            return NotAFileError(errno.EINVAL, f"is {kind}, not a file", os.fspath(path))
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        return NotAFileError(errno.EINVAL, "is not a regular file", os.fspath(path))
+    return None
+
+
+def open_for_reading(path: str | os.PathLike) -> BinaryIO:
+    """``open(path, "rb")`` for a regular file (links followed), never blocking: a FIFO,
+    a device (``/dev/zero``) or a socket raises :class:`NotAFileError` before anything
+    is read (the file is opened non-blocking and checked with fstat), a folder
+    IsADirectoryError, a missing file FileNotFoundError."""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise _renamed(e, Path(path)) from None
+    bad = _not_a_file(path, st.st_mode)  # a socket cannot even be opened
+    if bad is not None:
+        raise bad
+    if stat.S_ISDIR(st.st_mode):
+        raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), os.fspath(path))
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(path, flags)
+    try:
+        st = os.fstat(fd)  # what was opened: the path may have changed since the stat
+        bad = _not_a_file(path, st.st_mode)
+        if bad is not None:
+            raise bad
+        if stat.S_ISDIR(st.st_mode):
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), os.fspath(path))
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_capped(path: str | os.PathLike, limit: int) -> bytes:
+    """The bytes of the regular file ``path`` (:func:`open_for_reading`), at most
+    ``limit + 1`` of them: a result longer than ``limit`` means the file is larger."""
+    with open_for_reading(path) as fh:
+        return fh.read(limit + 1)
 
 
 # ------------------------------------------------------------------ JSON reports

@@ -310,3 +310,79 @@ def test_the_report_writers_share_the_json_rule(tmp_path):
             "checks": {"x": {"value": "inf"}},
             "rows": [["nan"]],
         }
+
+
+# ------------------------------------------------------------------ reading
+@pytest.fixture
+def no_hang():
+    """A read that blocks (a FIFO opened for reading waits for a writer) fails the test
+    after 20 s instead of hanging it: SIGALRM interrupts the open."""
+    import signal
+
+    def alarm(signum, frame):
+        raise TimeoutError("blocked reading a FIFO")
+
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(20)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_reading_refuses_a_fifo_and_a_device_without_blocking(tmp_path, no_hang):
+    fifo = tmp_path / "x.yaml"
+    os.mkfifo(fifo)  # never opened for writing: a reader that opens it would block
+    zero = tmp_path / "zero.yaml"
+    zero.symlink_to("/dev/zero")
+    for path, kind in ((fifo, "a FIFO"), (zero, "a character device")):
+        with pytest.raises(fileio.NotAFileError) as e:
+            fileio.read_capped(path, 100)
+        assert str(e.value) == f"{path}: is {kind}, not a file"
+    (tmp_path / "f.txt").write_bytes(b"x" * 50)
+    assert fileio.read_capped(tmp_path / "f.txt", 10) == b"x" * 11  # limit + 1 at most
+    with pytest.raises(IsADirectoryError):
+        fileio.open_for_reading(tmp_path)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_config_that_is_a_fifo_or_a_device_is_refused_by_name(tmp_path, no_hang):
+    from neural_brdf import config
+    from neural_brdf.errors import ConfigError
+
+    fifo = tmp_path / "x.yaml"
+    os.mkfifo(fifo)
+    zero = tmp_path / "z.yaml"
+    zero.symlink_to("/dev/urandom")  # st_size 0: the size check alone let it through
+    for path, kind in ((fifo, "a FIFO"), (zero, "a character device")):
+        with pytest.raises(ConfigError) as e:
+            config.read_text(path)
+        msg = str(e.value)
+        assert msg.startswith(f"{path}: is {kind}, not a file") and "\n" not in msg, msg
+
+
+def test_a_measured_file_given_as_a_config_is_named_as_measured_data(tmp_path, capsys):
+    """train, bake, render --reference and view --compare said "more than a config may be"
+    (or "not UTF-8") of a MERL or RGL file (validate --reference takes one)."""
+    from cli_helpers import assert_one_line_error, cli
+    from neural_brdf import config, limits
+    from neural_brdf.errors import ConfigError
+
+    merl_file = tmp_path / "gold.binary"
+    merl_file.write_bytes(bytes(limits.MAX_CONFIG_BYTES + 10))  # larger than a config
+    rgl_file = tmp_path / "gold.pbsdf"  # an RGL tensor file, known by its first bytes
+    rgl_file.write_bytes(b"tensor_file\0\1\0" + bytes(100))
+    model = tmp_path / "m.onnx"  # (refused before the model is read)
+    for path, what in ((merl_file, "MERL .binary"), (rgl_file, "RGL .bsdf")):
+        for command in (
+            ["train", str(path), "--out", str(tmp_path / "run")],
+            ["bake", str(path), "-o", str(tmp_path / "x.bsdf")],
+            ["render", str(model), "--reference", str(path), "-o", str(tmp_path / "r.png")],
+            ["view", str(model), "--compare", str(path), "-o", str(tmp_path / "v.html")],
+        ):
+            code, _, err = cli(capsys, *command)
+            assert_one_line_error(code, err, f"{path}: measured data ({what}), not a config")
+    big = tmp_path / "big.yaml"  # no measured file: still refused by its size
+    big.write_bytes(b"#" * (limits.MAX_CONFIG_BYTES + 10))
+    with pytest.raises(ConfigError, match="more than a config may be"):
+        config.read_text(big)

@@ -70,14 +70,36 @@ def known() -> str:
     return ", ".join(f"{f.suffix} ({f.name})" for f in _FORMATS.values())
 
 
+# A file whose suffix names no format is still known by these opening bytes (Mitsuba's
+# tensor file: an RGL material saved as ``.pbsdf``, say).
+MAGICS: dict[bytes, str] = {b"tensor_file\0": ".bsdf"}
+
+
+def _by_magic(path: PathLike) -> Format | None:
+    """The format whose :data:`MAGICS` ``path`` starts with; None for any other file, or
+    no regular file (a FIFO is not waited on; nothing is raised)."""
+    from neural_brdf import fileio
+
+    try:
+        with fileio.open_for_reading(path) as fh:
+            head = fh.read(max(map(len, MAGICS), default=0))
+    except (OSError, ValueError):
+        return None
+    for magic, suffix in MAGICS.items():
+        if head.startswith(magic) and suffix in _FORMATS:
+            return _FORMATS[suffix]
+    return None
+
+
 def find(path: PathLike) -> Format | None:
-    """The format of ``path`` by its suffix, or None."""
-    return _FORMATS.get(Path(path).suffix.lower())
+    """The format of ``path`` by its suffix, or else by its first bytes (:data:`MAGICS`:
+    an RGL tensor file of another suffix), or None."""
+    return _FORMATS.get(Path(path).suffix.lower()) or _by_magic(path)
 
 
 def format_of(path: PathLike) -> Format:
-    """The format of ``path`` by its suffix; an unknown one raises a one-line InputError
-    naming the file and the known suffixes."""
+    """The format of ``path`` by its suffix (or first bytes, :func:`find`); an unknown
+    one raises a one-line InputError naming the file and the known suffixes."""
     fmt = find(path)
     if fmt is None:
         suffix = Path(path).suffix.lower() or "(none)"

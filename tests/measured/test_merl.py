@@ -721,3 +721,23 @@ def test_abc_and_nbrdf_fits_of_one_material_agree(abc_csv, nbrdf_npz, name):
     keep = (th > 0.4) & (wi[:, 2] > 0.3) & (wo[:, 2] > 0.3)
     ratio = np.median(abc(wi[keep], wo[keep]) / np.maximum(nb(wi[keep], wo[keep]), 1e-4), 0)
     assert np.all((ratio > 0.75) & (ratio < 1.35)), ratio
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_fifo_is_refused_before_it_is_opened_for_reading(tmp_path):
+    import signal
+
+    def alarm(signum, frame):
+        raise TimeoutError("blocked reading a FIFO")
+
+    fifo = tmp_path / "x.binary"
+    os.mkfifo(fifo)  # never opened for writing: a reader that opens it blocks
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(20)
+    try:
+        with pytest.raises(MerlFormatError) as e:
+            merl.read_merl(fifo)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    assert str(e.value) == f"{fifo}: is a FIFO, not a file"

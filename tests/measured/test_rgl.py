@@ -596,3 +596,57 @@ def test_mitsubas_own_tensor_reader_reads_our_files(baked, tmp_path):
     back = rgl.read_tensor_file(other)
     np.testing.assert_array_equal(back["a"], np.arange(6, dtype=np.float32).reshape(2, 3))
     assert back["b"].tolist() == [7] and bytes(back["text"]) == b"abc"
+
+
+def test_an_empty_incident_axis_is_named(baked, tmp_path, capsys):
+    fields = rgl.read_tensor_file(baked["lambertian"][1])
+    for name in ("theta_i", "phi_i"):
+        f = dict(fields)
+        f[name] = np.zeros(0, np.float32)
+        f["vndf"] = f["vndf"][:0] if name == "phi_i" else f["vndf"][:, :0]
+        f["luminance"] = f["luminance"][:0] if name == "phi_i" else f["luminance"][:, :0]
+        f["rgb"] = f["rgb"][:0] if name == "phi_i" else f["rgb"][:, :0]
+        path = tmp_path / f"{name}_empty.bsdf"
+        rgl.write_tensor_file(path, f)
+        with pytest.raises(rgl.RGLFormatError) as e:
+            rgl.read_rgl(path)
+        assert str(e.value) == f"{path}: field {name!r}: empty (no incident slices)"
+        code, _, err = cli_run(capsys, "validate", tmp_path / "m.onnx", "--reference", path)
+        assert_one_line_error(code, err, str(path), name)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_fifo_or_a_device_is_refused_before_reading(tmp_path, capsys):
+    import signal
+
+    def alarm(signum, frame):
+        raise TimeoutError("blocked reading a FIFO")
+
+    fifo = tmp_path / "x.bsdf"
+    os.mkfifo(fifo)  # never opened for writing: a reader that opens it blocks
+    zero = tmp_path / "zero.bsdf"
+    zero.symlink_to("/dev/zero")  # st_size 0: the size check alone read it all
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.alarm(20)
+    try:
+        for path, kind in ((fifo, "a FIFO"), (zero, "a character device")):
+            with pytest.raises(rgl.RGLFormatError) as e:
+                rgl.read_rgl(path)
+            assert str(e.value) == f"{path}: is {kind}, not a file"
+            code, _, err = cli_run(capsys, "validate", tmp_path / "m.onnx", "--reference", path)
+            assert_one_line_error(code, err, f"{path}: is {kind}, not a file")
+            argv = ["train", CONFIGS / "merl.yaml", "--out", tmp_path / "run"]
+            code, _, err = cli_run(capsys, *argv, "--set", f"target.data={path}")
+            assert_one_line_error(code, err, str(path), "target.data")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def test_a_tensor_file_of_another_suffix_is_known_by_its_header(data_dir, tmp_path):
+    from neural_brdf.measured import formats
+
+    assert formats.find(data_dir / "spectralon_lowres.pbsdf") is formats.RGL
+    (tmp_path / "notes.pbsdf").write_bytes(b"not a tensor file")
+    assert formats.find(tmp_path / "notes.pbsdf") is None
+    assert formats.find(tmp_path / "missing.pbsdf") is None

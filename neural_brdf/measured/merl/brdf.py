@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neural_brdf import fileio
 from neural_brdf.fileio import atomic_write
 from neural_brdf.measured.base import MAX_VALUE, Pairs, eval_pairs
 from neural_brdf.measured.merl.format import (
@@ -249,7 +250,7 @@ def read_merl(path) -> MerlBRDF:
     """Read a MERL ``.binary`` file.  Any problem raises :class:`MerlFormatError`."""
     p = Path(path)
     try:
-        with open(p, "rb") as fh:
+        with fileio.open_for_reading(p) as fh:
             size = os.fstat(fh.fileno()).st_size
             head = fh.read(HEADER_BYTES)
             if len(head) < HEADER_BYTES:
@@ -271,6 +272,8 @@ def read_merl(path) -> MerlBRDF:
                     f"{p}: {size} bytes, expected {FILE_BYTES} for dims {SHAPE} ({what})"
                 )
             body = fh.read()
+    except fileio.NotAFileError as e:
+        raise MerlFormatError(str(e)) from None
     except FileNotFoundError:
         raise MerlFormatError(f"{p}: no such file") from None
     except IsADirectoryError:

@@ -61,6 +61,9 @@ class RGLBRDF:
             return a
 
         th, ph = check("theta_i", 1), check("phi_i", 1)
+        for name, a in (("theta_i", th), ("phi_i", ph)):
+            if len(a) == 0:
+                raise bad(f"field {name!r}: empty (no incident slices)")
         ndf, sigma = check("ndf", 2), check("sigma", 2)
         vndf, lum, rgb = check("vndf", 4), check("luminance", 4), check("rgb", 5)
         check("description", 1, np.uint8)

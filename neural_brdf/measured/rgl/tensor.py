@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neural_brdf import limits
+from neural_brdf import fileio, limits
 from neural_brdf.fileio import atomic_write
 from neural_brdf.measured.base import FormatError
 
@@ -43,13 +43,15 @@ def read_tensor_file(path) -> dict[str, np.ndarray]:
     """Every field of a TensorFile, in file order, as native numpy arrays (copies)."""
     p = Path(path)
     try:
-        with open(p, "rb") as fh:
+        with fileio.open_for_reading(p) as fh:
             size = os.fstat(fh.fileno()).st_size
             try:  # before reading: a huge file is refused by name, not by the allocator
                 limits.check_bytes(str(p), size, hint="too large for a tensor file")
             except limits.TooLarge as e:
                 raise RGLFormatError(str(e)) from None
             buf = fh.read()
+    except fileio.NotAFileError as e:
+        raise RGLFormatError(str(e)) from None
     except FileNotFoundError:
         raise RGLFormatError(f"{p}: no such file") from None
     except IsADirectoryError:
