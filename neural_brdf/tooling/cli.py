@@ -326,6 +326,7 @@ def _train(args) -> int:
     from neural_brdf import config
 
     # a bad config fails before torch loads
+    _not_measured(path)
     cfg = config.load(path, args.overrides, warn=_warn)
     from neural_brdf import pipeline, validate
     from neural_brdf.train import loop
@@ -538,9 +539,27 @@ def _preset_or_path(text: str | None) -> str | None:
         return text  # the command's own message names the missing file
 
 
+def _not_measured(path: str | os.PathLike | None) -> None:
+    """A measured file (MERL, RGL: :func:`neural_brdf.measured.formats.find`, by suffix
+    or an RGL file's first bytes) where a config goes: one line saying so (read as
+    YAML it was "more than a config may be" or "not UTF-8")."""
+    if path is None or path == STDOUT:
+        return
+    from neural_brdf.measured import formats
+
+    fmt = formats.find(path)
+    if fmt is not None:
+        raise InputError(
+            f"{path}: measured data ({fmt.name} {fmt.suffix}), not a config file (a config "
+            "names measured data as target.data)"
+        )
+
+
 def _analytic_target(config_path: str):
     """The analytic model of a config's target (measured-data targets are refused)."""
     from neural_brdf import config
+
+    _not_measured(config_path)
 
     if Path(config_path).suffix.lower() == ".xml":  # else read as YAML: "expected a mapping"
         raise InputError(
@@ -667,6 +686,7 @@ def _render(args) -> int:
         raise InputError("render: --spp must be >= 1 and --resolution >= 8")
     _output_file(args.out, "a PNG or JPEG image")
     given = _preset_or_path(args.reference)  # a preset name, as train takes one
+    _not_measured(given)
     _not_an_input(args.out, {"model": args.model, "reference": given}, flag="-o")
     model = load(args.model)
     _project_model(model, args.model)  # an empty, foreign or broken file: exit 2
@@ -708,6 +728,7 @@ def _view(args) -> int:
 
     probes = viewer.parse_probes(args.uv)
     args.compare = _preset_or_path(args.compare)  # a preset name, as train takes one
+    _not_measured(args.compare)
     if args.uv and Path(args.model).is_file() and not load(args.model).textured:
         raise InputError(f"--uv: {args.model} is not a textured model (its plots have no uv)")
     _not_an_input(
