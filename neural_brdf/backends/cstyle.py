@@ -568,10 +568,12 @@ class CStyleRenderer:
         if lobe is None:
             lobe = lobe_format.from_metadata(prog.metadata)
             if lobe is None:
-                raise InputError(
-                    f"{src}: the model has no stored sampling lobe (metadata "
-                    f"{lobe_format.KEY!r}); re-export it with this version"
-                )
+                # a file exported before the lobe was stored, or another tool's: fitted
+                # to its graph, as render and the Mitsuba plugin do (about a second);
+                # the sampler only needs a lobe whose pdf it knows, eval is the graph's
+                from neural_brdf.physics import lobe_fit
+
+                lobe = lobe_fit.fit_onnx(proto.SerializeToString())
         lobe = lobe_format.complete(lobe)
         shape = {k: lobe[k] for k in ("alpha_x", "alpha_y", "weight", "retro")}
         shape["table"] = lobe.get("table")
