@@ -96,7 +96,9 @@ class NeuralBRDF:
         # the file's declared sizes, checked before onnxruntime allocates from them
         from neural_brdf.fileformat import reader
 
-        reader.load(path, external_data=False)
+        # and its contract: inputs float32 [N, width], the output f float32 [N, 3], and
+        # finite weights (reader.load), each refused with one line naming the file
+        reader.signature(reader.load(path, external_data=False), source=str(path))
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(threads)  # 1 thread was fastest here (docs/results.md)
         opts.inter_op_num_threads = 1
@@ -118,8 +120,11 @@ class NeuralBRDF:
         self.outputs = outs
         self.path = path
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
-        self.meta: dict[str, Any] = read_metadata(self.metadata)
-        self.info: Metadata = Metadata.from_props(self.metadata)  # the same, typed
+        try:
+            self.meta: dict[str, Any] = read_metadata(self.metadata)
+            self.info: Metadata = Metadata.from_props(self.metadata)  # the same, typed
+        except InputError as e:  # a value that cannot be decoded: name the file
+            raise InputError(f"{path}: {e}") from None
 
     @property
     def metadata_version(self) -> int:
@@ -169,10 +174,17 @@ class NeuralBRDF:
 
     def _run(self, output: str, feeds: dict[str, np.ndarray]) -> np.ndarray:
         try:
-            return self.session.run([output], feeds)[0]
+            res = self.session.run([output], feeds)[0]
         except Exception as e:  # onnxruntime raises its own untyped errors (Fail, ...)
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise InputError(f"{self.path}: onnxruntime failed ({first[:200]})") from None
+        rows = len(next(iter(feeds.values())))
+        if getattr(res, "shape", None) != (rows, 3):  # an output of undeclared shape
+            shape = getattr(res, "shape", type(res).__name__)
+            raise InputError(
+                f"{self.path}: output {output!r}: expected float32 [N, 3], got shape {shape}"
+            )
+        return res
 
     def eval(self, wi: ArrayLike, wo: ArrayLike, uv: ArrayLike | None = None) -> np.ndarray:
         """f(wi, wo) in 1/sr: (..., 3) unit vectors (broadcast) -> (..., 3) float32 RGB.

@@ -12,7 +12,7 @@ The keys and their kinds are :data:`neural_brdf.fileformat.KEYS` (docs/portable.
 decodes it in a browser or in Node the way :func:`read_metadata` does in Python, and
 tests/fileformat/test_portable.py checks that the two agree on every key.  Files of
 metadata_version 1 (the target as a description, the config as YAML) are read too.
-This module needs numpy and yaml only.
+This module needs numpy and yaml only (and neural_brdf.errors).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from neural_brdf.errors import InputError
 from neural_brdf.fileformat import JSON_KEYS, KEYS, METADATA_VERSION, METADATA_VERSION_KEY
 
 
@@ -73,7 +74,9 @@ def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
     JSON values are parsed; ``target`` is always an object (:func:`parse_target` for
     version 1's description) and ``training_config`` a dict (version 1's YAML is read);
     ``metadata_version`` is an int, 1 when absent.  Other keys stay text, and so does a
-    number a version-1 file wrote as ``inf`` or ``nan``."""
+    number a version-1 file wrote as ``inf`` or ``nan``.  A ``metadata_version`` that is
+    not a whole number, or a ``training_config`` that is neither JSON nor YAML, raises a
+    one-line InputError naming the key (the caller adds the file)."""
     out: dict[str, Any] = dict(props)
     for key in JSON_KEYS:
         if key in props:
@@ -81,12 +84,30 @@ def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
                 out[key] = json.loads(props[key])
             except ValueError:
                 pass  # version 1 text (the target, the YAML config) or "inf"/"nan"
-    out[METADATA_VERSION_KEY] = int(out.get(METADATA_VERSION_KEY, 1))
+    version = out.get(METADATA_VERSION_KEY, 1)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise InputError(
+            f"metadata {METADATA_VERSION_KEY}: expected a whole number, got {_shown(version)}"
+        )
+    out[METADATA_VERSION_KEY] = version
     if "target" in props and not isinstance(out["target"], dict):
         out["target"] = parse_target(props["target"])
     if "training_config" in props and not isinstance(out["training_config"], dict):
-        out["training_config"] = yaml.safe_load(props["training_config"]) or {}
+        try:
+            out["training_config"] = yaml.safe_load(props["training_config"]) or {}
+        except yaml.YAMLError as e:  # neither JSON (version 2) nor YAML (version 1)
+            problem = str(getattr(e, "problem", "") or type(e).__name__).splitlines()[0]
+            raise InputError(
+                f"metadata training_config: neither JSON nor YAML ({problem[:80]}): "
+                f"{_shown(props['training_config'])}"
+            ) from None
     return out
+
+
+def _shown(value: Any) -> str:
+    """A metadata value for a one-line error: its repr, at most 40 characters."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def parse_target(text: str) -> dict[str, Any]:

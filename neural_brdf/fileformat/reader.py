@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import onnx
+from onnx import numpy_helper
 
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import (
@@ -53,7 +55,29 @@ def load(model, *, external_data: bool = True) -> onnx.ModelProto:
     if not proto.HasField("graph"):  # protobuf reads an empty file as an empty message
         raise InputError(f"{source}: not an ONNX model (it has no graph; an empty file?)")
     sizes.check(proto, source=source)  # declared sizes, before anything is allocated
+    check_finite(proto, source=source)
     return proto
+
+
+def check_finite(proto: onnx.ModelProto, *, source: str = "model") -> None:
+    """A one-line InputError naming ``source`` and the initializer if a floating-point
+    initializer holds a NaN or an infinity (a diverged training's weights): every
+    consumer would give NaN, write NAN literals or fail later.  Tensors stored beside
+    the file and not loaded are not checked."""
+    for t in proto.graph.initializer:
+        if t.data_location == onnx.TensorProto.EXTERNAL and not t.raw_data:
+            continue
+        if t.data_type not in _FLOATS:
+            continue
+        try:
+            a = numpy_helper.to_array(t)
+        except Exception:  # a malformed tensor: onnxruntime or the lowering names it
+            continue
+        if not np.isfinite(a).all():
+            raise InputError(
+                f"{source}: initializer {_names((t.name,))[1:-1]} holds non-finite values "
+                f"(NaN or inf): the model's weights are broken"
+            )
 
 
 def props(proto: onnx.ModelProto) -> dict[str, str]:
@@ -61,18 +85,22 @@ def props(proto: onnx.ModelProto) -> dict[str, str]:
     return {p.key: p.value for p in proto.metadata_props}
 
 
-def metadata(proto: onnx.ModelProto) -> Metadata:
-    """The metadata_props decoded and typed."""
-    return Metadata.from_props(props(proto))
+def metadata(proto: onnx.ModelProto, *, source: str = "model") -> Metadata:
+    """The metadata_props decoded and typed (a one-line InputError naming ``source`` and
+    the key for a value that cannot be decoded)."""
+    try:
+        return Metadata.from_props(props(proto))
+    except InputError as e:
+        raise InputError(f"{source}: {e}") from None
 
 
 def signature(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ...]:
     """The graph's input names, checked against the contract: one of
     :data:`~neural_brdf.fileformat.SIGNATURES` ((wi, wo), or (wi, wo, uv) for a material
     that varies over the surface), in that order, each float32 [N, width] where its shape
-    is declared, and the output ``f`` [N, 3], followed in a textured graph by the
-    optional normal field ``n`` [N, 3] (:func:`outputs`).  A one-line InputError naming
-    ``source`` otherwise."""
+    is declared, and the output ``f`` float32 [N, 3] (a declared width the fixed 3),
+    followed in a textured graph by the optional normal field ``n`` [N, 3]
+    (:func:`outputs`).  A one-line InputError naming ``source`` otherwise."""
     g = proto.graph
     inits = {t.name for t in g.initializer}  # IR < 4 lists initializers among the inputs
     values = [v for v in g.input if v.name not in inits]
@@ -88,10 +116,15 @@ def signature(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ..
     for v, width in [(v, INPUT_WIDTHS[v.name]) for v in values] + [(o, 3) for o in g.output]:
         t = v.type.tensor_type
         dims = [d.dim_value if d.HasField("dim_value") else None for d in t.shape.dim]
+        # a width may be left symbolic (torch.onnx.export names the output's "Castf_dim_1":
+        # the runtime checks what a run returns); a declared one must be the contract's:
+        # an output [N, 1] or [N, 4] is no RGB the consumers can use
         if t.elem_type != onnx.TensorProto.FLOAT or (
             t.HasField("shape") and (len(dims) != 2 or dims[1] not in (None, width))
         ):
-            raise InputError(f"{source}: {v.name!r}: expected float32 [N, {width}]")
+            raise InputError(
+                f"{source}: {v.name!r}: expected float32 [N, {width}], got {_declared(v)}"
+            )
     return names
 
 
@@ -100,6 +133,33 @@ def outputs(proto: onnx.ModelProto, *, source: str = "model") -> tuple[str, ...]
     for a textured graph that carries its teacher's normal field, ("f", "n")."""
     signature(proto, source=source)
     return tuple(v.name for v in proto.graph.output)
+
+
+_FLOATS = frozenset(
+    {
+        onnx.TensorProto.FLOAT,
+        onnx.TensorProto.DOUBLE,
+        onnx.TensorProto.FLOAT16,
+        onnx.TensorProto.BFLOAT16,
+    }
+)
+_TYPES: dict[int, str] = {onnx.TensorProto.FLOAT: "float32", onnx.TensorProto.DOUBLE: "float64"}
+
+
+def _declared(v: onnx.ValueInfoProto) -> str:
+    """A value's declared type and shape for an error text: "float64 [N, 3]"."""
+    t = v.type.tensor_type
+    try:
+        kind = _TYPES.get(t.elem_type) or onnx.TensorProto.DataType.Name(t.elem_type).lower()
+    except ValueError:  # not a known element type
+        kind = f"element type {t.elem_type}"
+    if not t.HasField("shape"):
+        return f"{kind} of undeclared shape"
+    dims = [
+        str(d.dim_value) if d.HasField("dim_value") else (d.dim_param[:20] or "?")
+        for d in t.shape.dim[:6]
+    ]
+    return f"{kind} [{', '.join(dims)}{', ...' if len(t.shape.dim) > 6 else ''}]"
 
 
 def _names(names: tuple[str, ...]) -> str:

@@ -56,7 +56,10 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from neural_brdf.fileformat.reader import load  # the one ONNX loader (graph.load)
+from neural_brdf.fileformat.reader import (
+    check_finite,
+    load,  # the one ONNX loader (graph.load)
+)
 from neural_brdf.graph.ir import (
     BATCH,
     BINARY,
@@ -145,7 +148,9 @@ def lower(model, outputs: tuple[str, ...] | None = None, params: tuple[str, ...]
     Gemm/MatMul weights and biases of a batch input and Gather tables read at batch
     indices may be parameters: any other use (another op, a Gather at constant indices,
     a product with no batch operand, a graph output) raises, naming the parameter."""
-    proto = load(model)
+    proto = load(model)  # a path or bytes: checked there, NaN weights included
+    if isinstance(model, onnx.ModelProto):  # given as it is: its weights unchecked yet
+        check_finite(proto)
     names = [o.name for o in proto.graph.output]
     if outputs is not None:
         unknown = [o for o in outputs if o not in names]
@@ -165,6 +170,12 @@ def lower(model, outputs: tuple[str, ...] | None = None, params: tuple[str, ...]
     for i in g.input:
         if i.name in env:
             continue
+        if i.type.tensor_type.elem_type != onnx.TensorProto.FLOAT:  # computed in float32
+            kind = {onnx.TensorProto.DOUBLE: "float64"}.get(i.type.tensor_type.elem_type)
+            raise UnsupportedOnnxOp(
+                f"input {i.name!r}: expected float32, got "
+                f"{kind or 'element type ' + str(i.type.tensor_type.elem_type)}"
+            )
         dims = i.type.tensor_type.shape.dim
         if len(dims) != 2 or not dims[1].HasField("dim_value"):
             raise UnsupportedOnnxOp(f"input {i.name!r}: expected shape [N, k] with a fixed k")

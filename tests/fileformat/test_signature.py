@@ -12,11 +12,13 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import numpy as np
 import onnx
 import pytest
 from onnx import TensorProto, helper
 
 import neural_brdf
+from cli_helpers import assert_one_line_error, cli
 from neural_brdf import export, fileformat
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import portable, reader
@@ -136,3 +138,135 @@ def test_a_wrong_normal_output_is_one_line(inputs, outputs, needle):
     with pytest.raises(InputError) as e:
         reader.signature(_graph(inputs, outputs=outputs))
     assert needle in str(e.value) and "\n" not in str(e.value)
+
+
+# The contract is checked on load, for every consumer (the walkthrough's files): an
+# output f that is not [N, 3] RGB, a non-float32 input, a non-finite weight and metadata
+# that cannot be decoded each give one line naming the file, never a traceback, a grey
+# material or NAN literals.
+
+CONSUMERS = {
+    "validate": [],
+    "bake": ["-o", "x.binary"],
+    "view": ["-o", "x.html"],
+    "render": ["-o", "x.png"],
+    "codegen": ["--target", "c", "-o", "x.h"],
+}
+META = {
+    "metadata_version": "2",
+    "format_version": str(fileformat.FORMAT_VERSION),
+    "producer": fileformat.PRODUCER_NAME,
+    "frame": fileformat.FRAME,
+    "units": fileformat.UNITS,
+    "encoding": "isotropic",
+}
+
+
+def _exported(**props) -> onnx.ModelProto:
+    """A freshly exported small model with neural-brdf's metadata (``props`` override)."""
+    raw = RawBRDF("isotropic", [8], "silu", init_value=0.2).eval()
+    proto = onnx.load_from_string(export.to_onnx_bytes(raw, 17))
+    helper.set_model_props(proto, {**META, **props})
+    return proto
+
+
+def _channels(proto: onnx.ModelProto, width: int) -> onnx.ModelProto:
+    """``proto`` with f cut to its first ``width`` channels (1) or padded with one (4)."""
+    g = proto.graph
+    for n in g.node:
+        n.output[:] = ["f_rgb" if o == "f" else o for o in n.output]
+    tensor = onnx.numpy_helper.from_array
+    if width < 3:
+        g.initializer.extend(
+            [
+                tensor(np.array(v, np.int64), n)
+                for n, v in [("s0", [0]), ("s1", [width]), ("s2", [1])]
+            ]
+        )
+        g.node.append(helper.make_node("Slice", ["f_rgb", "s0", "s1", "s2"], ["f"]))
+    else:
+        g.initializer.extend(
+            [tensor(np.array(v, np.int64), n) for n, v in [("s0", [0]), ("s1", [1]), ("s2", [1])]]
+        )
+        g.node.append(helper.make_node("Slice", ["f_rgb", "s0", "s1", "s2"], ["f_a"]))
+        g.node.append(helper.make_node("Concat", ["f_rgb", "f_a"], ["f"], axis=1))
+    g.output[0].type.tensor_type.shape.dim[1].dim_value = width
+    return proto
+
+
+def _float64_inputs(proto: onnx.ModelProto) -> onnx.ModelProto:
+    """``proto`` with inputs wi, wo declared float64, cast to float32 inside."""
+    g = proto.graph
+    for n in g.node:
+        n.input[:] = [{"wi": "wi32", "wo": "wo32"}.get(i, i) for i in n.input]
+    casts = [helper.make_node("Cast", [x], [x + "32"], to=TensorProto.FLOAT) for x in ("wi", "wo")]
+    nodes = casts + list(g.node)
+    del g.node[:]
+    g.node.extend(nodes)
+    for v in g.input:
+        v.type.tensor_type.elem_type = TensorProto.DOUBLE
+    return proto
+
+
+def _nan_weight(proto: onnx.ModelProto) -> onnx.ModelProto:
+    """``proto`` with one NaN in its first weight matrix."""
+    t = next(t for t in proto.graph.initializer if t.data_type == TensorProto.FLOAT and t.dims)
+    a = onnx.numpy_helper.to_array(t).copy()
+    a.flat[0] = np.nan
+    t.CopyFrom(onnx.numpy_helper.from_array(a, t.name))
+    return proto
+
+
+BROKEN = {
+    "red1": (lambda: _channels(_exported(), 1), ["'f'", "[N, 1]"], CONSUMERS),
+    "rgba4": (lambda: _channels(_exported(), 4), ["'f'", "[N, 4]"], CONSUMERS),
+    "float64": (lambda: _float64_inputs(_exported()), ["'wi'", "float64"], CONSUMERS),
+    "nan_init": (lambda: _nan_weight(_exported()), ["initializer", "non-finite"], CONSUMERS),
+    "tc_bad": (lambda: _exported(training_config="[1,2"), ["training_config"], CONSUMERS),
+    "tc_tab": (lambda: _exported(training_config="a:\tb: c"), ["training_config"], CONSUMERS),
+    "mvabc": (lambda: _exported(metadata_version="abc"), ["metadata_version", "'abc'"], CONSUMERS),
+}
+CASES = [
+    (name, command)
+    for name, (_, _, commands) in BROKEN.items()
+    for command in commands
+    # codegen reads no training_config and no metadata_version: the graph alone
+    if not (command == "codegen" and name in ("tc_bad", "tc_tab", "mvabc"))
+]
+
+
+@pytest.mark.parametrize("name, command", CASES)
+def test_a_file_breaking_the_contract_is_one_line_for_every_consumer(
+    name, command, tmp_path, capsys, monkeypatch
+):
+    make, needles, _ = BROKEN[name]
+    if command == "codegen" and name in ("red1", "rgba4"):  # the back end's own words
+        needles = [f"{{'f': {1 if name == 'red1' else 4}}}"]
+    path = tmp_path / f"{name}.onnx"
+    path.write_bytes(make().SerializeToString())
+    monkeypatch.chdir(tmp_path)
+    code, _, err = cli(capsys, command, str(path), *CONSUMERS[command])
+    assert_one_line_error(code, err, str(path), *needles)
+
+
+def test_the_lowering_refuses_a_nan_weight_given_as_a_proto():
+    from neural_brdf import graph
+
+    with pytest.raises(InputError, match="'mlp.body.0.weight'.*non-finite"):
+        graph.lower(_nan_weight(_exported()))
+    graph.lower(_exported())  # the same model with finite weights lowers
+
+
+def test_metadata_that_cannot_be_decoded_names_the_key():
+    from neural_brdf.fileformat import metadata
+
+    for props, key in [
+        ({"training_config": "[1,2"}, "training_config"),
+        ({"metadata_version": "abc"}, "metadata_version"),
+        ({"metadata_version": "true"}, "metadata_version"),
+    ]:
+        with pytest.raises(InputError, match=key):
+            metadata.read_metadata(props)
+        with pytest.raises(InputError, match=f"^x.onnx: .*{key}"):
+            reader.metadata(_exported(**props), source="x.onnx")
+    assert metadata.read_metadata({"training_config": "a: 1"})["training_config"] == {"a": 1}
