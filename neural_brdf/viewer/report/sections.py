@@ -160,7 +160,7 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
                 + (", the reference's in the incidence plane" if reference else "")
                 + "; the dotted line is the furnace limit 1 (the validator's maximum over "
                 "the texture is in the table above)."
-                if run.model.textured
+                if getattr(run.model, "textured", False)  # (a test's run without a model)
                 else "ρ(θi) per channel: the neural curve as the validator measured it "
                 "(averaged over azimuth for an anisotropic model)"
                 + (", the reference's in the incidence plane" if reference else "")
