@@ -201,8 +201,11 @@ def test_a_fit_bsdf_in_an_include_is_found_and_replaced(mi, copy_of, root):
     got = views.render_view(view, diffuse, spp=4, seed=3)
     want = views.render_view(plain, diffuse, spp=4, seed=3)
     copper = views.render_view(plain, views.fit_element(plain.tree), spp=4, seed=3)
-    assert not np.array_equal(want, copper)
-    assert np.array_equal(got, want)
+    assert not np.allclose(want, copper, rtol=1e-2)
+    # the same scene, not bit for bit: the film's filter splats a sample into several
+    # pixels with atomic adds, whose order across Dr.Jit's threads varies between renders
+    # (CI saw last-bit differences), so equal to float32 rounding of a few sums
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
 
 
 def test_an_integrator_from_a_default_is_read_as_mitsuba_reads_it(mi, copy_of, capsys):

@@ -219,7 +219,11 @@ def test_render_takes_an_analytic_preset_by_its_name(mi, capsys, tiny_model, tmp
     by_name, by_file = tmp_path / "name.png", tmp_path / "file.png"
     render_with(capsys, tiny_model, "lambert", by_name)
     render_with(capsys, tiny_model, str(CONFIGS / "lambert.yaml"), by_file)
-    assert np.array_equal(three_panels(by_name)[1], three_panels(by_file)[1])
+    a, b = three_panels(by_name)[1], three_panels(by_file)[1]
+    # the same teacher: equal to one 8-bit step (two renders of one scene may differ in
+    # the last bit, the film's atomic adds being ordered by the threads, and a value on
+    # a step's edge then rounds either way)
+    assert np.abs(a - b).max() <= QUANTUM
 
 
 def test_validate_takes_a_preset_by_its_name(capsys, tiny_model):
