@@ -980,6 +980,26 @@ def _blame(
     return f"--set {next(iter(named.values()))}" if len(named) == 1 else None
 
 
+def blamed(e: ConfigError, source: str, overrides: Sequence[str]) -> ConfigError:
+    """``e``, raised after validation by a check of a config key (``target.params:
+    alpha: ...``, from building the target), named as :func:`from_dict` names its own
+    errors: by the ``--set`` that gave the key, else by the config file ``source``.  A
+    message that does not start with a key of the config (a file's, a run's) is kept."""
+    msg = str(e)
+    m = re.match(r"([a-z_]+(?:\.[A-Za-z_]\w*)*):", msg)
+    if not m or m.group(1).split(".")[0] not in Config.model_fields:
+        return e
+    key = m.group(1).split(".")
+    by = _blame(key, overrides)  # an override of the key, or of a section holding it
+    sub = re.match(r"\s*(?:\w+\.)?(\w+):", msg[m.end() :])  # "alpha:", "microfacet.alpha:"
+    if by is None and sub:  # else the one just under it that the message names first
+        for item in reversed(overrides):
+            if item.partition("=")[0].strip().split(".") == [*key, sub.group(1)]:
+                by = f"--set {item}"
+                break
+    return ConfigError(f"{by or source}: {msg}")
+
+
 def _key_of(err: Any) -> tuple[str, ...]:
     """The key a top-level validator's message names first (``images.x: ...``), as a loc."""
     m = re.match(r"(?:Value error, )?([A-Za-z_][\w.]*):", str(err.get("msg", "")))

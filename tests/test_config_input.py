@@ -366,6 +366,30 @@ def test_an_error_names_the_file_or_the_set_that_gave_it(tmp_path, text, sets, b
     assert msg.startswith(f"{where}: {key}"), msg
 
 
+# ------------------------------------------------------------ a target's parameters
+@pytest.mark.parametrize(
+    "params, sets, blamed, needle",
+    [
+        ("alpha: 0.3", ["target.params.alpha=-1"], 0, "alpha: must lie in"),
+        ("alpha: 0.3", ["train.steps=5", "target.params.albedo=[1, 1, 1]"], 1, "albedo: unknown"),
+        ("roughness: 0.3", ["target.params.alpha=0.3", "train.steps=5"], None, "roughness"),
+    ],
+)
+def test_a_bad_target_parameter_names_its_set_or_the_file(
+    capsys, tmp_path, params, sets, blamed, needle
+):
+    """The analytic model checks its parameters when the target is built, after the
+    schema: its error names the --set that gave the parameter, as the schema's do, else
+    the config file (here the file's misspelt ``roughness``)."""
+    cfg = tmp_path / "mine.yaml"
+    cfg.write_text(f"target: {{model: microfacet, params: {{{params}}}}}\n")
+    argv = ["train", str(cfg), "--out", str(tmp_path / "r")]
+    code, _, err = cli(capsys, *argv, *[a for s in sets for a in ("--set", s)])
+    where = str(cfg) if blamed is None else f"--set {sets[blamed]}"
+    assert_one_line_error(code, err, f"error: {where}: target.params: ", needle)
+    assert not (tmp_path / "r" / "ckpt.pt").exists()
+
+
 # ------------------------------------------------------------ a misspelt key
 def test_a_misspelt_key_is_named_before_the_one_it_leaves_missing(tmp_path):
     """``imgae`` for ``image``: two errors, and the message named the missing ``image``

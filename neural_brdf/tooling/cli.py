@@ -332,7 +332,10 @@ def _train(args) -> int:
     from neural_brdf.train import loop
 
     run_dir = Path(args.out) if args.out else loop.default_run_dir(cfg)
-    report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
+    try:
+        report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
+    except config.ConfigError as e:  # a key checked after validation: target.params
+        raise config.blamed(e, str(path), args.overrides) from None
     if report.get("already_finished") is not None:
         # an images run stopped early: a larger train.steps would stop it again at once
         advice = report.get("resume_advice") or "raise train.steps to train on"
