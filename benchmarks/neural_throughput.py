@@ -4,7 +4,8 @@ matmul-peak bound, and against batch size.
     python benchmarks/neural_throughput.py                     # -> results/neural_throughput.json
     python benchmarks/neural_throughput.py --n 262144 --no-drjit
 
-Model: the default architecture of ``neural_brdf.config`` (64-64-64 SiLU) with the
+Model: the default architecture of ``neural_brdf.config`` (since issue 21 the compact
+model, one hidden layer of 32 ReLU and a 32^2 grid; 64-64-64 SiLU before) with the
 isotropic and the anisotropic encoding, exported exactly as training exports it.  Its
 weights are random, since speed does not depend on them, but none is zero: Dr.Jit
 would fold away a layer of zeros (as the freshly initialised output layer is) and time

@@ -439,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
         "--train-threads",
         type=int,
         metavar="N",
-        help="train.threads for every preset (default: each preset's own, 2)",
+        help="train.threads for every preset (default: each preset's own, 1)",
     )
     ap.add_argument(
         "--root",
