@@ -566,7 +566,10 @@ class CStyleRenderer:
         f, n, listed = lower_file(proto, source=src)  # checks the file's contract
         prog = f.prog
         if lobe is None:
-            lobe = lobe_format.from_metadata(prog.metadata)
+            try:
+                lobe = lobe_format.from_metadata(prog.metadata)
+            except InputError as e:
+                raise InputError(f"{src}: {e}") from None
             if lobe is None:
                 # a file exported before the lobe was stored, or another tool's: fitted
                 # to its graph, as render and the Mitsuba plugin do (about a second);

@@ -29,7 +29,13 @@ import numpy as np
 import yaml
 
 from neural_brdf.errors import InputError
-from neural_brdf.fileformat import JSON_KEYS, KEYS, METADATA_VERSION, METADATA_VERSION_KEY
+from neural_brdf.fileformat import (
+    JSON_KEYS,
+    KEYS,
+    LOBE_KEY,
+    METADATA_VERSION,
+    METADATA_VERSION_KEY,
+)
 
 
 def encode(value: Any) -> str:
@@ -101,6 +107,15 @@ def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
                 f"metadata training_config: neither JSON nor YAML ({problem[:80]}): "
                 f"{_shown(props['training_config'])}"
             ) from None
+    if "training_config" in props and not isinstance(out["training_config"], dict):
+        raise InputError(
+            f"metadata training_config: expected a mapping of config keys, got "
+            f"{_shown(out['training_config'])}"
+        )
+    if LOBE_KEY in props:  # the samplers' contract, checked for every consumer alike
+        from neural_brdf.fileformat import lobe
+
+        lobe.parse(props[LOBE_KEY])
     return out
 
 

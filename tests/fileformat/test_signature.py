@@ -217,6 +217,7 @@ def _nan_weight(proto: onnx.ModelProto) -> onnx.ModelProto:
     return proto
 
 
+BAD_LOBE = '{"kind": "cosine+ggx_vndf", "alpha": 0.3, "alpha_x": -3, "weight": 0.8}'
 BROKEN = {
     "red1": (lambda: _channels(_exported(), 1), ["'f'", "[N, 1]"], CONSUMERS),
     "rgba4": (lambda: _channels(_exported(), 4), ["'f'", "[N, 4]"], CONSUMERS),
@@ -225,13 +226,20 @@ BROKEN = {
     "tc_bad": (lambda: _exported(training_config="[1,2"), ["training_config"], CONSUMERS),
     "tc_tab": (lambda: _exported(training_config="a:\tb: c"), ["training_config"], CONSUMERS),
     "mvabc": (lambda: _exported(metadata_version="abc"), ["metadata_version", "'abc'"], CONSUMERS),
+    "tc_list": (
+        lambda: _exported(training_config="[1, 2]"),
+        ["training_config", "mapping"],
+        CONSUMERS,
+    ),
+    # the sampling lobe: codegen's samplers, the Mitsuba plugin's, a renderer's
+    "lobe_neg": (lambda: _exported(sampling_lobe=BAD_LOBE), ["'sampling_lobe'", "> 0"], CONSUMERS),
 }
 CASES = [
     (name, command)
     for name, (_, _, commands) in BROKEN.items()
     for command in commands
     # codegen reads no training_config and no metadata_version: the graph alone
-    if not (command == "codegen" and name in ("tc_bad", "tc_tab", "mvabc"))
+    if not (command == "codegen" and name in ("tc_bad", "tc_tab", "tc_list", "mvabc"))
 ]
 
 
@@ -264,6 +272,8 @@ def test_metadata_that_cannot_be_decoded_names_the_key():
         ({"training_config": "[1,2"}, "training_config"),
         ({"metadata_version": "abc"}, "metadata_version"),
         ({"metadata_version": "true"}, "metadata_version"),
+        ({"training_config": '["train.steps", 5]'}, "training_config"),
+        ({"sampling_lobe": BAD_LOBE}, "sampling_lobe"),
     ]:
         with pytest.raises(InputError, match=key):
             metadata.read_metadata(props)
