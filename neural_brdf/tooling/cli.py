@@ -203,7 +203,9 @@ def _warn(message: str) -> None:
 
 
 def _output_file(out: str, what: str, flag: str = "-o") -> None:
-    """Refuse ``-o -`` for a binary output and ``-o FOLDER`` (InputError, exit 2)."""
+    """Refuse ``-o -`` for a binary output, ``-o FOLDER`` and a file in a folder that
+    does not exist (InputError, exit 2): a mistyped path is an error, not a new folder,
+    as for codegen and view (:func:`neural_brdf.fileio.atomic_path`)."""
     if out == STDOUT:
         raise InputError(
             f"{flag} -: {what} is binary, not for stdout; give a file name "
@@ -211,6 +213,15 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
         )
     if Path(out).is_dir():
         raise InputError(f"{flag} {out}: is a folder; give a file name ({what})")
+    _output_folder(out, flag)
+
+
+def _output_folder(out: str, flag: str = "-o") -> None:
+    """Refuse an output file whose folder does not exist (or is a file): InputError."""
+    parent = Path(out).parent
+    if not parent.is_dir():
+        why = f"{parent} is a file, not a folder" if parent.exists() else f"no folder {parent}"
+        raise InputError(f"{flag} {out}: cannot write ({why})")
 
 
 # A run folder's own files (neural_brdf.runfolder owns the list): no command's output may
@@ -788,6 +799,8 @@ def _codegen(args) -> int:
         raise InputError(not_a_file(args.model, "model"))
     if args.out != STDOUT and Path(args.out).is_dir():
         raise InputError(f"-o {args.out}: is a folder; give a file name")
+    if args.out != STDOUT:
+        _output_folder(args.out)
     _not_an_input(args.out, {"model": args.model}, flag="-o")
     # -o -, /dev/stdout, a FIFO: stdout may be the code itself, so status goes to stderr
     in_place = args.out == STDOUT or written_in_place(args.out)

@@ -76,6 +76,46 @@ def test_bake_and_render_bad_input_exit_2(capsys, tmp_path):
     )
 
 
+def test_bake_refuses_a_table_its_own_reader_refuses(capsys, tmp_path):
+    """A near-delta lobe (GGX alpha 1e-300) puts a bin above the readers' bound on a
+    value: bake says so in one line and leaves the file it would replace as it was,
+    rather than write a table that train, render and validate then refuse."""
+    cfg = tmp_path / "mirror.yaml"
+    cfg.write_text("target: {model: microfacet, params: {alpha: 1.0e-300}}\n")
+    out = tmp_path / "mirror.binary"
+    out.write_bytes(b"a user's file")
+    code, _, err = cli(capsys, "bake", str(cfg), "-o", str(out))
+    assert_one_line_error(code, err, str(out), "is above", "not written")
+    assert out.read_bytes() == b"a user's file"
+    # a rough one of the same model bakes, and its table reads back
+    cfg.write_text("target: {model: microfacet, params: {alpha: 0.3}}\n")
+    code, _, err = cli(capsys, "bake", str(cfg), "-o", str(out))
+    assert code == 0, err
+    assert merl.read_merl(out).values.max() > 0
+
+
+@pytest.mark.parametrize(
+    "command, out",
+    [("render", "x.png"), ("export", "m.onnx"), ("bake", "x.binary"), ("codegen", "x.c")],
+)
+def test_an_output_in_a_missing_folder_is_refused_not_created(
+    capsys, tiny_model, tmp_path, command, out
+):
+    """A mistyped -o folder is an error naming the folder, for every command that writes
+    a file (render and export created it, codegen and view refused it)."""
+    target = tmp_path / "typo" / "sub" / out
+    source = str(tiny_model.parent if command == "export" else tiny_model)
+    extra = ["--target", "c"] if command == "codegen" else []
+    code, _, err = cli(capsys, command, source, *extra, "-o", str(target))
+    assert_one_line_error(code, err, str(target), f"no folder {target.parent}")
+    assert not (tmp_path / "typo").exists()
+    # beside a file where the folder would be
+    (tmp_path / "typo").write_text("mine")
+    code, _, err = cli(capsys, command, source, *extra, "-o", str(tmp_path / "typo" / out))
+    assert_one_line_error(code, err, "typo", "is a file, not a folder")
+    assert (tmp_path / "typo").read_text() == "mine"
+
+
 def foreign_onnx(path):
     """A valid ONNX file that is not a BRDF: z = x + y."""
     import onnx

@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from neural_brdf.measured.merl.brdf import MerlBRDF, write_merl
+from neural_brdf.measured.merl.brdf import MerlBRDF, _check_values, write_merl
 from neural_brdf.measured.merl.format import (
     CHUNK,
     N_BINS,
     SCALE,
     SHAPE,
     UNMEASURED,
+    MerlFormatError,
     _grid,
     bin_centres,
     unravel,
@@ -70,5 +72,10 @@ def bake_brdf(fn, *, chunk: int = CHUNK, source: str = "<baked>") -> MerlBRDF:
 def bake(fn, path, *, chunk: int = CHUNK) -> MerlBRDF:
     """:func:`bake_brdf`, then :func:`write_merl` to ``path``; returns the baked grid."""
     m = bake_brdf(fn, chunk=chunk, source=str(path))
+    # what every reader refuses is not written (a near-delta lobe's bin above MAX_VALUE)
+    try:
+        _check_values(m.raw, Path(path))
+    except MerlFormatError as e:
+        raise MerlFormatError(f"{e} (not written: a reader refuses it)") from None
     write_merl(path, m)
     return m

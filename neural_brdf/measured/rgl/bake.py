@@ -30,7 +30,12 @@ from neural_brdf.measured.rgl.layout import (
     u_to_theta,
     v_to_phi,
 )
-from neural_brdf.measured.rgl.tensor import parse_tensor_file, tensor_file_bytes, write_tensor_file
+from neural_brdf.measured.rgl.tensor import (
+    RGLFormatError,
+    parse_tensor_file,
+    tensor_file_bytes,
+    write_tensor_file,
+)
 
 
 # -------------------------------------------------------------------- the writer
@@ -246,7 +251,11 @@ def bake(fn, path, *, spectral: bool | None = None, **options) -> RGLBRDF | None
     if spectral is None:
         spectral = os.fspath(path).lower().endswith(SPECTRAL_SUFFIX)
     fields = bake_fields(fn, spectral=spectral, **options)
+    baked = None
+    if not spectral:  # what the reader refuses is not written (a value above MAX_VALUE)
+        try:
+            baked = RGLBRDF(parse_tensor_file(tensor_file_bytes(fields)), source=os.fspath(path))
+        except RGLFormatError as e:
+            raise RGLFormatError(f"{e} (not written: a reader refuses it)") from None
     write_tensor_file(path, fields)
-    if spectral:
-        return None
-    return RGLBRDF(parse_tensor_file(tensor_file_bytes(fields)), source=os.fspath(path))
+    return baked
