@@ -515,7 +515,7 @@ def _inputs(paths: list[str]) -> tuple[list[Any], float | None]:
     from neural_brdf.inverse import starts
 
     cfg = cfgmod.load(Path(yaml[0]))
-    inverse_views.use_variant(inverse_views.variant_name(cfg))
+    inverse_views.use_variant(inverse_views.variant_name(cfg), key=inverse_views.variant_key(cfg))
     views = inverse_views.read_views(cfg)
     for v in views:
         v.object = starts.object_mask(v)

@@ -116,6 +116,7 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     fit_is_used,
     fitted_views,
     is_poor,
+    jit_notes_off,
     load_scene,
     mitsuba_bsdf,
     mitsuba_f_cos,
@@ -133,6 +134,7 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     target_noise,
     tiles,
     use_variant,
+    variant_key,
     variant_name,
     xml_float,
 )
@@ -569,7 +571,7 @@ def fit_neural(
         lobe = lead.refit_lobe(seed=t.seed)
     set_lobe(lobe)
     last = {"loss": math.nan, "image": math.nan, "albedo": math.nan, "max_albedo": math.nan}
-    with sess.run(state) as s, ib.evaluated_mode():
+    with sess.run(state) as s, ib.evaluated_mode(), jit_notes_off(views):
         if split and val is None:
             score(s.step)  # the start's held-out loss, before the first step
         while s.step < t.steps and not stalled():
@@ -760,7 +762,7 @@ def fit(
     if folder is None:
         folder = runfolder.Folder.open(run_dir, resume=resume, overwrite=overwrite)
     t0 = time.perf_counter()
-    use_variant(variant_name(cfg))
+    use_variant(variant_name(cfg), key=variant_key(cfg))
     views = read_views(cfg)
     try:
         raw, training, cfg = _fit_views(cfg, run_dir, views, folder, resume=resume)

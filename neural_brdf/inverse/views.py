@@ -15,6 +15,7 @@ module doc describes the loss and the checks).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import os
 import re
@@ -144,19 +145,49 @@ def distillation_config(
     return cfgmod.from_dict(d, source=source)
 
 
-def use_variant(name: str):
+def variant_key(cfg: cfgmod.Config) -> str:
+    """The key that chose :func:`variant_name`'s variant, which its errors name."""
+    if cfg.target.variant is not None:
+        return "target.variant"
+    return f"train.device: {cfg.train.device}, so the variant"
+
+
+@contextlib.contextmanager
+def jit_notes_off(views: list[View]):
+    """Dr.Jit's warnings off (its log level Error) while the block runs, where a view
+    renders with ``prb_basic``: in the evaluated-loop mode of an image step, Mitsuba 3.9's
+    prb_basic makes Dr.Jit warn at every render and every adjoint pass that a virtual
+    call inside it runs symbolically (``ad_call("compute_surface_interaction()"):
+    currently inside some other symbolic operation, ...``), a note on its own scheduling:
+    two lines per view and step, hundreds in a fit, and nothing the user can change."""
+    import drjit as dr
+
+    if not any(v.integrator == "prb_basic" for v in views):
+        yield
+        return
+    level = dr.log_level()
+    dr.set_log_level(dr.LogLevel.Error)
+    try:
+        yield
+    finally:
+        dr.set_log_level(level)
+
+
+def use_variant(name: str, *, key: str = "target.variant"):
     """Set Mitsuba's variant ``name`` (a JIT AD RGB one) and register ``neural_brdf_ad``;
     returns the ``mitsuba`` module.  A variant this process cannot switch to raises
-    InputError naming it."""
+    InputError naming it and ``key``, the config key that chose it
+    (:func:`variant_key`)."""
     if name not in VARIANTS:
         raise InputError(
-            f"target.variant: {name}: fitting from images needs a JIT AD RGB variant "
+            f"{key}: {name}: fitting from images needs a JIT AD RGB variant "
             f"({' or '.join(VARIANTS)})"
         )
     if name == "cuda_ad_rgb" and not torch.cuda.is_available():
+        fix = "use llvm_ad_rgb" if key == "target.variant" else "set train.device: cpu"
         raise InputError(
-            f"target.variant: {name}: the network runs in torch on the renderer's arrays, "
-            f"and this torch ({torch.__version__}) sees no CUDA GPU (use llvm_ad_rgb)"
+            f"{key}: {name}: the network runs in torch on the renderer's arrays, "
+            f"and this torch ({torch.__version__}) sees no CUDA GPU ({fix})"
         )
     try:
         import mitsuba as mi
@@ -170,14 +201,12 @@ def use_variant(name: str):
         loaded = sys.modules.get("neural_brdf.inverse.bsdf")
         if loaded is not None:
             raise InputError(
-                f"target.variant: {name}: this process already renders with {loaded.mi.variant()}"
+                f"{key}: {name}: this process already renders with {loaded.mi.variant()}"
             )
         try:
             mi.set_variant(name)
         except Exception as e:  # a missing LLVM or CUDA: Mitsuba raises several types
-            raise InputError(
-                f"target.variant: {name}: not usable here ({str(e).splitlines()[0]})"
-            ) from None
+            raise InputError(f"{key}: {name}: not usable here ({str(e).splitlines()[0]})") from None
     from neural_brdf.inverse import bsdf as inverse_bsdf  # noqa: F401  (registers neural_brdf_ad)
 
     return mi

@@ -1320,6 +1320,25 @@ def copy_of(example, tmp_path):
     return tmp_path
 
 
+def test_a_prb_scene_fits_without_dr_jit_s_notes_on_every_step(copy_of, capfd):
+    """prb (run as prb_basic) in the evaluated mode of an image step: Mitsuba 3.9 makes
+    Dr.Jit warn at every render and adjoint pass (ad_call ... forcefully running the
+    vectorized call in symbolic mode), two lines per view and step; the stage keeps
+    Dr.Jit's warnings off for such views (views.jit_notes_off), and the fit runs."""
+    for xml in copy_of.glob("view*.xml"):
+        text = xml.read_text()
+        assert '<integrator type="path">' in text
+        xml.write_text(text.replace('<integrator type="path">', '<integrator type="prb">'))
+    quick = ["train.steps=3", "images.start=constant", "images.start_train_steps=20"]
+    code = cli.main(train_args(copy_of / "fit.yaml", copy_of / "run", FIT_OVERRIDES + quick))
+    out, err = capfd.readouterr()
+    assert code == 0, err
+    assert "ad_call" not in err, err[:2000]
+    import drjit as dr
+
+    assert dr.log_level() == dr.LogLevel.Warn  # restored after the stage
+
+
 def test_missing_exr_exits_2(copy_of, capsys):
     path = _config(copy_of, [("view1.xml", "nowhere.exr")])
     _expect_exit_2(path, copy_of / "run", capsys, "nowhere.exr", "no such image")
@@ -1554,6 +1573,16 @@ def test_a_fit_bsdf_is_used_by_reference_or_nested():
 def test_non_rgb_or_scalar_variant_exits_2(copy_of, capsys, variant):
     path = _config(copy_of, [("view1.xml", "view1.exr")], f"  variant: {variant}\n")
     _expect_exit_2(path, copy_of / "run", capsys, "bad.yaml", "target.variant", variant)
+
+
+def test_a_variant_from_train_device_names_train_device(copy_of, capsys, monkeypatch):
+    """No target.variant: train.device chose cuda_ad_rgb, so the error names it (and its
+    fix), not a target.variant the config does not have."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    path = _config(copy_of, [("view1.xml", "view1.exr")], "train: {device: cuda}\n")
+    _expect_exit_2(path, copy_of / "run", capsys, "train.device", "cuda_ad_rgb", "cpu")
 
 
 def test_paths_are_relative_to_the_config_file(copy_of):
