@@ -111,6 +111,40 @@ def bump_factor(texels: int, resolution: int) -> int:
     return max(2, 2 * math.ceil(resolution / (2 * texels)))
 
 
+# the normal field's texels per axis at most, where a bitmap's to_uv repeats it (a
+# 1024² map tiled 4 times: 4096², 200 MB of float32 normals in the file)
+MAX_NORMAL_TEXELS = 4096
+
+
+def texels_over_surface(ru: int, rv: int, to_uv: np.ndarray) -> tuple[int, int]:
+    """(Ru, Rv) texels over the surface's uv square for a bitmap of ``ru`` x ``rv`` texels
+    that Mitsuba looks up at to_uv (a 3 x 3 matrix) times (u, v, 1): the texel edges that
+    a line along u (along v) crosses per unit, |M00| ru + |M10| rv (|M01| ru + |M11| rv).
+    A whole-number scale, quarter turn or flip, shifted by whole texels, keeps every
+    sample on a texel centre, so the bilinear field is the texture's own, as without
+    to_uv; any other transform is sampled twice as finely (its texel centres fall between
+    the samples), and at most :data:`MAX_NORMAL_TEXELS` per axis.  (The file repeats its
+    uv square: a to_uv whose pattern does not, a turn by 30 degrees, is matched inside it
+    only.)"""
+    m = to_uv[:2, :2]
+    m = np.where(np.abs(m - np.round(m)) < 1e-6, np.round(m), m)  # a rotation's 6e-17
+    if np.array_equal(m, np.eye(2)) and not to_uv[:2, 2].any():
+        return ru, rv
+    per_u = abs(m[0, 0]) * ru + abs(m[1, 0]) * rv
+    per_v = abs(m[0, 1]) * ru + abs(m[1, 1]) * rv
+    shift = to_uv[:2, 2] * np.array([ru, rv])  # in texels
+    exact = (  # whole numbers, one per row and column (a scale, a quarter turn, a flip)
+        np.array_equal(m, np.round(m))
+        and np.array_equal(np.count_nonzero(m, axis=0), [1, 1])
+        and np.array_equal(np.count_nonzero(m, axis=1), [1, 1])
+        and np.allclose(shift, np.round(shift), atol=1e-6)
+    )
+    factor = 1 if exact else 2
+    n_u = min(MAX_NORMAL_TEXELS, max(1, math.ceil(factor * per_u - 1e-9)))
+    n_v = min(MAX_NORMAL_TEXELS, max(1, math.ceil(factor * per_v - 1e-9)))
+    return n_u, n_v
+
+
 class TexturedMitsubaTarget:
     """One textured BSDF of a Mitsuba XML file as a spatially varying target (module
     doc): a :class:`neural_brdf.target.SpatiallyVarying` of kind ``"mitsuba"``."""
@@ -403,8 +437,11 @@ class TexturedMitsubaTarget:
         / Rv), or None without a map.
 
         A normalmap's texels are its texture's own 2 t - 1 (at a texel centre a bitmap's
-        bilinear look-up is the texel itself), at the bitmap's resolution, so bilinear
-        interpolation and normalisation reproduce Mitsuba's normal between centres too.
+        bilinear look-up is the texel itself), at the bitmap's resolution over the uv
+        square it covers (:func:`texels_over_surface`: a to_uv scale of 3 repeats a 64²
+        map 3 times, so 192²; sampled at 64² it was 7.3 degrees off on average), so
+        bilinear interpolation and normalisation reproduce Mitsuba's normal between
+        centres too.
         A procedural texture is sampled at ``default_resolution`` texel centres.  A bump
         map's normal is the gradient of the bitmap's bilinear height, which is constant
         in u (linear in v) across each cell between four texel centres and JUMPS at the
@@ -421,8 +458,11 @@ class TexturedMitsubaTarget:
         mi = self._mi
         with self._scope():
             data = mi.traverse(self._normal_tex).get("data")
+            to_uv = mi.traverse(self._normal_tex).get("to_uv")
         shape = tuple(int(d) for d in data.shape) if data is not None else ()
         rv, ru = shape[:2] if len(shape) >= 2 else (default_resolution, default_resolution)
+        if len(shape) >= 2 and to_uv is not None:
+            ru, rv = texels_over_surface(ru, rv, np.array(to_uv.matrix, dtype=np.float64))
         if len(shape) >= 2 and self._is_bump():
             rv *= bump_factor(rv, default_resolution)
             ru *= bump_factor(ru, default_resolution)
