@@ -547,6 +547,10 @@ def format_table(report: dict[str, Any]) -> str:
         value = f"{c['value']:.6f}" if name == "max_albedo" else f"{c['value']:.3g}"
         rows.append((name, value, f"{op} {c['limit']:.6g}", "ok" if c["passed"] else "FAIL"))
     hemi = ", ".join(f"{v:.4f}" for v in report["hemispherical_albedo"])
+    # a textured file's: that of the uv where the furnace found its largest albedo
+    at_uv = report["checks"].get("max_albedo", {}).get("at_uv")
+    if at_uv is not None:
+        hemi += f" (at uv {at_uv[0]:.3f}, {at_uv[1]:.3f}, the max_albedo's)"
     rows.append(("hemispherical_albedo", hemi, "", ""))
     if "accuracy" in report:
         acc = report["accuracy"]

@@ -117,3 +117,19 @@ def test_a_furnace_over_the_limit_by_its_noise_alone_is_measured_again_and_passe
 def test_a_furnace_truly_over_the_limit_stays_over_it_measured_again():
     verdicts = furnace_verdicts(sharp_grazing(1.03), refine=16)
     assert all(v > 1.01 and n > 0 for v, n in verdicts), verdicts
+
+
+def test_the_table_names_the_uv_of_a_textured_files_hemispherical_albedo():
+    """A textured file's hemispherical albedo is that of the uv where the furnace found
+    its largest albedo: the table says which (one texel's colour, not the material's)."""
+    checks = {
+        "reciprocity": {"value": 0.0, "limit": 1e-6, "passed": True},
+        "max_albedo": {"value": 0.9, "limit": 1.001, "passed": True, "at_uv": [0.25, 0.75]},
+    }
+    report = {"checks": checks, "hemispherical_albedo": [0.8, 0.2, 0.1], "passed": True}
+    report["model"] = "m.onnx"
+    row = next(x for x in validate.format_table(report).splitlines() if "hemispherical" in x)
+    assert "0.8000, 0.2000, 0.1000 (at uv 0.250, 0.750" in row
+    del checks["max_albedo"]["at_uv"]  # a homogeneous file's: no uv
+    row = next(x for x in validate.format_table(report).splitlines() if "hemispherical" in x)
+    assert "uv" not in row and "0.8000, 0.2000, 0.1000" in row
