@@ -940,6 +940,8 @@ def apply_override(raw: dict, item: str) -> None:
     if not sep or not key.strip():
         raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. train.steps=500")
     path = key.strip().split(".")
+    if not all(p.strip() for p in path):
+        raise ConfigError(f"--set {item}: an empty part in the key {key.strip()!r}")
     if path in (["target", "data"], ["target", "mitsuba"]) and not text.strip():
         # (an unset shell variable: YAML reads it as null, the default analytic target,
         # which would then be trained without a word; null itself, written out, is that)
@@ -947,7 +949,9 @@ def apply_override(raw: dict, item: str) -> None:
     value = parse_yaml(text, source=f"--set {key}")
     node = raw
     for i, part in enumerate(path[:-1]):
-        child = node.setdefault(part, {})
+        if node.get(part) is None:  # absent, or the file's empty section (`train:`)
+            node[part] = {}
+        child = node[part]
         if not isinstance(child, dict):
             raise ConfigError(f"--set {item}: {'.'.join(path[: i + 1])}: is a value, not a section")
         node = child
@@ -968,7 +972,9 @@ def _blame(
     key = tuple(str(p) for p in key)
     given = [(tuple(item.partition("=")[0].strip().split(".")), item) for item in overrides]
     for k, item in reversed(given):
-        if key[: len(k)] == k:
+        # the key itself, a section holding it, or a key under it (train.steps.x=5 made
+        # the value train.steps a section)
+        if key[: len(k)] == k or k[: len(key)] == key:
             return f"--set {item}"
     within = tuple(str(p) for p in within)
     named = {}  # the overrides under `within` whose key the message names: the last of each

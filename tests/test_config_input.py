@@ -5,6 +5,7 @@ section that nothing reads."""
 
 from __future__ import annotations
 
+import re
 import typing
 
 import numpy as np
@@ -353,6 +354,9 @@ def test_the_largest_seed_accepted_survives_the_seeds_derived_from_it(key):
         ),
         # the key itself, or a section holding it, given by --set
         ("", ["train.steps=5", "model.grid={size: 1}"], 1, "model.grid.size"),
+        # or a key under it, which made the value a section
+        ("", ["train.steps.x=5"], 0, "train.steps"),
+        ("", ["model.hidden.0=5", "train.steps=5"], 0, "model.hidden"),
     ],
 )
 def test_an_error_names_the_file_or_the_set_that_gave_it(tmp_path, text, sets, blamed, key):
@@ -388,6 +392,23 @@ def test_a_bad_target_parameter_names_its_set_or_the_file(
     where = str(cfg) if blamed is None else f"--set {sets[blamed]}"
     assert_one_line_error(code, err, f"error: {where}: target.params: ", needle)
     assert not (tmp_path / "r" / "ckpt.pt").exists()
+
+
+@pytest.mark.parametrize("key", ["train..steps", ".train", "train.", "train. .steps"])
+def test_a_set_key_with_an_empty_part_is_refused(tmp_path, key):
+    with pytest.raises(config.ConfigError) as e:
+        config.load(None, [f"{key}=5"])
+    assert str(e.value).startswith(f"--set {key}=5: an empty part in the key")
+
+
+def test_a_set_fills_a_section_the_file_leaves_empty(tmp_path):
+    """``train:`` with nothing under it is null in YAML: a --set of a key under it fills
+    it (it said the --set's section 'is a value'), and without one the file is named."""
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text("target: {model: lambertian}\ntrain:\n")
+    assert config.load(cfg, ["train.steps=3"]).train.steps == 3
+    with pytest.raises(config.ConfigError, match=f"^{re.escape(str(cfg))}: train: "):
+        config.load(cfg)
 
 
 # ------------------------------------------------------------ a misspelt key
