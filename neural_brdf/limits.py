@@ -24,6 +24,7 @@ This module imports nothing heavy (the CLI's error path uses it).
 
 from __future__ import annotations
 
+import math
 import os
 
 from neural_brdf.errors import InputError
@@ -69,11 +70,15 @@ def memory_budget() -> int:
         try:
             value = float(text[: len(text) - len(unit)]) * _SUFFIXES[unit]
         except ValueError:
+            value = math.nan
+        # inf, nan, 0 or a negative size is no budget (inf gave a traceback; the others
+        # fell back to the default without a word)
+        if not (math.isfinite(value) and value >= 1):
             raise InputError(
-                f"{ENV_LIMIT}={os.environ[ENV_LIMIT]!r}: expected bytes, e.g. 8G"
-            ) from None
-        if value > 0:
-            return int(value)
+                f"{ENV_LIMIT}={os.environ[ENV_LIMIT]!r}: expected a positive number of "
+                "bytes, e.g. 8G"
+            )
+        return int(value)
     total = physical_memory()
     return int(MEMORY_SHARE * total) if total else 8 << 30
 

@@ -231,9 +231,11 @@ def is_own_file(path: str | os.PathLike) -> bool:
     for an output that would replace a run's own file (``export RUN -o RUN/ckpt.pt``)."""
     path = Path(path)
     parent = path.parent
+    # its companions too: a lock replaced by rename is no lock (the run holds the old one)
+    own = _own_name(path.name) or path.name in COMPANIONS
     if parent.name == INIT and is_run(parent.parent):
-        return _own_name(path.name)
-    return parent.is_dir() and is_run(parent) and _own_name(path.name)
+        return own
+    return parent.is_dir() and is_run(parent) and own
 
 
 # ------------------------------------------------------------------ signals
@@ -365,7 +367,9 @@ class RunLocked(InputError):
 
 
 @contextmanager
-def run_lock(run_dir: Path, *, elsewhere: str = "choose another --out") -> Iterator[None]:
+def run_lock(
+    run_dir: Path, *, elsewhere: str = "choose another --out", holder: str = "run"
+) -> Iterator[None]:
     """Create ``run_dir`` if needed and hold ``run_dir/.lock`` (an exclusive
     ``fcntl.flock``, the holder's pid written inside) until the block ends.
 
@@ -386,7 +390,7 @@ def run_lock(run_dir: Path, *, elsewhere: str = "choose another --out") -> Itera
     except OSError as e:
         raise InputError(f"{run_dir}: cannot create the run folder ({e.strerror})") from None
     path = run_dir / LOCK
-    fd = _lock_fd(run_dir, path, elsewhere)
+    fd = _lock_fd(run_dir, path, elsewhere, holder)
     if fd is None:  # a folder this process cannot write: unlocked
         yield
         return
@@ -404,7 +408,7 @@ def run_lock(run_dir: Path, *, elsewhere: str = "choose another --out") -> Itera
                 run_dir.rmdir()  # only if empty
 
 
-def _lock_fd(run_dir: Path, path: Path, elsewhere: str) -> int | None:
+def _lock_fd(run_dir: Path, path: Path, elsewhere: str, holder: str = "run") -> int | None:
     """The open, locked lock file of :func:`run_lock`, or None where ``run_dir`` cannot
     be written by this process (:func:`_unwritable`)."""
     while True:
@@ -419,10 +423,10 @@ def _lock_fd(run_dir: Path, path: Path, elsewhere: str) -> int | None:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
+            pid = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
             os.close(fd)
             raise RunLocked(
-                f"{run_dir}: in use by another run (pid {holder}); wait for it to end "
+                f"{run_dir}: in use by another {holder} (pid {pid}); wait for it to end "
                 f"or {elsewhere}"
             ) from None
         except OSError:  # a file system without flock (some network mounts): unlocked

@@ -693,11 +693,26 @@ def _project_model(model, path: str) -> None:
         )
 
 
+MAX_RESOLUTION = 16384  # render's --resolution at most
+
+
 def _render(args) -> int:
     from neural_brdf.runtime import load
 
     if args.spp < 1 or args.resolution < 8:
         raise InputError("render: --spp must be >= 1 and --resolution >= 8")
+    if args.resolution > MAX_RESOLUTION:
+        raise InputError(f"render: --resolution {args.resolution}: at most {MAX_RESOLUTION}")
+    samples = args.resolution**2 * args.spp  # the film is square; one pass renders them all
+    if samples >= 2**32:
+        raise InputError(
+            f"render: --resolution {args.resolution} at --spp {args.spp}: {samples:.3g} "
+            "samples, more than Mitsuba renders in one pass (2^32); lower either"
+        )
+    from neural_brdf import limits
+
+    # the film's RGBA and weight, the image and its display copy: float32
+    limits.check_bytes(f"render: --resolution {args.resolution}", 64.0 * args.resolution**2)
     _output_file(args.out, "a PNG or JPEG image")
     given = _preset_or_path(args.reference)  # a preset name, as train takes one
     _not_measured(given)
@@ -749,7 +764,10 @@ def _view(args) -> int:
         args.out,
         {"model": args.model, "compared model": args.compare},
         flag="-o",
-        may=Path(args.model).parent / "viewer.html",  # the model's own run's viewer
+        # the run's own viewer, of its own model.onnx only (not of another file put there)
+        may=Path(args.model).parent / "viewer.html"
+        if Path(args.model).name == "model.onnx"
+        else None,
     )
 
     if args.out == STDOUT or fileio.written_in_place(args.out):  # /dev/stdout, a FIFO: any name
@@ -873,6 +891,31 @@ def _error(message: str) -> None:
     print(bounded(message), file=sys.stderr)
 
 
+# the arguments that name a file or folder, and how the user wrote them
+_PATHS = {
+    "config": "CONFIG",
+    "configs": "CONFIG",
+    "sweep": "SWEEP",
+    "run_dir": "RUN_DIR",
+    "model": "MODEL",
+    "source": "SOURCE",
+    "out": "--out",
+    "json": "--json",
+    "reference": "--reference",
+    "compare": "--compare",
+}
+
+
+def _no_empty_paths(args) -> None:
+    """Refuse an empty path (``--out ""``, an unset shell variable): it would be taken as
+    'not given', and the run would go to runs/NAME, the JSON nowhere (InputError)."""
+    for dest, flag in _PATHS.items():
+        value = getattr(args, dest, None)
+        values = value if isinstance(value, list) else [value]
+        if any(isinstance(v, str) and not v.strip() for v in values):
+            raise InputError(f"{flag}: an empty path; give a file or folder name")
+
+
 def _exit_code(e: BaseException) -> int:
     """128 + the signal that interrupted the program: 130 (Ctrl-C), 143 (SIGTERM)."""
     return 128 + int(getattr(e, "signum", None) or signal.SIGINT)
@@ -884,6 +927,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         args = _parser().parse_args(argv)
+        _no_empty_paths(args)
         commands = {
             "train": _train,
             "train-many": _train_many,

@@ -46,7 +46,10 @@ def run_copy(tiny_run, tmp_path):
 
 
 # ------------------------------------------------------------------ output = input
-@pytest.mark.parametrize("name", ["ckpt.pt", "config.yaml", "log.csv", "metrics.json"])
+# .lock and trial.json too: a lock replaced by rename is no lock (the run holds the old)
+@pytest.mark.parametrize(
+    "name", ["ckpt.pt", "config.yaml", "log.csv", "metrics.json", ".lock", "trial.json"]
+)
 def test_export_refuses_a_file_of_its_own_run(capsys, run_copy, name):
     before = digest(run_copy)
     code, _, err = cli(capsys, "export", str(run_copy), "-o", str(run_copy / name))
@@ -75,6 +78,11 @@ def test_export_view_and_report_write_only_into_their_own_run(capsys, tiny_run, 
     code, _, err = cli(capsys, "report", str(a), "-o", str(b))
     assert_one_line_error(code, err, str(b), "another run")
     assert digest(b) == before
+    # the run's viewer is its own model's: not another file's put into the run
+    shutil.copy(b / "model.onnx", a / "other.onnx")
+    code, _, err = cli(capsys, "view", str(a / "other.onnx"), "-o", str(a / "viewer.html"))
+    assert_one_line_error(code, err, "viewer.html", "file of the run")
+    (a / "other.onnx").unlink()
     # into their own run, as before
     code, _, err = cli(capsys, "view", str(a / "model.onnx"), "-o", str(a / "viewer.html"))
     assert code == 0, err
@@ -367,3 +375,50 @@ def test_train_many_summary_says_physics_and_reports_the_error(capsys, tmp_path)
     assert "passed the physics checks" in last, last
     assert "worst rel_rmse" in last and "(a)" in last, last
     assert code in (0, 1), err
+
+
+# ------------------------------------------------------------------ empty and huge values
+@pytest.mark.parametrize(
+    "argv, flag",
+    [
+        (["train", "lambert", "--out", ""], "--out"),
+        (["validate", "MODEL", "--json", ""], "--json"),
+        (["report", "RUN", "-o", " "], "--out"),
+        (["render", "", "-o", "x.png"], "MODEL"),
+        (["train-many", "lambert", "", "--out", "OUT"], "CONFIG"),
+    ],
+)
+def test_an_empty_path_is_refused_not_taken_as_not_given(
+    capsys, tiny_run, tmp_path, monkeypatch, argv, flag
+):
+    """An unset shell variable gives an empty path: the run went to runs/NAME, the JSON
+    nowhere, exit 0."""
+    monkeypatch.chdir(tmp_path)
+    subs = {"MODEL": str(tiny_run / "model.onnx"), "RUN": str(tiny_run), "OUT": "out"}
+    sets = SETS if argv[0].startswith("train") else []
+    code, _, err = cli(capsys, *[subs.get(a, a) for a in argv], *sets)
+    assert_one_line_error(code, err, f"{flag}: an empty path")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no runs/, no out/
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--resolution", "100000000"], "at most"),
+        (["--spp", "2000000000", "--resolution", "8"], "2^32"),
+    ],
+)
+def test_render_refuses_a_size_mitsuba_cannot_render(capsys, tiny_run, tmp_path, args, needle):
+    """A huge --resolution or --spp gave Mitsuba's traceback (exit 1)."""
+    out = tmp_path / "r.png"
+    code, _, err = cli(capsys, "render", str(tiny_run / "model.onnx"), "-o", str(out), *args)
+    assert_one_line_error(code, err, "render: --", needle)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "0", "-5G", "-inf", "abc"])
+def test_a_memory_limit_that_is_no_size_is_refused(capsys, tiny_run, monkeypatch, value):
+    """inf gave a traceback; 0, negative and nan fell back to the default in silence."""
+    monkeypatch.setenv(limits.ENV_LIMIT, value)
+    code, _, err = cli(capsys, "validate", str(tiny_run / "model.onnx"))
+    assert_one_line_error(code, err, f"{limits.ENV_LIMIT}={value!r}", "positive number of bytes")

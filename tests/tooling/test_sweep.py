@@ -440,6 +440,9 @@ def test_grid_crosses_and_list_zips(tmp_path):
         ({"materials": {"nbrdf": str(NPZ), "names": ["unobtainium"]}}, "materials.names"),
         ({"materials": {"nbrdf": __file__}}, "materials.nbrdf"),
         ({"list": [{"train.seed": 1}, {"train.seed": 1}]}, "'seed-1' appears 2 times"),
+        # an empty axis crossed with others: no trial at all, and it said "0 trials ok"
+        ({"grid": {"train.steps": [], "train.seed": [0, 1]}}, "grid.train.steps: an empty list"),
+        ({"list": {"train.seed": [], "train.lr": []}}, "list.train.seed: an empty list"),
     ],
 )
 def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
@@ -449,6 +452,23 @@ def test_bad_sweep_file_is_one_line_exit_2(tmp_path, capsys, spec, key):
     assert err.startswith("error: ") and "\n" not in err and key in err
     assert str(path) in err
     assert not (tmp_path / "out").exists()  # nothing ran
+
+
+def test_a_second_sweep_in_a_folder_in_use_is_refused(tmp_path, capsys):
+    """Two sweeps in one folder each counted the trials the other held as failed, and
+    the last to write decided the table: the folder is locked while a sweep runs."""
+    from neural_brdf import runfolder
+
+    path = write_sweep(tmp_path, list=TRIALS[:1])
+    out = tmp_path / "out"
+    with runfolder.run_lock(out, holder="sweep"):  # a sweep running there
+        assert cli.main(["sweep", str(path), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "in use by another sweep" in err, err
+        assert not (out / "results.json").exists()
+    assert cli.main(["sweep", str(path), "--out", str(out), "--workers", "1"]) == 0
+    assert read(out / "results.json")["trials"][0]["status"] == "ok"
+    assert not (out / runfolder.LOCK).exists()
 
 
 @pytest.mark.parametrize("name", ["../../escaped", "a/b", ".hidden", "-x", ""])

@@ -24,6 +24,7 @@ def _check_sweep_folder(out_dir: Path) -> None:
     if os.path.lexists(out_dir) and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: is a file; a sweep's output is a folder")
     entries = sorted(os.listdir(out_dir)) if out_dir.is_dir() else []
+    entries = [e for e in entries if e != runfolder.LOCK]  # (another sweep's: refused below)
     if not entries:
         return
     try:
@@ -57,7 +58,23 @@ def run_sweep(
     name = spec.name or Path(path).stem
     out_dir = Path(out) if out is not None else Path("runs", "sweeps", name)
     _check_sweep_folder(out_dir)
-    jobs = plan(spec, Path(path), out_dir)
+    # one sweep at a time in a folder: a second one would count the trials the first
+    # holds as failed, and the last to write would decide the table
+    with runfolder.run_lock(out_dir, elsewhere="choose another --out", holder="sweep"):
+        return _run_sweep(spec, Path(path), name, out_dir, executor, workers, ray_address, progress)
+
+
+def _run_sweep(
+    spec,
+    path: Path,
+    name: str,
+    out_dir: Path,
+    executor: str,
+    workers: int,
+    ray_address: str | None,
+    progress: Callable[[dict, int, int], None] | None,
+) -> dict:
+    jobs = plan(spec, path, out_dir)
     records = {job["name"]: _finished(job) for job in jobs}
     todo = [job for job in jobs if records[job["name"]] is None]
     for job in todo:  # a rerun replaces the trial's run files alone (overwrite), never

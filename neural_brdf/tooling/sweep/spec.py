@@ -116,6 +116,13 @@ def _check(spec: SweepFile, source: Path) -> None:
             continue
         if key == "material" or not _is_config_key(key):
             raise SweepError(f"{source}: {section}.{key}: unknown config key")
+    for key, values in spec.grid.items():  # crossed, an empty axis empties the sweep
+        if not values:
+            raise SweepError(f"{source}: grid.{key}: an empty list (no value to try)")
+    if isinstance(spec.entries, dict):
+        for key, values in spec.entries.items():
+            if not values:
+                raise SweepError(f"{source}: list.{key}: an empty list (no value to try)")
     both = set(spec.grid) & {k for e in _entries(spec, source) for k in e}
     if both:
         raise SweepError(f"{source}: {sorted(both)[0]}: in both grid and list")
