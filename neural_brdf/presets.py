@@ -128,4 +128,8 @@ def resolve(name_or_path: str | Path, *, folder: str = "") -> Path:
     if stem and stem in known:
         return directory() / folder / f"{stem}.yaml"
     kind = "sweep" if folder else "config"
+    if path.is_dir():  # a run folder given for its config, most likely
+        inside = path / "config.yaml"
+        hint = f"; its config is {inside}" if inside.is_file() else ""
+        raise InputError(f"{text}: is a folder, not a {kind} file{hint}")
     raise InputError(f"{text}: neither a {kind} file nor a preset (presets: {', '.join(known)})")

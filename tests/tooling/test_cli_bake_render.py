@@ -327,3 +327,18 @@ def test_a_name_that_is_neither_file_nor_preset_is_one_line(capsys, tiny_model, 
     code, _, err = cli(capsys, *args)
     assert_one_line_error(code, err, "nosuch", "preset")
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.parametrize("command", ["train", "bake"])
+def test_a_run_folder_given_as_a_config_says_it_is_a_folder(
+    capsys, tiny_model, tmp_path, monkeypatch, command
+):
+    """A bare folder name (a run's, most likely) was 'neither a config file nor a
+    preset', with the list of presets; it is a folder, and its config is named."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "myrun").mkdir()
+    (tmp_path / "myrun" / "config.yaml").write_text("target: {model: lambertian}\n")
+    argv = ["train", "myrun"] if command == "train" else ["bake", "myrun", "-o", "b.bsdf"]
+    code, _, err = cli(capsys, *argv)
+    assert_one_line_error(code, err, "myrun: is a folder", "myrun/config.yaml")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["myrun"]
