@@ -959,10 +959,16 @@ def apply_override(raw: dict, item: str) -> None:
 
 
 def _blame(
-    key: Sequence, overrides: Sequence[str], *, within: Sequence = (), message: str = ""
+    key: Sequence,
+    overrides: Sequence[str],
+    *,
+    within: Sequence = (),
+    message: str = "",
+    under: bool = True,
 ) -> str | None:
     """``--set ITEM`` of the last override that sets ``key`` (the failing key) or a section
-    holding it; None when the key comes from the file.
+    holding it, or (``under``: a schema error, where a key set under a value made it a
+    section) a key under it; None when the key comes from the file.
 
     ``within`` and ``message``: ``key`` was found by a validator of section ``within``
     (its message names it).  Such a check may fail for a key that the message names
@@ -974,7 +980,7 @@ def _blame(
     for k, item in reversed(given):
         # the key itself, a section holding it, or a key under it (train.steps.x=5 made
         # the value train.steps a section)
-        if key[: len(k)] == k or k[: len(key)] == key:
+        if key[: len(k)] == k or (under and k[: len(key)] == key):
             return f"--set {item}"
     within = tuple(str(p) for p in within)
     named = {}  # the overrides under `within` whose key the message names: the last of each
@@ -986,6 +992,26 @@ def _blame(
     return f"--set {next(iter(named.values()))}" if len(named) == 1 else None
 
 
+def _is_key(path: Sequence[str]) -> bool:
+    """Whether ``path`` names a section or key of the schema, down to its first leaf
+    (``target.params``: the leaf; what lies under a mapping is not checked)."""
+    model: Any = Config
+    for part in path:
+        fields = getattr(model, "model_fields", None)
+        if fields is None:  # a leaf or a mapping: the rest lies under it
+            return True
+        if part not in fields:
+            return False
+        ann = fields[part].annotation
+        subs = [a for a in getattr(ann, "__args__", ()) if isinstance(a, type)]
+        model = (
+            ann
+            if isinstance(ann, type)
+            else next((a for a in subs if issubclass(a, BaseModel)), None)
+        )
+    return True
+
+
 def blamed(e: ConfigError, source: str, overrides: Sequence[str]) -> ConfigError:
     """``e``, raised after validation by a check of a config key (``target.params:
     alpha: ...``, from building the target), named as :func:`from_dict` names its own
@@ -993,10 +1019,10 @@ def blamed(e: ConfigError, source: str, overrides: Sequence[str]) -> ConfigError
     message that does not start with a key of the config (a file's, a run's) is kept."""
     msg = str(e)
     m = re.match(r"([a-z_]+(?:\.[A-Za-z_]\w*)*):", msg)
-    if not m or m.group(1).split(".")[0] not in Config.model_fields:
-        return e
+    if not m or msg.startswith(f"{source}:") or not _is_key(m.group(1).split(".")):
+        return e  # (a message naming a file: images.yaml: ... is no key of the config)
     key = m.group(1).split(".")
-    by = _blame(key, overrides)  # an override of the key, or of a section holding it
+    by = _blame(key, overrides, under=False)  # the key's override, or its section's
     sub = re.match(r"\s*(?:\w+\.)?(\w+):", msg[m.end() :])  # "alpha:", "microfacet.alpha:"
     if by is None and sub:  # else the one just under it that the message names first
         for item in reversed(overrides):

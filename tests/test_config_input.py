@@ -411,6 +411,24 @@ def test_a_set_fills_a_section_the_file_leaves_empty(tmp_path):
         config.load(cfg)
 
 
+def test_blamed_names_a_key_once_and_leaves_a_files_message():
+    """config.blamed prefixes an error that starts with a key of the schema, once; a
+    message that starts with a file of a key's name (train.yaml, images.yaml) is kept."""
+    e = config.ConfigError
+    got = config.blamed(e("target.params: alpha: bad"), "c.yaml", ["target.params.alpha=-1"])
+    assert str(got) == "--set target.params.alpha=-1: target.params: alpha: bad"
+    assert str(config.blamed(e("target.params: alpha: bad"), "c.yaml", [])) == (
+        "c.yaml: target.params: alpha: bad"
+    )
+    for msg, source in [
+        ("train.yaml: target.params: alpha: bad", "/abs/train.yaml"),
+        ("images.yaml: line 3: bad", "images.yaml"),
+        ("c.yaml: target.params: alpha: bad", "c.yaml"),
+        ("runs/x/ckpt.pt: damaged", "c.yaml"),
+    ]:
+        assert str(config.blamed(e(msg), source, [])) == msg
+
+
 # ------------------------------------------------------------ a misspelt key
 def test_a_misspelt_key_is_named_before_the_one_it_leaves_missing(tmp_path):
     """``imgae`` for ``image``: two errors, and the message named the missing ``image``
