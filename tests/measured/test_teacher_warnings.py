@@ -83,6 +83,25 @@ def test_a_repeating_bitmap_is_not_warned(mi, tmp_path, wrap):
     assert _warnings(tmp_path, _bitmap(mi, tmp_path, wrap)) == []
 
 
+CHECKER = (
+    '<bsdf type="diffuse" version="3.0.0"><texture type="checkerboard" name="reflectance">'
+    '<rgb name="color0" value="0.8, 0.1, 0.1"/><rgb name="color1" value="0.1, 0.1, 0.8"/>'
+    '<transform name="to_uv"><scale x="2" y="3"/></transform></texture></bsdf>'
+)
+
+
+def test_a_teacher_finer_than_the_field_is_warned(mi, tmp_path):
+    """The field is texture.project texels a side when set, else texture.resolution."""
+    (line,) = _warnings(tmp_path, CHECKER)
+    assert "more finely than the field of 32x32 texels" in line and "teacher.xml" in line
+    assert _warnings(tmp_path, CHECKER, "texture: {resolution: 256, pool_per_texel: 16}\n") == []
+    (line,) = _warnings(
+        tmp_path, CHECKER, "texture: {resolution: 256, pool_per_texel: 16, project: 64}\n"
+    )
+    assert "64x64 texels" in line
+    assert _warnings(tmp_path, CHECKER, "texture: {project: 256}\n") == []
+
+
 def test_the_run_prints_the_warning_once_and_trains(mi, tmp_path, capsys):
     (tmp_path / "teacher.xml").write_text(ANISO)
     cfg = tmp_path / "c.yaml"
