@@ -191,8 +191,10 @@ def teacher_warnings(cfg: cfgmod.Config, target: Any, *, textured: bool) -> list
             "teacher changes when turned about the normal (anisotropic): the file learns "
             "its average over the azimuth; set model.encoding: anisotropic"
         )
-    if textured and hasattr(target, "detail_warning"):  # the file's field, projected or not
-        line = target.detail_warning(cfg.texture.project or cfg.texture.resolution)
+    if textured and cfg.target.mitsuba is not None:  # the file's field, projected or not
+        from neural_brdf.train.textured_model import detail_warning
+
+        line = detail_warning(target, cfg.texture.project or cfg.texture.resolution)
         if line is not None:
             out.append(line)
     if cfg.target.mitsuba is not None and not textured and cfg.texture != cfgmod.Texture():

@@ -145,22 +145,6 @@ def texels_over_surface(ru: int, rv: int, to_uv: np.ndarray) -> tuple[int, int]:
     return n_u, n_v
 
 
-# The field's detail check (TexturedMitsubaTarget.detail_warning): f cos at normal
-# incidence and at a 45-degree mirror pair, on a grid DETAIL_PROBE times finer than the
-# field (twice above DETAIL_MAX / DETAIL_PROBE texels, not measured above DETAIL_MAX); a
-# warning above DETAIL_WARN relative RMSE (chosen on a walkthrough's own teachers: the
-# tour's procedural roughplastic 2.9 % at 32², a principled and a blend with bitmaps
-# 23 and 19 %, a checkerboard 22 %; the three were 15, 9 and 28 % off after training).
-_S = math.sqrt(0.5)
-DETAIL_PAIRS = (
-    (np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0])),
-    (np.array([_S, 0.0, _S]), np.array([-_S, 0.0, _S])),
-)
-DETAIL_PROBE = 4
-DETAIL_MAX = 1024
-DETAIL_WARN = 0.1
-
-
 class TexturedMitsubaTarget:
     """One textured BSDF of a Mitsuba XML file as a spatially varying target (module
     doc): a :class:`neural_brdf.target.SpatiallyVarying` of kind ``"mitsuba"``."""
@@ -488,52 +472,10 @@ class TexturedMitsubaTarget:
         out = self._raw_normal(uv)
         return out.reshape(rv, ru, 3)
 
-    def detail_error(self, texels: int) -> float:
-        """How far a field of ``texels`` x ``texels`` bilinear texels (wrapping, the
-        file's) can be from the teacher: f cos at :data:`DETAIL_PAIRS`, sampled at the
-        field's texel centres and interpolated to a grid :data:`DETAIL_PROBE` times finer
-        (twice above :data:`DETAIL_MAX` / DETAIL_PROBE texels; 0, not measured, above
-        DETAIL_MAX), against the teacher there; the relative RMSE over the grid, both
-        pairs and RGB.  What a field that samples the teacher loses; training fits the
-        texels instead, and may lose less or more (the helper's checkerboard: 22 % here,
-        28 % after training)."""
-        if texels > DETAIL_MAX:
-            return 0.0
-        n = DETAIL_PROBE * texels if DETAIL_PROBE * texels <= DETAIL_MAX else 2 * texels
-        fine = (np.arange(n) + 0.5) / n
-        coarse = (np.arange(texels) + 0.5) / texels
-        err = ref = 0.0
-        for wi, wo in DETAIL_PAIRS:
-            at_fine = self._f_cos_grid(wi, wo, fine)  # (n, n, 3), rows v
-            at_texels = self._f_cos_grid(wi, wo, coarse)
-            x = fine * texels - 0.5  # bilinear, wrapping, as the file looks texels up
-            i0 = np.floor(x).astype(int)
-            t = (x - i0)[:, None]
-            i0, i1 = i0 % texels, (i0 + 1) % texels
-            rows = at_texels[i0] * (1 - t)[..., None] + at_texels[i1] * t[..., None]
-            interp = rows[:, i0] * (1 - t.T)[..., None] + rows[:, i1] * t.T[..., None]
-            err += float(np.sum((interp - at_fine) ** 2))
-            ref += float(np.sum(at_fine**2))
-        return math.sqrt(err / ref) if ref > 0 else 0.0
-
-    def _f_cos_grid(self, wi: np.ndarray, wo: np.ndarray, axis: np.ndarray) -> np.ndarray:
-        """f cos at (wi, wo) over the uv grid ``axis`` x ``axis``: (len, len, 3), row v."""
-        uv = np.stack(np.meshgrid(axis, axis, indexing="xy"), -1).reshape(-1, 2)
-        k = len(uv)
-        f = self.eval(np.tile(wi, (k, 1)), np.tile(wo, (k, 1)), uv) * wo[2]
-        return f.reshape(len(axis), len(axis), 3)
-
-    def detail_warning(self, texels: int) -> str | None:
-        """One line when :meth:`detail_error` of the file's field exceeds DETAIL_WARN."""
-        error = self.detail_error(texels)
-        if not error > DETAIL_WARN:
-            return None
-        return (
-            f"{self._where}: the teacher varies over uv more finely than the field of "
-            f"{texels}x{texels} texels: f cos, sampled at its texel centres and "
-            f"interpolated, is {100 * error:.0f} % off the teacher between them; raise "
-            "texture.resolution or set texture.project (docs/mitsuba.md)"
-        )
+    @property
+    def where(self) -> str:
+        """How errors and warnings name this teacher: ``target.mitsuba: PATH``."""
+        return self._where
 
     def normal_field_warning(self, figures: dict[str, Any] | None) -> str | None:
         """One warning line when the file's normal field is far from the teacher's:

@@ -436,7 +436,8 @@ def test_a_teacher_finer_than_the_field_is_warned_in_one_line(mi, tmp_path):
     is already far off it between them: a warning names the field and the fix.  A
     smooth procedural teacher (the tour's kind) gets none, nor a field fine enough."""
     from neural_brdf.measured.procedural import write_teacher
-    from neural_brdf.measured.textured import DETAIL_WARN, TexturedMitsubaTarget
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+    from neural_brdf.train.textured_model import DETAIL_WARN, detail_error, detail_warning
 
     xml = tmp_path / "checker.xml"
     xml.write_text(
@@ -445,16 +446,16 @@ def test_a_teacher_finer_than_the_field_is_warned_in_one_line(mi, tmp_path):
         '<transform name="to_uv"><scale x="2" y="3"/></transform></texture></bsdf>'
     )
     t = TexturedMitsubaTarget(xml)
-    line = t.detail_warning(32)
+    line = detail_warning(t, 32)
     assert line is not None and len(line.splitlines()) == 1
-    for needle in (str(xml), "32x32 texels", f"{100 * t.detail_error(32):.0f} %", "texture."):
+    for needle in (str(xml), "32x32 texels", f"{100 * detail_error(t, 32):.0f} %", "texture."):
         assert needle in line, line
-    assert t.detail_error(32) > 2 * DETAIL_WARN
+    assert detail_error(t, 32) > 2 * DETAIL_WARN
     # a finer field: the band where bilinear texels blur the cells' edges narrows
-    assert t.detail_error(256) < t.detail_error(32)
+    assert detail_error(t, 256) < detail_error(t, 32)
     smooth = TexturedMitsubaTarget(write_teacher(tmp_path / "tour", "roughplastic", size=64))
-    assert smooth.detail_warning(32) is None
-    assert 0.0 < smooth.detail_error(32) < DETAIL_WARN  # measured, not skipped
+    assert detail_warning(smooth, 32) is None
+    assert 0.0 < detail_error(smooth, 32) < DETAIL_WARN  # measured, not skipped
 
 
 def test_a_field_far_from_the_teachers_is_warned_in_one_line(mi, tmp_path, targets):
