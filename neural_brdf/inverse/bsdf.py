@@ -354,9 +354,11 @@ class NeuralBSDFAD(_GraphBSDF):
             dr.grad_enabled(v.array) for v in self.weights.values()
         )
 
-    def _graph_f_cos(self, wi, wo):
+    def _graph_f_cos(self, wi, wo, cos_o=None):
         """The lowered graph with the live weights bound (parent's ``_f_cos`` calls it
-        inside its conditional, symbolic or evaluated)."""
+        inside its conditional, symbolic or evaluated).  ``cos_o``, the parent's unit
+        wo's cosine, is not used: the fit's directions are Mitsuba's, and the cosine is
+        cos_theta(wo), as the gradient pass (:meth:`_torch_f_cos`) takes it."""
         cols = drjit_backend.run(
             self.program,
             {"wi": [wi.x, wi.y, wi.z], "wo": [wo.x, wo.y, wo.z]},

@@ -114,11 +114,11 @@ __all__ = [
 
 
 # ====================================================================== BSDF plugins
-def _black(wi, wo):
+def _black(wi, wo, cos_o):
     return mi.Color3f(0.0)
 
 
-def _black_uv(wi, wo, uv):
+def _black_uv(wi, wo, uv, cos_o):
     return mi.Color3f(0.0)
 
 
@@ -234,26 +234,26 @@ class _GraphBSDF(mi.BSDF):
         wi_u, ok_i = _unit_or_invalid(si.wi)
         wo_u, ok_o = _unit_or_invalid(wo)
         valid = active & ok_i & ok_o & (wi_u.z > 0.0) & (wo_u.z > 0.0)
-        # (the cosine is the unit wo's, taken in _graph_f_cos, whose (wi, wo) signature
-        # the differentiable plugin, neural_brdf.inverse.bsdf, overrides)
+        # (the cosine is the unit wo's, handed to _graph_f_cos, which the differentiable
+        # plugin, neural_brdf.inverse.bsdf, overrides)
         # The graph runs inside a conditional, which Dr.Jit skips for a SIMD packet
         # (LLVM) or warp (CUDA) where no lane needs it: the unlit side of a light,
         # light samples below the horizon, paths that left the surface.
         if self.textured:
             return dr.if_stmt(
-                (si.wi, wo, si.uv), valid, self._graph_f_cos_uv, _black_uv, label="graph"
+                (si.wi, wo, si.uv, wo_u.z), valid, self._graph_f_cos_uv, _black_uv, label="graph"
             )
-        return dr.if_stmt((si.wi, wo), valid, self._graph_f_cos, _black, label="graph")
+        return dr.if_stmt((si.wi, wo, wo_u.z), valid, self._graph_f_cos, _black, label="graph")
 
-    def _graph_f_cos(self, wi, wo):
+    def _graph_f_cos(self, wi, wo, cos_o):
         out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z])[OUTPUT]
-        return mi.Color3f(out[0], out[1], out[2]) * _unit_or_invalid(wo)[0].z
+        return mi.Color3f(out[0], out[1], out[2]) * cos_o
 
-    def _graph_f_cos_uv(self, wi, wo, uv):
+    def _graph_f_cos_uv(self, wi, wo, uv, cos_o):
         """The textured graph at the texture coordinates ``uv`` (the host's si.uv, wrapped
         by the graph itself); the sampling lobe stays the file's global one."""
         out = self.program(wi=[wi.x, wi.y, wi.z], wo=[wo.x, wo.y, wo.z], uv=[uv.x, uv.y])[OUTPUT]
-        return mi.Color3f(out[0], out[1], out[2]) * _unit_or_invalid(wo)[0].z
+        return mi.Color3f(out[0], out[1], out[2]) * cos_o
 
     def _pdf(self, si, wo, active, unit=False):
         # the generated code's rule (neural_brdf.backends.lobe_ir): both directions
