@@ -651,6 +651,7 @@ def fit_neural(
         "steps": sess.step,
         "device": variant_of(),
         "train_seconds": sess.seconds,
+        **sess.record(),
         "render_seconds": render_seconds,
         # this process's scorings of the held-out pixels, albedo penalties and lobe refits
         **{f"{k}_seconds": v for k, v in parts.items()},

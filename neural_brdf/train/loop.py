@@ -272,6 +272,7 @@ def train(
         "steps": sess.step,
         "device": str(device),
         "train_seconds": sess.seconds,
+        **sess.record(),
         "final_loss": last_loss,
         "raw_val_rel_rmse": err,
         "target": target.describe(),

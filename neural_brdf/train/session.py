@@ -74,6 +74,11 @@ KINDS = {
 }
 # ... and what a textured run's must share too (train.textured_loop)
 TEXTURED_MUST_MATCH = (*MUST_MATCH, "texture")
+# A checkpoint's key (and metrics.json's training key) of the run's resumes: for each,
+# its step and the settings changed there, dotted key -> [before, after] (a resume may
+# change what is not in MUST_MATCH: train.lr, say; config.yaml then holds the new value,
+# so this is what tells the weights' own history)
+RESUMES = "resumes"
 # A checkpoint's key of the target's files, path -> sha256 (train.target_files.digest),
 # compared on resume; absent from a checkpoint written before it (then not compared)
 TARGET_FILES = "target_files"
@@ -143,6 +148,32 @@ def check_resumable(
             raise cfgmod.ConfigError(
                 f"{key}: differs from {what} ({_get(saved, key)!r} there, {_get(now, key)!r} here)"
             )
+
+
+def _leaves(d: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested dict's values by dotted key (a list or other value is a leaf)."""
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def config_changes(saved: dict, cfg: cfgmod.Config) -> dict[str, list[Any]]:
+    """The settings on which ``cfg`` differs from a checkpoint's ``saved`` config,
+    dotted key -> [there, here], sorted (a key either lacks: None on that side)."""
+    before, after = _leaves(_with_defaults(saved)), _leaves(_with_defaults(cfg.model_dump()))
+    return {
+        k: [before.get(k), after.get(k)]
+        for k in sorted(before.keys() | after.keys())
+        if before.get(k) != after.get(k)
+    }
+
+
+def _short(v: Any) -> str:
+    text = repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def check_target_files(saved: Any, cfg: cfgmod.Config) -> None:
@@ -444,6 +475,7 @@ class Session:
         self.seconds = 0.0  # training time: of the run so far, then of the whole run
         self.kept: list[list[dict[str, str]]] = [[] for _ in self.runs]
         self._resumed: dict | None = None
+        self.resumes: list[dict[str, Any]] = []  # RESUMES: the checkpoint's, then this one
         self._begun = False
         self._state: Callable[[], dict[str, Any]] | None = None
         self._flag: dict[str, Any] = {"set": False, "signum": None}
@@ -511,13 +543,30 @@ class Session:
             self._begun = True
 
     def restore(self, ckpt: dict) -> None:
-        """Take the step and the training time of the checkpoint being resumed, and say so."""
+        """Take the step and the training time of the checkpoint being resumed, and say so,
+        with the settings that changed since it was written (:func:`config_changes`):
+        they are recorded with the step (:data:`RESUMES`, in every later checkpoint and
+        in metrics.json's ``training.resumes``), since config.yaml keeps the new ones."""
         self.step, self.seconds = int(ckpt["step"]), float(ckpt["train_seconds"])
+        earlier = ckpt.get(RESUMES)
+        changed = config_changes(ckpt["config"], self.files.cfg)
+        self.resumes = [*(earlier if isinstance(earlier, list) else [])]
+        self.resumes.append({"step": self.step, "changed": changed})
+        said = ""
+        if changed:
+            said = "; changed since it was written: " + ", ".join(
+                f"{k} {_short(a)} -> {_short(b)}" for k, (a, b) in changed.items()
+            )
+            said += " (config.yaml holds the new values; metrics.json's training.resumes both)"
         print(
             f"{self.files.cfg.name}: resuming {self.ckpt_path} at step {self.step} of "
-            f"{self.train.steps}",
+            f"{self.train.steps}{said}",
             file=sys.stderr,
         )
+
+    def record(self) -> dict[str, Any]:
+        """metrics.json's training keys of the session itself: its resumes, if any."""
+        return {RESUMES: self.resumes} if self.resumes else {}
 
     # ---------------------------------------------------------------- the loop
     @contextmanager
@@ -584,7 +633,7 @@ class Session:
             return
         if timed:
             self.seconds = self.elapsed()
-        extra = self._state()
+        extra = {**self._state(), **self.record()}
         self.files.save(self.files.state(self.step, self.seconds, extra))
 
     def stop_if_interrupted(self, before: Callable[[], None] | None = None) -> None:

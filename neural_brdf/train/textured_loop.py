@@ -793,6 +793,7 @@ def train(
         "pool_draws": pool.draws,
         "pool_draw_seconds": pool.seconds,
         "train_seconds": sess.seconds,
+        **sess.record(),
         "final_loss": last,
         "init_val_rel_rmse": init_err,
         "raw_val_rel_rmse": validate(),

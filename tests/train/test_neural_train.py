@@ -71,8 +71,10 @@ def test_resume_continues_exactly(tmp_path):
     loop.train(tiny(const), tmp_path / "straight")
     loop.train(tiny(const, "train.steps=5"), tmp_path / "split")
     assert torch.load(tmp_path / "split" / "ckpt.pt", weights_only=True)["step"] == 5
-    loop.train(tiny(const), tmp_path / "split", resume=True)
+    _, fig = loop.train(tiny(const), tmp_path / "split", resume=True)
     assert same(weights(tmp_path / "straight"), weights(tmp_path / "split"))
+    # the loop's record names the resume and what changed there (train.steps alone)
+    assert fig["resumes"] == [{"step": 5, "changed": {"train.steps": [5, 12]}}]
     with open(tmp_path / "split" / "log.csv") as fh:
         steps = [int(r["step"]) for r in csv.DictReader(fh)]
     assert steps == sorted(set(steps)) and steps[-1] == 12

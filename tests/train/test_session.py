@@ -140,3 +140,34 @@ def test_a_checkpoint_saved_before_a_key_existed_still_resumes():
     )
     with pytest.raises(config.ConfigError, match="texture: differs"):
         check_resumable(saved, grey, ("texture",))  # the default rgb there, grey here
+
+
+def test_a_resume_records_the_settings_it_changed(tmp_path, capsys):
+    """A resume may change what the checkpoint need not share (train.lr here), and
+    config.yaml then holds the new value: the step and the change are said on stderr and
+    kept in every later checkpoint and in the run's record (metrics.json's
+    training.resumes), a second resume's after the first's."""
+    first = Session.one(cfg("train.lr=0.01"), tmp_path / "r")
+    first.begin()
+    fake_loop(first, stop=3)
+    assert first.record() == {}  # a fresh run records no resume
+    again = Session.one(cfg("train.lr=0.005", "train.steps=9"), tmp_path / "r", resume=True)
+    ckpt = again.resumed()
+    assert ckpt is not None
+    again.begin()
+    again.restore(ckpt)
+    err = capsys.readouterr().err
+    assert "at step 3" in err and "train.lr 0.01 -> 0.005" in err and "train.steps 6 -> 9" in err
+    fake_loop(again, stop=6)
+    assert again.record() == {
+        "resumes": [{"step": 3, "changed": {"train.lr": [0.01, 0.005], "train.steps": [6, 9]}}]
+    }
+    third = Session.one(cfg("train.lr=0.005", "train.steps=9"), tmp_path / "r", resume=True)
+    ckpt = third.resumed()
+    assert ckpt is not None and ckpt["step"] == 6
+    assert ckpt["resumes"] == again.record()["resumes"]  # kept by the checkpoint
+    third.begin()
+    third.restore(ckpt)
+    assert "changed since" not in capsys.readouterr().err  # nothing changed this time
+    assert [r["step"] for r in third.record()["resumes"]] == [3, 6]
+    assert third.record()["resumes"][1]["changed"] == {}
