@@ -44,6 +44,9 @@ class MeasuredBRDF(Protocol):
 
     source: str  # the file it was read from (or a label)
     anisotropic: bool  # False for every format so far: no phi_h dependence
+    # whether sample_pairs puts many pairs within a degree of the mirror direction; if
+    # not, training adds the data.peak share of peak pairs (train.data.MeasuredPairSource)
+    dense_at_peak: bool
 
     def describe(self) -> str:
         """One line: the format, the file and its size (export's target description)."""

@@ -240,18 +240,47 @@ class PairSource:
 
 
 class MeasuredPairSource:
-    """Fresh (wi, wo, f) batches from measured data (the shares do not apply)."""
+    """Fresh (wi, wo, f) batches from measured data: the format's own draw on its
+    support (``MeasuredBRDF.sample_pairs``), and for a format whose draw is not dense
+    at the mirror direction (``dense_at_peak`` False: RGL's, wo from the file's sampler
+    and the cosine) the ``data.peak`` share of peak pairs (:func:`peak_pairs`) as for an
+    analytic target, evaluated by the file.  The other shares do not apply.  MERL's
+    draw, uniform over its bins in index space, puts 1/90 of its pairs in its first
+    theta_h bin (within 0.011 degrees); a gold GGX baked to ``.bsdf`` put 1.5e-5 of
+    them in the grid's first column (u_h < 1/31) and trained to 93 % off its analytic
+    peak at 3000 steps (exit 0: no peak check against a file), where its MERL bake read
+    0.96 %."""
 
-    def __init__(self, target: MeasuredTarget, gen: torch.Generator):
+    def __init__(self, target: MeasuredTarget, data: cfgmod.Data, gen: torch.Generator):
         self.target, self.gen = target, gen
+        total = data.uniform + data.cosine + data.importance + data.peak
+        dense = bool(getattr(target.brdf, "dense_at_peak", False))
+        self.peak = 0.0 if dense or total <= 0 else data.peak / total
 
     def draw(self, n: int):
-        return self.target.draw(n, self.gen)
+        n_peak = int(round(n * self.peak))
+        wi, wo, f = self.target.draw(n - n_peak, self.gen)
+        if n_peak == 0:
+            return wi, wo, f
+        g = self.gen
+        # as PairSource's share: a pair with a direction below the horizon is replaced
+        # by a uniform wi's own pair about the mirror direction
+        wi_peak, wo_peak = peak_pairs(torch.rand(n_peak, 4, generator=g))
+        wi_alt = uniform_wi(n_peak, g)
+        mirror = about_mirror(wi_alt, torch.rand(n_peak, 2, generator=g))
+        above = ((wi_peak[:, 2] > 0) & (wo_peak[:, 2] > 0))[:, None]
+        wi_p = torch.where(above, wi_peak, wi_alt)
+        wo_p = torch.where(above, wo_peak, mirror)
+        backup = frame.square_to_cosine_hemisphere(torch.rand(n_peak, 2, generator=g))
+        wo_p = torch.where(wo_p[:, 2:3] > 0, wo_p, backup)
+        wi_p, wo_p = frame.normalize(wi_p), frame.normalize(wo_p)
+        f_p = self.target.f(wi_p.double(), wo_p.double()).float()
+        return torch.cat([wi, wi_p]), torch.cat([wo, wo_p]), torch.cat([f, f_p])
 
 
 def pair_source(target, data: cfgmod.Data, gen: torch.Generator):
     if isinstance(target, MeasuredTarget):
-        return MeasuredPairSource(target, gen)
+        return MeasuredPairSource(target, data, gen)
     return PairSource(target, data, gen)
 
 

@@ -52,6 +52,9 @@ class MerlBRDF:
     """
 
     anisotropic = False  # a MERL grid has no phi_h
+    # sample_pairs is dense at the mirror direction (1/90 of its pairs in the first
+    # theta_h bin): training adds no peak pairs (train.data.MeasuredPairSource)
+    dense_at_peak = True
 
     def __init__(self, raw, *, source: str = "<memory>"):
         raw = np.array(raw, dtype=np.float64)  # a private copy

@@ -29,6 +29,10 @@ class RGLBRDF:
     :class:`neural_brdf.measured.base.MeasuredBRDF`."""
 
     anisotropic = False  # anisotropic files are refused
+    # sample_pairs draws wo from the file's sampler and the cosine, which seldom land
+    # within a degree of the mirror direction: training adds data.peak's share of peak
+    # pairs (train.data.MeasuredPairSource)
+    dense_at_peak = False
 
     def __init__(self, fields: dict[str, np.ndarray], *, source: str = "<memory>"):
         self.source = str(source)
@@ -91,17 +95,38 @@ class RGLBRDF:
             raise bad("a 2D table has fewer than 2 nodes along an axis")
         if np.any(np.diff(th) <= 0):
             raise bad("field 'theta_i': not strictly increasing")
+        # incident elevations in radians on the upper hemisphere (float32's pi/2 rounds
+        # up by 4e-8): a file in degrees, or shifted, would be read at other angles
+        if float(th[0]) < 0.0 or float(th[-1]) > math.pi / 2 + 1e-6:
+            raise bad(
+                f"field 'theta_i': values from {float(th[0]):.4g} to {float(th[-1]):.4g}, "
+                "outside [0, pi/2] (incident elevations in radians)"
+            )
+        if int(jac[0]) not in (0, 1):
+            raise bad(f"field 'jacobian': {int(jac[0])}, expected 0 or 1")
         self.description = bytes(f["description"]).decode("utf-8", "replace")
         self.jacobian = bool(jac[0])
         self._check_values(rgb, ndf, sigma, bad)
+        for name, a in (("vndf", vndf), ("luminance", lum)):  # densities of the sampler
+            if np.any(a < 0):
+                raise bad(
+                    f"field {name!r}: {int(np.sum(a < 0))} negative values (smallest "
+                    f"{float(a.min()):.3g}); a sampling density cannot be negative"
+                )
         self.theta_i, self.phi_i = th.astype(np.float64), ph.astype(np.float64)
-        try:
-            self._ndf = Marginal2D(ndf, normalize=False)
-            self._sigma = Marginal2D(sigma, normalize=False)
-            self._vndf = Marginal2D(vndf, (self.phi_i, self.theta_i))
-            self._lum = Marginal2D(lum, (self.phi_i, self.theta_i))
-        except ValueError as e:
-            raise bad(f"{e}") from None
+        tables = {}
+        for name, a, params, norm in (
+            ("ndf", ndf, (), False),
+            ("sigma", sigma, (), False),
+            ("vndf", vndf, (self.phi_i, self.theta_i), True),
+            ("luminance", lum, (self.phi_i, self.theta_i), True),
+        ):
+            try:
+                tables[name] = Marginal2D(a, params, normalize=norm)
+            except ValueError as e:
+                raise bad(f"field {name!r}: {e}") from None
+        self._ndf, self._sigma = tables["ndf"], tables["sigma"]
+        self._vndf, self._lum = tables["vndf"], tables["luminance"]
         self._rgb = [
             Marginal2D(rgb[:, :, c], (self.phi_i, self.theta_i), normalize=False) for c in range(3)
         ]
