@@ -453,6 +453,13 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
     if len(fits) > 1:
         raise InputError(f'{key}: {path}: {len(fits)} elements <bsdf id="fit">; expected one')
     if not fit_is_used(root):
+        wrapper = _referenced_wrapper(root)
+        if wrapper is not None:
+            raise InputError(
+                f'{key}: {path}: <bsdf id="fit"> is nested in {wrapper}, which a shape '
+                "uses: the object's pixels are those whose ray meets a shape whose own "
+                'BSDF is the fit; give the shape <ref id="fit"/> itself'
+            )
         raise InputError(
             f'{key}: {path}: no <shape> uses <bsdf id="fit"> (refer to it in a shape with '
             '<ref id="fit"/>, or nest it there)'
@@ -471,7 +478,31 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
         raise InputError(
             f"{key}: {path}: integrator {kind!r}: a fit renders with {', '.join(INTEGRATORS)}"
         )
+    for depth in integrators[0].findall("integer") if integrators else []:
+        value = (depth.get("value") or "").strip()
+        if depth.get("name") == "max_depth" and value in ("0", "1"):
+            # Mitsuba's path length counts the camera ray: 1 sees the emitters alone,
+            # so the object renders black and the images never reach the BSDF
+            raise InputError(
+                f"{key}: {path}: the integrator's max_depth is {value}: it renders no light "
+                "reflected by a surface, so the images say nothing of the BSDF; give 2 "
+                "(direct light) or more, or -1"
+            )
     return tree, INTEGRATORS[kind]
+
+
+def _referenced_wrapper(root: ET.Element) -> str | None:
+    """``<bsdf type="T" id="X">`` (as text) when ``<bsdf id="fit">`` (or its
+    ``<ref id="fit"/>``) is nested in a BSDF X outside every shape that a shape
+    refers to (``<ref id="X"/>``), else None: the fit is used, but through X."""
+    used = {e.get("id") for shape in root.iter("shape") for e in shape.iter("ref")}
+    for outer in root.iter("bsdf"):
+        name = outer.get("id")
+        if name in (None, "fit") or name not in used:
+            continue
+        if any(e.get("id") == "fit" for e in outer.iter() if e is not outer):
+            return f'<bsdf type="{outer.get("type", "")}" id="{name}">'
+    return None
 
 
 def fit_is_used(root: ET.Element) -> bool:

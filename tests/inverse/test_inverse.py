@@ -1534,6 +1534,67 @@ def test_scene_whose_fit_bsdf_no_shape_uses_exits_2(copy_of, capsys):
     _expect_exit_2(path, copy_of / "run", capsys, "unused.xml", "no <shape> uses")
 
 
+def test_a_fit_used_through_a_referenced_wrapper_is_named(copy_of, capsys):
+    """A shape that refers to a twosided holding the fit uses it, through the wrapper:
+    the message says so (it said that no shape uses the fit)."""
+    text = (copy_of / "view1.xml").read_text()
+    start = text.index('<bsdf type="roughconductor" id="fit">')
+    end = text.index("</bsdf>", start) + len("</bsdf>")
+    wrapped = f'<bsdf type="twosided" id="ts">{text[start:end]}</bsdf>'
+    text = text[:start] + wrapped + text[end:]
+    (copy_of / "ts.xml").write_text(text.replace('<ref id="fit"/>', '<ref id="ts"/>'))
+    path = _config(copy_of, [("ts.xml", "view1.exr")])
+    _expect_exit_2(
+        path,
+        copy_of / "run",
+        capsys,
+        "ts.xml",
+        '<bsdf type="twosided" id="ts">',
+        "which a shape uses",
+    )
+
+
+def test_a_split_whose_held_out_tiles_miss_the_object_exits_2(copy_of, capsys):
+    """One view, 2 % of its tiles held out: at a seed whose tile lies off the sphere the
+    held-out loss had nothing to score (an assertion failed after the run folder was
+    written, exit 1); now exit 2 before, naming images.validation_pixels."""
+    from neural_brdf.inverse import starts, views
+
+    path = _config(copy_of, [("view1.xml", "view1.exr")], "images: {validation_pixels: 0.02}\n")
+    cfg = config.load(path)
+    (view,) = views.read_views(cfg)
+    view.object = starts.seen_object_mask(view, "target.images[0].scene")
+    for seed in range(40):
+        views.split_views([view], cfg.images, seed)
+        if not (view.validation_mask() & view.object).any():
+            break
+    else:
+        pytest.fail("no seed of 40 holds out only tiles off the sphere")
+    path.write_text(path.read_text() + f"train: {{seed: {seed}}}\n")
+    _expect_exit_2(path, copy_of / "run", capsys, "images.validation_pixels", "view1.exr")
+
+
+def test_an_object_with_no_pixel_inside_its_outline_exits_2(copy_of, capsys):
+    text = (copy_of / "view1.xml").read_text()
+    assert text.count('<shape type="sphere">') == 1
+    small = '<shape type="sphere"><float name="radius" value="0.3"/>'
+    (copy_of / "small.xml").write_text(text.replace('<shape type="sphere">', small))
+    path = _config(copy_of, [("small.xml", "view1.exr")])
+    _expect_exit_2(path, copy_of / "run", capsys, "small.xml", "covers no pixel")
+
+
+@pytest.mark.parametrize("depth", ["0", "1"])
+def test_an_integrator_that_renders_no_reflected_light_exits_2(copy_of, capsys, depth):
+    """max_depth 1 sees the emitters alone: the object rendered black and the fit ran,
+    exit 0, on the albedo penalty alone."""
+    text = (copy_of / "view1.xml").read_text()
+    text, n = re.subn(r'(<integer name="max_depth" value=")[^"]*(")', rf"\g<1>{depth}\2", text)
+    assert n == 1
+    (copy_of / "shallow.xml").write_text(text)
+    path = _config(copy_of, [("shallow.xml", "view1.exr")])
+    _expect_exit_2(path, copy_of / "run", capsys, "shallow.xml", f"max_depth is {depth}")
+
+
 @pytest.mark.parametrize(
     "key",
     [
