@@ -133,3 +133,18 @@ def test_the_table_names_the_uv_of_a_textured_files_hemispherical_albedo():
     del checks["max_albedo"]["at_uv"]  # a homogeneous file's: no uv
     row = next(x for x in validate.format_table(report).splitlines() if "hemispherical" in x)
     assert "uv" not in row and "0.8000, 0.2000, 0.1000" in row
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1.0, 1e200])
+def test_the_relative_rmse_does_not_depend_on_the_values_scale(scale):
+    """A valid file of tiny values (a MERL file of 1e-300) squared to 0 and read a
+    157-digit percentage; huge ones overflow the same way: the figure is a ratio, the
+    same at any scale."""
+    rng = np.random.default_rng(0)
+    wo = np.tile([[0.0, 0.0, 1.0]], (64, 1))
+    wi = wo.copy()
+    ref = rng.uniform(0.5, 1.5, (64, 3))
+    off = ref * (1.0 + rng.choice([-0.1, 0.1], (64, 3)))  # 10 % off everywhere
+    got = validate._accuracy_report(wi, wo, ref * scale, off * scale)
+    assert got["rel_rmse"] == pytest.approx(0.1, rel=1e-9)
+    assert got["rel_rmse_by_incidence"]["cos_i 0.5-1"] == pytest.approx(0.1, rel=1e-9)
