@@ -101,7 +101,6 @@ from neural_brdf.errors import InputError
 from neural_brdf.fileformat import LOBE_KEY
 from neural_brdf.fileformat import lobe as lobe_format
 from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed on)
-    FILTER_REACH,
     INTEGRATORS,
     NOISE_KEEP,
     NOISE_SCALE,
@@ -260,8 +259,8 @@ def check_split_sees_object(views: list[View], images: cfgmod.Images) -> None:
     if not any(v.object is not None and v.object.any() for v in views):
         raise InputError(
             f"target.images: {views[0].scene_path}: the fitted object covers no pixel "
-            f"{FILTER_REACH} pixels inside its outline (the reconstruction filter's "
-            "reach) in any view: frame it larger or render the views at a higher resolution"
+            "inside its outline (as far in as the film's reconstruction filter reaches) "
+            "in any view: frame it larger or render the views at a higher resolution"
         )
     if not images.split:
         return

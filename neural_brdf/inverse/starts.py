@@ -114,9 +114,9 @@ def seen_object_mask(view: inverse.View, key: str) -> np.ndarray:
     """:func:`object_mask`, after checking that the view sees the object at all
     (:func:`~neural_brdf.inverse.views.check_sees_object`: InputError naming ``key``,
     ``target.images[k].scene``, otherwise); one load of the scene for both."""
-    hit, front = inverse.fit_hits(_stood_in(view))
+    hit, front, reach = inverse.fit_hits(_stood_in(view))
     inverse.check_sees_object(view, key, hit, front)
-    return inverse.eroded(hit, inverse.FILTER_REACH)
+    return inverse.eroded(hit, reach)
 
 
 def _stood_in(view: inverse.View) -> inverse.View:

@@ -942,20 +942,26 @@ def render_view(view: View, bsdf: ET.Element, *, spp: int, seed: int) -> np.ndar
 FILTER_REACH = 2  # pixels: how far the film's default (Gaussian) filter reaches
 
 
-def sphere_mask(view: View, erode: int = FILTER_REACH) -> np.ndarray:
+def sphere_mask(view: View, erode: int | None = None) -> np.ndarray:
     """(H, W) bool: pixels whose centre ray hits a shape with ``<bsdf id="fit">``, and
-    whose neighbours within ``erode`` pixels do too (the film's filter reaches 2 pixels),
-    so that no background enters a pixel of the mask."""
-    return eroded(fit_hits(view)[0], erode)
+    whose neighbours within ``erode`` pixels do too (None: as far as the film's filter
+    reaches, :func:`fit_hits`), so that no background enters a pixel of the mask."""
+    hit, _, reach = fit_hits(view)
+    return eroded(hit, reach if erode is None else erode)
 
 
-def fit_hits(view: View) -> tuple[np.ndarray, np.ndarray]:
-    """(hit, front), each (H, W) bool: the pixels whose centre ray hits a shape with
-    ``<bsdf id="fit">`` (the scene's own, from ``view.tree``), and those of them where it
-    meets the front of the surface (the side the fitted BSDF, one-sided, reflects on)."""
+def fit_hits(view: View) -> tuple[np.ndarray, np.ndarray, int]:
+    """(hit, front, reach): (H, W) bool each, the pixels whose centre ray hits a shape
+    with ``<bsdf id="fit">`` (the scene's own, from ``view.tree``), and those of them
+    where it meets the front of the surface (the side the fitted BSDF, one-sided,
+    reflects on); and the pixels the film's reconstruction filter reaches beyond its
+    own (its border size: :data:`FILTER_REACH` for Mitsuba's default Gaussian, 0 for a
+    box, 6 for a Gaussian of stddev 1.5, whose splats a fixed 2 left in the object's
+    outline)."""
     import mitsuba as mi
 
     scene = load_scene(view.scene_path, scene_text(view.tree, fit_element(view.tree)))
+    reach = int(scene.sensors()[0].film().rfilter().border_size())
     h, w = film_size(scene)
     idx = np.arange(h * w)
     pos = mi.Point2f(((idx % w) + 0.5) / w, ((idx // w) + 0.5) / h)
@@ -966,6 +972,7 @@ def fit_hits(view: View) -> tuple[np.ndarray, np.ndarray]:
     return (
         np.asarray(hit.numpy(), dtype=bool).reshape(h, w),
         np.asarray(front.numpy(), dtype=bool).reshape(h, w),
+        reach,
     )
 
 

@@ -1554,6 +1554,42 @@ def test_a_fit_used_through_a_referenced_wrapper_is_named(copy_of, capsys):
     )
 
 
+@pytest.mark.parametrize(
+    ("rfilter", "reach"),
+    [
+        ("", 2),
+        ('<rfilter type="box"/>', 0),
+        ('<rfilter type="gaussian"><float name="stddev" value="0.75"/></rfilter>', 3),
+    ],
+)
+def test_the_object_mask_leaves_out_as_much_outline_as_the_films_filter_reaches(
+    copy_of, rfilter, reach
+):
+    """The object's pixels exclude those a splat of the background can reach: the
+    film's filter's border (Mitsuba's default Gaussian 2 pixels, a box none, a Gaussian
+    of stddev 0.75 three); a fixed 2 let a wide filter's background in and cut a box's
+    edge pixels for nothing."""
+    from neural_brdf.inverse import starts
+    from neural_brdf.inverse import views as inverse
+
+    text = (copy_of / "view1.xml").read_text()
+    assert text.count('<film type="hdrfilm">') == 1
+    (copy_of / "f.xml").write_text(
+        text.replace('<film type="hdrfilm">', f'<film type="hdrfilm">{rfilter}')
+    )
+    path = _config(copy_of, [("f.xml", "view1.exr")])
+    (view,) = inverse.read_views(config.load(path))
+    hit, front, got = inverse.fit_hits(view)
+    assert got == reach
+    mask = starts.seen_object_mask(view, "target.images[0].scene")
+    assert np.array_equal(mask, inverse.eroded(hit, reach)) and mask.any()
+    assert np.array_equal(inverse.sphere_mask(view), mask)
+    if reach == 0:
+        assert np.array_equal(mask, hit)
+    else:
+        assert mask.sum() < inverse.eroded(hit, reach - 1).sum()
+
+
 def test_a_split_whose_held_out_tiles_miss_the_object_exits_2(copy_of, capsys):
     """One view, 2 % of its tiles held out: at a seed whose tile lies off the sphere the
     held-out loss had nothing to score (an assertion failed after the run folder was
