@@ -1090,6 +1090,11 @@ def read_text(path: Path) -> str:
         data = fileio.read_capped(path, limits.MAX_CONFIG_BYTES)
     except fileio.NotAFileError as e:
         raise ConfigError(f"{e} (give a config file)") from None
+    except IsADirectoryError:  # a run folder, most likely ("Is a directory" before)
+        inside, model = Path(path) / "config.yaml", Path(path) / "model.onnx"
+        said = f"; its config is {inside}" if inside.is_file() else ""
+        said += f", its model {model}" if said and model.is_file() else ""
+        raise ConfigError(f"{path}: is a folder, not a config file{said}") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
     if len(data) > limits.MAX_CONFIG_BYTES:
@@ -1111,9 +1116,14 @@ def paths_relative_to(raw: dict, folder: Path) -> None:
     """target.images, target.mitsuba and target.data paths in a config file are relative
     to its folder: made absolute (so a run's config.yaml finds them from any folder).
     target.data was read against the current folder before: a file found there and not
-    beside the config is still taken (a config written for that rule)."""
+    beside the config is still taken (a config written for that rule).  A path that
+    starts with ``~`` is the user's home (as a shell would read it), not a folder "~"
+    beside the config."""
     target = raw.get("target")
     if isinstance(target, dict):
+        for key in ("data", "mitsuba"):
+            if isinstance(target.get(key), str) and target[key].startswith("~"):
+                target[key] = os.path.expanduser(target[key])
         data = target.get("data")
         if isinstance(data, str) and data.strip() and not Path(data).is_absolute():
             beside = folder / data
@@ -1126,6 +1136,8 @@ def paths_relative_to(raw: dict, folder: Path) -> None:
     for item in images if isinstance(images, list) else ():
         for key in ("scene", "image", "subtract") if isinstance(item, dict) else ():
             value = item.get(key)
+            if isinstance(value, str) and value.startswith("~"):
+                value = item[key] = os.path.expanduser(value)
             if isinstance(value, str) and value.strip() and not Path(value).is_absolute():
                 item[key] = os.path.abspath(folder / value)
 

@@ -90,7 +90,7 @@ from neural_brdf.train import data
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.loop import CheckpointError, load_checkpoint  # noqa: F401  (export.load_checkpoint)
 from neural_brdf.train.model import NormalizedBRDF, RawBRDF, TotalBRDF, albedo_table
-from neural_brdf.train.session import check_resumable
+from neural_brdf.train.session import TARGET_FILES, check_resumable, target_file_problems
 from neural_brdf.train.textured_model import (
     FOLD_LIMIT,
     NORMALIZED,
@@ -907,6 +907,15 @@ def export_run(
         )
     target = None if images else data.build_target(cfg.target)
     check_textured(target, textured=textured, where=str(run_dir / "ckpt.pt"))
+    # the export goes ahead: the weights stand whatever became of the target's files
+    # since, but the accuracy below is measured against the files as they are now,
+    # which a changed one makes another target's: said, not refused
+    for problem in [] if images else target_file_problems(ckpt.get(TARGET_FILES), cfg):
+        print(
+            f"warning: {problem}: the accuracy of this export is against the file as it "
+            "is now, not the one the run trained on",
+            file=sys.stderr,
+        )
     if textured:
         return _export_textured(ckpt, cfg, run_dir, out, measure_textured, target)
     raw = raw_from_checkpoint(ckpt, cfg)

@@ -144,19 +144,31 @@ def check_resumable(
     now = _with_defaults(cfg.model_dump())  # (a config built in Python may name it relative)
     saved = _with_defaults(saved)
     for key in must_match:
-        if _get(saved, key) != _get(now, key):
+        there, here = _get(saved, key), _get(now, key)
+        if there != here:
+            # the first leaf that differs (target.images[0].scene, say), not the section
+            a, b = _leaves(there, key, lists=True), _leaves(here, key, lists=True)
+            leaf = next((k for k in [*a, *b] if a.get(k, a) != b.get(k, b)), None)
+            if leaf is not None:  # (a value on one side alone: None on the other)
+                there, here = a.get(leaf), b.get(leaf)
             raise cfgmod.ConfigError(
-                f"{key}: differs from {what} ({_get(saved, key)!r} there, {_get(now, key)!r} here)"
+                f"{leaf or key}: differs from {what} ({there!r} there, {here!r} here)"
             )
 
 
-def _leaves(d: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested dict's values by dotted key (a list or other value is a leaf)."""
-    if not isinstance(d, dict):
+def _leaves(d: Any, prefix: str = "", *, lists: bool = False) -> dict[str, Any]:
+    """A nested dict's values by dotted key (a list is a leaf, or with ``lists`` its
+    items are, as ``key[i]``)."""
+    if lists and isinstance(d, list) and d:
+        out: dict[str, Any] = {}
+        for i, v in enumerate(d):
+            out.update(_leaves(v, f"{prefix}[{i}]", lists=True))
+        return out
+    if not isinstance(d, dict) or not d:
         return {prefix: d}
-    out: dict[str, Any] = {}
+    out = {}
     for k, v in d.items():
-        out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k)))
+        out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k), lists=lists))
     return out
 
 
@@ -176,10 +188,10 @@ def _short(v: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def check_target_files(saved: Any, cfg: cfgmod.Config) -> None:
-    """ConfigError naming the first file of ``saved`` (a checkpoint's
-    :data:`TARGET_FILES`: path -> sha256) that is gone or whose bytes differ now; a
-    checkpoint of an earlier version (``saved`` None) is not checked."""
+def target_file_problems(saved: Any, cfg: cfgmod.Config) -> Iterator[str]:
+    """One line for each file of ``saved`` (a checkpoint's :data:`TARGET_FILES`: path
+    -> sha256) that is gone, unreadable or whose bytes differ now, naming its key; none
+    for a checkpoint of an earlier version (``saved`` None)."""
     if not isinstance(saved, dict):
         return
     for path, sha in saved.items():
@@ -187,20 +199,25 @@ def check_target_files(saved: Any, cfg: cfgmod.Config) -> None:
         try:
             now = target_files.sha256(path)
         except FileNotFoundError:
-            raise cfgmod.ConfigError(
-                f"{key}: {path} is gone since the checkpoint was written; train anew "
-                "(--overwrite) or restore the file"
-            ) from None
+            yield f"{key}: {path} is gone since the checkpoint was written"
+            continue
         except OSError as e:
-            raise cfgmod.ConfigError(
+            yield (
                 f"{key}: {path}: cannot be read ({e.strerror or e}) to compare it with the "
-                "checkpoint's; train anew (--overwrite) or restore the file"
-            ) from None
-        if now != sha:
-            raise cfgmod.ConfigError(
-                f"{key}: {path} changed since the checkpoint was written (sha256 differs); "
-                "train anew (--overwrite) or restore the file"
+                "checkpoint's"
             )
+            continue
+        if now != sha:
+            yield f"{key}: {path} changed since the checkpoint was written (sha256 differs)"
+
+
+def check_target_files(saved: Any, cfg: cfgmod.Config) -> None:
+    """ConfigError naming the first file of ``saved`` (a checkpoint's
+    :data:`TARGET_FILES`: path -> sha256) that is gone or whose bytes differ now
+    (:func:`target_file_problems`); a checkpoint of an earlier version (``saved`` None)
+    is not checked."""
+    for problem in target_file_problems(saved, cfg):
+        raise cfgmod.ConfigError(f"{problem}; train anew (--overwrite) or restore the file")
 
 
 def load_resumable(

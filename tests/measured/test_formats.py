@@ -168,6 +168,10 @@ def test_a_data_path_is_the_config_folders_and_a_run_finds_it_from_anywhere(
     # a config written for the earlier rule (the current folder's) still finds its file
     (tmp_path / "cfg" / "old.yaml").write_text("target:\n  data: old.toy\n")
     assert config.load(tmp_path / "cfg" / "old.yaml").target.data == str(tmp_path / "old.toy")
+    # ~ is the home folder, as a shell reads it (it was a folder "~" beside the config)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "cfg" / "home.yaml").write_text("target:\n  data: ~/old.toy\n")
+    assert config.load(tmp_path / "cfg" / "home.yaml").target.data == str(tmp_path / "old.toy")
     # a missing file is named by the path it was looked for at
     (tmp_path / "cfg" / "gone.yaml").write_text("target:\n  data: gone.toy\n")
     code, _, err = cli(capsys, "train", "cfg/gone.yaml", "--out", "r0", *SETS)
@@ -196,7 +200,7 @@ def test_a_data_path_is_the_config_folders_and_a_run_finds_it_from_anywhere(
     saved["target"]["data"] = "cfg/m.toy"
     session.check_resumable(saved, cfg)
     saved["target"]["data"] = "old.toy"
-    with pytest.raises(config.ConfigError, match="target: differs"):
+    with pytest.raises(config.ConfigError, match=r"^target\.data: differs"):
         session.check_resumable(saved, cfg)
 
 

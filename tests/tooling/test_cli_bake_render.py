@@ -342,3 +342,20 @@ def test_a_run_folder_given_as_a_config_says_it_is_a_folder(
     code, _, err = cli(capsys, *argv)
     assert_one_line_error(code, err, "myrun: is a folder", "myrun/config.yaml")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["myrun"]
+
+
+def test_a_run_folder_given_where_a_config_goes_names_its_files(capsys, tmp_path):
+    """A run folder whose name has a dot (runs/g0.2) is read as a config file: it said
+    "cannot read config (Is a directory)"; it now says it is a folder and names the
+    run's config and model."""
+    run = tmp_path / "g0.2"
+    run.mkdir()
+    (run / "config.yaml").write_text(LAMBERT.read_text())
+    (run / "model.onnx").write_bytes(b"")
+    code, _, err = cli(capsys, "bake", str(run), "-o", str(tmp_path / "x.binary"))
+    assert_one_line_error(
+        code, err, f"{run}: is a folder", str(run / "config.yaml"), str(run / "model.onnx")
+    )
+    code, _, err = cli(capsys, "train", str(run), "--out", str(tmp_path / "r"))
+    assert_one_line_error(code, err, f"{run}: is a folder", str(run / "config.yaml"))
+    assert not (tmp_path / "x.binary").exists()

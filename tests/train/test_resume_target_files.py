@@ -270,3 +270,17 @@ def test_an_images_fit_whose_image_or_included_file_changed_is_refused(images, t
     files["lights"].write_text(LIGHTS.replace("sky.exr", "sky2.exr"))
     code, _, err = cli(capsys, *args)
     assert_one_line_error(code, err, f"target.images: {files['lights']} {REFUSED}")
+
+
+def test_export_says_when_the_target_file_changed_since_training(measured, rgl_files, capsys):
+    """The weights stand (export writes them), but the accuracy it reports is against
+    the file as it is now: a file changed since the run trained is named in a warning
+    (export said nothing, and measured the weights against the other file)."""
+    _, data, run = measured
+    code, _, err = cli(capsys, "export", str(run), "-o", str(run / "a.onnx"))
+    assert code == 0 and "warning" not in err, err
+    data.write_bytes(rgl_files[1].read_bytes())
+    code, _, err = cli(capsys, "export", str(run), "-o", str(run / "b.onnx"))
+    assert code == 0, err
+    assert f"warning: target.data: {data} {REFUSED}" in err, err
+    assert (run / "b.onnx").is_file()

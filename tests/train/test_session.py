@@ -133,12 +133,12 @@ def test_a_checkpoint_saved_before_a_key_existed_still_resumes():
     check_resumable(saved, cfg, ("texture", "model"))
     changed = cfg.model_dump()
     changed["texture"]["lobes"] = cfg.texture.lobes + 1
-    with pytest.raises(config.ConfigError, match="texture: differs"):
+    with pytest.raises(config.ConfigError, match=r"^texture\.lobes: differs"):
         check_resumable(changed, cfg, ("texture", "model"))
     grey = cfg.model_copy(
         update={"texture": cfg.texture.model_copy(update={"weights": "rgb", "lobe_color": "grey"})}
     )
-    with pytest.raises(config.ConfigError, match="texture: differs"):
+    with pytest.raises(config.ConfigError, match=r"^texture\.(weights|lobe_color): differs"):
         check_resumable(saved, grey, ("texture",))  # the default rgb there, grey here
 
 
@@ -171,3 +171,20 @@ def test_a_resume_records_the_settings_it_changed(tmp_path, capsys):
     assert "changed since" not in capsys.readouterr().err  # nothing changed this time
     assert [r["step"] for r in third.record()["resumes"]] == [3, 6]
     assert third.record()["resumes"][1]["changed"] == {}
+
+
+def test_a_resume_refused_names_the_setting_that_differs_not_its_section():
+    """A checkpoint's section that differs is named down to its first differing value
+    (a moved capture folder said "target: differs ... ({'model': 'lambertian', ...", the
+    whole section, cut off in a terminal)."""
+    from neural_brdf.train.session import check_resumable
+
+    saved = cfg("target.params.albedo=[0.5,0.5,0.5]", "model.hidden=[16,16]").model_dump()
+    with pytest.raises(config.ConfigError) as e:
+        check_resumable(saved, cfg("target.params.albedo=[0.5,0.25,0.5]", "model.hidden=[16,16]"))
+    assert str(e.value).startswith("target.params.albedo[1]: differs from the checkpoint")
+    assert "(0.5 there, 0.25 here)" in str(e.value)
+    with pytest.raises(config.ConfigError) as e:
+        check_resumable(saved, cfg("target.params.albedo=[0.5,0.5,0.5]", "model.hidden=[16]"))
+    assert str(e.value).startswith("model.hidden[1]: differs"), str(e.value)
+    assert "(16 there, None here)" in str(e.value)
