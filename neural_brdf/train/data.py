@@ -28,6 +28,7 @@ continues exactly where it stopped.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import torch
@@ -61,7 +62,11 @@ class MeasuredTarget:
         try:
             return cls(formats.read(path))
         except InputError as e:
-            raise cfgmod.ConfigError(f"{key}: {e}") from None
+            hint = ""
+            if key == "target.data" and not os.path.lexists(path):
+                # configs/merl.yaml names a placeholder: say how to give one's own file
+                hint = " (give your file with --set target.data=FILE)"
+            raise cfgmod.ConfigError(f"{key}: {e}{hint}") from None
 
     def describe(self) -> str:
         return self.brdf.describe()

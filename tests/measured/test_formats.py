@@ -175,7 +175,9 @@ def test_a_data_path_is_the_config_folders_and_a_run_finds_it_from_anywhere(
     # a missing file is named by the path it was looked for at
     (tmp_path / "cfg" / "gone.yaml").write_text("target:\n  data: gone.toy\n")
     code, _, err = cli(capsys, "train", "cfg/gone.yaml", "--out", "r0", *SETS)
-    assert_one_line_error(code, err, "target.data", str(tmp_path / "cfg" / "gone.toy"))
+    assert_one_line_error(
+        code, err, "target.data", str(tmp_path / "cfg" / "gone.toy"), "--set target.data=FILE"
+    )
 
     # a run trained here is exported, reported and resumed from another folder
     code, _, err = cli(capsys, "train", "cfg/m.yaml", "--out", "run", *SETS)
