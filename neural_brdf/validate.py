@@ -560,7 +560,9 @@ def format_table(report: dict[str, Any]) -> str:
     rows.append(("hemispherical_albedo", hemi, "", ""))
     if "accuracy" in report:
         acc = report["accuracy"]
-        rows.append(("rel_rmse (f cos)", f"{100 * acc['rel_rmse']:.3f} %", "", ""))
+        # against a file: at its own nodes (a model baked from the file reads 0 there)
+        nodes = " at the file's nodes" if acc.get("pairs_from") == "measured bins" else ""
+        rows.append(("rel_rmse (f cos)", f"{100 * acc['rel_rmse']:.3f} %{nodes}", "", ""))
         for band, v in acc["rel_rmse_by_incidence"].items():
             rows.append((f"  {band}", "-" if v is None else f"{100 * v:.3f} %", "", ""))
         rows.append(("nbrdf_log_error", f"{acc['nbrdf_log_error']:.3g}", "", ""))

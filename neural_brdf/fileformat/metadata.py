@@ -30,6 +30,7 @@ import yaml
 
 from neural_brdf.errors import InputError
 from neural_brdf.fileformat import (
+    FORMAT_VERSION,
     JSON_KEYS,
     KEYS,
     LOBE_KEY,
@@ -74,6 +75,47 @@ def _finite(value: Any) -> Any:
     return value
 
 
+def check_versions(values: Mapping[str, Any]) -> int:
+    """The ``metadata_version`` of decoded metadata ``values`` (1 when absent), after
+    checking it and ``format_version`` (when present): whole numbers, and no later than
+    this reader's (a later contract's keys and graph may mean other things through the
+    same names).  A one-line InputError naming the key otherwise (the caller adds the
+    file)."""
+    version = values.get(METADATA_VERSION_KEY, 1)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise InputError(
+            f"metadata {METADATA_VERSION_KEY}: expected a whole number, got {_shown(version)}"
+        )
+    if version > METADATA_VERSION:
+        raise InputError(
+            f"metadata {METADATA_VERSION_KEY}: {version}, and this reader knows up to "
+            f"{METADATA_VERSION}: the file was written by a later neural-brdf (upgrade it)"
+        )
+    if "format_version" in values:  # absent: refused where it matters (cli._project_model)
+        fmt = values["format_version"]
+        if isinstance(fmt, bool) or not isinstance(fmt, int) or fmt < 1:
+            raise InputError(f"metadata format_version: expected a whole number, got {_shown(fmt)}")
+        if fmt > FORMAT_VERSION:
+            raise InputError(
+                f"metadata format_version: {fmt}, and this reader knows up to "
+                f"{FORMAT_VERSION}: the file was written by a later neural-brdf (upgrade it)"
+            )
+    return version
+
+
+def check_props_versions(props: Mapping[str, str]) -> None:
+    """:func:`check_versions` of a file's metadata_props (strings): what a consumer of
+    the graph alone (``graph.lower``: codegen, the plugins) checks on load."""
+    values: dict[str, Any] = {}
+    for key in (METADATA_VERSION_KEY, "format_version"):
+        if key in props:
+            try:
+                values[key] = json.loads(props[key])
+            except ValueError:
+                values[key] = props[key]
+    check_versions(values)
+
+
 def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
     """metadata_props (strings) -> values, for files of every metadata_version.
 
@@ -90,12 +132,7 @@ def read_metadata(props: Mapping[str, str]) -> dict[str, Any]:
                 out[key] = json.loads(props[key])
             except ValueError:
                 pass  # version 1 text (the target, the YAML config) or "inf"/"nan"
-    version = out.get(METADATA_VERSION_KEY, 1)
-    if isinstance(version, bool) or not isinstance(version, int):
-        raise InputError(
-            f"metadata {METADATA_VERSION_KEY}: expected a whole number, got {_shown(version)}"
-        )
-    out[METADATA_VERSION_KEY] = version
+    out[METADATA_VERSION_KEY] = check_versions(out)
     if "target" in props and not isinstance(out["target"], dict):
         out["target"] = parse_target(props["target"])
     if "training_config" in props and not isinstance(out["training_config"], dict):

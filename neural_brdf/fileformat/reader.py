@@ -29,7 +29,7 @@ from neural_brdf.fileformat import (
     SIGNATURES,
     sizes,
 )
-from neural_brdf.fileformat.metadata import Metadata
+from neural_brdf.fileformat.metadata import Metadata, check_props_versions
 
 
 def load(model, *, external_data: bool = True) -> onnx.ModelProto:
@@ -56,6 +56,10 @@ def load(model, *, external_data: bool = True) -> onnx.ModelProto:
         raise InputError(f"{source}: not an ONNX model (it has no graph; an empty file?)")
     sizes.check(proto, source=source)  # declared sizes, before anything is allocated
     check_finite(proto, source=source)
+    try:  # a later contract's file (format_version 99) may mean another thing
+        check_props_versions({p.key: p.value for p in proto.metadata_props})
+    except InputError as e:
+        raise InputError(f"{source}: {e}") from None
     return proto
 
 

@@ -408,7 +408,9 @@ def test_train_on_a_bsdf_file_and_compare_with_the_analytic_model(baked, tmp_pat
     # validate --reference material.bsdf scores against the file's nodes
     code, out, err = cli_run(capsys, "validate", model, "--reference", path)
     assert code == 0, err
-    assert "rel_rmse" in out
+    assert "rel_rmse" in out and "at the file's nodes" in out  # said in the table
+    code, out, err = cli_run(capsys, "validate", model, "--reference", "gold")
+    assert "rel_rmse" in out and "nodes" not in out, err  # an analytic reference's pairs
 
 
 def test_training_pairs_of_a_bsdf_file_reach_the_mirror_direction(baked):

@@ -359,3 +359,36 @@ def test_a_run_folder_given_where_a_config_goes_names_its_files(capsys, tmp_path
     code, _, err = cli(capsys, "train", str(run), "--out", str(tmp_path / "r"))
     assert_one_line_error(code, err, f"{run}: is a folder", str(run / "config.yaml"))
     assert not (tmp_path / "x.binary").exists()
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "needle"),
+    [
+        ("format_version", "99", "format_version: 99, and this reader knows up to"),
+        ("format_version", "abc", "format_version: expected a whole number"),
+        ("format_version", "0", "format_version: expected a whole number"),
+        ("metadata_version", "99", "metadata_version: 99, and this reader knows up to"),
+    ],
+)
+def test_a_file_of_a_later_or_unreadable_contract_version_is_refused(
+    capsys, tiny_model, tmp_path, key, value, needle
+):
+    """A format_version is the contract's (bumped when it changes): a file of a later one,
+    or of none readable, was baked, validated, rendered and loaded by the plugin without a
+    word; it may compute another thing through the same input names."""
+    import onnx
+
+    m = onnx.load(str(tiny_model))
+    (prop,) = [p for p in m.metadata_props if p.key == key]
+    prop.value = value
+    path = tmp_path / "later.onnx"
+    onnx.save(m, str(path))
+    for argv in (
+        ["bake", str(path), "-o", str(tmp_path / "x.bsdf")],
+        ["validate", str(path)],
+        ["codegen", str(path), "--target", "c", "-o", str(tmp_path / "x.h")],
+    ):
+        code, out, err = cli(capsys, *argv)
+        assert code == 2, (argv, code, out, err)
+        assert_one_line_error(code, err, str(path), needle)
+    assert not (tmp_path / "x.bsdf").exists() and not (tmp_path / "x.h").exists()
