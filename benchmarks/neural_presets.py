@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import datetime
 import os
 import sys
 import time
@@ -39,7 +40,7 @@ if str(REPO) not in sys.path:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(REPO))
 
 import yaml  # noqa: E402
-from common import write_json  # noqa: E402
+from common import loadavg, machine, write_json  # noqa: E402
 
 from neural_brdf import config, pipeline  # noqa: E402
 
@@ -127,10 +128,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     rows = []
+    before = loadavg()
     for name in args.presets or preset_names():
         rows.append(run_preset(name, args.root))
         print(summary_line(rows[-1]), flush=True)
-    write_json(args.out, rows)
+    # the rows with when and where (a file before 2026-12-07 is the bare list of rows)
+    stamp = {"date": datetime.datetime.now().isoformat(timespec="seconds")}
+    write_json(args.out, {**stamp, "machine": machine(before), "rows": rows})
 
 
 if __name__ == "__main__":

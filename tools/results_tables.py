@@ -244,12 +244,22 @@ def suite_section(s: dict) -> list[str]:
     return out
 
 
-def neural_presets_section(rows: list[dict]) -> list[str]:
+def neural_presets_section(d: list[dict] | dict) -> list[str]:
+    # the bare list of rows before 2026-12-07; then the rows with date and machine
+    rows = d if isinstance(d, list) else d["rows"]
+    m = None if isinstance(d, list) else d.get("machine")
+    load = None
+    if m:
+        load = f"{_load(m['loadavg_before'])} before, {_load(m['loadavg_after'])} after (1-minute)"
     out = [
         "## Neural presets",
         "",
         _source("benchmarks/results/neural_presets.json", "python benchmarks/neural_presets.py"),
-        _recorded(None, None, None),
+        _recorded(
+            None if isinstance(d, list) else d.get("date"),
+            f"{m['platform']}, {m['cores']} cores" if m else None,
+            load,
+        ),
         "Each preset in `configs/` is trained with its own settings, exported "
         "and validated. Accuracy is the relative RMSE of f·cos θo on importance-sampled "
         "pairs against the analytic target.",
