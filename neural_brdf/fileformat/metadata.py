@@ -82,9 +82,9 @@ def check_versions(values: Mapping[str, Any]) -> int:
     same names).  A one-line InputError naming the key otherwise (the caller adds the
     file)."""
     version = values.get(METADATA_VERSION_KEY, 1)
-    if isinstance(version, bool) or not isinstance(version, int):
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
         raise InputError(
-            f"metadata {METADATA_VERSION_KEY}: expected a whole number, got {_shown(version)}"
+            f"metadata {METADATA_VERSION_KEY}: expected a whole number >= 1, got {_shown(version)}"
         )
     if version > METADATA_VERSION:
         raise InputError(
@@ -94,7 +94,9 @@ def check_versions(values: Mapping[str, Any]) -> int:
     if "format_version" in values:  # absent: refused where it matters (cli._project_model)
         fmt = values["format_version"]
         if isinstance(fmt, bool) or not isinstance(fmt, int) or fmt < 1:
-            raise InputError(f"metadata format_version: expected a whole number, got {_shown(fmt)}")
+            raise InputError(
+                f"metadata format_version: expected a whole number >= 1, got {_shown(fmt)}"
+            )
         if fmt > FORMAT_VERSION:
             raise InputError(
                 f"metadata format_version: {fmt}, and this reader knows up to "

@@ -252,29 +252,50 @@ def poor_start_config(cfg: cfgmod.Config, init_info: dict | None) -> cfgmod.Conf
 
 def check_split_sees_object(views: list[View], images: cfgmod.Images) -> None:
     """InputError, before anything is written, when the object keeps no pixel once its
-    outline is left out (``view.object``: the filter's reach), or when a validation
-    split is asked for and its held-out pixels hold none of the object in any view: the
-    held-out loss would have nothing to score (an assertion failed mid-run, exit 1, for
-    a one-view split of 2 % of the tiles at two seeds of four, and for a small object)."""
-    if not any(v.object is not None and v.object.any() for v in views):
+    outline is left out (``view.object``: the filter's reach), when the fitted views keep
+    none of it outside the held-out tiles (the start and the network would fit no pixel),
+    or when a validation split is asked for and its held-out pixels hold none of the
+    object in any view: the held-out loss would have nothing to score (an assertion
+    failed mid-run, exit 1, for a one-view split of 2 % of the tiles at two seeds of
+    four, and for a small object)."""
+
+    def obj(v: View) -> np.ndarray:
+        return v.object if v.object is not None else np.ones(v.target.shape[:2], bool)
+
+    def counts() -> str:
+        return ", ".join(f"{v.image_path.name} {int(obj(v).sum())}" for v in views)
+
+    if not any(obj(v).any() for v in views):
         raise InputError(
             f"target.images: {views[0].scene_path}: the fitted object covers no pixel "
             "inside its outline (as far in as the film's reconstruction filter reaches) "
             "in any view: frame it larger or render the views at a higher resolution"
         )
+    # the key that held the object's pixels out: whole views, or tiles of the others
+    key = "images.validation_pixels" if images.validation_pixels > 0 else "images.validation_views"
+    fitted = [v for v in views if not v.held_out]
+    if not any(
+        (obj(v) if v.held_out_pixels is None else obj(v) & ~v.held_out_pixels).any() for v in fitted
+    ):
+        raise InputError(
+            f"{key}: the fitted views keep no pixel of the object outside the held-out "
+            f"tiles and views (its pixels: {counts()}): fit a view that sees it"
+        )
     if not images.split:
         return
     for v in views:
         mask = v.validation_mask()
-        if mask is not None and (v.object is None or (mask & v.object).any()):
+        if mask is not None and (mask & obj(v)).any():
             return
-    counts = ", ".join(
-        f"{v.image_path.name} {int(v.object.sum()) if v.object is not None else 0}" for v in views
+    said = (
+        f"{images.validation_pixels:g} of the tiles are held out"
+        if images.validation_pixels > 0
+        else f"views {images.validation_views} are held out"
     )
     raise InputError(
-        f"images.validation_pixels: {images.validation_pixels:g} of the tiles are held out, "
-        f"and they hold no pixel of the fitted object in any view (its pixels: {counts}): "
-        "raise images.validation_pixels, or hold out a whole view (images.validation_views)"
+        f"{key}: {said}, and they hold no pixel of the fitted object in any view (its "
+        f"pixels: {counts()}): raise images.validation_pixels, or hold out a whole view "
+        "that sees the object (images.validation_views)"
     )
 
 

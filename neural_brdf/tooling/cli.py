@@ -346,7 +346,13 @@ def _train(args) -> int:
     try:
         report = pipeline.run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite)
     except config.ConfigError as e:  # a key checked after validation: target.params
-        raise config.blamed(e, str(path), args.overrides) from None
+        blamed = config.blamed(e, str(path), args.overrides)
+        data = cfg.target.data
+        gone = bool(data) and not os.path.lexists(str(data))
+        if gone and not args.resume and str(e).startswith("target.data:"):
+            # configs/merl.yaml names a placeholder: say how to give one's own file
+            blamed = config.ConfigError(f"{blamed} (give yours with --set target.data=FILE)")
+        raise blamed from None
     if report.get("already_finished") is not None:
         # an images run stopped early: a larger train.steps would stop it again at once
         advice = report.get("resume_advice") or "raise train.steps to train on"

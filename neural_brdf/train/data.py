@@ -28,7 +28,6 @@ continues exactly where it stopped.
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import torch
@@ -62,11 +61,7 @@ class MeasuredTarget:
         try:
             return cls(formats.read(path))
         except InputError as e:
-            hint = ""
-            if key == "target.data" and not os.path.lexists(path):
-                # configs/merl.yaml names a placeholder: say how to give one's own file
-                hint = " (give your file with --set target.data=FILE)"
-            raise cfgmod.ConfigError(f"{key}: {e}{hint}") from None
+            raise cfgmod.ConfigError(f"{key}: {e}") from None
 
     def describe(self) -> str:
         return self.brdf.describe()
@@ -207,6 +202,17 @@ def peak_pairs(u: torch.Tensor, dtype: torch.dtype = torch.float32):
     return wi.to(dtype), wo.to(dtype)
 
 
+def peak_share(wi_alt: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The peak share's (wi, wo), as many as ``wi_alt``: pairs uniform in (u_h, theta_d)
+    (:func:`peak_pairs`); one with a direction below the horizon is replaced by
+    ``wi_alt``'s own pair about the mirror direction (:func:`about_mirror`)."""
+    n = len(wi_alt)
+    wi_peak, wo_peak = peak_pairs(torch.rand(n, 4, generator=g))
+    mirror = about_mirror(wi_alt, torch.rand(n, 2, generator=g))
+    above = ((wi_peak[:, 2] > 0) & (wo_peak[:, 2] > 0))[:, None]
+    return torch.where(above, wi_peak, wi_alt), torch.where(above, wo_peak, mirror)
+
+
 class PairSource:
     """Fresh (wi, wo, f) batches from a target, float32."""
 
@@ -229,13 +235,8 @@ class PairSource:
         wo_cos = frame.square_to_cosine_hemisphere(torch.rand(n_cos, 2, generator=g))
         k = n_uni + n_cos
         wo_imp = self.target.sample_dir_t(wi[k : k + n_imp], torch.rand(n_imp, 2, generator=g))
-        # the peak share: pairs uniform in (u_h, theta_d); one with a direction below
-        # the horizon is replaced by wi's own pair about the mirror direction
-        wi_peak, wo_peak = peak_pairs(torch.rand(n_peak, 4, generator=g))
-        mirror = about_mirror(wi[k + n_imp :], torch.rand(n_peak, 2, generator=g))
-        above = ((wi_peak[:, 2] > 0) & (wo_peak[:, 2] > 0))[:, None]
-        wi = torch.cat([wi[: k + n_imp], torch.where(above, wi_peak, wi[k + n_imp :])], 0)
-        wo_peak = torch.where(above, wo_peak, mirror)
+        wi_peak, wo_peak = peak_share(wi[k + n_imp :], g)
+        wi = torch.cat([wi[: k + n_imp], wi_peak], 0)
         wo = torch.cat([wo_uni, wo_cos, wo_imp.float(), wo_peak], 0)
         backup = frame.square_to_cosine_hemisphere(torch.rand(n, 2, generator=g))
         wo = torch.where(wo[:, 2:3] > 0, wo, backup)
@@ -264,22 +265,17 @@ class MeasuredPairSource:
 
     def draw(self, n: int):
         n_peak = int(round(n * self.peak))
-        wi, wo, f = self.target.draw(n - n_peak, self.gen)
         if n_peak == 0:
-            return wi, wo, f
+            return self.target.draw(n, self.gen)
         g = self.gen
-        # as PairSource's share: a pair with a direction below the horizon is replaced
-        # by a uniform wi's own pair about the mirror direction
-        wi_peak, wo_peak = peak_pairs(torch.rand(n_peak, 4, generator=g))
-        wi_alt = uniform_wi(n_peak, g)
-        mirror = about_mirror(wi_alt, torch.rand(n_peak, 2, generator=g))
-        above = ((wi_peak[:, 2] > 0) & (wo_peak[:, 2] > 0))[:, None]
-        wi_p = torch.where(above, wi_peak, wi_alt)
-        wo_p = torch.where(above, wo_peak, mirror)
+        wi_p, wo_p = peak_share(uniform_wi(n_peak, g), g)
         backup = frame.square_to_cosine_hemisphere(torch.rand(n_peak, 2, generator=g))
         wo_p = torch.where(wo_p[:, 2:3] > 0, wo_p, backup)
         wi_p, wo_p = frame.normalize(wi_p), frame.normalize(wo_p)
         f_p = self.target.f(wi_p.double(), wo_p.double()).float()
+        if n_peak == n:  # data.peak the only share (the file's draw of 0 pairs fails)
+            return wi_p, wo_p, f_p
+        wi, wo, f = self.target.draw(n - n_peak, g)
         return torch.cat([wi, wi_p]), torch.cat([wo, wo_p]), torch.cat([f, f_p])
 
 

@@ -43,6 +43,7 @@ import csv
 import io
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -148,12 +149,33 @@ def check_resumable(
         if there != here:
             # the first leaf that differs (target.images[0].scene, say), not the section
             a, b = _leaves(there, key, lists=True), _leaves(here, key, lists=True)
-            leaf = next((k for k in [*a, *b] if a.get(k, a) != b.get(k, b)), None)
-            if leaf is not None:  # (a value on one side alone: None on the other)
-                there, here = a.get(leaf), b.get(leaf)
+            leaf = next((k for k in [*a, *b] if a.get(k, a) != b.get(k, b)), key)
+            # a leaf one side lacks ({} against a dict, a number against a list): the
+            # deepest part of its path that both sides have, and the values there
+            while leaf != key and (_MISSING in (_at(saved, leaf), _at(now, leaf))):
+                leaf = re.sub(r"(\.[^.\[]+|\[\d+\])$", "", leaf)
             raise cfgmod.ConfigError(
-                f"{leaf or key}: differs from {what} ({there!r} there, {here!r} here)"
+                f"{leaf}: differs from {what} ({_at(saved, leaf)!r} there, {_at(now, leaf)!r} here)"
             )
+
+
+_MISSING = object()
+
+
+def _at(d: Any, path: str) -> Any:
+    """The value at a dotted path with list indices (``target.images[0].scene``) of a
+    nested dict, or :data:`_MISSING`."""
+    for part in re.findall(r"[^.\[\]]+|\[\d+\]", path):
+        if part.startswith("["):
+            i = int(part[1:-1])
+            if not isinstance(d, list) or i >= len(d):
+                return _MISSING
+            d = d[i]
+        elif isinstance(d, dict) and part in d:
+            d = d[part]
+        else:
+            return _MISSING
+    return d
 
 
 def _leaves(d: Any, prefix: str = "", *, lists: bool = False) -> dict[str, Any]:

@@ -1610,6 +1610,25 @@ def test_a_split_whose_held_out_tiles_miss_the_object_exits_2(copy_of, capsys):
     _expect_exit_2(path, copy_of / "run", capsys, "images.validation_pixels", "view1.exr")
 
 
+def test_a_split_that_leaves_the_fit_no_pixel_of_the_object_exits_2(copy_of, capsys):
+    """99 % of one view's tiles held out: at a seed whose one fitted tile lies off the
+    sphere, the start and the network would fit no pixel of it."""
+    from neural_brdf.inverse import starts, views
+
+    path = _config(copy_of, [("view1.xml", "view1.exr")], "images: {validation_pixels: 0.99}\n")
+    cfg = config.load(path)
+    (view,) = views.read_views(cfg)
+    view.object = starts.seen_object_mask(view, "target.images[0].scene")
+    for seed in range(40):
+        views.split_views([view], cfg.images, seed)
+        if not (view.object & ~view.validation_mask()).any():
+            break
+    else:
+        pytest.fail("no seed of 40 fits only tiles off the sphere")
+    path.write_text(path.read_text() + f"train: {{seed: {seed}}}\n")
+    _expect_exit_2(path, copy_of / "run", capsys, "images.validation_pixels", "keep no pixel")
+
+
 def test_an_object_with_no_pixel_inside_its_outline_exits_2(copy_of, capsys):
     text = (copy_of / "view1.xml").read_text()
     assert text.count('<shape type="sphere">') == 1

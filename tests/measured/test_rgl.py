@@ -440,6 +440,13 @@ def test_training_pairs_of_a_bsdf_file_reach_the_mirror_direction(baked):
     np.testing.assert_allclose(
         f.numpy(), target.eval(wi.double().numpy(), wo.double().numpy()), rtol=1e-5
     )
+    # data.peak the only share: every pair a peak pair (the file's draw of none failed)
+    only = {"uniform": 0.0, "cosine": 0.0, "importance": 0.0, "peak": 1.0}
+    src = data.pair_source(
+        target, config.from_dict({"data": only}).data, torch.Generator().manual_seed(2)
+    )
+    wi, wo, f = src.draw(300)
+    assert wi.shape == (300, 3) and bool(torch.isfinite(f).all())
     raw = np.full((3, 90, 90, 180), 0.1)
     merl_target = data.MeasuredTarget(merl.MerlBRDF(raw))
     merl_src = data.pair_source(

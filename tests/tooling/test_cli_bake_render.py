@@ -365,8 +365,9 @@ def test_a_run_folder_given_where_a_config_goes_names_its_files(capsys, tmp_path
     ("key", "value", "needle"),
     [
         ("format_version", "99", "format_version: 99, and this reader knows up to"),
-        ("format_version", "abc", "format_version: expected a whole number"),
-        ("format_version", "0", "format_version: expected a whole number"),
+        ("format_version", "abc", "format_version: expected a whole number >= 1"),
+        ("format_version", "0", "format_version: expected a whole number >= 1"),
+        ("metadata_version", "0", "metadata_version: expected a whole number >= 1"),
         ("metadata_version", "99", "metadata_version: 99, and this reader knows up to"),
     ],
 )

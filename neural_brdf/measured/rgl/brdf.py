@@ -108,11 +108,7 @@ class RGLBRDF:
         self.jacobian = bool(jac[0])
         self._check_values(rgb, ndf, sigma, bad)
         for name, a in (("vndf", vndf), ("luminance", lum)):  # densities of the sampler
-            if np.any(a < 0):
-                raise bad(
-                    f"field {name!r}: {int(np.sum(a < 0))} negative values (smallest "
-                    f"{float(a.min()):.3g}); a sampling density cannot be negative"
-                )
+            _nonnegative(bad, name, a, "a sampling density")  # (all 0: Marginal2D says)
         self.theta_i, self.phi_i = th.astype(np.float64), ph.astype(np.float64)
         tables = {}
         for name, a, params, norm in (
@@ -136,11 +132,7 @@ class RGLBRDF:
         ``ndf``), ``sigma`` <= 0 where it divides f, anything above MAX_VALUE."""
 
         def nonnegative(name, a):
-            if np.any(a < 0):
-                raise bad(
-                    f"field {name!r}: {int(np.sum(a < 0))} negative values (smallest "
-                    f"{float(a.min()):.3g}); a reflectance cannot be negative"
-                )
+            _nonnegative(bad, name, a, "a reflectance")
             top = float(a.max())
             if top <= 0:
                 raise bad(f"field {name!r}: no positive value: the material reflects nothing")
@@ -270,6 +262,16 @@ class RGLBRDF:
             got += int(keep.sum())
         wi, wo = np.concatenate(wis)[:n], np.concatenate(wos)[:n]
         return wi, wo, self.eval(wi, wo)
+
+
+def _nonnegative(bad, name: str, a: np.ndarray, what: str) -> None:
+    """``bad(...)`` naming field ``name`` when ``a`` has a negative value (``what``
+    cannot be negative: a reflectance, a sampling density)."""
+    if np.any(a < 0):
+        raise bad(
+            f"field {name!r}: {int(np.sum(a < 0))} negative values (smallest "
+            f"{float(a.min()):.3g}); {what} cannot be negative"
+        )
 
 
 def read_rgl(path) -> RGLBRDF:
