@@ -81,28 +81,22 @@ def check_versions(values: Mapping[str, Any]) -> int:
     this reader's (a later contract's keys and graph may mean other things through the
     same names).  A one-line InputError naming the key otherwise (the caller adds the
     file)."""
-    version = values.get(METADATA_VERSION_KEY, 1)
-    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
-        raise InputError(
-            f"metadata {METADATA_VERSION_KEY}: expected a whole number >= 1, got {_shown(version)}"
-        )
-    if version > METADATA_VERSION:
-        raise InputError(
-            f"metadata {METADATA_VERSION_KEY}: {version}, and this reader knows up to "
-            f"{METADATA_VERSION}: the file was written by a later neural-brdf (upgrade it)"
-        )
-    if "format_version" in values:  # absent: refused where it matters (cli._project_model)
-        fmt = values["format_version"]
-        if isinstance(fmt, bool) or not isinstance(fmt, int) or fmt < 1:
+    for key, known in (
+        (METADATA_VERSION_KEY, METADATA_VERSION),
+        ("format_version", FORMAT_VERSION),
+    ):
+        # a format_version absent is refused where it matters (cli._project_model)
+        if key not in values and key != METADATA_VERSION_KEY:
+            continue
+        v = values.get(key, 1)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise InputError(f"metadata {key}: expected a whole number >= 1, got {_shown(v)}")
+        if v > known:
             raise InputError(
-                f"metadata format_version: expected a whole number >= 1, got {_shown(fmt)}"
+                f"metadata {key}: {v}, and this reader knows up to {known}: the file was "
+                "written by a later neural-brdf (upgrade it)"
             )
-        if fmt > FORMAT_VERSION:
-            raise InputError(
-                f"metadata format_version: {fmt}, and this reader knows up to "
-                f"{FORMAT_VERSION}: the file was written by a later neural-brdf (upgrade it)"
-            )
-    return version
+    return values.get(METADATA_VERSION_KEY, 1)
 
 
 def check_props_versions(props: Mapping[str, str]) -> None:

@@ -1590,43 +1590,34 @@ def test_the_object_mask_leaves_out_as_much_outline_as_the_films_filter_reaches(
         assert mask.sum() < inverse.eroded(hit, reach - 1).sum()
 
 
-def test_a_split_whose_held_out_tiles_miss_the_object_exits_2(copy_of, capsys):
-    """One view, 2 % of its tiles held out: at a seed whose tile lies off the sphere the
-    held-out loss had nothing to score (an assertion failed after the run folder was
-    written, exit 1); now exit 2 before, naming images.validation_pixels."""
+@pytest.mark.parametrize(
+    ("share", "side", "needle"),
+    [(0.02, "held", "view1.exr"), (0.99, "fitted", "keep no pixel")],
+    ids=["held-out-tiles-off-the-object", "fitted-tiles-off-the-object"],
+)
+def test_a_split_whose_tiles_miss_the_object_exits_2(copy_of, capsys, share, side, needle):
+    """One view, 2 % of its tiles held out: at a seed whose one held-out tile lies off
+    the sphere the held-out loss had nothing to score (an assertion failed after the run
+    folder was written, exit 1); 99 % held out: at a seed whose one fitted tile lies off
+    it, the start raised "no training pixels".  Both exit 2 now, before any write,
+    naming images.validation_pixels."""
     from neural_brdf.inverse import starts, views
 
-    path = _config(copy_of, [("view1.xml", "view1.exr")], "images: {validation_pixels: 0.02}\n")
+    path = _config(
+        copy_of, [("view1.xml", "view1.exr")], f"images: {{validation_pixels: {share}}}\n"
+    )
     cfg = config.load(path)
     (view,) = views.read_views(cfg)
     view.object = starts.seen_object_mask(view, "target.images[0].scene")
     for seed in range(40):
         views.split_views([view], cfg.images, seed)
-        if not (view.validation_mask() & view.object).any():
+        mask = view.validation_mask() if side == "held" else ~view.validation_mask()
+        if not (mask & view.object).any():
             break
     else:
-        pytest.fail("no seed of 40 holds out only tiles off the sphere")
+        pytest.fail(f"no seed of 40 puts every {side} tile off the sphere")
     path.write_text(path.read_text() + f"train: {{seed: {seed}}}\n")
-    _expect_exit_2(path, copy_of / "run", capsys, "images.validation_pixels", "view1.exr")
-
-
-def test_a_split_that_leaves_the_fit_no_pixel_of_the_object_exits_2(copy_of, capsys):
-    """99 % of one view's tiles held out: at a seed whose one fitted tile lies off the
-    sphere, the start and the network would fit no pixel of it."""
-    from neural_brdf.inverse import starts, views
-
-    path = _config(copy_of, [("view1.xml", "view1.exr")], "images: {validation_pixels: 0.99}\n")
-    cfg = config.load(path)
-    (view,) = views.read_views(cfg)
-    view.object = starts.seen_object_mask(view, "target.images[0].scene")
-    for seed in range(40):
-        views.split_views([view], cfg.images, seed)
-        if not (view.object & ~view.validation_mask()).any():
-            break
-    else:
-        pytest.fail("no seed of 40 fits only tiles off the sphere")
-    path.write_text(path.read_text() + f"train: {{seed: {seed}}}\n")
-    _expect_exit_2(path, copy_of / "run", capsys, "images.validation_pixels", "keep no pixel")
+    _expect_exit_2(path, copy_of / "run", capsys, "images.validation_pixels", needle)
 
 
 def test_an_object_with_no_pixel_inside_its_outline_exits_2(copy_of, capsys):
