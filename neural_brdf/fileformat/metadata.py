@@ -85,10 +85,11 @@ def check_versions(values: Mapping[str, Any]) -> int:
         (METADATA_VERSION_KEY, METADATA_VERSION),
         ("format_version", FORMAT_VERSION),
     ):
-        # a format_version absent is refused where it matters (cli._project_model)
-        if key not in values and key != METADATA_VERSION_KEY:
+        # absent: metadata_version 1; a format_version is refused where it matters
+        # (cli._project_model)
+        if key not in values:
             continue
-        v = values.get(key, 1)
+        v = values[key]
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise InputError(f"metadata {key}: expected a whole number >= 1, got {_shown(v)}")
         if v > known:

@@ -257,15 +257,15 @@ def check_split_sees_object(views: list[View], images: cfgmod.Images) -> None:
     or when a validation split is asked for and its held-out pixels hold none of the
     object in any view: the held-out loss would have nothing to score (an assertion
     failed mid-run, exit 1, for a one-view split of 2 % of the tiles at two seeds of
-    four, and for a small object)."""
+    four, and for a small object).  The masks are the start's own
+    (:func:`neural_brdf.inverse.starts.run_masks`)."""
+    from neural_brdf.inverse import starts
 
-    def obj(v: View) -> np.ndarray:
-        return v.object if v.object is not None else np.ones(v.target.shape[:2], bool)
-
-    def counts() -> str:
-        return ", ".join(f"{v.image_path.name} {int(obj(v).sum())}" for v in views)
-
-    if not any(obj(v).any() for v in views):
+    train, held = starts.run_masks(views)
+    counts = ", ".join(
+        f"{v.image_path.name} {int(t.sum() + h.sum())}" for v, t, h in zip(views, train, held)
+    )
+    if not any(t.any() or h.any() for t, h in zip(train, held)):
         raise InputError(
             f"target.images: {views[0].scene_path}: the fitted object covers no pixel "
             "inside its outline (as far in as the film's reconstruction filter reaches) "
@@ -273,20 +273,13 @@ def check_split_sees_object(views: list[View], images: cfgmod.Images) -> None:
         )
     # the key that held the object's pixels out: whole views, or tiles of the others
     key = "images.validation_pixels" if images.validation_pixels > 0 else "images.validation_views"
-    fitted = [v for v in views if not v.held_out]
-    if not any(
-        (obj(v) if v.held_out_pixels is None else obj(v) & ~v.held_out_pixels).any() for v in fitted
-    ):
+    if not any(t.any() for t in train):
         raise InputError(
             f"{key}: the fitted views keep no pixel of the object outside the held-out "
-            f"tiles and views (its pixels: {counts()}): fit a view that sees it"
+            f"tiles and views (its pixels: {counts}): fit a view that sees it"
         )
-    if not images.split:
+    if not images.split or any(h.any() for h in held):
         return
-    for v in views:
-        mask = v.validation_mask()
-        if mask is not None and (mask & obj(v)).any():
-            return
     said = (
         f"{images.validation_pixels:g} of the tiles are held out"
         if images.validation_pixels > 0
@@ -294,7 +287,7 @@ def check_split_sees_object(views: list[View], images: cfgmod.Images) -> None:
     )
     raise InputError(
         f"{key}: {said}, and they hold no pixel of the fitted object in any view (its "
-        f"pixels: {counts()}): raise images.validation_pixels, or hold out a whole view "
+        f"pixels: {counts}): raise images.validation_pixels, or hold out a whole view "
         "that sees the object (images.validation_views)"
     )
 

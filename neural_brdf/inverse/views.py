@@ -453,10 +453,11 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
     if len(fits) > 1:
         raise InputError(f'{key}: {path}: {len(fits)} elements <bsdf id="fit">; expected one')
     if not fit_is_used(root):
-        wrapper = _referenced_wrapper(root)
+        wrapper = _fit_wrapper(root)  # (used through a reference: inside, fit_is_used)
         if wrapper is not None:
+            named = f'<bsdf type="{wrapper.get("type", "")}" id="{wrapper.get("id")}">'
             raise InputError(
-                f'{key}: {path}: <bsdf id="fit"> is nested in {wrapper}, which a shape '
+                f'{key}: {path}: <bsdf id="fit"> is nested in {named}, which a shape '
                 "uses: the object's pixels are those whose ray meets a shape whose own "
                 'BSDF is the fit; give the shape <ref id="fit"/> itself'
             )
@@ -489,20 +490,6 @@ def read_scene(path: Path, key: str) -> tuple[ET.ElementTree[ET.Element], str]:
                 "(direct light) or more, or -1"
             )
     return tree, INTEGRATORS[kind]
-
-
-def _referenced_wrapper(root: ET.Element) -> str | None:
-    """``<bsdf type="T" id="X">`` (as text) when ``<bsdf id="fit">`` (or its
-    ``<ref id="fit"/>``) is nested in a BSDF X outside every shape that a shape
-    refers to (``<ref id="X"/>``), else None: the fit is used, but through X."""
-    used = {e.get("id") for shape in root.iter("shape") for e in shape.iter("ref")}
-    for outer in root.iter("bsdf"):
-        name = outer.get("id")
-        if name in (None, "fit") or name not in used:
-            continue
-        if any(e.get("id") == "fit" for e in outer.iter() if e is not outer):
-            return f'<bsdf type="{outer.get("type", "")}" id="{name}">'
-    return None
 
 
 def fit_is_used(root: ET.Element) -> bool:
@@ -1000,7 +987,8 @@ def check_sees_object(view: View, key: str, hit: np.ndarray, front: np.ndarray) 
     if front.any():
         return
     fix = "fix its <sensor>, or leave the view out"
-    wrapper = None if hit.any() else _fit_wrapper(view.tree.getroot())
+    outer = None if hit.any() else _fit_wrapper(view.tree.getroot())
+    wrapper = None if outer is None else outer.get("type", "")
     if hit.any():
         why = (
             f"its camera sees only the back of the surface ({int(hit.sum())} pixels), as "
@@ -1022,15 +1010,18 @@ def check_sees_object(view: View, key: str, hit: np.ndarray, front: np.ndarray) 
     )
 
 
-def _fit_wrapper(root: ET.Element) -> str | None:
-    """The type of a ``<bsdf>`` inside a ``<shape>`` that holds ``<bsdf id="fit">`` (or
-    ``<ref id="fit"/>``) below it (a ``twosided``, say), else None."""
-    for shape in root.iter("shape"):
-        for outer in shape.iter("bsdf"):
-            if outer.get("id") == "fit":
-                continue
-            if any(e.get("id") == "fit" for e in outer.iter() if e is not outer):
-                return outer.get("type", "")
+def _fit_wrapper(root: ET.Element) -> ET.Element | None:
+    """A ``<bsdf>`` that holds ``<bsdf id="fit">`` (or ``<ref id="fit"/>``) below it (a
+    ``twosided``, say) and that a shape uses, nested in the shape or referred to by it
+    (``<ref id="X"/>``), else None."""
+    used = {e.get("id") for shape in root.iter("shape") for e in shape.iter("ref")}
+    nested = [b for shape in root.iter("shape") for b in shape.iter("bsdf")]
+    others = [b for b in root.iter("bsdf") if b.get("id") is not None and b.get("id") in used]
+    for outer in nested + others:
+        if outer.get("id") == "fit":
+            continue
+        if any(e.get("id") == "fit" for e in outer.iter() if e is not outer):
+            return outer
     return None
 
 

@@ -43,7 +43,6 @@ import csv
 import io
 import json
 import os
-import re
 import signal
 import sys
 import threading
@@ -147,50 +146,32 @@ def check_resumable(
     for key in must_match:
         there, here = _get(saved, key), _get(now, key)
         if there != here:
-            # the first leaf that differs (target.images[0].scene, say), not the section
-            a, b = _leaves(there, key, lists=True), _leaves(here, key, lists=True)
-            leaf = next((k for k in [*a, *b] if a.get(k, a) != b.get(k, b)), key)
-            # a leaf one side lacks ({} against a dict, a number against a list): the
-            # deepest part of its path that both sides have, and the values there
-            while leaf != key and (_MISSING in (_at(saved, leaf), _at(now, leaf))):
-                leaf = re.sub(r"(\.[^.\[]+|\[\d+\])$", "", leaf)
+            path, there, here = _first_difference(there, here, key)
             raise cfgmod.ConfigError(
-                f"{leaf}: differs from {what} ({_at(saved, leaf)!r} there, {_at(now, leaf)!r} here)"
+                f"{path}: differs from {what} ({there!r} there, {here!r} here)"
             )
 
 
-_MISSING = object()
+def _first_difference(a: Any, b: Any, path: str) -> tuple[str, Any, Any]:
+    """Where two different config values first differ, as deep as both go (the leaf,
+    ``target.images[0].scene``, say, not the section): the path and the two values
+    there.  A key one side lacks, or lists of two lengths, stop at their parent."""
+    if isinstance(a, dict) and isinstance(b, dict) and a.keys() == b.keys():
+        k = next(k for k in a if a[k] != b[k])
+        return _first_difference(a[k], b[k], f"{path}.{k}")
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        i = next(i for i, (x, y) in enumerate(zip(a, b)) if x != y)
+        return _first_difference(a[i], b[i], f"{path}[{i}]")
+    return path, a, b
 
 
-def _at(d: Any, path: str) -> Any:
-    """The value at a dotted path with list indices (``target.images[0].scene``) of a
-    nested dict, or :data:`_MISSING`."""
-    for part in re.findall(r"[^.\[\]]+|\[\d+\]", path):
-        if part.startswith("["):
-            i = int(part[1:-1])
-            if not isinstance(d, list) or i >= len(d):
-                return _MISSING
-            d = d[i]
-        elif isinstance(d, dict) and part in d:
-            d = d[part]
-        else:
-            return _MISSING
-    return d
-
-
-def _leaves(d: Any, prefix: str = "", *, lists: bool = False) -> dict[str, Any]:
-    """A nested dict's values by dotted key (a list is a leaf, or with ``lists`` its
-    items are, as ``key[i]``)."""
-    if lists and isinstance(d, list) and d:
-        out: dict[str, Any] = {}
-        for i, v in enumerate(d):
-            out.update(_leaves(v, f"{prefix}[{i}]", lists=True))
-        return out
+def _leaves(d: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested dict's values by dotted key (a list is a leaf)."""
     if not isinstance(d, dict) or not d:
         return {prefix: d}
-    out = {}
+    out: dict[str, Any] = {}
     for k, v in d.items():
-        out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k), lists=lists))
+        out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k)))
     return out
 
 
