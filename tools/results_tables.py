@@ -262,7 +262,8 @@ def neural_presets_section(d: list[dict] | dict) -> list[str]:
         ),
         "Each preset in `configs/` is trained with its own settings, exported "
         "and validated. Accuracy is the relative RMSE of f·cos θo on importance-sampled "
-        "pairs against the analytic target.",
+        "pairs against the analytic target. Nothing is chosen here (the presets' configs "
+        "as shipped): no development or test split.",
         "",
     ]
     body = [
