@@ -138,7 +138,8 @@ from neural_brdf.inverse.views import (  # noqa: F401  (the views' layer, handed
     variant_name,
     xml_float,
 )
-from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.model import RawBRDF, grid_lr_scales
+from neural_brdf.train.model import lr_scale as scale_of
 from neural_brdf.train.session import LOG_COLUMNS, MUST_MATCH, Session
 
 # The network's start: a constant f = INIT_VALUE / ((cos_i + cos_o) / 2) (model.py), whose
@@ -477,10 +478,8 @@ def fit_neural(
     opt = mi.ad.Adam(lr=t.lr)
     for n in names:
         opt[n] = mi.TensorXf(lead.weights[n])
-    scales = {"grid.": cfg.model.grid.lr_scale, "cos_grid.": cfg.model.cosine_grid.lr_scale}
-    if grid_lr_scale is not None:
-        scales = dict.fromkeys(scales, grid_lr_scale)
-    lr_scale = {n: next((s for p, s in scales.items() if n.startswith(p)), 1.0) for n in names}
+    scales = grid_lr_scales(cfg.model, grid_lr_scale)
+    lr_scale = {n: scale_of(n, scales) for n in names}
     penalty = albedo_penalty_fn(raw_template, cfg.images)
 
     render_seconds = 0.0

@@ -37,7 +37,7 @@ from torch.func import functional_call, stack_module_state, vmap
 from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
 from neural_brdf.train import data, loop
-from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.model import RawBRDF, grid_lr_scales, parameter_groups
 from neural_brdf.train.session import RunFiles, Session
 
 # train settings that may differ between the batched materials (the rest must match)
@@ -113,19 +113,10 @@ def train_many(
     )
     pools, raws, evals = [], [], []
     for cfg, target in zip(cfgs, targets):
-        # the order of train.train: its generator, the global seed, the pool, the weights
-        gen = torch.Generator().manual_seed(cfg.train.seed)
-        torch.manual_seed(cfg.train.seed)
-        pool = data.Pool(data.pair_source(target, cfg.data, gen), cfg.data, device)
-        init = float(pool.f.median().clamp(1e-3, 10.0))
-        raws.append(RawBRDF.from_config(cfg.model, init_value=init).to(device))
+        pool, raw = loop.seeded_start(cfg, target, device)  # as train.train starts
+        raws.append(raw.to(device))
         pools.append(pool)
-        evals.append(
-            tuple(
-                x.float().to(device)
-                for x in data.accuracy_pairs(target, loop.EVAL_PAIRS, cfg.train.seed + 101)
-            )
-        )
+        evals.append(loop.eval_pairs(target, cfg, device))
     params, buffers = stack_module_state(raws)
     base = copy.deepcopy(raws[0]).to("meta")
 
@@ -136,16 +127,8 @@ def train_many(
         return loop.loss_fn(t.loss, pred, f, cos, t.loss_eps, t.peak_weight, t.peak_cap)
 
     batched, batched_loss = vmap(forward), vmap(loss_one)
-    m = cfgs[0].model
-    scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
-    groups: dict[str, list] = {prefix: [] for prefix in ("", *scales)}
-    for name, p in params.items():
-        groups[next((k for k in scales if name.startswith(k)), "")].append(p)
-    opt = torch.optim.Adam(
-        [{"params": ps, "lr_scale": scales.get(k, 1.0)} for k, ps in groups.items() if ps],
-        lr=t.lr,
-        fused=True,
-    )
+    groups = parameter_groups(params.items(), grid_lr_scales(cfgs[0].model))
+    opt = torch.optim.Adam(groups, lr=t.lr, fused=True)
     loss_sum = torch.zeros((), device=device)
     with sess.run() as s:
         while s.step < t.steps:

@@ -423,6 +423,36 @@ class RawBRDF(nn.Module):
         return f
 
 
+# ------------------------------------------------------------- learning rates
+def grid_lr_scales(m, grid: float | None = None) -> dict[str, float]:
+    """The learned grids' learning-rate factors, by the prefix of a RawBRDF's parameter
+    names: ``model.grid`` (``grid.``) and ``model.cosine_grid`` (``cos_grid.``) at their
+    ``lr_scale`` in the ``model`` section ``m``, or both at ``grid`` where given (the
+    image fit's ``images.start_grid_lr_scale``).  Every other weight (the MLP) is at 1:
+    :func:`lr_scale`.  The one place that says which parameters are a grid's; the
+    training loops, the textured loop and the image fit read it."""
+    if grid is not None:
+        return {"grid.": grid, "cos_grid.": grid}
+    return {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
+
+
+def lr_scale(name: str, scales: dict[str, float]) -> float:
+    """The learning-rate factor of the RawBRDF parameter ``name`` (its local name, as
+    ``named_parameters`` gives it) under ``scales`` (:func:`grid_lr_scales`)."""
+    return next((s for prefix, s in scales.items() if name.startswith(prefix)), 1.0)
+
+
+def parameter_groups(named, scales: dict[str, float]) -> list[dict[str, Any]]:
+    """Adam's parameter groups of a RawBRDF's ``(name, parameter)`` pairs: the MLP's,
+    then each grid's (the order of ``scales``), each with its ``lr_scale``; a group
+    without parameters is left out.  The order is a checkpoint's: an optimiser's state
+    is restored group by group."""
+    by_prefix: dict[str, list[torch.Tensor]] = {prefix: [] for prefix in ("", *scales)}
+    for name, p in named:
+        by_prefix[next((k for k in scales if name.startswith(k)), "")].append(p)
+    return [{"params": ps, "lr_scale": scales.get(k, 1.0)} for k, ps in by_prefix.items() if ps]
+
+
 # ------------------------------------------------------------------- albedo table
 def table_coords(w: torch.Tensor, anisotropic: bool) -> torch.Tensor:
     """Direction -> table coordinate: x in [0, 1] (iso, (N,)) or p in the unit disc (N, 2)."""

@@ -58,7 +58,7 @@ from neural_brdf.train.ggx_heads import (
     with_heads,
 )
 from neural_brdf.train.loop import learning_rate, loss_fn, rel_rmse
-from neural_brdf.train.model import RawBRDF
+from neural_brdf.train.model import RawBRDF, grid_lr_scales, lr_scale
 from neural_brdf.train.session import TEXTURED_MUST_MATCH, Session
 from neural_brdf.train.textured_model import TexturedBRDF, WeightField, lobe_envelope, raw_of
 
@@ -214,7 +214,7 @@ def parameter_groups(
     """Adam's parameter groups of a textured model (module doc), each with its
     ``lr_scale``: the field's logits at ``field_lr_scale``, the lobes' learned feature
     grids at the model section's grid ``lr_scale``, every other weight at 1."""
-    scales = {"grid.": m.grid.lr_scale, "cos_grid.": m.cosine_grid.lr_scale}
+    scales = grid_lr_scales(m)
     groups: dict[float, list[torch.nn.Parameter]] = {}
     for name, p in model.named_parameters():
         if name.startswith("field."):
@@ -222,7 +222,7 @@ def parameter_groups(
         else:
             local = name.split(".", 2)[2]  # lobes.<k>.<name in the RawBRDF>
             local = local[4:] if local.startswith("net.") else local  # beside GGX heads
-            scale = next((s for k, s in scales.items() if local.startswith(k)), 1.0)
+            scale = lr_scale(local, scales)
         groups.setdefault(scale, []).append(p)
     return [{"params": ps, "lr_scale": s} for s, ps in groups.items()]
 
