@@ -45,7 +45,11 @@ def model_class(name: str) -> type[BRDF]:
     if name not in _MODELS:
         raise ParameterError(f"model: unknown model {name!r}; available: {available()}")
     module, cls = _MODELS[name]
-    return getattr(importlib.import_module(f".{module}", __name__), cls)
+    mod = importlib.import_module(f".{module}", __name__)
+    try:
+        return getattr(mod, cls)
+    except AttributeError:  # a registry line naming a class its module lacks
+        raise ImportError(f"{mod.__name__} has no class {cls!r} (its _MODELS entry)") from None
 
 
 def create(name: str, **params: Any) -> BRDF:

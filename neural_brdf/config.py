@@ -30,6 +30,7 @@ from neural_brdf import encodings, limits
 
 # The same classes as neural_brdf.errors (kept light for runtime and the CLI).
 from neural_brdf.errors import ConfigError
+from neural_brdf.target import Kind
 
 # Of the resolved config, the checkpoint and the exported model: neural_brdf.fileformat.
 
@@ -67,6 +68,20 @@ class Target(_Section):
     # Mitsuba variant of an images fit (null: from train.device) or of a mitsuba teacher
     # (null: llvm_ad_rgb)
     variant: str | None = None
+
+    @property
+    def kind(self) -> Kind:
+        """Which kind of target this section gives (:data:`neural_brdf.target.KINDS`): the
+        one of ``images``, ``data`` (measured) and ``mitsuba`` that is set (the
+        validators allow one), else analytic (``model``, ``params``).  The built
+        target's own ``kind`` is the same (:func:`neural_brdf.target.kind_of`)."""
+        if self.images is not None:
+            return "images"
+        if self.data is not None:
+            return "measured"
+        if self.mitsuba is not None:
+            return "mitsuba"
+        return "analytic"
 
     @model_validator(mode="after")
     def _images(self):

@@ -57,7 +57,7 @@ def run(
     """
     run_dir = Path(run_dir) if run_dir is not None else runfolder.default_run_dir(cfg)
     with runfolder.hold(run_dir, resume=resume, overwrite=overwrite) as folder:
-        if cfg.target.images is not None:
+        if cfg.target.kind == "images":
             from neural_brdf.inverse import fit as inverse  # Mitsuba: only for an images fit
 
             done = inverse.finished_report(cfg, run_dir, folder) if resume else None

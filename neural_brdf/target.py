@@ -34,8 +34,8 @@ future ``"images"`` fit of a textured object) is a :class:`SpatiallyVarying`: it
 ``spatially_varying`` is True and its ``eval`` and ``f`` take a third argument ``uv``,
 (N, 2) texture coordinates, the values a model file takes as its optional input
 ``fileformat.UV``.  Every other target is uniform: it has no ``spatially_varying`` (or
-it is False) and it is called with (wi, wo) alone.  Nothing spatially varying is built
-yet; :func:`spatially_varying` is how the stages ask.
+it is False) and it is called with (wi, wo) alone; :func:`spatially_varying` is how the
+stages ask (the textured teacher: neural_brdf.measured.textured).
 
 Only the kinds decided here exist; a new kind of target adds its name to :data:`Kind`,
 sets ``kind`` on its class and gives the members of its protocol.

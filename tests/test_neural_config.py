@@ -12,7 +12,7 @@ import yaml
 
 import analytic
 from analytic import physics
-from neural_brdf import config
+from neural_brdf import config, target
 from neural_brdf.train import data
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -48,6 +48,7 @@ def test_every_preset_validates(path, request):
     else:
         assert cfg.target.model in analytic.available()
     brdf = data.build_target(cfg.target)
+    assert cfg.target.kind == target.kind_of(brdf)  # the config's kind is the target's
     if cfg.model.encoding == "isotropic":
         # an isotropic encoding cannot represent a target that changes when both
         # directions rotate about the normal
@@ -129,6 +130,30 @@ def test_bad_target_parameters_are_config_errors():
     cfg = config.load(CONFIGS / "lambert.yaml", ["target.model=velvet"])
     with pytest.raises(config.ConfigError, match="target.model"):
         data.build_target(cfg.target)
+
+
+def test_a_registered_model_that_cannot_be_imported_says_why(monkeypatch):
+    """A registry line whose class or module is missing, or a module that fails to
+    import, is one ConfigError naming target.model and the cause, not a traceback."""
+    monkeypatch.setitem(analytic._MODELS, "ghost", ("lambertian", "Ghost"))
+    monkeypatch.setitem(analytic._MODELS, "lost", ("no_such_module", "Lost"))
+    for name, cause in [
+        ("ghost", r"ImportError: analytic.lambertian has no class 'Ghost'"),
+        ("lost", r"ModuleNotFoundError: No module named 'analytic.no_such_module'"),
+    ]:
+        cfg = config.load(CONFIGS / "lambert.yaml", [f"target.model={name}", "target.params={}"])
+        with pytest.raises(config.ConfigError, match=rf"^target.model: '{name}' .*{cause}") as e:
+            data.build_target(cfg.target)
+        assert "\n" not in str(e.value)
+
+
+def test_the_kind_of_a_target_section_is_the_one_field_it_sets(tmp_path):
+    assert config.Target().kind == "analytic"
+    assert config.Target(model="microfacet", params={"alpha": 0.2}).kind == "analytic"
+    assert config.Target(data="x.binary").kind == "measured"
+    assert config.Target(mitsuba="x.xml").kind == "mitsuba"
+    assert config.Target(images=[{"scene": "s.xml", "image": "i.exr"}]).kind == "images"
+    assert set(target.KINDS) == {"analytic", "measured", "mitsuba", "images"}
 
 
 def test_resolved_config_round_trips():

@@ -29,6 +29,7 @@ plug-in) may register an ``Encoding`` whose ``compute`` is the function itself.
 from __future__ import annotations
 
 import importlib
+import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -52,16 +53,70 @@ class Encoding:
 
     def features(self, wi: torch.Tensor, wo: torch.Tensor, peak: str = "u_h") -> torch.Tensor:
         """(..., 3), (..., 3) -> (..., width)."""
-        fn = _load(self.compute) if isinstance(self.compute, str) else self.compute
-        return fn(wi, wo, peak)
+        return self._fn()(wi, wo, peak)
+
+    def check(self, peak: str = "u_h") -> None:
+        """Once per process and peak coordinate: that the features have ``width``
+        columns, are finite and (``reciprocal``) bit-exactly symmetric on a few pairs;
+        ValueError naming the encoding otherwise (:func:`_check`).  A network calls it
+        when it is built (:class:`neural_brdf.train.model.RawBRDF`), outside any torch
+        transform."""
+        if peak not in _CHECKED.get(self, ()):
+            _check(self, self._fn(), peak)
+
+    def _fn(self) -> FeatureFn:
+        return _load(self) if isinstance(self.compute, str) else self.compute
 
     def __deepcopy__(self, memo: dict) -> Encoding:  # immutable: a copied model shares it
         return self
 
 
-def _load(ref: str) -> FeatureFn:
-    module, _, name = ref.partition(":")  # imported once: then sys.modules has it
-    return getattr(importlib.import_module(module, __name__), name)
+def _load(encoding: Encoding) -> FeatureFn:
+    """The function ``encoding.compute`` names (imported once: then sys.modules has
+    it); ValueError naming the encoding and the cause when it cannot be found."""
+    module, _, name = str(encoding.compute).partition(":")
+    try:
+        return getattr(importlib.import_module(module, __name__), name)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(
+            f"encoding {encoding.name!r}: compute {encoding.compute!r}: {type(e).__name__}: {e}"
+        ) from None
+
+
+# encoding -> the peak coordinates its features passed :func:`_check` at, in this process
+_CHECKED: weakref.WeakKeyDictionary[Encoding, set[str]] = weakref.WeakKeyDictionary()
+CHECK_PAIRS = 64  # direction pairs of the first-use check
+
+
+def _check(encoding: Encoding, fn: FeatureFn, peak: str) -> None:
+    """On an encoding's first use (:meth:`Encoding.check`): its features of a few pairs
+    above the horizon have its ``width`` columns, are finite, and (``reciprocal``) are
+    bit-identical for (wi, wo) and (wo, wi).  ValueError naming the encoding otherwise:
+    a wrong width would fail later as a matrix-shape error inside torch, and a feature
+    that is not symmetric would train a model that the validator finds not reciprocal."""
+    import torch
+
+    gen = torch.Generator().manual_seed(0)
+    wi, wo = (torch.randn(CHECK_PAIRS, 3, generator=gen) for _ in range(2))
+    wi[:, 2], wo[:, 2] = wi[:, 2].abs() + 0.05, wo[:, 2].abs() + 0.05
+    wi, wo = wi / wi.norm(dim=-1, keepdim=True), wo / wo.norm(dim=-1, keepdim=True)
+    with torch.no_grad():
+        a, b = fn(wi, wo, peak), fn(wo, wi, peak)
+    where = f"encoding {encoding.name!r}"
+    if a.shape != (CHECK_PAIRS, encoding.width):
+        raise ValueError(
+            f"{where}: its features of {CHECK_PAIRS} pairs have shape {tuple(a.shape)}, "
+            f"not ({CHECK_PAIRS}, {encoding.width}) (its width)"
+        )
+    if not bool(torch.isfinite(a).all()):
+        raise ValueError(f"{where}: its features of pairs above the horizon are not finite")
+    if encoding.reciprocal and not torch.equal(a, b):
+        col = int((a != b).any(dim=0).nonzero()[0])
+        raise ValueError(
+            f"{where}: reciprocal, but its feature {col} differs between (wi, wo) and "
+            "(wo, wi); make it symmetric, or register it with reciprocal=False"
+        )
+    _CHECKED.setdefault(encoding, set()).add(peak)
 
 
 REGISTRY: dict[str, Encoding] = {}

@@ -91,7 +91,7 @@ def refuse_images(target: cfgmod.Target, source: str | None = None) -> None:
     ``target`` is ``target.images``: an images fit has no target BRDF, and its
     ``target.model`` is the unused default (a Lambertian), which a reference (``validate
     --reference``, ``render --reference``) or a bake would silently stand for it."""
-    if target.images is not None:
+    if target.kind == "images":
         where = f"{source}: " if source else ""
         raise cfgmod.ConfigError(
             f"{where}target.images: an images fit has no target BRDF (it is fitted to "
@@ -135,10 +135,10 @@ def _build_target(target: cfgmod.Target):
         )
     try:
         analytic.model_class(target.model)
-    except ImportError:
+    except ImportError as e:  # the cause on the same line: a missing dependency or a typo
         raise cfgmod.ConfigError(
-            f"target.model: {target.model!r} is registered but its module "
-            "is not importable in this installation"
+            f"target.model: {target.model!r} is registered but its module is not "
+            f"importable: {type(e).__name__}: {e}"
         ) from None
     try:
         brdf = analytic.create(target.model, **target.params)

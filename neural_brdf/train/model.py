@@ -268,6 +268,7 @@ class RawBRDF(nn.Module):
         self.latent = int(latent)
         self.encoding = encoding
         self.spec = spec = encodings.get(encoding)  # its width, grid axes and features
+        spec.check(peak_coordinate)  # width, finite, symmetric: once per process
         self.peak_coordinate = peak_coordinate
         self.anisotropic = spec.anisotropic  # as NormalizedBRDF.anisotropic
         self.grazing_power = float(grazing_power)

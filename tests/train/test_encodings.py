@@ -195,3 +195,36 @@ def test_register_refuses_what_it_cannot_honour(toy):
     wi, wo = _pairs(10, 3)
     encodings.register(bad())
     assert torch.equal(encoding.features(wi, wo, "toy_b"), toy.features(wi, wo))
+
+
+def test_an_encoding_is_checked_on_first_use(toy):
+    """A registered encoding whose features do not match its width, are not finite, or
+    (reciprocal) are not symmetric is refused on first use in one line naming it, not as
+    a matrix-shape error inside torch or a model the validator finds not reciprocal; a
+    ``compute`` that names no function says which and why."""
+
+    def made(name, fn, **changes) -> Encoding:
+        fields = dict(name=name, width=3, anisotropic=False, compute=fn)
+        return encodings.register(Encoding(**(fields | changes)))
+
+    def lopsided(wi, wo, peak="u_h"):  # wi's cosine twice: not symmetric in (wi, wo)
+        return torch.stack([wi[..., 2] + wo[..., 2], wi[..., 2], wi[..., 2] * wo[..., 2]], -1)
+
+    def grazing(wi, wo, peak="u_h"):
+        return toy.features(wi, wo, peak) / (wi[..., 2] - wi[..., 2])[..., None]
+
+    wi, wo = _pairs(10, 5)
+    for enc, match in [
+        (made("wide", toy.features, width=4), r"encoding 'wide'.*shape \(64, 3\).*\(64, 4\)"),
+        (made("lopsided", lopsided), r"encoding 'lopsided'.*feature 1 differs"),
+        (made("grazing", grazing), r"encoding 'grazing'.*not finite"),
+        (made("lost", ".toy:no_such"), r"encoding 'lost': compute '.toy:no_such'.*AttributeError"),
+        (made("gone", ".no_module:f"), r"encoding 'gone'.*ModuleNotFoundError"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            RawBRDF(enc.name, [8], "relu")  # a network of it: its first use
+    # declared as not reciprocal, the same function is taken (an ablation, as raw is)
+    x = made("lopsided_raw", lopsided, reciprocal=False).features(wi, wo)
+    assert torch.equal(x, lopsided(wi, wo))
+    assert RawBRDF("lopsided_raw", [8], "relu").spec.name == "lopsided_raw"
+    assert torch.equal(toy.features(wi, wo), encoding.features(wi, wo, "toy"))  # the recipe's

@@ -38,7 +38,7 @@ class Run:
     @property
     def images(self) -> bool:
         """A fit to images by inverse rendering (``target.images``): no reference BRDF."""
-        return self.config.target.images is not None
+        return self.config.target.kind == "images"
 
 
 def _number(d: dict, dotted: str, path: Path, *, optional: bool = False):
