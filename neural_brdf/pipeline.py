@@ -181,6 +181,12 @@ def _run(cfg: cfgmod.Config, folder: runfolder.Folder, *, resume: bool) -> dict[
     return finish(cfg, run_dir, raw, training, t0=t0, target=target)
 
 
+# a uniform teacher whose albedo passes 1 by more than this is said so when its run starts
+# (bounded by less, a perfect conductor's quadrature noise near grazing, 1.0014 for GGX
+# alpha 0.2, changes f by less than the network's own error)
+EXCESS_WARNING = 0.01
+
+
 def teacher_warnings(cfg: cfgmod.Config, target: Any, *, textured: bool) -> list[str]:
     """What the run will do that the config did not say: a legitimate input whose file
     differs from what the user may assume (one line each; the run goes on)."""
@@ -197,6 +203,19 @@ def teacher_warnings(cfg: cfgmod.Config, target: Any, *, textured: bool) -> list
         line = detail_warning(target, cfg.texture.project or cfg.texture.resolution)
         if line is not None:
             out.append(line)
+    excess = getattr(target, "excess", None)  # a textured teacher's: at the end (finish_textured)
+    if (
+        cfg.target.mitsuba is not None
+        and not textured
+        and excess is not None
+        and excess["max_albedo"] > 1.0 + EXCESS_WARNING
+    ):
+        out.append(
+            f"{cfg.target.mitsuba}: the teacher's albedo exceeds 1 (max "
+            f"{excess['max_albedo']:.4f} in {excess['channel']} at theta_i "
+            f"{excess['at_theta_deg']:g} deg): the model learns its energy-bounded version, "
+            "f / max(1, A(wi), A(wo)), and its accuracy is measured against that"
+        )
     if cfg.target.mitsuba is not None and not textured and cfg.texture != cfgmod.Texture():
         out.append(
             f"texture: ignored: {cfg.target.mitsuba} does not vary over the surface, so "

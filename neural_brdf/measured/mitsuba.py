@@ -96,9 +96,11 @@ MAX_F_COS = 1e7
 # ... and so at any uv (check_rough): PROBE_UV random uv, this many pairs at each, wo from
 # the sampler at that uv (pairs drawn at uv 0.5 miss a lobe that is sharp elsewhere)
 PEAK_PAIRS = 32
-# the microfacet roughness of Mitsuba's rough plugins: a bitmap bound to one with a texel at
-# 0 or below is a delta lobe there (a lone texel is ~0 only near its centre: no probe sees it)
-ALPHA_PARAMS = ("alpha", "alpha_u", "alpha_v")
+# the microfacet roughness of Mitsuba's rough plugins (principled's: roughness): a value,
+# or a bitmap bound to one with a texel, at 0 or below is a delta lobe there (a lone texel
+# is ~0 only near its centre: no probe sees it; principled at roughness 0 reaches only
+# f cos ~1e4 at the probes, below MAX_F_COS, and trained to a 99.9 % error)
+ALPHA_PARAMS = ("alpha", "alpha_u", "alpha_v", "roughness")
 # The energy bound's table (module doc)
 THETA_NODES = 46  # polar angles, 2 degrees apart, the last (90) moved to LAST_THETA_DEG
 LAST_THETA_DEG = 89.9
@@ -336,7 +338,8 @@ def check_reflective(bsdf: Any, plugin: str, where: str) -> None:
 def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
     """InputError naming ``where`` when ``bsdf`` is a delta lobe in all but name somewhere
     on the surface (docs/mitsuba.md: refused, "a rough one at roughness 0 or below"): a
-    bitmap bound to an alpha (:data:`ALPHA_PARAMS`) with a texel at 0 or below (named), or
+    roughness (:data:`ALPHA_PARAMS`) given as a number at 0 or below, a bitmap bound to
+    one with a texel at 0 or below (each named), or
     f cos above :data:`MAX_F_COS` at one of :data:`PROBE_UV` random uv, wo drawn from the
     teacher's sampler at that uv.  Else such a teacher trained to a 100 % error and passed
     its physics (the probes at uv 0.5 saw only the rough part)."""
@@ -346,6 +349,17 @@ def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
     for k in params.keys():
         parts = k.split(".")
         value = params[k]
+        name = parts[-2] if parts[-1] == "value" and len(parts) > 1 else parts[-1]
+        if name in ALPHA_PARAMS and parts[-1] != "data":
+            # a roughness given as a number (roughplastic's alpha is the parameter itself)
+            number = np.asarray(value.numpy() if hasattr(value, "numpy") else value, float)
+            if number.size == 1 and float(number.reshape(-1)[0]) <= 0:
+                raise InputError(
+                    f"{where}: {k.removesuffix('.value')} = {float(number.reshape(-1)[0]):g}: "
+                    "a roughness of 0, a nearly delta lobe, which a BRDF of finite values "
+                    "cannot hold: give a larger roughness"
+                )
+            continue
         if parts[-1] != "data" or len(parts) < 2 or parts[-2] not in ALPHA_PARAMS:
             continue
         if not dr.is_tensor_v(value):  # any type: an 8-bit PNG's is TensorXu8

@@ -168,8 +168,9 @@ class TexturedMitsubaTarget:
         self._bump_scale = 0.0
         with self._scope():
             self._check_files(where)
-            obj = load(mi, self.path, where)
-            self.whole_bsdf = obj  # wrappers included: what a scene of the teacher renders
+            # wrappers included: what a scene of the teacher renders (a scene's one <bsdf>,
+            # not the scene, which has no eval)
+            obj = self.whole_bsdf = one_bsdf(mi, load(mi, self.path, where), where)
             self.bsdf, self.plugin = self._unwrap(obj, where)
             self._probe_whole(where)
             check_reflective(self.bsdf, self.plugin, where)

@@ -5,7 +5,8 @@ suggests: one warning line each, and the run goes on (docs/mitsuba.md).
   the average over the azimuth; it trained without a word);
 * a ``texture:`` section with a teacher that does not vary over the surface (ignored
   without a word);
-* a bitmap with ``wrap_mode`` clamp or mirror (the file's textures wrap by repeat).
+* a bitmap with ``wrap_mode`` clamp or mirror (the file's textures wrap by repeat);
+* a teacher whose albedo exceeds 1 (the file learns its energy-bounded version).
 
 Each has its quiet twin: the same teacher where the file is what the config says gets
 no warning.  A batch (``train-many``) prints the same lines as a run alone.  And one
@@ -64,6 +65,17 @@ def test_an_anisotropic_teacher_with_an_isotropic_encoding_is_warned(mi, tmp_pat
     assert line.startswith("model.encoding: isotropic") and "anisotropic" in line
     assert _warnings(tmp_path, ANISO, "model: {encoding: anisotropic}\n") == []
     assert _warnings(tmp_path, ISO, "model: {encoding: isotropic}\n") == []
+
+
+def test_a_uniform_teacher_above_1_is_warned(mi, tmp_path):
+    """Bounded to an albedo of 1 (its accuracy then measured against the bounded teacher),
+    it was said only in metrics.json and the report; a textured teacher's run printed it."""
+    above = '<bsdf version="3.0.0" type="principled"><rgb name="base_color" value="1, 1, 1"/>'
+    above += '<float name="roughness" value="0.5"/></bsdf>'
+    (line,) = _warnings(tmp_path, above)
+    assert "teacher.xml: the teacher's albedo exceeds 1 (max 1." in line
+    assert "energy-bounded" in line
+    assert _warnings(tmp_path, ISO) == []  # within 1: no word
 
 
 def test_a_texture_section_on_a_uniform_teacher_is_warned(mi, tmp_path):

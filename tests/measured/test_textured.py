@@ -527,6 +527,26 @@ def test_the_target_varies_over_uv_and_is_a_spatially_varying_target(mi, xmls, t
             assert np.max(np.abs(f[a] - f[b])) > 1e-3 * f.max()
 
 
+def test_a_scenes_one_textured_bsdf_is_the_teacher(mi, xmls, targets):
+    """docs/mitsuba.md: a file may be a scene with one top-level <bsdf>; textured, it was
+    refused as "Mitsuba cannot evaluate it ('Scene' object has no attribute 'eval')"."""
+    import xml.etree.ElementTree as ET
+
+    from neural_brdf.measured.textured import TexturedMitsubaTarget
+
+    bare = xmls["roughplastic"]
+    bsdf = ET.parse(bare).getroot()
+    bsdf.attrib.pop("version", None)
+    scene = ET.Element("scene", version="3.0.0")
+    scene.append(bsdf)
+    path = bare.with_name("in_a_scene.xml")  # beside the bare file: its textures resolve
+    ET.ElementTree(scene).write(path)
+    t = TexturedMitsubaTarget(path)
+    wi, wo = pairs(64, 5)
+    uv = np.random.default_rng(2).random((64, 2))
+    assert np.array_equal(t.eval(wi, wo, uv), targets["roughplastic"].eval(wi, wo, uv))
+
+
 def test_max_albedo_is_the_quadrature_of_f_cos(mi, targets):
     """Mitsuba's sample weights averaged vs a cosine-weighted Monte Carlo of f here."""
     t = targets["roughplastic"]
