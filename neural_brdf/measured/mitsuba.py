@@ -207,6 +207,15 @@ def _children(mi: Any, obj: Any) -> list[tuple[str, Any]]:
     return cb.found
 
 
+def check_file(path: Path, where: str) -> None:
+    """InputError naming ``where`` unless ``path`` is a file: "no such file", or that it
+    is a folder (a teacher is one XML file)."""
+    if path.is_dir():
+        raise InputError(f"{where}: is a folder, not a Mitsuba XML file")
+    if not path.is_file():
+        raise InputError(f"{where}: no such file")
+
+
 def load(mi: Any, path: Path, where: str) -> Any:
     """``mi.load_file(path)``; InputError naming ``where`` when Mitsuba cannot load it,
     and naming the image when that is why (a bitmap file that is not an image: Mitsuba
@@ -459,8 +468,7 @@ class MitsubaTarget:
         self.source = str(path)
         self.variant = variant or DEFAULT_VARIANT
         where = f"{key}: {self.source}"
-        if not self.path.is_file():
-            raise InputError(f"{where}: no such file")
+        check_file(self.path, where)
         mi = self._mi = _mitsuba(self.variant, key)
         with self._scope():
             obj = load(mi, self.path, where)

@@ -65,6 +65,7 @@ from neural_brdf.measured.mitsuba import (
     _mitsuba,
     _np,
     _tensor,
+    check_file,
     check_reflective,
     check_rough,
     interaction,
@@ -158,8 +159,7 @@ class TexturedMitsubaTarget:
         self.source = str(path)
         self.variant = variant
         where = self._where = f"{key}: {self.source}"
-        if not self.path.is_file():
-            raise InputError(f"{where}: no such file")
+        check_file(self.path, where)
         mi = self._mi = _mitsuba(self.variant, key)
         self.normal_map: dict[str, Any] | None = None
         self.warnings: list[str] = []  # printed once by the run (pipeline.teacher_warnings)
@@ -211,17 +211,23 @@ class TexturedMitsubaTarget:
                     f"resolved against {self.path.resolve().parent})"
                 )
         for el in root.iter("texture"):  # the file's textures wrap by repeat (docs/mitsuba.md)
-            modes = [m for m in el.findall("string") if m.get("name") == "wrap_mode"]
-            mode = modes[0].get("value", "repeat") if modes else "repeat"
-            if el.get("type") == "bitmap" and mode != "repeat":
-                files = [
-                    f.get("value") for f in el.findall("string") if f.get("name") == "filename"
-                ]
-                name = el.get("name") or el.get("id") or "bitmap"
+            if el.get("type") != "bitmap":
+                continue
+            strings = {m.get("name"): m.get("value", "") for m in el.findall("string")}
+            mode = strings.get("wrap_mode", "repeat")
+            name = el.get("name") or el.get("id") or "bitmap"
+            texture = f"the texture {name!r} ({strings.get('filename')})"
+            if mode != "repeat":
                 self.warnings.append(
-                    f"{where}: the texture {name!r} ({', '.join(map(str, files))}) has "
-                    f"wrap_mode {mode}, but the file's textures wrap by repeat: within half "
-                    "a texel of its borders (and at uv outside [0, 1)) the file differs"
+                    f"{where}: {texture} has wrap_mode {mode}, but the file's textures wrap "
+                    "by repeat: within half a texel of its borders (and at uv outside [0, "
+                    "1)) the file differs"
+                )
+            if strings.get("filter_type") == "nearest":  # a field blends its texels
+                self.warnings.append(
+                    f"{where}: {texture} has filter_type nearest, but the file's textures "
+                    "are interpolated bilinearly: between texel centres, where the teacher "
+                    "steps from one texel to the next, the file blends them"
                 )
         for el in root.iter("bsdf"):
             if el.get("type") in ("normalmap", "bumpmap"):

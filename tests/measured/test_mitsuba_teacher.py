@@ -84,6 +84,10 @@ def test_a_missing_file_is_one_line_naming_it(tmp_path, capsys):
     cfg = teacher_config(tmp_path, "nowhere.xml")
     code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"), *SETS)
     assert_one_line_error(code, err, "target.mitsuba", "nowhere.xml", "no such file")
+    (tmp_path / "a_folder").mkdir()  # said to be a folder, not "no such file"
+    cfg = teacher_config(tmp_path, "a_folder")
+    code, _, err = cli(capsys, "train", str(cfg), "--out", str(tmp_path / "run"), *SETS)
+    assert_one_line_error(code, err, "target.mitsuba", "a_folder", "is a folder")
 
 
 def test_nothing_but_a_mitsuba_teacher_imports_mitsuba(tmp_path):
