@@ -151,12 +151,36 @@ def test_the_hand_kept_lists_name_every_encoding_and_codegen_target():
         "model.md": _row("model.md", "| `encoding` |"),
         "portable.md": _row("portable.md", "| `encoding` |"),
     }
-    for page, row in rows.items():
-        missing = [n for n in encodings.names() if f"`{n}`" not in row]
-        assert not missing, f"docs/{page}: the encodings' list lacks {missing}: {row}"
+    lacking = {
+        page: missing
+        for page, row in rows.items()
+        if (missing := [n for n in encodings.names() if f"`{n}`" not in row])
+    }
+    assert not lacking, "the encodings' lists lack names: " + "; ".join(
+        f"docs/{page} lacks {missing}" for page, missing in lacking.items()
+    )
     usage = "--target " + "|".join(backends.TARGETS)
     assert usage in (REPO / "docs" / "cli.md").read_text(), f"docs/cli.md: say {usage}"
     assert usage in (cli.__doc__ or ""), f"neural_brdf/tooling/cli.py's docstring: say {usage}"
+
+
+def test_the_cli_page_names_every_measured_format():
+    # bake's and validate's usage lines in docs/cli.md spell the suffixes (the command's
+    # own help takes them from the registry, neural_brdf/measured/formats.py)
+    from neural_brdf.measured import formats
+
+    lines = {
+        "bake": _row("cli.md", "neural-brdf bake "),
+        "validate": _row("cli.md", "neural-brdf validate "),
+    }
+    lacking = {
+        command: missing
+        for command, line in lines.items()
+        if (missing := [f.suffix for f in formats.all_formats() if f.suffix not in line])
+    }
+    assert not lacking, "docs/cli.md: " + "; ".join(
+        f"the {command} line lacks {missing}" for command, missing in lacking.items()
+    )
 
 
 def test_the_images_guide_lists_every_images_key():

@@ -5,7 +5,8 @@ the rest of the project picks it up with nothing else touched.
 * an analytic model: ``analytic/toy.py`` and its line in ``analytic._MODELS``: it is then a
   training target, a validation reference and a physics-checked model;
 * a code-generation back end: ``backends/toy.py`` (Python + numpy source, written from the
-  lowered graph) and its lines in ``backends.REGISTRY`` / ``TARGETS``: ``neural-brdf
+  lowered graph) and its line in ``backends.REGISTRY`` (``TARGETS``, computed from it at
+  import, is patched here as the import would have given it): ``neural-brdf
   codegen --target toy`` writes it, and its output agrees with onnxruntime.
 
 The encoding and the measured-format recipes have their own tests beside the registries

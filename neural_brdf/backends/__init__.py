@@ -8,7 +8,9 @@
 path, :mod:`neural_brdf.backends.drjit`); the others render source code
 (:mod:`neural_brdf.backends.cstyle`).  A back end is registered here by module and class
 name and imported only when it is asked for, so the code generators need neither
-Dr.Jit nor Mitsuba.
+Dr.Jit nor Mitsuba.  A new source generator is one file and its line in
+:data:`REGISTRY`: :data:`TARGETS` follows from it (docs/architecture.md, "Adding
+something").
 """
 
 from __future__ import annotations
@@ -19,23 +21,39 @@ import numpy as np
 
 from neural_brdf.errors import InputError
 
-# target -> (module, class)
+# target -> (module, class); the key is the class's ``name``
 REGISTRY: dict[str, tuple[str, str]] = {
     "c": ("neural_brdf.backends.c", "CRenderer"),
     "glsl": ("neural_brdf.backends.glsl", "GLSLRenderer"),
     "wgsl": ("neural_brdf.backends.wgsl", "WGSLRenderer"),
     "drjit": ("neural_brdf.backends.drjit", "DrJitBackend"),
 }
-# The targets that generate source code (``neural-brdf codegen --target``).
-TARGETS = ("c", "glsl", "wgsl")
+# The back ends that execute the graph rather than write source code.
+EXECUTORS = frozenset({"drjit"})
+# The targets that generate source code (``neural-brdf codegen --target``): every other
+# registered back end, in the registry's order.
+TARGETS: tuple[str, ...] = tuple(t for t in REGISTRY if t not in EXECUTORS)
 
 
 def get(target: str):
-    """The back-end class of ``target``; an unknown name raises a one-line InputError."""
+    """The back-end class of ``target``.  An unknown name, or a registry line whose
+    module cannot be imported or lacks the class, raises a one-line InputError naming
+    ``target`` and the cause."""
     if target not in REGISTRY:
         raise InputError(f"target: unknown back end {target!r} (known: {', '.join(REGISTRY)})")
     module, cls = REGISTRY[target]
-    return getattr(importlib.import_module(module), cls)
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as e:  # a misspelt module, or a dependency it needs (drjit)
+        cause = " ".join(str(e).split()) or type(e).__name__
+        raise InputError(f"target {target!r}: cannot load its back end: {module}: {cause}") from e
+    try:
+        return getattr(mod, cls)
+    except AttributeError:
+        raise InputError(
+            f"target {target!r}: cannot load its back end: {module}: has no class {cls!r} "
+            "(its backends.REGISTRY line)"
+        ) from None
 
 
 def generate(

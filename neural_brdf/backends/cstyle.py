@@ -8,9 +8,10 @@ temporary per instruction, one statement per line, with the constants inlined by
 rule per kind (:meth:`CStyleRenderer.literal`).  A dialect (C, GLSL, WGSL) is a short
 subclass: type names, literal spellings, the few operators and functions that differ,
 how a function binds its inputs and returns its outputs, and the file around them.
-Adding a language (HLSL, Metal, ...) is one file with such a subclass and its lines in
-:data:`neural_brdf.backends.REGISTRY` and :data:`neural_brdf.backends.TARGETS` (what
-``neural-brdf codegen --target`` offers; docs/architecture.md, "Adding something").
+Adding a language (HLSL, Metal, ...) is one file with such a subclass and its line in
+:data:`neural_brdf.backends.REGISTRY` (:data:`neural_brdf.backends.TARGETS`, what
+``neural-brdf codegen --target`` offers, follows from it), and its parity test
+(docs/architecture.md, "Adding something").
 
 Every generated file holds three functions built from the model (its graph, and its
 stored sampling lobe, :mod:`neural_brdf.backends.lobe_ir`):

@@ -5,15 +5,17 @@
     neural-brdf presets
     neural-brdf export RUN_DIR [-o model.onnx]
     neural-brdf report RUN_DIR [-o OUT_DIR]
-    neural-brdf validate model.onnx [--reference CONFIG|material.binary|.bsdf] [--json out.json]
-    neural-brdf bake model.onnx|CONFIG -o out.binary|out.bsdf  (measured.formats: by suffix)
+    neural-brdf validate model.onnx [--reference CONFIG|MEASURED] [--json out.json]
+    neural-brdf bake model.onnx|CONFIG -o MEASURED
     neural-brdf render model.onnx [--reference CONFIG] [--spp N] -o out.png|out.jpg
     neural-brdf sweep SWEEP.yaml [--executor local|ray] [--workers N] [--ray-address ADDR]
     neural-brdf codegen model.onnx --target c|glsl|wgsl [--prefix NAME] -o FILE
     neural-brdf view model.onnx [--compare OTHER.onnx|TEACHER.xml|CONFIG] [--uv U,V] -o viewer.html
 
 A CONFIG (train, train-many, validate, bake, render, view) may be a preset's name instead
-(``gold``, ``mitsuba/roughplastic``: ``neural-brdf presets``).
+(``gold``, ``mitsuba/roughplastic``: ``neural-brdf presets``).  A MEASURED file's suffix
+names its format (:mod:`neural_brdf.measured.formats`; ``neural-brdf bake --help`` lists
+the registered ones).
 
 Exit codes: 0 success; 1 a physics check failed (also: training diverged, or the ONNX
 graph failed the parity check -- the model cannot be trusted); 2 bad input (a one-line
@@ -46,6 +48,9 @@ from neural_brdf.errors import InputError, not_a_file  # noqa: E402  (light: no 
 
 EXIT_OK, EXIT_PHYSICS, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130  # SIGTERM: 128 + 15
 STDOUT = "-"  # -o -: the output on stdout (text formats only)
+# what ``codegen --target``'s help says of a target (backends.TARGETS lists them; one
+# without a note here is listed by its name)
+TARGET_NOTES = {"c": "a C99 header", "glsl": "GLSL ES 3.00 / 4.50", "wgsl": "WebGPU"}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -110,24 +115,29 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("run_dir")
     rp.add_argument("-o", "--out", help="output folder (default: RUN_DIR)")
 
+    # the measured formats by suffix, from their registry (numpy only, as backends)
+    from neural_brdf.measured import formats
+
+    measured = formats.known()  # ".binary (MERL), .bsdf (RGL)"
+
     v = sub.add_parser("validate", help="check physics (and accuracy) of an exported model")
     v.add_argument("model")
     v.add_argument(
         "--reference",
-        help="ground truth: a config (its target) or a preset name, a MERL "
-        ".binary or an RGL .bsdf file (measured data)",
+        help="ground truth: a config (its target) or a preset name, or a measured file "
+        f"by its suffix: {measured}",
     )
     v.add_argument("--json", help="write the report as JSON to this file")
 
     b = sub.add_parser(
         "bake",
-        help="tabulate a model (.onnx) or a config's analytic target: "
-        "MERL .binary or RGL .bsdf (by the output extension)",
+        help="tabulate a model (.onnx) or a config's analytic target as a measured file "
+        f"(the output's suffix names the format: {measured})",
     )
     b.add_argument(
         "source", help="model.onnx, or a YAML config (or a preset name) whose target is baked"
     )
-    b.add_argument("-o", "--out", required=True, help="output file: .binary (MERL) or .bsdf (RGL)")
+    b.add_argument("-o", "--out", required=True, help=f"output file, by its suffix: {measured}")
 
     r = sub.add_parser(
         "render",
@@ -143,19 +153,19 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--resolution", type=int, default=256, help="image height in pixels")
     r.add_argument("-o", "--out", required=True, help="output image: .png, or .jpg/.jpeg (JPEG)")
 
+    from neural_brdf.backends import TARGETS
+
     g = sub.add_parser(
         "codegen",
-        help="generate C / GLSL / WGSL source that evaluates and "
+        help=f"generate source code ({', '.join(TARGETS)}) that evaluates and "
         "samples the model (docs/codegen.md)",
     )
     g.add_argument("model", help="model.onnx")
-    from neural_brdf.backends import TARGETS
-
     g.add_argument(
         "--target",
         required=True,
         choices=list(TARGETS),
-        help="c (a C99 header), glsl (GLSL ES 3.00 / 4.50) or wgsl (WebGPU)",
+        help=", ".join(f"{t} ({TARGET_NOTES[t]})" if t in TARGET_NOTES else t for t in TARGETS),
     )
     g.add_argument(
         "--prefix",

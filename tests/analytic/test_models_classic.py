@@ -11,6 +11,7 @@ arrays are refused with a one-line error that names them.
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -527,6 +528,17 @@ def test_quadrature_refuses_too_few_points(n):
     # the fewest points allowed: one per replica, and a finite estimate with its error
     rho, err = analytic.albedo(brdf, wi, n=physics.REPLICAS, return_error=True)
     assert np.all(np.isfinite(rho)) and np.all(np.isfinite(err))
+
+
+@pytest.mark.parametrize("name", analytic.available())
+def test_every_registered_model_is_named_by_its_key(name):
+    # every registry line, not a hand-kept list: a new model in _MODELS is checked too
+    cls = analytic.model_class(name)
+    brdf = analytic.create(name)
+    assert cls.name == name and brdf.name == name, f"_MODELS[{name!r}] is named {cls.name!r}"
+    assert type(brdf) is cls and set(cls.param_space) == set(brdf.params)
+    # described: the class, or the one-model module it lives in
+    assert cls.__doc__ or sys.modules[cls.__module__].__doc__, f"{name}: no docstring"
 
 
 @pytest.mark.parametrize("name", CLASSIC)

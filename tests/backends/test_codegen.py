@@ -770,13 +770,111 @@ def test_unknown_op_is_named():
 
 
 # ------------------------------------------------------------------ registry and CLI
+REPO = Path(__file__).resolve().parents[2]
+# back end -> the test that checks what it computes against onnxruntime.  Each language
+# runs in its own harness (C through cc, WGSL on lavapipe, GLSL in WebGL2, Dr.Jit on
+# LLVM), so a new back end brings its own test, named here.
+PARITY = {
+    "c": "tests/backends/test_codegen.py::test_c_matches_onnxruntime",
+    "glsl": "tests/viewer/test_viewer.py::test_generated_glsl_and_wgsl_reproduce_onnxruntime",
+    "wgsl": "tests/backends/test_codegen.py::test_wgsl_validates_and_matches_onnxruntime",
+    "drjit": "tests/backends/test_codegen.py::test_drjit_matches_onnxruntime",
+}
+
+
+def test_every_back_end_has_an_onnxruntime_parity_test():
+    # docs/codegen.md: every back end is tested against onnxruntime
+    missing = [t for t in backends.REGISTRY if t not in PARITY]
+    assert not missing, (
+        f"back ends {missing} have no parity test: write one that compares the generated "
+        "code with onnxruntime (tests/backends/test_codegen.py's test_c_matches_onnxruntime) "
+        "and name it in PARITY in tests/backends/test_codegen.py"
+    )
+    stale = [t for t in PARITY if t not in backends.REGISTRY]
+    assert not stale, f"PARITY in tests/backends/test_codegen.py names no back end {stale}"
+    for target, test in PARITY.items():
+        path, name = test.split("::")
+        source = (REPO / path).read_text(encoding="utf-8")
+        assert f"\ndef {name}(" in source, f"PARITY[{target!r}]: {test} does not exist"
+
+
 def test_registry():
     assert set(backends.TARGETS) <= set(backends.REGISTRY)
+    # TARGETS is every registered back end but the executors, in the registry's order
+    assert backends.TARGETS == tuple(t for t in backends.REGISTRY if t not in backends.EXECUTORS)
+    assert {"c", "glsl", "wgsl"} <= set(backends.TARGETS) and "drjit" not in backends.TARGETS
+    assert backends.EXECUTORS <= set(backends.REGISTRY)
     for target in backends.TARGETS:
         assert backends.get(target)().name == target
     # a name no back end will take (hlsl is docs/codegen.md's example of a new one)
     with pytest.raises(InputError, match="no_such_target"):
         backends.get("no_such_target")
+
+
+@pytest.mark.parametrize(
+    "target",
+    [
+        t if t not in backends.EXECUTORS else pytest.param(t, marks=pytest.mark.mitsuba)
+        for t in backends.REGISTRY
+    ],
+)
+def test_each_registry_key_is_its_class_name(target):
+    cls = backends.get(target)
+    assert cls.name == target, (
+        f"backends.REGISTRY[{target!r}] is {cls.__name__}, named {cls.name!r}"
+    )
+
+
+@pytest.mark.parametrize(
+    "line, cause",
+    [
+        (
+            ("neural_brdf.backends.no_such_module", "HLSLRenderer"),
+            "neural_brdf.backends.no_such_module: No module named 'neural_brdf.backends.",
+        ),
+        (
+            ("neural_brdf.backends.c", "CRender"),
+            "neural_brdf.backends.c: has no class 'CRender'",
+        ),
+    ],
+    ids=["module", "class"],
+)
+def test_a_broken_registry_line_is_one_line_naming_the_back_end(
+    line, cause, monkeypatch, tiny_run, tmp_path, capsys
+):
+    # it was the raw ModuleNotFoundError / AttributeError of importlib and getattr
+    monkeypatch.setitem(backends.REGISTRY, "hlsl", line)
+    monkeypatch.setattr(backends, "TARGETS", (*backends.TARGETS, "hlsl"))
+    with pytest.raises(InputError) as e:
+        backends.get("hlsl")
+    message = str(e.value)
+    assert message.startswith("target 'hlsl': ") and cause in message and "\n" not in message
+    from neural_brdf.tooling.cli import main
+
+    out = tmp_path / "brdf.hlsl"
+    args = ["codegen", str(tiny_run / "model.onnx"), "--target", "hlsl", "-o", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "target 'hlsl'" in err[0] and cause in err[0], err
+    assert not out.exists()
+
+
+def test_codegen_help_lists_every_target(monkeypatch, capsys):
+    # the command's help and --target's are built from TARGETS: a new target is in them
+    from neural_brdf.tooling.cli import main
+
+    monkeypatch.setattr(backends, "TARGETS", (*backends.TARGETS, "hlsl"))
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"generate source code ({', '.join(backends.TARGETS)})" in text, text
+    with pytest.raises(SystemExit) as e:
+        main(["codegen", "--help"])
+    assert e.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "{" + ",".join(backends.TARGETS) + "}" in text  # the choices
+    assert "c (a C99 header), " in text and ", hlsl " in text, text  # a target without a note
 
 
 @pytest.mark.parametrize("out", ["-", "/dev/stdout"])

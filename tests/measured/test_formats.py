@@ -38,6 +38,7 @@ class ToyBRDF:
     """A Lambertian read from a ``.toy`` file: the MeasuredBRDF protocol, nothing else."""
 
     anisotropic = False
+    dense_at_peak = False  # training adds data.peak pairs near the mirror direction
     drawn = 0  # pairs handed out by sample_pairs, over all instances (the training test)
 
     def __init__(self, albedo, *, source: str):
@@ -138,6 +139,16 @@ def test_a_toy_format_trains_validates_and_bakes_through_the_public_paths(toy, t
     assert metrics["accuracy"]["pairs_from"] == "measured bins"
     report_md = (run / "report.md").read_text()
     assert "on 81 measured bin centres" in report_md and "held-out pairs" not in report_md
+    # a metrics.json from before pairs_from: the reference, "TOY ...", names the format
+    older = dict(
+        metrics, accuracy={k: v for k, v in metrics["accuracy"].items() if k != "pairs_from"}
+    )
+    (run / "metrics.json").write_text(json.dumps(older))
+    code, _, err = cli(capsys, "report", str(run))
+    assert code == 0, err
+    report_md = (run / "report.md").read_text()
+    assert "on 81 measured bin centres" in report_md and "held-out pairs" not in report_md
+    (run / "metrics.json").write_text(json.dumps(metrics))
 
     # validate --reference: the toy file, by its suffix (not read as a YAML config)
     report = tmp_path / "report.json"
@@ -211,7 +222,9 @@ def test_unknown_suffixes_and_bad_files_are_one_line_errors(toy, tmp_path, capsy
         formats.format_of(tmp_path / "m.exr")
     msg = str(e.value)
     assert "\n" not in msg and str(tmp_path / "m.exr") in msg and "'.exr'" in msg
-    assert "known: .binary (MERL), .bsdf (RGL), .toy (TOY)" in msg
+    # every registered format, the built-ins and the toy, in registration order
+    assert msg.endswith(f"known: {formats.known()}") and ".toy (TOY)" in msg
+    assert all(f"{suffix} ({name})" in msg for name, suffix in BUILTIN.items())
     assert formats.format_of(tmp_path / "M.TOY") is toy  # case-insensitive
 
     train = ["train", str(CONFIGS / "merl.yaml"), "--out", str(tmp_path / "run")]
@@ -239,8 +252,21 @@ def test_unknown_suffixes_and_bad_files_are_one_line_errors(toy, tmp_path, capsy
     assert not (tmp_path / "m.exr").exists()
 
 
+def test_the_cli_help_lists_every_registered_format(toy, capsys):
+    # bake's and validate's help are built from the registry: the toy is in them
+    for command in ("bake", "validate"):
+        with pytest.raises(SystemExit) as e:
+            cli(capsys, command, "--help")
+        assert e.value.code == 0
+        text = " ".join(capsys.readouterr().out.split())
+        assert formats.known() in text and ".toy (TOY)" in text, text
+
+
 def test_the_registry_refuses_a_taken_or_malformed_suffix(toy):
-    assert [f.name for f in formats.all_formats()] == ["MERL", "RGL", "TOY"]
+    names = [f.name for f in formats.all_formats()]
+    assert set(BUILTIN) <= set(names) and names[-1] == "TOY"  # in registration order
+    known = formats.known()
+    assert known == ", ".join(f"{f.suffix} ({f.name})" for f in formats.all_formats())
     with pytest.raises(ValueError, match="already the suffix of TOY"):
         formats.register(formats.Format("TWO", ".toy", read_toy, bake_toy))
     for bad in ("toy", ".TOY", ".", "x/.toy"):
@@ -248,7 +274,8 @@ def test_the_registry_refuses_a_taken_or_malformed_suffix(toy):
             formats.Format("BAD", bad, read_toy, bake_toy)
     formats.unregister(".toy")
     assert formats.find("x.toy") is None
-    assert formats.known() == ".binary (MERL), .bsdf (RGL)"
+    assert formats.known() == known.removesuffix(", .toy (TOY)") != known
+    assert [f.name for f in formats.all_formats()] == names[:-1]
 
 
 # ------------------------------------------------------------- the built-in formats
@@ -267,7 +294,9 @@ BUILTIN = {"MERL": ".binary", "RGL": ".bsdf"}
 
 
 def test_builtin_formats_are_registered_by_suffix():
-    assert [(f.name, f.suffix) for f in formats.all_formats()] == list(BUILTIN.items())
+    # the built-ins are there (a format registered later does not change them)
+    registered = {f.name: f.suffix for f in formats.all_formats()}
+    assert {n: registered.get(n) for n in BUILTIN} == BUILTIN
     assert formats.MERL.read is not None and formats.find("X.BINARY") is formats.MERL
     assert formats.find("x.bsdf") is formats.RGL and formats.find("x.binary.gz") is None
 

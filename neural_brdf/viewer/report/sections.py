@@ -11,6 +11,7 @@ from typing import Any
 
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
+from neural_brdf.measured import formats
 from neural_brdf.target import check_textured
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.page import at_uv
@@ -192,10 +193,11 @@ def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
         rows.append(["NBRDF log error", f"{_number(m, 'accuracy.nbrdf_log_error', path):.3g}"])
         pairs = _number(m, "accuracy.pairs", path, optional=True)
         # measured data are compared on every measured bin, which training draws from
-        # (an earlier run's metrics.json lacks pairs_from: its reference names the file)
+        # (an earlier run's metrics.json lacks pairs_from: its reference, the reader's
+        # describe(), starts with the name of a registered format)
         binned = m["accuracy"].get("pairs_from") == "measured bins" or str(
             m.get("reference", "")
-        ).startswith(("MERL ", "RGL "))
+        ).startswith(tuple(f"{f.name} " for f in formats.all_formats()))
         where = (
             "measured bin centres (every bin of the file, which training draws its pairs "
             "from: none is held out)"
