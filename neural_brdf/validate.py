@@ -222,6 +222,34 @@ def passed(report: dict[str, Any]) -> bool:
     return physics_passed(report) and bool(report.get("peak", {}).get("passed", True))
 
 
+# a relative RMSE of f cos above this: the model does not reproduce its target at all (a
+# teacher's lobe sharper than the network holds: principled at roughness ~0 read 99.9 %)
+POOR_ACCURACY = 0.5
+
+
+def accuracy_notes(report: dict[str, Any]) -> list[str]:
+    """One line for each figure of ``report`` that fails although training's verdict,
+    the physics (:func:`physics_passed`), does not see it: the highlight's peak beyond
+    its limit (``neural-brdf validate`` exits 1 on it), a relative RMSE above
+    :data:`POOR_ACCURACY`.  ``train`` prints them, so that a model that is physical but
+    not its target is not read as a success from the exit code alone."""
+    notes = []
+    pk = report.get("peak")
+    if pk is not None and not pk["passed"]:
+        notes.append(
+            f"the highlight's peak is {100 * pk['value']:.1f} % off its target (limit "
+            f"{100 * pk['limit']:g} %): physical, but not accurate there; train's exit "
+            "code is the physics', `neural-brdf validate` exits 1 on this"
+        )
+    acc = report.get("accuracy", {}).get("rel_rmse")
+    if acc is not None and acc > POOR_ACCURACY:
+        notes.append(
+            f"relative RMSE of f cos {100 * acc:.1f} %: the model does not reproduce its "
+            "target (a lobe sharper than the network holds, or too few train.steps?)"
+        )
+    return notes
+
+
 def accuracy(fn: Callable, target: Target, *, n: int, seed: int) -> dict[str, Any]:
     """Error of ``fn`` (numpy in/out) against ``target`` (an analytic BRDF or measured
     data) on :func:`data.accuracy_pairs`; ``n`` applies to analytic targets (measured
@@ -556,7 +584,8 @@ def format_table(report: dict[str, Any]) -> str:
     # a textured file's: that of the uv where the furnace found its largest albedo
     at_uv = report["checks"].get("max_albedo", {}).get("at_uv")
     if at_uv is not None:
-        hemi += f" (at uv {at_uv[0]:.3f}, {at_uv[1]:.3f}, the max_albedo's)"
+        # textures repeat: the uv in [0, 1) (the furnace also probes uv outside it)
+        hemi += f" (at uv {at_uv[0] % 1.0:.3f}, {at_uv[1] % 1.0:.3f}, the max_albedo's)"
     rows.append(("hemispherical_albedo", hemi, "", ""))
     if "accuracy" in report:
         acc = report["accuracy"]

@@ -130,6 +130,9 @@ def test_the_table_names_the_uv_of_a_textured_files_hemispherical_albedo():
     report["model"] = "m.onnx"
     row = next(x for x in validate.format_table(report).splitlines() if "hemispherical" in x)
     assert "0.8000, 0.2000, 0.1000 (at uv 0.250, 0.750" in row
+    checks["max_albedo"]["at_uv"] = [-0.75, 1.75]  # the furnace probes uv outside [0, 1)
+    row = next(x for x in validate.format_table(report).splitlines() if "hemispherical" in x)
+    assert "(at uv 0.250, 0.750" in row  # the same texel: textures repeat
     del checks["max_albedo"]["at_uv"]  # a homogeneous file's: no uv
     row = next(x for x in validate.format_table(report).splitlines() if "hemispherical" in x)
     assert "uv" not in row and "0.8000, 0.2000, 0.1000" in row
@@ -148,3 +151,21 @@ def test_the_relative_rmse_does_not_depend_on_the_values_scale(scale):
     got = validate._accuracy_report(wi, wo, ref * scale, off * scale)
     assert got["rel_rmse"] == pytest.approx(0.1, rel=1e-9)
     assert got["rel_rmse_by_incidence"]["cos_i 0.5-1"] == pytest.approx(0.1, rel=1e-9)
+
+
+def test_accuracy_notes_name_what_the_physics_verdict_does_not_see():
+    """train's exit code is the physics'; a peak beyond its limit (validate exits 1 on it)
+    or a relative RMSE above POOR_ACCURACY gets a line of its own (a principled teacher
+    at roughness 0 trained to 99.9 % with physics PASSED and nothing said)."""
+    good = {
+        "peak": {"value": 0.005, "limit": 0.03, "passed": True},
+        "accuracy": {"rel_rmse": 0.004},
+    }
+    assert validate.accuracy_notes(good) == []
+    assert validate.accuracy_notes({}) == []  # an images fit: neither figure
+    off = {**good, "peak": {"value": 9.3, "limit": 0.03, "passed": False}}
+    (line,) = validate.accuracy_notes(off)
+    assert "peak is 930.0 % off" in line and "limit 3 %" in line and "validate" in line
+    poor = {**good, "accuracy": {"rel_rmse": validate.POOR_ACCURACY + 0.1}}
+    (line,) = validate.accuracy_notes(poor)
+    assert "relative RMSE of f cos 60.0 %" in line and "does not reproduce" in line

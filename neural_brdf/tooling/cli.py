@@ -372,6 +372,8 @@ def _train(args) -> int:
         )
         return EXIT_OK
     print(validate.format_table(report))
+    for note in validate.accuracy_notes(report):  # what the exit code (physics) does not see
+        print(f"note: {note}", file=sys.stderr)
     s = report["seconds"]
     # seconds.report is there only when the report was written (pipeline.finish)
     written = "report" in s and (run_dir / "report.html").is_file()

@@ -140,6 +140,16 @@ def test_validate_exit_1_on_a_physics_failure(tmp_path):
     assert json.loads((tmp_path / "bad.json").read_text())["passed"] is False
 
 
+def test_train_says_when_the_peak_fails_though_the_physics_pass(capsys, tmp_path):
+    """A sharp lobe at 10 steps misses its peak: train still exits 0 (its verdict is the
+    physics'), and says on stderr what validate would exit 1 on."""
+    args = ["train", "gold", "--out", str(tmp_path / "run"), *SETS]
+    code, out, err = cli(capsys, *args, "--set", "target.params.alpha=0.05")
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert code == 0 and metrics["passed"] and not metrics["peak"]["passed"], metrics["peak"]
+    assert "note: the highlight's peak is" in err and "validate" in err, err
+
+
 def test_export_subcommand(capsys, run_dir, tmp_path):
     out = tmp_path / "exported.onnx"
     code, _, err = cli(capsys, "export", str(run_dir), "-o", str(out))
