@@ -10,9 +10,11 @@ What happens depends on what ``path`` is:
   folder, are flushed and fsynced, and the temporary file is renamed over ``path`` with
   ``os.replace``, which is atomic on POSIX; the folder is then fsynced so that the rename
   itself survives a power cut.  A reader sees the old file or the new one, never a torn
-  one, and a crash or Ctrl-C mid-write leaves no temporary file behind.  A new file gets
-  the permissions a plain ``open(path, "w")`` would give (0o666 less the umask;
-  ``mkstemp`` alone leaves 0o600); a replaced file keeps its own.
+  one, and an exception or Ctrl-C mid-write leaves no temporary file behind (a process
+  killed outright, SIGKILL or OOM, leaves its ``.NAME.*.tmp``: the next run that holds a
+  run folder removes those of the run's files, runfolder.remove_stale_temporaries).  A
+  new file gets the permissions a plain ``open(path, "w")`` would give (0o666 less the
+  umask; ``mkstemp`` alone leaves 0o600); a replaced file keeps its own.
 * a symbolic link: it is followed, and the file it points to is replaced as above (or
   created, for a dangling link); the link stays a link.
 * a device, a FIFO or a socket (``/dev/null``, ``/dev/stdout``, a named pipe): it cannot

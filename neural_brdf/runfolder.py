@@ -458,4 +458,18 @@ def hold(run_dir: str | os.PathLike, *, resume: bool, overwrite: bool) -> Iterat
     path = Path(run_dir)
     check_writable(path)
     with run_lock(path):
+        remove_stale_temporaries(path)
         yield Folder.open(path, resume=resume, overwrite=overwrite)
+
+
+def remove_stale_temporaries(run_dir: Path) -> None:
+    """Remove the temporary files of a run's own files (:func:`_temporary_of_own`) that a
+    process killed mid-write left in ``run_dir`` (SIGKILL, OOM, a power cut: a checkpoint's
+    is as large as the checkpoint); called with the folder's lock held, so no live writer
+    of this package has one open.  A folder that is not a run's is left alone."""
+    if not is_run(run_dir):
+        return
+    for name in os.listdir(run_dir):
+        if _temporary_of_own(name):
+            with contextlib.suppress(OSError):  # garbage: a folder read-only since keeps it
+                _remove(run_dir / name)

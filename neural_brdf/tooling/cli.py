@@ -532,6 +532,8 @@ def _validate(args) -> int:
 
     if args.json and args.json != STDOUT and Path(args.json).is_dir():
         raise InputError(f"--json {args.json}: is a folder; give a file name")
+    if args.json and args.json != STDOUT:  # before the validation's time is spent
+        _output_folder(args.json, "--json")
     given = _preset_or_path(args.reference)  # a preset name, as train takes one
     _not_an_input(args.json, {"model": args.model, "reference": given}, flag="--json")
     reference = validate.reference_from(given, warn=_warn) if given else None

@@ -146,6 +146,22 @@ def test_an_output_folder_is_one_line_exit_2(capsys, model, tmp_path, args):
     assert list(folder.iterdir()) == []
 
 
+def test_validate_refuses_a_json_in_no_folder_before_it_validates(
+    capsys, model, tmp_path, monkeypatch
+):
+    """As codegen, bake and view refuse -o in no folder up front; validate used to spend
+    the whole validation first and then fail on the write."""
+    from neural_brdf import validate
+
+    def no_validation(*a, **k):
+        raise AssertionError("validated before the output was checked")
+
+    monkeypatch.setattr(validate, "report", no_validation)
+    out = tmp_path / "nope" / "v.json"
+    code, _, err = cli(capsys, "validate", str(model), "--json", str(out))
+    assert_one_line_error(code, err, "--json", str(out), "no folder")
+
+
 def test_sigterm_outside_training_exits_143_without_a_traceback(model, tmp_path):
     """SIGTERM as Ctrl-C: here it arrives while code is generated (no training loop)."""
     script = (

@@ -288,6 +288,27 @@ def test_own_files_lists_a_runs_files_and_nothing_else(finished, tmp_path):
     assert set(report.RUN_FILES) <= set(runfolder.FILES)
 
 
+def test_a_resumed_run_removes_what_a_killed_write_left(finished, tmp_path, capsys):
+    """kill -9 while a checkpoint is written leaves its temporary file (as large as the
+    checkpoint); --resume kept each one, so a job killed again and again filled the disk."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished, run_dir)
+    stale = [".ckpt.pt.k7x2a9q1.tmp", ".metrics.json.3jd8s0a.tmp", ".log.csv.q0q0q0q0.tmp"]
+    for name in stale:
+        (run_dir / name).write_bytes(b"half a write")
+    mine = [".notes.txt.abc.tmp", "notes.txt"]  # not a run file's temporary: the user's
+    for name in mine:
+        (run_dir / name).write_text("mine")
+    code, _, err = cli(
+        capsys, "train", "lambert", "--out", str(run_dir), *SETS, "--set", "train.steps=12",
+        "--resume",
+    )  # fmt: skip
+    assert code == 0, err
+    left = {p.name for p in run_dir.iterdir()}
+    assert not left & set(stale), left
+    assert set(mine) <= left
+
+
 def test_a_sweeps_trial_record_does_not_make_a_folder_foreign(tmp_path):
     from neural_brdf import runfolder
     from neural_brdf.tooling.sweep.spec import MARKER as TRIAL
