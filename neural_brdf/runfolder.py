@@ -118,7 +118,7 @@ COMPANIONS = (LOCK, "trial.json")
 def _temporary_of_own(name: str) -> bool:
     """A temporary file of fileio.atomic_write for one of a run's files, left by a
     process killed mid-write (``.config.yaml.abc123.tmp``)."""
-    m = re.fullmatch(r"\.(.+)\.[^.]+\.tmp", name)
+    m = re.fullmatch(r"\.(.+)\.[a-z0-9_]{8}\.tmp", name)  # mkstemp's 8 random characters
     return m is not None and _own_name(m.group(1))
 
 
@@ -317,6 +317,7 @@ class Folder:
             if self.replace:
                 remove_run(self.path)
                 self.replace = False
+            remove_stale_temporaries(self.path)  # a resumed run's: a killed write's
             if not os.path.lexists(self.path / MARKER):
                 atomic_write(self.path / MARKER, marker_text())
             atomic_write(self.config, config_text)
@@ -458,15 +459,16 @@ def hold(run_dir: str | os.PathLike, *, resume: bool, overwrite: bool) -> Iterat
     path = Path(run_dir)
     check_writable(path)
     with run_lock(path):
-        remove_stale_temporaries(path)
         yield Folder.open(path, resume=resume, overwrite=overwrite)
 
 
 def remove_stale_temporaries(run_dir: Path) -> None:
     """Remove the temporary files of a run's own files (:func:`_temporary_of_own`) that a
     process killed mid-write left in ``run_dir`` (SIGKILL, OOM, a power cut: a checkpoint's
-    is as large as the checkpoint); called with the folder's lock held, so no live writer
-    of this package has one open.  A folder that is not a run's is left alone."""
+    is as large as the checkpoint); called by :meth:`Folder.start`, when a run that
+    trains begins (fresh or resumed; not one refused, nor the resume of a finished run,
+    which touch nothing), with the folder's lock held.  A folder that is not a run's is
+    left alone."""
     if not is_run(run_dir):
         return
     for name in os.listdir(run_dir):

@@ -574,6 +574,12 @@ def _uv_count(model: Any) -> int:
         return cfgmod.Texture().validation_uv
 
 
+def uv_text(uv) -> str:
+    """A furnace point's uv as the tables print it: in [0, 1), where it names a texel
+    (textures repeat, and the furnace also probes uv outside [0, 1)); 3 decimals."""
+    return f"{float(uv[0]) % 1.0:.3f}, {float(uv[1]) % 1.0:.3f}"
+
+
 def format_table(report: dict[str, Any]) -> str:
     rows = [("check", "value", "limit", "result")]
     for name, c in report["checks"].items():
@@ -584,8 +590,7 @@ def format_table(report: dict[str, Any]) -> str:
     # a textured file's: that of the uv where the furnace found its largest albedo
     at_uv = report["checks"].get("max_albedo", {}).get("at_uv")
     if at_uv is not None:
-        # textures repeat: the uv in [0, 1) (the furnace also probes uv outside it)
-        hemi += f" (at uv {at_uv[0] % 1.0:.3f}, {at_uv[1] % 1.0:.3f}, the max_albedo's)"
+        hemi += f" (at uv {uv_text(at_uv)}, the max_albedo's)"
     rows.append(("hemispherical_albedo", hemi, "", ""))
     if "accuracy" in report:
         acc = report["accuracy"]

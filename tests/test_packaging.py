@@ -329,8 +329,8 @@ LAYERS = [
     "version",
     "fileformat",
     "encodings",
+    "target",  # the kinds of target (light: errors only), which config names
     "config",
-    "target",
     "runfolder",
     "presets",
     "runtime",

@@ -34,6 +34,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from neural_brdf.errors import ConfigError
+
 if TYPE_CHECKING:
     import torch
 
@@ -58,7 +60,7 @@ class Encoding:
     def check(self, peak: str = "u_h") -> None:
         """Once per process and peak coordinate: that the features have ``width``
         columns, are finite and (``reciprocal``) bit-exactly symmetric on a few pairs;
-        ValueError naming the encoding otherwise (:func:`_check`).  A network calls it
+        a ConfigError naming the encoding otherwise (:func:`_check`).  A network calls it
         when it is built (:class:`neural_brdf.train.model.RawBRDF`), outside any torch
         transform."""
         if peak not in _CHECKED.get(self, ()):
@@ -73,13 +75,14 @@ class Encoding:
 
 def _load(encoding: Encoding) -> FeatureFn:
     """The function ``encoding.compute`` names (imported once: then sys.modules has
-    it); ValueError naming the encoding and the cause when it cannot be found."""
+    it); a ConfigError naming the encoding and the cause when it cannot be found."""
     module, _, name = str(encoding.compute).partition(":")
     try:
         return getattr(importlib.import_module(module, __name__), name)
     except (ImportError, AttributeError) as e:
-        raise ValueError(
-            f"encoding {encoding.name!r}: compute {encoding.compute!r}: {type(e).__name__}: {e}"
+        raise ConfigError(
+            f"model.encoding: {encoding.name!r}: compute {encoding.compute!r}: "
+            f"{type(e).__name__}: {e}"
         ) from None
 
 
@@ -91,28 +94,30 @@ CHECK_PAIRS = 64  # direction pairs of the first-use check
 def _check(encoding: Encoding, fn: FeatureFn, peak: str) -> None:
     """On an encoding's first use (:meth:`Encoding.check`): its features of a few pairs
     above the horizon have its ``width`` columns, are finite, and (``reciprocal``) are
-    bit-identical for (wi, wo) and (wo, wi).  ValueError naming the encoding otherwise:
-    a wrong width would fail later as a matrix-shape error inside torch, and a feature
-    that is not symmetric would train a model that the validator finds not reciprocal."""
+    bit-identical for (wi, wo) and (wo, wi).  Otherwise a ConfigError (one line, exit 2
+    on the command line) naming ``model.encoding`` and the encoding: a wrong width would
+    fail later as a matrix-shape error inside torch, and a feature that is not symmetric
+    would train a model that the validator finds not reciprocal."""
     import torch
 
-    gen = torch.Generator().manual_seed(0)
-    wi, wo = (torch.randn(CHECK_PAIRS, 3, generator=gen) for _ in range(2))
-    wi[:, 2], wo[:, 2] = wi[:, 2].abs() + 0.05, wo[:, 2].abs() + 0.05
-    wi, wo = wi / wi.norm(dim=-1, keepdim=True), wo / wo.norm(dim=-1, keepdim=True)
-    with torch.no_grad():
+    # on the CPU whatever torch's default device (the generator is the CPU's)
+    with torch.device("cpu"), torch.no_grad():
+        gen = torch.Generator().manual_seed(0)
+        wi, wo = (torch.randn(CHECK_PAIRS, 3, generator=gen) for _ in range(2))
+        wi[:, 2], wo[:, 2] = wi[:, 2].abs() + 0.05, wo[:, 2].abs() + 0.05
+        wi, wo = wi / wi.norm(dim=-1, keepdim=True), wo / wo.norm(dim=-1, keepdim=True)
         a, b = fn(wi, wo, peak), fn(wo, wi, peak)
-    where = f"encoding {encoding.name!r}"
+    where = f"model.encoding: {encoding.name!r}"
     if a.shape != (CHECK_PAIRS, encoding.width):
-        raise ValueError(
+        raise ConfigError(
             f"{where}: its features of {CHECK_PAIRS} pairs have shape {tuple(a.shape)}, "
             f"not ({CHECK_PAIRS}, {encoding.width}) (its width)"
         )
     if not bool(torch.isfinite(a).all()):
-        raise ValueError(f"{where}: its features of pairs above the horizon are not finite")
+        raise ConfigError(f"{where}: its features of pairs above the horizon are not finite")
     if encoding.reciprocal and not torch.equal(a, b):
         col = int((a != b).any(dim=0).nonzero()[0])
-        raise ValueError(
+        raise ConfigError(
             f"{where}: reciprocal, but its feature {col} differs between (wi, wo) and "
             "(wo, wi); make it symmetric, or register it with reciprocal=False"
         )

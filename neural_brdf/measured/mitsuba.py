@@ -382,7 +382,7 @@ def check_rough(mi: Any, bsdf: Any, plugin: str, where: str) -> None:
             raise InputError(
                 f"{where}: the texture {k.removesuffix('.data')} holds {int(low.sum())} of "
                 f"{len(texels)} texels at 0 or below (lowest {texels[low].min():.3g}): a "
-                "roughness of 0 there, a nearly delta lobe (Mitsuba clamps alpha near 1e-4), "
+                "roughness of 0 there, a nearly delta lobe (Mitsuba clamps it to a tiny width), "
                 "which a BRDF of finite values cannot hold: give a larger roughness"
             )
     rng = np.random.default_rng(9)

@@ -530,9 +530,9 @@ def _validate(args) -> int:
 
     from neural_brdf import validate
 
-    if args.json and args.json != STDOUT and Path(args.json).is_dir():
-        raise InputError(f"--json {args.json}: is a folder; give a file name")
     if args.json and args.json != STDOUT:  # before the validation's time is spent
+        if Path(args.json).is_dir():
+            raise InputError(f"--json {args.json}: is a folder; give a file name")
         _output_folder(args.json, "--json")
     given = _preset_or_path(args.reference)  # a preset name, as train takes one
     _not_an_input(args.json, {"model": args.model, "reference": given}, flag="--json")
@@ -797,9 +797,12 @@ def _view(args) -> int:
         if args.out != STDOUT:  # not into the page, when the device is stdout
             print(f"wrote {args.out}", file=sys.stderr)
         return EXIT_OK
-    written = viewer.write_viewer(
-        args.model, args.out, compare=args.compare, probes=probes, warn=_warn
-    )
+    # into a run folder (its own viewer.html): while holding its lock, as export RUN and
+    # report RUN do, so that a run training there does not race the write
+    with _holding(Path(os.path.realpath(args.out)).parent):
+        written = viewer.write_viewer(
+            args.model, args.out, compare=args.compare, probes=probes, warn=_warn
+        )
     print(f"wrote {written}")
     return EXIT_OK
 

@@ -401,6 +401,12 @@ def test_export_and_report_of_a_busy_run_name_their_own_flag(capsys, run_dir, tm
             code, _, err = cli(capsys, command, str(busy))
             assert_one_line_error(code, err, f"pid {os.getpid()}", "write elsewhere with -o")
             assert "--out" not in err  # train's flag, not theirs
+        # the run's own viewer too (it wrote there without the lock, racing a resumed run)
+        viewer = busy / "viewer.html"
+        before = viewer.read_bytes() if viewer.exists() else None
+        code, _, err = cli(capsys, "view", str(busy / "model.onnx"), "-o", str(viewer))
+        assert_one_line_error(code, err, f"pid {os.getpid()}", "write elsewhere with -o")
+        assert (viewer.read_bytes() if viewer.exists() else None) == before
 
 
 def read_only(monkeypatch, folder: Path) -> None:

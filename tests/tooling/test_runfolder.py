@@ -293,10 +293,11 @@ def test_a_resumed_run_removes_what_a_killed_write_left(finished, tmp_path, caps
     checkpoint); --resume kept each one, so a job killed again and again filled the disk."""
     run_dir = tmp_path / "run"
     shutil.copytree(finished, run_dir)
-    stale = [".ckpt.pt.k7x2a9q1.tmp", ".metrics.json.3jd8s0a.tmp", ".log.csv.q0q0q0q0.tmp"]
+    stale = [".ckpt.pt.k7x2a9q1.tmp", ".metrics.json.3jd8_0ab.tmp", ".log.csv.q0q0q0q0.tmp"]
     for name in stale:
         (run_dir / name).write_bytes(b"half a write")
-    mine = [".notes.txt.abc.tmp", "notes.txt"]  # not a run file's temporary: the user's
+    # not a run file's temporary (another file's, or not mkstemp's name): the user's
+    mine = [".notes.txt.abcdefgh.tmp", ".config.yaml.bak.tmp", "notes.txt"]
     for name in mine:
         (run_dir / name).write_text("mine")
     code, _, err = cli(
@@ -307,6 +308,13 @@ def test_a_resumed_run_removes_what_a_killed_write_left(finished, tmp_path, caps
     left = {p.name for p in run_dir.iterdir()}
     assert not left & set(stale), left
     assert set(mine) <= left
+    # a resume of the finished run, or a refused train, touches nothing (docs/cli.md)
+    (run_dir / stale[0]).write_bytes(b"half a write")
+    before = snapshot(run_dir)
+    for extra in (["--resume"], []):
+        cli(capsys, "train", "lambert", "--out", str(run_dir), *SETS, "--set", "train.steps=12",
+            *extra)  # fmt: skip
+        assert snapshot(run_dir) == before
 
 
 def test_a_sweeps_trial_record_does_not_make_a_folder_foreign(tmp_path):

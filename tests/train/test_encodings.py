@@ -197,7 +197,7 @@ def test_register_refuses_what_it_cannot_honour(toy):
     assert torch.equal(encoding.features(wi, wo, "toy_b"), toy.features(wi, wo))
 
 
-def test_an_encoding_is_checked_on_first_use(toy):
+def test_an_encoding_is_checked_on_first_use(toy, tmp_path, capsys):
     """A registered encoding whose features do not match its width, are not finite, or
     (reciprocal) are not symmetric is refused on first use in one line naming it, not as
     a matrix-shape error inside torch or a model the validator finds not reciprocal; a
@@ -215,16 +215,31 @@ def test_an_encoding_is_checked_on_first_use(toy):
 
     wi, wo = _pairs(10, 5)
     for enc, match in [
-        (made("wide", toy.features, width=4), r"encoding 'wide'.*shape \(64, 3\).*\(64, 4\)"),
-        (made("lopsided", lopsided), r"encoding 'lopsided'.*feature 1 differs"),
-        (made("grazing", grazing), r"encoding 'grazing'.*not finite"),
-        (made("lost", ".toy:no_such"), r"encoding 'lost': compute '.toy:no_such'.*AttributeError"),
-        (made("gone", ".no_module:f"), r"encoding 'gone'.*ModuleNotFoundError"),
+        (
+            made("wide", toy.features, width=4),
+            r"^model.encoding: 'wide'.*shape \(64, 3\).*\(64, 4\)",
+        ),
+        (made("lopsided", lopsided), r"^model.encoding: 'lopsided'.*feature 1 differs"),
+        (made("grazing", grazing), r"^model.encoding: 'grazing'.*not finite"),
+        (
+            made("lost", ".toy:no_such"),
+            r"^model.encoding: 'lost': compute '.toy:no_such'.*AttributeError",
+        ),
+        (made("gone", ".no_module:f"), r"^model.encoding: 'gone'.*ModuleNotFoundError"),
     ]:
-        with pytest.raises(ValueError, match=match):
+        with pytest.raises(config.ConfigError, match=match):
             RawBRDF(enc.name, [8], "relu")  # a network of it: its first use
     # declared as not reciprocal, the same function is taken (an ablation, as raw is)
     x = made("lopsided_raw", lopsided, reciprocal=False).features(wi, wo)
     assert torch.equal(x, lopsided(wi, wo))
     assert RawBRDF("lopsided_raw", [8], "relu").spec.name == "lopsided_raw"
     assert torch.equal(toy.features(wi, wo), encoding.features(wi, wo, "toy"))  # the recipe's
+    # on the command line: one line naming the key, exit 2 (not a traceback, not exit 1)
+    code = cli.main(["train", "lambert", "--out", str(tmp_path / "run"), "--set",
+                     "model.encoding=lopsided", "--set", "model.grid.size=0", "--set",
+                     "train.steps=2"])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "model.encoding: 'lopsided'" in err[0], err
+    # and wherever torch's default device is (the check's pairs are the CPU's)
+    with torch.device("meta"):
+        made("on_meta", toy.features).check()

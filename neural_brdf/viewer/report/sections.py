@@ -13,6 +13,7 @@ from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
 from neural_brdf.measured import formats
 from neural_brdf.target import check_textured
+from neural_brdf.validate import uv_text
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.page import at_uv
 from neural_brdf.viewer.report import images
@@ -102,7 +103,7 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
         rows.append([name, shown, f"{op} {limit:.6g}", Verdict(c["passed"])])
     parity = _number(m, "export.parity_rel_error", path, optional=True)
     if parity is not None:
-        # export's own limit: parity_tol, or twice the network's float32 precision
+        # export's own limit: parity_tol, or a few times the network's float32 precision
         precision = _number(m, "export.float32_rel_precision", path, optional=True)
         tol = parity_allowed(run.config.export.parity_tol, precision or 0.0)
         verdict = Verdict(parity <= tol)
@@ -124,7 +125,7 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
                 "Hemispherical albedo (R, G, B): "
                 + ", ".join(f"{v:.4f}" for v in values)
                 + (  # (validate: that of the texel where the maximum was found)
-                    f" at uv {tuple(uv)}, the texel of the maximum albedo"
+                    f" at uv ({uv_text(uv)}), the texel of the maximum albedo"
                     if isinstance(uv := m["checks"].get("max_albedo", {}).get("at_uv"), list)
                     else ""
                 )
@@ -498,7 +499,7 @@ def _textured_note(run: Run) -> list:
         f"shared lobes{_lobe_colour(tex)} and a {res[0]} × {res[1]} field of their weights "
         "(wrapping, bilinear). The physics checks are at random uv (the furnace at "
         f"{len(run.metrics.get('furnace', {}).get('uv', []))} points, its largest albedo "
-        f"at uv {run.metrics.get('checks', {}).get('max_albedo', {}).get('at_uv')}); the "
+        f"at uv {_uv_or_unknown(run.metrics.get('checks', {}).get('max_albedo', {}))}); the "
         "accuracy is at random uv against the teacher's own eval; the figures below are at "
         f"uv {TEXTURED_UV}."
     )
@@ -620,3 +621,9 @@ def _blocks(run: Run, render: bool) -> list:
             Code(run.config_text, "yaml"),
         ]
     )
+
+
+def _uv_or_unknown(check: dict) -> str:
+    """The furnace's uv of its largest albedo, as the tables print it (``validate.uv_text``)."""
+    uv = check.get("at_uv")
+    return f"({uv_text(uv)})" if isinstance(uv, list) and len(uv) == 2 else "unknown"
