@@ -33,6 +33,7 @@ import errno
 import json
 import math
 import os
+import re
 import stat
 import tempfile
 import threading
@@ -148,6 +149,18 @@ def atomic_path(
         if name is not None and e.filename is not None and str(e.filename) != name:
             raise  # the writer's own trouble with some other file
         raise _renamed(e, path) from e
+
+
+# the temporary file atomic_path writes beside NAME: .NAME.<mkstemp's 8 characters>.tmp
+_TEMPORARY = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.tmp")
+
+
+def temporary_of(name: str) -> str | None:
+    """The file name whose write through :func:`atomic_path` (default suffix) left the
+    temporary file ``name`` behind (a process killed mid-write), or None if ``name`` is
+    not such a file.  The naming rule lives here, beside the writer."""
+    m = _TEMPORARY.fullmatch(name)
+    return m.group(1) if m else None
 
 
 def _write_all(name: str, payload: bytes) -> None:

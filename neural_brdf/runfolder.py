@@ -39,7 +39,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
-import re
 import signal
 import stat
 import threading
@@ -51,7 +50,7 @@ from typing import Any
 
 from neural_brdf import config as cfgmod
 from neural_brdf.errors import InputError
-from neural_brdf.fileio import atomic_write
+from neural_brdf.fileio import atomic_write, temporary_of
 
 fcntl: Any
 try:
@@ -117,9 +116,9 @@ COMPANIONS = (LOCK, "trial.json")
 
 def _temporary_of_own(name: str) -> bool:
     """A temporary file of fileio.atomic_write for one of a run's files, left by a
-    process killed mid-write (``.config.yaml.abc123.tmp``)."""
-    m = re.fullmatch(r"\.(.+)\.[a-z0-9_]{8}\.tmp", name)  # mkstemp's 8 random characters
-    return m is not None and _own_name(m.group(1))
+    process killed mid-write (``.config.yaml.k7x2a9q1.tmp``)."""
+    of = temporary_of(name)
+    return of is not None and _own_name(of)
 
 
 def _own_name(name: str) -> bool:

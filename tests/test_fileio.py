@@ -63,6 +63,18 @@ def test_a_file_where_a_folder_goes_is_named(tmp_path, depth):
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
+def test_temporary_of_names_the_file_a_killed_write_was_for(tmp_path):
+    """What a process killed mid-write leaves is recognised by the writer's own rule
+    (runfolder removes a run's: fileio.temporary_of); nothing else is."""
+    target = tmp_path / "ckpt.pt"
+    for _ in range(20):  # mkstemp's names are random: several of them
+        with fileio.atomic_path(target) as tmp:
+            assert fileio.temporary_of(Path(tmp).name) == "ckpt.pt", tmp
+            Path(tmp).write_bytes(b"x")
+    for name in ("ckpt.pt", ".ckpt.pt.tmp", ".ckpt.pt.bak.tmp", ".ckpt.pt.ABCDEFGH.tmp", "x.tmp"):
+        assert fileio.temporary_of(name) is None, name
+
+
 def test_no_other_module_writes_through_mkstemp():
     """Every atomic write of the package goes through fileio (one helper, not copies)."""
     package = Path(fileio.__file__).parent
