@@ -314,9 +314,10 @@ class Folder:
         check_writable(self.path)  # the folder may have changed since open
         with held_signals():
             if self.replace:
-                remove_run(self.path)
+                remove_run(self.path)  # its temporaries too
                 self.replace = False
-            remove_stale_temporaries(self.path)  # a resumed run's: a killed write's
+            else:
+                remove_stale_temporaries(self.path)  # a resumed run's: a killed write's
             if not os.path.lexists(self.path / MARKER):
                 atomic_write(self.path / MARKER, marker_text())
             atomic_write(self.config, config_text)
@@ -344,9 +345,7 @@ def remove_run(run_dir: Path) -> None:
     if init.is_dir() and not init.is_symlink():
         with contextlib.suppress(OSError):
             init.rmdir()  # only if the init run left nothing of the user's there
-    for name in os.listdir(run_dir):
-        if _temporary_of_own(name):
-            _remove(run_dir / name)
+    remove_stale_temporaries(run_dir)
     _remove(run_dir / MARKER)
 
 
@@ -464,10 +463,10 @@ def hold(run_dir: str | os.PathLike, *, resume: bool, overwrite: bool) -> Iterat
 def remove_stale_temporaries(run_dir: Path) -> None:
     """Remove the temporary files of a run's own files (:func:`_temporary_of_own`) that a
     process killed mid-write left in ``run_dir`` (SIGKILL, OOM, a power cut: a checkpoint's
-    is as large as the checkpoint); called by :meth:`Folder.start`, when a run that
-    trains begins (fresh or resumed; not one refused, nor the resume of a finished run,
-    which touch nothing), with the folder's lock held.  A folder that is not a run's is
-    left alone."""
+    is as large as the checkpoint); by :func:`remove_run` (an overwrite) and by
+    :meth:`Folder.start` when a resumed run begins to train (not a refused run, nor the
+    resume of a finished one, which touch nothing), with the folder's lock held.  A
+    folder that is not a run's is left alone."""
     if not is_run(run_dir):
         return
     for name in os.listdir(run_dir):
