@@ -423,11 +423,51 @@ class RunFiles:
         }
 
     def kept_rows(self, step: int) -> list[dict[str, str]]:
-        """A resumed run's log.csv rows up to ``step``."""
-        if not self.log_path.is_file():
+        """A resumed run's log.csv rows up to ``step``, its checkpoint's.  The log is
+        appended to row by row, so a kill can cut its last line short: that line is
+        dropped.  A log that is not one (no ``step`` column, a line before the
+        checkpoint's step that is no row of it, steps out of order) is refused, naming
+        it, rather than replaced by the rows it could read: the user moves it away.
+        Rows missing before the checkpoint's step (a file cut short elsewhere) are
+        said on stderr."""
+        path = self.log_path
+        if not path.is_file():
             return []
-        with open(self.log_path, newline="") as fh:
-            return [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
+        move = "move it away to resume (the checkpoint is kept)"
+        try:
+            with open(path, newline="", encoding="utf-8") as fh:
+                lines = list(csv.reader(fh))
+        except (OSError, UnicodeDecodeError, csv.Error) as e:
+            raise InputError(f"{path}: cannot read it as the run's log ({e}); {move}") from None
+        if not lines:
+            return []
+        header = lines[0]
+        if "step" not in header:
+            raise InputError(
+                f"{path}: not the run's log (no step column in its first line); {move}"
+            )
+        at = header.index("step")
+        rows: list[dict[str, str]] = []
+        for number, fields in enumerate(lines[1:], start=2):
+            try:
+                row_step = int(fields[at]) if len(fields) == len(header) else None
+            except ValueError:
+                row_step = None
+            if row_step is not None and row_step > step:
+                break  # rows after the checkpoint: written again
+            if row_step is None or (rows and row_step <= int(rows[-1]["step"])):
+                if number == len(lines):
+                    break  # the last line cut short by a kill
+                raise InputError(f"{path}: line {number} is not a row of the run's log; {move}")
+            rows.append(dict(zip(header, fields, strict=True)))
+        last = int(rows[-1]["step"]) if rows else 0
+        if step - last > self.cfg.train.log_every:
+            print(
+                f"{path}: its rows end at step {last}, the checkpoint's is {step}: the rows "
+                "between are missing from it (the file was cut short); the log goes on from there",
+                file=sys.stderr,
+            )
+        return rows
 
     def open_log(self, rows: list[dict[str, str]]) -> None:
         """log.csv anew with ``rows`` (a resumed run's, up to its checkpoint), replaced

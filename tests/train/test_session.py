@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from neural_brdf import config
+from neural_brdf.errors import InputError
 from neural_brdf.train import loop
 from neural_brdf.train.session import LOG_COLUMNS, RunFiles, Session
 
@@ -88,6 +89,63 @@ def test_a_resume_that_cannot_write_its_log_leaves_the_old_one_whole(tmp_path, m
         again.restore(ckpt)
         fake_loop(again)
     assert log.read_bytes() == before
+
+
+def _resume_with_log(tmp_path, text: bytes, steps: int = 8):
+    """A run of 6 steps (rows 2, 4, 6; checkpoint at 6) resumed to ``steps`` after its
+    log.csv was replaced by ``text``."""
+    c = cfg()
+    first = Session.one(c, tmp_path / "r")
+    first.begin()
+    fake_loop(first)
+    log = tmp_path / "r" / "log.csv"
+    log.write_bytes(text)
+    c = c.model_copy(update={"train": c.train.model_copy(update={"steps": steps})})
+    again = Session.one(c, tmp_path / "r", resume=True)
+    ckpt = again.resumed()
+    assert ckpt is not None and ckpt["step"] == 6
+    again.begin()
+    again.restore(ckpt)
+    fake_loop(again)
+    return log
+
+
+HEAD = b"step,loss,lr,seconds,val_rel_rmse\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        (b"hello world\nfoo,bar\n", "no step column"),
+        (b"\xff\xfe\x00garbage", "cannot read it"),
+        (HEAD + b"2,0.5,0.01,0.1,\nfour,0.25,0.01,0.2,\n6,0.1,0.01,0.3,\n", "line 3"),
+        (HEAD + b"4,0.5,0.01,0.1,\n2,0.25,0.01,0.2,\n6,0.1,0.01,0.3,\n", "line 3"),
+    ],
+)
+def test_a_damaged_log_is_refused_on_resume_and_left_as_it_is(tmp_path, text, says):
+    """A log.csv that is not the run's (another file, binary, a line that is no row,
+    steps out of order) was read as far as it went, or raised a KeyError or a
+    UnicodeDecodeError: the resume refuses it in one line naming it and leaves it."""
+    with pytest.raises(InputError, match=f"log.csv: .*{says}.*move it away"):
+        _resume_with_log(tmp_path, text)
+    assert (tmp_path / "r" / "log.csv").read_bytes() == text
+
+
+def test_a_log_whose_last_line_a_kill_cut_short_resumes(tmp_path, capsys):
+    """The log is appended to row by row: a kill can leave its last line partial, which
+    the resume drops (it was kept, its missing values empty, and a line cut inside its
+    step read as a smaller step, out of order)."""
+    log = _resume_with_log(tmp_path, HEAD + b"2,0.5,0.01,0.1,\n4,0.25,0.01,0.2,\n6,0.1")
+    assert [r["step"] for r in rows(log)] == ["2", "4", "8"]  # (6: lost with its line)
+    assert "missing" not in capsys.readouterr().err
+
+
+def test_rows_lost_before_the_checkpoint_are_said(tmp_path, capsys):
+    """A log cut short well before the checkpoint's step loses rows: said on stderr."""
+    log = _resume_with_log(tmp_path, HEAD + b"2,0.5,0.01,0.1,\n")
+    assert [r["step"] for r in rows(log)] == ["2", "8"]
+    err = capsys.readouterr().err
+    assert "rows end at step 2, the checkpoint's is 6" in err
 
 
 def test_a_checkpoint_of_another_kind_is_not_resumed(tmp_path):
