@@ -110,8 +110,13 @@ def atomic_path(
     ``-o`` path is an error rather than a new folder.  On any exception,
     KeyboardInterrupt included, the temporary file is removed and ``path`` is left as
     it was.  An OSError of the writer about the file it was given (or about no file: a
-    full disk) is raised again naming ``path``.
+    full disk) is raised again naming ``path``.  A ``path`` that ends with a separator
+    names a folder (``-o out/``): NotADirectoryError, never the file ``out``.
     """
+    raw = os.fspath(path)
+    if raw.endswith(tuple(s for s in (os.sep, os.altsep) if s)) and not os.path.isdir(raw):
+        why = "a name that ends with / is a folder's; give a file name"
+        raise NotADirectoryError(errno.ENOTDIR, why, raw)
     path = Path(path)
     name = None  # what the writer was given, once it has been
     try:

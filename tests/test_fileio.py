@@ -63,6 +63,18 @@ def test_a_file_where_a_folder_goes_is_named(tmp_path, depth):
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
+def test_a_name_ending_with_a_separator_is_a_folders(tmp_path):
+    """``out.h/`` names a folder: Path drops the separator, and the file ``out.h`` was
+    written, or replaced, in its place."""
+    kept = tmp_path / "out.h"
+    kept.write_text("KEEP")
+    for name in (kept, tmp_path / "new.h"):
+        with pytest.raises(NotADirectoryError, match="folder"):
+            atomic_write(str(name) + os.sep, "x")
+    assert kept.read_text() == "KEEP" and not (tmp_path / "new.h").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.h"]
+
+
 def test_temporary_of_names_the_file_a_killed_write_was_for(tmp_path):
     """What a process killed mid-write leaves is recognised by the writer's own rule
     (runfolder removes a run's: fileio.temporary_of); nothing else is."""

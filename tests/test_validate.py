@@ -165,7 +165,13 @@ def test_accuracy_notes_name_what_the_physics_verdict_does_not_see():
     assert validate.accuracy_notes({}) == []  # an images fit: neither figure
     off = {**good, "peak": {"value": 9.3, "limit": 0.03, "passed": False}}
     (line,) = validate.accuracy_notes(off)
-    assert "peak is 930.0 % off" in line and "limit 3 %" in line and "validate" in line
+    assert "peak is 930.00 % off" in line and "limit 3 %" in line and "validate" in line
+    assert validate.accuracy_notes(off, peak=False) == []  # validate's exit code has it
+    # as the table prints it: 3.006 % was "3.0 % off (limit 3 %)", which reads as within
+    just = {**good, "peak": {"value": 0.03006, "limit": 0.03, "passed": False}}
+    (line,) = validate.accuracy_notes(just)
+    assert "peak is 3.01 % off" in line
     poor = {**good, "accuracy": {"rel_rmse": validate.POOR_ACCURACY + 0.1}}
     (line,) = validate.accuracy_notes(poor)
     assert "relative RMSE of f cos 60.0 %" in line and "does not reproduce" in line
+    assert validate.accuracy_notes(poor, peak=False) == [line]

@@ -226,8 +226,20 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
     _output_folder(out, flag)
 
 
+def _a_file_name(out: str, flag: str = "-o") -> None:
+    """Refuse an output name that ends with a separator (``-o out/``), which names a
+    folder: ``Path`` drops the separator, so the file ``out`` was written (a file of that
+    name replaced)."""
+    if out != STDOUT and out.endswith(tuple(s for s in (os.sep, os.altsep) if s)):
+        if not Path(out).is_dir():
+            raise InputError(
+                f"{flag} {out}: ends with {out[-1]}, a folder's name; give a file name"
+            )
+
+
 def _output_folder(out: str, flag: str = "-o") -> None:
     """Refuse an output file whose folder does not exist (or is a file): InputError."""
+    _a_file_name(out, flag)
     parent = Path(out).parent
     if not parent.is_dir():
         why = f"{parent} is a file, not a folder" if parent.exists() else f"no folder {parent}"
@@ -543,6 +555,9 @@ def _validate(args) -> int:
     # with --json -, stdout carries the JSON alone and the table goes to stderr
     table_to = sys.stderr if args.json == STDOUT else sys.stdout
     print(validate.format_table(report), file=table_to)
+    # a poor accuracy, which the exit code does not see (the peak's is in it)
+    for note in validate.accuracy_notes(report, peak=False):
+        print(f"note: {note}", file=sys.stderr)
     if args.json == STDOUT:
         # as validate.write_json writes it (NaN and infinities as strings)
         from neural_brdf.fileio import json_text
@@ -776,6 +791,7 @@ def _view(args) -> int:
     from neural_brdf.viewer import page as viewer
 
     probes = viewer.parse_probes(args.uv)
+    _a_file_name(args.out)
     args.compare = _preset_or_path(args.compare)  # a preset name, as train takes one
     _not_measured(args.compare)
     if args.uv and Path(args.model).is_file() and not load(args.model).textured:

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from cli_helpers import ROOT, SETS, TINY, assert_one_line_error, cli, run  # noqa: F401
-from neural_brdf import config, export, runfolder
+from neural_brdf import config, export, runfolder, validate
 from neural_brdf.train import loop
 from test_fileio import devices  # noqa: F401  (a fixture)
 
@@ -128,6 +128,18 @@ def test_validate_exit_0_with_json_and_reference(capsys, run_dir, tmp_path):
     assert report["checks"]["reciprocity"]["value"] <= 1e-6
     assert report["accuracy"]["rel_rmse"] >= 0.0
     assert "max_albedo" in stdout
+
+
+def test_validate_says_when_the_model_is_not_its_reference(capsys, run_dir):
+    """A model far from its reference (here the run's Lambertian model against gold) is
+    physical, and no exit code sees a poor relative RMSE (a measured reference has no
+    peak check: 99 % off printed physics PASSED, exit 0, and nothing else): a note on
+    stderr says it, as train's does; the peak's failure is the exit code's, not a note."""
+    code, stdout, err = cli(capsys, "validate", str(run_dir / "model.onnx"), "--reference", "gold")
+    rel = float(stdout.split("rel_rmse (f cos)")[1].split("%")[0])
+    assert rel > 100 * validate.POOR_ACCURACY
+    assert f"note: relative RMSE of f cos {rel:.1f} %" in err
+    assert "peak is" not in err and code == 1  # (gold's peak check fails: the exit code)
 
 
 def test_validate_exit_1_on_a_physics_failure(tmp_path):

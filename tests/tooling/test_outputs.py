@@ -146,6 +146,32 @@ def test_an_output_folder_is_one_line_exit_2(capsys, model, tmp_path, args):
     assert list(folder.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["export", "RUN", "-o", "OUT"],
+        ["render", "MODEL", "-o", "OUT"],
+        ["bake", "MODEL", "-o", "OUT"],
+        ["codegen", "MODEL", "--target", "c", "-o", "OUT"],
+        ["validate", "MODEL", "--json", "OUT"],
+        ["view", "MODEL", "-o", "OUT"],
+    ],
+    ids=lambda a: a[0],
+)
+@pytest.mark.parametrize("exists", [False, True], ids=["new", "a file"])
+def test_an_output_name_ending_with_a_slash_is_refused(capsys, model, tmp_path, args, exists):
+    """``-o out.x/`` names a folder: the separator was dropped, so a new file ``out.x``
+    was written and an existing one replaced, with exit 0."""
+    ext = {"render": ".png", "bake": ".binary", "view": ".html", "export": ".onnx"}
+    name = tmp_path / f"out{ext.get(args[0], '.txt')}"
+    if exists:
+        name.write_text("KEEP")
+    given = str(name) + os.sep
+    argv = [{"RUN": str(tmp_path), "MODEL": str(model), "OUT": given}.get(a, a) for a in args]
+    assert_one_line_error(*cli(capsys, *argv)[::2], given, "a folder's name")
+    assert (name.read_text() == "KEEP") if exists else not name.exists()
+
+
 def test_validate_refuses_a_json_in_no_folder_before_it_validates(
     capsys, model, tmp_path, monkeypatch
 ):
