@@ -54,4 +54,6 @@ def not_a_file(path, what: str) -> str:
 
     if Path(path).is_dir():
         return f"{path}: is a folder, not a file (give the {what} file)"
+    if Path(path).exists():  # /dev/stdin, /dev/null, a FIFO: read whole, it must be a file
+        return f"{path}: not a regular file (a device or a pipe; give the {what} file)"
     return f"{path}: no such {what} file"

@@ -70,6 +70,9 @@ PREFIX = "neural_brdf"  # the default prefix of the generated names
 # GLSL reserves), and its upper case (the macros) and CamelCase (WGSL's struct, GLSL's
 # block names) are as distinct as the prefixes themselves.
 PREFIX_PATTERN = re.compile(r"[a-z][a-z0-9]*(_[a-z][a-z0-9]*)*")
+# at most this many characters: a name is the prefix and a suffix, and GLSL ES allows
+# 1024 in all (a 1,100-character prefix gave code glslang refuses, a 100,000 one 16 MB)
+MAX_PREFIX = 64
 # A metadata value in the header comment (the target's JSON, say) is cut to this many
 # characters, at an item's or a word's end, and marked by ELLIPSIS.
 HEADER_VALUE_CHARS = 200
@@ -107,6 +110,11 @@ def check_prefix(prefix: str) -> str:
             "prefix: expected lower-case words of letters and digits joined by single "
             f"underscores, each starting with a letter (e.g. {PREFIX!r}, 'gold_v2'), "
             f"not 'gl' or 'gl_...', got {prefix!r}"
+        )
+    if len(prefix) > MAX_PREFIX:
+        raise InputError(
+            f"prefix: at most {MAX_PREFIX} characters (every generated name begins with "
+            f"it), got {len(prefix)}: {prefix[:20]}..."
         )
     return prefix
 

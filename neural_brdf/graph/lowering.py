@@ -188,7 +188,10 @@ class Lowering:
         if not any(isinstance(x, Lanes) for x in xs):
             if fn_np is None:
                 raise UnsupportedOnnxOp(f"{op} of a constant")
-            return fn_np(*xs)
+            # a constant folded to inf or NaN (1 / 0, log 0) is IEEE's value, which every
+            # back end writes as such: not numpy's multi-line RuntimeWarning on stderr
+            with np.errstate(all="ignore"):
+                return fn_np(*xs)
         rank = max(len(x.shape) for x in xs if isinstance(x, Lanes))
         objs = [self.ids(x, rank, op) for x in xs]
         shape = np.broadcast_shapes(*(o.shape for o in objs))

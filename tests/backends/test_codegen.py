@@ -1450,6 +1450,26 @@ def test_a_bad_prefix_is_one_line(prefix):
         assert "\n" not in str(e.value)
 
 
+def test_a_prefix_is_at_most_max_prefix_characters(tmp_path):
+    """Every generated name begins with the prefix: a 1,100-character one gave GLSL that
+    glslang refuses ('name too long'), a 100,000-character one a 16 MB header, both with
+    exit 0.  The longest allowed validates."""
+    from neural_brdf.backends.cstyle import MAX_PREFIX
+
+    longest = "a" * MAX_PREFIX
+    with pytest.raises(InputError, match=f"prefix: at most {MAX_PREFIX} characters"):
+        backends.generate(product_model(), "glsl", lobe=ANISO_RETRO, prefix=longest + "b")
+    code = backends.generate(product_model(), "glsl", lobe=ANISO_RETRO, prefix=longest)
+    assert f"{longest}_" in code
+    tool = shutil.which("glslangValidator")
+    assert tool, "glslangValidator (Debian glslang-tools) is needed"
+    es = tmp_path / "es.frag"
+    main = ES_MAIN.replace("neural_brdf_", f"{longest}_")
+    es.write_text("#version 300 es\nprecision highp float;\nprecision highp int;\n" + code + main)
+    r = subprocess.run([tool, str(es)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout[-2000:]
+
+
 @pytest.mark.parametrize("group", [-1, 1.5, True, np.bool_(False), "2", 2**31, [1], None], ids=repr)
 def test_a_bad_wgsl_group_is_one_line(group):
     """WGSL's @group is a non-negative i32: a negative, fractional, boolean, string or
@@ -1524,3 +1544,21 @@ def test_errors_name_the_file(tmp_path, capsys):
         backends.generate(foreign.SerializeToString(), "c", source="model.onnx")
     with pytest.raises(InputError, match=r"^m\.onnx: "):
         backends.textures(foreign.SerializeToString(), source="m.onnx")
+
+
+def test_a_constant_folded_to_inf_warns_nothing(capsys):
+    """A constant that folds to inf (1 / 0 in a graph of another tool) printed numpy's
+    RuntimeWarning with lowering.py's source line, once per target; the code writes the
+    IEEE value, and the folding says nothing."""
+    import warnings
+
+    proto = onnx.load_from_string(product_model())
+    one = onnx.numpy_helper.from_array(np.array([1.0], np.float32), "one")
+    zero = onnx.numpy_helper.from_array(np.array([0.0], np.float32), "zero")
+    proto.graph.initializer.extend([one, zero])
+    proto.graph.node[1].input[1] = "inf"  # f = wi * wo * (1 / 0)
+    proto.graph.node.insert(0, helper.make_node("Div", ["one", "zero"], ["inf"]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a RuntimeWarning fails the test
+        code = backends.generate(proto.SerializeToString(), "c", lobe=ANISO_RETRO)
+    assert "INFINITY" in code

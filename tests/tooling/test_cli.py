@@ -536,3 +536,8 @@ def test_a_folder_given_as_the_model_is_named_a_folder(capsys, tmp_path, command
     assert_one_line_error(code, err, str(folder), "is a folder, not a file")
     code, _, err = cli(capsys, command[0], str(tmp_path / "absent.onnx"), *command[1:])
     assert_one_line_error(code, err, "absent.onnx", "no such model file")
+    # a device or a pipe is there, but no file (it was "no such model file" too)
+    os.mkfifo(tmp_path / "pipe.onnx")
+    for there in ("/dev/null", str(tmp_path / "pipe.onnx")):
+        code, _, err = cli(capsys, command[0], there, *command[1:])
+        assert_one_line_error(code, err, there, "not a regular file")
