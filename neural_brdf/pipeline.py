@@ -30,7 +30,7 @@ from neural_brdf import export as exp
 from neural_brdf import runfolder, validate
 from neural_brdf.errors import InputError
 from neural_brdf.target import Target, spatially_varying
-from neural_brdf.train import data, loop
+from neural_brdf.train import data, loop, target_files
 from neural_brdf.train.encoding import is_anisotropic
 from neural_brdf.train.session import MUST_MATCH, REPORT_PENDING, TEXTURED_MUST_MATCH
 
@@ -340,6 +340,7 @@ def _record(
     with ``report``, report.html / report.md (``seconds.report`` only then)."""
     t2 = time.perf_counter()
     metrics = validate.report(run_dir / "model.onnx", target=target, physics_report=phys)
+    metrics[runfolder.MODEL_DIGEST] = target_files.sha256(run_dir / "model.onnx")
     t3 = time.perf_counter()
     metrics["training"] = training
     metrics.update(extra or {})

@@ -62,6 +62,9 @@ except ImportError:  # Windows: runs are not locked
 MARKER = ".neural-brdf-run"  # written first: "this folder is a run"
 CONFIG = "config.yaml"  # the resolved config
 CKPT = "ckpt.pt"  # the checkpoint
+# metrics.json's key for the sha256 of the model.onnx it describes: a report of a run
+# whose model.onnx was re-exported or replaced since is refused (viewer/report/run.py)
+MODEL_DIGEST = "model_sha256"
 TEXTURED = "textured.pt"  # a projected textured run's final model (train/textured_store.py)
 LOG = "log.csv"  # the training log
 MODEL = "model.onnx"  # the exported model

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import signal
 import sys
@@ -512,7 +513,29 @@ def _export(args) -> int:
         f"wrote {info['path']}{fitted}: parity {info['parity_rel_error']:.2g}, max albedo "
         f"{c['max_albedo']['value']:.6f}, reciprocity {c['reciprocity']['value']:.2g}"
     )
+    if into_run:
+        _metrics_of_another_model(Path(args.run_dir))
     return EXIT_OK if validate.physics_passed(info["physics"]) else EXIT_PHYSICS
+
+
+def _metrics_of_another_model(run_dir: Path) -> None:
+    """After ``export RUN`` into the run: a note when its metrics.json measured another
+    model.onnx (a config.yaml edited, another machine's float sums), which ``report
+    RUN`` then refuses (neural_brdf.viewer.report.run)."""
+    from neural_brdf import runfolder
+    from neural_brdf.train import target_files
+
+    try:
+        said = json.loads((run_dir / "metrics.json").read_text()).get(runfolder.MODEL_DIGEST)
+    except (OSError, ValueError, AttributeError):
+        return  # no metrics.json to describe the old file (or none readable)
+    if said is not None and said != target_files.sha256(run_dir / "model.onnx"):
+        print(
+            f"note: {run_dir / 'metrics.json'} measured the model.onnx that was there, not "
+            "this one (report RUN refuses it now); measure this one with neural-brdf "
+            f"validate {run_dir / 'model.onnx'} --reference {run_dir / 'config.yaml'}",
+            file=sys.stderr,
+        )
 
 
 def _report(args) -> int:

@@ -411,6 +411,41 @@ function slices() {                        // [model] -> {theta: deg[], fc: [n][
   });
 }
 
+// ---------------------------------------------------------------- ticks
+// Pure functions (no DOM): tests/viewer/test_viewer.py runs this block in Node.
+// A "nice" tick step: 1, 2 or 5 x 10^k, about (hi - lo) / n.
+function niceStep(lo, hi, n) {
+  const raw = (hi - lo) / Math.max(n, 1);
+  if (!(raw > 0) || !isFinite(raw)) return 1;
+  const p = Math.pow(10, Math.floor(Math.log10(raw)));
+  const m = raw / p;
+  return (m < 1.5 ? 1 : m < 3.5 ? 2 : m < 7.5 ? 5 : 10) * p;
+}
+// the multiples of niceStep(lo, hi, n) within [lo, hi] (about n + 1 of them)
+function niceTicks(lo, hi, n) {
+  const step = niceStep(lo, hi, n), out = [];
+  const digits = Math.max(0, -Math.floor(Math.log10(step)) + 1);
+  for (let i = Math.ceil(lo / step - 1e-9); i * step <= hi + 1e-9 * step; i++)
+    out.push(Number((i * step).toFixed(digits)));
+  return out;
+}
+// a tick's text: as many decimals as its step needs
+function tickText(y, step) {
+  return y.toFixed(Math.max(0, -Math.floor(Math.log10(step) + 1e-9)));
+}
+// the integer exponents within [lo, hi] (log10 units), every one or every few
+function logTicks(lo, hi) {
+  const every = Math.max(1, Math.ceil((hi - lo) / 6)), out = [];
+  for (let e = Math.ceil(lo - 1e-9); e <= hi + 1e-9; e++) if (e % every === 0) out.push(e);
+  return out;
+}
+// 10 to the integer power e, as text: "10⁻³", "1" for 10⁰
+const SUPERSCRIPT = {"-": "⁻", 0: "⁰", 1: "¹", 2: "²", 3: "³", 4: "⁴", 5: "⁵", 6: "⁶", 7: "⁷", 8: "⁸", 9: "⁹"};
+function pow10Text(e) {
+  return e === 0 ? "1" : e === 1 ? "10" : "10" + [...String(e)].map((c) => SUPERSCRIPT[c]).join("");
+}
+// ---------------------------------------------------------------- end of ticks
+
 const CH = ["#d62728", "#2ca02c", "#1f77b4"];
 const DASH = [[], [6, 4]];
 function axes(ctx, W, H, box, xr, yr, opts) {
@@ -433,6 +468,8 @@ function axes(ctx, W, H, box, xr, yr, opts) {
   ctx.textAlign = "center"; ctx.font = "12px sans-serif";
   ctx.fillText(opts.title, box.x + box.w / 2, 14);
   ctx.fillText(opts.xlabel, box.x + box.w / 2, H - 4);
+  ctx.save(); ctx.translate(11, box.y + box.h / 2); ctx.rotate(-PI / 2);
+  ctx.fillText(opts.ylabel, 0, 0); ctx.restore();
 }
 function line(ctx, box, xr, yr, xs, ys, colour, dash) {
   ctx.strokeStyle = colour; ctx.setLineDash(dash); ctx.lineWidth = dash.length ? 1.2 : 2;
@@ -451,18 +488,20 @@ function line(ctx, box, xr, yr, xs, ys, colour, dash) {
 }
 function drawSlices(sl) {
   const cv = $("nb-slice"), ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
-  const box = {x: 52, y: 22, w: W - 64, h: H - 58};
+  const box = {x: 58, y: 22, w: W - 70, h: H - 58};
   let hi = 0;
   for (const s of sl) for (const v of s.fc) hi = Math.max(hi, v[0], v[1], v[2]);
   hi = hi > 0 ? hi : 1;
+  // log: the axis in log10 units, ticked at integer exponents (10⁻³, 10⁻², ...)
   const tr = state.log ? (v) => Math.log10(Math.max(v, 1e-30)) : (v) => v;
   const yr = state.log ? [Math.log10(hi) - 4, Math.log10(hi) + 0.2] : [0, hi * 1.05];
-  const yt = [];
-  for (let i = 0; i <= 4; i++) yt.push(yr[0] + (yr[1] - yr[0]) * i / 4);
+  const step = niceStep(yr[0], yr[1], 4);
   axes(ctx, W, H, box, [-90, 90], yr, {
-    xticks: [-90, -60, -30, 0, 30, 60, 90], yticks: yt, xlabel: "θo [deg] (mirror at +θi)",
-    title: `f cos θo in the incidence plane, θi = ${state.thetaI}°` + probeText() + (state.log ? " (log10)" : ""),
-    ylabelOf: (y) => state.log ? y.toFixed(1) : y.toPrecision(2)});
+    xticks: [-90, -60, -30, 0, 30, 60, 90],
+    yticks: state.log ? logTicks(yr[0], yr[1]) : niceTicks(yr[0], yr[1], 4),
+    xlabel: "θo [deg] (mirror at +θi)", ylabel: "f cos θo [1/sr]" + (state.log ? ", log scale" : ""),
+    title: `f cos θo in the incidence plane, θi = ${state.thetaI}°` + probeText(),
+    ylabelOf: (y) => state.log ? pow10Text(y) : tickText(y, step)});
   sl.forEach((s, k) => {
     for (let c = 0; c < 3; c++)
       line(ctx, box, [-90, 90], yr, s.theta, s.fc.map((v) => tr(v[c])), CH[c], DASH[k]);
@@ -476,10 +515,16 @@ function drawPolar(sl) {
   let hi = 0;
   for (const l of lum) for (const v of l) hi = Math.max(hi, v);
   hi = hi > 0 ? hi : 1;
+  // rings at nice values of f cos θo (luminance, 1/sr), labelled on the horizon
   ctx.strokeStyle = "#ddd"; ctx.lineWidth = 1;
-  for (const f of [0.25, 0.5, 0.75, 1]) {
-    ctx.beginPath(); ctx.arc(cx, cy, R * f, PI, 2 * PI); ctx.stroke();
-  }
+  const rings = niceTicks(0, hi, 3).filter((v) => v > 0), ringStep = niceStep(0, hi, 3);
+  ctx.fillStyle = "#666"; ctx.font = "10px sans-serif"; ctx.textAlign = "center";
+  rings.forEach((v, i) => {
+    ctx.beginPath(); ctx.arc(cx, cy, R * v / hi, PI, 2 * PI); ctx.stroke();
+    const last = i === rings.length - 1, x = cx + R * v / hi;  // the last one with the unit
+    ctx.textAlign = last ? "left" : "center";
+    ctx.fillText(tickText(v, ringStep) + (last ? " 1/sr" : ""), last ? Math.min(x - 6, W - 44) : x, cy + 12);
+  });
   for (const a of [-60, -30, 0, 30, 60]) {
     const t = a * PI / 180;
     ctx.beginPath(); ctx.moveTo(cx, cy); ctx.lineTo(cx + R * Math.sin(t), cy - R * Math.cos(t)); ctx.stroke();
@@ -506,15 +551,15 @@ function drawPolar(sl) {
 const curveOf = (m) => Array.isArray(m.albedo) ? m.albedo[state.probe] : m.albedo;
 function drawAlbedo() {
   const cv = $("nb-albedo"), ctx = cv.getContext("2d"), W = cv.width, H = cv.height;
-  const box = {x: 44, y: 22, w: W - 56, h: H - 58};
+  const box = {x: 50, y: 22, w: W - 62, h: H - 58};
   let hi = 1.05;
   for (const m of models) for (const v of curveOf(m).rho) hi = Math.max(hi, v[0] * 1.05, v[1] * 1.05, v[2] * 1.05);
   const yr = [0, hi];
   axes(ctx, W, H, box, [0, 90], yr, {
-    xticks: [0, 15, 30, 45, 60, 75, 90], yticks: [0, 0.25, 0.5, 0.75, 1.0].filter((y) => y <= hi),
-    xlabel: "θi [deg]", title: (DATA.textured ? "albedo ρ(θi) (precomputed)" :
+    xticks: [0, 15, 30, 45, 60, 75, 90], yticks: niceTicks(0, hi, 4),
+    xlabel: "θi [deg]", ylabel: "ρ(θi) = ∫ f cos θo dωo", title: (DATA.textured ? "albedo ρ(θi) (precomputed)" :
       "directional albedo ρ(θi) (precomputed)") + probeText(),
-    ylabelOf: (y) => y.toFixed(2)});
+    ylabelOf: (y) => tickText(y, niceStep(0, hi, 4))});
   models.forEach((m, k) => {
     const a = curveOf(m);
     for (let c = 0; c < 3; c++)

@@ -52,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neural_brdf import runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.fileio import atomic_write
 
@@ -80,14 +81,24 @@ CSS = """
 body { font: 14px/1.4 system-ui, sans-serif; color: #222; background: #fafafa; margin: 0; }
 main { max-width: 1200px; margin: 0 auto; padding: 16px 20px; }
 h1 { font-size: 20px; margin: 0 0 8px; }
-.labels { display: flex; } .labels div { width: 256px; text-align: center; font-weight: 600; }
-#nb-gl { display: block; background: #222; cursor: crosshair; touch-action: none; }
-.controls { display: grid; grid-template-columns: max-content 220px 4em; gap: 4px 10px;
-            align-items: center; margin: 12px 0; }
+/* each heading shrinks with its third (or whole) of the sphere canvas, which scales
+   down to the page's width (its drawing buffer keeps its size) */
+.labels { display: flex; max-width: 100%; }
+.labels div { flex: 0 1 256px; min-width: 0; text-align: center; font-weight: 600;
+              overflow-wrap: anywhere; }
+#nb-gl { display: block; background: #222; cursor: crosshair; touch-action: none;
+         max-width: 100%; height: auto; }
+.controls { display: grid; grid-template-columns: max-content minmax(80px, 220px) 4em;
+            gap: 4px 10px; align-items: center; margin: 12px 0; }
 .plots { display: flex; flex-wrap: wrap; gap: 10px; align-items: flex-start; }
-canvas.plot { border: 1px solid #ddd; }
+canvas.plot { border: 1px solid #ddd; max-width: 100%; height: auto; box-sizing: border-box; }
 #nb-status, #nb-diff { color: #555; font-size: 13px; }
-#nb-meta { color: #444; font-size: 13px; white-space: pre-wrap; margin: 4px 0 8px; }
+#nb-meta { color: #444; font-size: 13px; white-space: pre-wrap; overflow-wrap: anywhere;
+           margin: 4px 0 8px; }
+@media (max-width: 600px) {
+  main { padding: 12px; }
+  .controls { grid-template-columns: minmax(0, 1fr) minmax(80px, 1fr) 3.5em; }
+}
 """
 
 
@@ -297,7 +308,9 @@ def page(
         ]
     )
     return f"""<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<html lang="en"><head><meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{html.escape(title)}</title>
 <style>{CSS}</style></head><body><main>
 <h1>{html.escape(title)}</h1>
 <p>Drag on a sphere to move the light (a directional light of irradiance π: a white
@@ -586,6 +599,15 @@ def parse_probes(texts) -> tuple[tuple[float, float], ...]:
     return tuple(out)
 
 
+def page_title(model) -> str:
+    """The page's title for the file ``model``: a run's model.onnx with its run folder's
+    name ("quickstart/model.onnx"), so that two runs' pages are told apart in a browser's
+    tabs; any other file by its name."""
+    path = Path(model)
+    run = path.resolve().parent.name if path.name == runfolder.MODEL else ""
+    return f"neural-brdf viewer: {run + '/' if run else ''}{path.name}"
+
+
 def write_viewer(model, out, *, compare=None, probes=PROBES, warn=None) -> Path:
     """Write the viewer of ``model`` (and ``compare``) to ``out``; returns the path.
     ``warn``: as for :func:`models_for`."""
@@ -595,7 +617,7 @@ def write_viewer(model, out, *, compare=None, probes=PROBES, warn=None) -> Path:
     if not out.parent.is_dir():
         raise InputError(f"-o {out}: cannot write (no folder {out.parent})")
     models = models_for(model, compare, probes=probes, warn=warn)
-    text = page(models, title=f"neural-brdf viewer: {Path(model).name}", probes=probes)
+    text = page(models, title=page_title(model), probes=probes)
     try:
         atomic_write(out, text.encode("utf-8"))
     except OSError as e:

@@ -33,6 +33,7 @@ import math
 from collections.abc import Callable
 
 import numpy as np
+import torch
 from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
@@ -281,6 +282,27 @@ def albedo_values(
     return quadrature.albedo_at(fn, theta_i_deg, samples, seed=seed, target=sampler)
 
 
+def albedo_over_azimuth(
+    fn: Fn, theta_i_deg, azimuths: int, *, samples: int = 4096, seed: int = 0, sampler=None
+) -> np.ndarray:
+    """rho(theta_i) (len, 3) averaged over ``azimuths`` equally spaced azimuths of wi, by
+    the quadrature of :func:`albedo_values`: what the validator's furnace measures (and
+    metrics.json's furnace.curve holds) for an anisotropic model."""
+    t = np.radians(np.asarray(theta_i_deg, dtype=np.float64))[:, None]
+    phi = (np.arange(azimuths) + 0.5) * (2.0 * math.pi / azimuths)
+    phi = np.broadcast_to(phi[None], (len(t), azimuths))
+    st = np.sin(t)
+    wi = np.stack([st * np.cos(phi), st * np.sin(phi), np.broadcast_to(np.cos(t), phi.shape)], -1)
+    rho, _ = quadrature.albedo(
+        quadrature.from_numpy(fn),
+        torch.from_numpy(wi.reshape(-1, 3)),
+        samples,
+        seed=seed,
+        target=sampler,
+    )
+    return rho.numpy().reshape(len(t), azimuths, -1).mean(1)
+
+
 def albedo_theta(n_theta: int = 46) -> np.ndarray:
     """The incidences of :func:`albedo_curve`, deg: [0, 89.9]."""
     return np.linspace(0.0, 89.9, n_theta)
@@ -296,18 +318,26 @@ def albedo_curve(
     validated_max: tuple[float, float] | None = None,
     values: dict | None = None,
     measured: tuple[np.ndarray, np.ndarray] | None = None,
+    azimuths: int = 0,
 ) -> Figure:
     """rho(theta_i) per channel, theta_i on [0, 89.9] deg; ``validated_max`` =
     (theta_deg, value) marks the validator's measured maximum.  ``values``, a dict, is
     filled with "theta" and the curves ("neural", "reference"), numpy arrays, for a
     caller that shows them elsewhere too (the report's viewer) without a second
     quadrature.  ``measured`` = (theta_deg, rho) is the neural curve as the validator
-    measured it (metrics.json furnace.curve), drawn instead of a new quadrature."""
+    measured it (metrics.json furnace.curve), drawn instead of a new quadrature.
+
+    Both curves are in the incidence plane (wi in the x-z plane), except with
+    ``azimuths`` > 0: both averaged over that many azimuths of wi (the validator's furnace
+    of an anisotropic model; the reference then at the measured curve's incidences)."""
     theta = albedo_theta(n_theta)
     fig = Figure(figsize=(7, 4), layout="constrained")
     ax = fig.subplots()
     if measured is not None:
         theta_n, rho = (np.asarray(x, dtype=np.float64) for x in measured)
+    elif azimuths > 0:
+        theta_n = theta
+        rho = albedo_over_azimuth(neural, theta, azimuths, samples=samples, sampler=sampler)
     else:
         theta_n, rho = theta, albedo_values(neural, theta, samples=samples, sampler=sampler)
     if values is not None:
@@ -315,9 +345,13 @@ def albedo_curve(
     for c, (name, colour) in enumerate(CHANNELS):
         ax.plot(theta_n, rho[:, c], color=colour, lw=2.4, alpha=0.5, label=f"neural {name}")
     if reference is not None:
-        ref = albedo_values(reference, theta, samples=samples, sampler=sampler)
+        if azimuths > 0:  # like the neural curve: at its incidences, over azimuth
+            theta = theta_n
+            ref = albedo_over_azimuth(reference, theta, azimuths, samples=samples, sampler=sampler)
+        else:
+            ref = albedo_values(reference, theta, samples=samples, sampler=sampler)
         if values is not None:
-            values["reference"] = ref
+            values.update(reference=ref, reference_theta=theta)
         for c, (name, colour) in enumerate(CHANNELS):
             ax.plot(
                 theta, ref[:, c], color=colour, lw=1.0, ls=(0, (4, 3)), label=f"reference {name}"
@@ -338,7 +372,9 @@ def albedo_curve(
     ax.set_ylabel("directional albedo ρ(θi)")
     ax.set_title("directional albedo ∫ f cos θo dωo (white furnace)", fontsize=10)
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, ncols=2, loc="lower left", frameon=False)
+    # beside the axes: inside, some corner holds data (a measured or teacher's curve
+    # falls towards grazing, a furnace near 1 fills the top)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return fig
 
 

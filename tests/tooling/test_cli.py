@@ -541,3 +541,28 @@ def test_a_folder_given_as_the_model_is_named_a_folder(capsys, tmp_path, command
     for there in ("/dev/null", str(tmp_path / "pipe.onnx")):
         code, _, err = cli(capsys, command[0], there, *command[1:])
         assert_one_line_error(code, err, there, "not a regular file")
+
+
+def test_a_report_of_a_model_its_metrics_did_not_measure_is_refused(capsys, run_dir, tmp_path):
+    """``export RUN`` after an edit of config.yaml, or another file put in as model.onnx,
+    left metrics.json measuring the old one: the report showed the old figures and
+    verdicts (a graph whose minimum is -2 as 'physics checks ok') beside the new file's
+    plots.  metrics.json keeps the sha256 of the file it measured; the report refuses
+    another, the export says so, and a metrics.json without the digest reads as before."""
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert len(metrics[runfolder.MODEL_DIGEST]) == 64
+    assert cli(capsys, "report", str(run), "-o", str(tmp_path / "ok"))[0] == 0
+    cfg = run / "config.yaml"
+    text = cfg.read_text()
+    assert "  sigmas: 3.0\n" in text  # normalization.sigmas: another albedo bound
+    cfg.write_text(text.replace("  sigmas: 3.0\n", "  sigmas: 1.0\n"))
+    code, _, err = cli(capsys, "export", str(run))
+    assert code == 0 and "note:" in err and "metrics.json measured the model.onnx" in err
+    code, _, err = cli(capsys, "report", str(run), "-o", str(tmp_path / "stale"))
+    assert_one_line_error(code, err, "metrics.json", "measured another model.onnx")
+    assert not (tmp_path / "stale").exists()
+    del metrics[runfolder.MODEL_DIGEST]  # written before the digest was kept
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    assert cli(capsys, "report", str(run), "-o", str(tmp_path / "old"))[0] == 0

@@ -26,7 +26,7 @@ from PIL import Image
 
 import analytic
 from cli_helpers import ROOT, SETS, TINY, assert_one_line_error, cli
-from harness import browser
+from harness import browser, gpu_browser
 from neural_brdf import config
 from neural_brdf.tooling.cli import main
 from neural_brdf.viewer import plots, report
@@ -132,7 +132,9 @@ def test_html_is_self_contained_and_every_image_is_a_drawn_png(tiny_run):
     metrics = json.loads((tiny_run / "metrics.json").read_text())
     for band, v in metrics["accuracy"]["rel_rmse_by_incidence"].items():
         shown = "-" if v is None else f"{100 * v:.3f} %"
-        assert f"<td>rel. RMSE, {band}</td><td>{shown}</td>" in page
+        # (a cell with a number and its unit does not wrap: class nw)
+        td = '<td class="nw">' if v is not None else "<td>"
+        assert f"<td>rel. RMSE, {band}</td>{td}{shown}</td>" in page
     if plots.mitsuba_unavailable() is not None:
         assert "No render: Mitsuba 3 is not available" in page
 
@@ -243,7 +245,11 @@ def copy_run(run_dir, tmp_path):
     [
         (None, None, "no such run directory"),
         ("metrics.json", "{", "not valid JSON"),
-        ("metrics.json", '{"checks": {}}', "checks: missing"),
+        ("metrics.json", '{"checks": {}}', "checks: expected an object of the checks, got an"),
+        # (a checks that is there but no object was said to be missing)
+        ("metrics.json", '{"checks": 5}', "checks: expected an object of the checks, got int"),
+        ("metrics.json", '{"passed": true}', "checks: missing"),
+        ("metrics.json", "[1, 2]", "not a JSON object"),
         (
             "metrics.json",
             '{"checks": {"reciprocity": {"value": "x", "limit": 0, "passed": true}}}',
@@ -276,6 +282,37 @@ def test_bad_run_dir_is_one_line_and_exit_2(tiny_run, tmp_path, capsys, name, da
     err = capsys.readouterr().err
     assert_one_line_error(code, err, needle, name or "nope")
     assert not (run_dir / "report.html").exists()
+
+
+PHONE = (390, 844)  # a phone's page width and height, CSS pixels
+
+
+def test_the_page_fits_a_phone(tmp_path):
+    from neural_brdf.viewer.report.blocks import Heading, Table, Text, to_html
+
+    wide = Table(  # as wide as the peak table of an anisotropic model, or wider
+        ["θi", "φi", "towards"] + [f"{o:g}°" for o in (0, 0.01, 0.03, 0.1, 0.3, 1)],
+        [["45°", "90°", "horizon"] + ["1.53 %"] * 6] * 4,
+    )
+    page = to_html([Heading("report", 1), Text("At the peak: 0.18 % (limit 3 %)."), wide])
+    assert '<meta name="viewport" content="width=device-width, initial-scale=1">' in page
+    path = tmp_path / "report.html"
+    path.write_text(page)
+    with gpu_browser.Session(width=PHONE[0], height=PHONE[1]) as s:
+        s.open(path)
+        page_width, table_box = s.evaluate(
+            "(() => { const t = document.querySelector('table').parentElement;"
+            " return [document.documentElement.scrollWidth,"
+            " [t.clientWidth, t.scrollWidth, getComputedStyle(t).overflowX]]; })()"
+        )
+        cell = s.evaluate(  # the lines its text takes
+            "(() => { const c = document.querySelectorAll('td')[3], r = document.createRange();"
+            " r.selectNodeContents(c); const tops = new Set([...r.getClientRects()]"
+            ".map((b) => Math.round(b.top))); return [tops.size, c.textContent]; })()"
+        )
+    assert page_width <= PHONE[0]  # the page is not widened by the table
+    assert table_box[2] == "auto" and table_box[1] > table_box[0]  # it scrolls in its box
+    assert cell == [1, "1.53 %"]  # a number keeps its unit on its line
 
 
 # ------------------------------------------------------------------ the plots' data
@@ -336,6 +373,73 @@ def test_albedo_curve_shows_a_model_above_the_furnace_limit():
     for ln in lines(fig, "neural"):
         np.testing.assert_allclose(ln.get_ydata(), 1.25, atol=2e-3)
     assert fig.axes[0].get_ylim()[1] > 1.25  # drawn, not cut off
+
+
+BRUSHED = analytic.create(
+    "microfacet", distribution="ggx", alpha_x=0.15, alpha_y=0.45, fresnel="conductor", material="Al"
+)
+
+
+def rotated(fn, phi: float):
+    """``fn`` turned by ``phi`` about the normal: its incidence plane is fn's plane at
+    azimuth phi."""
+    c, s = math.cos(phi), math.sin(phi)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return lambda wi, wo: fn(wi @ rot.T, wo @ rot.T)
+
+
+def test_an_anisotropic_albedo_figure_averages_both_curves_over_azimuth():
+    theta, azimuths, samples = np.array([0.0, 50.0, 80.0]), 16, 8192
+    # the validator's curve of an anisotropic model: averaged over azimuth, computed here
+    # as the mean of in-plane curves of the BRDF turned about the normal
+    averaged = np.mean(
+        [
+            plots.albedo_values(rotated(BRUSHED.eval, (k + 0.5) * 2 * math.pi / azimuths), theta)
+            for k in range(azimuths)
+        ],
+        0,
+    )
+    in_plane = plots.albedo_values(BRUSHED.eval, theta)
+    assert abs(in_plane[-1] - averaged[-1]).max() > 0.03  # the figure's former false gap
+    fig = plots.albedo_curve(
+        BRUSHED.eval,
+        BRUSHED.eval,
+        samples=samples,
+        measured=(theta, averaged),
+        azimuths=azimuths,
+    )
+    for neural, reference in zip(lines(fig, "neural"), lines(fig, "reference"), strict=True):
+        np.testing.assert_allclose(reference.get_xdata(), neural.get_xdata())
+        np.testing.assert_allclose(reference.get_ydata(), neural.get_ydata(), atol=5e-3)
+
+
+@pytest.mark.parametrize("azimuths", [16, 0])
+def test_the_albedo_caption_says_how_both_curves_were_measured(azimuths):
+    from neural_brdf.viewer.report import sections
+    from neural_brdf.viewer.report.blocks import Image as Figure
+
+    run = SimpleNamespace(
+        dir=Path("run"),
+        config=config.from_dict({}),
+        metrics={"checks": {"reciprocity": {"value": 0.0, "limit": 1e-6, "passed": True}}},
+        model=SimpleNamespace(textured=False),
+    )
+    blocks = sections._physics(run, b"", True, azimuths)
+    (figure,) = [b for b in blocks if isinstance(b, Figure) and b.key == "albedo"]
+    averaged = f"both curves averaged over {azimuths} azimuths of wi" in figure.caption
+    assert averaged is (azimuths > 0)
+    assert ("incidence plane" in figure.caption) is (azimuths == 0)
+    assert "the reference's by the same quadrature" in figure.caption
+
+
+def test_the_albedo_legend_is_beside_the_axes_covering_no_curve():
+    # a measured material's albedo falls towards grazing into the lower-left corner
+    falling = analytic.create("lambertian", albedo=0.3)
+    fig = plots.albedo_curve(falling.eval, LAMBERT.eval, n_theta=6, samples=2048)
+    fig.canvas.draw()
+    (ax,) = fig.axes
+    legend = (ax.get_legend() or fig.legends[0]).get_window_extent()
+    assert not legend.overlaps(ax.get_window_extent())
 
 
 def test_slices_plot_f_cos_in_the_incidence_plane():

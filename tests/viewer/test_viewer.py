@@ -18,7 +18,10 @@ from __future__ import annotations
 import base64
 import contextlib
 import io
+import json
+import math
 import re
+import subprocess
 
 import numpy as np
 import onnx
@@ -352,6 +355,124 @@ def test_a_config_named_without_a_suffix_is_compared(model_path, tmp_path, capsy
     code, _, err = cli(capsys, "view", str(model_path), "--compare", str(cfg), "-o", str(out))
     assert code == 0 and out.is_file(), err
     assert "target: microfacet" in out.read_text()
+
+
+# ------------------------------------------------------------------ layout, plots, title
+PHONE = (390, 844)  # a phone's page width and height, CSS pixels
+
+
+def test_the_page_fits_a_phone_with_each_heading_above_its_panel(page):
+    text = page.read_text()
+    assert '<meta name="viewport" content="width=device-width, initial-scale=1">' in text
+    with gpu_browser.Session(width=PHONE[0], height=PHONE[1]) as s:
+        s.open(page)
+        assert s.evaluate("document.getElementById('nb-status').textContent") == "ready"
+        width = s.evaluate("document.documentElement.scrollWidth")
+        gl = s.evaluate(
+            "(() => { const r = document.getElementById('nb-gl').getBoundingClientRect();"
+            " return [r.x, r.y, r.width, r.height]; })()"
+        )
+        labels = s.evaluate(
+            "[...document.querySelectorAll('.labels div')].map((d) => {"
+            " const r = d.getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })"
+        )
+        plots = s.evaluate(
+            "[...document.querySelectorAll('canvas.plot')].map((c) =>"
+            " c.getBoundingClientRect().right)"
+        )
+    assert width <= PHONE[0]  # nothing widens the page
+    assert gl[0] + gl[2] <= PHONE[0] and gl[2] < 3 * viewer.SPHERE  # scaled down
+    assert gl[2] == pytest.approx(3 * gl[3], abs=1.0)  # its aspect kept: round spheres
+    assert max(plots) <= PHONE[0]
+    assert len(labels) == 3
+    for k, (x, y, w, h) in enumerate(labels):  # centred over its third, just above it
+        centre = gl[0] + (k + 0.5) * gl[2] / 3
+        assert abs(x + w / 2 - centre) < 2 and w <= gl[2] / 3 + 1, k
+        assert y + h <= gl[1] + 0.5, k
+
+
+TICKS_JS = ROOT / "neural_brdf" / "viewer" / "page.js"
+
+
+def run_ticks(calls: str):
+    """The page's tick functions (page.js's "ticks" block, pure) run in Node on ``calls``,
+    a JS expression; its JSON value."""
+    source = TICKS_JS.read_text(encoding="utf-8")
+    found = re.search(r"// -+ ticks\n(.*)// -+ end of ticks", source, re.S)
+    assert found, "page.js: no ticks block"
+    script = found[1] + f"\nprocess.stdout.write(JSON.stringify({calls}));\n"
+    out = subprocess.run(["node", "-e", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)
+
+
+@pytest.mark.parametrize("hi", [0.3, 1.05, 1.2181, 3.7, 47.0, 0.0123, 950.0])
+def test_linear_ticks_are_nice_steps_within_the_range(hi):
+    ticks, step = run_ticks(f"[niceTicks(0, {hi}, 4), niceStep(0, {hi}, 4)]")
+    mantissa = step / 10 ** math.floor(math.log10(step) + 1e-9)
+    assert min(abs(mantissa - m) for m in (1, 2, 5)) < 1e-9  # 1, 2 or 5 x 10^k
+    assert 3 <= len(ticks) <= 9 and ticks[0] == 0 and ticks[-1] <= hi
+    assert ticks[-1] + step > hi  # the last one that fits
+    np.testing.assert_allclose(np.diff(ticks), step, rtol=1e-9)
+    texts = run_ticks(f"niceTicks(0, {hi}, 4).map((y) => tickText(y, niceStep(0, {hi}, 4)))")
+    assert [float(t) for t in texts] == pytest.approx(ticks)  # each says its value
+    assert len(set(texts)) == len(texts)
+
+
+@pytest.mark.parametrize("top", [0.18, -1.3, 2.5, -3.05])
+def test_log_ticks_are_powers_of_ten(top):
+    lo, hi = top - 4.2, top
+    exponents, texts = run_ticks(f"[logTicks({lo}, {hi}), logTicks({lo}, {hi}).map(pow10Text)]")
+    assert exponents == list(range(math.ceil(lo), math.floor(hi) + 1))
+    superscript = str.maketrans("⁻⁰¹²³⁴⁵⁶⁷⁸⁹", "-0123456789")
+    for e, t in zip(exponents, texts, strict=True):  # "10⁻³" reads back as 10 ** -3
+        assert t == {0: "1", 1: "10"}[e] if e in (0, 1) else t.startswith("10")
+        assert e in (0, 1) or int(t[2:].translate(superscript)) == e
+
+
+def drawn_texts(session, state: dict) -> list[str]:
+    """The texts the page draws on its plot canvases after ``nbViewer.setState(state)``,
+    each with its alignment (the y axes' tick labels are right-aligned)."""
+    return session.evaluate(
+        "(() => { const seen = [], fill = CanvasRenderingContext2D.prototype.fillText;"
+        " CanvasRenderingContext2D.prototype.fillText = function (t, ...rest) {"
+        "   seen.push([String(t), this.textAlign]); return fill.call(this, t, ...rest); };"
+        f" try {{ nbViewer.setState({json.dumps(state)}); }}"
+        " finally { CanvasRenderingContext2D.prototype.fillText = fill; }"
+        " return seen; })()"
+    )
+
+
+def test_the_plots_have_axis_labels_nice_ticks_and_a_radial_scale(page, session):
+    session.open(page)  # (the session may show another page by now)
+    assert session.evaluate("document.getElementById('nb-status').textContent") == "ready"
+    linear = drawn_texts(session, {"log": False, "thetaI": 30})
+    logged = drawn_texts(session, {"log": True, "thetaI": 30})
+    drawn_texts(session, {"log": False, "thetaI": 45})  # as the other tests expect it
+    y_ticks = [t for t, align in linear if align == "right"]
+    linear, logged = [t for t, _ in linear], [t for t, _ in logged]
+    assert "f cos θo [1/sr]" in linear and "f cos θo [1/sr], log scale" in logged
+    assert any(t.startswith("ρ(θi)") for t in linear)  # the albedo plot's y label
+    assert any(t.endswith(" 1/sr") for t in linear)  # the lobe's labelled ring
+    numbers = [float(t) for t in y_ticks if re.fullmatch(r"-?\d+(\.\d+)?", t)]
+    assert len(numbers) >= 6  # of the slice and albedo plots
+    for y in numbers:  # every number drawn is a multiple of a 1, 2, 5 x 10^k step
+        assert any(
+            abs(y / (m * 10.0**k) - round(y / (m * 10.0**k))) < 1e-6
+            for m in (1, 2, 5)
+            for k in range(-3, 3)
+            if abs(y) / (m * 10.0**k) <= 10
+        ), y
+    powers = [t for t in logged if t.startswith("10") and t[2:] and t[2] in "⁻¹²³⁴⁵⁶⁷⁸⁹⁰"]
+    assert len(powers) >= 3  # the log axis: 10⁻³, 10⁻², ...
+    assert not [t for t in logged if re.fullmatch(r"-\d+\.\d", t)]  # no raw exponents
+
+
+def test_the_title_names_the_run(page, model_path):
+    title = re.search(r"<title>(.*)</title>", page.read_text())[1]
+    assert title == f"neural-brdf viewer: {model_path.parent.name}/{model_path.name}"
+    other = viewer.page_title(model_path.parent / "exported.onnx")
+    assert other == "neural-brdf viewer: exported.onnx"
 
 
 # ------------------------------------------------------------------ in the run's report

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import html
+import re
 import struct
 from dataclasses import dataclass
 
@@ -73,8 +74,10 @@ CSS = """
 body { font: 15px/1.45 system-ui, sans-serif; color: #222; background: #fff; margin: 0; }
 main { max-width: 1100px; margin: 0 auto; padding: 24px; }
 h1 { font-size: 26px; margin: 0 0 16px; } h2 { margin-top: 36px; border-bottom: 1px solid #ddd; }
+.table { overflow-x: auto; max-width: 100%; }
 table { border-collapse: collapse; margin: 12px 0; }
 td, th { border: 1px solid #ddd; padding: 4px 10px; text-align: left; }
+.ok, .fail, td.nw { white-space: nowrap; }
 th { background: #f3f3f3; }
 .ok { color: #fff; background: #2e7d32; padding: 1px 8px; border-radius: 3px; }
 .fail { color: #fff; background: #c62828; padding: 1px 8px; border-radius: 3px; }
@@ -82,7 +85,12 @@ th { background: #f3f3f3; }
 figure { margin: 20px 0; } figcaption { color: #555; font-size: 14px; }
 img { max-width: 100%; height: auto; display: block; }
 pre { background: #f6f6f6; padding: 12px; overflow-x: auto; font-size: 13px; }
+@media (max-width: 600px) { main { padding: 12px; } }
 """
+VIEWPORT = '<meta name="viewport" content="width=device-width, initial-scale=1">'
+# a cell that is a number and its unit ("0.18 %", "4.5 s", "31.2 dB") or a limit
+# ("<= 1e-06") does not wrap (class nw): a narrow column would break it apart
+_UNIT = re.compile(r"(<=|>=) [-+]?[\d.]+(e[-+]?\d+)?|[-+]?[\d.]+(e[-+]?\d+)? (%|s|dB|ms)")
 
 
 def _cell_html(c) -> str:
@@ -91,11 +99,16 @@ def _cell_html(c) -> str:
     return html.escape(str(c))
 
 
+def _td(c) -> str:
+    keep = not isinstance(c, Verdict) and _UNIT.fullmatch(str(c))
+    return ('<td class="nw">' if keep else "<td>") + _cell_html(c) + "</td>"
+
+
 def to_html(blocks: list) -> str:
     title = next((b.text for b in blocks if isinstance(b, Heading)), "neural-brdf report")
     out = [
         "<!doctype html>",
-        '<html lang="en"><head><meta charset="utf-8">',
+        f'<html lang="en"><head><meta charset="utf-8">{VIEWPORT}',
         f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><main>",
     ]
     for b in blocks:
@@ -106,11 +119,14 @@ def to_html(blocks: list) -> str:
             out.append(f"<p{cls}>{html.escape(b.text)}</p>")
         elif isinstance(b, Table):
             head = "".join(f"<th>{html.escape(h)}</th>" for h in b.header)
-            out.append(f"<table><tr>{head}</tr>" if any(b.header) else "<table>")
-            out += [
-                "<tr>" + "".join(f"<td>{_cell_html(c)}</td>" for c in r) + "</tr>" for r in b.rows
-            ]
-            out.append("</table>")
+            # in a box that scrolls sideways: a wide table does not widen a phone's page
+            out.append(
+                f'<div class="table"><table><tr>{head}</tr>'
+                if any(b.header)
+                else '<div class="table"><table>'
+            )
+            out += ["<tr>" + "".join(_td(c) for c in r) + "</tr>" for r in b.rows]
+            out.append("</table></div>")
         elif isinstance(b, Image):
             data_uri = "data:image/png;base64," + base64.b64encode(b.png).decode("ascii")
             out.append(

@@ -15,7 +15,7 @@ from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.runtime import NeuralBRDF, load
-from neural_brdf.train import data
+from neural_brdf.train import data, target_files
 from neural_brdf.train.session import LOG_COLUMNS
 
 # the run's files a report reads (their names: runfolder)
@@ -73,9 +73,14 @@ def _read_metrics(path: Path) -> dict:
         raise InputError(f"{path}: not valid JSON (line {e.lineno}: {e.msg})") from None
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: cannot read ({e})") from None
-    checks = metrics.get("checks") if isinstance(metrics, dict) else None
-    if not isinstance(checks, dict) or not checks:
+    if not isinstance(metrics, dict):
+        raise InputError(f"{path}: not a JSON object (not a metrics.json of a run?)")
+    checks = metrics.get("checks")
+    if checks is None:
         raise InputError(f"{path}: checks: missing (not a metrics.json of a run?)")
+    if not isinstance(checks, dict) or not checks:
+        kind = "an empty object" if isinstance(checks, dict) else type(checks).__name__
+        raise InputError(f"{path}: checks: expected an object of the checks, got {kind}")
     for name, c in checks.items():
         if not isinstance(c, dict) or not isinstance(c.get("passed"), bool):
             raise InputError(f"{path}: checks.{name}.passed: missing or not true/false")
@@ -124,6 +129,29 @@ def _read_log(path: Path) -> dict:
     return out
 
 
+def _describes_the_model(metrics: dict, run_dir: Path) -> None:
+    """InputError unless ``metrics`` (its sha256 of the model it measured, written since
+    session 96) is of the run's model.onnx: a file re-exported (``export RUN`` after an
+    edit of config.yaml) or put there since was reported with the old file's figures
+    and verdicts beside its own plots.  A metrics.json without the digest is read as
+    before."""
+    said = metrics.get(runfolder.MODEL_DIGEST)
+    if said is None:
+        return
+    model = run_dir / "model.onnx"
+    try:
+        there = target_files.sha256(model)
+    except OSError as e:
+        raise InputError(f"{model}: cannot read ({e.strerror or e})") from None
+    if there != said:
+        raise InputError(
+            f"{run_dir / 'metrics.json'}: measured another model.onnx than the one in the "
+            "run (re-exported or replaced since), so its figures would not describe it; "
+            f"measure this one with neural-brdf validate {model} --reference "
+            f"{run_dir / 'config.yaml'}"
+        )
+
+
 def load_run(run_dir) -> Run:
     """Read a run directory; a missing or garbled file raises InputError naming it."""
     run_dir = Path(run_dir)
@@ -135,13 +163,17 @@ def load_run(run_dir) -> Run:
                 f"{run_dir / name}: missing (a run directory holds {', '.join(RUN_FILES)})"
             )
     cfg = cfgmod.load(run_dir / "config.yaml", run=True)
+    metrics = _read_metrics(run_dir / "metrics.json")
+    log = _read_log(run_dir / "log.csv")
+    model = load(run_dir / "model.onnx")  # (a file that is no model: said as such first)
+    _describes_the_model(metrics, run_dir)
     return Run(
         dir=run_dir,
         config=cfg,
         config_text=(run_dir / "config.yaml").read_text(),
-        metrics=_read_metrics(run_dir / "metrics.json"),
-        log=_read_log(run_dir / "log.csv"),
-        model=load(run_dir / "model.onnx"),
+        metrics=metrics,
+        log=log,
+        model=model,
     )
 
 

@@ -13,7 +13,8 @@ from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
 from neural_brdf.measured import formats
 from neural_brdf.target import check_textured
-from neural_brdf.validate import uv_text
+from neural_brdf.train.encoding import is_anisotropic
+from neural_brdf.validate import AZIMUTHS, uv_text
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.page import at_uv
 from neural_brdf.viewer.report import images
@@ -43,11 +44,53 @@ def _fmt(x, spec: str = ".4g") -> str:
     return "-" if x is None else format(x, spec)
 
 
+def check_passed(name: str, value: float, limit: float, stored) -> bool:
+    """A physics check's verdict as its row shows it: its stored ``passed`` flag and its
+    value within its limit (>= for min_value, <= for the others), both; a value that
+    violates the limit it is shown beside fails whatever the flag says (NaN fails)."""
+    within = value >= limit if name == "min_value" else value <= limit
+    return stored is True and bool(within)
+
+
+def physics_verdicts(m: dict, path: Path) -> dict[str, bool]:
+    """Each physics check of metrics ``m``: :func:`check_passed`."""
+    return {
+        name: check_passed(
+            name,
+            _number(m, f"checks.{name}.value", path),
+            _number(m, f"checks.{name}.limit", path),
+            c.get("passed"),
+        )
+        for name, c in m["checks"].items()
+    }
+
+
+def peak_passed(peak: dict, path: Path) -> bool:
+    """The peak check's verdict: its stored flag (``validate.passed``'s) and its value
+    within its limit, both."""
+    value = _as_number(peak.get("value"), "peak.value", path)
+    limit = _as_number(peak.get("limit"), "peak.limit", path)
+    return bool(peak.get("passed", True)) and value <= limit
+
+
 def _summary(run: Run) -> list:
     m, path, cfg = run.metrics, run.dir / "metrics.json", run.config
     rel = _number(m, "accuracy.rel_rmse", path, optional=True)
     rows: list[list] = [
-        ["physics checks", Verdict(all(c["passed"] for c in m["checks"].values()))],
+        ["physics checks", Verdict(all(physics_verdicts(m, path).values()))],
+    ]
+    peak = m.get("peak")
+    if isinstance(peak, dict):  # neural-brdf validate fails on it too
+        value = _as_number(peak.get("value"), "peak.value", path)
+        limit = _as_number(peak.get("limit"), "peak.limit", path)
+        rows.append(
+            [
+                # (no-break spaces: a number keeps its unit)
+                f"highlight's peak check: {100 * value:.2f}\u00a0% (limit {100 * limit:g}\u00a0%)",
+                Verdict(peak_passed(peak, path)),
+            ]
+        )
+    rows += [
         [
             "target",
             (run.images and images.target_text(run))
@@ -84,7 +127,16 @@ def _summary(run: Run) -> list:
     return [Heading(f"neural-brdf report: {cfg.name}", 1), Table(["", ""], rows)]
 
 
-def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
+def _physics(
+    run: Run,
+    albedo_png: bytes,
+    reference: bool = True,
+    azimuths: int = 0,
+    measured: bool = True,
+) -> list:
+    """The physics section; the albedo figure's curves (plots.albedo_curve) are averaged
+    over ``azimuths`` azimuths of wi, or with 0 both in the incidence plane; ``measured``:
+    its neural curve is the validator's (metrics.json's furnace.curve)."""
     m, path = run.metrics, run.dir / "metrics.json"
     rows = []
     for name, c in m["checks"].items():
@@ -100,7 +152,8 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
         again = c.get("remeasured")
         if isinstance(again, int) and again > 0:  # validate.furnace's second measurement
             shown += f"; {again} direction{'s' if again > 1 else ''} over the limit measured again"
-        rows.append([name, shown, f"{op} {limit:.6g}", Verdict(c["passed"])])
+        verdict = Verdict(check_passed(name, value, limit, c.get("passed")))
+        rows.append([name, shown, f"{op} {limit:.6g}", verdict])
     parity = _number(m, "export.parity_rel_error", path, optional=True)
     if parity is not None:
         # export's own limit: parity_tol, or a few times the network's float32 precision
@@ -157,15 +210,22 @@ def _physics(run: Run, albedo_png: bytes, reference: bool = True) -> list:
             "albedo",
             "Directional albedo (white furnace)",
             (
-                f"ρ(θi) per channel at uv {TEXTURED_UV}, the figures' uv: the neural curve "
-                "by quadrature"
-                + (", the reference's in the incidence plane" if reference else "")
+                f"ρ(θi) per channel at uv {TEXTURED_UV}, the figures' uv, with wi in the "
+                "incidence plane: the neural curve by quadrature"
+                + (", the reference's too" if reference else "")
                 + "; the dotted line is the furnace limit 1 (the validator's maximum over "
                 "the texture is in the table above)."
                 if getattr(run.model, "textured", False)  # (a test's run without a model)
-                else "ρ(θi) per channel: the neural curve as the validator measured it "
-                "(averaged over azimuth for an anisotropic model)"
-                + (", the reference's in the incidence plane" if reference else "")
+                else "ρ(θi) per channel, "
+                + (
+                    f"both curves averaged over {azimuths} azimuths of wi (an anisotropic "
+                    "model, as the validator's furnace measures it)"
+                    if azimuths
+                    else "wi in the incidence plane"
+                )
+                + ": the neural curve "
+                + ("as the validator measured it" if measured else "by quadrature")
+                + (", the reference's by the same quadrature" if reference else "")
                 + "; the dotted line is the furnace limit 1, the cross the validator's "
                 "measured maximum."
             ),
@@ -240,7 +300,7 @@ def _peak(peak: dict, path: Path) -> list:
             [f"{theta:g}°", f"{phi:g}°", way]
             + [f"{100 * errors[o]:.2f} %" if o in errors else "-" for o in offsets]
         )
-    verdict = "passed" if peak.get("passed") else "FAILED"
+    verdict = "passed" if peak_passed(peak, path) else "FAILED"
     return [
         Text(
             f"At the highlight's peak: {100 * value:.2f} % (limit {100 * limit:g} %, {verdict}). "
@@ -567,6 +627,9 @@ def _blocks(run: Run, render: bool) -> list:
         validated = None
     elif isinstance(curve, dict) and curve.get("theta_deg") and curve.get("rho"):
         measured = (curve["theta_deg"], curve["rho"])  # the validator's: no second quadrature
+    # the validator's curve of an anisotropic model is averaged over azimuth: the
+    # reference's too, over as many azimuths, so that like is drawn beside like
+    azimuths = AZIMUTHS if measured is not None and is_anisotropic(run.config.model.encoding) else 0
     albedo = plots.png_bytes(
         plots.albedo_curve(
             neural,
@@ -576,6 +639,7 @@ def _blocks(run: Run, render: bool) -> list:
             validated_max=validated,
             values=curves,
             measured=measured,
+            azimuths=azimuths,
         )
     )
     vs = "neural (solid) against the reference (dashed)" if ref is not None else "neural"
@@ -610,7 +674,7 @@ def _blocks(run: Run, render: bool) -> list:
     return (
         _summary(run)
         + _textured_note(run)
-        + _physics(run, albedo, ref is not None)
+        + _physics(run, albedo, ref is not None, azimuths, measured is not None)
         + middle
         + _rendering(run, render, reference)
         + _viewer(run, reference, curves)
