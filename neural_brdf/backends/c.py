@@ -135,8 +135,8 @@ class CRenderer(CStyleRenderer):
         ev, pdf, smp = self.fn("eval"), self.fn("pdf"), self.fn("sample")
         include = '#include "this_file.h"   (C99, <math.h>, <stdint.h>, <string.h>; link with -lm)'
         tail = [
-            f"float pdf = {pdf}(wi, wo);",
-            f"float wo[3]; float pdf = {smp}(wi, u1, u2, wo);  (float u1, u2[2])",
+            f"float p = {pdf}(wi, wo);",
+            f"float wo2[3]; float p2 = {smp}(wi, u1, u2, wo2);  (float u1, u2[2])",
         ]
         if self.normal_reads is not None:
             args = "".join(f"{self.texture_name(k)}, " for k in self.f_reads)

@@ -137,7 +137,7 @@ class GLSLRenderer(CStyleRenderer):
             "precision highp int;",
             "<this file>",
         ]
-        tail = [f"vec3 wo; float pdf = {smp}(wi, u1, u2, wo);  // vec2 u2"]
+        tail = [f"vec3 wo2; float p2 = {smp}(wi, u1, u2, wo2);  // vec2 u2"]
         if self.normal_reads is not None:
             return [
                 *head,
