@@ -274,6 +274,15 @@ def load(path: Path, tree) -> Any:
     return inverse_views.load_scene(path, text)
 
 
+def percent_text(share: float) -> str:
+    """``share`` in percent to one decimal, but a share below 1 never as "100.0" (the
+    environment's 99.95 % read as full coverage): two decimals there, rounded down."""
+    text = f"{100 * share:.1f}"
+    if share < 1 and text == "100.0":
+        text = f"{math.floor(share * 1e4) / 100:.2f}"
+    return text
+
+
 def _use_variant(variant: str | None) -> None:
     import mitsuba as mi
 
@@ -282,6 +291,11 @@ def _use_variant(variant: str | None) -> None:
         if current is None:
             mi.set_variant(DEFAULT_VARIANT)
         return
+    if not variant.startswith(("llvm_", "cuda_")) or "_rgb" not in variant:
+        raise InputError(
+            f"coverage: variant {variant}: needs a vectorised RGB variant (llvm_ad_rgb, "
+            "cuda_ad_rgb, ...), as a fit does"
+        )
     if current != variant:
         try:
             mi.set_variant(variant)
@@ -501,7 +515,7 @@ def warning(cov: Coverage, below: float = WARN_BELOW) -> str | None:
     unlit = [v.scene for v in cov.views if v.pixels_lit == 0]
     lines = f"; no lit pixel of the fit BSDF in {', '.join(unlit)}" if unlit else ""
     return (
-        f"coverage: the images observe {100 * cov.figure:.1f} % of the (wi, wo) domain "
+        f"coverage: the images observe {percent_text(cov.figure)} % of the (wi, wo) domain "
         f"with both cosines > {cov.min_cos:g} (below {100 * below:.0f} %){lines}: the "
         "rest of the BRDF comes from the start and the network's prior, not the images; "
         "add views or lights at other angles to the camera (docs/inverse.md)"
@@ -553,7 +567,7 @@ def map_figure(cov: Coverage):
     ax.set_xlim(0, 90)
     ax.set_ylim(0, 90)
     ax.set_title(
-        f"observed: {100 * cov.figure:.1f} % of the domain, {len(cov.views)} view(s)\n"
+        f"observed: {percent_text(cov.figure)} % of the domain, {len(cov.views)} view(s)\n"
         f"grey: unobserved (rho < {cov.threshold:g}); white, beyond the dashes: "
         f"a cosine < {cov.min_cos:g}",
         fontsize=9,
@@ -598,7 +612,15 @@ def _scenes(paths: list[str]) -> list[Path]:
             from neural_brdf import config as cfgmod
 
             cfg = cfgmod.load(p)
-            out += [Path(item.scene) for item in cfg.target.images or []]
+            held = set(cfg.images.validation_views)  # held out whole: not fitted, as the fit
+            for k, item in enumerate(cfg.target.images or []):
+                if k in held:
+                    print(
+                        f"{item.scene}: held out whole (images.validation_views): not counted",
+                        file=sys.stderr,
+                    )
+                else:
+                    out.append(Path(item.scene))
         else:
             out.append(p)
     return out
@@ -613,7 +635,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variant", default=None, help=f"Mitsuba variant ({DEFAULT_VARIANT})")
     args = ap.parse_args(argv)
+    if args.rays < 1:
+        ap.error(f"--rays: must be >= 1, got {args.rays}")
     try:
+        check_outputs(args.picture, args.json)
         info, message = assess(
             _scenes(args.inputs),
             picture=args.picture,
@@ -626,14 +651,26 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for v in info["per_view"]:
         print(
-            f"{v['scene']}: {100 * v['figure']:.1f} % alone, {v['pixels_lit']} lit pixels, "
+            f"{v['scene']}: {percent_text(v['figure'])} % alone, {v['pixels_lit']} lit pixels, "
             f"{v['bins_mixed_per_pixel']} bins mixed per pixel"
         )
     print(
-        f"coverage: {100 * info['figure']:.1f} % ({info['definition']}); "
+        f"coverage: {percent_text(info['figure'])} % ({info['definition']}); "
         f"{info['bins_mixed_per_pixel']} bins mixed per pixel"
     )
     return cli_outputs(info, message, args.json)
+
+
+def check_outputs(picture: str | None, json_path: str | None) -> None:
+    """Before any work: the folders of ``-o`` and ``--json`` exist (InputError)."""
+    for flag, path in (("-o", picture), ("--json", json_path)):
+        if path is None:
+            continue
+        if Path(path).is_dir():
+            raise InputError(f"{flag} {path}: is a folder; give a file name")
+        parent = Path(path).parent
+        if not parent.is_dir():
+            raise InputError(f"{flag} {path}: cannot write (no folder {parent})")
 
 
 def cli_outputs(info: dict[str, Any], message: str | None, json_path: str | None) -> int:

@@ -542,7 +542,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variant", default=None, help=f"Mitsuba variant ({coverage.DEFAULT_VARIANT})")
     args = ap.parse_args(argv)
+    if args.spp < 1:
+        ap.error(f"--spp: must be >= 1, got {args.spp}")
     try:
+        coverage.check_outputs(args.picture, args.json)
         reference = None
         if args.reference:
             try:

@@ -516,6 +516,9 @@ def fit_neural(
             "lobe": lobe,
             "init": init_info,
             "render_seconds": render_seconds,
+            # the last step's figures: metrics.json's final_* after a resume with no step
+            # left (a stop after the last step, before the export) were NaN
+            "last": last,
             **({"validation": val} if split else {}),
         }
 
@@ -612,6 +615,8 @@ def fit_neural(
         lobe = lead.refit_lobe(seed=t.seed)
     set_lobe(lobe)
     last = {"loss": math.nan, "image": math.nan, "albedo": math.nan, "max_albedo": math.nan}
+    if ckpt is not None and isinstance(ckpt.get("last"), dict):  # (older: not kept)
+        last = {k: float(ckpt["last"].get(k, math.nan)) for k in last}
     with sess.run(state) as s, ib.evaluated_mode(), jit_notes_off(views):
         if split and val is None:
             score(s.step)  # the start's held-out loss, before the first step

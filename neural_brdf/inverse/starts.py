@@ -92,7 +92,7 @@ import numpy as np
 
 from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
-from neural_brdf.errors import InputError
+from neural_brdf.errors import InputError, Interrupted
 from neural_brdf.inverse import views as inverse
 from neural_brdf.inverse.families import DEFAULT, FAMILIES, family, warm_sources
 
@@ -1659,6 +1659,7 @@ def distill(
     from neural_brdf.fileio import atomic_write
     from neural_brdf.measured.mitsuba import MitsubaTarget
     from neural_brdf.train import loop
+    from neural_brdf.train.session import signal_name
 
     run_dir = Path(run_dir)
     xml = (run_dir / TEACHER_XML).absolute()
@@ -1676,7 +1677,15 @@ def distill(
     folder.start(icfg.to_yaml())
     atomic_write(xml, teacher_xml(element))
     teacher = MitsubaTarget(xml, variant=variant, key="images start")
-    raw, info = loop.train(icfg, run_dir, target=teacher, folder=folder)
+    try:
+        raw, info = loop.train(icfg, run_dir, target=teacher, folder=folder)
+    except Interrupted as e:  # init/ckpt.pt is not resumed: the fit's --resume starts again
+        stopped = Interrupted(
+            f"interrupted during the start's distillation ({signal_name(e.signum)}); "
+            "--resume chooses the start again (the image stage has no checkpoint yet)"
+        )
+        stopped.signum = e.signum
+        raise stopped from None
     return raw.state_dict(), {
         "target": info["target"],
         "teacher": str(xml),

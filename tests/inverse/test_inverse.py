@@ -1258,6 +1258,41 @@ def test_resuming_a_finished_images_run_touches_nothing(fitted, example, tmp_pat
     assert now == files
 
 
+@pytest.mark.slow
+def test_a_run_stopped_after_its_last_step_keeps_its_final_figures(
+    fitted, example, tmp_path, capsys
+):
+    """Stopped after the image stage's last step, before its export (here: model.onnx
+    and metrics.json not yet written), the resume has no step left: metrics.json's
+    final_loss, final_image_loss, final_albedo_penalty and final_max_albedo_estimate
+    were NaN (the figures lived in the loop alone); they come from the checkpoint."""
+    import json
+    import shutil
+
+    code, run_dir = fitted
+    assert code == 0
+    before = json.loads((run_dir / "metrics.json").read_text())["training"]
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    (copy / "model.onnx").unlink()
+    (copy / "metrics.json").unlink()
+    split = [
+        f"images.validation_pixels={HELDOUT_SHARE}",
+        "images.start_train_steps=30",
+        "images.start_train_lr=null",
+        "images.start_lr_scale=1",
+    ]
+    args = train_args(example / "fit.yaml", copy, FIT_OVERRIDES + split) + ["--resume"]
+    code = cli.main(args)
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    after = json.loads((copy / "metrics.json").read_text())["training"]
+    for key in ("final_loss", "final_image_loss", "final_albedo_penalty"):
+        assert isinstance(after[key], float) and math.isfinite(after[key]), (key, after[key])
+        assert after[key] == before[key], key
+    assert after["final_max_albedo_estimate"] == before["final_max_albedo_estimate"]
+
+
 def test_a_run_stopped_during_its_start_resumes_by_starting_again(
     mi, example, tmp_path, capsys, monkeypatch
 ):
@@ -2066,6 +2101,30 @@ def test_a_fit_nested_in_another_bsdf_is_named_when_no_pixel_is_found():
         inverse.check_sees_object(view, "target.images[0].scene", none, none)
     assert str(e.value).startswith("target.images[0].scene: s.xml: the view sees no pixel")
     inverse.check_sees_object(view, "k", none, ~none)  # a front-facing pixel: seen
+
+
+def test_ctrl_c_during_the_distillation_says_the_start_is_chosen_again(
+    mi, example, tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C while the start was distilled said 'checkpoint saved to RUN/init/ckpt.pt;
+    continue with --resume', but the resume chooses the start again (init/ is not
+    resumed): the line says what --resume does."""
+    import signal
+
+    from neural_brdf.errors import Interrupted
+    from neural_brdf.train import loop
+
+    def stopped(*args, **kwargs):
+        e = Interrupted("interrupted at step 7 (SIGTERM); checkpoint saved to x; continue")
+        e.signum = signal.SIGTERM
+        raise e
+
+    monkeypatch.setattr(loop, "train", stopped)
+    auto = ["images.start=auto", "images.start_families=[diffuse]", "images.validation_pixels=0.2"]
+    code, err = run_cli(train_args(example / "fit.yaml", tmp_path / "run", TINY_FIT + auto), capsys)
+    assert code == 143, err
+    assert "during the start's distillation (SIGTERM)" in err, err
+    assert "--resume chooses the start again" in err and "checkpoint saved" not in err, err
 
 
 def test_resume_after_ctrl_c_during_the_starts_choice_fits_again_from_it(

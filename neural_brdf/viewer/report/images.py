@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from neural_brdf import runfolder
+from neural_brdf.inverse.coverage import percent_text
 from neural_brdf.viewer import plots
 from neural_brdf.viewer.report.blocks import Block, Heading, Image, Table, Text
 from neural_brdf.viewer.report.run import Run
@@ -496,7 +497,7 @@ def coverage_warning(cov: dict) -> str | None:
     ]
     lines = f"; no lit pixel of the fit BSDF in {', '.join(unlit)}" if unlit else ""
     return (
-        f"coverage: the images observe {100 * figure:.1f} % of the (wi, wo) domain "
+        f"coverage: the images observe {percent_text(figure)} % of the (wi, wo) domain "
         f"with both cosines > {min_cos if min_cos is not None else 0.1:g} (below "
         f"{100 * below:.0f} %){lines}: the rest of the BRDF comes from the start and the "
         "network's prior, not the images; add views or lights at other angles to the "

@@ -11,6 +11,7 @@ from typing import Any
 
 from neural_brdf.errors import InputError
 from neural_brdf.export import parity_allowed
+from neural_brdf.inverse.coverage import percent_text
 from neural_brdf.measured import formats
 from neural_brdf.target import check_textured
 from neural_brdf.train.encoding import is_anisotropic
@@ -107,7 +108,7 @@ def _summary(run: Run) -> list:
     if run.images:  # no reference: what the images observe instead of an error
         figure = images.coverage_figure(run)
         if figure is not None:
-            rows.append(["coverage of the (wi, wo) domain", f"{100 * figure:.1f} %"])
+            rows.append(["coverage of the (wi, wo) domain", f"{percent_text(figure)} %"])
     else:
         rows.append(["rel. RMSE of f cos θo", "-" if rel is None else f"{100 * rel:.3f} %"])
     rows += [
