@@ -554,6 +554,14 @@ def main(argv: list[str] | None = None) -> int:
                 raise InputError(f"--reference {args.reference}: {e}") from None
             if reference.tag != "bsdf":
                 raise InputError(f"--reference {args.reference}: the root is not a <bsdf>")
+            coverage._use_variant(args.variant)
+            try:  # Mitsuba's own check of the element, before the views' work
+                inverse_views.mitsuba_bsdf(reference)
+            except Exception as e:  # Mitsuba's parser and plugins raise RuntimeError & co.
+                why = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+                raise InputError(
+                    f"--reference {args.reference}: Mitsuba cannot load it ({why})"
+                ) from None
         scenes, noise = _inputs(args.inputs)
         info, message = assess(
             scenes,

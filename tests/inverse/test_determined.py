@@ -174,3 +174,13 @@ def test_the_command_line_reads_a_configs_noise_and_refuses_a_bad_reference(mi, 
     assert D.main([str(tmp_path / "fit.yaml"), "--reference", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.xml" in err[0] and "<bsdf>" in err[0], err
+    # a <bsdf> of a plugin Mitsuba has not: a RuntimeError's traceback before
+    bad.write_text('<bsdf type="foo"/>')
+    assert D.main([str(tmp_path / "fit.yaml"), "--reference", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.xml" in err[0] and "Mitsuba cannot load it" in err[0], err
+    # an output in no folder: said before the work (a FileNotFoundError after it before)
+    missing = tmp_path / "missing" / "d.png"
+    assert D.main([str(tmp_path / "fit.yaml"), "-o", str(missing)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no folder" in err[0], err
