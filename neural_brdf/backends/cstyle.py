@@ -505,6 +505,15 @@ class CStyleRenderer:
             f"{c} [0, 1) gives wo = (0, 0, -1) and pdf 0).",
             f"{c} Estimator: f * cos(theta_o) / pdf.",
         ]
+        if "format_version" not in meta:  # a graph of another tool: its f is its own
+            lines += [
+                f"{c}",
+                f"{c} CAUTION: the file has no neural-brdf metadata (no format_version): "
+                f"{self.fn('eval')} evaluates its graph",
+                f"{c} as it is, and nothing says that the graph normalises its directions, "
+                "gives 0 below the horizon",
+                f"{c} or 0 for a non-finite one, as the files neural-brdf exports do.",
+            ]
         for k, tex in enumerate(self.textures):
             rows, width = tex.data.shape
             if k == 0:

@@ -1562,3 +1562,17 @@ def test_a_constant_folded_to_inf_warns_nothing(capsys):
         warnings.simplefilter("error")  # a RuntimeWarning fails the test
         code = backends.generate(proto.SerializeToString(), "c", lobe=ANISO_RETRO)
     assert "INFINITY" in code
+
+
+def test_a_file_without_the_projects_metadata_is_flagged_in_the_code():
+    """A graph of another tool (here f = wi * wo, no format_version) was labelled with
+    the contract of neural-brdf's files (directions normalised, 0 below the horizon),
+    which its eval need not keep; a file with the metadata is not flagged."""
+    bare = product_model()
+    proto = onnx.load_from_string(bare)
+    helper.set_model_props(proto, {"format_version": "1"})
+    for target in backends.TARGETS:
+        flagged = backends.generate(bare, target, lobe=ANISO_RETRO)
+        assert "CAUTION: the file has no neural-brdf metadata" in flagged
+        plain = backends.generate(proto.SerializeToString(), target, lobe=ANISO_RETRO)
+        assert "CAUTION" not in plain and "0 below the horizon" in plain
