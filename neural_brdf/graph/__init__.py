@@ -109,17 +109,27 @@ def _hint(node) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", node.op_type).lower()
 
 
+def node_text(node, index: int | None = None) -> str:
+    """A node as a message names it: its name, or (unnamed, as another tool may write
+    it) its place in the graph and its first output."""
+    if node.name:
+        return f"node {node.name!r}"
+    where = f"#{index} " if index is not None else ""
+    out = node.output[0] if len(node.output) else "?"
+    return f"node {where}(unnamed, output {out!r})"
+
+
 def check(proto: onnx.ModelProto) -> list:
     """The graph's nodes as (op, inputs, outputs, attrs, name); unknown ops raise."""
     nodes = []
-    for n in proto.graph.node:
+    for k, n in enumerate(proto.graph.node):
         if n.domain not in ("", "ai.onnx"):
             raise UnsupportedOnnxOp(
-                f"node {n.name!r}: op {n.domain}.{n.op_type} is not a standard ONNX op"
+                f"{node_text(n, k)}: op {n.domain}.{n.op_type} is not a standard ONNX op"
             )
         if n.op_type not in SUPPORTED_OPS:
             raise UnsupportedOnnxOp(
-                f"node {n.name!r}: ONNX op {n.op_type!r} is not supported "
+                f"{node_text(n, k)}: ONNX op {n.op_type!r} is not supported "
                 f"(supported: {', '.join(sorted(SUPPORTED_OPS))})"
             )
         attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
@@ -190,14 +200,14 @@ def lower(model, outputs: tuple[str, ...] | None = None, params: tuple[str, ...]
         trained = [i for i, a in zip(ins, args, strict=True) if isinstance(a, Param)]
         if trained and op not in PARAM_OPS:
             raise UnsupportedOnnxOp(
-                f"node {node.name!r} ({op}) reads the trained parameter {trained[0]!r}; "
+                f"{node_text(node)} ({op}) reads the trained parameter {trained[0]!r}; "
                 f"only {', '.join(sorted(PARAM_OPS))} may"
             )
         b.hint = _hint(node)
         try:
             res = _OPS[op](lo, args, attrs)
         except UnsupportedOnnxOp as e:
-            raise UnsupportedOnnxOp(f"node {node.name!r} ({op}): {e}") from None
+            raise UnsupportedOnnxOp(f"{node_text(node)} ({op}): {e}") from None
         if not isinstance(res, tuple):
             res = (res,)
         for o, v in zip(outs, res, strict=False):

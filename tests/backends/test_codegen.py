@@ -1576,3 +1576,11 @@ def test_a_file_without_the_projects_metadata_is_flagged_in_the_code():
         assert "CAUTION: the file has no neural-brdf metadata" in flagged
         plain = backends.generate(proto.SerializeToString(), target, lobe=ANISO_RETRO)
         assert "CAUTION" not in plain and "0 below the horizon" in plain
+
+
+def test_an_unnamed_node_is_named_by_its_place_and_output():
+    """Another tool's unnamed node was named node '' in the error of an unsupported op."""
+    proto = onnx.load_from_string(product_model())
+    proto.graph.node.insert(0, helper.make_node("Det", ["wi"], ["d"]))  # unsupported, unnamed
+    with pytest.raises(InputError, match=r"node #0 \(unnamed, output 'd'\): ONNX op 'Det'"):
+        backends.generate(proto.SerializeToString(), "c", lobe=ANISO_RETRO)
