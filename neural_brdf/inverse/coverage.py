@@ -64,6 +64,7 @@ when coverage is at least :data:`WARN_BELOW`) is printed.
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -666,6 +667,12 @@ def check_outputs(picture: str | None, json_path: str | None) -> None:
     for flag, path in (("-o", picture), ("--json", json_path)):
         if path is None:
             continue
+        if path.endswith(tuple(s for s in (os.sep, os.altsep) if s)) or Path(path).name in (
+            "",
+            ".",
+            "..",
+        ):
+            raise InputError(f"{flag} {path}: a folder's name; give a file name")
         if Path(path).is_dir():
             raise InputError(f"{flag} {path}: is a folder; give a file name")
         parent = Path(path).parent

@@ -519,7 +519,10 @@ def _inputs(paths: list[str]) -> tuple[list[Any], float | None]:
     views = inverse_views.read_views(cfg)
     for v in views:
         v.object = starts.object_mask(v)
-    return list(views), inverse_views.target_noise(views)
+    # the views held out whole are not fitted: the fit's map leaves them out too
+    held = set(cfg.images.validation_views)
+    fitted = [v for k, v in enumerate(views) if k not in held]
+    return fitted, inverse_views.target_noise(fitted)
 
 
 def main(argv: list[str] | None = None) -> int:

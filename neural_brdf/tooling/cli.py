@@ -236,6 +236,8 @@ def _a_file_name(out: str, flag: str = "-o") -> None:
             raise InputError(
                 f"{flag} {out}: ends with {out[-1]}, a folder's name; give a file name"
             )
+    if out != STDOUT and os.path.basename(out) in (".", ".."):  # Path drops a final "."
+        raise InputError(f"{flag} {out}: a folder's name; give a file name")
 
 
 def _output_folder(out: str, flag: str = "-o") -> None:
@@ -532,8 +534,9 @@ def _metrics_of_another_model(run_dir: Path) -> None:
     if said is not None and said != target_files.sha256(run_dir / "model.onnx"):
         print(
             f"note: {run_dir / 'metrics.json'} measured the model.onnx that was there, not "
-            "this one (report RUN refuses it now); measure this one with neural-brdf "
-            f"validate {run_dir / 'model.onnx'} --reference {run_dir / 'config.yaml'}",
+            "this one (report RUN refuses it now); neural-brdf train "
+            f"{run_dir / 'config.yaml'} --out {run_dir} --resume exports, measures and "
+            "reports the run again",
             file=sys.stderr,
         )
 

@@ -272,7 +272,9 @@ REPORT_PENDING = "report_pending"
 def finished_report(run_dir: Path, step: int) -> dict | None:
     """The metrics.json of a run that finished at ``step`` (its model.onnx written
     too), or None: a run stopped before it finished exporting, validating or writing
-    the report it was to write (:data:`REPORT_PENDING`)."""
+    the report it was to write (:data:`REPORT_PENDING`), or one whose metrics.json
+    measured another model.onnx (``export RUN`` after an edit of config.yaml: its
+    ``--resume`` exports, measures and reports the run again)."""
     if not (run_dir / runfolder.MODEL).is_file():
         return None
     from neural_brdf.fileformat import reader
@@ -287,6 +289,12 @@ def finished_report(run_dir: Path, step: int) -> dict | None:
         return None
     training = report.get("training") if isinstance(report, dict) else None
     if not isinstance(training, dict) or training.get("steps") != step:
+        return None
+    said = report.get(runfolder.MODEL_DIGEST)
+    try:
+        if said is not None and said != target_files.sha256(run_dir / runfolder.MODEL):
+            return None
+    except OSError:
         return None
     return None if report.get(REPORT_PENDING) else report
 
@@ -422,25 +430,30 @@ class RunFiles:
             for k, v in values.items()
         }
 
-    def kept_rows(self, step: int) -> list[dict[str, str]]:
+    def kept_rows(self, step: int, *, log_every: int | None = None) -> list[dict[str, str]]:
         """A resumed run's log.csv rows up to ``step``, its checkpoint's.  The log is
         appended to row by row, so a kill can cut its last line short: that line is
         dropped.  A log that is not one (no ``step`` column, a line before the
         checkpoint's step that is no row of it, steps out of order) is refused, naming
         it, rather than replaced by the rows it could read: the user moves it away.
-        Rows missing before the checkpoint's step (a file cut short elsewhere) are
-        said on stderr."""
+        Rows missing before the checkpoint's step (a file cut short elsewhere, or empty)
+        are said on stderr: more than ``log_every`` steps (the checkpoint's, which a
+        resume may change; None: the config's) between the last row and that step."""
         path = self.log_path
         if not path.is_file():
             return []
         move = "move it away to resume (the checkpoint is kept)"
         try:
             with open(path, newline="", encoding="utf-8") as fh:
-                lines = list(csv.reader(fh))
+                text = fh.read()
+            lines = list(csv.reader(io.StringIO(text, newline="")))
         except (OSError, UnicodeDecodeError, csv.Error) as e:
             raise InputError(f"{path}: cannot read it as the run's log ({e}); {move}") from None
+        if len(lines) > 1 and not text.endswith(("\n", "\r")):
+            lines = lines[:-1]  # a row is written with its newline: this one was cut short
+        every = log_every if isinstance(log_every, int) else self.cfg.train.log_every
         if not lines:
-            return []
+            lines = [["step"]]  # an empty file: no rows (said below, when some are due)
         header = lines[0]
         if "step" not in header:
             raise InputError(
@@ -461,7 +474,7 @@ class RunFiles:
                 raise InputError(f"{path}: line {number} is not a row of the run's log; {move}")
             rows.append(dict(zip(header, fields, strict=True)))
         last = int(rows[-1]["step"]) if rows else 0
-        if step - last > self.cfg.train.log_every:
+        if step - last > every:
             print(
                 f"{path}: its rows end at step {last}, the checkpoint's is {step}: the rows "
                 "between are missing from it (the file was cut short); the log goes on from there",
@@ -534,6 +547,7 @@ class Session:
         self.step = 0
         self.seconds = 0.0  # training time: of the run so far, then of the whole run
         self.kept: list[list[dict[str, str]]] = [[] for _ in self.runs]
+        self._logs_read = False  # a resumed run's rows read by begin(), before any write
         self._resumed: dict | None = None
         self.resumes: list[dict[str, Any]] = []  # RESUMES: the checkpoint's, then this one
         self._begun = False
@@ -596,8 +610,17 @@ class Session:
         return self._resumed
 
     def begin(self) -> None:
-        """Every run's first writes (marker, config.yaml: :meth:`RunFiles.begin`), once."""
+        """Every run's first writes (marker, config.yaml: :meth:`RunFiles.begin`), once.
+        A resumed run's log.csv is read first (:meth:`RunFiles.kept_rows`): a log that
+        cannot be resumed is refused before config.yaml takes the new settings."""
         if not self._begun:
+            ckpt = self._resumed if self.resume else None
+            if ckpt is not None:
+                train = ckpt.get("config", {}).get("train", {})
+                every = train.get("log_every") if isinstance(train, dict) else None
+                for k, r in enumerate(self.runs):
+                    self.kept[k] = r.kept_rows(int(ckpt["step"]), log_every=every)
+                self._logs_read = True
             for r in self.runs:
                 r.begin()
             self._begun = True
@@ -641,7 +664,8 @@ class Session:
             self.checkpoint(timed=False)
         if self.checkpoints:
             for k, r in enumerate(self.runs):
-                self.kept[k] = r.kept_rows(self.step) if self.resume else []
+                if not self._logs_read:
+                    self.kept[k] = r.kept_rows(self.step) if self.resume else []
                 r.open_log(self.kept[k])
         self._bar = tqdm(
             total=self.train.steps,

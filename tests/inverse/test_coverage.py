@@ -338,20 +338,23 @@ def test_a_scene_without_light_or_camera_is_one_line_and_exit_2(
         (["--variant", "scalar_rgb"], "needs a vectorised RGB variant"),
         (["--json", "{missing}/x.json"], "cannot write (no folder"),
         (["-o", "{missing}/c.png"], "cannot write (no folder"),
+        (["--json", "{here}/c.json/"], "a folder's name"),
+        (["-o", "{here}/c.png/"], "a folder's name"),
     ],
-    ids=["rays 0", "scalar variant", "json in no folder", "picture in no folder"],
+    ids=["rays 0", "scalar variant", "json in no folder", "picture in no folder", "json/", "png/"],
 )
 def test_the_command_line_refuses_bad_options_in_one_line(scenes, tmp_path, capsys, args, needle):
     """--rays 0 ran with another figure (93.8 % for 100 %), a scalar variant and an
     output in a missing folder ended in tracebacks, after the work for the last."""
     from neural_brdf.inverse import coverage
 
-    args = [a.format(missing=tmp_path / "missing") for a in args]
+    args = [a.format(missing=tmp_path / "missing", here=tmp_path) for a in args]
     with pytest.raises(SystemExit) if args[0] == "--rays" else _no_raise():
         code = coverage.main([str(scenes["lights"][0]), *args])
         assert code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and needle in err, err
+    assert not (tmp_path / "c.png").exists() and not (tmp_path / "c.json").exists()
 
 
 class _no_raise:

@@ -184,3 +184,9 @@ def test_the_command_line_reads_a_configs_noise_and_refuses_a_bad_reference(mi, 
     assert D.main([str(tmp_path / "fit.yaml"), "-o", str(missing)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no folder" in err[0], err
+    # the views held out whole (images.validation_views) are not fitted: not counted
+    held = tmp_path / "held.yaml"
+    held.write_text((tmp_path / "fit.yaml").read_text() + "\nimages:\n  validation_views: [1]\n")
+    every, _ = D._inputs([str(tmp_path / "fit.yaml")])
+    fitted, _ = D._inputs([str(held)])
+    assert [v.scene_path for v in fitted] == [every[0].scene_path, every[2].scene_path]

@@ -561,8 +561,12 @@ def test_a_report_of_a_model_its_metrics_did_not_measure_is_refused(capsys, run_
     code, _, err = cli(capsys, "export", str(run))
     assert code == 0 and "note:" in err and "metrics.json measured the model.onnx" in err
     code, _, err = cli(capsys, "report", str(run), "-o", str(tmp_path / "stale"))
-    assert_one_line_error(code, err, "metrics.json", "measured another model.onnx")
+    assert_one_line_error(code, err, "metrics.json", "measured another model.onnx", "--resume")
     assert not (tmp_path / "stale").exists()
+    # the way back that both lines name: --resume exports, measures and reports again
+    code, out, err = cli(capsys, "train", str(cfg), "--out", str(run), "--resume")
+    assert code == 0 and "already finished" not in out, out + err
+    assert cli(capsys, "report", str(run), "-o", str(tmp_path / "again"))[0] == 0
     del metrics[runfolder.MODEL_DIGEST]  # written before the digest was kept
     (run / "metrics.json").write_text(json.dumps(metrics))
     assert cli(capsys, "report", str(run), "-o", str(tmp_path / "old"))[0] == 0

@@ -170,6 +170,9 @@ def test_an_output_name_ending_with_a_slash_is_refused(capsys, model, tmp_path, 
     argv = [{"RUN": str(tmp_path), "MODEL": str(model), "OUT": given}.get(a, a) for a in args]
     assert_one_line_error(*cli(capsys, *argv)[::2], given, "a folder's name")
     assert (name.read_text() == "KEEP") if exists else not name.exists()
+    dotted = str(tmp_path / "new") + os.sep + "."  # a final "." names the folder as well
+    argv = [{"RUN": str(tmp_path), "MODEL": str(model), "OUT": dotted}.get(a, a) for a in args]
+    assert_one_line_error(*cli(capsys, *argv)[::2], dotted, "a folder's name")
 
 
 def test_validate_refuses_a_json_in_no_folder_before_it_validates(

@@ -91,16 +91,18 @@ def test_a_resume_that_cannot_write_its_log_leaves_the_old_one_whole(tmp_path, m
     assert log.read_bytes() == before
 
 
-def _resume_with_log(tmp_path, text: bytes, steps: int = 8):
-    """A run of 6 steps (rows 2, 4, 6; checkpoint at 6) resumed to ``steps`` after its
-    log.csv was replaced by ``text``."""
+def _resume_with_log(tmp_path, text: bytes | None, steps: int = 8, log_every: int = 2):
+    """A run of 6 steps (rows 2, 4, 6; checkpoint at 6) resumed to ``steps`` (logging
+    every ``log_every``) after its log.csv was replaced by ``text`` (None: kept)."""
     c = cfg()
     first = Session.one(c, tmp_path / "r")
     first.begin()
     fake_loop(first)
     log = tmp_path / "r" / "log.csv"
-    log.write_bytes(text)
-    c = c.model_copy(update={"train": c.train.model_copy(update={"steps": steps})})
+    if text is not None:
+        log.write_bytes(text)
+    update = {"steps": steps, "log_every": log_every}
+    c = c.model_copy(update={"train": c.train.model_copy(update=update)})
     again = Session.one(c, tmp_path / "r", resume=True)
     ckpt = again.resumed()
     assert ckpt is not None and ckpt["step"] == 6
@@ -137,6 +139,50 @@ def test_a_log_whose_last_line_a_kill_cut_short_resumes(tmp_path, capsys):
     step read as a smaller step, out of order)."""
     log = _resume_with_log(tmp_path, HEAD + b"2,0.5,0.01,0.1,\n4,0.25,0.01,0.2,\n6,0.1")
     assert [r["step"] for r in rows(log)] == ["2", "4", "8"]  # (6: lost with its line)
+    assert "missing" not in capsys.readouterr().err
+
+
+def test_a_last_line_cut_inside_its_last_value_is_dropped(tmp_path):
+    """A row is written with its newline: a last line without one was cut short, even
+    when it has every column (here a held-out error of 0.0125 cut to 0.01)."""
+    text = HEAD + b"2,0.5,0.01,0.1,\n4,0.25,0.01,0.2,\n6,0.1,0.01,0.3,0.01"
+    log = _resume_with_log(tmp_path, text)
+    assert [r["step"] for r in rows(log)] == ["2", "4", "8"]
+
+
+def test_a_refused_log_leaves_config_yaml_as_it_was(tmp_path):
+    """The log is read before the resume's first write: a refused one left config.yaml
+    holding the refused command's settings beside the old checkpoint."""
+    c = cfg()
+    first = Session.one(c, tmp_path / "r")
+    first.begin()
+    fake_loop(first)
+    before = (tmp_path / "r" / "config.yaml").read_bytes()
+    (tmp_path / "r" / "log.csv").write_bytes(b"hello\n1,2\n")
+    c = c.model_copy(update={"train": c.train.model_copy(update={"steps": 8, "lr": 0.02})})
+    again = Session.one(c, tmp_path / "r", resume=True)
+    assert again.resumed() is not None
+    with pytest.raises(InputError, match="log.csv"):
+        again.begin()
+    assert (tmp_path / "r" / "config.yaml").read_bytes() == before
+
+
+def test_a_lower_log_every_on_resume_says_nothing_is_missing(tmp_path, capsys):
+    """Rows are missing only if the checkpoint's own log_every says so: rows every 4
+    steps, a checkpoint at 6 (the last row at 4), resumed logging every step, lost
+    nothing (it said rows were missing, by the new log_every)."""
+    c = cfg("train.steps=10", "train.log_every=4")
+    first = Session.one(c, tmp_path / "r")
+    first.begin()
+    fake_loop(first, stop=7)  # checkpoints at 3 and 6; rows at 4
+    c = c.model_copy(update={"train": c.train.model_copy(update={"log_every": 1})})
+    again = Session.one(c, tmp_path / "r", resume=True)
+    ckpt = again.resumed()
+    assert ckpt is not None and ckpt["step"] == 6
+    again.begin()
+    again.restore(ckpt)
+    fake_loop(again)
+    assert [r["step"] for r in rows(tmp_path / "r" / "log.csv")] == ["4", "7", "8", "9", "10"]
     assert "missing" not in capsys.readouterr().err
 
 

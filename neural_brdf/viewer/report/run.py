@@ -147,8 +147,8 @@ def _describes_the_model(metrics: dict, run_dir: Path) -> None:
         raise InputError(
             f"{run_dir / 'metrics.json'}: measured another model.onnx than the one in the "
             "run (re-exported or replaced since), so its figures would not describe it; "
-            f"measure this one with neural-brdf validate {model} --reference "
-            f"{run_dir / 'config.yaml'}"
+            f"neural-brdf train {run_dir / 'config.yaml'} --out {run_dir} --resume "
+            "exports, measures and reports the run again"
         )
 
 
