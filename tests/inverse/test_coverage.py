@@ -19,6 +19,7 @@ thousand rays per view; the file takes a few seconds.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import xml.etree.ElementTree as ET
@@ -349,20 +350,12 @@ def test_the_command_line_refuses_bad_options_in_one_line(scenes, tmp_path, caps
     from neural_brdf.inverse import coverage
 
     args = [a.format(missing=tmp_path / "missing", here=tmp_path) for a in args]
-    with pytest.raises(SystemExit) if args[0] == "--rays" else _no_raise():
+    with pytest.raises(SystemExit) if args[0] == "--rays" else contextlib.nullcontext():
         code = coverage.main([str(scenes["lights"][0]), *args])
         assert code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and needle in err, err
     assert not (tmp_path / "c.png").exists() and not (tmp_path / "c.json").exists()
-
-
-class _no_raise:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def test_a_config_s_views_held_out_whole_are_not_counted(scenes, tmp_path, capsys):

@@ -101,15 +101,20 @@ def _resume_with_log(tmp_path, text: bytes | None, steps: int = 8, log_every: in
     log = tmp_path / "r" / "log.csv"
     if text is not None:
         log.write_bytes(text)
-    update = {"steps": steps, "log_every": log_every}
-    c = c.model_copy(update={"train": c.train.model_copy(update=update)})
+    _resume(tmp_path, c, steps=steps, log_every=log_every)
+    return log
+
+
+def _resume(tmp_path, c: config.Config, **train) -> None:
+    """The run in ``tmp_path / "r"`` (checkpoint at step 6) resumed with ``train``'s
+    settings changed, to the end."""
+    c = c.model_copy(update={"train": c.train.model_copy(update=train)})
     again = Session.one(c, tmp_path / "r", resume=True)
     ckpt = again.resumed()
     assert ckpt is not None and ckpt["step"] == 6
     again.begin()
     again.restore(ckpt)
     fake_loop(again)
-    return log
 
 
 HEAD = b"step,loss,lr,seconds,val_rel_rmse\n"
@@ -175,13 +180,7 @@ def test_a_lower_log_every_on_resume_says_nothing_is_missing(tmp_path, capsys):
     first = Session.one(c, tmp_path / "r")
     first.begin()
     fake_loop(first, stop=7)  # checkpoints at 3 and 6; rows at 4
-    c = c.model_copy(update={"train": c.train.model_copy(update={"log_every": 1})})
-    again = Session.one(c, tmp_path / "r", resume=True)
-    ckpt = again.resumed()
-    assert ckpt is not None and ckpt["step"] == 6
-    again.begin()
-    again.restore(ckpt)
-    fake_loop(again)
+    _resume(tmp_path, c, log_every=1)
     assert [r["step"] for r in rows(tmp_path / "r" / "log.csv")] == ["4", "7", "8", "9", "10"]
     assert "missing" not in capsys.readouterr().err
 
