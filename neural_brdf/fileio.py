@@ -114,7 +114,7 @@ def atomic_path(
     names a folder (``-o out/``): NotADirectoryError, never the file ``out``.
     """
     raw = os.fspath(path)
-    if raw.endswith(tuple(s for s in (os.sep, os.altsep) if s)) and not os.path.isdir(raw):
+    if names_a_folder(raw) and not os.path.isdir(raw):
         why = "a name that ends with / is a folder's; give a file name"
         raise NotADirectoryError(errno.ENOTDIR, why, raw)
     path = Path(path)
@@ -154,6 +154,31 @@ def atomic_path(
         if name is not None and e.filename is not None and str(e.filename) != name:
             raise  # the writer's own trouble with some other file
         raise _renamed(e, path) from e
+
+
+_SEPARATORS = tuple(s for s in (os.sep, os.altsep) if s)
+
+
+def names_a_folder(path: str | os.PathLike) -> bool:
+    """Whether the name ``path`` is spelled as a folder's: it ends with a separator, or
+    its last part is "." or "..".  ``Path`` drops both, so ``-o out/`` wrote, or
+    replaced, the file ``out``."""
+    raw = os.fspath(path)
+    return raw.endswith(_SEPARATORS) or os.path.basename(raw) in (".", "..")
+
+
+def check_output_folder(out: str, flag: str = "-o") -> None:
+    """Before any work, an output file's name: InputError naming ``flag`` when it is
+    spelled as a folder's (:func:`names_a_folder`, and no folder is there) or its folder
+    does not exist (or is a file)."""
+    from neural_brdf.errors import InputError
+
+    if names_a_folder(out) and not os.path.isdir(out):
+        raise InputError(f"{flag} {out}: a folder's name; give a file name")
+    parent = Path(out).parent
+    if not parent.is_dir():
+        why = f"{parent} is a file, not a folder" if parent.exists() else f"no folder {parent}"
+        raise InputError(f"{flag} {out}: cannot write ({why})")
 
 
 # the temporary file atomic_path writes beside NAME: .NAME.<mkstemp's 8 characters>.tmp

@@ -64,7 +64,6 @@ when coverage is at least :data:`WARN_BELOW`) is printed.
 from __future__ import annotations
 
 import math
-import os
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -663,21 +662,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def check_outputs(picture: str | None, json_path: str | None) -> None:
-    """Before any work: the folders of ``-o`` and ``--json`` exist (InputError)."""
+    """Before any work: ``-o`` and ``--json`` name files whose folders exist (InputError)."""
+    from neural_brdf.fileio import check_output_folder
+
     for flag, path in (("-o", picture), ("--json", json_path)):
         if path is None:
             continue
-        if path.endswith(tuple(s for s in (os.sep, os.altsep) if s)) or Path(path).name in (
-            "",
-            ".",
-            "..",
-        ):
-            raise InputError(f"{flag} {path}: a folder's name; give a file name")
         if Path(path).is_dir():
             raise InputError(f"{flag} {path}: is a folder; give a file name")
-        parent = Path(path).parent
-        if not parent.is_dir():
-            raise InputError(f"{flag} {path}: cannot write (no folder {parent})")
+        check_output_folder(path, flag)
 
 
 def cli_outputs(info: dict[str, Any], message: str | None, json_path: str | None) -> int:

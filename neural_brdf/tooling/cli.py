@@ -227,26 +227,12 @@ def _output_file(out: str, what: str, flag: str = "-o") -> None:
     _output_folder(out, flag)
 
 
-def _a_file_name(out: str, flag: str = "-o") -> None:
-    """Refuse an output name that ends with a separator (``-o out/``), which names a
-    folder: ``Path`` drops the separator, so the file ``out`` was written (a file of that
-    name replaced)."""
-    if out != STDOUT and out.endswith(tuple(s for s in (os.sep, os.altsep) if s)):
-        if not Path(out).is_dir():
-            raise InputError(
-                f"{flag} {out}: ends with {out[-1]}, a folder's name; give a file name"
-            )
-    if out != STDOUT and os.path.basename(out) in (".", ".."):  # Path drops a final "."
-        raise InputError(f"{flag} {out}: a folder's name; give a file name")
-
-
 def _output_folder(out: str, flag: str = "-o") -> None:
-    """Refuse an output file whose folder does not exist (or is a file): InputError."""
-    _a_file_name(out, flag)
-    parent = Path(out).parent
-    if not parent.is_dir():
-        why = f"{parent} is a file, not a folder" if parent.exists() else f"no folder {parent}"
-        raise InputError(f"{flag} {out}: cannot write ({why})")
+    """Refuse an output file spelled as a folder's (``-o out/``) or whose folder does not
+    exist (or is a file): InputError (:func:`neural_brdf.fileio.check_output_folder`)."""
+    from neural_brdf.fileio import check_output_folder
+
+    check_output_folder(out, flag)
 
 
 # A run folder's own files (neural_brdf.runfolder owns the list): no command's output may
@@ -817,7 +803,8 @@ def _view(args) -> int:
     from neural_brdf.viewer import page as viewer
 
     probes = viewer.parse_probes(args.uv)
-    _a_file_name(args.out)
+    if args.out != STDOUT:
+        _output_folder(args.out)
     args.compare = _preset_or_path(args.compare)  # a preset name, as train takes one
     _not_measured(args.compare)
     if args.uv and Path(args.model).is_file() and not load(args.model).textured:
