@@ -510,19 +510,17 @@ def _metrics_of_another_model(run_dir: Path) -> None:
     """After ``export RUN`` into the run: a note when its metrics.json measured another
     model.onnx (a config.yaml edited, another machine's float sums), which ``report
     RUN`` then refuses (neural_brdf.viewer.report.run)."""
-    from neural_brdf import runfolder
-    from neural_brdf.train import target_files
+    from neural_brdf.train.session import measured_another_model, remeasure_advice
 
     try:
-        said = json.loads((run_dir / "metrics.json").read_text()).get(runfolder.MODEL_DIGEST)
-    except (OSError, ValueError, AttributeError):
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+        another = isinstance(metrics, dict) and measured_another_model(metrics, run_dir)
+    except (OSError, ValueError):
         return  # no metrics.json to describe the old file (or none readable)
-    if said is not None and said != target_files.sha256(run_dir / "model.onnx"):
+    if another:
         print(
             f"note: {run_dir / 'metrics.json'} measured the model.onnx that was there, not "
-            "this one (report RUN refuses it now); neural-brdf train "
-            f"{run_dir / 'config.yaml'} --out {run_dir} --resume exports, measures and "
-            "reports the run again",
+            f"this one (report RUN refuses it now); {remeasure_advice(run_dir)}",
             file=sys.stderr,
         )
 

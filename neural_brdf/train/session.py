@@ -269,6 +269,23 @@ def load_resumable(
 REPORT_PENDING = "report_pending"
 
 
+def measured_another_model(metrics: dict, run_dir: Path) -> bool:
+    """Whether ``metrics`` (a run's metrics.json) measured another model.onnx than the
+    one in ``run_dir``: its ``model_sha256`` differs from the file's (``export RUN``
+    after an edit of config.yaml, a file put there); False without the digest (a
+    metrics.json written before it was kept).  OSError when the model cannot be read."""
+    said = metrics.get(runfolder.MODEL_DIGEST)
+    return said is not None and said != target_files.sha256(run_dir / runfolder.MODEL)
+
+
+def remeasure_advice(run_dir: Path) -> str:
+    """What measures and reports a run again whose metrics.json is of another model."""
+    return (
+        f"neural-brdf train {run_dir / runfolder.CONFIG} --out {run_dir} --resume exports, "
+        "measures and reports the run again"
+    )
+
+
 def finished_report(run_dir: Path, step: int) -> dict | None:
     """The metrics.json of a run that finished at ``step`` (its model.onnx written
     too), or None: a run stopped before it finished exporting, validating or writing
@@ -290,9 +307,8 @@ def finished_report(run_dir: Path, step: int) -> dict | None:
     training = report.get("training") if isinstance(report, dict) else None
     if not isinstance(training, dict) or training.get("steps") != step:
         return None
-    said = report.get(runfolder.MODEL_DIGEST)
     try:
-        if said is not None and said != target_files.sha256(run_dir / runfolder.MODEL):
+        if measured_another_model(report, run_dir):
             return None
     except OSError:
         return None

@@ -15,8 +15,8 @@ from neural_brdf import config as cfgmod
 from neural_brdf import runfolder
 from neural_brdf.errors import InputError
 from neural_brdf.runtime import NeuralBRDF, load
-from neural_brdf.train import data, target_files
-from neural_brdf.train.session import LOG_COLUMNS
+from neural_brdf.train import data
+from neural_brdf.train.session import LOG_COLUMNS, measured_another_model, remeasure_advice
 
 # the run's files a report reads (their names: runfolder)
 RUN_FILES = (runfolder.CONFIG, runfolder.METRICS, runfolder.LOG, runfolder.MODEL)
@@ -135,20 +135,16 @@ def _describes_the_model(metrics: dict, run_dir: Path) -> None:
     edit of config.yaml) or put there since was reported with the old file's figures
     and verdicts beside its own plots.  A metrics.json without the digest is read as
     before."""
-    said = metrics.get(runfolder.MODEL_DIGEST)
-    if said is None:
-        return
     model = run_dir / "model.onnx"
     try:
-        there = target_files.sha256(model)
+        another = measured_another_model(metrics, run_dir)
     except OSError as e:
         raise InputError(f"{model}: cannot read ({e.strerror or e})") from None
-    if there != said:
+    if another:
         raise InputError(
             f"{run_dir / 'metrics.json'}: measured another model.onnx than the one in the "
             "run (re-exported or replaced since), so its figures would not describe it; "
-            f"neural-brdf train {run_dir / 'config.yaml'} --out {run_dir} --resume "
-            "exports, measures and reports the run again"
+            f"{remeasure_advice(run_dir)}"
         )
 
 
