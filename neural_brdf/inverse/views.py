@@ -1025,15 +1025,18 @@ def _fit_wrapper(root: ET.Element) -> ET.Element | None:
     return None
 
 
+def bsdf_text(bsdf: ET.Element) -> str:
+    """The XML of a standalone Mitsuba BSDF from its element (its ``id`` dropped)."""
+    el = copy.deepcopy(bsdf)
+    el.attrib.pop("id", None)
+    return '<bsdf version="3.0.0"' + ET.tostring(el, encoding="unicode")[len("<bsdf") :]
+
+
 def mitsuba_bsdf(bsdf: ET.Element):
     """A standalone Mitsuba BSDF from its XML element."""
     import mitsuba as mi
 
-    el = copy.deepcopy(bsdf)
-    el.attrib.pop("id", None)
-    return mi.load_string(
-        '<bsdf version="3.0.0"' + ET.tostring(el, encoding="unicode")[len("<bsdf") :]
-    )
+    return mi.load_string(bsdf_text(bsdf))
 
 
 def mitsuba_f_cos(bsdf, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:

@@ -187,11 +187,20 @@ def albedo_at(
     *,
     seed: int = 0,
     target: Described | None = None,
+    azimuths: int = 0,
 ) -> np.ndarray:
     """rho(theta_i) (M, C) of a numpy ``fn(wi, wo)`` at incidences ``theta_deg`` (M,) in
     the xz plane, by :func:`albedo` (``target`` as there): the albedo curve of
-    the report and the viewer."""
+    the report and the viewer.  With ``azimuths`` > 0, averaged over that many equally
+    spaced azimuths of wi instead: what the validator's furnace measures for an
+    anisotropic model."""
     t = np.radians(np.asarray(theta_deg, dtype=np.float64))
-    wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
+    if azimuths <= 0:
+        wi = torch.from_numpy(np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], -1))
+        rho, _ = albedo(from_numpy(fn), wi, n, seed=seed, target=target)
+        return rho.numpy()
+    phi = (torch.arange(azimuths, dtype=torch.float64) + 0.5) * (2.0 * math.pi / azimuths)
+    theta = torch.from_numpy(t)[:, None].expand(len(t), azimuths)
+    wi = frame.spherical(theta, phi[None].expand_as(theta)).reshape(-1, 3)
     rho, _ = albedo(from_numpy(fn), wi, n, seed=seed, target=target)
-    return rho.numpy()
+    return rho.numpy().reshape(len(t), azimuths, -1).mean(1)

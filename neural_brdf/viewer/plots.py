@@ -33,7 +33,6 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-import torch
 from matplotlib import colormaps
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
@@ -275,32 +274,22 @@ def rusinkiewicz_images(neural: Fn, reference: Fn | None = None, *, n: int = 128
 
 # ------------------------------------------------------------------ albedo
 def albedo_values(
-    fn: Fn, theta_i_deg: np.ndarray, *, samples: int = 4096, seed: int = 0, sampler=None
+    fn: Fn,
+    theta_i_deg: np.ndarray,
+    *,
+    samples: int = 4096,
+    seed: int = 0,
+    sampler=None,
+    azimuths: int = 0,
 ) -> np.ndarray:
     """rho(theta_i) (len, 3) by the MIS quadrature of :mod:`neural_brdf.physics.quadrature`;
-    ``sampler`` (an analytic model) adds its importance sampler to the proposals."""
-    return quadrature.albedo_at(fn, theta_i_deg, samples, seed=seed, target=sampler)
-
-
-def albedo_over_azimuth(
-    fn: Fn, theta_i_deg, azimuths: int, *, samples: int = 4096, seed: int = 0, sampler=None
-) -> np.ndarray:
-    """rho(theta_i) (len, 3) averaged over ``azimuths`` equally spaced azimuths of wi, by
-    the quadrature of :func:`albedo_values`: what the validator's furnace measures (and
-    metrics.json's furnace.curve holds) for an anisotropic model."""
-    t = np.radians(np.asarray(theta_i_deg, dtype=np.float64))[:, None]
-    phi = (np.arange(azimuths) + 0.5) * (2.0 * math.pi / azimuths)
-    phi = np.broadcast_to(phi[None], (len(t), azimuths))
-    st = np.sin(t)
-    wi = np.stack([st * np.cos(phi), st * np.sin(phi), np.broadcast_to(np.cos(t), phi.shape)], -1)
-    rho, _ = quadrature.albedo(
-        quadrature.from_numpy(fn),
-        torch.from_numpy(wi.reshape(-1, 3)),
-        samples,
-        seed=seed,
-        target=sampler,
+    ``sampler`` (an analytic model) adds its importance sampler to the proposals.  With
+    ``azimuths`` > 0, averaged over that many azimuths of wi (``quadrature.albedo_at``):
+    what the validator's furnace measures (and metrics.json's furnace.curve holds) for an
+    anisotropic model."""
+    return quadrature.albedo_at(
+        fn, theta_i_deg, samples, seed=seed, target=sampler, azimuths=azimuths
     )
-    return rho.numpy().reshape(len(t), azimuths, -1).mean(1)
 
 
 def albedo_theta(n_theta: int = 46) -> np.ndarray:
@@ -337,7 +326,7 @@ def albedo_curve(
         theta_n, rho = (np.asarray(x, dtype=np.float64) for x in measured)
     elif azimuths > 0:
         theta_n = theta
-        rho = albedo_over_azimuth(neural, theta, azimuths, samples=samples, sampler=sampler)
+        rho = albedo_values(neural, theta, samples=samples, sampler=sampler, azimuths=azimuths)
     else:
         theta_n, rho = theta, albedo_values(neural, theta, samples=samples, sampler=sampler)
     if values is not None:
@@ -347,9 +336,7 @@ def albedo_curve(
     if reference is not None:
         if azimuths > 0:  # like the neural curve: at its incidences, over azimuth
             theta = theta_n
-            ref = albedo_over_azimuth(reference, theta, azimuths, samples=samples, sampler=sampler)
-        else:
-            ref = albedo_values(reference, theta, samples=samples, sampler=sampler)
+        ref = albedo_values(reference, theta, samples=samples, sampler=sampler, azimuths=azimuths)
         if values is not None:
             values.update(reference=ref, reference_theta=theta)
         for c, (name, colour) in enumerate(CHANNELS):

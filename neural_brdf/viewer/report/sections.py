@@ -66,12 +66,12 @@ def physics_verdicts(m: dict, path: Path) -> dict[str, bool]:
     }
 
 
-def peak_passed(peak: dict, path: Path) -> bool:
-    """The peak check's verdict: its stored flag (``validate.passed``'s) and its value
-    within its limit, both."""
+def peak_figures(peak: dict, path: Path) -> tuple[float, float, bool]:
+    """The peak check's value, limit and verdict: its stored flag (``validate.passed``'s)
+    and its value within its limit, both."""
     value = _as_number(peak.get("value"), "peak.value", path)
     limit = _as_number(peak.get("limit"), "peak.limit", path)
-    return bool(peak.get("passed", True)) and value <= limit
+    return value, limit, bool(peak.get("passed", True)) and value <= limit
 
 
 def _summary(run: Run) -> list:
@@ -82,13 +82,12 @@ def _summary(run: Run) -> list:
     ]
     peak = m.get("peak")
     if isinstance(peak, dict):  # neural-brdf validate fails on it too
-        value = _as_number(peak.get("value"), "peak.value", path)
-        limit = _as_number(peak.get("limit"), "peak.limit", path)
+        value, limit, ok = peak_figures(peak, path)
         rows.append(
             [
                 # (no-break spaces: a number keeps its unit)
                 f"highlight's peak check: {100 * value:.2f}\u00a0% (limit {100 * limit:g}\u00a0%)",
-                Verdict(peak_passed(peak, path)),
+                Verdict(ok),
             ]
         )
     rows += [
@@ -282,8 +281,7 @@ def _accuracy(run: Run, note: str | None, images: list[Image]) -> list:
 
 def _peak(peak: dict, path: Path) -> list:
     """The validator's peak check: model / target at and near the mirror direction."""
-    value = _as_number(peak.get("value"), "peak.value", path)
-    limit = _as_number(peak.get("limit"), "peak.limit", path)
+    value, limit, ok = peak_figures(peak, path)
     given = peak.get("pairs")
     pairs: list = given if isinstance(given, list) else []
     offsets = sorted({p["offset_deg"] for p in pairs if isinstance(p, dict)})
@@ -301,7 +299,7 @@ def _peak(peak: dict, path: Path) -> list:
             [f"{theta:g}°", f"{phi:g}°", way]
             + [f"{100 * errors[o]:.2f} %" if o in errors else "-" for o in offsets]
         )
-    verdict = "passed" if peak_passed(peak, path) else "FAILED"
+    verdict = "passed" if ok else "FAILED"
     return [
         Text(
             f"At the highlight's peak: {100 * value:.2f} % (limit {100 * limit:g} %, {verdict}). "
