@@ -554,12 +554,12 @@ function drawAlbedo() {
   const box = {x: 50, y: 22, w: W - 62, h: H - 58};
   let hi = 1.05;
   for (const m of models) for (const v of curveOf(m).rho) hi = Math.max(hi, v[0] * 1.05, v[1] * 1.05, v[2] * 1.05);
-  const yr = [0, hi];
+  const yr = [0, hi], step = niceStep(0, hi, 4);
   axes(ctx, W, H, box, [0, 90], yr, {
     xticks: [0, 15, 30, 45, 60, 75, 90], yticks: niceTicks(0, hi, 4),
     xlabel: "θi [deg]", ylabel: "ρ(θi) = ∫ f cos θo dωo", title: (DATA.textured ? "albedo ρ(θi) (precomputed)" :
       "directional albedo ρ(θi) (precomputed)") + probeText(),
-    ylabelOf: (y) => tickText(y, niceStep(0, hi, 4))});
+    ylabelOf: (y) => tickText(y, step)});
   models.forEach((m, k) => {
     const a = curveOf(m);
     for (let c = 0; c < 3; c++)
