@@ -126,38 +126,31 @@ def test_binary_outputs_refuse_stdout(capsys, model, tmp_path, args):
     assert not (tmp_path / "-").exists() and not os.path.exists("-")
 
 
-@pytest.mark.parametrize(
-    "args",
-    [
-        ["export", "RUN", "-o", "DIR"],
-        ["render", "MODEL", "-o", "DIR"],
-        ["bake", "MODEL", "-o", "DIR"],
-        ["codegen", "MODEL", "--target", "c", "-o", "DIR"],
-        ["validate", "MODEL", "--json", "DIR"],
-        ["view", "MODEL", "-o", "DIR"],
-    ],
-    ids=lambda a: a[0],
-)
+# every command that writes a file, OUT its output (RUN, MODEL: its input)
+WRITERS = [
+    ["export", "RUN", "-o", "OUT"],
+    ["render", "MODEL", "-o", "OUT"],
+    ["bake", "MODEL", "-o", "OUT"],
+    ["codegen", "MODEL", "--target", "c", "-o", "OUT"],
+    ["validate", "MODEL", "--json", "OUT"],
+    ["view", "MODEL", "-o", "OUT"],
+]
+
+
+def _argv(args, tmp_path, model, out) -> list[str]:
+    return [{"RUN": str(tmp_path), "MODEL": str(model), "OUT": str(out)}.get(a, a) for a in args]
+
+
+@pytest.mark.parametrize("args", WRITERS, ids=lambda a: a[0])
 def test_an_output_folder_is_one_line_exit_2(capsys, model, tmp_path, args):
     folder = tmp_path / "out.binary"  # a folder, whatever its name says
     folder.mkdir()
-    args = [{"RUN": str(tmp_path), "MODEL": str(model), "DIR": str(folder)}.get(a, a) for a in args]
+    args = _argv(args, tmp_path, model, folder)
     assert_one_line_error(*cli(capsys, *args)[::2], str(folder))
     assert list(folder.iterdir()) == []
 
 
-@pytest.mark.parametrize(
-    "args",
-    [
-        ["export", "RUN", "-o", "OUT"],
-        ["render", "MODEL", "-o", "OUT"],
-        ["bake", "MODEL", "-o", "OUT"],
-        ["codegen", "MODEL", "--target", "c", "-o", "OUT"],
-        ["validate", "MODEL", "--json", "OUT"],
-        ["view", "MODEL", "-o", "OUT"],
-    ],
-    ids=lambda a: a[0],
-)
+@pytest.mark.parametrize("args", WRITERS, ids=lambda a: a[0])
 @pytest.mark.parametrize("exists", [False, True], ids=["new", "a file"])
 def test_an_output_name_ending_with_a_slash_is_refused(capsys, model, tmp_path, args, exists):
     """``-o out.x/`` names a folder: the separator was dropped, so a new file ``out.x``
@@ -167,11 +160,11 @@ def test_an_output_name_ending_with_a_slash_is_refused(capsys, model, tmp_path, 
     if exists:
         name.write_text("KEEP")
     given = str(name) + os.sep
-    argv = [{"RUN": str(tmp_path), "MODEL": str(model), "OUT": given}.get(a, a) for a in args]
+    argv = _argv(args, tmp_path, model, given)
     assert_one_line_error(*cli(capsys, *argv)[::2], given, "a folder's name")
     assert (name.read_text() == "KEEP") if exists else not name.exists()
     dotted = str(tmp_path / "new") + os.sep + "."  # a final "." names the folder as well
-    argv = [{"RUN": str(tmp_path), "MODEL": str(model), "OUT": dotted}.get(a, a) for a in args]
+    argv = _argv(args, tmp_path, model, dotted)
     assert_one_line_error(*cli(capsys, *argv)[::2], dotted, "a folder's name")
 
 
